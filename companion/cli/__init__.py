@@ -1,0 +1,62 @@
+"""The ``companion`` command line: one sub-command per module, each with a ``register(subparsers)``.
+
+Sub-command modules import their heavy dependencies (OpenCV, CuPy, MAVSDK, ZeroMQ) inside the command
+function, so ``companion --help`` and light commands start fast. A :class:`~companion.errors.CompanionError`
+becomes one line on stderr and exit code 2; nothing a user typed produces a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+from collections.abc import Sequence
+
+from companion import __version__, exitcodes
+from companion.errors import CompanionError
+
+#: Modules under ``companion.cli`` that contribute sub-commands, in help order.
+_COMMAND_MODULES = ("demo", "process", "sim", "bench", "service")
+
+log = logging.getLogger("companion")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="companion",
+        description="Stereo-vision obstacle avoidance for PX4 (ZED -> 9 regions -> fuzzy -> MAVSDK).",
+    )
+    parser.add_argument("--version", action="version", version=f"companion {__version__}")
+    parser.add_argument(
+        "--log-level",
+        default="INFO",
+        choices=["DEBUG", "INFO", "WARNING", "ERROR"],
+        help="logging threshold (default INFO)",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for name in _COMMAND_MODULES:
+        importlib.import_module(f"companion.cli.{name}").register(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``companion`` console script; returns the exit code."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=getattr(logging, args.log_level),
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+        stream=sys.stderr,
+    )
+    try:
+        return int(args.func(args) or 0)
+    except CompanionError as err:
+        print(f"companion {args.command}: error: {err}", file=sys.stderr)
+        return exitcodes.BAD_INPUT
+    except KeyboardInterrupt:
+        return exitcodes.FORCED_EXIT
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

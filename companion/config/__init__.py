@@ -1,0 +1,152 @@
+"""The whole configuration: one TOML file validated by pydantic v2.
+
+``load_config(path)`` reads and validates a file; ``parse_config(mapping)`` validates a mapping;
+``apply_patch(config, patch)`` validates a partial update against a whole new model. All three raise
+:class:`~companion.errors.ConfigError` whose message names the field path and the bad value; none of
+them ever returns a half-valid config. The defaults of every model are the documented default file
+``config/companion.toml`` (a test keeps the two equal), so the service runs with no file at all.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from pydantic import Field, ValidationError
+
+from companion.config._base import StrictModel
+from companion.config.core import (
+    CalibrationConfig,
+    CommandConfig,
+    ControllerConfig,
+    InputTerm,
+    LutConfig,
+    OutputTerm,
+    RegionsConfig,
+    RuleConfig,
+    StereoConfig,
+)
+from companion.config.gpu import GpuConfig
+from companion.config.service import BusConfig, CameraConfig, ServiceConfig, VehicleConfig
+from companion.config.sim import SimConfig
+from companion.errors import ConfigError
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - exercised on 3.10 only
+    import tomli as tomllib
+
+__all__ = [
+    "BusConfig",
+    "CalibrationConfig",
+    "CameraConfig",
+    "CommandConfig",
+    "CompanionConfig",
+    "ControllerConfig",
+    "GpuConfig",
+    "InputTerm",
+    "LutConfig",
+    "OutputTerm",
+    "RegionsConfig",
+    "RuleConfig",
+    "ServiceConfig",
+    "SimConfig",
+    "StereoConfig",
+    "VehicleConfig",
+    "apply_patch",
+    "load_config",
+    "parse_config",
+]
+
+
+class CompanionConfig(StrictModel):
+    """Root of the configuration; one attribute per TOML table."""
+
+    calibration: CalibrationConfig = Field(default_factory=CalibrationConfig)
+    stereo: StereoConfig = Field(default_factory=StereoConfig)
+    regions: RegionsConfig = Field(default_factory=RegionsConfig)
+    lut: LutConfig = Field(default_factory=LutConfig)
+    controller: ControllerConfig = Field(default_factory=ControllerConfig)
+    command: CommandConfig = Field(default_factory=CommandConfig)
+    camera: CameraConfig = Field(default_factory=CameraConfig)
+    vehicle: VehicleConfig = Field(default_factory=VehicleConfig)
+    bus: BusConfig = Field(default_factory=BusConfig)
+    service: ServiceConfig = Field(default_factory=ServiceConfig)
+    gpu: GpuConfig = Field(default_factory=GpuConfig)
+    sim: SimConfig = Field(default_factory=SimConfig)
+
+
+def _short_repr(value: Any, limit: int = 80) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def format_validation_error(err: ValidationError, source: str) -> str:
+    """One line per problem: ``source: field.path: message (got VALUE)``, joined by '; '."""
+    parts = []
+    for e in err.errors(include_url=False):
+        loc = ".".join(str(x) for x in e["loc"]) or "(root)"
+        msg = e["msg"].removeprefix("Value error, ")
+        value = e.get("input")
+        # A whole-model check (e.g. rule cross-references) already names the item in its message.
+        got = "" if e["type"] == "missing" or isinstance(value, dict) else f" (got {_short_repr(value)})"
+        parts.append(f"{loc}: {msg}{got}")
+    return f"{source}: invalid config: " + "; ".join(parts)
+
+
+def parse_config(data: Mapping[str, Any], source: str = "config") -> CompanionConfig:
+    """Validate a mapping (e.g. parsed TOML) into a :class:`CompanionConfig`.
+
+    Raises:
+        ConfigError: naming each bad field's path and value.
+    """
+    try:
+        return CompanionConfig.model_validate(dict(data))
+    except ValidationError as err:
+        raise ConfigError(format_validation_error(err, source), source=source) from None
+
+
+def load_config(path: Path | str | None) -> CompanionConfig:
+    """Read and validate a TOML config file; ``None`` gives the defaults.
+
+    Raises:
+        ConfigError: the file is missing, unreadable, not TOML, or invalid.
+    """
+    if path is None:
+        return CompanionConfig()
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as err:
+        raise ConfigError(f"{path}: cannot read config: {err.strerror or err}", source=str(path)) from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as err:
+        raise ConfigError(f"{path}: not valid TOML: {err}", source=str(path)) from None
+    return parse_config(data, source=str(path))
+
+
+def _deep_merge(base: dict[str, Any], patch: Mapping[str, Any], path: str) -> dict[str, Any]:
+    out = dict(base)
+    for key, value in patch.items():
+        if not isinstance(key, str):
+            raise ConfigError(f"patch: key {key!r} at {path or '(root)'} is not a string")
+        where = f"{path}.{key}" if path else key
+        if isinstance(value, Mapping) and isinstance(out.get(key), dict):
+            out[key] = _deep_merge(out[key], value, where)
+        else:
+            out[key] = value
+    return out
+
+
+def apply_patch(config: CompanionConfig, patch: Mapping[str, Any]) -> CompanionConfig:
+    """Return a new config: ``config`` with ``patch`` deep-merged in (tables merge, lists replace).
+
+    The whole result is validated; on error ``config`` is untouched and a ConfigError says which field.
+    """
+    if not isinstance(patch, Mapping):
+        raise ConfigError(f"patch: expected a table/object, got {type(patch).__name__}")
+    merged = _deep_merge(config.model_dump(mode="python"), patch, "")
+    return parse_config(merged, source="patch")

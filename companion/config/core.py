@@ -1,0 +1,582 @@
+"""Config sections of the perception and decision core (calibration → stereo → regions → LUT → fuzzy).
+
+Every field has a type, a default, bounds, its unit in its name and a description. The defaults are
+the paper's values where the paper gives one (near 0.75 m, far 2.25 m, a 0.5 m safe window at 1.5 m,
+the seven rules, a 45°-rotated corner controller).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field, field_validator, model_validator
+
+from companion.config._base import StrictModel
+from companion.core.fuzzy.rules import parse_antecedent
+from companion.core.types import REGION_NAMES
+
+# --------------------------------------------------------------------------------------------------
+# Calibration
+
+
+class CalibrationConfig(StrictModel):
+    """Where the stereo geometry comes from."""
+
+    file: Path | None = Field(
+        default=None,
+        description=(
+            "Stereo calibration: a ZED factory file SN<serial>.conf, or an OpenCV stereo calibration "
+            "(.yaml/.yml/.json/.npz with K1 D1 K2 D2 R T and image_size). Unset: the frames are taken "
+            "as already rectified by an ideal rig described by ideal_hfov_deg and ideal_baseline_m "
+            "(the simulator's camera)."
+        ),
+    )
+    ideal_hfov_deg: float = Field(
+        default=90.0,
+        gt=10.0,
+        lt=170.0,
+        description="Horizontal field of view of the ideal rectified rig used when no file is set, degrees.",
+    )
+    ideal_baseline_m: float = Field(
+        default=0.12,
+        gt=0.01,
+        le=1.0,
+        description="Baseline of the ideal rig used when no file is set, metres (ZED: 0.12).",
+    )
+    rectify_alpha: float = Field(
+        default=0.0,
+        ge=-1.0,
+        le=1.0,
+        description=(
+            "stereoRectify free scaling: 0 keeps only valid pixels (zoomed), 1 keeps all source pixels, "
+            "-1 lets OpenCV choose."
+        ),
+    )
+
+
+# --------------------------------------------------------------------------------------------------
+# Stereo matching
+
+StereoBackend = Literal["auto", "opencv-bm", "opencv-sgbm", "reference", "cupy"]
+
+
+class StereoConfig(StrictModel):
+    """Disparity computation."""
+
+    backend: StereoBackend = Field(
+        default="auto",
+        description=(
+            "Disparity backend. auto: cupy when a CUDA device and CuPy are present, else opencv-bm. "
+            "opencv-bm: OpenCV StereoBM on the CPU (fast). opencv-sgbm: OpenCV StereoSGBM (better, "
+            "slower). reference: exact NumPy SAD block matching, the oracle the GPU must equal (slow). "
+            "cupy: the CUDA kernels, same rules as reference."
+        ),
+    )
+    num_disparities: int = Field(
+        default=64,
+        ge=16,
+        le=256,
+        multiple_of=16,
+        description="Disparity search range [0, num_disparities) in pixels; a multiple of 16 (OpenCV's rule).",
+    )
+    block_size_px: int = Field(
+        default=9, ge=5, le=31, description="Side of the square matching window in pixels; odd."
+    )
+    uniqueness_ratio_pct: int = Field(
+        default=10,
+        ge=0,
+        le=100,
+        description=(
+            "Reject a match unless its cost beats every non-adjacent disparity's cost by this margin, "
+            "percent (OpenCV's uniquenessRatio; the reference and cupy backends use the same rule)."
+        ),
+    )
+    texture_threshold_grey: int = Field(
+        default=3,
+        ge=0,
+        le=255,
+        description=(
+            "reference/cupy: reject a pixel whose window has a mean absolute horizontal grey-level "
+            "difference below this (flat, textureless patches give no reliable match), grey levels."
+        ),
+    )
+    bm_texture_threshold: int = Field(
+        default=10,
+        ge=0,
+        le=100000,
+        description="opencv-bm: OpenCV's textureThreshold (sum of |prefiltered| values over the window).",
+    )
+    bm_prefilter_type: Literal["xsobel", "normalized_response"] = Field(
+        default="xsobel", description="opencv-bm: pre-filter applied to both images before matching."
+    )
+    bm_prefilter_size_px: int = Field(
+        default=9, ge=5, le=255, description="opencv-bm: pre-filter window size for normalized_response, odd."
+    )
+    bm_prefilter_cap: int = Field(
+        default=31, ge=1, le=63, description="opencv-bm/sgbm: clip of pre-filtered values."
+    )
+    speckle_window_px: int = Field(
+        default=100,
+        ge=0,
+        le=10000,
+        description="opencv-bm/sgbm: largest blob of disparity (pixels) still removed as speckle; 0 = off.",
+    )
+    speckle_range_px: int = Field(
+        default=2,
+        ge=0,
+        le=64,
+        description="opencv-bm/sgbm: disparity variation within a blob still counted as one blob, pixels.",
+    )
+    sgbm_mode: Literal["sgbm", "hh", "sgbm_3way", "hh4"] = Field(
+        default="sgbm_3way", description="opencv-sgbm: path aggregation mode (sgbm_3way is the fastest)."
+    )
+    sgbm_p1: int = Field(
+        default=0,
+        ge=0,
+        le=100000,
+        description="opencv-sgbm: penalty for a disparity change of 1 between neighbours; 0 = 8·block².",
+    )
+    sgbm_p2: int = Field(
+        default=0,
+        ge=0,
+        le=400000,
+        description="opencv-sgbm: penalty for larger disparity changes; 0 = 32·block². Must exceed p1.",
+    )
+    cpu_threads: int = Field(
+        default=0,
+        ge=0,
+        le=256,
+        description="OpenCV worker threads for the CPU backends; 0 = all cores.",
+    )
+
+    @field_validator("block_size_px")
+    @classmethod
+    def _odd_block(cls, v: int) -> int:
+        if v % 2 == 0:
+            raise ValueError(f"block_size_px must be odd, got {v}")
+        return v
+
+    @field_validator("bm_prefilter_size_px")
+    @classmethod
+    def _odd_prefilter(cls, v: int) -> int:
+        if v % 2 == 0:
+            raise ValueError(f"bm_prefilter_size_px must be odd, got {v}")
+        return v
+
+    @model_validator(mode="after")
+    def _sgbm_penalties(self) -> StereoConfig:
+        if self.sgbm_p1 and self.sgbm_p2 and self.sgbm_p2 <= self.sgbm_p1:
+            raise ValueError(f"sgbm_p2 ({self.sgbm_p2}) must be greater than sgbm_p1 ({self.sgbm_p1})")
+        return self
+
+
+# --------------------------------------------------------------------------------------------------
+# Regions
+
+
+class RegionsConfig(StrictModel):
+    """The nine regions and how each is reduced to one depth."""
+
+    safe_window_width_m: float = Field(
+        default=0.5,
+        gt=0.05,
+        le=10.0,
+        description="Width of the safe window around the vehicle that defines the centre region, metres.",
+    )
+    safe_window_height_m: float = Field(
+        default=0.5,
+        gt=0.05,
+        le=10.0,
+        description="Height of the safe window that defines the centre region, metres.",
+    )
+    reference_distance_m: float = Field(
+        default=1.5,
+        gt=0.1,
+        le=50.0,
+        description=(
+            "Distance at which the safe window is projected through the rectified focal length to size "
+            "the centre region, metres (paper: 0.5 m at 1.5 m ≈ 150 px at f ≈ 450 px)."
+        ),
+    )
+    robust_percentile_pct: float = Field(
+        default=2.0,
+        ge=0.0,
+        le=50.0,
+        description=(
+            "Region depth = this low percentile of the region's valid depths, percent: the k-th "
+            "nearest valid pixel with k = max(1, ceil(pct/100 · n_valid)). 0 = the raw minimum (the "
+            "paper's choice, which one false match turns into a phantom obstacle)."
+        ),
+    )
+    min_valid_fraction: float = Field(
+        default=0.10,
+        gt=0.0,
+        le=1.0,
+        description=(
+            "A region with a smaller share of valid depth pixels than this is unknown, and the "
+            "controller treats unknown as near."
+        ),
+    )
+    max_depth_m: float = Field(
+        default=20.0,
+        gt=1.0,
+        le=1000.0,
+        description="Region depths beyond this (including matches at disparity 0) are reported as this, metres.",
+    )
+
+
+# --------------------------------------------------------------------------------------------------
+# Look-up table
+
+
+class LutConfig(StrictModel):
+    """Depth refinement (paper section VI) and per-region temporal filter."""
+
+    points_m: list[tuple[float, float]] = Field(
+        default=[(0.2, 0.2), (40.0, 40.0)],
+        min_length=2,
+        max_length=256,
+        description=(
+            "Pairs (computed depth, true depth), metres, both strictly increasing. Depths are mapped "
+            "piecewise-linearly and clamped to the table's ends. The default is the identity."
+        ),
+    )
+    release_time_constant_s: float = Field(
+        default=0.0,
+        ge=0.0,
+        le=10.0,
+        description=(
+            "Low-pass time constant for a region depth that grows (an obstacle receding), seconds; "
+            "0 = off. A depth that shrinks (an obstacle approaching) is never delayed."
+        ),
+    )
+
+    @field_validator("points_m")
+    @classmethod
+    def _monotone(cls, pts: list[tuple[float, float]]) -> list[tuple[float, float]]:
+        for i in range(1, len(pts)):
+            (c0, t0), (c1, t1) = pts[i - 1], pts[i]
+            if not c1 > c0:
+                raise ValueError(
+                    f"computed depths must be strictly increasing: point {i} has {c1} m after {c0} m"
+                )
+            if not t1 > t0:
+                raise ValueError(
+                    f"true depths must be strictly increasing: point {i} has {t1} m after {t0} m"
+                )
+        for i, (c, t) in enumerate(pts):
+            if c <= 0 or t <= 0:
+                raise ValueError(f"depths must be positive: point {i} is ({c}, {t})")
+        return pts
+
+
+# --------------------------------------------------------------------------------------------------
+# Fuzzy controller
+
+MembershipShape = Literal["triangle", "trapezoid", "left_shoulder", "right_shoulder", "gaussian"]
+_SHAPE_ARITY = {"triangle": 3, "trapezoid": 4, "left_shoulder": 2, "right_shoulder": 2, "gaussian": 2}
+
+
+def _check_shape_params(shape: str, params: tuple[float, ...]) -> None:
+    n = _SHAPE_ARITY[shape]
+    if len(params) != n:
+        raise ValueError(f"{shape} takes {n} parameters, got {len(params)}: {list(params)}")
+    if shape == "gaussian":
+        if params[1] <= 0:
+            raise ValueError(f"gaussian sigma must be > 0, got {params[1]}")
+        return
+    if any(b < a for a, b in zip(params, params[1:])):
+        raise ValueError(f"{shape} parameters must be non-decreasing, got {list(params)}")
+    if shape in ("left_shoulder", "right_shoulder") and params[1] <= params[0]:
+        raise ValueError(f"{shape} needs a < b, got {list(params)}")
+
+
+class InputTerm(StrictModel):
+    """A membership function over a region depth (metres).
+
+    Shapes: triangle (a, b, c): 0 at a, 1 at b, 0 at c. trapezoid (a, b, c, d). left_shoulder (a, b):
+    1 up to a, falling linearly to 0 at b. right_shoulder (a, b): 0 up to a, rising to 1 at b.
+    gaussian (mean, sigma).
+    """
+
+    shape: MembershipShape = Field(description="Membership function shape.")
+    params_m: tuple[float, ...] = Field(description="Shape parameters in metres (see the shape).")
+
+    @model_validator(mode="after")
+    def _check(self) -> InputTerm:
+        _check_shape_params(self.shape, self.params_m)
+        return self
+
+
+class OutputTerm(StrictModel):
+    """A membership function over a normalised output in [-1, 1] (same shapes as :class:`InputTerm`)."""
+
+    shape: MembershipShape = Field(description="Membership function shape.")
+    params: tuple[float, ...] = Field(description="Shape parameters, dimensionless, on [-1, 1].")
+
+    @model_validator(mode="after")
+    def _check(self) -> OutputTerm:
+        _check_shape_params(self.shape, self.params)
+        return self
+
+
+class RuleConfig(StrictModel):
+    """One Mamdani rule: ``when`` (a condition over region terms) ``then`` (output terms).
+
+    ``when`` may use the placeholders ``{yaw_side}`` (the preferred horizontal side, a region and yaw
+    term: left/right), ``{pitch_side}`` (up/down) and ``{corner_side}`` (the preferred corner, e.g.
+    up_right); ``then`` values may use ``{yaw_side}`` and ``{pitch_side}``.
+    """
+
+    name: str = Field(min_length=1, max_length=64, description="Short unique name, shown in logs and health.")
+    when: str = Field(min_length=1, max_length=500, description="Condition, e.g. 'center is near and up is far'.")
+    then: dict[Literal["yaw", "pitch"], str] = Field(
+        min_length=1, description="Output -> term, e.g. {yaw = 'left'}."
+    )
+    weight: float = Field(default=1.0, gt=0.0, le=1.0, description="Rule weight multiplying its strength.")
+    doc: str = Field(default="", max_length=1000, description="Why the rule exists (free text).")
+
+    @field_validator("when")
+    @classmethod
+    def _parse(cls, v: str) -> str:
+        parse_antecedent(_substitute_placeholders(v, "right", "up"))
+        return v
+
+
+def _substitute_placeholders(text: str, yaw_side: str, pitch_side: str) -> str:
+    return (
+        text.replace("{yaw_side}", yaw_side)
+        .replace("{pitch_side}", pitch_side)
+        .replace("{corner_side}", f"{pitch_side}_{yaw_side}")
+    )
+
+
+def _t(shape: str, *p: float) -> dict:
+    return {"shape": shape, "params": p}
+
+
+def _i(shape: str, *p: float) -> dict:
+    return {"shape": shape, "params_m": p}
+
+
+def _default_input_terms() -> dict[str, InputTerm]:
+    # Paper: below 0.75 m is near, above 2.25 m is far, linear between (a 1/3 scale on its 0–3 axis).
+    return {
+        "near": InputTerm(**_i("left_shoulder", 0.75, 2.25)),
+        "far": InputTerm(**_i("right_shoulder", 0.75, 2.25)),
+    }
+
+
+def _default_yaw_terms() -> dict[str, OutputTerm]:
+    return {
+        "left": OutputTerm(**_t("trapezoid", -1.0, -1.0, -0.6, 0.0)),
+        "straight": OutputTerm(**_t("triangle", -0.4, 0.0, 0.4)),
+        "right": OutputTerm(**_t("trapezoid", 0.0, 0.6, 1.0, 1.0)),
+    }
+
+
+def _default_pitch_terms() -> dict[str, OutputTerm]:
+    return {
+        "down": OutputTerm(**_t("trapezoid", -1.0, -1.0, -0.6, 0.0)),
+        "level": OutputTerm(**_t("triangle", -0.4, 0.0, 0.4)),
+        "up": OutputTerm(**_t("trapezoid", 0.0, 0.6, 1.0, 1.0)),
+    }
+
+
+def _r(name: str, when: str, doc: str, **then: str) -> RuleConfig:
+    return RuleConfig(name=name, when=when, then=then, doc=doc)
+
+
+def _default_main_rules() -> list[RuleConfig]:
+    return [
+        _r("R1", "center is far", "Paper rule 1: centre clear, fly straight.", yaw="straight", pitch="level"),
+        _r("R2", "center is near and up is near and down is far",
+           "Paper rule 2: blocked ahead and above, free below: go down.", pitch="down"),
+        _r("R3", "center is near and down is near and up is far",
+           "Paper rule 3: blocked ahead and below, free above: go up.", pitch="up"),
+        _r("R4", "center is near and right is near and left is far",
+           "Paper rule 4: blocked ahead and right, free left: turn left.", yaw="left"),
+        _r("R5", "center is near and left is near and right is far",
+           "Paper rule 5: blocked ahead and left, free right: turn right.", yaw="right"),
+        _r("R6", "center is near and {yaw_side} is far",
+           "Paper rule 6 (preferred side): blocked ahead and the preferred side is free: turn to it. "
+           "The paper prints 'right is near -> right', which would steer into the obstacle and cancel "
+           "rule 4; read as the preference that breaks left/right ties (paper Fig. 9c).",
+           yaw="{yaw_side}"),
+        _r("R7", "center is near and {pitch_side} is far",
+           "Paper rule 7 (preferred vertical): blocked ahead and the preferred vertical side is free: "
+           "go that way (same reading as rule 6).",
+           pitch="{pitch_side}"),
+        _r("TIE", "center is near and up is near and down is near and left is far and right is far",
+           "Tie rule (paper Fig. 9c): ahead, above and below blocked, both sides free: take the "
+           "preferred side so the centroid never collapses to straight.",
+           yaw="{yaw_side}"),
+    ]
+
+
+def _default_corner_rules() -> list[RuleConfig]:
+    # The main controller rotated by 45°: up -> up_right, right -> down_right, down -> down_left,
+    # left -> up_left. Consulted only when the main controller finds no escape.
+    return [
+        _r("C1", "center is far", "Rotated rule 1: centre clear, fly straight.", yaw="straight", pitch="level"),
+        _r("C2", "center is near and up_right is near and down_left is far",
+           "Rotated rule 2: blocked up-right, free down-left: go down-left.", yaw="left", pitch="down"),
+        _r("C3", "center is near and down_left is near and up_right is far",
+           "Rotated rule 3: blocked down-left, free up-right: go up-right.", yaw="right", pitch="up"),
+        _r("C4", "center is near and down_right is near and up_left is far",
+           "Rotated rule 4: blocked down-right, free up-left: go up-left.", yaw="left", pitch="up"),
+        _r("C5", "center is near and up_left is near and down_right is far",
+           "Rotated rule 5: blocked up-left, free down-right: go down-right.", yaw="right", pitch="down"),
+        _r("C6", "center is near and {corner_side} is far",
+           "Rotated preference: blocked ahead and the preferred corner is free: go to it.",
+           yaw="{yaw_side}", pitch="{pitch_side}"),
+    ]
+
+
+class ControllerConfig(StrictModel):
+    """The Mamdani fuzzy controller: membership functions, operators and the rule bases."""
+
+    and_method: Literal["min", "product"] = Field(default="min", description="Fuzzy AND (t-norm).")
+    or_method: Literal["max", "probabilistic_sum"] = Field(default="max", description="Fuzzy OR (s-norm).")
+    implication: Literal["min", "product"] = Field(
+        default="min", description="How a rule's strength shapes its output set: clip (min) or scale (product)."
+    )
+    defuzzification: Literal["centroid", "mean_of_maximum", "bisector"] = Field(
+        default="centroid", description="Defuzzification of the aggregated (max) output set."
+    )
+    output_resolution: int = Field(
+        default=201, ge=21, le=10001, description="Samples of the output universe [-1, 1]."
+    )
+    input_terms: dict[str, InputTerm] = Field(
+        default_factory=_default_input_terms,
+        min_length=1,
+        description="Terms over every region depth (metres). Paper: near below 0.75 m, far above 2.25 m.",
+    )
+    yaw_terms: dict[str, OutputTerm] = Field(
+        default_factory=_default_yaw_terms, min_length=1, description="Terms of the yaw output (-1 left, +1 right)."
+    )
+    pitch_terms: dict[str, OutputTerm] = Field(
+        default_factory=_default_pitch_terms, min_length=1, description="Terms of the pitch output (-1 down, +1 up)."
+    )
+    yaw_neutral_term: str = Field(default="straight", description="The yaw term that means 'no avoidance'.")
+    pitch_neutral_term: str = Field(default="level", description="The pitch term that means 'no avoidance'.")
+    preferred_yaw_side: Literal["left", "right"] = Field(
+        default="right", description="Side taken when both are equally free ({yaw_side} in rules). Paper: right."
+    )
+    preferred_pitch_side: Literal["up", "down"] = Field(
+        default="up", description="Vertical side taken when both are equally free ({pitch_side} in rules)."
+    )
+    main_rules: list[RuleConfig] = Field(
+        default_factory=_default_main_rules, min_length=1, description="The main controller (centre + 4 sides)."
+    )
+    corner_rules: list[RuleConfig] = Field(
+        default_factory=_default_corner_rules,
+        description="The 45°-rotated controller over the corners, consulted when the main one finds no escape.",
+    )
+    unknown_depth_m: float = Field(
+        default=0.0,
+        ge=0.0,
+        le=0.75,
+        description="Depth fed to the controller for an unknown region, metres: unknown is treated as near.",
+    )
+    min_escape_strength: float = Field(
+        default=0.05,
+        gt=0.0,
+        le=1.0,
+        description="Strongest non-neutral rule below this means that controller found no escape.",
+    )
+    brake_near_degree: float = Field(
+        default=0.5,
+        gt=0.0,
+        le=1.0,
+        description=(
+            "With no escape from either controller, brake once the centre is at least this near "
+            "(membership of the first input term, 'near')."
+        ),
+    )
+
+    def substitute(self, text: str) -> str:
+        """Replace ``{yaw_side}``, ``{pitch_side}`` and ``{corner_side}`` in a rule's text."""
+        return _substitute_placeholders(text, self.preferred_yaw_side, self.preferred_pitch_side)
+
+    @model_validator(mode="after")
+    def _check_rules(self) -> ControllerConfig:
+        regions = set(REGION_NAMES)
+        out_terms = {"yaw": self.yaw_terms, "pitch": self.pitch_terms}
+        if self.yaw_neutral_term not in self.yaw_terms:
+            raise ValueError(f"yaw_neutral_term {self.yaw_neutral_term!r} is not one of {sorted(self.yaw_terms)}")
+        if self.pitch_neutral_term not in self.pitch_terms:
+            raise ValueError(
+                f"pitch_neutral_term {self.pitch_neutral_term!r} is not one of {sorted(self.pitch_terms)}"
+            )
+        if "near" not in self.input_terms:
+            raise ValueError("input_terms must define 'near' (used for braking and speed)")
+        for label, rules in (("main_rules", self.main_rules), ("corner_rules", self.corner_rules)):
+            seen: set[str] = set()
+            for k, rule in enumerate(rules):
+                where = f"{label}.{k} ({rule.name!r})"
+                if rule.name in seen:
+                    raise ValueError(f"{where}: duplicate rule name")
+                seen.add(rule.name)
+                ante = parse_antecedent(self.substitute(rule.when))
+                for c in ante.clauses:
+                    if c.variable not in regions:
+                        raise ValueError(
+                            f"{where}: unknown region {c.variable!r}; regions are {', '.join(REGION_NAMES)}"
+                        )
+                    if c.term not in self.input_terms:
+                        raise ValueError(f"{where}: unknown term {c.term!r}; terms are {sorted(self.input_terms)}")
+                for out, term in rule.then.items():
+                    term = self.substitute(term)
+                    if term not in out_terms[out]:
+                        raise ValueError(f"{where}: {out} has no term {term!r}; terms are {sorted(out_terms[out])}")
+        return self
+
+
+# --------------------------------------------------------------------------------------------------
+# Command mapping
+
+
+class CommandConfig(StrictModel):
+    """How a decision becomes a body-frame velocity setpoint, and when frames are too old to trust."""
+
+    cruise_speed_m_s: float = Field(
+        default=1.0, ge=0.0, le=15.0, description="Forward speed when the way is clear, m/s (paper: constant)."
+    )
+    avoid_speed_fraction: float = Field(
+        default=1.0,
+        ge=0.0,
+        le=1.0,
+        description=(
+            "Forward speed while the centre is fully near, as a share of the cruise speed, blended "
+            "linearly with the centre's near degree. 1 = the paper's constant speed."
+        ),
+    )
+    max_yaw_rate_deg_s: float = Field(
+        default=45.0, ge=0.0, le=360.0, description="Yaw rate commanded at fuzzy yaw ±1, deg/s."
+    )
+    max_vertical_speed_m_s: float = Field(
+        default=0.5, ge=0.0, le=5.0, description="Vertical speed commanded at fuzzy pitch ±1, m/s."
+    )
+    stale_frame_timeout_s: float = Field(
+        default=0.5,
+        gt=0.0,
+        le=10.0,
+        description="A newest frame older than this gives a zero-velocity setpoint (state degraded), seconds.",
+    )
+    failsafe_timeout_s: float = Field(
+        default=5.0,
+        gt=0.0,
+        le=120.0,
+        description="A newest frame older than this makes the service leave offboard to Hold (state failsafe), seconds.",
+    )
+
+    @model_validator(mode="after")
+    def _order(self) -> CommandConfig:
+        if self.failsafe_timeout_s <= self.stale_frame_timeout_s:
+            raise ValueError(
+                f"failsafe_timeout_s ({self.failsafe_timeout_s}) must exceed stale_frame_timeout_s "
+                f"({self.stale_frame_timeout_s})"
+            )
+        return self
