@@ -1,0 +1,144 @@
+"""OpenCV StereoBM and StereoSGBM behind the common matcher contract.
+
+Both OpenCV matchers return int16 fixed point (disparity × 16) with ``(minDisparity - 1) * 16`` for
+invalid pixels. ``minDisparity`` is always 0 here, so every negative value is invalid; the wrappers
+turn the result into float32 pixels (``raw / 16``, exact) with NaN for invalid, never 0.
+
+Images too small for one full window over the whole search range (``H <= block_size`` or ``W <
+num_disparities + block_size``) give an all-NaN disparity without calling OpenCV, which refuses
+(StereoBM) or mis-sizes its buffers (StereoSGBM) on them.
+
+The OpenCV objects are created once per matcher from :class:`~companion.config.core.StereoConfig`;
+the int16 result and the invalid mask are preallocated after the first frame and reused.
+"""
+
+from __future__ import annotations
+
+from types import MappingProxyType
+
+import cv2
+import numpy as np
+
+from companion.config.core import StereoConfig
+from companion.core.disparity.base import check_out, check_pair
+from companion.errors import FrameError
+
+_PREFILTER = MappingProxyType({
+    "xsobel": cv2.StereoBM_PREFILTER_XSOBEL,
+    "normalized_response": cv2.StereoBM_PREFILTER_NORMALIZED_RESPONSE,
+})
+_SGBM_MODE = MappingProxyType({
+    "sgbm": cv2.StereoSGBM_MODE_SGBM,
+    "hh": cv2.StereoSGBM_MODE_HH,
+    "sgbm_3way": cv2.StereoSGBM_MODE_SGBM_3WAY,
+    "hh4": cv2.StereoSGBM_MODE_HH4,
+})
+_INV_SCALE = np.float32(1.0 / cv2.StereoMatcher_DISP_SCALE)  # 1/16, exact in float32
+
+
+def set_cv_threads(cpu_threads: int) -> None:
+    """Set OpenCV's (process-wide) worker thread count; ``0`` = all cores.
+
+    OpenCV reads 0 as "no threading" and a negative value as "the default (all cores)", so the
+    config's 0 maps to -1.
+    """
+    cv2.setNumThreads(int(cpu_threads) if cpu_threads > 0 else -1)
+
+
+class _OpenCVMatcher:
+    """Shared conversion: int16 ×16 fixed point -> float32 px with NaN for invalid."""
+
+    name = "opencv"
+
+    def __init__(self, matcher: cv2.StereoMatcher, num_disparities: int, block_size: int) -> None:
+        self._matcher = matcher
+        self._num_disparities = num_disparities
+        self._block_size = block_size
+        self._raw: np.ndarray | None = None
+        self._invalid: np.ndarray | None = None
+
+    def compute(self, left: np.ndarray, right: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """float32 ``(H, W)`` disparity of ``left``, px, NaN where OpenCV rejected the match.
+
+        Args:
+            left, right: uint8 ``(H, W)`` rectified grey images.
+            out: optional float32 ``(H, W)`` C-contiguous array to write into.
+        """
+        shape = check_pair(left, right)
+        out = check_out(out, shape)
+        if self._raw is None or self._raw.shape != shape:
+            self._raw = np.empty(shape, dtype=np.int16)
+            self._invalid = np.empty(shape, dtype=bool)
+        assert self._invalid is not None
+        h, w = shape
+        if h <= self._block_size or w < self._num_disparities + self._block_size:
+            # No pixel can be matched; OpenCV rejects (BM) or mis-sizes buffers (SGBM) on such images.
+            out.fill(np.nan)
+            return out
+        try:
+            raw = self._matcher.compute(left, right, self._raw)
+        except cv2.error as exc:
+            raise FrameError(f"{self.name} failed on a {w}x{h} pair: {str(exc).strip()}") from exc
+        if raw is not self._raw:  # OpenCV reallocated (should not happen): keep its result
+            self._raw = raw
+        np.multiply(raw, _INV_SCALE, out=out)
+        np.less(raw, 0, out=self._invalid)
+        np.copyto(out, np.float32(np.nan), where=self._invalid)
+        return out
+
+
+class OpenCVBMMatcher(_OpenCVMatcher):
+    """OpenCV StereoBM (block matching on pre-filtered images; fast).
+
+    Args:
+        cfg: stereo config: num_disparities, block_size_px, uniqueness_ratio_pct,
+            bm_texture_threshold, bm_prefilter_type/size/cap, speckle_window_px/range_px.
+    """
+
+    name = "opencv-bm"
+
+    def __init__(self, cfg: StereoConfig) -> None:
+        bm = cv2.StereoBM.create(numDisparities=cfg.num_disparities, blockSize=cfg.block_size_px)
+        bm.setMinDisparity(0)
+        bm.setPreFilterType(_PREFILTER[cfg.bm_prefilter_type])
+        bm.setPreFilterSize(cfg.bm_prefilter_size_px)
+        bm.setPreFilterCap(cfg.bm_prefilter_cap)
+        bm.setUniquenessRatio(cfg.uniqueness_ratio_pct)
+        bm.setTextureThreshold(cfg.bm_texture_threshold)
+        bm.setSpeckleWindowSize(cfg.speckle_window_px)
+        bm.setSpeckleRange(cfg.speckle_range_px)
+        super().__init__(bm, cfg.num_disparities, cfg.block_size_px)
+
+
+class OpenCVSGBMMatcher(_OpenCVMatcher):
+    """OpenCV StereoSGBM (semi-global matching; better, slower).
+
+    P1/P2 default to ``8·b²`` and ``32·b²`` (OpenCV's advice for one grey channel). OpenCV needs
+    ``P2 > P1``; a configured P1 at or above the default P2 raises P2 to ``P1 + 1`` (the same
+    adjustment OpenCV itself makes).
+
+    Args:
+        cfg: stereo config: num_disparities, block_size_px, uniqueness_ratio_pct, bm_prefilter_cap,
+            speckle_window_px/range_px, sgbm_mode, sgbm_p1, sgbm_p2.
+    """
+
+    name = "opencv-sgbm"
+
+    def __init__(self, cfg: StereoConfig) -> None:
+        b = cfg.block_size_px
+        p1 = cfg.sgbm_p1 or 8 * b * b
+        p2 = max(cfg.sgbm_p2 or 32 * b * b, p1 + 1)
+        sgbm = cv2.StereoSGBM.create(
+            minDisparity=0,
+            numDisparities=cfg.num_disparities,
+            blockSize=b,
+            P1=p1,
+            P2=p2,
+            preFilterCap=cfg.bm_prefilter_cap,
+            uniquenessRatio=cfg.uniqueness_ratio_pct,
+            speckleWindowSize=cfg.speckle_window_px,
+            speckleRange=cfg.speckle_range_px,
+            mode=_SGBM_MODE[cfg.sgbm_mode],
+        )
+        self.p1, self.p2 = p1, p2
+        super().__init__(sgbm, cfg.num_disparities, b)

@@ -1,0 +1,140 @@
+"""Depth refinement look-up table (paper section VI) and the per-region release filter.
+
+The LUT maps a computed depth to a true depth piecewise-linearly through measured pairs, clamped to
+the table's ends. The release filter keeps an approaching obstacle instant and smooths a receding
+one, so a flickering near match does not make the region depth bounce back to far every other frame.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+
+from companion.config.core import LutConfig
+
+
+class DepthLUT:
+    """Piecewise-linear map computed depth (m) -> true depth (m).
+
+    Args:
+        points_m: ``(computed, true)`` pairs in metres; at least two; both columns strictly
+            increasing and positive (finite).
+
+    Raises:
+        ValueError: fewer than two points, or a point that is non-positive, non-finite or not
+            strictly after its predecessor (the message names the point's index and values).
+    """
+
+    def __init__(self, points_m: Sequence[tuple[float, float]]) -> None:
+        pts = [tuple(p) for p in points_m]
+        if len(pts) < 2:
+            raise ValueError(f"a depth LUT needs at least 2 points, got {len(pts)}")
+        for i, p in enumerate(pts):
+            if len(p) != 2:
+                raise ValueError(f"LUT point {i} must be a (computed, true) pair, got {p}")
+            c, t = float(p[0]), float(p[1])
+            if not (math.isfinite(c) and math.isfinite(t) and c > 0 and t > 0):
+                raise ValueError(f"LUT point {i} ({c}, {t}): depths must be finite and positive")
+            if i > 0:
+                c0, t0 = float(pts[i - 1][0]), float(pts[i - 1][1])
+                if not c > c0:
+                    raise ValueError(
+                        f"LUT point {i} ({c}, {t}): computed depth must be strictly greater than "
+                        f"point {i - 1}'s {c0} m"
+                    )
+                if not t > t0:
+                    raise ValueError(
+                        f"LUT point {i} ({c}, {t}): true depth must be strictly greater than "
+                        f"point {i - 1}'s {t0} m"
+                    )
+        arr = np.array(pts, dtype=np.float64)
+        self._computed = arr[:, 0].copy()
+        self._true = arr[:, 1].copy()
+        self._computed.flags.writeable = False
+        self._true.flags.writeable = False
+
+    @classmethod
+    def from_config(cls, cfg: LutConfig) -> DepthLUT:
+        """The LUT that ``cfg.points_m`` describes."""
+        return cls(cfg.points_m)
+
+    @property
+    def computed_m(self) -> np.ndarray:
+        """float64 ``(n,)``: the table's computed depths, metres (read-only)."""
+        return self._computed
+
+    @property
+    def true_m(self) -> np.ndarray:
+        """float64 ``(n,)``: the table's true depths, metres (read-only)."""
+        return self._true
+
+    def apply(self, depth_m: np.ndarray) -> np.ndarray:
+        """Refined depth.
+
+        Args:
+            depth_m: depths in metres, any shape (region depths float64 ``(9,)``, or an image).
+
+        Returns:
+            Same shape; float32 for float32 input, else float64. Below the first computed depth ->
+            the first true depth; above the last (``+inf`` included) -> the last true depth; NaN
+            (unknown) stays NaN.
+        """
+        d = np.asarray(depth_m)
+        res = np.interp(d, self._computed, self._true)  # clamps to fp[0] / fp[-1]; NaN -> NaN
+        if d.dtype == np.float32:
+            return res.astype(np.float32)
+        return res
+
+    def __repr__(self) -> str:
+        return f"DepthLUT({list(zip(self._computed.tolist(), self._true.tolist()))})"
+
+
+def release_filter(
+    previous_m: np.ndarray | None, new_m: np.ndarray, dt_s: float, time_constant_s: float
+) -> np.ndarray:
+    """Asymmetric per-region low-pass: approach passes at once, release is smoothed.
+
+    Per element (region):
+
+    * new NaN (unknown) -> NaN: unknown is never hidden by memory;
+    * no previous (``None``) or previous NaN -> new;
+    * new <= previous (obstacle approaching) -> new, immediately;
+    * new > previous (receding) -> ``prev + alpha·(new - prev)``, ``alpha = 1 - exp(-dt/τ)``, never
+      above ``new``; ``τ = 0`` -> new (pass-through); ``dt = 0`` with ``τ > 0`` -> prev.
+
+    So the output always lies in ``[min(prev, new), new]``: never farther than the newest sample.
+
+    Args:
+        previous_m: float ``(9,)`` (any shape) last output, metres, or ``None`` on the first frame.
+        new_m: float, same shape, this frame's depths, metres, NaN = unknown.
+        dt_s: time since the previous output, seconds (>= 0); passed in, no clocks here.
+        time_constant_s: release time constant τ, seconds (>= 0).
+
+    Returns:
+        float64 array of ``new_m``'s shape, metres.
+
+    Raises:
+        ValueError: negative or non-finite ``dt_s``/``time_constant_s``, or mismatched shapes.
+    """
+    new = np.array(new_m, dtype=np.float64)
+    if not (math.isfinite(dt_s) and dt_s >= 0):
+        raise ValueError(f"dt_s must be finite and >= 0, got {dt_s}")
+    if not (math.isfinite(time_constant_s) and time_constant_s >= 0):
+        raise ValueError(f"time_constant_s must be finite and >= 0, got {time_constant_s}")
+    if previous_m is None or time_constant_s == 0:
+        return new
+    prev = np.asarray(previous_m, dtype=np.float64)
+    if prev.shape != new.shape:
+        raise ValueError(f"previous_m {prev.shape} and new_m {new.shape} differ in shape")
+    alpha = -math.expm1(-dt_s / time_constant_s)  # 1 - exp(-dt/τ), accurate for small dt/τ
+    grow = new > prev  # False where either is NaN: NaN new stays NaN, NaN prev takes new
+    if alpha > 0:
+        with np.errstate(invalid="ignore"):
+            step = prev + alpha * (new - prev)
+        # Rounding could put prev + 1·(new - prev) a hair above new; inf new gives inf (alpha > 0).
+        np.minimum(step, new, out=step)
+    else:
+        step = prev
+    return np.where(grow, step, new)
