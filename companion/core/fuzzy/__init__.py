@@ -1,0 +1,48 @@
+"""Fuzzy logic: the rule parser, a generic compiled Mamdani engine, and the avoidance controller."""
+
+from companion.core.fuzzy.avoidance import AvoidanceController, build_system
+from companion.core.fuzzy.engine import (
+    FuzzySystem,
+    InferenceResult,
+    InputVariable,
+    OutputVariable,
+    Rule,
+    Term,
+    defuzzify,
+    fuzzy_and,
+    fuzzy_not,
+    fuzzy_or,
+    gaussian,
+    implicate,
+    left_shoulder,
+    membership,
+    right_shoulder,
+    trapezoid,
+    triangle,
+)
+from companion.core.fuzzy.rules import Antecedent, Clause, parse_antecedent
+
+__all__ = [
+    "Antecedent",
+    "AvoidanceController",
+    "Clause",
+    "FuzzySystem",
+    "InferenceResult",
+    "InputVariable",
+    "OutputVariable",
+    "Rule",
+    "Term",
+    "build_system",
+    "defuzzify",
+    "fuzzy_and",
+    "fuzzy_not",
+    "fuzzy_or",
+    "gaussian",
+    "implicate",
+    "left_shoulder",
+    "membership",
+    "parse_antecedent",
+    "right_shoulder",
+    "trapezoid",
+    "triangle",
+]
