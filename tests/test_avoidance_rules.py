@@ -296,3 +296,17 @@ def test_setpoint_from_a_real_decision(ctl: AvoidanceController) -> None:
     sp = setpoint_for(ctl.decide(depths(center=NEAR, left=NEAR, up=NEAR)), 0.05, CMD)
     assert sp.yaw_rate_deg_s > 0 and sp.down_m_s > 0 and sp.forward_m_s > 0  # right and down
     assert setpoint_for(ctl.decide(depths(default=NEAR)), 0.05, CMD).is_zero
+
+
+@pytest.mark.parametrize("wall_m", [0.9, 1.2, 1.4])
+def test_flat_wall_filling_the_view_brakes_instead_of_flying_straight(ctl: AvoidanceController, wall_m: float) -> None:
+    # Every region at the same depth: left/right and up/down escapes fire with equal strength and
+    # cancel to yaw = pitch = 0. That is no escape, so once the centre is near enough: brake.
+    d = ctl.decide(np.full(9, wall_m))
+    assert d.kind is DecisionKind.BRAKE, d
+
+
+def test_flat_wall_far_enough_slows_but_does_not_brake(ctl: AvoidanceController) -> None:
+    d = ctl.decide(np.full(9, 2.0))  # centre near degree 0.17 < brake_near_degree 0.5
+    assert d.kind is DecisionKind.AVOID
+    assert abs(d.yaw) < 1e-9 and abs(d.pitch) < 1e-9

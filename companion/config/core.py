@@ -486,6 +486,15 @@ class ControllerConfig(StrictModel):
         le=1.0,
         description="Strongest non-neutral rule below this means that controller found no escape.",
     )
+    min_escape_command: float = Field(
+        default=0.05,
+        ge=0.0,
+        le=1.0,
+        description=(
+            "An escape whose defuzzified |yaw| and |pitch| are both below this is no escape: opposing "
+            "rules of equal strength (a flat wall filling the view) cancel to 'straight'."
+        ),
+    )
     brake_near_degree: float = Field(
         default=0.5,
         gt=0.0,

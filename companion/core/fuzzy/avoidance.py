@@ -14,10 +14,11 @@ term ``near``; a rule is *neutral* when all its consequents are ``yaw_neutral_te
 a. A NaN (unknown) region depth becomes ``cfg.unknown_depth_m`` (near: unknown is never free space);
    depths are clipped to >= 0.
 b. Run the main system.
-c. Main escape strength >= ``min_escape_strength``: use the main outputs. Kind AVOID when near > 0,
-   else CLEAR (only possible with custom rules whose escapes do not require the centre near).
-d. Else run the corner system; corner escape strength >= ``min_escape_strength``: AVOID with the corner
-   outputs ("corner controller" in the reason).
+c. Main escape strength >= ``min_escape_strength`` and the defuzzified yaw or pitch at least
+   ``min_escape_command`` in magnitude (opposing escapes that cancel, as in front of a flat wall, are
+   no escape): use the main outputs. Kind AVOID when near > 0, else CLEAR (only possible with custom rules whose escapes do not require the centre near).
+d. Else run the corner system; corner escape strength >= ``min_escape_strength`` (same command
+   test): AVOID with the corner outputs ("corner controller" in the reason).
 e. Else, if no rule of either system fired for either output: BRAKE ("no rule fired").
 f. Else, if near >= ``brake_near_degree``: BRAKE (centre blocked, no escape).
 g. Else straight on with the engine's outputs (the main system's, or the corner's if only it fired):
@@ -151,6 +152,7 @@ class AvoidanceController:
         self._near_c = self.main_system.atom("center", "near")
         self._unknown = float(cfg.unknown_depth_m)
         self._min_escape = float(cfg.min_escape_strength)
+        self._min_command = float(cfg.min_escape_command)
         self._brake_near = float(cfg.brake_near_degree)
         self._avoid_speed = float(cmd.avoid_speed_fraction)
 
@@ -178,7 +180,7 @@ class AvoidanceController:
         s_main = main.strengths.tolist()
         strengths = {k: v for k, v in zip(self._main.keys, s_main) if v > 0.0}
         esc, esc_i = _escape(s_main, self._main.escape_idx)
-        if esc >= self._min_escape:
+        if esc >= self._min_escape and self._commands(main):
             if near > 0.0:
                 return self._steer(
                     DecisionKind.AVOID, main, near, f"main controller: escape by {self._main.names[esc_i]} "
@@ -192,7 +194,7 @@ class AvoidanceController:
             s_corner = corner.strengths.tolist()
             strengths.update((k, v) for k, v in zip(self._corner.keys, s_corner) if v > 0.0)
             c_esc, c_i = _escape(s_corner, self._corner.escape_idx)
-            if c_esc >= self._min_escape:
+            if c_esc >= self._min_escape and self._commands(corner):
                 return self._steer(
                     DecisionKind.AVOID, corner, near, f"corner controller: escape by {self._corner.names[c_i]} "
                     f"({c_esc:.2f}); main controller found none (best {esc:.2f})", strengths
@@ -216,6 +218,11 @@ class AvoidanceController:
             f"centre partly near ({near:.2f} < brake {self._brake_near:.2f}), no escape: straight on, slowing",
             strengths,
         )
+
+    def _commands(self, res: InferenceResult) -> bool:
+        """True when the outputs really steer: opposing escapes of equal strength (a flat wall filling
+        the view) defuzzify to ~0, and flying on "straight" then would fly into the wall."""
+        return max(abs(_clip1(res.values["yaw"])), abs(_clip1(res.values["pitch"]))) >= self._min_command
 
     def _steer(
         self, kind: DecisionKind, res: InferenceResult, near: float, reason: str, strengths: dict[str, float]

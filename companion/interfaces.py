@@ -1,0 +1,109 @@
+"""The two seams between the pure core and the outside world: where frames come from, where setpoints go.
+
+The daemon uses a real ZED (:class:`CameraSource` over UVC) and PX4 (:class:`VehicleLink` over MAVSDK);
+the simulator implements the same two interfaces with the renderer and a vehicle model, so the code path
+it scores is the product's own.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from companion.core.types import VelocitySetpoint
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One capture.
+
+    Attributes:
+        image: uint8 (H, 2W, 3) BGR side-by-side frame (left eye first).
+        timestamp_s: capture time on the monotonic clock of the process that consumes it, seconds
+            (the simulator uses simulated time).
+        seq: capture sequence number, increasing by 1 per frame the source produced (a gap means
+            frames were dropped before they reached the consumer).
+    """
+
+    image: np.ndarray
+    timestamp_s: float
+    seq: int
+
+
+@runtime_checkable
+class CameraSource(Protocol):
+    """A blocking frame source. ``read`` runs in the capture thread, never on the event loop."""
+
+    name: str
+
+    @property
+    def eye_size_px(self) -> tuple[int, int]:
+        """(width, height) of one eye, pixels."""
+        ...
+
+    def open(self) -> None:
+        """Open the device or file. Raises :class:`~companion.errors.CameraError`."""
+        ...
+
+    def read(self) -> Frame:
+        """Block until the next frame. Raises :class:`~companion.errors.CameraError` when the source is
+        gone (unplugged, end of a recording); the caller decides whether to reopen."""
+        ...
+
+    def close(self) -> None:
+        """Release the device. Safe to call twice."""
+        ...
+
+
+@dataclass(frozen=True)
+class VehicleState:
+    """What the service knows about the vehicle.
+
+    Attributes:
+        connected: the autopilot's heartbeat is being received.
+        armed: motors armed.
+        flight_mode: PX4 flight mode name as MAVSDK reports it (e.g. "OFFBOARD", "HOLD", "POSCTL").
+        in_offboard: the autopilot is in offboard mode (flight_mode == "OFFBOARD").
+        position_ned_m: float (3,) local position north, east, down in metres, or None if unknown.
+        attitude_rad: float (3,) roll, pitch, yaw in radians (yaw from north, positive clockwise), or None.
+        timestamp_s: when this state was last updated, on the consumer's clock, seconds.
+    """
+
+    connected: bool = False
+    armed: bool = False
+    flight_mode: str = "UNKNOWN"
+    in_offboard: bool = False
+    position_ned_m: np.ndarray | None = None
+    attitude_rad: np.ndarray | None = None
+    timestamp_s: float = 0.0
+
+
+@runtime_checkable
+class VehicleLink(Protocol):
+    """The autopilot, as the service commands it: body-frame velocity + yaw-rate setpoints in offboard."""
+
+    async def connect(self, timeout_s: float) -> None:
+        """Connect and wait for the autopilot. Raises :class:`~companion.errors.VehicleError`."""
+        ...
+
+    async def send_setpoint(self, setpoint: VelocitySetpoint) -> None:
+        """Hand one setpoint to the autopilot link (called at the setpoint rate)."""
+        ...
+
+    async def start_offboard(self) -> None:
+        """Enter offboard mode (a setpoint must have been sent first). Raises VehicleError if refused."""
+        ...
+
+    async def hold(self) -> None:
+        """Leave offboard for Hold (PX4 AUTO.LOITER). Raises VehicleError if refused."""
+        ...
+
+    def state(self) -> VehicleState:
+        """The latest known vehicle state (non-blocking)."""
+        ...
+
+    async def close(self) -> None:
+        """Stop streaming and release the link. Safe to call twice."""
+        ...
