@@ -1,0 +1,37 @@
+"""Synthetic stereo renderer: textured boxes, pillars, ground and backdrop; exact rectified stereo
+pairs with the left eye's ground-truth depth. Pure core (NumPy/OpenCV only).
+
+Public API::
+
+    from companion.core.render import StereoRenderer, Scene, Box, Pillar, Pose
+"""
+
+from __future__ import annotations
+
+from companion.core.render.pose import CAMERA_TO_BODY, Pose
+from companion.core.render.renderer import (
+    Photometry,
+    RenderResult,
+    StereoRenderer,
+    bench_render,
+    bench_scene,
+)
+from companion.core.render.scene import Box, Obstacle, Pillar, Scene, corridor_scene
+from companion.core.render.texture import Material, TextureBank
+
+__all__ = [
+    "CAMERA_TO_BODY",
+    "Box",
+    "Material",
+    "Obstacle",
+    "Photometry",
+    "Pillar",
+    "Pose",
+    "RenderResult",
+    "Scene",
+    "StereoRenderer",
+    "TextureBank",
+    "bench_render",
+    "bench_scene",
+    "corridor_scene",
+]
