@@ -89,6 +89,8 @@ def format_validation_error(err: ValidationError, source: str) -> str:
     for e in err.errors(include_url=False):
         loc = ".".join(str(x) for x in e["loc"]) or "(root)"
         msg = e["msg"].removeprefix("Value error, ")
+        if e["type"] == "extra_forbidden":
+            msg = "unknown key (no such setting here; check the spelling)"
         value = e.get("input")
         # A whole-model check (e.g. rule cross-references) already names the item in its message.
         got = "" if e["type"] == "missing" or isinstance(value, dict) else f" (got {_short_repr(value)})"

@@ -1,0 +1,111 @@
+"""Benchmark helpers shared by ``companion bench`` and the backends' own benchmarks.
+
+Speed goals live here and in ``docs/benchmarks.md``, never in timed tests.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import platform
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from companion.core.geometry import StereoGeometry
+
+
+@dataclass(frozen=True)
+class BenchSize:
+    """One benchmark setting: one eye's size and the disparity range."""
+
+    width_px: int
+    height_px: int
+    num_disparities: int
+
+    @property
+    def label(self) -> str:
+        return f"{self.width_px}x{self.height_px}/{self.num_disparities}"
+
+
+#: The sizes the issues ask for: ZED VGA with 64 disparities, ZED HD720 with 128.
+DEFAULT_SIZES = (BenchSize(672, 376, 64), BenchSize(1280, 720, 128))
+
+
+def parse_sizes(text: str) -> list[BenchSize]:
+    """Parse ``"672x376:64,1280x720:128"``; raises ValueError naming the bad item."""
+    sizes = []
+    for item in text.split(","):
+        try:
+            dims, disp = item.strip().split(":")
+            w, h = dims.lower().split("x")
+            sizes.append(BenchSize(int(w), int(h), int(disp)))
+        except ValueError:
+            raise ValueError(f"bad size {item!r}: expected WIDTHxHEIGHT:DISPARITIES, e.g. 672x376:64") from None
+    return sizes
+
+
+def stats_ms(samples: Sequence[float]) -> dict[str, float]:
+    """Median, p99, mean and max of ``samples`` (milliseconds)."""
+    a = np.asarray(samples, dtype=np.float64)
+    return {
+        "median_ms": float(np.median(a)),
+        "p99_ms": float(np.percentile(a, 99)),
+        "mean_ms": float(a.mean()),
+        "max_ms": float(a.max()),
+    }
+
+
+def rendered_frames(size: BenchSize, n: int, seed: int = 0) -> tuple[StereoGeometry, list[np.ndarray]]:
+    """``n`` distinct side-by-side frames (uint8 (H, 2W, 3)) flying down the benchmark corridor.
+
+    Distinct frames so that caches do not flatter the figures. The rig is ZED-like (87° HFOV, 12 cm).
+    """
+    from companion.core.render import Photometry, Pose, StereoRenderer, corridor_scene
+
+    geometry = StereoGeometry.ideal(size.width_px, size.height_px, hfov_deg=87.0, baseline_m=0.12)
+    scene = corridor_scene(length_m=80.0, width_m=6.0, n_obstacles=18, seed=seed)
+    renderer = StereoRenderer(geometry, scene, seed=seed)
+    rng = np.random.default_rng(seed)
+    noise = Photometry(noise_std=2.0)
+    frames = []
+    for i in range(n):
+        t = i / max(1, n)
+        pose = Pose.at(
+            2.0 + 60.0 * t,
+            1.2 * math.sin(7.0 * t),
+            1.5 + 0.3 * math.sin(3.0 * t),
+            yaw_rad=0.25 * math.sin(11.0 * t),
+        )
+        frames.append(renderer.render_side_by_side(pose, left=noise, right=noise, rng=rng))
+    return geometry, frames
+
+
+def machine_description() -> str:
+    """One line: CPU model, core count, Python and OpenCV versions."""
+    import cv2
+
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    cpu = line.split(":", 1)[1].strip()
+                    break
+    except OSError:
+        pass
+    return (
+        f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, "
+        f"OpenCV {cv2.__version__} ({cv2.getNumThreads()} threads), NumPy {np.__version__}"
+    )
+
+
+def format_table(rows: Iterable[Sequence[object]], header: Sequence[str]) -> str:
+    """A plain fixed-width text table."""
+    rows = [[str(c) for c in r] for r in rows]
+    widths = [max(len(h), *(len(r[i]) for r in rows)) if rows else len(h) for i, h in enumerate(header)]
+    line = "  ".join(h.ljust(w) for h, w in zip(header, widths))
+    out = [line, "  ".join("-" * w for w in widths)]
+    out += ["  ".join(c.ljust(w) for c, w in zip(r, widths)) for r in rows]
+    return "\n".join(out)

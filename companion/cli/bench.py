@@ -1,0 +1,109 @@
+"""``companion bench``: per-stage median and p99 timings of the pipeline (speed goals live here)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+from companion.errors import InputError
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "bench",
+        help="time the pipeline per stage (median, p99) on rendered frames",
+        description=(
+            "Time the pipeline per stage on rendered ZED-like frames at 672x376 (64 disparities) and "
+            "1280x720 (128 disparities), plus the fuzzy controller and the renderer. With --backend cupy, "
+            "the GPU path and OpenCV StereoBM on all host cores run on the same frames, with the ratio. "
+            "With --e2e, frame-to-setpoint latency of the service over a replayed 60 fps stream."
+        ),
+    )
+    p.add_argument(
+        "--backend",
+        default="opencv-bm",
+        choices=["opencv-bm", "opencv-sgbm", "reference", "cupy"],
+        help="disparity backend to time (default opencv-bm)",
+    )
+    p.add_argument("--frames", type=int, default=200, help="timed frames per size (default 200)")
+    p.add_argument("--warmup", type=int, default=10, help="untimed frames first (default 10)")
+    p.add_argument("--sizes", default=None, help="e.g. 672x376:64,1280x720:128 (the default)")
+    p.add_argument("--e2e", action="store_true", help="frame-to-setpoint latency of the service instead")
+    p.add_argument("--json", type=Path, metavar="OUT", help="also write the figures as JSON")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from companion.bench import DEFAULT_SIZES, parse_sizes
+
+    if args.frames < 1 or args.warmup < 0:
+        raise InputError("--frames must be >= 1 and --warmup >= 0")
+    try:
+        sizes = parse_sizes(args.sizes) if args.sizes else list(DEFAULT_SIZES)
+    except ValueError as err:
+        raise InputError(str(err)) from None
+    if args.e2e:
+        from companion.service.bench import run_e2e_bench
+
+        report = run_e2e_bench(args, sizes)
+    elif args.backend == "cupy":
+        from companion.gpu.bench import run_gpu_bench
+
+        report = run_gpu_bench(args, sizes)
+    else:
+        report = run_cpu_bench(args, sizes)
+    if args.json is not None:
+        args.json.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
+    return 0
+
+
+def run_cpu_bench(args: argparse.Namespace, sizes: list[Any]) -> dict[str, Any]:
+    """Time the CPU pipeline per stage at each size; print a table; return the figures."""
+    from companion.bench import format_table, machine_description, rendered_frames, stats_ms
+    from companion.config import CompanionConfig
+    from companion.core.fuzzy.bench import bench_fuzzy
+    from companion.core.pipeline import Pipeline
+    from companion.core.render import bench_render
+
+    report: dict[str, Any] = {"machine": machine_description(), "backend": args.backend, "sizes": {}}
+    print(f"machine: {report['machine']}")
+    rows = []
+    for size in sizes:
+        cfg = CompanionConfig()
+        cfg = cfg.model_copy(
+            update={
+                "stereo": cfg.stereo.model_copy(
+                    update={"backend": args.backend, "num_disparities": size.num_disparities}
+                ),
+                "calibration": cfg.calibration.model_copy(update={"ideal_hfov_deg": 87.0}),
+            }
+        )
+        _, frames = rendered_frames(size, n=min(32, args.frames + args.warmup))
+        pipeline = Pipeline(cfg, size.width_px, size.height_px)
+        per_stage: dict[str, list[float]] = {}
+        for i in range(args.warmup + args.frames):
+            result = pipeline.process(frames[i % len(frames)], timestamp_s=i / 30.0)
+            if i >= args.warmup:
+                for stage, ms in result.timings_ms.items():
+                    per_stage.setdefault(stage, []).append(ms)
+        stats = {stage: stats_ms(v) for stage, v in per_stage.items()}
+        report["sizes"][size.label] = stats
+        for stage, s in stats.items():
+            rows.append([size.label, stage.removesuffix("_ms"), f"{s['median_ms']:.3f}", f"{s['p99_ms']:.3f}"])
+    fuzzy = bench_fuzzy(5000)
+    report["fuzzy_us"] = fuzzy
+    render = bench_render(200)
+    report["render_672x376_ms"] = render
+    print(format_table(rows, ["size/disp", "stage", "median ms", "p99 ms"]))
+    print(
+        f"fuzzy: one inference {fuzzy['infer_median_us']:.1f} us median ({fuzzy['infer_p99_us']:.1f} p99); "
+        f"whole decision {fuzzy['decide_median_us']:.1f} us ({fuzzy['decide_p99_us']:.1f} p99)"
+    )
+    print(
+        f"render 672x376 stereo pair + depth: {render['median_ms']:.2f} ms median ({render['p99_ms']:.2f} p99)"
+    )
+    sys.stdout.flush()
+    return report

@@ -1,0 +1,143 @@
+"""``companion process``: run the pipeline on one stereo frame and print the result as JSON."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+from companion.errors import FrameError, InputError
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "process",
+        help="run the pipeline on one stereo frame; print region depths, yaw, pitch and the decision as JSON",
+        description=(
+            "Run the whole pipeline on one stereo frame (a ZED side-by-side image, or a left/right pair) "
+            "and print JSON: the 9 region depths in metres (null = unknown), yaw, pitch, the decision, "
+            "the setpoint it gives and per-stage timings."
+        ),
+    )
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--sbs", type=Path, metavar="FRAME", help="side-by-side frame (left | right), e.g. a ZED capture")
+    src.add_argument("--left", type=Path, metavar="L", help="left image (with --right)")
+    p.add_argument("--right", type=Path, metavar="R", help="right image (with --left)")
+    p.add_argument("--calib", type=Path, help="calibration file (ZED SN*.conf or OpenCV yaml/npz); overrides the config's")
+    p.add_argument("--config", type=Path, help="TOML config (default: built-in defaults)")
+    p.add_argument("--backend", help="override stereo.backend (auto, opencv-bm, opencv-sgbm, reference, cupy)")
+    p.add_argument("--overlay", type=Path, metavar="OUT.png", help="also draw the regions, depths and command arrow")
+    p.set_defaults(func=run)
+
+
+def _read_image(path: Path) -> Any:
+    import cv2
+
+    if not path.is_file():
+        raise InputError(f"{path}: no such file")
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise InputError(f"{path}: not a readable image (OpenCV could not decode it)")
+    if image.dtype != "uint8":
+        raise InputError(f"{path}: 8-bit images only, got {image.dtype}")
+    if image.ndim == 3 and image.shape[2] == 4:
+        image = image[:, :, :3]
+    return image
+
+
+def load_frame(args: argparse.Namespace) -> Any:
+    """Read the side-by-side frame, or join a left/right pair into one."""
+    import numpy as np
+
+    if args.sbs is not None:
+        if args.right is not None:
+            raise InputError("--right goes with --left, not with --sbs")
+        return _read_image(args.sbs)
+    if args.right is None:
+        raise InputError("--left needs --right")
+    left, right = _read_image(args.left), _read_image(args.right)
+    if left.shape != right.shape:
+        raise FrameError(
+            f"left and right differ: {args.left} is {left.shape[1]}x{left.shape[0]}"
+            f"{'' if left.ndim == 2 else 'x' + str(left.shape[2])}, {args.right} is "
+            f"{right.shape[1]}x{right.shape[0]}{'' if right.ndim == 2 else 'x' + str(right.shape[2])}"
+        )
+    return np.ascontiguousarray(np.concatenate([left, right], axis=1))
+
+
+def run(args: argparse.Namespace) -> int:
+    from companion.config import apply_patch, load_config
+    from companion.core.command import setpoint_for
+    from companion.core.overlay import draw_overlay
+    from companion.core.pipeline import Pipeline
+    from companion.core.stereo import split_side_by_side
+
+    cfg = load_config(args.config)
+    patch: dict[str, Any] = {}
+    if args.calib is not None:
+        patch["calibration"] = {"file": str(args.calib)}
+    if args.backend is not None:
+        patch["stereo"] = {"backend": args.backend}
+    if patch:
+        cfg = apply_patch(cfg, patch)
+    frame = load_frame(args)
+    left, _ = split_side_by_side(frame)
+    height, width = left.shape[:2]
+    pipeline = Pipeline(cfg, width, height)
+    result = pipeline.process(frame, timestamp_s=0.0, want_disparity=args.overlay is not None)
+    setpoint = setpoint_for(result.decision, since_last_frame_s=0.0, cmd=cfg.command)
+    g = pipeline.geometry
+    out = {
+        "backend": pipeline.estimator.name,
+        "image_size_px": [width, height],
+        "focal_px": round(g.focal_px, 3),
+        "baseline_m": round(g.baseline_m, 5),
+        "regions_m": result.refined.as_dict(),
+        "raw_regions_m": result.raw.as_dict(),
+        "valid_fraction": {
+            k: round(float(v), 4) for k, v in zip(result.raw.as_dict(), result.raw.valid_fraction)
+        },
+        "decision": result.decision.kind.value,
+        "reason": result.decision.reason,
+        "yaw": round(result.decision.yaw, 4),
+        "pitch": round(result.decision.pitch, 4),
+        "rules": {k: round(v, 4) for k, v in result.decision.rule_strengths.items()},
+        "setpoint": {
+            "forward_m_s": round(setpoint.forward_m_s, 4),
+            "right_m_s": round(setpoint.right_m_s, 4),
+            "down_m_s": round(setpoint.down_m_s, 4),
+            "yaw_rate_deg_s": round(setpoint.yaw_rate_deg_s, 4),
+        },
+        "timings_ms": {k: round(v, 3) for k, v in result.timings_ms.items()},
+    }
+    if args.overlay is not None:
+        import cv2
+
+        near, far = _near_far_m(cfg)
+        image = draw_overlay(
+            left,
+            pipeline.estimator.layout,
+            result.refined.depth_m,
+            result.decision,
+            near_m=near,
+            far_m=far,
+            disparity=result.disparity,
+            max_disparity_px=float(cfg.stereo.num_disparities),
+        )
+        if not cv2.imwrite(str(args.overlay), image):
+            raise InputError(f"{args.overlay}: cannot write the overlay image (bad extension or directory)")
+        out["overlay"] = str(args.overlay.resolve())
+    json.dump(out, sys.stdout, indent=2)
+    sys.stdout.write("\n")
+    return 0
+
+
+def _near_far_m(cfg: Any) -> tuple[float, float]:
+    """The depths where 'near' stops being total and where 'far' becomes total, for colouring."""
+    near = cfg.controller.input_terms.get("near")
+    far = cfg.controller.input_terms.get("far")
+    near_m = near.params_m[0] if near is not None else 0.75
+    far_m = far.params_m[-1] if far is not None else 2.25
+    return float(near_m), float(far_m)

@@ -1,0 +1,286 @@
+"""The per-frame pipeline: side-by-side frame → 9 region depths → LUT → filter → fuzzy decision.
+
+Two layers:
+
+* a :class:`RegionEstimator` turns one ZED side-by-side frame into 9 raw region depths (split, grey,
+  rectify, disparity, depth, robust minimum). This is the expensive part and has two implementations
+  with one contract: :class:`CpuRegionEstimator` here (OpenCV or the NumPy reference) and the CuPy
+  one in :mod:`companion.gpu`, which must produce what the CPU reference produces.
+* :class:`Pipeline` owns an estimator and the cheap, host-side stages that both share: the depth
+  look-up table, the release filter and the avoidance controller.
+
+Nothing here reads a clock for logic: the frame timestamp is passed in (it drives the filter). Stage
+timings are instrumentation and use an injectable ``clock`` (default :func:`time.perf_counter`).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from companion.config import CompanionConfig
+from companion.core.calibration import make_rectifier
+from companion.core.depth import disparity_to_depth
+from companion.core.disparity import make_cpu_matcher
+from companion.core.fuzzy.avoidance import AvoidanceController
+from companion.core.geometry import StereoGeometry
+from companion.core.lut import DepthLUT, release_filter
+from companion.core.regions import RegionLayout, reduce_regions, region_layout
+from companion.core.stereo import check_pair, split_side_by_side, to_grey
+from companion.core.types import Decision, RegionDepths
+from companion.errors import BackendError, FrameError
+
+log = logging.getLogger(__name__)
+
+Clock = Callable[[], float]
+
+#: Config sections whose change requires a new estimator (new maps, matcher or kernels). A change
+#: elsewhere (LUT, controller, command) applies on the next frame with no rebuild.
+ESTIMATOR_SECTIONS = ("calibration", "stereo", "regions", "gpu")
+
+
+@dataclass(frozen=True)
+class RegionEstimate:
+    """What an estimator returns for one frame.
+
+    Attributes:
+        regions: raw region depths (before the LUT), metres, NaN = unknown.
+        timings_ms: stage name -> milliseconds, in pipeline order.
+        disparity: float32 (H, W) disparity in pixels (NaN invalid) when asked for, else None. A GPU
+            estimator may return a downsampled image.
+    """
+
+    regions: RegionDepths
+    timings_ms: dict[str, float]
+    disparity: np.ndarray | None = None
+
+
+class RegionEstimator(Protocol):
+    """Turns one side-by-side frame into 9 raw region depths."""
+
+    name: str
+    geometry: StereoGeometry
+    layout: RegionLayout
+
+    def estimate(self, frame: np.ndarray, want_disparity: bool = False) -> RegionEstimate:
+        """``frame``: uint8 (H, 2W, 3) BGR or (H, 2W) grey side-by-side image."""
+        ...
+
+
+class CpuRegionEstimator:
+    """The CPU path: OpenCV StereoBM/SGBM or the exact NumPy reference.
+
+    Built once per (config, resolution): the rectification maps, the matcher and every per-frame
+    buffer are allocated here, so :meth:`estimate` allocates nothing large.
+    """
+
+    def __init__(self, cfg: CompanionConfig, width_px: int, height_px: int, clock: Clock = time.perf_counter):
+        self.width_px = width_px
+        self.height_px = height_px
+        self._clock = clock
+        self._regions_cfg = cfg.regions
+        self._rectifier = make_rectifier(cfg.calibration, width_px, height_px)
+        self.geometry: StereoGeometry = self._rectifier.geometry
+        self._matcher = make_cpu_matcher(cfg.stereo)
+        self.name = self._matcher.name
+        self.layout: RegionLayout = region_layout(self.geometry, cfg.regions)
+        shape = (height_px, width_px)
+        self._grey_l = np.empty(shape, np.uint8)
+        self._grey_r = np.empty(shape, np.uint8)
+        self._rect_l = np.empty(shape, np.uint8)
+        self._rect_r = np.empty(shape, np.uint8)
+        self._disparity = np.empty(shape, np.float32)
+        self._depth = np.empty(shape, np.float32)
+
+    def estimate(self, frame: np.ndarray, want_disparity: bool = False) -> RegionEstimate:
+        clock = self._clock
+        timings: dict[str, float] = {}
+        t0 = clock()
+        left, right = split_side_by_side(frame)
+        check_pair(left, right)
+        if left.shape[:2] != (self.height_px, self.width_px):
+            raise FrameError(
+                f"frame eye size {left.shape[1]}x{left.shape[0]} differs from the configured "
+                f"{self.width_px}x{self.height_px}"
+            )
+        gl = to_grey(left, out=self._grey_l)
+        gr = to_grey(right, out=self._grey_r)
+        t1 = clock()
+        timings["grey_ms"] = (t1 - t0) * 1e3
+        rl, rr = self._rectifier.rectify(gl, gr, out_left=self._rect_l, out_right=self._rect_r)
+        t2 = clock()
+        timings["rectify_ms"] = (t2 - t1) * 1e3
+        disp = self._matcher.compute(rl, rr, out=self._disparity)
+        t3 = clock()
+        timings["disparity_ms"] = (t3 - t2) * 1e3
+        depth = disparity_to_depth(disp, self.geometry.focal_baseline_px_m, out=self._depth)
+        regions = reduce_regions(depth, self.layout, self._regions_cfg)
+        t4 = clock()
+        timings["regions_ms"] = (t4 - t3) * 1e3
+        return RegionEstimate(
+            regions=regions, timings_ms=timings, disparity=disp.copy() if want_disparity else None
+        )
+
+
+def cuda_available() -> bool:
+    """True when CuPy imports and sees at least one CUDA device."""
+    if importlib.util.find_spec("cupy") is None:
+        return False
+    try:
+        import cupy
+
+        return cupy.cuda.runtime.getDeviceCount() > 0
+    except Exception as err:  # CuPy raises several types when the driver or runtime is missing
+        log.debug("CuPy present but no usable CUDA device: %s", err)
+        return False
+
+
+def resolve_backend(cfg: CompanionConfig) -> str:
+    """The backend ``cfg.stereo.backend`` means on this machine ("auto" → cupy or opencv-bm)."""
+    backend = cfg.stereo.backend
+    if backend == "auto":
+        return "cupy" if cuda_available() else "opencv-bm"
+    return backend
+
+
+def make_estimator(
+    cfg: CompanionConfig, width_px: int, height_px: int, clock: Clock = time.perf_counter
+) -> RegionEstimator:
+    """Build the estimator the config asks for (``auto``: CuPy when a CUDA device is present).
+
+    Raises:
+        BackendError: ``cupy`` requested on a machine without a usable CUDA device.
+    """
+    backend = resolve_backend(cfg)
+    if backend == "cupy":
+        if not cuda_available():
+            raise BackendError("stereo.backend = 'cupy' but no CUDA device with CuPy is available; use 'auto'")
+        from companion.gpu import CupyRegionEstimator
+
+        return CupyRegionEstimator(cfg, width_px, height_px, clock=clock)
+    if backend != cfg.stereo.backend:
+        cfg = cfg.model_copy(update={"stereo": cfg.stereo.model_copy(update={"backend": backend})})
+    return CpuRegionEstimator(cfg, width_px, height_px, clock=clock)
+
+
+@dataclass(frozen=True)
+class FrameResult:
+    """Everything the pipeline concluded from one frame.
+
+    Attributes:
+        timestamp_s: the frame's capture time (the caller's clock), seconds.
+        raw: region depths from the estimator, metres (NaN unknown).
+        refined: after the LUT and the release filter, metres (NaN unknown).
+        decision: the controller's decision.
+        timings_ms: stage -> milliseconds, plus ``total_ms``.
+        disparity: float32 disparity image when asked for (for overlays), else None.
+    """
+
+    timestamp_s: float
+    raw: RegionDepths
+    refined: RegionDepths
+    decision: Decision
+    timings_ms: dict[str, float] = field(default_factory=dict)
+    disparity: np.ndarray | None = None
+
+
+class Pipeline:
+    """Frame → decision, for one camera resolution.
+
+    Args:
+        cfg: the whole configuration.
+        width_px, height_px: size of one eye.
+        estimator: an estimator to use instead of building one from ``cfg`` (tests, GPU sharing).
+        clock: timing clock for the per-stage figures.
+    """
+
+    def __init__(
+        self,
+        cfg: CompanionConfig,
+        width_px: int,
+        height_px: int,
+        estimator: RegionEstimator | None = None,
+        clock: Clock = time.perf_counter,
+    ):
+        self.width_px = width_px
+        self.height_px = height_px
+        self._clock = clock
+        self.estimator = estimator or make_estimator(cfg, width_px, height_px, clock=clock)
+        self._apply_cheap(cfg)
+        self.config = cfg
+        self._filtered: np.ndarray | None = None
+        self._last_timestamp_s: float | None = None
+
+    @property
+    def geometry(self) -> StereoGeometry:
+        return self.estimator.geometry
+
+    def _apply_cheap(self, cfg: CompanionConfig) -> None:
+        self._lut = DepthLUT(cfg.lut.points_m)
+        self._release_tau_s = cfg.lut.release_time_constant_s
+        self._controller = AvoidanceController(cfg.controller, cfg.command)
+
+    def reconfigure(self, cfg: CompanionConfig) -> list[str]:
+        """Swap in a new, already validated config; returns the sections that changed.
+
+        The LUT, filter and controller change on the next frame. A change to calibration, stereo,
+        regions or gpu rebuilds the estimator (maps, matcher, kernels) before returning, so the
+        next frame uses it. Everything is built before anything is swapped: if building raises,
+        the old config stays in force.
+        """
+        changed = [
+            name
+            for name in type(cfg).model_fields
+            if getattr(cfg, name) != getattr(self.config, name)
+        ]
+        estimator = self.estimator
+        if any(s in changed for s in ESTIMATOR_SECTIONS):
+            estimator = make_estimator(cfg, self.width_px, self.height_px, clock=self._clock)
+        lut = DepthLUT(cfg.lut.points_m)
+        controller = AvoidanceController(cfg.controller, cfg.command)
+        self.estimator, self._lut, self._controller = estimator, lut, controller
+        self._release_tau_s = cfg.lut.release_time_constant_s
+        self.config = cfg
+        return changed
+
+    def reset(self) -> None:
+        """Forget the filter's memory (e.g. after a camera reconnect)."""
+        self._filtered = None
+        self._last_timestamp_s = None
+
+    def process(self, frame: np.ndarray, timestamp_s: float, want_disparity: bool = False) -> FrameResult:
+        """Run the whole pipeline on one side-by-side frame captured at ``timestamp_s`` (seconds).
+
+        Raises:
+            FrameError: the frame has the wrong shape, dtype or size.
+        """
+        clock = self._clock
+        t0 = clock()
+        est = self.estimator.estimate(frame, want_disparity=want_disparity)
+        t1 = clock()
+        refined = self._lut.apply(est.regions.depth_m)
+        dt_s = 0.0 if self._last_timestamp_s is None else max(0.0, timestamp_s - self._last_timestamp_s)
+        refined = release_filter(self._filtered, refined, dt_s, self._release_tau_s)
+        self._filtered = refined
+        self._last_timestamp_s = timestamp_s
+        t2 = clock()
+        decision = self._controller.decide(refined)
+        t3 = clock()
+        timings = dict(est.timings_ms)
+        timings["lut_ms"] = (t2 - t1) * 1e3
+        timings["fuzzy_ms"] = (t3 - t2) * 1e3
+        timings["total_ms"] = (t3 - t0) * 1e3
+        return FrameResult(
+            timestamp_s=timestamp_s,
+            raw=est.regions,
+            refined=RegionDepths(depth_m=refined, valid_fraction=est.regions.valid_fraction),
+            decision=decision,
+            timings_ms=timings,
+            disparity=est.disparity,
+        )

@@ -1,0 +1,105 @@
+"""The configuration: defaults, the documented default file, validation errors that name the field."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from companion.config import CompanionConfig, apply_patch, load_config, parse_config
+from companion.config.document import render_default_toml
+from companion.errors import ConfigError
+
+ROOT = Path(__file__).resolve().parent.parent
+DEFAULT_FILE = ROOT / "config" / "companion.toml"
+
+
+def test_default_file_equals_builtin_defaults() -> None:
+    assert load_config(DEFAULT_FILE) == CompanionConfig()
+
+
+def test_default_file_is_the_generated_documentation() -> None:
+    # Regenerate with tools/gen-default-config.py after changing a default or a description.
+    assert DEFAULT_FILE.read_text(encoding="utf-8") == render_default_toml()
+
+
+def test_paper_values_are_the_defaults() -> None:
+    cfg = CompanionConfig()
+    assert cfg.controller.input_terms["near"].params_m == (0.75, 2.25)
+    assert cfg.controller.input_terms["far"].params_m == (0.75, 2.25)
+    assert (cfg.regions.safe_window_width_m, cfg.regions.safe_window_height_m) == (0.5, 0.5)
+    assert cfg.regions.reference_distance_m == 1.5
+    assert [r.name for r in cfg.controller.main_rules][:7] == [f"R{i}" for i in range(1, 8)]
+    assert cfg.command.stale_frame_timeout_s == 0.5
+
+
+def _every_field(model: type, path: str = ""):
+    from pydantic import BaseModel
+
+    for name, info in model.model_fields.items():
+        yield f"{path}{name}", info
+        ann = info.annotation
+        if isinstance(ann, type) and issubclass(ann, BaseModel):
+            yield from _every_field(ann, f"{path}{name}.")
+
+
+def test_every_field_has_a_description() -> None:
+    missing = [p for p, info in _every_field(CompanionConfig) if not (info.description or "").strip()]
+    # Sections themselves are documented by their class docstring.
+    missing = [p for p in missing if "." in p]
+    assert not missing, f"fields without a description: {missing}"
+
+
+@pytest.mark.parametrize(
+    ("patch", "expected"),
+    [
+        ({"stereo": {"num_disparities": 70}}, "stereo.num_disparities"),
+        ({"stereo": {"block_size_px": 8}}, "stereo.block_size_px"),
+        ({"stereo": {"bogus": 1}}, "stereo.bogus"),
+        ({"nope": {}}, "nope"),
+        ({"regions": {"robust_percentile_pct": -1}}, "regions.robust_percentile_pct"),
+        ({"lut": {"points_m": [[1.0, 1.0], [0.5, 2.0]]}}, "lut.points_m"),
+        ({"command": {"stale_frame_timeout_s": 6.0}}, "failsafe_timeout_s"),
+        ({"controller": {"main_rules": [{"name": "x", "when": "centre is far", "then": {"yaw": "left"}}]}}, "centre"),
+        ({"controller": {"main_rules": [{"name": "x", "when": "center is far", "then": {"yaw": "up"}}]}}, "'up'"),
+        ({"controller": {"input_terms": {"near": {"shape": "triangle", "params_m": [1.0, 0.5, 2.0]}}}}, "non-decreasing"),
+    ],
+)
+def test_invalid_patch_names_the_field_and_keeps_the_old(patch: dict, expected: str) -> None:
+    cfg = CompanionConfig()
+    with pytest.raises(ConfigError) as exc:
+        apply_patch(cfg, patch)
+    assert expected in str(exc.value)
+    assert "\n" not in str(exc.value)
+    assert cfg == CompanionConfig()  # untouched
+
+
+def test_patch_merges_tables_and_replaces_lists() -> None:
+    cfg = apply_patch(CompanionConfig(), {"stereo": {"num_disparities": 128}, "lut": {"points_m": [[0.5, 0.6], [5, 5.5]]}})
+    assert cfg.stereo.num_disparities == 128 and cfg.stereo.block_size_px == 9
+    assert cfg.lut.points_m == [(0.5, 0.6), (5.0, 5.5)]
+
+
+def test_config_is_frozen() -> None:
+    cfg = CompanionConfig()
+    with pytest.raises(Exception):
+        cfg.stereo.num_disparities = 32  # type: ignore[misc]
+
+
+def test_load_config_errors_name_the_file(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="cannot read"):
+        load_config(tmp_path / "missing.toml")
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[stereo\nx=1", encoding="utf-8")
+    with pytest.raises(ConfigError, match="not valid TOML") as exc:
+        load_config(bad)
+    assert str(bad) in str(exc.value)
+    wrong = tmp_path / "wrong.toml"
+    wrong.write_text("[regions]\nmin_valid_fraction = 2.0\n", encoding="utf-8")
+    with pytest.raises(ConfigError, match=r"regions\.min_valid_fraction.*got 2\.0"):
+        load_config(wrong)
+
+
+def test_parse_config_rejects_unknown_top_level_keys() -> None:
+    with pytest.raises(ConfigError, match="typo_section: unknown key"):
+        parse_config({"stereo": {}, "typo_section": {}})
