@@ -1,0 +1,416 @@
+"""``companion bench --backend cupy``: the GPU path against OpenCV StereoBM on all host cores.
+
+For each size (default 672x376 with 64 disparities and 1280x720 with 128, block 9) on the same
+rendered frames:
+
+* **stages** (CUDA events, ``gpu.stage_timing``): host-to-device copy, grey + rectification,
+  disparity with the fused regions, device-to-host copy; median and p99;
+* **kernels alone** (CUDA events around each launch, inputs already on the device): the fused
+  disparity+regions kernel, the same kernel without the histograms, and the unfused pair
+  (disparity kernel, then a regions kernel over the disparity image);
+* **whole frame** (host wall clock): a pageable NumPy frame in, 9 region depths on the host out,
+  for a few upload settings (row bands, copy threads); the default config's figure is the headline;
+* **OpenCV StereoBM** with ``cv2.setNumThreads(os.cpu_count())`` on the same frames (grey + BM), and
+  the CPU pipeline (``opencv-bm`` estimator, whole frame); the ratios against the GPU whole frame;
+* **device ceilings** measured once: device-to-device copy bandwidth, pinned and pageable
+  host-to-device bandwidth, and the host's copy bandwidth from pageable memory; and what they imply
+  for the disparity kernel (bytes moved over bandwidth versus its time, and the instruction budget
+  its time leaves per pixel and disparity against the issue rate).
+
+Prints a table and returns every figure as a dict (``--json`` writes it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import os
+import sys
+import time
+from typing import Any
+
+import numpy as np
+
+from companion.bench import BenchSize, format_table, machine_description, rendered_frames, stats_ms
+
+#: Upload settings tried for the whole-frame figure (gpu config overrides), besides the default.
+UPLOAD_VARIANTS: tuple[dict[str, Any], ...] = (
+    {"pipeline_bands": 1},
+    {"pipeline_bands": 2},
+    {"pipeline_bands": 4},
+    {"pipeline_bands": 2, "host_copy_threads": 2},
+    {"pipeline_bands": 2, "host_copy_threads": 4},
+    {"register_frames": True},
+    {"host_copy_engine": "opencv", "pipeline_bands": 1},
+    {"host_copy_engine": "opencv", "pipeline_bands": 2},
+    {"host_copy_engine": "opencv", "pipeline_bands": 3},
+    {"host_copy_engine": "opencv", "pipeline_bands": 4},
+)
+
+
+def _variant_name(opts: dict[str, Any]) -> str:
+    return ",".join(
+        f"{k.replace('pipeline_', '').replace('host_copy_', '').replace('_frames', '')}="
+        f"{v if isinstance(v, str) else int(v)}"
+        for k, v in opts.items()
+    )
+
+#: Lane-instructions per (pixel, disparity) of the fused kernel at 1280x720, D=128, b=9 on sm_90:
+#: Nsight Compute counted 1.679e9 thread-instructions (smsp__thread_inst_executed.sum) for 1.0435e8
+#: (pixel, disparity) pairs on an H100 (2026-11-21), warm-up rows and region finalisation included.
+#: The measured time is compared with this count at the device's issue rate.
+SASS_LANE_INSTR_PER_PX_D = 16.1
+
+
+def _cfg(size: BenchSize, **gpu: Any) -> Any:
+    from companion.config import CompanionConfig
+
+    return CompanionConfig.model_validate(
+        {
+            "stereo": {"backend": "cupy", "num_disparities": size.num_disparities, "block_size_px": 9},
+            "calibration": {"ideal_hfov_deg": 87.0},
+            "gpu": gpu,
+        }
+    )
+
+
+def _max_sm_clock_mhz(dev: Any) -> float:
+    """The SM clock the issue-rate estimate uses (device attribute, else nvidia-smi's maximum)."""
+    khz = dev.attributes.get("ClockRate", 0)
+    if khz and khz > 0:
+        return khz / 1000.0
+    import subprocess
+
+    try:
+        out = subprocess.run(
+            ["nvidia-smi", "--query-gpu=clocks.max.sm", "--format=csv,noheader,nounits", f"--id={dev.id}"],
+            capture_output=True, text=True, timeout=10, check=True,
+        )
+        return float(out.stdout.strip().splitlines()[0])
+    except (OSError, subprocess.SubprocessError, ValueError, IndexError):
+        return float("nan")
+
+
+def _device_ceilings(cp: Any, frame_bytes: int) -> dict[str, float]:
+    """Copy bandwidths that bound the pipeline: D2D (read + write), H2D pinned and pageable, host copy."""
+    out: dict[str, float] = {}
+    n = 1 << 30
+    a = cp.empty(n, dtype=cp.uint8)
+    a.fill(1)
+    b = cp.empty_like(a)
+    e0, e1 = cp.cuda.Event(), cp.cuda.Event()
+    times = []
+    for _ in range(6):
+        e0.record()
+        b[...] = a
+        e1.record()
+        e1.synchronize()
+        times.append(cp.cuda.get_elapsed_time(e0, e1))
+    out["d2d_copy_GBps"] = 2 * n / (float(np.median(times[1:])) * 1e-3) / 1e9
+    del a, b
+    m = 64 << 20
+    pinned = cp.cuda.alloc_pinned_memory(m)
+    dev = cp.empty(m, dtype=cp.uint8)
+    pageable = np.ones(m, dtype=np.uint8)
+    s = cp.cuda.Stream(non_blocking=True)
+    for label, ptr in (("h2d_pinned_GBps", pinned.ptr), ("h2d_pageable_GBps", pageable.ctypes.data)):
+        times = []
+        for _ in range(6):
+            e0.record(s)
+            cp.cuda.runtime.memcpyAsync(dev.data.ptr, ptr, m, cp.cuda.runtime.memcpyHostToDevice, s.ptr)
+            e1.record(s)
+            e1.synchronize()
+            times.append(cp.cuda.get_elapsed_time(e0, e1))
+        out[label] = m / (float(np.median(times[1:])) * 1e-3) / 1e9
+    # Host copy of frame-sized buffers from a set larger than the caches (like a camera's frames).
+    k = max(4, (256 << 20) // frame_bytes)
+    srcs = [np.full(frame_bytes, i, dtype=np.uint8) for i in range(k)]
+    dst = np.frombuffer(pinned, dtype=np.uint8, count=frame_bytes)
+    times = []
+    for i in range(3 * k):
+        t0 = time.perf_counter()
+        np.copyto(dst, srcs[i % k])
+        times.append(time.perf_counter() - t0)
+    out["host_copy_GBps"] = frame_bytes / float(np.median(times[k:])) / 1e9
+    # The same copy split over N threads (NumPy releases the GIL), and through OpenCV's own thread
+    # pool (cvtColor BGR->RGB is a parallel byte shuffle): is the host's copy bandwidth per core or
+    # per machine?
+    import threading
+
+    import cv2
+
+    for n_thr in (2, 4, 8):
+        edges = [(frame_bytes * i) // n_thr for i in range(n_thr + 1)]
+        times = []
+        for i in range(k + 20):
+            src = srcs[i % k]
+            threads = [
+                threading.Thread(target=np.copyto, args=(dst[a:b], src[a:b])) for a, b in zip(edges, edges[1:])
+            ]
+            t0 = time.perf_counter()
+            for t in threads:
+                t.start()
+            for t in threads:
+                t.join()
+            times.append(time.perf_counter() - t0)
+        out[f"host_copy_{n_thr}threads_GBps"] = frame_bytes / float(np.median(times[k:])) / 1e9
+    cv2.setNumThreads(os.cpu_count() or 1)
+    cols = frame_bytes // 3
+    times = []
+    for i in range(2 * k):
+        src = srcs[i % k].reshape(1, cols, 3)
+        t0 = time.perf_counter()
+        cv2.cvtColor(src, cv2.COLOR_BGR2RGB, dst=dst.reshape(1, cols, 3))
+        times.append(time.perf_counter() - t0)
+    out["host_cvtcolor_swap_GBps"] = frame_bytes / float(np.median(times[k:])) / 1e9
+    # Page-locking a frame in place (cudaHostRegister) and unlocking it, per frame.
+    times = []
+    for i in range(2 * k):
+        src = srcs[i % k]
+        t0 = time.perf_counter()
+        cp.cuda.runtime.hostRegister(src.ctypes.data, frame_bytes, 0)
+        cp.cuda.runtime.hostUnregister(src.ctypes.data)
+        times.append(time.perf_counter() - t0)
+    out["register_unregister_frame_ms"] = float(np.median(times[k:])) * 1e3
+    return out
+
+
+def _kernel_times(est: Any, cp: Any, n: int) -> dict[str, dict[str, float]]:
+    """CUDA-event times of the disparity kernels alone on the estimator's last rectified frame."""
+    p = est.plan
+    s = est._stream
+    e0, e1 = cp.cuda.Event(), cp.cuda.Event()
+    fb, pct, min_valid, max_depth = est._region_args
+    band = est._bands[0]  # the stage-timing estimator runs one band: the whole frame in one launch
+    grid = band.grid
+    args_fused = (
+        est._rect_l, est._rect_r, est._disp, est._hist, est._counter, est._result_dev,
+        np.int32(band.out[0]), np.int32(band.out[1]), np.int32(band.rows_per_block),
+        np.uint32(grid[0] * grid[1]), *est._match_args, fb, pct, min_valid, max_depth,
+    )
+    variants: dict[str, Any] = {}
+    if p.fast:
+        variants["fused_regions"] = lambda: est._k_fast[False](grid, (p.nt,), args_fused, stream=s)
+        variants["no_regions"] = lambda: est._k_fast_unfused(grid, (p.nt,), args_fused, stream=s)
+
+        def unfused() -> None:
+            est._k_fast_unfused(grid, (p.nt,), args_fused, stream=s)
+            est._k_regions(
+                est._grid_regions, (256,),
+                (est._disp, est._hist, est._counter, est._result_dev, np.int32(est._rows_regions),
+                 fb, pct, min_valid, max_depth),
+                stream=s,
+            )
+
+        variants["unfused_two_kernels"] = unfused
+    out = {}
+    with est._device:
+        for name, launch in variants.items():
+            times = []
+            for i in range(n + 10):
+                e0.record(s)
+                launch()
+                e1.record(s)
+                e1.synchronize()
+                if i >= 10:
+                    times.append(cp.cuda.get_elapsed_time(e0, e1))
+            out[name] = stats_ms(times)
+    return out
+
+
+def _time_estimator(est: Any, frames: list[np.ndarray], warmup: int, n: int) -> tuple[dict[str, Any], dict[str, Any]]:
+    wall = []
+    stages: dict[str, list[float]] = {}
+    for i in range(warmup + n):
+        frame = frames[i % len(frames)]
+        t0 = time.perf_counter()
+        res = est.estimate(frame)
+        t1 = time.perf_counter()
+        if i >= warmup:
+            wall.append((t1 - t0) * 1e3)
+            for k, v in res.timings_ms.items():
+                stages.setdefault(k, []).append(v)
+    return stats_ms(wall), {k: stats_ms(v) for k, v in stages.items()}
+
+
+def _opencv(size: BenchSize, frames: list[np.ndarray], warmup: int, n: int) -> dict[str, Any]:
+    import cv2
+
+    from companion.core.pipeline import CpuRegionEstimator
+    from companion.core.stereo import split_side_by_side, to_grey
+
+    threads = os.cpu_count() or 1
+    cv2.setNumThreads(threads)
+    bm = cv2.StereoBM_create(numDisparities=size.num_disparities, blockSize=9)
+    greys = []
+    for f in frames:
+        left, right = split_side_by_side(f)
+        greys.append((to_grey(left), to_grey(right)))
+    bm_t, grey_bm_t = [], []
+    for i in range(warmup + n):
+        f = frames[i % len(frames)]
+        gl, gr = greys[i % len(frames)]
+        t0 = time.perf_counter()
+        bm.compute(gl, gr)
+        t1 = time.perf_counter()
+        left, right = split_side_by_side(f)
+        a, b = to_grey(left), to_grey(right)
+        bm.compute(a, b)
+        t2 = time.perf_counter()
+        if i >= warmup:
+            bm_t.append((t1 - t0) * 1e3)
+            grey_bm_t.append((t2 - t1) * 1e3)
+    cfg = _cfg(size).model_copy()
+    cfg = cfg.model_copy(update={"stereo": cfg.stereo.model_copy(update={"backend": "opencv-bm", "cpu_threads": 0})})
+    cpu = CpuRegionEstimator(cfg, size.width_px, size.height_px)
+    cpu_t = []
+    for i in range(warmup + min(n, 100)):
+        f = frames[i % len(frames)]
+        t0 = time.perf_counter()
+        cpu.estimate(f)
+        t1 = time.perf_counter()
+        if i >= warmup:
+            cpu_t.append((t1 - t0) * 1e3)
+    return {
+        "threads": threads,
+        "stereobm": stats_ms(bm_t),
+        "grey_plus_stereobm": stats_ms(grey_bm_t),
+        "cpu_estimator_opencv_bm": stats_ms(cpu_t),
+    }
+
+
+def run_gpu_bench(args: argparse.Namespace, sizes: list[BenchSize]) -> dict[str, Any]:
+    """Time the GPU path and OpenCV StereoBM at each size; print a table; return the figures."""
+    import cupy as cp
+
+    from companion.gpu import CupyRegionEstimator
+
+    n, warmup = int(args.frames), int(args.warmup)
+    report: dict[str, Any] = {
+        "date": datetime.date.today().isoformat(),
+        "machine": machine_description(),
+        "backend": "cupy",
+        "sizes": {},
+    }
+    dev = cp.cuda.Device(0)
+    props = cp.cuda.runtime.getDeviceProperties(dev.id)
+    report["device"] = props["name"].decode()
+    report["sm_count"] = int(dev.attributes["MultiProcessorCount"])
+    report["sm_clock_mhz"] = _max_sm_clock_mhz(dev)
+    print(f"machine: {report['machine']}")
+    print(f"device: {report['device']}, {report['sm_count']} SMs, {report['sm_clock_mhz']:.0f} MHz max SM clock")
+    largest = max(sizes, key=lambda s: s.width_px * s.height_px)
+    ceilings = _device_ceilings(cp, largest.height_px * largest.width_px * 2 * 3)
+    report["ceilings"] = ceilings
+    report["pageable_memory_access"] = int(dev.attributes.get("PageableMemoryAccess", -1))
+    print(
+        "ceilings: D2D copy {d2d_copy_GBps:.0f} GB/s (read+write), H2D pinned {h2d_pinned_GBps:.1f} GB/s, "
+        "H2D pageable {h2d_pageable_GBps:.1f} GB/s, host copy (1 thread) {host_copy_GBps:.1f} GB/s, "
+        "register+unregister one frame {register_unregister_frame_ms:.3f} ms, host copy with threads "
+        "2/4/8 {host_copy_2threads_GBps:.1f}/{host_copy_4threads_GBps:.1f}/{host_copy_8threads_GBps:.1f} GB/s "
+        "(thread start included), cv2 BGR->RGB {host_cvtcolor_swap_GBps:.1f} GB/s".format(**ceilings)
+        + f"; pageable memory access by kernels: {report['pageable_memory_access']}"
+    )
+    sys.stdout.flush()
+    rows = []
+    for size in sizes:
+        _, frames = rendered_frames(size, n=min(16, max(2, n + warmup)))
+        entry: dict[str, Any] = {}
+        # stages (CUDA events)
+        est = CupyRegionEstimator(_cfg(size, stage_timing=True), size.width_px, size.height_px)
+        _, stages = _time_estimator(est, frames, warmup, n)
+        entry["stages"] = stages
+        entry["plan"] = {
+            "fast": est.plan.fast, "tile_cols": est.plan.tx, "threads": est.plan.nt,
+            "rows_per_block": est._bands[0].rows_per_block, "grid": list(est._bands[0].grid),
+            "blocks_per_sm": est.blocks_per_sm, "smem_bytes": est.plan.smem_bytes,
+        }
+        entry["kernels"] = _kernel_times(est, cp, n)
+        est.close()
+        # whole frame: the default config first and again after the variants (the host's copy and
+        # PCIe bandwidth drift within a run; the slower of the two is the headline)
+        whole: dict[str, Any] = {}
+        e = CupyRegionEstimator(_cfg(size), size.width_px, size.height_px)
+        whole["default_first"], _ = _time_estimator(e, frames, warmup, n)
+        e.close()
+        for opts in UPLOAD_VARIANTS:
+            e = CupyRegionEstimator(_cfg(size, **opts), size.width_px, size.height_px)
+            whole[_variant_name(opts)], _ = _time_estimator(e, frames, warmup, n)
+            e.close()
+        e = CupyRegionEstimator(_cfg(size), size.width_px, size.height_px)
+        whole["default_last"], _ = _time_estimator(e, frames, warmup, n)
+        whole["default"] = max(whole["default_first"], whole["default_last"], key=lambda v: v["median_ms"])
+        buf = e.frame_buffer(3)
+        in_place = []  # frames already in the staging buffer (a camera decoding into it): no host copy
+        for i in range(warmup + n):
+            buf[...] = frames[i % len(frames)]
+            t0 = time.perf_counter()
+            e.estimate(buf)
+            if i >= warmup:
+                in_place.append((time.perf_counter() - t0) * 1e3)
+        whole["frame_in_staging_buffer"] = stats_ms(in_place)
+        e.close()
+        entry["whole_frame"] = whole
+        entry["opencv"] = _opencv(size, frames, warmup, n)
+        gpu_med = whole["default"]["median_ms"]
+        entry["speedup_vs_stereobm"] = entry["opencv"]["stereobm"]["median_ms"] / gpu_med
+        entry["speedup_vs_grey_plus_stereobm"] = entry["opencv"]["grey_plus_stereobm"]["median_ms"] / gpu_med
+        entry["speedup_vs_cpu_estimator"] = entry["opencv"]["cpu_estimator_opencv_bm"]["median_ms"] / gpu_med
+        # what limits the kernel
+        p = est.plan
+        if p.fast and "fused_regions" in entry["kernels"]:
+            t = entry["kernels"]["fused_regions"]["median_ms"] * 1e-3
+            ty = est._bands[0].rows_per_block
+            blocks = est._bands[0].grid[0] * est._bands[0].grid[1]
+            bytes_in = blocks * (ty + p.block_size - 1) * (p.lww + p.rww) * 4
+            bytes_total = bytes_in + 9 * p.num_disparities * 4 * blocks  # + histogram atomics (upper bound)
+            px_d = p.valid_cols * p.valid_rows * p.num_disparities
+            issue = report["sm_count"] * 4 * 32 * report["sm_clock_mhz"] * 1e6  # lane-instructions/s
+            entry["limits"] = {
+                "bytes_moved": bytes_total,
+                "memory_floor_ms": bytes_total / (ceilings["d2d_copy_GBps"] * 1e9) * 1e3,
+                "pixel_disparities": px_d,
+                "lane_instr_budget_per_px_d_at_measured_time": issue * t / px_d,
+                "sass_lane_instr_per_px_d": SASS_LANE_INSTR_PER_PX_D,
+                "issue_utilisation": SASS_LANE_INSTR_PER_PX_D * px_d / (issue * t),
+            }
+        report["sizes"][size.label] = entry
+        for k, v in stages.items():
+            rows.append([size.label, f"stage {k.removesuffix('_ms')}", f"{v['median_ms']:.3f}", f"{v['p99_ms']:.3f}"])
+        for k, v in entry["kernels"].items():
+            rows.append([size.label, f"kernel {k}", f"{v['median_ms']:.3f}", f"{v['p99_ms']:.3f}"])
+        for k, v in whole.items():
+            if k == "default":
+                continue
+            rows.append([size.label, f"whole frame {k}", f"{v['median_ms']:.3f}", f"{v['p99_ms']:.3f}"])
+        for k in ("stereobm", "grey_plus_stereobm", "cpu_estimator_opencv_bm"):
+            v = entry["opencv"][k]
+            rows.append([size.label, f"cpu {k} ({entry['opencv']['threads']} thr)", f"{v['median_ms']:.3f}",
+                         f"{v['p99_ms']:.3f}"])
+        sys.stdout.flush()
+    end = _device_ceilings(cp, largest.height_px * largest.width_px * 2 * 3)
+    report["ceilings_end"] = end
+    print(format_table(rows, ["size/disp", "what", "median ms", "p99 ms"]))
+    print(
+        f"ceilings again at the end: H2D pinned {end['h2d_pinned_GBps']:.1f} GB/s, host copy "
+        f"{end['host_copy_GBps']:.1f} GB/s"
+    )
+    for label, entry in report["sizes"].items():
+        d = entry["whole_frame"]["default"]
+        line = (
+            f"{label}: GPU whole frame (default config, slower of two passes) {d['median_ms']:.3f} ms median, "
+            f"{d['p99_ms']:.3f} ms p99; "
+            f"x{entry['speedup_vs_stereobm']:.1f} vs StereoBM alone, x{entry['speedup_vs_grey_plus_stereobm']:.1f} "
+            f"vs grey+StereoBM, x{entry['speedup_vs_cpu_estimator']:.1f} vs the CPU estimator"
+        )
+        print(line)
+        if "limits" in entry:
+            lim = entry["limits"]
+            print(
+                f"  kernel limits: {lim['bytes_moved'] / 1e6:.1f} MB moved -> memory floor "
+                f"{lim['memory_floor_ms'] * 1e3:.1f} us; time allows {lim['lane_instr_budget_per_px_d_at_measured_time']:.1f} "
+                f"lane-instr per (px, d) vs {lim['sass_lane_instr_per_px_d']:.1f} executed: issue utilisation "
+                f"{lim['issue_utilisation'] * 100:.0f}%"
+            )
+    sys.stdout.flush()
+    return report

@@ -1,0 +1,701 @@
+"""The CuPy region estimator: one side-by-side frame -> 9 raw region depths, on the GPU.
+
+Per frame, with nothing allocated, in ``gpu.pipeline_bands`` row bands so that the host copy, the
+DMA and the GPU work of successive bands overlap (a copy stream and a compute stream, joined by one
+event per band):
+
+1. band k of the caller's frame is copied into a pinned staging buffer (``np.copyto``, or OpenCV's
+   parallel BGR->RGB shuffle with ``gpu.host_copy_engine = "opencv"``) and its DMA is queued on the
+   copy stream; with ``gpu.zero_copy`` the staging buffer is mapped and read in place (Jetsons); a
+   frame written straight into :meth:`CupyRegionEstimator.frame_buffer` skips the host copy;
+2. the compute stream waits for band k's DMA, then ``grey_*`` converts its rows (OpenCV's
+   fixed-point formula, bit-exact), ``remap_linear`` rectifies the rows that depend only on rows
+   uploaded so far (bit-exact with ``cv2.remap``; skipped for an ideal rig), and
+   ``sad_fast_regions`` matches the disparity rows whose windows are complete, with the region
+   histograms fused in; the last block of the last band turns the histograms into the 9 robust
+   depths (``sad_naive`` + ``regions_from_disp`` for configurations the fast kernel does not cover);
+3. the 9 depths and 9 valid fractions (144 bytes) come back to a pinned host buffer.
+
+Each band's GPU work is captured once as a CUDA graph and replayed. The results equal
+:class:`~companion.core.pipeline.CpuRegionEstimator` with the ``reference`` backend.
+"""
+
+from __future__ import annotations
+
+import importlib.resources
+import logging
+import math
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from companion.config import CompanionConfig
+from companion.core.calibration import make_rectifier
+from companion.core.geometry import StereoGeometry
+from companion.core.pipeline import RegionEstimate
+from companion.core.regions import RegionLayout, region_layout
+from companion.core.stereo import check_pair, split_side_by_side
+from companion.core.types import N_REGIONS, RegionDepths
+from companion.errors import BackendError, FrameError
+from companion.gpu.plan import DisparityPlan, kernel_defines, plan_disparity
+
+log = logging.getLogger(__name__)
+
+Clock = Callable[[], float]
+
+#: Threads per block of the element-wise kernels (grey, remap, preview).
+_EW_THREADS = 128
+#: Threads per block of the fallback kernels.
+_NAIVE_THREADS = 64
+_REGIONS_THREADS = 256
+_MAX_CHANNELS = 4
+
+
+def kernel_source() -> str:
+    """The CUDA source of every kernel (``companion/gpu/kernels/stereo.cu``), without the #defines."""
+    return (importlib.resources.files("companion.gpu") / "kernels" / "stereo.cu").read_text(encoding="utf-8")
+
+
+def _import_cupy() -> Any:
+    try:
+        import cupy
+    except ImportError as err:  # the caller asked for the GPU explicitly
+        raise BackendError(f"the cupy backend needs CuPy ({err}); install companion[gpu]") from None
+    return cupy
+
+
+class CupyRegionEstimator:
+    """GPU implementation of the :class:`~companion.core.pipeline.RegionEstimator` contract.
+
+    Built once per (config, resolution): compiles the kernels for this size and matcher setting
+    (NVRTC; CuPy caches the binaries on disk), uploads the rectification maps, allocates every device
+    and pinned host buffer, and runs one blank frame so that module loading and graph capture happen
+    here and not on the first real frame. Not thread-safe: one estimator per camera thread.
+
+    Args:
+        cfg: the whole configuration (calibration, stereo, regions and gpu sections are read).
+        width_px, height_px: size of one eye, px.
+        clock: host clock for the ``timings_ms`` figures (seconds).
+
+    Attributes:
+        name: ``"cupy"``.
+        geometry: the rectified rig.
+        layout: the nine regions.
+        plan: the disparity kernel's shape (:class:`~companion.gpu.plan.DisparityPlan`).
+        rows_per_block: output rows per block of the disparity kernel.
+        device_name: the CUDA device's name.
+
+    Raises:
+        BackendError: CuPy missing, no such device, or the kernels fail to compile or run.
+        CalibrationError: the calibration cannot be loaded for this size.
+    """
+
+    name = "cupy"
+
+    def __init__(self, cfg: CompanionConfig, width_px: int, height_px: int, clock: Clock = time.perf_counter):
+        cp = _import_cupy()
+        self._cp = cp
+        self.width_px = int(width_px)
+        self.height_px = int(height_px)
+        self._clock = clock
+        self._gpu_cfg = cfg.gpu
+        self._regions_cfg = cfg.regions
+        rectifier = make_rectifier(cfg.calibration, self.width_px, self.height_px)
+        self.geometry: StereoGeometry = rectifier.geometry
+        self.layout: RegionLayout = region_layout(self.geometry, cfg.regions)
+        st = cfg.stereo
+        self.plan: DisparityPlan = plan_disparity(self.width_px, self.height_px, st.num_disparities, st.block_size_px)
+        self._identity = bool(rectifier.is_identity)
+        try:
+            n_dev = cp.cuda.runtime.getDeviceCount()
+        except cp.cuda.runtime.CUDARuntimeError as err:
+            raise BackendError(f"no usable CUDA device: {err}") from None
+        if not 0 <= cfg.gpu.device_id < n_dev:
+            raise BackendError(f"gpu.device_id = {cfg.gpu.device_id} but {n_dev} CUDA device(s) are present")
+        self._device = cp.cuda.Device(cfg.gpu.device_id)
+        try:
+            with self._device:
+                self.device_name = cp.cuda.runtime.getDeviceProperties(self._device.id)["name"].decode()
+                self._build(cfg, rectifier)
+                # Warm-up: loads the module, captures the graph and checks that the kernels run.
+                blank = self.frame_buffer(3)
+                blank.fill(0)
+                self.estimate(blank)
+        except (cp.cuda.runtime.CUDARuntimeError, cp.cuda.driver.CUDADriverError) as err:
+            raise BackendError(f"CUDA error while preparing the GPU estimator: {err}") from None
+        except cp.cuda.compiler.CompileException as err:
+            raise BackendError(f"the CUDA kernels failed to compile: {err}") from None
+
+    # ----------------------------------------------------------------------------------------------
+    # construction
+
+    def _build(self, cfg: CompanionConfig, rectifier: Any) -> None:
+        cp = self._cp
+        p, w, h = self.plan, self.width_px, self.height_px
+        st = cfg.stereo
+        # Only the shape is compiled in; the uniqueness and texture thresholds are kernel arguments,
+        # so estimators that differ only in them share one compiled module.
+        defines = kernel_defines(p, self.layout.row_edges, self.layout.col_edges)
+        self._match_args = (
+            np.uint32(st.uniqueness_ratio_pct),
+            np.uint32(st.texture_threshold_grey * st.block_size_px**2),
+        )
+        # --fmad=false: the remap's float arithmetic must round exactly like OpenCV's (explicit fmaf
+        # only); nothing else in the module is floating point on the hot path.
+        self._module = cp.RawModule(code=defines + kernel_source(), options=("--std=c++17", "--fmad=false"))
+        get = self._module.get_function
+        self._k_grey = {
+            (1, False): get("grey_c1"), (3, False): get("grey_c3"), (4, False): get("grey_c4"),
+            (3, True): get("grey_c3_rgb"), (4, True): get("grey_c4_rgb"),
+        }
+        self._k_remap = get("remap_linear")
+        self._k_fast = {False: get("sad_fast_regions"), True: get("sad_fast_regions_disp")}
+        self._k_fast_unfused = get("sad_fast_disp")
+        self._k_naive = get("sad_naive")
+        self._k_regions = get("regions_from_disp")
+        self._k_preview = get("preview_max")
+
+        attrs = self._device.attributes
+        self.sm_count = int(attrs["MultiProcessorCount"])
+        if p.fast:
+            blocks_per_sm = cp.cuda.driver.occupancyMaxActiveBlocksPerMultiprocessor(
+                self._k_fast[False].kernel.ptr, p.nt, 0
+            )
+            if blocks_per_sm < 1:
+                raise BackendError(f"the disparity kernel cannot run on {self.device_name} ({p.nt} threads per block)")
+        else:
+            blocks_per_sm = 1
+        self.blocks_per_sm = int(blocks_per_sm)
+        self.rows_per_block = p.choose_rows_per_block(self.sm_count, self.blocks_per_sm, cfg.gpu.rows_per_block)
+        self._grid_fast = (p.tiles_x, p.tiles_y(self.rows_per_block), 1)
+        self._rows_regions = max(1, -(-p.valid_rows // (2 * self.sm_count)))
+        self._grid_regions = (max(1, -(-p.valid_rows // self._rows_regions)), 1, 1)
+        self._bands = self._plan_bands(cfg, rectifier)
+
+        self._stream = cp.cuda.Stream(non_blocking=True)  # compute
+        self._copy_stream = cp.cuda.Stream(non_blocking=True)  # host-to-device DMA
+        self._band_events = [cp.cuda.Event(disable_timing=True) for _ in self._bands]
+        # Pinned staging for the largest frame (4 channels); per-channel views share it.
+        frame_bytes = h * 2 * w * _MAX_CHANNELS
+        flags = cp.cuda.runtime.hostAllocMapped if self._gpu_cfg.zero_copy else cp.cuda.runtime.hostAllocPortable
+        self._host_frame_mem = cp.cuda.PinnedMemory(frame_bytes, flags)
+        self._host_frame = np.frombuffer(
+            cp.cuda.PinnedMemoryPointer(self._host_frame_mem, 0), dtype=np.uint8, count=frame_bytes
+        )
+        if self._gpu_cfg.zero_copy:
+            attrs_ptr = cp.cuda.runtime.pointerGetAttributes(self._host_frame_mem.ptr)
+            self._frame_dev_ptr = int(attrs_ptr.devicePointer)
+            self._dev_frame = None
+        else:
+            self._dev_frame = cp.empty(frame_bytes, dtype=cp.uint8)
+            self._frame_dev_ptr = int(self._dev_frame.data.ptr)
+
+        shape_p = (h, p.pitch_bytes)
+        self._rect_l = cp.zeros(shape_p, dtype=cp.uint8)
+        self._rect_r = cp.zeros(shape_p, dtype=cp.uint8)
+        if self._identity:
+            self._raw_l, self._raw_r = self._rect_l, self._rect_r
+            self._maps = None
+        else:
+            self._raw_l = cp.zeros(shape_p, dtype=cp.uint8)
+            self._raw_r = cp.zeros(shape_p, dtype=cp.uint8)
+            self._maps = tuple(
+                cp.asarray(np.ascontiguousarray(m, dtype=np.float32))
+                for m in (rectifier.map_left_x, rectifier.map_left_y, rectifier.map_right_x, rectifier.map_right_y)
+            )
+        # Pixels outside the valid area are never written by the kernels: -1 (invalid) once, here.
+        self._disp = cp.full((h, w), -1, dtype=cp.int16)
+        self._hist = cp.zeros(N_REGIONS * p.num_disparities, dtype=cp.uint32)
+        self._counter = cp.zeros(1, dtype=cp.uint32)
+        self._result_dev = cp.zeros(2 * N_REGIONS, dtype=cp.float64)
+        self._result_host = cp.cuda.alloc_pinned_memory(2 * N_REGIONS * 8)
+        self._result = np.frombuffer(self._result_host, dtype=np.float64, count=2 * N_REGIONS)
+
+        f = self._gpu_cfg.disparity_preview_downsample
+        self._preview_factor = f if f >= 2 else 1
+        if self._preview_factor > 1:
+            ow, oh = -(-w // f), -(-h // f)
+            self._preview_shape = (oh, ow)
+            self._preview_dev = cp.empty((oh, ow), dtype=cp.float32)
+            self._preview_host_mem = cp.cuda.alloc_pinned_memory(oh * ow * 4)
+            self._preview_host = np.frombuffer(self._preview_host_mem, dtype=np.float32, count=oh * ow).reshape(oh, ow)
+        else:
+            self._disp_host_mem = cp.cuda.alloc_pinned_memory(h * w * 2)
+            self._disp_host = np.frombuffer(self._disp_host_mem, dtype=np.int16, count=h * w).reshape(h, w)
+
+        fb = np.float32(self.geometry.focal_baseline_px_m)
+        rc = self._regions_cfg
+        self._region_args = (
+            fb,
+            np.float64(rc.robust_percentile_pct),
+            np.float64(rc.min_valid_fraction),
+            np.float64(rc.max_depth_m),
+        )
+        self._registered = 0  # caller frame page-locked for the DMA in flight (register_frames)
+        self._graphs: dict[tuple[int, bool, bool], Any] = {}
+        self._graph_ok = bool(self._gpu_cfg.use_cuda_graph) and not self._gpu_cfg.stage_timing
+        self._events = [cp.cuda.Event() for _ in range(5)] if self._gpu_cfg.stage_timing else []
+        n_threads = self._gpu_cfg.host_copy_threads
+        self._crew = _CopyCrew(n_threads, self._device.id) if n_threads > 1 else None
+        log.info(
+            "cupy estimator on %s: %dx%d, D=%d, b=%d, %s kernel, tile %s, %d blocks/SM, bands %s",
+            self.device_name, w, h, p.num_disparities, p.block_size, "fast" if p.fast else "fallback",
+            f"{p.tx}x{p.cpad}" if p.fast else "-", self.blocks_per_sm,
+            [(b.src, b.out, b.rows_per_block, b.grid[:2]) for b in self._bands],
+        )
+
+    def _plan_bands(self, cfg: CompanionConfig, rectifier: Any) -> list[_Band]:
+        """Split the frame into row bands whose GPU work needs only the rows uploaded so far.
+
+        Disparity band k covers output rows ``[o_k, o_k+1)``; its windows read rectified rows up to
+        ``o_k+1 + r``; those read source rows up to the largest ``floor(map_y) + 2`` among them (the
+        two bilinear taps), or the same rows for an ideal rig. The upload of band k is the source rows
+        from the previous band's end to that row.
+        """
+        p, h = self.plan, self.height_px
+        k_bands = cfg.gpu.pipeline_bands
+        if not p.fast or cfg.gpu.stage_timing or p.valid_rows < 2 * k_bands:
+            k_bands = 1
+        r = p.radius
+        outs = [p.y_start + (p.valid_rows * k) // k_bands for k in range(k_bands + 1)]
+        if p.valid_rows == 0:
+            outs = [p.y_start, p.y_end]
+        rect_end = [h if k == k_bands - 1 else min(h, outs[k + 1] + r) for k in range(k_bands)]
+        if self._identity:
+            src_end = list(rect_end)
+        else:
+            row_max = np.maximum(rectifier.map_left_y.max(axis=1), rectifier.map_right_y.max(axis=1))
+            reach = np.maximum.accumulate(np.clip(np.floor(row_max) + 2, 0, h)).astype(int)
+            src_end = [h if k == k_bands - 1 else int(reach[rect_end[k] - 1]) for k in range(k_bands)]
+            src_end = [max(src_end[: k + 1]) for k in range(k_bands)]
+        bands = []
+        for k in range(k_bands):
+            rows = outs[k + 1] - outs[k]
+            rpb = p.choose_rows_per_block(self.sm_count, self.blocks_per_sm, cfg.gpu.rows_per_block, rows=rows)
+            bands.append(
+                _Band(
+                    src=(src_end[k - 1] if k else 0, src_end[k]),
+                    rect=(rect_end[k - 1] if k else 0, rect_end[k]),
+                    out=(outs[k], outs[k + 1]),
+                    rows_per_block=rpb,
+                    grid=(p.tiles_x, max(1, -(-rows // rpb)), 1),
+                )
+            )
+        total = sum(b.grid[0] * b.grid[1] for b in bands)
+        self._total_blocks = np.uint32(total)
+        return bands
+
+    # ----------------------------------------------------------------------------------------------
+    # public API
+
+    def frame_buffer(self, channels: int = 3) -> np.ndarray:
+        """The pinned staging buffer as a writable uint8 ``(H, 2W, channels)`` array (``(H, 2W)`` for 1).
+
+        A camera that decodes straight into this array (e.g. ``VideoCapture.read(image=buf)``) and
+        passes it to :meth:`estimate` saves the host copy of the frame. Its content is overwritten by
+        every :meth:`estimate` of another array.
+        """
+        if channels not in (1, 3, 4):
+            raise ValueError(f"channels must be 1, 3 or 4, got {channels}")
+        shape = (self.height_px, 2 * self.width_px) + ((channels,) if channels > 1 else ())
+        return self._host_frame[: math.prod(shape)].reshape(shape)
+
+    def estimate(self, frame: np.ndarray, want_disparity: bool = False) -> RegionEstimate:
+        """9 raw region depths of one side-by-side frame.
+
+        Args:
+            frame: uint8 ``(H, 2W, 3)`` BGR, ``(H, 2W, 4)`` BGRA or ``(H, 2W)`` grey, any strides.
+            want_disparity: also return the disparity: float32 px, NaN invalid; downsampled by
+                ``gpu.disparity_preview_downsample`` (each cell the largest valid disparity of its
+                block), or at full resolution when that is 0 or 1.
+
+        Returns:
+            :class:`~companion.core.pipeline.RegionEstimate` with ``timings_ms``: ``upload_ms`` (host
+            copies into pinned memory and queueing every band's DMA and kernels), ``gpu_ms`` (from then
+            until the results are on the host); with ``gpu.stage_timing`` (one band) also the GPU
+            times ``h2d_ms``, ``grey_rectify_ms``, ``disparity_regions_ms``, ``d2h_ms`` from events.
+
+        Raises:
+            FrameError: wrong dtype, layout or size.
+            BackendError: a CUDA error.
+        """
+        t0 = self._clock()
+        left, right = split_side_by_side(frame)
+        check_pair(left, right)
+        if left.shape[:2] != (self.height_px, self.width_px):
+            raise FrameError(
+                f"frame eye size {left.shape[1]}x{left.shape[0]} differs from the configured "
+                f"{self.width_px}x{self.height_px}"
+            )
+        channels = 1 if frame.ndim == 2 else int(frame.shape[2])
+        timings: dict[str, float] = {}
+        try:
+            return self._estimate(frame, channels, want_disparity, t0, timings)
+        finally:
+            if self._registered:  # an error left the caller's frame page-locked: wait, then unlock
+                try:
+                    with self._device:
+                        self._copy_stream.synchronize()
+                        self._stream.synchronize()
+                        self._unregister()
+                except Exception as err:  # noqa: BLE001 - the original error is the one to report
+                    log.error("could not unlock the caller's frame after an error: %s", err)
+
+    def _estimate(
+        self, frame: np.ndarray, channels: int, want_disparity: bool, t0: float, timings: dict[str, float]
+    ) -> RegionEstimate:
+        cp = self._cp
+        clock = self._clock
+        comp = self._stream
+        try:
+            with self._device:
+                src = self._source(frame, channels)
+                ev = self._events
+                for k, band in enumerate(self._bands):
+                    self._upload_band(src, band, self._band_events[k])
+                    comp.wait_event(self._band_events[k])
+                    if ev:
+                        self._enqueue_band(k, channels, src.swapped, want_disparity, events=ev)
+                    elif self._graph_ok:
+                        self._graph(k, channels, src.swapped, want_disparity).launch(comp)
+                    else:
+                        self._enqueue_band(k, channels, src.swapped, want_disparity)
+                t1 = clock()
+                try:
+                    comp.synchronize()
+                finally:
+                    self._unregister()  # after the DMA that read the caller's pages has finished
+                t2 = clock()
+                if ev:
+                    elapsed = cp.cuda.get_elapsed_time
+                    timings["h2d_ms"] = elapsed(ev[0], ev[1])
+                    timings["grey_rectify_ms"] = elapsed(ev[1], ev[2])
+                    timings["disparity_regions_ms"] = elapsed(ev[2], ev[3])
+                    timings["d2h_ms"] = elapsed(ev[3], ev[4])
+        except (cp.cuda.runtime.CUDARuntimeError, cp.cuda.driver.CUDADriverError) as err:
+            self._recover()
+            raise BackendError(f"CUDA error in the GPU estimator: {err}") from None
+        timings["upload_ms"] = (t1 - t0) * 1e3
+        timings["gpu_ms"] = (t2 - t1) * 1e3
+        res = self._result
+        regions = RegionDepths(depth_m=res[:N_REGIONS].copy(), valid_fraction=res[N_REGIONS:].copy())
+        disparity = self._host_disparity() if want_disparity else None
+        return RegionEstimate(regions=regions, timings_ms=timings, disparity=disparity)
+
+    def rectified_pair(self) -> tuple[np.ndarray, np.ndarray]:
+        """Copies of the last frame's rectified grey eyes, uint8 ``(H, W)`` each (tests, debugging)."""
+        with self._device:
+            w = self.width_px
+            return self._rect_l[:, :w].get(), self._rect_r[:, :w].get()
+
+    def disparity_int16(self) -> np.ndarray:
+        """Copy of the device disparity image, int16 ``(H, W)`` px, -1 invalid (tests, debugging).
+
+        Current only after a frame run with ``want_disparity=True`` (the plain path skips writing it).
+        """
+        with self._device:
+            return self._disp.get()
+
+    def close(self) -> None:
+        """Stop the copy threads; device memory goes with the object."""
+        if self._crew is not None:
+            self._crew.close()
+            self._crew = None
+
+    # ----------------------------------------------------------------------------------------------
+    # per-frame internals
+
+    def _source(self, frame: np.ndarray, channels: int) -> _Source:
+        """How this frame reaches the device: host copy function, DMA source, channel order."""
+        staging = self.frame_buffer(channels)
+        host_ptr = self._host_frame_mem.ptr
+        zero_copy = self._dev_frame is None
+        in_place = frame.__array_interface__["data"][0] == host_ptr and frame.shape == staging.shape
+        if (
+            self._gpu_cfg.register_frames
+            and not in_place
+            and not zero_copy
+            and frame.flags.c_contiguous
+            and self._register(frame)
+        ):
+            # The caller's own pages are locked for this frame: DMA straight from them.
+            return _Source(frame, staging, None, frame.ctypes.data, False, zero_copy)
+        if in_place:
+            return _Source(frame, staging, None, host_ptr, False, zero_copy)
+        if self._gpu_cfg.host_copy_engine == "opencv" and channels > 1:
+            import cv2
+
+            code = cv2.COLOR_BGR2RGB if channels == 3 else cv2.COLOR_BGRA2RGBA
+
+            def copy(dst: np.ndarray, src: np.ndarray) -> None:
+                out = cv2.cvtColor(src, code, dst=dst)
+                if out.__array_interface__["data"][0] != dst.__array_interface__["data"][0]:
+                    np.copyto(dst, out)  # cv2 reallocated (not expected for these layouts)
+
+            return _Source(frame, staging, copy, host_ptr, True, zero_copy)
+        return _Source(frame, staging, np.copyto, host_ptr, False, zero_copy)
+
+    def _upload_band(self, src: _Source, band: _Band, done: Any) -> None:
+        """Host-copy band rows into the staging buffer, queue their DMA, record ``done`` after it."""
+        cp = self._cp
+        a, b = band.src
+        copy_stream = self._copy_stream
+        row_bytes = src.staging.strides[0]
+        if b > a:
+
+            def rows(ra: int, rb: int) -> None:
+                if src.copy is not None:
+                    src.copy(src.staging[ra:rb], src.frame[ra:rb])
+                if self._events:  # stage timing (one band, no crew): h2d_ms is the DMA alone
+                    self._events[0].record(copy_stream)
+                if not src.zero_copy:
+                    off = ra * row_bytes
+                    cp.cuda.runtime.memcpyAsync(
+                        self._frame_dev_ptr + off, src.dma_ptr + off, (rb - ra) * row_bytes,
+                        cp.cuda.runtime.memcpyHostToDevice, copy_stream.ptr,
+                    )
+
+            crew = self._crew
+            if crew is None or src.copy is None or self._events:
+                rows(a, b)
+            else:
+                edges = [a + ((b - a) * i) // crew.size for i in range(crew.size + 1)]
+                crew.run([(lambda ra=ra, rb=rb: rows(ra, rb)) for ra, rb in zip(edges, edges[1:])])
+        elif self._events:
+            self._events[0].record(copy_stream)
+        done.record(copy_stream)
+
+    def _register(self, frame: np.ndarray) -> bool:
+        """Page-lock the caller's frame for one DMA (``gpu.register_frames``); False: use staging."""
+        cp = self._cp
+        try:
+            cp.cuda.runtime.hostRegister(frame.ctypes.data, frame.nbytes, 0)
+        except cp.cuda.runtime.CUDARuntimeError as err:
+            # e.g. part of the range is already registered (by the caller): the staged path works.
+            log.debug("could not page-lock the frame (%s); copying it into the staging buffer", err)
+            return False
+        self._registered = frame.ctypes.data
+        return True
+
+    def _unregister(self) -> None:
+        if self._registered:
+            ptr, self._registered = self._registered, 0
+            self._cp.cuda.runtime.hostUnregister(ptr)
+
+    def _graph(self, k: int, channels: int, swapped: bool, want_disparity: bool) -> Any:
+        key = (k, channels, swapped, want_disparity)
+        graph = self._graphs.get(key)
+        if graph is None:
+            stream = self._stream
+            try:
+                stream.begin_capture()
+                try:
+                    self._enqueue_band(k, channels, swapped, want_disparity)
+                finally:
+                    graph = stream.end_capture()
+            except Exception as err:  # capture unsupported here: plain launches from now on
+                log.warning("CUDA graph capture failed (%s); using plain kernel launches", err)
+                self._graph_ok = False
+                return _Direct(self, k, channels, swapped, want_disparity)
+            self._graphs[key] = graph
+        return graph
+
+    def _enqueue_band(
+        self, k: int, channels: int, swapped: bool, want_disparity: bool, events: list[Any] | None = None
+    ) -> None:
+        """Queue band k's GPU work (module doc, step 2; step 3 after the last band) on the compute stream."""
+        cp = self._cp
+        p, w, h = self.plan, self.width_px, self.height_px
+        band = self._bands[k]
+        last = k == len(self._bands) - 1
+        s = self._stream
+        if events:
+            events[1].record(s)
+        a, b = band.src
+        if b > a:
+            quads = -(-w // 4)
+            self._k_grey[(channels, swapped)](
+                (-(-quads // _EW_THREADS), b - a, 2), (_EW_THREADS,),
+                (np.uint64(self._frame_dev_ptr), self._raw_l, self._raw_r, np.int32(a)), stream=s,
+            )
+        ra, rb = band.rect
+        if self._maps is not None and rb > ra:
+            self._k_remap(
+                (-(-w // _EW_THREADS), rb - ra, 2), (_EW_THREADS,),
+                (self._raw_l, self._raw_r, *self._maps, self._rect_l, self._rect_r, np.int32(ra)), stream=s,
+            )
+        if events:
+            events[2].record(s)
+        fb, pct, min_valid, max_depth = self._region_args
+        if p.fast:
+            self._k_fast[want_disparity](
+                band.grid, (p.nt,),
+                (self._rect_l, self._rect_r, self._disp, self._hist, self._counter, self._result_dev,
+                 np.int32(band.out[0]), np.int32(band.out[1]), np.int32(band.rows_per_block), self._total_blocks,
+                 *self._match_args, fb, pct, min_valid, max_depth),
+                stream=s,
+            )
+        else:
+            if p.valid_cols > 0 and p.valid_rows > 0:
+                self._k_naive(
+                    (-(-p.valid_cols // _NAIVE_THREADS), p.valid_rows), (_NAIVE_THREADS,),
+                    (self._rect_l, self._rect_r, self._disp, *self._match_args), stream=s,
+                )
+            self._k_regions(
+                self._grid_regions, (_REGIONS_THREADS,),
+                (self._disp, self._hist, self._counter, self._result_dev, np.int32(self._rows_regions),
+                 fb, pct, min_valid, max_depth),
+                stream=s,
+            )
+        if events:
+            events[3].record(s)
+        if not last:
+            return
+        d2h = cp.cuda.runtime.memcpyDeviceToHost
+        cp.cuda.runtime.memcpyAsync(
+            self._result_host.ptr, self._result_dev.data.ptr, 2 * N_REGIONS * 8, d2h, s.ptr
+        )
+        if want_disparity:
+            if self._preview_factor > 1:
+                oh, ow = self._preview_shape
+                self._k_preview(
+                    (-(-ow // _EW_THREADS), oh), (_EW_THREADS,),
+                    (self._disp, self._preview_dev, np.int32(self._preview_factor), np.int32(ow), np.int32(oh)),
+                    stream=s,
+                )
+                cp.cuda.runtime.memcpyAsync(
+                    self._preview_host_mem.ptr, self._preview_dev.data.ptr, oh * ow * 4, d2h, s.ptr
+                )
+            else:
+                cp.cuda.runtime.memcpyAsync(self._disp_host_mem.ptr, self._disp.data.ptr, h * w * 2, d2h, s.ptr)
+        if events:
+            events[4].record(s)
+
+    def _host_disparity(self) -> np.ndarray:
+        if self._preview_factor > 1:
+            return self._preview_host.copy()
+        d = self._disp_host
+        out = d.astype(np.float32)
+        out[d < 0] = np.nan
+        return out
+
+    def _recover(self) -> None:
+        """After a CUDA error: forget graphs and zero the histogram state a half-run kernel left."""
+        self._graphs.clear()
+        try:
+            with self._device:
+                self._copy_stream.synchronize()
+                self._stream.synchronize()
+                self._unregister()
+                self._hist.fill(0)
+                self._counter.fill(0)
+        except Exception as err:  # the context may be unusable; the next frame reports it
+            log.error("GPU estimator could not reset its state after an error: %s", err)
+
+
+class _CopyCrew:
+    """``size - 1`` persistent threads plus the caller run one job each, in parallel, per frame.
+
+    Started once (no per-frame thread or future objects); NumPy's copy and CuPy's memcpyAsync release
+    the GIL, so the copies run on several cores. Each worker makes the estimator's device current once.
+    """
+
+    def __init__(self, size: int, device_id: int):
+        self.size = size
+        self._jobs: list[Callable[[], Any] | None] = [None] * size
+        self._errors: list[BaseException | None] = [None] * size
+        self._start = [threading.Event() for _ in range(size)]
+        self._done = [threading.Event() for _ in range(size)]
+        self._stop = False
+        self._threads = [
+            threading.Thread(target=self._work, args=(i, device_id), name=f"companion-upload-{i}", daemon=True)
+            for i in range(1, size)
+        ]
+        for t in self._threads:
+            t.start()
+
+    def _work(self, i: int, device_id: int) -> None:
+        import cupy
+
+        cupy.cuda.runtime.setDevice(device_id)
+        while True:
+            self._start[i].wait()
+            self._start[i].clear()
+            if self._stop:
+                return
+            try:
+                job = self._jobs[i]
+                if job is not None:
+                    job()
+            except BaseException as err:  # handed to the caller of run()
+                self._errors[i] = err
+            finally:
+                self._done[i].set()
+
+    def run(self, jobs: list[Callable[[], Any]]) -> None:
+        """Run ``jobs[0]`` here and ``jobs[i]`` on worker i; return when all are done (re-raising)."""
+        for i in range(1, self.size):
+            self._jobs[i] = jobs[i]
+            self._start[i].set()
+        try:
+            jobs[0]()
+        finally:
+            for i in range(1, self.size):
+                self._done[i].wait()
+                self._done[i].clear()
+        for i in range(1, self.size):
+            err, self._errors[i] = self._errors[i], None
+            if err is not None:
+                raise err
+
+    def close(self) -> None:
+        self._stop = True
+        for i in range(1, self.size):
+            self._start[i].set()
+        for t in self._threads:
+            t.join(timeout=1.0)
+
+
+class _Direct:
+    """Stands in for a graph when capture is unavailable: ``launch`` queues the kernels directly."""
+
+    def __init__(self, est: CupyRegionEstimator, k: int, channels: int, swapped: bool, want_disparity: bool):
+        self._est, self._args = est, (k, channels, swapped, want_disparity)
+
+    def launch(self, stream: Any) -> None:
+        self._est._enqueue_band(*self._args)
+
+
+@dataclass(frozen=True)
+class _Band:
+    """One row band of the per-frame pipeline (half-open row ranges, px).
+
+    Attributes:
+        src: source rows uploaded (and converted to grey) with this band.
+        rect: rectified rows computed with this band (equal to ``src`` for an ideal rig).
+        out: disparity output rows matched with this band.
+        rows_per_block, grid: the disparity launch of this band.
+    """
+
+    src: tuple[int, int]
+    rect: tuple[int, int]
+    out: tuple[int, int]
+    rows_per_block: int
+    grid: tuple[int, int, int]
+
+
+@dataclass(frozen=True)
+class _Source:
+    """Where one frame's bytes come from: host copy into ``staging`` (None: no copy), DMA source."""
+
+    frame: np.ndarray
+    staging: np.ndarray
+    copy: Callable[[np.ndarray, np.ndarray], Any] | None
+    dma_ptr: int
+    swapped: bool
+    zero_copy: bool
+

@@ -1,0 +1,161 @@
+"""Run the CUDA kernels of ``stereo.cu`` on the CPU, bit for bit (a development tool, no GPU needed).
+
+The kernel source is compiled as C++ (g++ with C++20) against a small emulation of the CUDA subset it
+uses (``cuda_emu.h``): every CUDA thread is a ucontext fiber, ``__syncthreads``/``__syncwarp`` and the
+warp shuffles are cooperative barriers, and the scheduler picks a random runnable fiber at each yield,
+so a missing barrier shows up as a wrong result. Slow (one core, seconds per small image) but it runs
+the exact kernel code, which made it possible to check every configuration against the NumPy reference
+before spending GPU time. ``python -m companion.gpu.hostemu`` runs a self-check.
+
+Not imported by the package; needs ``g++`` on the PATH and a source checkout (the C++ files are not
+package data).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import subprocess
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from companion.gpu.plan import kernel_defines, plan_disparity
+
+_HERE = Path(__file__).resolve().parent
+_KERNEL = _HERE.parent / "kernels" / "stereo.cu"
+
+
+def _build_dir() -> Path:
+    d = Path(tempfile.gettempdir()) / "companion-hostemu"
+    d.mkdir(exist_ok=True)
+    return d
+
+
+def _object() -> Path:
+    obj = _build_dir() / "cuda_emu.o"
+    src = _HERE / "cuda_emu.cpp"
+    if not obj.exists() or obj.stat().st_mtime < max(src.stat().st_mtime, (_HERE / "cuda_emu.h").stat().st_mtime):
+        subprocess.run(
+            ["g++", "-O1", "-std=c++20", "-fno-strict-aliasing", "-fPIC", "-c", str(src), "-o", str(obj)], check=True
+        )
+    return obj
+
+
+class HostKernels:
+    """The kernels of one (size, D, b, uniqueness, texture, region layout), compiled for the CPU.
+
+    Args:
+        width_px, height_px: eye size, px.
+        num_disparities, block_size, uniqueness_ratio_pct, texture_threshold_grey: matcher settings.
+        row_edges, col_edges: the region layout's edges (4 ints each).
+    """
+
+    def __init__(
+        self,
+        width_px: int,
+        height_px: int,
+        num_disparities: int,
+        block_size: int,
+        uniqueness_ratio_pct: int,
+        texture_threshold_grey: int,
+        row_edges: Any,
+        col_edges: Any,
+    ):
+        self.plan = p = plan_disparity(width_px, height_px, num_disparities, block_size)
+        src = kernel_defines(p, row_edges, col_edges) + _KERNEL.read_text(encoding="utf-8")
+        key = hashlib.sha1((src + (_HERE / "harness.cpp").read_text()).encode()).hexdigest()[:16]
+        cu = _build_dir() / f"k_{key}.cu"
+        so = _build_dir() / f"k_{key}.so"
+        if not so.exists():
+            cu.write_text(src, encoding="utf-8")
+            subprocess.run(
+                ["g++", "-O1", "-std=c++20", "-fno-strict-aliasing", "-fPIC", "-shared", "-w",
+                 f'-DKERNEL_FILE="{cu}"', f"-I{_HERE}", str(_HERE / "harness.cpp"), str(_object()), "-o", str(so)],
+                check=True,
+            )
+        self._lib = ctypes.CDLL(str(so))
+        self.w, self.h, self.D = width_px, height_px, num_disparities
+        self.uniq, self.texmin = int(uniqueness_ratio_pct), int(texture_threshold_grey) * block_size**2
+
+    @staticmethod
+    def _ptr(a: np.ndarray) -> ctypes.c_void_p:
+        return ctypes.c_void_p(a.ctypes.data)
+
+    def _pitched(self, img: np.ndarray) -> np.ndarray:
+        out = np.zeros((self.h, self.plan.pitch_bytes), np.uint8)
+        out[:, : self.w] = img
+        return out
+
+    def disparity(
+        self,
+        left: np.ndarray,
+        right: np.ndarray,
+        rows_per_block: int = 8,
+        bands: int = 1,
+        fused: bool = True,
+        fb: float = 50.0,
+        pct: float = 2.0,
+        min_valid: float = 0.1,
+        max_depth: float = 20.0,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """int16 disparity (-1 invalid) and the 18 region results (9 depths, 9 valid fractions).
+
+        ``bands`` > 1 launches the fast kernel once per row band, like the estimator's pipeline;
+        ``fused=False`` runs the disparity kernel without histograms, then ``regions_from_disp``.
+        """
+        p = self.plan
+        rl, rr = self._pitched(left), self._pitched(right)
+        disp = np.full((self.h, self.w), -1, np.int16)
+        hist = np.zeros(9 * self.D, np.uint32)
+        counter = np.zeros(1, np.uint32)
+        result = np.full(18, -7.0)
+        d, f32, u32 = ctypes.c_double, ctypes.c_float, ctypes.c_uint32
+        if p.fast:
+            k = bands if p.valid_rows >= 2 * bands else 1
+            outs = [p.y_start + (p.valid_rows * i) // k for i in range(k + 1)] if p.valid_rows else [p.y_start, p.y_end]
+            grids = [max(1, -(-(outs[i + 1] - outs[i]) // rows_per_block)) for i in range(len(outs) - 1)]
+            total = p.tiles_x * sum(grids)
+            for i, gy in enumerate(grids):
+                self._lib.run_fast(
+                    1 if fused else 2, self._ptr(rl), self._ptr(rr), self._ptr(disp), self._ptr(hist),
+                    self._ptr(counter), self._ptr(result), outs[i], outs[i + 1], rows_per_block, u32(total),
+                    u32(self.uniq), u32(self.texmin), f32(fb), d(pct), d(min_valid), d(max_depth), p.tiles_x, gy,
+                )
+        else:
+            self._lib.run_naive(
+                self._ptr(rl), self._ptr(rr), self._ptr(disp), u32(self.uniq), u32(self.texmin),
+                max(1, -(-p.valid_cols // 64)), max(1, p.valid_rows), 64,
+            )
+        if not fused or not p.fast:
+            self._lib.run_regions(
+                self._ptr(disp), self._ptr(hist), self._ptr(counter), self._ptr(result), rows_per_block,
+                f32(fb), d(pct), d(min_valid), d(max_depth), max(1, -(-p.valid_rows // rows_per_block)), 128,
+            )
+        if counter[0] != 0 or hist.any():
+            raise AssertionError("the last block did not reset the histogram state")
+        return disp, result
+
+    def grey(self, frame: np.ndarray, rgb: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """Grey eyes (uint8 ``(H, W)`` each) of a side-by-side frame; ``rgb``: channels are RGB(A)."""
+        ch = 1 if frame.ndim == 2 else frame.shape[2]
+        code = ch + (10 if rgb and ch > 1 else 0)
+        out_l = np.full((self.h, self.plan.pitch_bytes), 0xAB, np.uint8)
+        out_r = out_l.copy()
+        f = np.ascontiguousarray(frame)
+        self._lib.run_grey(code, self._ptr(f), self._ptr(out_l), self._ptr(out_r), -(-(-(-self.w // 4)) // 32), 32, 0, self.h)
+        return out_l[:, : self.w], out_r[:, : self.w]
+
+    def remap(self, grey_l: np.ndarray, grey_r: np.ndarray, maps: tuple[np.ndarray, ...]) -> tuple[np.ndarray, np.ndarray]:
+        """Rectified eyes from raw grey eyes and the four float32 maps (left x, left y, right x, right y)."""
+        rl, rr = self._pitched(grey_l), self._pitched(grey_r)
+        out_l = np.full((self.h, self.plan.pitch_bytes), 0xAB, np.uint8)
+        out_r = out_l.copy()
+        m = [np.ascontiguousarray(a, dtype=np.float32) for a in maps]
+        self._lib.run_remap(
+            self._ptr(rl), self._ptr(rr), *[self._ptr(a) for a in m], self._ptr(out_l), self._ptr(out_r),
+            -(-self.w // 64), 64, 0, self.h,
+        )
+        return out_l[:, : self.w], out_r[:, : self.w]

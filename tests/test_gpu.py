@@ -1,0 +1,414 @@
+"""The CuPy backend (companion.gpu) against the CPU reference: bit-exact grey, remap and disparity,
+equal region depths. Every test needs CuPy and a CUDA device and is skipped cleanly without them;
+run them on a GPU machine with ``pytest -m gpu tests/test_gpu.py``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pytest
+
+from companion.bench import BenchSize, rendered_frames
+from companion.config import CompanionConfig
+from companion.core.calibration import Rectifier, StereoCalibration, make_rectifier, remap_linear_reference
+from companion.core.disparity.reference import sad_block_match
+from companion.core.pipeline import CpuRegionEstimator, Pipeline, cuda_available, make_estimator
+from companion.core.stereo import split_side_by_side, to_grey
+from companion.errors import FrameError
+
+pytestmark = [
+    pytest.mark.gpu,
+    pytest.mark.skipif(not cuda_available(), reason="needs CuPy and a CUDA device (the gpu marker's tests)"),
+]
+
+# --------------------------------------------------------------------------------------------------
+# helpers
+
+
+def _cfg(
+    D: int = 64,
+    b: int = 9,
+    u: int = 10,
+    t: int = 3,
+    calib: Path | None = None,
+    regions: dict[str, Any] | None = None,
+    **gpu: Any,
+) -> CompanionConfig:
+    data: dict[str, Any] = {
+        "stereo": {
+            "backend": "cupy",
+            "num_disparities": D,
+            "block_size_px": b,
+            "uniqueness_ratio_pct": u,
+            "texture_threshold_grey": t,
+        },
+        "gpu": {"disparity_preview_downsample": 0, **gpu},
+    }
+    if calib is not None:
+        data["calibration"] = {"file": str(calib)}
+    if regions:
+        data["regions"] = regions
+    return CompanionConfig.model_validate(data)
+
+
+def _gpu(cfg: CompanionConfig, w: int, h: int) -> Any:
+    from companion.gpu import CupyRegionEstimator
+
+    return CupyRegionEstimator(cfg, w, h)
+
+
+def _cpu(cfg: CompanionConfig, w: int, h: int) -> CpuRegionEstimator:
+    cfg = cfg.model_copy(update={"stereo": cfg.stereo.model_copy(update={"backend": "reference"})})
+    return CpuRegionEstimator(cfg, w, h)
+
+
+def _ref_float(left: np.ndarray, right: np.ndarray, cfg: CompanionConfig) -> np.ndarray:
+    st = cfg.stereo
+    d = sad_block_match(
+        left, right, st.num_disparities, st.block_size_px, st.uniqueness_ratio_pct, st.texture_threshold_grey
+    )
+    out = d.astype(np.float32)
+    out[d < 0] = np.nan
+    return out
+
+
+def _textured_pair(h: int, w: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """A grey pair with a known disparity per row band, plus ties on purpose.
+
+    Bands: a smooth random texture shifted by a band-dependent disparity (with noise), a flat patch
+    (texture test, exact cost ties), a periodic pattern (separated ties for the uniqueness test) and a
+    patch repeated a few pixels apart (adjacent ties).
+    """
+    base = cv2.GaussianBlur(rng.integers(0, 256, (h, w + 300)).astype(np.float32), (0, 0), 1.2)
+    base = np.clip((base - base.mean()) * 4 + 128, 0, 255).astype(np.uint8)
+    left = base[:, :w].copy()
+    right = np.empty_like(left)
+    shifts = rng.integers(0, 60, size=8)
+    for i, y in enumerate(np.array_split(np.arange(h), 8)):
+        s = int(shifts[i])
+        right[y] = base[y, s : s + w]  # left(x) = right(x - s)... right(x) = base(x + s)
+    # right(x) = left(x + s): a match at disparity s for left pixel x + s.
+    noise = rng.integers(-2, 3, right.shape)
+    right = np.clip(right.astype(int) + noise, 0, 255).astype(np.uint8)
+    q = w // 4
+    left[: h // 5, :q] = 90  # flat
+    right[: h // 5, :q] = 90
+    rows = 2 * h // 5 - h // 5
+    period = np.tile(rng.integers(0, 256, (1, 7), dtype=np.uint8), (rows, q // 7 + 1))[:, :q]
+    left[h // 5 : 2 * h // 5, q : 2 * q] = period  # periodic, period 7
+    right[h // 5 : 2 * h // 5, q : 2 * q] = np.roll(period, -3, axis=1)
+    return left, right
+
+
+def _grey_frame(left: np.ndarray, right: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(np.hstack([left, right]))
+
+
+def _bgr_frame(h: int, w: int, rng: np.random.Generator, channels: int = 3) -> np.ndarray:
+    left, right = _textured_pair(h, w, rng)
+    eyes = []
+    for g in (left, right):
+        bgr = np.stack([g, np.roll(g, 1, axis=0), 255 - g], axis=-1).astype(np.uint8)
+        bgr = np.clip(bgr.astype(int) + rng.integers(-4, 5, bgr.shape), 0, 255).astype(np.uint8)
+        if channels == 4:
+            bgr = np.concatenate([bgr, rng.integers(0, 256, (h, w, 1), dtype=np.uint8)], axis=-1)
+        eyes.append(bgr)
+    return np.ascontiguousarray(np.concatenate(eyes, axis=1))
+
+
+def _write_calibration(tmp_path: Path, w: int, h: int) -> Path:
+    """An OpenCV stereo calibration with distortion and a small rotation between the eyes (JSON)."""
+    s = w / 672.0
+    K1 = [[352.0 * s, 0.0, w / 2 + 1.7], [0.0, 351.2 * s, h / 2 - 1.3], [0.0, 0.0, 1.0]]
+    K2 = [[349.1 * s, 0.0, w / 2 - 4.5], [0.0, 349.6 * s, h / 2 + 2.1], [0.0, 0.0, 1.0]]
+    R = cv2.Rodrigues(np.array([0.012, -0.018, 0.009]).reshape(3, 1))[0]
+    data = {
+        "K1": K1,
+        "D1": [-0.172, 0.027, 4e-4, -2e-4, 0.0],
+        "K2": K2,
+        "D2": [-0.165, 0.024, -1e-4, 3e-4, 0.001],
+        "R": R.tolist(),
+        "T": [-0.12, 0.0015, 0.0025],
+        "image_size": [w, h],
+    }
+    path = tmp_path / f"rig_{w}x{h}.json"
+    path.write_text(json.dumps(data), encoding="utf-8")
+    return path
+
+
+def _assert_regions_equal(gpu: Any, cpu: Any) -> None:
+    np.testing.assert_array_equal(gpu.valid_fraction, cpu.valid_fraction)
+    # Both paths compute z = f·B/d in float32 and the same order statistic: exact, NaN where unknown.
+    np.testing.assert_array_equal(gpu.depth_m, cpu.depth_m)
+
+
+# --------------------------------------------------------------------------------------------------
+# grey and rectification
+
+
+@pytest.mark.parametrize("size", [(101, 67), (96, 40), (333, 211)])
+@pytest.mark.parametrize("channels", [3, 4, 1])
+def test_grey_equals_opencv(size: tuple[int, int], channels: int) -> None:
+    w, h = size
+    rng = np.random.default_rng(channels * 1000 + w)
+    est = _gpu(_cfg(D=16, b=5), w, h)
+    shape = (h, 2 * w, channels) if channels > 1 else (h, 2 * w)
+    frame = rng.integers(0, 256, shape, dtype=np.uint8)
+    est.estimate(frame)
+    gl, gr = est.rectified_pair()
+    left, right = split_side_by_side(frame)
+    np.testing.assert_array_equal(gl, to_grey(left))
+    np.testing.assert_array_equal(gr, to_grey(right))
+
+
+@pytest.mark.parametrize("size", [(333, 211), (320, 240)])
+def test_rectification_equals_cv2_remap(tmp_path: Path, size: tuple[int, int]) -> None:
+    w, h = size
+    rng = np.random.default_rng(w)
+    calib = _write_calibration(tmp_path, w, h)
+    cfg = _cfg(D=16, b=5, calib=calib)
+    rect = make_rectifier(cfg.calibration, w, h)
+    assert isinstance(rect, Rectifier)
+    est = _gpu(cfg, w, h)
+    frame = rng.integers(0, 256, (h, 2 * w, 3), dtype=np.uint8)
+    est.estimate(frame)
+    gl, gr = est.rectified_pair()
+    left, right = split_side_by_side(frame)
+    cl, cr = rect.rectify(to_grey(left), to_grey(right))
+    # The issue allows 1e-3 grey levels; the kernel reproduces OpenCV 5's arithmetic exactly.
+    assert np.abs(gl.astype(int) - cl).max() <= 1e-3
+    np.testing.assert_array_equal(gl, cl)
+    np.testing.assert_array_equal(gr, cr)
+    np.testing.assert_array_equal(gl, remap_linear_reference(to_grey(left), rect.map_left_x, rect.map_left_y))
+
+
+# --------------------------------------------------------------------------------------------------
+# disparity
+
+
+@pytest.mark.parametrize("size", [(101, 67), (333, 211), (400, 130)])
+@pytest.mark.parametrize("D", [16, 64, 128])
+@pytest.mark.parametrize("b", [5, 9, 11])
+def test_disparity_equals_reference_on_random_pairs(size: tuple[int, int], D: int, b: int) -> None:
+    w, h = size
+    rng = np.random.default_rng(w * D + b)
+    left, right = _textured_pair(h, w, rng)
+    settings = [(10, 3), (0, 0), (25, 8)]
+    for u, t in settings:
+        cfg = _cfg(D=D, b=b, u=u, t=t)
+        est = _gpu(cfg, w, h)
+        res = est.estimate(_grey_frame(left, right), want_disparity=True)
+        ref = _ref_float(left, right, cfg)
+        np.testing.assert_array_equal(res.disparity, ref, err_msg=f"{w}x{h} D={D} b={b} u={u} t={t}")
+
+
+def test_ties_flat_and_periodic_patches() -> None:
+    h, w = 90, 260
+    rng = np.random.default_rng(5)
+    for period in (3, 7, 16):
+        row = rng.integers(0, 256, (1, period), dtype=np.uint8)
+        left = np.tile(row, (h, w // period + 1))[:, :w]
+        left[:, 100:140] = 77  # flat: every disparity ties
+        right = np.roll(left, -2, axis=1)
+        for D, b, u, t in [(64, 5, 0, 0), (64, 9, 30, 0), (16, 5, 0, 0), (128, 11, 5, 1)]:
+            cfg = _cfg(D=D, b=b, u=u, t=t)
+            res = _gpu(cfg, w, h).estimate(_grey_frame(left, right), want_disparity=True)
+            np.testing.assert_array_equal(res.disparity, _ref_float(left, right, cfg))
+
+
+@pytest.mark.parametrize("size", [BenchSize(320, 180, 64), BenchSize(672, 376, 64), BenchSize(1280, 720, 128)])
+def test_disparity_and_regions_on_rendered_frames(size: BenchSize) -> None:
+    _, frames = rendered_frames(size, 2, seed=3)
+    cfg = _cfg(D=size.num_disparities, regions={"robust_percentile_pct": 2.0})
+    est = _gpu(cfg, size.width_px, size.height_px)
+    cpu = _cpu(cfg, size.width_px, size.height_px)
+    for frame in frames:
+        res = est.estimate(frame, want_disparity=True)
+        exp = cpu.estimate(frame, want_disparity=True)
+        np.testing.assert_array_equal(res.disparity, exp.disparity)
+        _assert_regions_equal(res.regions, exp.regions)
+        assert np.isfinite(res.regions.depth_m).sum() >= 5
+
+
+@pytest.mark.parametrize("b", [17, 21])
+def test_fallback_kernel_for_large_blocks(b: int) -> None:
+    w, h = 190, 90
+    rng = np.random.default_rng(b)
+    left, right = _textured_pair(h, w, rng)
+    cfg = _cfg(D=32, b=b, u=10, t=2)
+    est = _gpu(cfg, w, h)
+    assert not est.plan.fast
+    res = est.estimate(_grey_frame(left, right), want_disparity=True)
+    np.testing.assert_array_equal(res.disparity, _ref_float(left, right, cfg))
+    _assert_regions_equal(res.regions, _cpu(cfg, w, h).estimate(_grey_frame(left, right)).regions)
+
+
+def test_image_too_small_for_the_search_is_all_invalid() -> None:
+    w, h = 101, 67  # W < b + D - 1 for D = 128
+    rng = np.random.default_rng(0)
+    left, right = _textured_pair(h, w, rng)
+    cfg = _cfg(D=128, b=9)
+    res = _gpu(cfg, w, h).estimate(_grey_frame(left, right), want_disparity=True)
+    assert np.isnan(res.disparity).all()
+    assert np.isnan(res.regions.depth_m).all()
+    np.testing.assert_array_equal(res.regions.valid_fraction, np.zeros(9))
+
+
+# --------------------------------------------------------------------------------------------------
+# region depths against the CPU path
+
+
+@pytest.mark.parametrize(
+    "regions",
+    [
+        {"robust_percentile_pct": 0.0},
+        {"robust_percentile_pct": 2.0},
+        {"robust_percentile_pct": 7.5, "min_valid_fraction": 0.4, "max_depth_m": 3.0},
+    ],
+)
+@pytest.mark.parametrize("calibrated", [False, True])
+def test_region_depths_equal_cpu_reference(tmp_path: Path, regions: dict[str, Any], calibrated: bool) -> None:
+    w, h = 336, 188
+    rng = np.random.default_rng(11)
+    calib = _write_calibration(tmp_path, w, h) if calibrated else None
+    cfg = _cfg(D=64, b=9, calib=calib, regions=regions)
+    est = _gpu(cfg, w, h)
+    cpu = _cpu(cfg, w, h)
+    for i in range(3):
+        frame = _bgr_frame(h, w, rng)
+        if i == 1:
+            frame[: h // 3] = 128  # the upper regions are flat: unknown
+        res, exp = est.estimate(frame), cpu.estimate(frame)
+        _assert_regions_equal(res.regions, exp.regions)
+        if i == 1:
+            assert np.isnan(res.regions.depth_m[:3]).all()
+
+
+@pytest.mark.parametrize(
+    "gpu",
+    [
+        {"use_cuda_graph": False},
+        {"zero_copy": True},
+        {"pipeline_bands": 1},
+        {"pipeline_bands": 5, "host_copy_threads": 3},
+        {"register_frames": True},
+        {"host_copy_engine": "opencv"},
+        {"host_copy_engine": "opencv", "pipeline_bands": 1, "use_cuda_graph": False},
+        {"host_copy_engine": "opencv", "pipeline_bands": 3},
+        {"stage_timing": True},
+        {"rows_per_block": 5},
+    ],
+)
+def test_options_give_the_same_results(gpu: dict[str, Any]) -> None:
+    w, h = 320, 180
+    rng = np.random.default_rng(7)
+    cfg = _cfg(D=64, b=9, **gpu)
+    est = _gpu(cfg, w, h)
+    cpu = _cpu(cfg, w, h)
+    for channels in (3, 4, 3, 1):
+        frame = _bgr_frame(h, w, rng, channels=4 if channels == 4 else 3)
+        if channels == 1:
+            frame = cv2.cvtColor(np.ascontiguousarray(frame), cv2.COLOR_BGR2GRAY)
+        res = est.estimate(frame, want_disparity=bool(rng.integers(0, 2)))
+        _assert_regions_equal(res.regions, cpu.estimate(frame).regions)
+    if gpu.get("stage_timing"):
+        for key in ("h2d_ms", "grey_rectify_ms", "disparity_regions_ms", "d2h_ms"):
+            assert res.timings_ms[key] > 0
+    assert res.timings_ms["gpu_ms"] > 0
+
+
+def test_frame_written_into_the_staging_buffer_and_strided_frames() -> None:
+    w, h = 320, 180
+    rng = np.random.default_rng(8)
+    cfg = _cfg(D=64)
+    est = _gpu(cfg, w, h)
+    cpu = _cpu(cfg, w, h)
+    frame = _bgr_frame(h, w, rng)
+    buf = est.frame_buffer(3)
+    buf[...] = frame
+    _assert_regions_equal(est.estimate(buf).regions, cpu.estimate(frame).regions)
+    big = np.zeros((h, 2 * w + 10, 3), np.uint8)
+    strided = big[:, 5 : 5 + 2 * w]
+    strided[...] = frame  # a non-contiguous view
+    _assert_regions_equal(est.estimate(strided).regions, cpu.estimate(frame).regions)
+
+
+def test_disparity_preview_is_the_block_maximum() -> None:
+    w, h = 330, 190
+    rng = np.random.default_rng(9)
+    left, right = _textured_pair(h, w, rng)
+    f = 4
+    cfg = _cfg(D=64, disparity_preview_downsample=f)
+    res = _gpu(cfg, w, h).estimate(_grey_frame(left, right), want_disparity=True)
+    ref = _ref_float(left, right, cfg)
+    oh, ow = math.ceil(h / f), math.ceil(w / f)
+    assert res.disparity.shape == (oh, ow) and res.disparity.dtype == np.float32
+    pad = np.full((oh * f, ow * f), np.nan, np.float32)
+    pad[:h, :w] = ref
+    blocks = np.nan_to_num(pad, nan=-1.0).reshape(oh, f, ow, f).max(axis=(1, 3))
+    exp = np.where(blocks < 0, np.float32(np.nan), blocks).astype(np.float32)
+    np.testing.assert_array_equal(res.disparity, exp)
+
+
+# --------------------------------------------------------------------------------------------------
+# contract and validation
+
+
+def test_frame_validation_errors() -> None:
+    w, h = 160, 90
+    est = _gpu(_cfg(D=16, b=5), w, h)
+    bad = [
+        np.zeros((h, 2 * w, 3), np.float32),  # dtype
+        np.zeros((h, 2 * w + 1, 3), np.uint8),  # odd width
+        np.zeros((h, 2 * w, 2), np.uint8),  # channels
+        np.zeros((h + 2, 2 * w, 3), np.uint8),  # size
+        np.zeros((h, 2 * w + 2, 3), np.uint8),  # size
+        np.zeros((0, 2 * w, 3), np.uint8),  # empty
+        np.zeros((h, 2 * w, 3, 1), np.uint8),  # ndim
+    ]
+    for frame in bad:
+        with pytest.raises(FrameError):
+            est.estimate(frame)
+    with pytest.raises(FrameError):
+        est.estimate([[0]])  # type: ignore[arg-type]
+    # still healthy afterwards
+    est.estimate(np.zeros((h, 2 * w, 3), np.uint8))
+
+
+def test_make_estimator_and_pipeline_use_the_gpu() -> None:
+    w, h = 320, 180
+    cfg = _cfg(D=64).model_copy(update={"gpu": _cfg().gpu.model_copy(update={"disparity_preview_downsample": 4})})
+    for backend in ("cupy", "auto"):
+        c = cfg.model_copy(update={"stereo": cfg.stereo.model_copy(update={"backend": backend})})
+        est = make_estimator(c, w, h)
+        assert est.name == "cupy"
+    pipe = Pipeline(cfg, w, h)
+    _, frames = rendered_frames(BenchSize(w, h, 64), 2)
+    out = pipe.process(frames[0], timestamp_s=0.0, want_disparity=True)
+    assert out.disparity is not None and out.disparity.shape == (45, 80)
+    assert out.raw.depth_m.shape == (9,)
+    ref = Pipeline(cfg.model_copy(update={"stereo": cfg.stereo.model_copy(update={"backend": "reference"})}), w, h)
+    np.testing.assert_array_equal(ref.process(frames[0], timestamp_s=0.0).raw.depth_m, out.raw.depth_m)
+
+
+def test_calibration_for_another_size_is_an_error(tmp_path: Path) -> None:
+    from companion.errors import CalibrationError
+
+    calib = _write_calibration(tmp_path, 320, 240)
+    with pytest.raises(CalibrationError):
+        _gpu(_cfg(D=16, b=5, calib=calib), 336, 188)
+
+
+def test_distorted_calibration_object_matches_file(tmp_path: Path) -> None:
+    # Guards the helper: the JSON written above loads into the same rig the tests reason about.
+    w, h = 320, 240
+    path = _write_calibration(tmp_path, w, h)
+    rect = make_rectifier(_cfg(calib=path).calibration, w, h)
+    assert isinstance(rect, Rectifier) and isinstance(rect.calibration, StereoCalibration)
+    assert rect.calibration.image_size == (w, h)
