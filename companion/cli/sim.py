@@ -1,9 +1,123 @@
-"""Sub-commands of the sim work (placeholder until it lands)."""
+"""``companion sim``: fly the pipeline closed-loop through one course or a suite, and score it."""
 
 from __future__ import annotations
 
 import argparse
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from companion.errors import InputError
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    """Add this module's sub-commands to ``sub``."""
+    """Add ``sim``."""
+    p = sub.add_parser(
+        "sim",
+        help="fly the pipeline closed-loop through simulated obstacle courses and score it",
+        description=(
+            "Closed-loop simulation: a simulated ZED renders what a simulated multicopter sees, the "
+            "product's pipeline decides, setpoint_for commands the vehicle at 20 Hz, in simulated time. "
+            "One course (--course KIND --seed N) reports the outcome (goal, collision, held, timeout, "
+            "out_of_bounds), the minimum clearance, the path length and the time, and can draw a plot; a "
+            "suite (--suite standard) flies many seeded courses and prints a table per course kind."
+        ),
+    )
+    what = p.add_mutually_exclusive_group(required=True)
+    what.add_argument(
+        "--course",
+        metavar="KIND",
+        help="course kind: corridor, doorway, forest, pitch, side, deadend",
+    )
+    what.add_argument("--suite", metavar="NAME", help="a suite of courses: standard (54 flights) or quick (12)")
+    p.add_argument("--seed", type=int, default=0, help="course seed, 0..2147483647 (default 0)")
+    p.add_argument("--config", type=Path, help="TOML config (default: built-in defaults)")
+    p.add_argument("--plot", type=Path, metavar="OUT.png", help="--course: write a top-down plot of the flight")
+    p.add_argument("--side-view", action="store_true", help="--course: add the altitude profile to the plot")
+    p.add_argument("--realtime", action="store_true", help="--course: pace simulated time to the wall clock")
+    p.add_argument("--workers", type=int, default=2, help="--suite: worker processes (default 2)")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from companion.config import load_config
+
+    cfg = load_config(args.config)
+    if args.course is not None:
+        return _run_course(args, cfg)
+    if args.plot is not None or args.side_view or args.realtime:
+        raise InputError("--plot, --side-view and --realtime go with --course, not --suite")
+    return _run_suite(args, cfg)
+
+
+def describe_flight(result: Any) -> list[str]:
+    """The lines ``companion sim`` and ``companion demo`` print for one flight."""
+    timing = result.timing
+    speedup = result.time_s / timing.wall_s if timing and timing.wall_s > 0 else float("nan")
+    d = result.decisions
+    return [
+        f"course:        {result.course.name} ({result.course.description})",
+        f"outcome:       {result.outcome.value} ({'success' if result.success else 'FAIL'}): {result.reason}",
+        f"min clearance: {result.min_clearance_m:.2f} m (vehicle radius {result.collision_radius_m:.2f} m)",
+        f"path length:   {result.path_length_m:.1f} m",
+        f"time:          {result.time_s:.1f} s simulated, {timing.wall_s:.1f} s wall ({speedup:.1f}x real time)"
+        if timing else f"time:          {result.time_s:.1f} s simulated",
+        f"frames:        {result.frames} (clear {d.get('clear', 0)}, avoid {d.get('avoid', 0)}, brake {d.get('brake', 0)})",
+    ]
+
+
+def _run_course(args: argparse.Namespace, cfg: Any) -> int:
+    from companion.sim.courses import make_course
+    from companion.sim.loop import fly
+
+    course = make_course(args.course, args.seed)
+    plot_path = _check_plot_path(args.plot) if args.plot is not None else None
+    result = fly(course, cfg, realtime=args.realtime)
+    for line in describe_flight(result):
+        print(line)
+    if plot_path is not None:
+        write_plot(result, plot_path, side_view=args.side_view)
+        print(f"plot:          {plot_path}")
+    return 0
+
+
+def _check_plot_path(path: Path) -> Path:
+    path = path.expanduser().resolve()
+    if path.suffix.lower() not in (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff"):
+        raise InputError(f"{path}: the plot must be an image file (.png, .jpg, ...)")
+    if not path.parent.is_dir():
+        raise InputError(f"{path.parent}: no such directory for the plot")
+    return path
+
+
+def write_plot(result: Any, path: Path, side_view: bool = False) -> None:
+    """Draw the flight and write it to ``path`` (raises InputError if it cannot be written)."""
+    import cv2
+
+    from companion.sim.plot import plot_flight
+
+    if not cv2.imwrite(str(path), plot_flight(result, side_view=side_view)):
+        raise InputError(f"{path}: cannot write the plot")
+
+
+def _run_suite(args: argparse.Namespace, cfg: Any) -> int:
+    from companion.bench import machine_description
+    from companion.sim.suite import run_suite, suite_courses, suite_table
+
+    if args.workers < 1:
+        raise InputError(f"--workers must be >= 1, got {args.workers}")
+    courses = suite_courses(args.suite)
+    print(f"suite {args.suite}: {len(courses)} flights on {args.workers} worker(s); {machine_description()}")
+
+    def progress(done: int, total: int, result: Any) -> None:
+        print(f"[{done:3d}/{total}] {result.summary()}", flush=True)
+
+    t0 = time.perf_counter()
+    results = run_suite(cfg, courses, workers=args.workers, progress=progress)
+    wall = time.perf_counter() - t0
+    print()
+    print(suite_table(results))
+    print(f"\nsuite wall time {wall:.0f} s ({sum(r.time_s for r in results):.0f} s simulated)")
+    sys.stdout.flush()
+    return 0

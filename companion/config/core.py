@@ -2,7 +2,11 @@
 
 Every field has a type, a default, bounds, its unit in its name and a description. The defaults are
 the paper's values where the paper gives one (near 0.75 m, far 2.25 m, a 0.5 m safe window at 1.5 m,
-the seven rules, a 45°-rotated corner controller).
+the seven rules, a 45°-rotated corner controller). The knobs the paper leaves open are tuned in the
+closed-loop simulator (``companion sim --suite standard``, docs/benchmarks.md): the speed blend, yaw and
+vertical rates, the release filter, the escape threshold, four side rules and course hold.
+``config/paper.toml`` restores the paper's controller exactly (constant speed, no side rules, no
+course hold) for comparison.
 """
 
 from __future__ import annotations
@@ -243,12 +247,13 @@ class LutConfig(StrictModel):
         ),
     )
     release_time_constant_s: float = Field(
-        default=0.0,
+        default=1.0,
         ge=0.0,
         le=10.0,
         description=(
             "Low-pass time constant for a region depth that grows (an obstacle receding), seconds; "
-            "0 = off. A depth that shrinks (an obstacle approaching) is never delayed."
+            "0 = off. A depth that shrinks (an obstacle approaching) is never delayed. Simulator-tuned: "
+            "an obstacle leaving the centre keeps the avoidance going a little longer, for margin."
         ),
     )
 
@@ -412,6 +417,22 @@ def _default_main_rules() -> list[RuleConfig]:
            "Tie rule (paper Fig. 9c): ahead, above and below blocked, both sides free: take the "
            "preferred side so the centroid never collapses to straight.",
            yaw="{yaw_side}"),
+        # Not in the paper. The centre region is a cone (0.5 m at 1.5 m) narrower than the vehicle
+        # closer in, so an obstacle within reach can sit in a side region while the centre reads far
+        # (the paper's Fig. 11 failure): the side rules keep steering away from a near side until it
+        # is passed. Their steering also pauses course hold (see command.hold_resume_delay_s).
+        _r("S1", "center is far and left is near and right is far",
+           "Side rule (not in the paper): centre clear but something near on the left: veer right.",
+           yaw="right"),
+        _r("S2", "center is far and right is near and left is far",
+           "Side rule (not in the paper): centre clear but something near on the right: veer left.",
+           yaw="left"),
+        _r("S3", "center is far and up is near and down is far",
+           "Side rule (not in the paper): centre clear but something near above: sink.",
+           pitch="down"),
+        _r("S4", "center is far and down is near and up is far",
+           "Side rule (not in the paper): centre clear but something near below: climb.",
+           pitch="up"),
     ]
 
 
@@ -481,10 +502,14 @@ class ControllerConfig(StrictModel):
         description="Depth fed to the controller for an unknown region, metres: unknown is treated as near.",
     )
     min_escape_strength: float = Field(
-        default=0.05,
+        default=0.2,
         gt=0.0,
         le=1.0,
-        description="Strongest non-neutral rule below this means that controller found no escape.",
+        description=(
+            "Strongest non-neutral rule below this means that controller found no escape (then the "
+            "corner controller, then brake). Simulator-tuned: 0.05 crept toward flat faces on escapes "
+            "of strength 0.07."
+        ),
     )
     min_escape_command: float = Field(
         default=0.05,
@@ -554,19 +579,26 @@ class CommandConfig(StrictModel):
         default=1.0, ge=0.0, le=15.0, description="Forward speed when the way is clear, m/s (paper: constant)."
     )
     avoid_speed_fraction: float = Field(
-        default=1.0,
+        default=0.1,
         ge=0.0,
         le=1.0,
         description=(
             "Forward speed while the centre is fully near, as a share of the cruise speed, blended "
-            "linearly with the centre's near degree. 1 = the paper's constant speed."
+            "linearly with the centre's near degree. 1 = the paper's constant speed; simulator-tuned "
+            "0.1 leaves time to turn before the obstacle."
         ),
     )
     max_yaw_rate_deg_s: float = Field(
-        default=45.0, ge=0.0, le=360.0, description="Yaw rate commanded at fuzzy yaw ±1, deg/s."
+        default=90.0,
+        ge=0.0,
+        le=360.0,
+        description=(
+            "Yaw rate commanded at fuzzy yaw ±1, deg/s (the default output terms defuzzify to at most "
+            "±0.63, so 90 gives up to 57 deg/s)."
+        ),
     )
     max_vertical_speed_m_s: float = Field(
-        default=0.5, ge=0.0, le=5.0, description="Vertical speed commanded at fuzzy pitch ±1, m/s."
+        default=0.8, ge=0.0, le=5.0, description="Vertical speed commanded at fuzzy pitch ±1, m/s."
     )
     stale_frame_timeout_s: float = Field(
         default=0.5,
@@ -579,6 +611,50 @@ class CommandConfig(StrictModel):
         gt=0.0,
         le=120.0,
         description="A newest frame older than this makes the service leave offboard to Hold (state failsafe), seconds.",
+    )
+    # Course hold (goal seeking). Not in the paper, whose controller only avoids: a vehicle that yawed
+    # away never came back. Applies only when the caller passes the errors to setpoint_for.
+    heading_hold_gain_per_s: float = Field(
+        default=0.8,
+        ge=0.0,
+        le=10.0,
+        description=(
+            "Course hold: on a CLEAR decision, yaw back toward the heading at engagement at this rate "
+            "per radian of heading error, 1/s (0 = off: the paper's behaviour)."
+        ),
+    )
+    max_heading_hold_rate_deg_s: float = Field(
+        default=20.0, ge=0.0, le=360.0, description="Course hold: largest yaw rate it commands, deg/s."
+    )
+    altitude_hold_gain_per_s: float = Field(
+        default=0.5,
+        ge=0.0,
+        le=10.0,
+        description=(
+            "Course hold: on a CLEAR decision, climb or descend back toward the altitude at engagement "
+            "at this speed per metre of altitude error, 1/s (0 = off)."
+        ),
+    )
+    max_altitude_hold_speed_m_s: float = Field(
+        default=0.3, ge=0.0, le=5.0, description="Course hold: largest vertical speed it commands, m/s."
+    )
+    hold_resume_delay_s: float = Field(
+        default=1.5,
+        ge=0.0,
+        le=60.0,
+        description=(
+            "Course hold resumes only after the decisions have been CLEAR and straight this long, "
+            "seconds: an obstacle just passed is beside or below the vehicle, out of the camera's view."
+        ),
+    )
+    hold_clear_depth_m: float = Field(
+        default=2.25,
+        ge=0.0,
+        le=50.0,
+        description=(
+            "Course hold turns (climbs, descends) toward a side only while that side's region (left, "
+            "right, up, down) is at least this deep, metres; unknown blocks it."
+        ),
     )
 
     @model_validator(mode="after")

@@ -1,13 +1,125 @@
-"""Config section of the closed-loop simulator (issue 3)."""
+"""Config section of the closed-loop simulator (issue 3): camera, timing, vehicle model, scoring.
+
+The simulator flies the product's own pipeline (every other section of the config applies as in the
+service) through procedural courses; only what has no counterpart on a real vehicle lives here.
+"""
 
 from __future__ import annotations
 
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from companion.config._base import StrictModel
 
 
 class SimConfig(StrictModel):
-    """Simulator options."""
+    """Simulator: camera rig and timing, the multicopter model, and when a flight ends."""
 
+    # -- camera ----------------------------------------------------------------------------------
     camera_rate_hz: float = Field(default=15.0, gt=0.0, le=120.0, description="Simulated camera frame rate, Hz.")
+    eye_width_px: int = Field(
+        default=336,
+        ge=64,
+        le=2208,
+        description=(
+            "Width of one simulated eye, pixels. The rig is ideal and rectified, with "
+            "calibration.ideal_hfov_deg and calibration.ideal_baseline_m (calibration.file is ignored). "
+            "336 (half ZED VGA) with the default 64 disparities sees down to 0.31 m, as VGA (672) does "
+            "with 128, at a quarter of the cost."
+        ),
+    )
+    eye_height_px: int = Field(default=188, ge=48, le=1242, description="Height of one simulated eye, pixels (half ZED VGA: 188).")
+    noise_std_grey: float = Field(
+        default=2.0, ge=0.0, le=50.0, description="Gaussian sensor noise added to each eye, grey levels (0 = none)."
+    )
+    exposure_step_interval_s: float = Field(
+        default=2.0,
+        ge=0.0,
+        le=600.0,
+        description=(
+            "Auto-exposure: the gain of both eyes jumps to a new random value this often, seconds "
+            "(0 = constant gain)."
+        ),
+    )
+    exposure_gain_range: tuple[float, float] = Field(
+        default=(0.8, 1.2),
+        description="Range the auto-exposure gain is drawn from (uniform), multiplying grey levels.",
+    )
+    eye_gain_mismatch: float = Field(
+        default=0.03,
+        ge=0.0,
+        le=0.5,
+        description="Largest relative gain difference between the eyes (drawn once per flight), 0.03 = 3 %.",
+    )
+    # -- timing ----------------------------------------------------------------------------------
+    processing_latency_s: float = Field(
+        default=0.06,
+        ge=0.0,
+        le=2.0,
+        description=(
+            "Capture-to-decision latency: a frame's decision is applied this long after its capture, "
+            "seconds (set it to the measured pipeline time of the target computer)."
+        ),
+    )
+    setpoint_rate_hz: float = Field(
+        default=20.0, gt=0.0, le=200.0, description="Rate of velocity setpoints sent to the vehicle, Hz (the service's)."
+    )
+    physics_rate_hz: float = Field(
+        default=200.0, ge=20.0, le=2000.0, description="Integration rate of the vehicle model and collision check, Hz."
+    )
+    # -- vehicle model ---------------------------------------------------------------------------
+    velocity_time_constant_s: float = Field(
+        default=0.3,
+        gt=0.0,
+        le=5.0,
+        description="First-order lag of the velocity response to a velocity setpoint, seconds.",
+    )
+    max_horizontal_accel_m_s2: float = Field(
+        default=3.0, gt=0.0, le=30.0, description="Horizontal acceleration limit of the vehicle, m/s²."
+    )
+    max_vertical_accel_m_s2: float = Field(
+        default=2.0, gt=0.0, le=30.0, description="Vertical acceleration limit of the vehicle, m/s²."
+    )
+    yaw_rate_time_constant_s: float = Field(
+        default=0.15, gt=0.0, le=5.0, description="First-order lag of the yaw rate response, seconds."
+    )
+    max_yaw_accel_deg_s2: float = Field(
+        default=200.0, gt=0.0, le=5000.0, description="Yaw acceleration limit, deg/s²."
+    )
+    tilt_with_acceleration: bool = Field(
+        default=True,
+        description=(
+            "Tilt the body (and the hard-mounted camera) as a multicopter does to accelerate: pitch = "
+            "-atan(a_forward/g), roll = atan(a_right/g)."
+        ),
+    )
+    attitude_time_constant_s: float = Field(
+        default=0.1, gt=0.0, le=2.0, description="First-order lag of that tilt, seconds."
+    )
+    collision_radius_m: float = Field(
+        default=0.25,
+        gt=0.0,
+        le=5.0,
+        description="The vehicle is a sphere of this radius around its centre for collisions and clearance, metres.",
+    )
+    # -- scoring ---------------------------------------------------------------------------------
+    held_after_s: float = Field(
+        default=3.0,
+        gt=0.0,
+        le=120.0,
+        description="Stopped (below held_speed_m_s, yaw rate below 3 deg/s) this long without a collision = held safely, seconds.",
+    )
+    held_speed_m_s: float = Field(
+        default=0.05, gt=0.0, le=1.0, description="Speed below which the vehicle counts as stopped, m/s."
+    )
+
+    @model_validator(mode="after")
+    def _check(self) -> SimConfig:
+        lo, hi = self.exposure_gain_range
+        if not 0.0 < lo <= hi <= 4.0:
+            raise ValueError(f"exposure_gain_range must satisfy 0 < low <= high <= 4, got {[lo, hi]}")
+        if self.physics_rate_hz < self.setpoint_rate_hz or self.physics_rate_hz < self.camera_rate_hz:
+            raise ValueError(
+                f"physics_rate_hz ({self.physics_rate_hz}) must be at least setpoint_rate_hz "
+                f"({self.setpoint_rate_hz}) and camera_rate_hz ({self.camera_rate_hz})"
+            )
+        return self

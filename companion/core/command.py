@@ -1,17 +1,84 @@
-"""From a controller decision to a body-frame velocity setpoint (pure; time is passed in)."""
+"""From a controller decision to a body-frame velocity setpoint (pure; time is passed in).
+
+Course hold (goal seeking) is optional and off unless the caller passes the errors: the paper's
+controller only avoids, so a vehicle that yawed away from an obstacle never came back to its course.
+The caller (the service, the simulator) records the heading and altitude at engagement and passes,
+per setpoint, the heading and altitude errors, the newest region depths and how long the decisions
+have been straight and CLEAR (:func:`is_straight_clear`).
+"""
 
 from __future__ import annotations
 
 import math
 from typing import TYPE_CHECKING
 
-from companion.core.types import ZERO_SETPOINT, Decision, DecisionKind, VelocitySetpoint
+import numpy as np
+
+from companion.core.types import REGION_INDEX, ZERO_SETPOINT, Decision, DecisionKind, VelocitySetpoint
 
 if TYPE_CHECKING:
     from companion.config.core import CommandConfig
 
+#: A CLEAR decision whose |yaw| and |pitch| are below this counts as flying straight (course hold may
+#: act); anything larger is the controller steering, and course hold waits.
+STRAIGHT_TOLERANCE = 0.01
 
-def setpoint_for(decision: Decision | None, since_last_frame_s: float, cmd: CommandConfig) -> VelocitySetpoint:
+
+def is_straight_clear(decision: Decision | None) -> bool:
+    """True for a CLEAR decision that does not steer (|yaw|, |pitch| < :data:`STRAIGHT_TOLERANCE`).
+
+    Callers time how long this has held and pass it to :func:`setpoint_for` as ``clear_for_s``.
+    """
+    return (
+        decision is not None
+        and decision.kind is DecisionKind.CLEAR
+        and abs(decision.yaw) < STRAIGHT_TOLERANCE
+        and abs(decision.pitch) < STRAIGHT_TOLERANCE
+    )
+
+
+def _side_open(region_depths_m: np.ndarray | None, side: str, clear_depth_m: float) -> bool:
+    if region_depths_m is None:
+        return True
+    depth = float(region_depths_m[REGION_INDEX[side]])
+    return depth >= clear_depth_m  # False for NaN: unknown blocks
+
+
+def _heading_hold_deg_s(
+    heading_error_rad: float | None, region_depths_m: np.ndarray | None, cmd: CommandConfig
+) -> float:
+    if heading_error_rad is None or cmd.heading_hold_gain_per_s == 0.0 or not math.isfinite(heading_error_rad):
+        return 0.0
+    err = (heading_error_rad + math.pi) % (2.0 * math.pi) - math.pi
+    rate = math.degrees(cmd.heading_hold_gain_per_s * err)
+    rate = min(cmd.max_heading_hold_rate_deg_s, max(-cmd.max_heading_hold_rate_deg_s, rate))
+    if rate != 0.0 and not _side_open(region_depths_m, "right" if rate > 0 else "left", cmd.hold_clear_depth_m):
+        return 0.0
+    return rate
+
+
+def _altitude_hold_down_m_s(
+    altitude_error_m: float | None, region_depths_m: np.ndarray | None, cmd: CommandConfig
+) -> float:
+    if altitude_error_m is None or cmd.altitude_hold_gain_per_s == 0.0 or not math.isfinite(altitude_error_m):
+        return 0.0
+    down = -cmd.altitude_hold_gain_per_s * altitude_error_m
+    down = min(cmd.max_altitude_hold_speed_m_s, max(-cmd.max_altitude_hold_speed_m_s, down))
+    if down != 0.0 and not _side_open(region_depths_m, "down" if down > 0 else "up", cmd.hold_clear_depth_m):
+        return 0.0
+    return down
+
+
+def setpoint_for(
+    decision: Decision | None,
+    since_last_frame_s: float,
+    cmd: CommandConfig,
+    *,
+    heading_error_rad: float | None = None,
+    altitude_error_m: float | None = None,
+    region_depths_m: np.ndarray | None = None,
+    clear_for_s: float | None = None,
+) -> VelocitySetpoint:
     """The setpoint to send for ``decision``, made ``since_last_frame_s`` seconds after its frame.
 
     * No decision, a frame older than ``cmd.stale_frame_timeout_s``, or a non-finite age: zero velocity.
@@ -20,6 +87,20 @@ def setpoint_for(decision: Decision | None, since_last_frame_s: float, cmd: Comm
       ``yaw · max_yaw_rate_deg_s`` (deg/s, positive turns right), down = ``-pitch · max_vertical_speed_m_s``
       (m/s; pitch up = climb = negative down). yaw and pitch are clipped to [-1, 1], the speed fraction
       to [0, 1]. Never a sideways velocity (right_m_s = 0).
+
+    Course hold (all keyword inputs optional; ``None`` = off, the paper's behaviour). Only on a CLEAR
+    decision, and only once ``clear_for_s`` (seconds the decisions have been straight and CLEAR; None
+    = no wait) reaches ``cmd.hold_resume_delay_s``:
+
+    * ``heading_error_rad`` (heading at engagement minus heading now, radians, positive = the course
+      lies to the right): adds ``clip(heading_hold_gain_per_s · error, ±max_heading_hold_rate_deg_s)``
+      deg/s of yaw rate, scaled by ``1 - |yaw|``;
+    * ``altitude_error_m`` (altitude at engagement minus altitude now, metres, positive = climb):
+      adds ``clip(-altitude_hold_gain_per_s · error, ±max_altitude_hold_speed_m_s)`` m/s of down
+      speed, scaled by ``1 - |pitch|``;
+    * ``region_depths_m`` (float ``(9,)`` refined region depths, metres, NaN unknown): when given,
+      the hold turns toward a side (right, left) or climbs/descends (up, down) only while that region
+      is at least ``cmd.hold_clear_depth_m`` deep.
     """
     if decision is None or not math.isfinite(since_last_frame_s):
         return ZERO_SETPOINT
@@ -31,9 +112,14 @@ def setpoint_for(decision: Decision | None, since_last_frame_s: float, cmd: Comm
     yaw = min(1.0, max(-1.0, yaw))
     pitch = min(1.0, max(-1.0, pitch))
     speed = min(1.0, max(0.0, speed))
+    yaw_rate_deg_s = yaw * cmd.max_yaw_rate_deg_s
+    down_m_s = 0.0 - pitch * cmd.max_vertical_speed_m_s
+    if decision.kind is DecisionKind.CLEAR and (clear_for_s is None or clear_for_s >= cmd.hold_resume_delay_s):
+        yaw_rate_deg_s += (1.0 - abs(yaw)) * _heading_hold_deg_s(heading_error_rad, region_depths_m, cmd)
+        down_m_s += (1.0 - abs(pitch)) * _altitude_hold_down_m_s(altitude_error_m, region_depths_m, cmd)
     return VelocitySetpoint(
         forward_m_s=cmd.cruise_speed_m_s * speed,
         right_m_s=0.0,
-        down_m_s=0.0 - pitch * cmd.max_vertical_speed_m_s,
-        yaw_rate_deg_s=yaw * cmd.max_yaw_rate_deg_s,
+        down_m_s=down_m_s,
+        yaw_rate_deg_s=yaw_rate_deg_s,
     )

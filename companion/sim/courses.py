@@ -1,0 +1,301 @@
+"""Procedural, seeded obstacle courses: the worlds the simulator flies the pipeline through.
+
+Every course is a :class:`Course`: a :class:`~companion.core.render.Scene` (textured boxes and pillars
+on a textured ground, closed by a textured backdrop; the geometry is the ground truth for collisions
+and clearance), a start pose, a goal region, bounds, a time limit and whether holding safely counts
+as a success. Course ``kind`` + ``seed`` determine everything (same pair, same course).
+
+All courses start at the origin heading north at ``START_ALTITUDE_M``; the goal is to pass a north
+coordinate within the course's east bounds. Kinds (:data:`COURSE_KINDS`):
+
+* ``corridor``: a walled corridor with boxes of random size, yaw and lateral position; every box
+  leaves a gap of at least 1.5 m on one side.
+* ``doorway``: a wall across the course with one door, 1.1 to 1.6 m wide and 2.1 m high, its centre
+  up to 0.25 m off the start line (the paper's narrow passage, Fig. 10).
+* ``forest``: 12 to 16 pillars (radius 0.1 to 0.3 m, centres at least 1.2 m + both radii apart)
+  between 4 and 15 m north, 3.5 m either side of the line.
+* ``pitch``: a barrier across the whole view that needs a pitch escape: even seeds a low wall (top
+  0.15 to 0.45 m above the vehicle's bottom: climb over it), odd seeds a high block (bottom 0.2 to
+  0.45 m below the vehicle's top: descend under it).
+* ``side``: a long block reaching in from one side, its inner corner 0.03 to 0.2 m inside the
+  vehicle's swept width: the obstacle stays in a side region until it is close (the paper's
+  failure case, Fig. 11).
+* ``deadend``: a closed channel 1.6 to 3 m wide; the goal lies beyond its end wall, so the right
+  answer is to brake and hold (holding counts as success).
+
+Pure: no clocks, no files; geometry in NED metres (x north, y east, z down; altitude = -z).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from companion.core.render import Box, Obstacle, Pillar, Pose, Scene
+from companion.errors import InputError
+
+#: Course kinds, in the order the suite and the tables list them.
+COURSE_KINDS: tuple[str, ...] = ("corridor", "doorway", "forest", "pitch", "side", "deadend")
+#: Altitude every course starts at, metres.
+START_ALTITUDE_M = 1.5
+_KIND_ID = {name: i + 1 for i, name in enumerate(COURSE_KINDS)}
+
+
+@dataclass(frozen=True)
+class Course:
+    """One course.
+
+    Attributes:
+        kind: one of :data:`COURSE_KINDS` (or ``head-on``, the test course).
+        seed: the seed it was generated from (also seeds textures, noise and exposure).
+        scene: the world (ground truth).
+        start: start pose of the vehicle (level, at rest).
+        goal_north_m: the goal is reached when the vehicle's centre passes this north coordinate...
+        goal_east_m: ...with its east coordinate inside this (low, high) range, metres (the course's
+            east bounds: passing the line anywhere counts).
+        bounds_min_ned_m, bounds_max_ned_m: the box the vehicle must stay inside (NED, metres; z is
+            down, so ``bounds_min_ned_m[2]`` is minus the highest allowed altitude).
+        time_limit_s: simulated time after which the flight is a timeout, seconds.
+        hold_is_success: whether holding safely counts as a success.
+        description: one line with the course's random parameters.
+    """
+
+    kind: str
+    seed: int
+    scene: Scene
+    start: Pose
+    goal_north_m: float
+    goal_east_m: tuple[float, float]
+    bounds_min_ned_m: tuple[float, float, float]
+    bounds_max_ned_m: tuple[float, float, float]
+    time_limit_s: float
+    hold_is_success: bool
+    description: str
+
+    @property
+    def name(self) -> str:
+        """``kind-seed``, e.g. ``doorway-3``."""
+        return f"{self.kind}-{self.seed}"
+
+    def in_goal(self, position_ned_m: np.ndarray) -> bool:
+        """Whether a position (float ``(3,)`` NED metres) is in the goal region."""
+        n, e = float(position_ned_m[0]), float(position_ned_m[1])
+        return n >= self.goal_north_m and self.goal_east_m[0] <= e <= self.goal_east_m[1]
+
+    def in_bounds(self, position_ned_m: np.ndarray) -> bool:
+        """Whether a position (float ``(3,)`` NED metres) is inside the course bounds."""
+        p = np.asarray(position_ned_m, dtype=np.float64)
+        return bool(np.all(p >= np.asarray(self.bounds_min_ned_m)) and np.all(p <= np.asarray(self.bounds_max_ned_m)))
+
+
+def _rng(kind: str, seed: int) -> np.random.Generator:
+    return np.random.default_rng([seed, _KIND_ID[kind], 0x5C0])
+
+
+def _course(
+    kind: str,
+    seed: int,
+    obstacles: list[Obstacle],
+    goal_north_m: float,
+    half_width_m: float,
+    description: str,
+    *,
+    hold_is_success: bool = True,
+    max_altitude_m: float = 5.0,
+    north_extent_m: float | None = None,
+) -> Course:
+    length = north_extent_m if north_extent_m is not None else goal_north_m + 2.0
+    scene = Scene(
+        obstacles=tuple(obstacles),
+        ground=True,
+        backdrop_centre_ne_m=(0.5 * length, 0.0),
+        backdrop_half_size_m=0.5 * length + 30.0,
+        sky_altitude_m=30.0,
+    )
+    # Time for the nominal path at 1 m/s (the default cruise), with room for detours and slowing.
+    time_limit = max(30.0, 3.0 * goal_north_m + 10.0)
+    return Course(
+        kind=kind,
+        seed=seed,
+        scene=scene,
+        start=Pose.at(0.0, 0.0, START_ALTITUDE_M),
+        goal_north_m=goal_north_m,
+        goal_east_m=(-half_width_m - 2.0, half_width_m + 2.0),
+        bounds_min_ned_m=(-5.0, -half_width_m - 2.0, -max_altitude_m),
+        bounds_max_ned_m=(length + 3.0, half_width_m + 2.0, 0.0),
+        time_limit_s=time_limit,
+        hold_is_success=hold_is_success,
+        description=description,
+    )
+
+
+def corridor_course(seed: int) -> Course:
+    """A walled corridor (4 to 5 m wide, 3 m walls) with 3 to 4 boxes, each passable on one side."""
+    rng = _rng("corridor", seed)
+    width = float(rng.uniform(4.0, 5.0))
+    half = 0.5 * width
+    n = int(rng.integers(3, 5))
+    goal = 6.0 + 4.5 * n
+    obstacles: list[Obstacle] = [
+        Box.on_ground(0.5 * goal + 1.0, -half - 0.15, (goal + 6.0, 0.3, 3.0)),
+        Box.on_ground(0.5 * goal + 1.0, half + 0.15, (goal + 6.0, 0.3, 3.0)),
+    ]
+    boxes = []
+    for i in range(n):
+        north = 5.0 + 4.5 * i + float(rng.uniform(-0.5, 0.5))
+        depth, wide, height = float(rng.uniform(0.5, 1.0)), float(rng.uniform(0.6, 1.6)), float(rng.uniform(1.7, 3.0))
+        # Every other box head-on (within 0.3 m of the line), the others anywhere with a 1.5 m gap.
+        if i % 2 == 0:
+            east = float(rng.uniform(-0.3, 0.3))
+        else:
+            east = float(rng.uniform(-half + 0.5 * wide, half - 0.5 * wide))
+        gap = max(east - 0.5 * wide + half, half - east - 0.5 * wide)
+        if gap < 1.5:  # slide it toward the nearer wall until one side has 1.5 m
+            east = -half + 1.5 + 0.5 * wide if east > 0 else half - 1.5 - 0.5 * wide
+        yaw = float(rng.uniform(-0.4, 0.4))
+        obstacles.append(Box.on_ground(north, east, (depth, wide, height), yaw))
+        boxes.append(f"{north:.1f}/{east:+.2f}")
+    return _course(
+        "corridor", seed, obstacles, goal, half - 0.3,
+        f"corridor {width:.1f} m wide, {n} boxes at north/east {', '.join(boxes)} m",
+    )
+
+
+def doorway_course(seed: int) -> Course:
+    """A wall across the course with one door (paper Fig. 10)."""
+    rng = _rng("doorway", seed)
+    wall_north = float(rng.uniform(6.0, 8.0))
+    door_w = float(rng.uniform(1.1, 1.6))
+    door_e = float(rng.uniform(-0.25, 0.25))
+    door_h, wall_h, thick, span = 2.1, 3.0, 0.2, 8.0
+    left_w = (door_e - 0.5 * door_w) + span
+    right_w = span - (door_e + 0.5 * door_w)
+    obstacles: list[Obstacle] = [
+        Box.on_ground(wall_north, -span + 0.5 * left_w, (thick, left_w, wall_h)),
+        Box.on_ground(wall_north, span - 0.5 * right_w, (thick, right_w, wall_h)),
+        Box((wall_north, door_e, -0.5 * (door_h + wall_h)), (thick, door_w, wall_h - door_h)),
+    ]
+    goal = wall_north + 3.0
+    return _course(
+        "doorway", seed, obstacles, goal, span - 1.0,
+        f"wall at {wall_north:.1f} m, door {door_w:.2f} m wide centred {door_e:+.2f} m east",
+    )
+
+
+def forest_course(seed: int) -> Course:
+    """Pillars scattered between 4 and 15 m north, 3.5 m either side of the line; surfaces at least
+    1.2 m apart."""
+    rng = _rng("forest", seed)
+    goal = 18.0
+    pillars: list[tuple[float, float, float]] = []
+    tries = 0
+    target = int(rng.integers(12, 17))
+    while len(pillars) < target and tries < 2000:
+        tries += 1
+        n, e = float(rng.uniform(4.0, 15.0)), float(rng.uniform(-3.5, 3.5))
+        r = float(rng.uniform(0.1, 0.3))
+        if all(math.hypot(n - pn, e - pe) >= 1.2 + r + pr for pn, pe, pr in pillars):
+            pillars.append((n, e, r))
+    obstacles: list[Obstacle] = [
+        Pillar.on_ground(n, e, r, float(rng.uniform(3.0, 5.0)), sides=12) for n, e, r in pillars
+    ]
+    return _course(
+        "forest", seed, obstacles, goal, 6.0,
+        f"{len(pillars)} pillars (radius 0.1-0.3 m) between 4 and 15 m north",
+    )
+
+
+def pitch_course(seed: int) -> Course:
+    """A barrier across the view: a low wall to climb over (even seeds) or a high block to pass
+    under (odd seeds)."""
+    rng = _rng("pitch", seed)
+    north = float(rng.uniform(5.0, 7.0))
+    depth = float(rng.uniform(0.4, 1.0))
+    span = 16.0
+    radius = 0.25  # the default collision radius: offsets below are relative to the vehicle's body
+    if seed % 2 == 0:
+        top = START_ALTITUDE_M - radius + float(rng.uniform(0.15, 0.45))
+        obstacles: list[Obstacle] = [Box.on_ground(north, 0.0, (depth, span, top))]
+        what = f"low wall, top at {top:.2f} m"
+    else:
+        bottom = START_ALTITUDE_M + radius - float(rng.uniform(0.2, 0.45))
+        top = 4.0
+        obstacles = [Box((north, 0.0, -0.5 * (bottom + top)), (depth, span, top - bottom))]
+        what = f"overhead block, bottom at {bottom:.2f} m"
+    return _course(
+        "pitch", seed, obstacles, north + depth + 4.0, 0.5 * span - 1.0,
+        f"{what}, {depth:.2f} m deep at {north:.1f} m north",
+    )
+
+
+def side_course(seed: int) -> Course:
+    """A long block reaching in from one side, its inner corner just inside the vehicle's swept
+    width (paper Fig. 11: the obstacle sits in a side region until it is close)."""
+    rng = _rng("side", seed)
+    side = 1.0 if rng.uniform() < 0.5 else -1.0
+    north = float(rng.uniform(5.0, 7.0))
+    inside = float(rng.uniform(0.03, 0.2))  # how far the corner reaches into the swept width
+    edge = side * (0.25 - inside)  # east of the inner corner (the default radius is 0.25 m)
+    depth, reach = float(rng.uniform(0.8, 2.0)), 3.0
+    obstacles: list[Obstacle] = [Box.on_ground(north + 0.5 * depth, edge + side * 0.5 * reach, (depth, reach, 3.0))]
+    return _course(
+        "side", seed, obstacles, north + depth + 4.0, 5.0,
+        f"block from the {'right' if side > 0 else 'left'}, corner at {edge:+.2f} m east, {north:.1f} m north",
+    )
+
+
+def deadend_course(seed: int) -> Course:
+    """A closed channel; the goal lies beyond its end wall: the right answer is to brake and hold."""
+    rng = _rng("deadend", seed)
+    width = float(rng.uniform(1.6, 3.0))
+    end = float(rng.uniform(6.0, 9.0))
+    half = 0.5 * width
+    height, entry = 3.0, 1.5
+    length = end - entry
+    obstacles: list[Obstacle] = [
+        Box.on_ground(entry + 0.5 * length, -half - 0.15, (length, 0.3, height)),
+        Box.on_ground(entry + 0.5 * length, half + 0.15, (length, 0.3, height)),
+        Box.on_ground(end + 0.15, 0.0, (0.3, width + 0.6, height)),
+    ]
+    return _course(
+        "deadend", seed, obstacles, end + 2.0, 3.0,
+        f"channel {width:.2f} m wide, closed at {end:.1f} m north",
+        north_extent_m=end + 4.0,
+    )
+
+
+_BUILDERS = {
+    "corridor": corridor_course,
+    "doorway": doorway_course,
+    "forest": forest_course,
+    "pitch": pitch_course,
+    "side": side_course,
+    "deadend": deadend_course,
+}
+
+#: Largest seed accepted (seeds feed NumPy's SeedSequence; a bound keeps names short).
+MAX_SEED = 2**31 - 1
+
+
+def make_course(kind: str, seed: int) -> Course:
+    """The course of ``kind`` (one of :data:`COURSE_KINDS`) for ``seed`` (0 .. 2**31 - 1).
+
+    Raises:
+        InputError: unknown kind or a seed out of range.
+    """
+    if kind not in _BUILDERS:
+        raise InputError(f"unknown course {kind!r}; courses are {', '.join(COURSE_KINDS)}")
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not 0 <= int(seed) <= MAX_SEED:
+        raise InputError(f"bad seed {seed!r}: expected an integer in 0..{MAX_SEED}")
+    return _BUILDERS[kind](int(seed))
+
+
+def head_on_course(seed: int = 0, box_north_m: float = 5.0, box_width_m: float = 0.6) -> Course:
+    """A single box dead ahead on open ground, for tests and examples (not in the suite)."""
+    obstacles: list[Obstacle] = [Box.on_ground(box_north_m, 0.0, (0.6, box_width_m, 2.5))]
+    return _course(
+        "head-on", seed, obstacles, box_north_m + 3.0, 4.0,
+        f"one {box_width_m:.1f} m box at {box_north_m:.1f} m north, dead ahead",
+    )

@@ -1,0 +1,459 @@
+"""The closed loop: camera → the product's pipeline → setpoint_for → vehicle, in simulated time.
+
+Timing (all simulated; deterministic for a course and config):
+
+* **physics** at ``sim.physics_rate_hz`` (default 200 Hz): the vehicle model integrates, the
+  ground-truth clearance and the outcome are checked at every step;
+* **camera** at ``sim.camera_rate_hz``: :class:`~companion.sim.camera.SimCamera` renders the frame
+  seen from the pose at that instant, stamped with that time; the pipeline processes it at once
+  (the result does not depend on when it runs) but its decision only **applies**
+  ``sim.processing_latency_s`` later, as on the vehicle where the pipeline takes that long;
+* **setpoints** at ``sim.setpoint_rate_hz`` (20 Hz): the service's rule, exactly:
+  :func:`~companion.core.command.setpoint_for` on the newest applied decision with its age, so a
+  frame older than ``command.stale_frame_timeout_s`` gives zero velocity; older than
+  ``command.failsafe_timeout_s`` the vehicle is switched to HOLD. Course hold gets the heading and
+  altitude at engagement (the start pose), the newest region depths and how long the decisions
+  have been straight and CLEAR.
+
+Events due at the same instant run in the order camera, decision, setpoint, physics. The flight ends
+on the first outcome (:mod:`companion.sim.scoring`). ``realtime=True`` sleeps so that simulated time
+keeps pace with the wall clock (the only place that reads a clock for anything but instrumentation).
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from companion.config import CompanionConfig
+from companion.core.command import is_straight_clear, setpoint_for
+from companion.core.pipeline import FrameResult, Pipeline
+from companion.core.render import TextureBank
+from companion.core.types import ZERO_SETPOINT, DecisionKind
+from companion.errors import CameraError
+from companion.interfaces import Frame
+from companion.sim.camera import SimCamera
+from companion.sim.courses import Course
+from companion.sim.scoring import ClearanceField, Outcome, is_success
+from companion.sim.vehicle import SimVehicle, VehicleParams, wrap_angle_rad
+
+#: Events scheduled at k/rate fire when the simulated time is within this of it (float steps).
+_EPS_S = 1e-9
+#: |yaw rate| below which a stopped vehicle counts as holding (not turning on the spot), deg/s.
+_HELD_YAW_RATE_DEG_S = 3.0
+
+
+class LogKind(enum.IntEnum):
+    """What drove the setpoint at a log row."""
+
+    NONE = 0  #: no decision yet (zero velocity)
+    CLEAR = 1
+    AVOID = 2
+    BRAKE = 3
+    STALE = 4  #: the newest decision is older than the stale timeout (zero velocity)
+    HOLD = 5  #: the vehicle is in HOLD (failsafe)
+
+
+_KIND_OF = {DecisionKind.CLEAR: LogKind.CLEAR, DecisionKind.AVOID: LogKind.AVOID, DecisionKind.BRAKE: LogKind.BRAKE}
+
+
+@dataclass(frozen=True)
+class FlightLog:
+    """The flight at the setpoint rate, one row per setpoint (plus a last row at the end).
+
+    Attributes:
+        t_s: float64 ``(N,)`` simulated time, seconds.
+        position_ned_m: float64 ``(N, 3)`` vehicle centre, NED metres.
+        velocity_ned_m_s: float64 ``(N, 3)``, m/s.
+        attitude_rad: float64 ``(N, 3)`` roll, pitch, yaw, radians (yaw from north, clockwise).
+        kind: int8 ``(N,)`` :class:`LogKind` of what drove the setpoint.
+        decision_yaw, decision_pitch: float64 ``(N,)`` the applied decision's outputs in [-1, 1]
+            (0 without a decision).
+        setpoint: float64 ``(N, 4)`` forward m/s, right m/s, down m/s, yaw rate deg/s as sent.
+        clearance_m: float64 ``(N,)`` ground-truth clearance (see :mod:`companion.sim.scoring`), metres.
+    """
+
+    t_s: np.ndarray
+    position_ned_m: np.ndarray
+    velocity_ned_m_s: np.ndarray
+    attitude_rad: np.ndarray
+    kind: np.ndarray
+    decision_yaw: np.ndarray
+    decision_pitch: np.ndarray
+    setpoint: np.ndarray
+    clearance_m: np.ndarray
+
+    def equals(self, other: FlightLog) -> bool:
+        """Exact equality of every array (determinism checks)."""
+        return all(
+            np.array_equal(getattr(self, f), getattr(other, f), equal_nan=True) for f in self.__dataclass_fields__
+        )
+
+
+@dataclass(frozen=True)
+class FrameLog:
+    """One row per processed frame.
+
+    Attributes:
+        t_s: float64 ``(M,)`` capture time, seconds.
+        position_ned_m: float64 ``(M, 3)`` vehicle centre at capture, NED metres.
+        region_depths_m: float64 ``(M, 9)`` refined region depths, metres, NaN unknown.
+        kind: int8 ``(M,)`` :class:`LogKind` (CLEAR, AVOID, BRAKE) of the frame's decision.
+        yaw, pitch: float64 ``(M,)`` the decision's outputs.
+        reason: the decision's one-line reason per frame.
+    """
+
+    t_s: np.ndarray
+    position_ned_m: np.ndarray
+    region_depths_m: np.ndarray
+    kind: np.ndarray
+    yaw: np.ndarray
+    pitch: np.ndarray
+    reason: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class FlightTiming:
+    """Instrumentation (wall clock: not deterministic, excluded from result equality).
+
+    Attributes:
+        wall_s: wall-clock duration of the whole flight, seconds.
+        pipeline_ms: median pipeline time per frame, milliseconds.
+        render_ms: median render time per frame, milliseconds.
+    """
+
+    wall_s: float
+    pipeline_ms: float
+    render_ms: float
+
+
+@dataclass(frozen=True)
+class FlightResult:
+    """The verdict on one flight.
+
+    Attributes:
+        course: the course flown.
+        outcome: how it ended.
+        success: goal, or held where the course counts holding as success.
+        time_s: simulated time at the end, seconds.
+        path_length_m: length of the flown path (centre), metres.
+        min_clearance_m: smallest ground-truth clearance along the flight, metres (negative on collision).
+        min_clearance_at_ned_m: where that was, float64 ``(3,)`` NED metres.
+        final_position_ned_m: float64 ``(3,)`` NED metres.
+        collision_radius_m: the vehicle's collision radius, metres.
+        frames: frames processed.
+        decisions: frames per decision kind ("clear", "avoid", "brake").
+        reason: one line saying why the flight ended.
+        log: the setpoint-rate log.
+        frame_log: the per-frame log.
+        timing: wall-clock instrumentation (not compared).
+    """
+
+    course: Course
+    outcome: Outcome
+    success: bool
+    time_s: float
+    path_length_m: float
+    min_clearance_m: float
+    min_clearance_at_ned_m: np.ndarray = field(compare=False)
+    final_position_ned_m: np.ndarray = field(compare=False)
+    collision_radius_m: float = 0.25
+    frames: int = 0
+    decisions: dict[str, int] = field(default_factory=dict)
+    reason: str = ""
+    log: FlightLog | None = field(default=None, compare=False)
+    frame_log: FrameLog | None = field(default=None, compare=False)
+    timing: FlightTiming | None = field(default=None, compare=False)
+
+    def summary(self) -> str:
+        """One line: course, outcome, clearance, path length, time."""
+        return (
+            f"{self.course.name}: {self.outcome.value}{'' if self.success else ' (FAIL)'}, min clearance "
+            f"{self.min_clearance_m:.2f} m, path {self.path_length_m:.1f} m, time {self.time_s:.1f} s"
+        )
+
+
+def simulator_config(cfg: CompanionConfig) -> CompanionConfig:
+    """``cfg`` as the simulator flies it: the simulated rig is ideal and already rectified, so a
+    calibration file (which describes a real camera) is dropped."""
+    if cfg.calibration.file is None:
+        return cfg
+    return cfg.model_copy(update={"calibration": cfg.calibration.model_copy(update={"file": None})})
+
+
+def make_camera(
+    course: Course,
+    cfg: CompanionConfig,
+    vehicle: SimVehicle,
+    pipeline: Pipeline,
+    textures: TextureBank | None = None,
+    fail_after_s: float | None = None,
+) -> SimCamera:
+    """The simulated ZED riding on ``vehicle``, with the rig the pipeline expects."""
+    sim = cfg.sim
+    return SimCamera(
+        pipeline.geometry,
+        course.scene,
+        lambda: (vehicle.pose(), vehicle.time_s),
+        seed=course.seed,
+        textures=textures,
+        noise_std_grey=sim.noise_std_grey,
+        exposure_step_interval_s=sim.exposure_step_interval_s,
+        exposure_gain_range=sim.exposure_gain_range,
+        eye_gain_mismatch=sim.eye_gain_mismatch,
+        fail_after_s=fail_after_s,
+    )
+
+
+class _Rows:
+    """Growing lists of log rows turned into arrays at the end."""
+
+    def __init__(self) -> None:
+        self.t: list[float] = []
+        self.pos: list[np.ndarray] = []
+        self.vel: list[np.ndarray] = []
+        self.att: list[tuple[float, float, float]] = []
+        self.kind: list[int] = []
+        self.dyaw: list[float] = []
+        self.dpitch: list[float] = []
+        self.sp: list[tuple[float, float, float, float]] = []
+        self.clear: list[float] = []
+
+
+def fly(
+    course: Course,
+    cfg: CompanionConfig,
+    *,
+    textures: TextureBank | None = None,
+    realtime: bool = False,
+    camera_fail_after_s: float | None = None,
+    on_frame: Callable[[Frame, FrameResult], None] | None = None,
+    want_disparity: bool = False,
+    clock: Callable[[], float] = time.perf_counter,
+    sleep: Callable[[float], None] = time.sleep,
+) -> FlightResult:
+    """Fly ``course`` closed-loop with the configuration ``cfg`` and score it.
+
+    Args:
+        course: the course.
+        cfg: the whole configuration (pipeline, controller, command, and ``sim``).
+        textures: a texture bank shared between flights (saves generating textures per flight).
+        realtime: pace simulated time to the wall clock.
+        camera_fail_after_s: the camera stops delivering frames from this simulated time on.
+        on_frame: called with every frame and its pipeline result (overlays, recordings).
+        want_disparity: ask the pipeline for the disparity image (for ``on_frame`` overlays).
+        clock, sleep: wall clock and sleep, for ``realtime`` and the timing instrumentation.
+    """
+    wall0 = clock()
+    cfg = simulator_config(cfg)
+    sim, cmd = cfg.sim, cfg.command
+    pipeline = Pipeline(cfg, sim.eye_width_px, sim.eye_height_px)
+    params = VehicleParams.from_config(sim)
+    vehicle = SimVehicle(params, course.start)
+    camera = make_camera(course, cfg, vehicle, pipeline, textures, camera_fail_after_s)
+    camera.open()
+    field_ = ClearanceField(course.scene)
+    radius = params.collision_radius_m
+
+    dt = 1.0 / sim.physics_rate_hz
+    cam_period = 1.0 / sim.camera_rate_hz
+    sp_period = 1.0 / sim.setpoint_rate_hz
+    heading_ref = course.start.yaw_rad
+    altitude_ref = -course.start.position_ned_m[2]
+
+    # Engage as the service does: a first (zero) setpoint, then offboard.
+    vehicle.set_setpoint(ZERO_SETPOINT)
+    vehicle.set_offboard()
+
+    rows = _Rows()
+    f_t: list[float] = []
+    f_pos: list[np.ndarray] = []
+    f_depth: list[np.ndarray] = []
+    f_kind: list[int] = []
+    f_yaw: list[float] = []
+    f_pitch: list[float] = []
+    f_reason: list[str] = []
+    pipe_ms: list[float] = []
+    render_ms: list[float] = []
+
+    pending: deque[tuple[float, FrameResult]] = deque()
+    latest: FrameResult | None = None
+    camera_ok = True
+    n_cam = n_sp = 0
+    last_steer_s = -math.inf
+    stopped_since: float | None = None
+    path_length = 0.0
+    pos = vehicle.model.position_ned_m.copy()
+    clearance = field_.distance_m(pos) - radius
+    min_clear, min_clear_at = clearance, pos.copy()
+    outcome: Outcome | None = None
+    reason = ""
+    sp = ZERO_SETPOINT
+    kind = LogKind.NONE
+
+    def log_row(t: float) -> None:
+        m = vehicle.model
+        rows.t.append(t)
+        rows.pos.append(m.position_ned_m.copy())
+        rows.vel.append(m.velocity_ned_m_s.copy())
+        rows.att.append((m.roll_rad, m.pitch_rad, m.yaw_rad))
+        rows.kind.append(int(kind))
+        d = latest.decision if latest is not None else None
+        rows.dyaw.append(d.yaw if d is not None else 0.0)
+        rows.dpitch.append(d.pitch if d is not None else 0.0)
+        rows.sp.append((sp.forward_m_s, sp.right_m_s, sp.down_m_s, sp.yaw_rate_deg_s))
+        rows.clear.append(clearance)
+
+    while True:
+        t = vehicle.time_s
+        # -- camera: capture now, decision applies after the processing latency
+        if camera_ok and t >= n_cam * cam_period - _EPS_S:
+            n_cam += 1
+            try:
+                r0 = clock()
+                frame = camera.read()
+            except CameraError:
+                camera_ok = False  # a camera that stopped delivering: the setpoint rule takes over
+            else:
+                p0 = clock()
+                res = pipeline.process(frame.image, frame.timestamp_s, want_disparity=want_disparity)
+                p1 = clock()
+                render_ms.append((p0 - r0) * 1e3)
+                pipe_ms.append((p1 - p0) * 1e3)
+                pending.append((frame.timestamp_s + sim.processing_latency_s, res))
+                f_t.append(frame.timestamp_s)
+                f_pos.append(vehicle.model.position_ned_m.copy())
+                f_depth.append(np.asarray(res.refined.depth_m, dtype=np.float64).copy())
+                f_kind.append(int(_KIND_OF[res.decision.kind]))
+                f_yaw.append(res.decision.yaw)
+                f_pitch.append(res.decision.pitch)
+                f_reason.append(res.decision.reason)
+                if on_frame is not None:
+                    on_frame(frame, res)
+        while pending and pending[0][0] <= t + _EPS_S:
+            latest = pending.popleft()[1]
+
+        # -- setpoint, at the service's rate and by the service's rule
+        if t >= n_sp * sp_period - _EPS_S:
+            n_sp += 1
+            age = t - latest.timestamp_s if latest is not None else t
+            if vehicle.in_offboard and age > cmd.failsafe_timeout_s:
+                vehicle.set_hold()
+            decision = latest.decision if latest is not None else None
+            if not is_straight_clear(decision):
+                last_steer_s = t
+            m = vehicle.model
+            sp = setpoint_for(
+                decision,
+                age if latest is not None else math.inf,
+                cmd,
+                heading_error_rad=wrap_angle_rad(heading_ref - m.yaw_rad),
+                altitude_error_m=altitude_ref - m.altitude_m,
+                region_depths_m=latest.refined.depth_m if latest is not None else None,
+                clear_for_s=t - last_steer_s,
+            )
+            if vehicle.in_offboard:
+                vehicle.set_setpoint(sp)
+                if decision is None:
+                    kind = LogKind.NONE
+                elif age > cmd.stale_frame_timeout_s:
+                    kind = LogKind.STALE
+                else:
+                    kind = _KIND_OF[decision.kind]
+            else:
+                sp, kind = ZERO_SETPOINT, LogKind.HOLD
+            log_row(t)
+            if realtime:
+                delay = wall0 + t - clock()
+                if delay > 0.0:
+                    sleep(delay)
+
+        # -- physics and the verdict
+        vehicle.step(dt)
+        t = vehicle.time_s
+        new_pos = vehicle.model.position_ned_m
+        path_length += float(np.linalg.norm(new_pos - pos))
+        pos = new_pos.copy()
+        clearance = field_.distance_m(pos) - radius
+        if clearance < min_clear:
+            min_clear, min_clear_at = clearance, pos.copy()
+        m = vehicle.model
+        if m.speed_m_s < sim.held_speed_m_s and abs(math.degrees(m.yaw_rate_rad_s)) < _HELD_YAW_RATE_DEG_S:
+            stopped_since = t if stopped_since is None else stopped_since
+        else:
+            stopped_since = None
+        if clearance < 0.0:
+            outcome = Outcome.COLLISION
+            reason = f"collision at t = {t:.2f} s at north {pos[0]:.2f} m, east {pos[1]:+.2f} m, altitude {-pos[2]:.2f} m"
+        elif course.in_goal(pos):
+            outcome = Outcome.GOAL
+            reason = f"goal reached at t = {t:.2f} s"
+        elif not course.in_bounds(pos):
+            outcome = Outcome.OUT_OF_BOUNDS
+            reason = f"left the course bounds at t = {t:.2f} s at north {pos[0]:.2f} m, east {pos[1]:+.2f} m"
+        elif stopped_since is not None and t - stopped_since >= sim.held_after_s:
+            outcome = Outcome.HELD
+            reason = (
+                f"held safely: stopped since t = {stopped_since:.2f} s at north {pos[0]:.2f} m "
+                f"(clearance {clearance:.2f} m)"
+            )
+        elif t >= course.time_limit_s:
+            outcome = Outcome.TIMEOUT
+            reason = f"time limit {course.time_limit_s:.0f} s reached at north {pos[0]:.2f} m"
+        if outcome is not None:
+            log_row(t)
+            break
+
+    camera.close()
+    counts = {k.value: 0 for k in DecisionKind}
+    for code in f_kind:
+        counts[LogKind(code).name.lower()] += 1
+    log = FlightLog(
+        t_s=np.asarray(rows.t, dtype=np.float64),
+        position_ned_m=np.asarray(rows.pos, dtype=np.float64).reshape(-1, 3),
+        velocity_ned_m_s=np.asarray(rows.vel, dtype=np.float64).reshape(-1, 3),
+        attitude_rad=np.asarray(rows.att, dtype=np.float64).reshape(-1, 3),
+        kind=np.asarray(rows.kind, dtype=np.int8),
+        decision_yaw=np.asarray(rows.dyaw, dtype=np.float64),
+        decision_pitch=np.asarray(rows.dpitch, dtype=np.float64),
+        setpoint=np.asarray(rows.sp, dtype=np.float64).reshape(-1, 4),
+        clearance_m=np.asarray(rows.clear, dtype=np.float64),
+    )
+    frame_log = FrameLog(
+        t_s=np.asarray(f_t, dtype=np.float64),
+        position_ned_m=np.asarray(f_pos, dtype=np.float64).reshape(-1, 3),
+        region_depths_m=np.asarray(f_depth, dtype=np.float64).reshape(-1, 9),
+        kind=np.asarray(f_kind, dtype=np.int8),
+        yaw=np.asarray(f_yaw, dtype=np.float64),
+        pitch=np.asarray(f_pitch, dtype=np.float64),
+        reason=tuple(f_reason),
+    )
+    timing = FlightTiming(
+        wall_s=clock() - wall0,
+        pipeline_ms=float(np.median(pipe_ms)) if pipe_ms else 0.0,
+        render_ms=float(np.median(render_ms)) if render_ms else 0.0,
+    )
+    assert outcome is not None
+    return FlightResult(
+        course=course,
+        outcome=outcome,
+        success=is_success(outcome, course.hold_is_success),
+        time_s=vehicle.time_s,
+        path_length_m=path_length,
+        min_clearance_m=min_clear,
+        min_clearance_at_ned_m=min_clear_at,
+        final_position_ned_m=pos,
+        collision_radius_m=radius,
+        frames=len(f_t),
+        decisions=counts,
+        reason=reason,
+        log=log,
+        frame_log=frame_log,
+        timing=timing,
+    )

@@ -1,0 +1,216 @@
+"""Many seeded flights, in worker processes, and the table that scores them.
+
+A *suite* is a list of ``(kind, seed)`` courses (:data:`SUITES`); :func:`run_suite` flies each with
+one configuration, over ``workers`` processes (each with its own texture bank and one OpenCV thread,
+so a flight's result does not depend on how many workers ran it), and :func:`suite_table` summarises
+the results per course kind and overall.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import multiprocessing as mp
+import queue
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from companion.config import CompanionConfig, parse_config
+from companion.errors import InputError
+from companion.sim.courses import COURSE_KINDS
+from companion.sim.loop import FlightResult
+from companion.sim.scoring import Outcome
+
+#: Named suites: ``standard`` = 9 seeds of each of the 6 kinds (54 flights); ``quick`` = 2 of each.
+SUITES: dict[str, tuple[tuple[str, int], ...]] = {
+    "standard": tuple((kind, seed) for seed in range(9) for kind in COURSE_KINDS),
+    "quick": tuple((kind, seed) for seed in range(2) for kind in COURSE_KINDS),
+}
+
+
+def suite_courses(name: str) -> tuple[tuple[str, int], ...]:
+    """The ``(kind, seed)`` list of suite ``name``. Raises InputError for an unknown name."""
+    if name not in SUITES:
+        raise InputError(f"unknown suite {name!r}; suites are {', '.join(SUITES)}")
+    return SUITES[name]
+
+
+def single_thread_config(cfg: CompanionConfig) -> CompanionConfig:
+    """``cfg`` with one OpenCV thread (workers share the cores; results do not depend on it)."""
+    return cfg.model_copy(update={"stereo": cfg.stereo.model_copy(update={"cpu_threads": 1})})
+
+
+def _fly_one(kind: str, seed: int, cfg: CompanionConfig, bank: Any, keep_logs: bool) -> FlightResult:
+    from companion.sim.courses import make_course
+    from companion.sim.loop import fly
+
+    result = fly(make_course(kind, seed), cfg, textures=bank)
+    if not keep_logs:
+        result = dataclasses.replace(result, log=None, frame_log=None)
+    return result
+
+
+def _worker(cfg_data: dict[str, Any], keep_logs: bool, tasks: Any, results: Any) -> None:
+    """Worker process: fly tasks ``(index, kind, seed)`` until a ``None`` arrives."""
+    from companion.sim.camera import make_texture_bank
+
+    cfg = parse_config(cfg_data, source="suite")
+    bank = make_texture_bank()
+    while True:
+        task = tasks.get()
+        if task is None:
+            return
+        index, kind, seed = task
+        try:
+            results.put((index, _fly_one(kind, seed, cfg, bank, keep_logs), None))
+        except Exception as err:  # reported to the parent, which raises it
+            results.put((index, None, f"{kind}-{seed}: {type(err).__name__}: {err}"))
+
+
+def run_suite(
+    cfg: CompanionConfig,
+    courses: Sequence[tuple[str, int]],
+    *,
+    workers: int = 2,
+    keep_logs: bool = False,
+    progress: Callable[[int, int, FlightResult], None] | None = None,
+) -> list[FlightResult]:
+    """Fly every ``(kind, seed)`` of ``courses`` with ``cfg``; results in the order of ``courses``.
+
+    Args:
+        cfg: the configuration (every flight uses one OpenCV thread, see :func:`single_thread_config`).
+        courses: what to fly.
+        workers: processes (1 = in this process).
+        keep_logs: keep the per-step logs in the results (memory; default drop them).
+        progress: called after each flight with (done, total, result).
+
+    Raises:
+        RuntimeError: a flight raised in a worker (the message names the course).
+    """
+    cfg = single_thread_config(cfg)
+    total = len(courses)
+    out: list[FlightResult | None] = [None] * total
+    if workers <= 1 or total <= 1:
+        from companion.core.disparity.opencv import set_cv_threads
+        from companion.sim.camera import make_texture_bank
+
+        bank = make_texture_bank()
+        try:
+            for i, (kind, seed) in enumerate(courses):
+                out[i] = _fly_one(kind, seed, cfg, bank, keep_logs)
+                if progress is not None:
+                    progress(i + 1, total, out[i])
+        finally:
+            set_cv_threads(0)
+        return [r for r in out if r is not None]
+
+    # spawn: a clean interpreter per worker (no forked OpenCV thread pools).
+    ctx = mp.get_context("spawn")
+    tasks: Any = ctx.Queue()
+    results: Any = ctx.Queue()
+    for i, (kind, seed) in enumerate(courses):
+        tasks.put((i, kind, int(seed)))
+    n = min(workers, total)
+    for _ in range(n):
+        tasks.put(None)
+    data = cfg.model_dump(mode="json")
+    procs = [ctx.Process(target=_worker, args=(data, keep_logs, tasks, results), daemon=True) for _ in range(n)]
+    for p in procs:
+        p.start()
+    done = 0
+    error: str | None = None
+    try:
+        while done < total:
+            try:
+                index, result, err = results.get(timeout=1.0)
+            except queue.Empty:
+                if not any(p.is_alive() for p in procs):
+                    raise RuntimeError("suite workers exited before finishing the suite") from None
+                continue
+            done += 1
+            if err is not None:
+                error = error or err
+                continue
+            out[index] = result
+            if progress is not None:
+                progress(done, total, result)
+    finally:
+        for p in procs:
+            p.join(timeout=5.0)
+            if p.is_alive():
+                p.terminate()
+    if error is not None:
+        raise RuntimeError(f"a flight failed: {error}")
+    return [r for r in out if r is not None]
+
+
+@dataclass(frozen=True)
+class SuiteRow:
+    """Scores of one group of flights.
+
+    Attributes:
+        group: a course kind or ``all``.
+        flights: number of flights.
+        success_pct: goal reached or held safely (where that counts), percent.
+        goal_pct: goal reached, percent.
+        held: flights that ended held safely.
+        collisions: flights that ended in a collision.
+        other_failures: timeouts and out-of-bounds.
+        mean_clearance_m: mean over flights of the minimum clearance, metres.
+        worst_clearance_m: the smallest minimum clearance, metres.
+        mean_time_s: mean flight time, seconds.
+    """
+
+    group: str
+    flights: int
+    success_pct: float
+    goal_pct: float
+    held: int
+    collisions: int
+    other_failures: int
+    mean_clearance_m: float
+    worst_clearance_m: float
+    mean_time_s: float
+
+
+def _row(group: str, rs: Sequence[FlightResult]) -> SuiteRow:
+    n = len(rs)
+    clear = np.array([r.min_clearance_m for r in rs])
+    return SuiteRow(
+        group=group,
+        flights=n,
+        success_pct=100.0 * sum(r.success for r in rs) / n,
+        goal_pct=100.0 * sum(r.outcome is Outcome.GOAL for r in rs) / n,
+        held=sum(r.outcome is Outcome.HELD for r in rs),
+        collisions=sum(r.outcome is Outcome.COLLISION for r in rs),
+        other_failures=sum(r.outcome in (Outcome.TIMEOUT, Outcome.OUT_OF_BOUNDS) for r in rs),
+        mean_clearance_m=float(clear.mean()),
+        worst_clearance_m=float(clear.min()),
+        mean_time_s=float(np.mean([r.time_s for r in rs])),
+    )
+
+
+def suite_rows(results: Sequence[FlightResult]) -> list[SuiteRow]:
+    """One row per course kind present (in :data:`COURSE_KINDS` order), then ``all``."""
+    kinds = [k for k in COURSE_KINDS if any(r.course.kind == k for r in results)]
+    kinds += sorted({r.course.kind for r in results} - set(kinds))
+    rows = [_row(k, [r for r in results if r.course.kind == k]) for k in kinds]
+    if results:
+        rows.append(_row("all", results))
+    return rows
+
+
+def suite_table(results: Sequence[FlightResult]) -> str:
+    """The suite's scores as a fixed-width text table."""
+    from companion.bench import format_table
+
+    header = ["course", "flights", "success", "goal", "held", "collisions", "timeout/out",
+              "mean clear m", "worst clear m", "mean time s"]
+    body = [
+        [r.group, r.flights, f"{r.success_pct:.0f}%", f"{r.goal_pct:.0f}%", r.held, r.collisions,
+         r.other_failures, f"{r.mean_clearance_m:.2f}", f"{r.worst_clearance_m:.2f}", f"{r.mean_time_s:.1f}"]
+        for r in suite_rows(results)
+    ]
+    return format_table(body, header)

@@ -1,0 +1,80 @@
+"""``companion sim`` and ``companion demo`` from the command line."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import cv2
+import pytest
+
+from companion.cli import main
+from companion.config import CompanionConfig
+from companion.sim.suite import run_suite, suite_rows, suite_table
+
+
+def test_one_course_prints_the_verdict_and_draws_the_plot(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    plot = tmp_path / "doorway.png"
+    assert main(["sim", "--course", "doorway", "--seed", "3", "--plot", str(plot), "--side-view"]) == 0
+    out = capsys.readouterr().out
+    for key in ("outcome:", "min clearance:", "path length:", "time:", str(plot)):
+        assert key in out
+    image = cv2.imread(str(plot))
+    assert image is not None and image.shape[0] > 500 and image.shape[1] > 700
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["sim", "--course", "maze"], "unknown course 'maze'"),
+        (["sim", "--course", "doorway", "--seed", "-4"], "bad seed -4"),
+        (["sim", "--suite", "huge"], "unknown suite 'huge'"),
+        (["sim", "--suite", "quick", "--plot", "x.png"], "go with --course"),
+        (["sim", "--course", "doorway", "--plot", "/no/such/dir/x.png"], "no such directory"),
+        (["sim", "--course", "doorway", "--plot", "plot.txt"], "must be an image"),
+        (["sim", "--course", "doorway", "--config", "/no/such.toml"], "cannot read config"),
+    ],
+)
+def test_bad_input_is_one_line_and_exit_2(argv: list[str], message: str, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert message in err and "\n" not in err
+
+
+def test_demo_writes_the_plot_and_overlays_and_prints_where(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out_dir = tmp_path / "demo"
+    assert main(["demo", "--out", str(out_dir)]) == 0
+    out = capsys.readouterr().out
+    assert "outcome:       goal" in out
+    assert str(out_dir.resolve()) in out
+    names = sorted(p.name for p in out_dir.iterdir())
+    assert "flight.png" in names and sum(n.startswith("overlay_") for n in names) >= 3
+
+
+def test_demo_default_output_is_companion_demo_in_the_working_directory(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    # A short course keeps this quick; the default course is covered above.
+    assert main(["demo", "--course", "pitch", "--seed", "0"]) == 0
+    assert (tmp_path / "companion-demo" / "flight.png").is_file()
+    assert str(tmp_path / "companion-demo") in capsys.readouterr().out
+    assert os.getcwd() == str(tmp_path)
+
+
+def test_suite_runner_and_table_in_process() -> None:
+    results = run_suite(CompanionConfig(), [("pitch", 0), ("doorway", 1)], workers=1)
+    assert [r.course.name for r in results] == ["pitch-0", "doorway-1"]
+    rows = suite_rows(results)
+    assert [r.group for r in rows] == ["doorway", "pitch", "all"]
+    assert rows[-1].flights == 2
+    table = suite_table(results)
+    assert "success" in table and "worst clear m" in table and "all" in table
+    assert results[0].log is None  # logs are dropped unless asked for
+
+
+@pytest.mark.slow
+def test_quick_suite_over_two_workers(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["sim", "--suite", "quick", "--workers", "2"]) == 0
+    out = capsys.readouterr().out
+    assert "[ 12/12]" in out and "collisions" in out

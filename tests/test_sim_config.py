@@ -1,0 +1,45 @@
+"""The simulator's config section and the paper-faithful profile."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from companion.config import CompanionConfig, load_config, parse_config
+from companion.errors import ConfigError
+
+PAPER = Path(__file__).resolve().parent.parent / "config" / "paper.toml"
+
+
+def test_paper_profile_is_the_papers_controller() -> None:
+    cfg = load_config(PAPER)
+    default = CompanionConfig()
+    assert [r.name for r in cfg.controller.main_rules] == ["R1", "R2", "R3", "R4", "R5", "R6", "R7", "TIE"]
+    assert cfg.command.avoid_speed_fraction == 1.0  # constant speed
+    assert cfg.command.heading_hold_gain_per_s == 0.0 and cfg.command.altitude_hold_gain_per_s == 0.0
+    assert cfg.lut.release_time_constant_s == 0.0
+    # The paper's values are the same in both.
+    assert cfg.controller.input_terms == default.controller.input_terms
+    assert cfg.regions == default.regions
+    assert cfg.controller.main_rules == [r for r in default.controller.main_rules if not r.name.startswith("S")]
+
+
+def test_defaults_add_side_rules_and_course_hold() -> None:
+    cfg = CompanionConfig()
+    assert [r.name for r in cfg.controller.main_rules][-4:] == ["S1", "S2", "S3", "S4"]
+    assert cfg.command.heading_hold_gain_per_s > 0 and cfg.command.avoid_speed_fraction < 1.0
+
+
+@pytest.mark.parametrize(
+    ("patch", "field"),
+    [
+        ({"sim": {"exposure_gain_range": [1.2, 0.8]}}, "exposure_gain_range"),
+        ({"sim": {"physics_rate_hz": 30.0, "camera_rate_hz": 60.0}}, "physics_rate_hz"),
+        ({"sim": {"collision_radius_m": 0.0}}, "sim.collision_radius_m"),
+        ({"sim": {"eye_width_px": 10}}, "sim.eye_width_px"),
+    ],
+)
+def test_sim_section_is_validated(patch: dict, field: str) -> None:
+    with pytest.raises(ConfigError, match=field):
+        parse_config(patch)

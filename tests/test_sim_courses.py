@@ -1,0 +1,76 @@
+"""Courses are seeded, sane (the start is clear, the goal lies ahead) and their ground truth is exact."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from companion.errors import InputError
+from companion.sim.courses import COURSE_KINDS, START_ALTITUDE_M, head_on_course, make_course
+from companion.sim.scoring import ClearanceField, Outcome, is_success
+from companion.sim.suite import SUITES, suite_courses
+
+
+@pytest.mark.parametrize("kind", COURSE_KINDS)
+def test_every_kind_is_deterministic_and_starts_clear(kind: str) -> None:
+    for seed in range(4):
+        a, b = make_course(kind, seed), make_course(kind, seed)
+        assert a == b
+        assert a.name == f"{kind}-{seed}"
+        start = np.asarray(a.start.position_ned_m)
+        assert -start[2] == START_ALTITUDE_M
+        # Nothing is nearer the start than the ground below it.
+        assert ClearanceField(a.scene).distance_m(start) == pytest.approx(START_ALTITUDE_M)
+        assert a.goal_north_m > 5.0 and a.in_bounds(start) and not a.in_goal(start)
+        assert a.time_limit_s >= 30.0
+    assert make_course(kind, 0) != make_course(kind, 1)
+
+
+def test_bad_kind_or_seed_is_a_typed_error() -> None:
+    with pytest.raises(InputError, match="unknown course 'maze'.*corridor"):
+        make_course("maze", 0)
+    for seed in (-1, 2**31, 1.5, True):
+        with pytest.raises(InputError, match="bad seed"):
+            make_course("doorway", seed)  # type: ignore[arg-type]
+    with pytest.raises(InputError, match="unknown suite"):
+        suite_courses("huge")
+
+
+def test_standard_suite_has_at_least_50_flights_over_every_kind() -> None:
+    standard = SUITES["standard"]
+    assert len(standard) >= 50
+    assert {k for k, _ in standard} == set(COURSE_KINDS)
+    assert len(set(standard)) == len(standard)
+
+
+def test_clearance_field_equals_the_scene_ground_truth() -> None:
+    rng = np.random.default_rng(7)
+    for course in [make_course(k, 2) for k in COURSE_KINDS] + [head_on_course()]:
+        field = ClearanceField(course.scene)
+        lo = np.array([-1.0, -4.0, -4.0])
+        hi = np.array([course.goal_north_m, 4.0, 0.5])
+        pts = rng.uniform(lo, hi, (200, 3))
+        truth = course.scene.distance_to_obstacles_m(pts, include_ground=True)
+        got = np.array([field.distance_m(p) for p in pts])
+        np.testing.assert_allclose(got, truth, atol=1e-9)
+
+
+def test_doorway_has_a_door_and_deadend_is_closed() -> None:
+    door = make_course("doorway", 3)
+    field = ClearanceField(door.scene)
+    wall_n = door.scene.obstacles[0].centre_ned_m[0]
+    # Through the door at flight altitude: free; beside it: inside the wall.
+    door_e = door.scene.obstacles[2].centre_ned_m[1]
+    assert field.distance_m(np.array([wall_n, door_e, -1.5])) > 0.3
+    assert field.distance_m(np.array([wall_n, door_e + 3.0, -1.5])) < 0.0
+    dead = make_course("deadend", 1)
+    field = ClearanceField(dead.scene)
+    # Straight down the channel there is no way through the end wall.
+    samples = [field.distance_m(np.array([n, 0.0, -1.5])) for n in np.linspace(0, dead.goal_north_m, 200)]
+    assert min(samples) < 0.0
+
+
+def test_success_rule() -> None:
+    assert is_success(Outcome.GOAL, False)
+    assert is_success(Outcome.HELD, True) and not is_success(Outcome.HELD, False)
+    assert not any(is_success(o, True) for o in (Outcome.COLLISION, Outcome.TIMEOUT, Outcome.OUT_OF_BOUNDS))

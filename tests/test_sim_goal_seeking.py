@@ -1,0 +1,87 @@
+"""Course hold in setpoint_for (goal seeking): off by default, back toward the course only when CLEAR,
+after the resume delay, toward a side that is seen to be free."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from companion.config.core import CommandConfig
+from companion.core.command import is_straight_clear, setpoint_for
+from companion.core.types import REGION_INDEX, Decision, DecisionKind
+
+HOLD = CommandConfig(heading_hold_gain_per_s=1.0, max_heading_hold_rate_deg_s=20.0, altitude_hold_gain_per_s=0.5,
+                     max_altitude_hold_speed_m_s=0.3, hold_resume_delay_s=1.0, hold_clear_depth_m=2.0)
+CLEAR = Decision(DecisionKind.CLEAR, 0.0, 0.0, 1.0, "centre clear")
+FREE = np.full(9, 10.0)
+
+
+def _depths(**regions: float) -> np.ndarray:
+    d = FREE.copy()
+    for k, v in regions.items():
+        d[REGION_INDEX[k]] = v
+    return d
+
+
+def test_without_the_inputs_it_is_the_papers_setpoint() -> None:
+    for cmd in (CommandConfig(), HOLD):
+        for d in (CLEAR, Decision(DecisionKind.AVOID, 0.4, -0.2, 0.5, "x")):
+            assert setpoint_for(d, 0.1, cmd) == setpoint_for(
+                d, 0.1, cmd, heading_error_rad=None, altitude_error_m=None, region_depths_m=None, clear_for_s=None
+            )
+    # The paper-faithful profile has zero gains: errors change nothing.
+    paper = CommandConfig(heading_hold_gain_per_s=0.0, altitude_hold_gain_per_s=0.0)
+    assert setpoint_for(CLEAR, 0.1, paper, heading_error_rad=1.0, altitude_error_m=1.0) == setpoint_for(CLEAR, 0.1, paper)
+
+
+def test_heading_hold_turns_back_toward_the_course_with_the_right_sign_and_limit() -> None:
+    sp = setpoint_for(CLEAR, 0.1, HOLD, heading_error_rad=math.radians(10.0), clear_for_s=5.0)
+    assert sp.yaw_rate_deg_s == pytest.approx(10.0)  # gain 1/s: 10 deg error -> 10 deg/s, to the right
+    sp = setpoint_for(CLEAR, 0.1, HOLD, heading_error_rad=-math.radians(90.0), clear_for_s=5.0)
+    assert sp.yaw_rate_deg_s == pytest.approx(-20.0)  # clipped, to the left
+    # The error is wrapped: 350 deg to the right is 10 deg to the left.
+    sp = setpoint_for(CLEAR, 0.1, HOLD, heading_error_rad=math.radians(350.0), clear_for_s=5.0)
+    assert sp.yaw_rate_deg_s == pytest.approx(-10.0)
+    assert sp.forward_m_s == HOLD.cruise_speed_m_s
+
+
+def test_altitude_hold_climbs_when_low_and_descends_when_high() -> None:
+    assert setpoint_for(CLEAR, 0.1, HOLD, altitude_error_m=0.2, clear_for_s=5.0).down_m_s == pytest.approx(-0.1)
+    assert setpoint_for(CLEAR, 0.1, HOLD, altitude_error_m=-2.0, clear_for_s=5.0).down_m_s == pytest.approx(0.3)
+
+
+def test_hold_waits_for_clear_straight_decisions_and_the_resume_delay() -> None:
+    kw = {"heading_error_rad": 0.3, "altitude_error_m": 0.5}
+    assert setpoint_for(CLEAR, 0.1, HOLD, clear_for_s=0.5, **kw) == setpoint_for(CLEAR, 0.1, HOLD)
+    for kind in (DecisionKind.AVOID, DecisionKind.BRAKE):
+        d = Decision(kind, 0.3 if kind is DecisionKind.AVOID else 0.0, 0.0, 0.5, "x")
+        assert setpoint_for(d, 0.1, HOLD, clear_for_s=5.0, **kw) == setpoint_for(d, 0.1, HOLD)
+    # Stale frames: zero, whatever the course says.
+    assert setpoint_for(CLEAR, 1.0, HOLD, clear_for_s=5.0, **kw).is_zero
+
+
+def test_hold_never_steers_toward_a_side_it_sees_blocked_or_unknown() -> None:
+    right = math.radians(15.0)
+    assert setpoint_for(CLEAR, 0.1, HOLD, heading_error_rad=right, region_depths_m=_depths(right=1.0),
+                        clear_for_s=5.0).yaw_rate_deg_s == 0.0
+    assert setpoint_for(CLEAR, 0.1, HOLD, heading_error_rad=right, region_depths_m=_depths(right=math.nan),
+                        clear_for_s=5.0).yaw_rate_deg_s == 0.0
+    # The other side being blocked does not matter.
+    assert setpoint_for(CLEAR, 0.1, HOLD, heading_error_rad=right, region_depths_m=_depths(left=0.3),
+                        clear_for_s=5.0).yaw_rate_deg_s == pytest.approx(15.0)
+    # Climbing needs 'up' free, descending 'down' free.
+    assert setpoint_for(CLEAR, 0.1, HOLD, altitude_error_m=0.4, region_depths_m=_depths(up=1.0),
+                        clear_for_s=5.0).down_m_s == 0.0
+    assert setpoint_for(CLEAR, 0.1, HOLD, altitude_error_m=-0.4, region_depths_m=_depths(down=1.0),
+                        clear_for_s=5.0).down_m_s == 0.0
+    assert setpoint_for(CLEAR, 0.1, HOLD, altitude_error_m=-0.4, region_depths_m=_depths(up=1.0),
+                        clear_for_s=5.0).down_m_s == pytest.approx(0.2)
+
+
+def test_straight_clear_is_what_the_resume_timer_counts() -> None:
+    assert is_straight_clear(CLEAR)
+    assert not is_straight_clear(None)
+    assert not is_straight_clear(Decision(DecisionKind.CLEAR, 0.2, 0.0, 1.0, "side rule"))
+    assert not is_straight_clear(Decision(DecisionKind.AVOID, 0.0, 0.0, 0.5, "x"))

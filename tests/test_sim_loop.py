@@ -1,0 +1,145 @@
+"""The closed loop flies the product's pipeline: deterministic, avoids, holds, stops on stale frames,
+and really uses the configuration. Small images (the simulator's default 336x188) and short courses."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from companion.config import CompanionConfig, apply_patch
+from companion.sim.camera import make_texture_bank
+from companion.sim.courses import head_on_course, make_course
+from companion.sim.loop import FlightResult, LogKind, fly
+from companion.sim.scoring import Outcome
+
+CFG = CompanionConfig()
+
+
+@pytest.fixture(scope="module")
+def bank():
+    return make_texture_bank()
+
+
+@pytest.fixture(scope="module")
+def head_on(bank) -> FlightResult:
+    return fly(head_on_course(seed=1, box_north_m=4.0, box_width_m=0.6), CFG, textures=bank)
+
+
+def test_same_seed_same_flight(bank, head_on: FlightResult) -> None:
+    again = fly(head_on_course(seed=1, box_north_m=4.0, box_width_m=0.6), CFG, textures=make_texture_bank())
+    assert again == head_on  # outcome, time, path length, clearance, decision counts
+    assert again.log is not None and head_on.log is not None
+    assert again.log.equals(head_on.log)
+    np.testing.assert_array_equal(again.frame_log.region_depths_m, head_on.frame_log.region_depths_m)
+
+
+def test_a_head_on_box_is_avoided(head_on: FlightResult) -> None:
+    assert head_on.outcome is Outcome.GOAL, head_on.reason
+    assert head_on.min_clearance_m > 0.05
+    log = head_on.log
+    assert log is not None
+    assert np.any(log.kind == LogKind.AVOID)  # it did have to avoid
+    # The path went around the box (0.6 m wide, dead ahead): at the box the vehicle was off the line.
+    at_box = np.argmin(np.abs(log.position_ned_m[:, 0] - 4.0))
+    assert abs(log.position_ned_m[at_box, 1]) > 0.3 + 0.25
+
+
+def test_a_wide_head_on_box_is_a_hold_not_a_collision(bank) -> None:
+    """A box wider than the centre's view when it comes near (here 1.4 m at 2.25 m: +-17 deg) reaches
+    into the left and right regions too: every region's robust minimum is the box, the paper's rules
+    cancel, and the controller brakes. Safe, if not clever (docs/benchmarks.md)."""
+    result = fly(head_on_course(seed=1, box_north_m=4.0, box_width_m=1.4), CFG, textures=bank)
+    assert result.outcome is Outcome.HELD and result.min_clearance_m > 0.5, result.reason
+
+
+def test_log_shapes_and_units(head_on: FlightResult) -> None:
+    log = head_on.log
+    assert log is not None
+    n = log.t_s.shape[0]
+    assert log.position_ned_m.shape == (n, 3) and log.setpoint.shape == (n, 4)
+    assert np.all(np.diff(log.t_s) > 0)
+    # setpoints at 20 Hz
+    assert np.median(np.diff(log.t_s)) == pytest.approx(1.0 / CFG.sim.setpoint_rate_hz)
+    assert head_on.frames == pytest.approx(head_on.time_s * CFG.sim.camera_rate_hz, abs=2)
+    assert np.min(log.clearance_m) == pytest.approx(head_on.min_clearance_m, abs=0.02)
+    assert head_on.path_length_m >= head_on.course.goal_north_m
+
+
+def test_the_dead_end_ends_in_a_hold_not_a_collision(bank) -> None:
+    result = fly(make_course("deadend", 1), CFG, textures=bank)
+    assert result.outcome is Outcome.HELD, result.reason
+    assert result.success and result.min_clearance_m > 0.1
+    assert result.log is not None and np.any(result.log.kind == LogKind.BRAKE)
+
+
+def test_stale_frames_stop_the_vehicle(bank) -> None:
+    """The camera stops delivering at 2 s: the newest decision goes stale after the stale timeout,
+    setpoint_for then commands zero, and the vehicle stops within its lag."""
+    fail_s = 2.02  # not on a frame instant (2.0 = 30 frames at 15 Hz)
+    result = fly(head_on_course(seed=2, box_north_m=25.0), CFG, textures=bank, camera_fail_after_s=fail_s)
+    log = result.log
+    assert log is not None
+    cmd, sim = CFG.command, CFG.sim
+    # The last frame was captured just before fail_s, its decision applied a latency later.
+    stale_at = fail_s + cmd.stale_frame_timeout_s
+    after = log.t_s > stale_at + 1.0 / sim.setpoint_rate_hz + 1e-9
+    assert np.all(log.kind[after] != LogKind.CLEAR) and np.all(log.setpoint[after] == 0.0)
+    assert np.any(log.kind[after] == LogKind.STALE)
+    # Stopped within the stale timeout plus the lag (speed from ~1 m/s to < 0.05 m/s: ~3 time constants,
+    # the deceleration limit permitting).
+    speed = np.linalg.norm(log.velocity_ned_m_s, axis=1)
+    v0 = float(speed[np.searchsorted(log.t_s, stale_at)])
+    stop_by = stale_at + 1.0 / sim.setpoint_rate_hz + max(
+        sim.velocity_time_constant_s * math.log(v0 / 0.05), v0 / sim.max_horizontal_accel_m_s2
+    ) + 0.2
+    assert np.all(speed[log.t_s >= stop_by] < 0.05)
+    assert result.outcome is Outcome.HELD and result.min_clearance_m > 1.0
+    assert result.frames == int(math.ceil(fail_s * sim.camera_rate_hz))
+
+
+def test_failsafe_switches_to_hold_after_the_failsafe_timeout(bank) -> None:
+    cfg = apply_patch(CFG, {"sim": {"held_after_s": 10.0}})
+    result = fly(head_on_course(seed=2, box_north_m=25.0), cfg, textures=bank, camera_fail_after_s=1.0)
+    log = result.log
+    assert log is not None and result.outcome is Outcome.HELD
+    hold = log.t_s[log.kind == LogKind.HOLD]
+    assert hold.size and hold[0] == pytest.approx(1.0 + cfg.command.failsafe_timeout_s, abs=0.1)
+
+
+def test_retuned_membership_functions_change_the_flight(bank, head_on: FlightResult) -> None:
+    # 'near' and 'far' a metre farther out: the same box is seen as near earlier.
+    far_terms = {
+        "near": {"shape": "left_shoulder", "params_m": [1.75, 3.25]},
+        "far": {"shape": "right_shoulder", "params_m": [1.75, 3.25]},
+    }
+    cfg = apply_patch(CFG, {"controller": {"input_terms": far_terms}})
+    result = fly(head_on_course(seed=1, box_north_m=4.0, box_width_m=0.6), cfg, textures=bank)
+    assert result.log is not None and head_on.log is not None
+    assert not result.log.equals(head_on.log)
+
+    def first_avoid_north(r: FlightResult) -> float:
+        assert r.frame_log is not None
+        i = int(np.flatnonzero(r.frame_log.kind != LogKind.CLEAR)[0])
+        return float(r.frame_log.position_ned_m[i, 0])
+
+    assert first_avoid_north(result) < first_avoid_north(head_on) - 0.5
+
+
+def test_realtime_paces_simulated_time_to_the_clock(bank) -> None:
+    now = {"t": 100.0}
+    slept: list[float] = []
+
+    def clock() -> float:
+        return now["t"]
+
+    def sleep(s: float) -> None:
+        slept.append(s)
+        now["t"] += s
+
+    result = fly(head_on_course(seed=2, box_north_m=25.0), CFG, textures=bank, camera_fail_after_s=0.5,
+                 realtime=True, clock=clock, sleep=sleep)
+    # The fake clock only moves when the loop sleeps: it slept the whole simulated flight.
+    assert sum(slept) == pytest.approx(result.time_s, abs=0.1)
+    assert result.timing is not None and result.timing.wall_s == pytest.approx(sum(slept))

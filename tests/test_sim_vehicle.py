@@ -1,0 +1,179 @@
+"""The simulated multicopter: lag and acceleration limits, frames and signs, modes, VehicleLink conformance."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+
+import numpy as np
+import pytest
+
+from companion.core.render import Pose, Scene
+from companion.core.types import VelocitySetpoint
+from companion.errors import VehicleError
+from companion.interfaces import CameraSource, VehicleLink
+from companion.sim.vehicle import SimVehicle, VehicleModel, VehicleParams, wrap_angle_rad
+
+DT = 0.005
+
+
+def _run(model: VehicleModel, seconds: float) -> list[tuple[float, np.ndarray, float]]:
+    """(time, velocity NED, yaw rate) after every step."""
+    out = []
+    for _ in range(int(round(seconds / DT))):
+        model.step(DT)
+        out.append((model.time_s, model.velocity_ned_m_s.copy(), model.yaw_rate_rad_s))
+    return out
+
+
+def test_velocity_follows_a_first_order_lag_when_the_limit_is_not_reached() -> None:
+    p = VehicleParams(velocity_time_constant_s=0.4, max_horizontal_accel_m_s2=100.0)
+    m = VehicleModel(p, Pose.at(0, 0, 2))
+    m.command(VelocitySetpoint(forward_m_s=1.0))
+    for t, v, _ in _run(m, 2.0):
+        assert v[0] == pytest.approx(1.0 - math.exp(-t / 0.4), abs=1e-9)
+        assert abs(v[1]) < 1e-12 and v[2] == 0.0
+
+
+def test_acceleration_limits_hold_horizontally_vertically_and_in_yaw() -> None:
+    p = VehicleParams(velocity_time_constant_s=0.05, max_horizontal_accel_m_s2=2.0, max_vertical_accel_m_s2=1.0,
+                      yaw_rate_time_constant_s=0.05, max_yaw_accel_deg_s2=90.0)
+    m = VehicleModel(p, Pose.at(0, 0, 2, yaw_rad=0.3))
+    m.command(VelocitySetpoint(forward_m_s=3.0, right_m_s=2.0, down_m_s=-2.0, yaw_rate_deg_s=60.0))
+    rows = _run(m, 3.0)
+    prev_v, prev_r = np.zeros(3), 0.0
+    for _, v, r in rows:
+        dv = (v - prev_v) / DT
+        assert math.hypot(dv[0], dv[1]) <= 2.0 + 1e-9
+        assert abs(dv[2]) <= 1.0 + 1e-9
+        assert abs(math.degrees(r - prev_r) / DT) <= 90.0 + 1e-6
+        prev_v, prev_r = v, r
+    # Limited, not stuck: after 0.5 s the speed grew at the limit.
+    assert math.hypot(*rows[99][1][:2]) == pytest.approx(1.0, rel=0.02)
+    assert m.velocity_ned_m_s[2] == pytest.approx(-2.0, abs=0.02)
+    assert math.degrees(m.yaw_rate_rad_s) == pytest.approx(60.0, abs=0.5)
+    # Turning at 60 deg/s, 3.6 m/s would need 3.8 m/s² of centripetal acceleration: it lags behind.
+    # Without the turn it gets there.
+    m.command(VelocitySetpoint(forward_m_s=3.0, right_m_s=2.0, down_m_s=-2.0))
+    _run(m, 3.0)
+    assert math.hypot(*m.velocity_ned_m_s[:2]) == pytest.approx(math.hypot(3.0, 2.0), rel=0.01)
+
+
+def test_body_frame_setpoints_map_to_ned_with_the_current_yaw() -> None:
+    p = VehicleParams(velocity_time_constant_s=0.05, max_horizontal_accel_m_s2=50.0, max_vertical_accel_m_s2=50.0)
+    m = VehicleModel(p, Pose.at(0, 0, 2, yaw_rad=math.pi / 2))  # facing east
+    m.command(VelocitySetpoint(forward_m_s=1.0, right_m_s=0.5, down_m_s=0.2))
+    _run(m, 1.0)
+    v = m.velocity_ned_m_s
+    assert v[1] == pytest.approx(1.0, abs=1e-3)  # forward = east
+    assert v[0] == pytest.approx(-0.5, abs=1e-3)  # right of east = south
+    assert v[2] == pytest.approx(0.2, abs=1e-3)  # down: altitude falls
+    assert m.altitude_m < 2.0
+
+
+def test_yaw_rate_positive_turns_clockwise_and_wraps() -> None:
+    m = VehicleModel(VehicleParams(), Pose.at(0, 0, 2, yaw_rad=3.0))
+    m.command(VelocitySetpoint(yaw_rate_deg_s=90.0))
+    _run(m, 1.0)
+    assert -math.pi <= m.yaw_rad < math.pi
+    assert wrap_angle_rad(m.yaw_rad - 3.0) > 0.5  # turned right past +pi, wrapped
+
+
+def test_tilt_follows_acceleration_like_a_multicopter() -> None:
+    m = VehicleModel(VehicleParams(), Pose.at(0, 0, 2))
+    m.command(VelocitySetpoint(forward_m_s=2.0))
+    _run(m, 0.3)
+    assert m.pitch_rad < -0.1  # nose down to accelerate forward
+    m.command(VelocitySetpoint())
+    _run(m, 0.4)
+    assert m.pitch_rad > 0.1  # nose up to brake
+    flat = VehicleModel(VehicleParams(tilt_with_acceleration=False), Pose.at(0, 0, 2))
+    flat.command(VelocitySetpoint(forward_m_s=2.0))
+    _run(flat, 0.3)
+    assert flat.pitch_rad == 0.0 and flat.roll_rad == 0.0
+
+
+def test_modes_offboard_needs_a_setpoint_and_hold_stops() -> None:
+    v = SimVehicle(VehicleParams(), Pose.at(0, 0, 2))
+    with pytest.raises(VehicleError, match="send a setpoint"):
+        v.set_offboard()
+    v.set_setpoint(VelocitySetpoint(forward_m_s=1.0))
+    for _ in range(200):
+        v.step(DT)
+    assert v.model.speed_m_s < 1e-12  # not in offboard yet: holds position
+    v.set_offboard()
+    for _ in range(400):
+        v.step(DT)
+    assert v.model.speed_m_s == pytest.approx(1.0, abs=0.01)
+    v.set_hold()
+    v.set_setpoint(VelocitySetpoint(forward_m_s=1.0))  # ignored in HOLD
+    for _ in range(600):
+        v.step(DT)
+    assert v.model.speed_m_s < 0.01 and v.state().flight_mode == "HOLD"
+    with pytest.raises(VehicleError, match="non-finite"):
+        v.set_setpoint(VelocitySetpoint(forward_m_s=math.nan))
+
+
+def test_params_reject_nonsense() -> None:
+    with pytest.raises(ValueError, match="velocity_time_constant_s"):
+        VehicleParams(velocity_time_constant_s=0.0)
+    with pytest.raises(ValueError, match="dt_s"):
+        VehicleModel(VehicleParams(), Pose.at(0, 0, 1)).step(-1.0)
+
+
+def test_vehicle_link_protocol_and_async_wrappers() -> None:
+    v = SimVehicle(VehicleParams(), Pose.at(1.0, 2.0, 1.5, yaw_rad=0.2))
+    assert isinstance(v, VehicleLink)
+
+    async def fly() -> None:
+        await v.connect(timeout_s=1.0)
+        await v.send_setpoint(VelocitySetpoint(forward_m_s=0.5))
+        await v.start_offboard()
+        for _ in range(100):
+            v.step(DT)
+        s = v.state()
+        assert s.connected and s.armed and s.in_offboard and s.flight_mode == "OFFBOARD"
+        assert s.position_ned_m is not None and s.position_ned_m[0] > 1.0
+        assert s.attitude_rad is not None and s.attitude_rad[2] == pytest.approx(0.2)
+        assert s.timestamp_s == pytest.approx(0.5)
+        await v.stop_setpoints()
+        for _ in range(600):
+            v.step(DT)
+        assert v.model.speed_m_s < 0.01 and v.state().in_offboard  # no mode change
+        await v.send_setpoint(VelocitySetpoint(forward_m_s=0.5))  # streams again
+        v.step(DT)
+        assert v.model.speed_m_s > 0.0
+        await v.hold()
+        assert not v.state().in_offboard
+        await v.close()
+        await v.close()  # twice is fine
+        assert not v.state().connected
+        with pytest.raises(VehicleError):
+            await v.send_setpoint(VelocitySetpoint())
+
+    asyncio.run(fly())
+
+
+def test_sim_camera_is_a_camera_source() -> None:
+    from companion.core.geometry import StereoGeometry
+    from companion.errors import CameraError
+    from companion.sim.camera import SimCamera
+
+    g = StereoGeometry.ideal(96, 54, 90.0, 0.12)
+    t = {"now": 0.0}
+    cam = SimCamera(g, Scene(), lambda: (Pose.at(0, 0, 1.5), t["now"]), noise_std_grey=2.0, fail_after_s=1.0)
+    assert isinstance(cam, CameraSource)
+    assert cam.eye_size_px == (96, 54)
+    with pytest.raises(CameraError, match="before open"):
+        cam.read()
+    cam.open()
+    f0 = cam.read()
+    t["now"] = 0.5
+    f1 = cam.read()
+    assert f0.image.shape == (54, 192, 3) and f0.image.dtype == np.uint8
+    assert (f0.seq, f1.seq) == (0, 1) and (f0.timestamp_s, f1.timestamp_s) == (0.0, 0.5)
+    t["now"] = 1.0
+    with pytest.raises(CameraError, match="stopped delivering"):
+        cam.read()
+    cam.close()
+    cam.close()
