@@ -100,6 +100,14 @@ class VehicleLink(Protocol):
         """Leave offboard for Hold (PX4 AUTO.LOITER). Raises VehicleError if refused."""
         ...
 
+    async def stop_setpoints(self) -> None:
+        """Stop streaming setpoints WITHOUT any mode change (the link must not re-send the last one).
+
+        Called after the pilot or PX4 left offboard (a mode change then would fight the pilot) and after
+        our own Hold took. MAVSDK's ``offboard.stop()`` is NOT this: it also commands Hold. The next
+        ``send_setpoint`` starts streaming again."""
+        ...
+
     def state(self) -> VehicleState:
         """The latest known vehicle state (non-blocking)."""
         ...

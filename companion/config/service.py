@@ -1,19 +1,54 @@
 """Config sections of the service shell: camera source, vehicle link, ZeroMQ bus, daemon.
 
 Owned by the daemon work (issue 5). Every field: type, default, bounds, unit in its name, description.
+Sections or fields that the running service cannot change without a restart (the camera, the vehicle
+connection, the bus endpoints and keys) are listed in :data:`RESTART_FIELDS`; a live ``set_config`` or
+``reload`` reports them and leaves them as they are until the next start.
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from pathlib import Path
+from types import MappingProxyType
 from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, field_validator, model_validator
 
 from companion.config._base import StrictModel
 
+#: The ZED's UVC modes: one eye's (width, height) -> the frame rates it offers, Hz. The UVC frame is
+#: side by side, so its width is twice the eye's.
+ZED_MODES: Mapping[tuple[int, int], tuple[float, ...]] = MappingProxyType(
+    {
+        (2208, 1242): (15.0,),
+        (1920, 1080): (30.0, 15.0),
+        (1280, 720): (60.0, 30.0, 15.0),
+        (672, 376): (100.0, 60.0, 30.0, 15.0),
+    }
+)
+
+#: Dotted paths (a section, or section.field) that take effect only at the next start.
+RESTART_FIELDS: tuple[str, ...] = ("camera", "bus", "vehicle.connection")
+
+_CONNECTION_SCHEMES = ("udpin://", "udpout://", "udp://", "tcpin://", "tcpout://", "tcp://", "serial://")
+_ZMQ_SCHEMES = ("tcp://", "ipc://", "inproc://")
+
+
+def _is_loopback_tcp(endpoint: str) -> bool:
+    host = endpoint.removeprefix("tcp://").rsplit(":", 1)[0].strip("[]")
+    return host in ("127.0.0.1", "localhost", "::1") or host.startswith("127.")
+
+
+def zed_modes_text() -> str:
+    """The ZED modes as one line, e.g. ``2208x1242@15, 1920x1080@30/15, ...`` (per eye)."""
+    return ", ".join(
+        f"{w}x{h}@{'/'.join(f'{r:g}' for r in rates)}" for (w, h), rates in ZED_MODES.items()
+    )
+
 
 class CameraConfig(StrictModel):
-    """Where frames come from."""
+    """Where frames come from (restart to change)."""
 
     source: Literal["sim", "uvc", "replay"] = Field(
         default="sim",
@@ -22,36 +57,244 @@ class CameraConfig(StrictModel):
     width_px: int = Field(default=672, ge=64, le=4416, description="Width of ONE eye, pixels (ZED: 2208/1920/1280/672).")
     height_px: int = Field(default=376, ge=48, le=1242, description="Height of one eye, pixels (ZED: 1242/1080/720/376).")
     fps_hz: float = Field(default=30.0, gt=0.0, le=120.0, description="Requested frame rate, frames per second.")
+    device: str = Field(
+        default="/dev/video0",
+        min_length=1,
+        max_length=200,
+        description="uvc: the V4L2 device node of the ZED (or its index, e.g. '0').",
+    )
+    open_timeout_s: float = Field(
+        default=10.0,
+        gt=0.0,
+        le=600.0,
+        description=(
+            "At start, the service waits this long for the first frame; none by then is a startup "
+            "failure (exit code 78, not restarted in a loop), seconds."
+        ),
+    )
+    reconnect_initial_s: float = Field(
+        default=0.2, gt=0.0, le=10.0, description="First wait before reopening a camera that disappeared, seconds."
+    )
+    reconnect_max_s: float = Field(
+        default=5.0, gt=0.0, le=120.0, description="Longest wait between reopen attempts (the back-off doubles up to it), seconds."
+    )
+    replay_path: Path | None = Field(
+        default=None,
+        description=(
+            "replay: a recording written by `companion record`: a folder of PNG frames with "
+            "timestamps.csv, or a video file (.mkv/.avi) with <file>.timestamps.csv beside it."
+        ),
+    )
+    replay_rate_hz: float | None = Field(
+        default=None,
+        gt=0.0,
+        le=1000.0,
+        description="replay: deliver frames at this rate, Hz; unset = at the recorded timestamps (or fps_hz without them).",
+    )
+    replay_loop: bool = Field(default=False, description="replay: start again at the end instead of stopping.")
+    replay_preload: bool = Field(
+        default=False,
+        description="replay: decode every frame into memory at open, so decoding costs nothing while streaming (benchmarks).",
+    )
+    sim_north_m: float = Field(
+        default=2.0, ge=-1000.0, le=1000.0, description="sim: camera position north in the corridor scene, metres."
+    )
+    sim_east_m: float = Field(
+        default=0.0, ge=-1000.0, le=1000.0, description="sim: camera position east (0 = the corridor's axis), metres."
+    )
+    sim_altitude_m: float = Field(default=1.5, gt=0.0, le=100.0, description="sim: camera altitude above the ground, metres.")
+    sim_yaw_deg: float = Field(
+        default=0.0, ge=-180.0, le=180.0, description="sim: heading, degrees clockwise from north (the corridor runs north)."
+    )
+    sim_scene_seed: int = Field(default=0, ge=0, le=2**31 - 1, description="sim: seed of the corridor's obstacles and textures.")
+    sim_obstacles: int = Field(default=18, ge=0, le=200, description="sim: number of obstacles in the corridor.")
+    sim_noise_grey: float = Field(
+        default=0.0, ge=0.0, le=50.0, description="sim: standard deviation of the per-frame sensor noise, grey levels (0 = none)."
+    )
+
+    @model_validator(mode="after")
+    def _check(self) -> CameraConfig:
+        if self.reconnect_max_s < self.reconnect_initial_s:
+            raise ValueError(
+                f"reconnect_max_s ({self.reconnect_max_s}) must be >= reconnect_initial_s ({self.reconnect_initial_s})"
+            )
+        if self.source == "uvc":
+            rates = ZED_MODES.get((self.width_px, self.height_px))
+            if rates is None:
+                raise ValueError(
+                    f"{self.width_px}x{self.height_px} is not a ZED mode; one eye must be one of {zed_modes_text()}"
+                )
+            if self.fps_hz not in rates:
+                raise ValueError(
+                    f"the ZED gives {self.width_px}x{self.height_px} at "
+                    f"{'/'.join(f'{r:g}' for r in rates)} Hz, not {self.fps_hz:g} Hz"
+                )
+        if self.source == "replay" and self.replay_path is None:
+            raise ValueError("source = 'replay' needs replay_path (a recording from `companion record`)")
+        return self
 
 
 class VehicleConfig(StrictModel):
-    """The autopilot link."""
+    """The autopilot link (MAVSDK) and how the service enters and leaves offboard."""
 
     connection: str = Field(
         default="udpin://0.0.0.0:14540",
         min_length=1,
         max_length=200,
-        description="MAVSDK connection URL: udpin://0.0.0.0:14540 for SITL, serial:///dev/ttyTHS1:921600 on a Jetson.",
+        description="MAVSDK connection URL: udpin://0.0.0.0:14540 for SITL, serial:///dev/ttyTHS1:921600 on a Jetson (restart to change).",
     )
     setpoint_rate_hz: float = Field(
         default=20.0, ge=2.0, le=100.0, description="Rate at which setpoints are streamed, whatever the vision rate, Hz."
     )
+    connect_timeout_s: float = Field(
+        default=10.0,
+        gt=0.0,
+        le=600.0,
+        description="Wait this long for the autopilot's heartbeat before logging a warning (the service keeps waiting), seconds.",
+    )
+    offboard_prestream_s: float = Field(
+        default=0.5,
+        ge=0.0,
+        le=5.0,
+        description="On engage, zero setpoints are streamed this long before offboard is requested (PX4 refuses offboard without a stream), seconds.",
+    )
+    engage_timeout_s: float = Field(
+        default=3.0,
+        gt=0.0,
+        le=30.0,
+        description="Offboard not confirmed by the autopilot's heartbeat this long after it was requested: the engage is abandoned, seconds.",
+    )
+    hold_retry_s: float = Field(
+        default=2.0,
+        gt=0.0,
+        le=30.0,
+        description=(
+            "While the service is leaving offboard to Hold and the vehicle still reports OFFBOARD, Hold is "
+            "requested again after this long (longer than one heartbeat period), seconds."
+        ),
+    )
+    leave_timeout_s: float = Field(
+        default=10.0,
+        gt=0.0,
+        le=120.0,
+        description=(
+            "Hold not confirmed this long after the service began leaving offboard: it stops streaming "
+            "setpoints so that PX4's own offboard-loss failsafe acts, seconds."
+        ),
+    )
+    require_armed_to_engage: bool = Field(
+        default=True, description="Refuse 'engage' while the vehicle is disarmed (the service never arms it)."
+    )
+
+    @field_validator("connection")
+    @classmethod
+    def _scheme(cls, v: str) -> str:
+        if not v.startswith(_CONNECTION_SCHEMES):
+            raise ValueError(f"connection {v!r} must start with one of {', '.join(_CONNECTION_SCHEMES)}")
+        return v
+
+    @model_validator(mode="after")
+    def _check(self) -> VehicleConfig:
+        if self.hold_retry_s >= self.leave_timeout_s:
+            raise ValueError(
+                f"hold_retry_s ({self.hold_retry_s}) must be shorter than leave_timeout_s ({self.leave_timeout_s})"
+            )
+        return self
 
 
 class BusConfig(StrictModel):
-    """The ZeroMQ control plane."""
+    """The ZeroMQ control plane (restart to change)."""
 
     health_endpoint: str = Field(
-        default="tcp://127.0.0.1:5560", min_length=1, description="PUB endpoint for health messages."
+        default="tcp://127.0.0.1:5560",
+        min_length=1,
+        max_length=200,
+        description="PUB endpoint for health messages (JSON). Localhost or ipc:// unless CURVE keys are set.",
     )
     control_endpoint: str = Field(
-        default="tcp://127.0.0.1:5561", min_length=1, description="ROUTER endpoint for requests."
+        default="tcp://127.0.0.1:5561",
+        min_length=1,
+        max_length=200,
+        description="ROUTER endpoint for JSON requests. Localhost or ipc:// unless CURVE keys are set.",
     )
+    health_rate_hz: float = Field(
+        default=10.0, gt=0.0, le=100.0, description="Health messages per second (plus one on every state change), Hz."
+    )
+    max_request_bytes: int = Field(
+        default=65536, ge=256, le=16_777_216, description="Largest control request accepted, bytes; larger gets an error reply."
+    )
+    curve_server_secret_key_file: Path | None = Field(
+        default=None,
+        description=(
+            "CURVE: the server's secret certificate (a zmq.auth .key_secret file). Set together with "
+            "curve_authorized_keys_dir to require CURVE authentication on both sockets."
+        ),
+    )
+    curve_authorized_keys_dir: Path | None = Field(
+        default=None,
+        description="CURVE: a folder of the public certificates (.key files) of the clients allowed to connect.",
+    )
+
+    @field_validator("health_endpoint", "control_endpoint")
+    @classmethod
+    def _zmq_scheme(cls, v: str) -> str:
+        if not v.startswith(_ZMQ_SCHEMES):
+            raise ValueError(f"endpoint {v!r} must start with one of {', '.join(_ZMQ_SCHEMES)}")
+        return v
+
+    @model_validator(mode="after")
+    def _check(self) -> BusConfig:
+        if (self.curve_server_secret_key_file is None) != (self.curve_authorized_keys_dir is None):
+            raise ValueError(
+                "curve_server_secret_key_file and curve_authorized_keys_dir must be set together (or neither)"
+            )
+        if self.health_endpoint == self.control_endpoint and not self.health_endpoint.endswith((":*", ":0")):
+            raise ValueError(f"health_endpoint and control_endpoint are the same ({self.health_endpoint})")
+        if self.curve_server_secret_key_file is None:
+            # Without authentication the control plane (which can engage the vehicle) must not be
+            # reachable from the network.
+            for name in ("health_endpoint", "control_endpoint"):
+                endpoint = getattr(self, name)
+                if endpoint.startswith("tcp://") and not _is_loopback_tcp(endpoint):
+                    raise ValueError(
+                        f"{name} {endpoint!r} is reachable from the network: bind to 127.0.0.1 or ipc://, "
+                        "or set curve_server_secret_key_file and curve_authorized_keys_dir"
+                    )
+        return self
+
+    @property
+    def curve_enabled(self) -> bool:
+        return self.curve_server_secret_key_file is not None
 
 
 class ServiceConfig(StrictModel):
     """The daemon itself."""
 
     autostart: bool = Field(
-        default=False, description="Engage without an 'engage' request (for tests and simulation only)."
+        default=False,
+        description="Engage once at start, as soon as the vehicle and the camera are ready, without an 'engage' request (tests and simulation only).",
+    )
+    override_max_duration_s: float = Field(
+        default=10.0,
+        gt=0.0,
+        le=300.0,
+        description="Longest manual override an 'override' request may ask for; then the service is automatic again, seconds.",
+    )
+    override_respects_brake: bool = Field(
+        default=True,
+        description="During an override, a BRAKE decision (something near ahead) still zeroes the forward speed.",
+    )
+    skip_late_frames: bool = Field(
+        default=True,
+        description=(
+            "When the pipeline is free and the frame waiting for it is older than half a frame "
+            "interval, wait for the next frame (due sooner) instead: keeps the frame-to-setpoint "
+            "latency bounded when the pipeline is slower than the camera. Skipped frames count as dropped."
+        ),
+    )
+    shutdown_timeout_s: float = Field(
+        default=5.0,
+        gt=0.0,
+        le=60.0,
+        description="On SIGTERM, wait at most this long for Hold to be confirmed before closing anyway, seconds.",
     )

@@ -1,0 +1,691 @@
+"""The service's decision logic as a pure state machine: what to command, and when to enter or leave offboard.
+
+No asyncio, no ZeroMQ, no MAVSDK, no clock: the shell calls :meth:`Supervisor.step` at the setpoint
+rate (and whenever a frame result or a request arrives) with the time, the newest frame result, the
+vehicle's state and the pending requests, and carries out what it returns: a setpoint to hand to the
+vehicle link (or ``None``: hand nothing), and actions (enter offboard, leave it to Hold, stop the
+setpoint stream).
+
+States (:class:`State`)::
+
+    passive ──engage──▶ engaging ──offboard confirmed──▶ engaged ◀──resume/expiry── paused / override
+       ▲                   │ refused / timeout / pilot          │ frames stale (0.5 s)
+       │                   ▼                                    ▼
+       └──────────── disengaged(reason) ◀── pilot leaves ── degraded ──frames > 5 s──▶ failsafe
+                                             offboard                                  (Hold)
+
+* **passive**: the start. Nothing is sent to the vehicle. ``engage`` (or ``autostart`` once at start)
+  moves to *engaging* when the vehicle is connected, armed (if required), not already in offboard, and
+  frames are fresh.
+* **engaging**: zero setpoints for ``offboard_prestream_s`` (PX4 refuses offboard without a stream),
+  then START_OFFBOARD; *engaged* once the vehicle reports OFFBOARD. Refused, not confirmed within
+  ``engage_timeout_s``, frames going stale, or a pilot's mode change: *disengaged*.
+* **engaged**: the setpoint of the newest decision (:func:`~companion.core.command.setpoint_for`:
+  zero on BRAKE; with the ``command`` course-hold gains set, steering back to the heading and altitude
+  the vehicle had when it was engaged). **paused**: zero velocity in offboard until ``resume``. **override**: a manual
+  yaw/pitch/speed for a bounded time, then *engaged* again.
+* **degraded**: while engaged/paused/override, the newest frame is older than
+  ``stale_frame_timeout_s`` (or the camera is gone): zero velocity. Fresh frames return to the activity.
+* **failsafe**: the newest frame is older than ``failsafe_timeout_s``: zero velocity and Hold (we own
+  offboard, so this fights no one). Also when the vehicle link is lost while commanding: then the
+  setpoint stream is stopped without any mode change, so that PX4's own offboard-loss failsafe acts.
+  Only an explicit ``engage`` leaves it.
+* **disengaged(reason)**: passive, with the reason: an operator's ``disengage`` (we leave offboard to
+  Hold first), a refused engage, or **the pilot or PX4 leaving offboard**: then the supervisor stops
+  commanding at once, never sends a mode change and never re-engages by itself.
+
+Whenever the supervisor stops commanding it returns a zero setpoint together with STOP_SETPOINTS, so
+that the last value MAVSDK holds (and re-sends on its own at 20 Hz until told to stop) is zero; the
+link then stops the re-sending without a mode change.
+
+Hold is requested only while the vehicle reports OFFBOARD and the service put it there. While the
+vehicle still reports OFFBOARD, Hold is requested again every ``hold_retry_s`` (longer than a heartbeat
+period, so a pilot's switch has been seen by then); after ``leave_timeout_s`` the stream is stopped so
+that PX4's offboard-loss failsafe acts.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Protocol, Union
+
+from companion.core.command import is_straight_clear, setpoint_for
+from companion.core.types import ZERO_SETPOINT, Decision, DecisionKind, VelocitySetpoint
+
+if TYPE_CHECKING:
+    from companion.config import CompanionConfig
+    from companion.config.core import CommandConfig
+    from companion.interfaces import VehicleState
+
+
+class State(str, enum.Enum):
+    """What the service is doing (health's ``state``)."""
+
+    PASSIVE = "passive"
+    ENGAGING = "engaging"
+    ENGAGED = "engaged"
+    DEGRADED = "degraded"
+    FAILSAFE = "failsafe"
+    PAUSED = "paused"
+    OVERRIDE = "override"
+    DISENGAGED = "disengaged"
+
+
+class Action(str, enum.Enum):
+    """What the shell must do on the vehicle link, besides handing over the setpoint."""
+
+    START_OFFBOARD = "start_offboard"  #: request offboard mode (a setpoint has been streamed first)
+    HOLD = "hold"  #: leave offboard to Hold (only ever while we own offboard)
+    STOP_SETPOINTS = "stop_setpoints"  #: stop streaming (and MAVSDK's re-sending) WITHOUT a mode change
+
+
+# ---------------------------------------------------------------------------------------------- requests
+
+
+@dataclass(frozen=True)
+class Engage:
+    """Operator: take control (enter offboard)."""
+
+
+@dataclass(frozen=True)
+class Disengage:
+    """Operator: give control back (leave offboard to Hold if we are in it)."""
+
+
+@dataclass(frozen=True)
+class Pause:
+    """Operator: hover in offboard (zero velocity) until resumed."""
+
+
+@dataclass(frozen=True)
+class Resume:
+    """Operator: back to automatic (ends a pause or an override)."""
+
+
+@dataclass(frozen=True)
+class Override:
+    """Operator: fly this for ``duration_s`` seconds, then automatic again.
+
+    Attributes:
+        yaw: in [-1, 1] (+ turns right), scaled by ``command.max_yaw_rate_deg_s``.
+        pitch: in [-1, 1] (+ climbs), scaled by ``command.max_vertical_speed_m_s``.
+        speed_fraction: in [0, 1], share of ``command.cruise_speed_m_s``.
+        duration_s: > 0, at most ``service.override_max_duration_s``.
+    """
+
+    yaw: float
+    pitch: float
+    speed_fraction: float
+    duration_s: float
+
+
+@dataclass(frozen=True)
+class Shutdown:
+    """The service is stopping: leave offboard to Hold if we own it, then stop streaming."""
+
+
+@dataclass(frozen=True)
+class ActionResult:
+    """The shell's report of how an :class:`Action` went (``ok`` False with the error's message)."""
+
+    action: Action
+    ok: bool
+    message: str = ""
+
+
+Request = Union[Engage, Disengage, Pause, Resume, Override, Shutdown, ActionResult]
+
+
+@dataclass(frozen=True)
+class Reply:
+    """The answer to one operator request (ActionResults get none)."""
+
+    request: Request
+    ok: bool
+    message: str
+
+
+class FrameOutcome(Protocol):
+    """What the supervisor needs from a frame result (:class:`~companion.core.pipeline.FrameResult`)."""
+
+    timestamp_s: float
+    decision: Decision
+
+
+@dataclass(frozen=True)
+class StepOutput:
+    """What one :meth:`Supervisor.step` decided.
+
+    Attributes:
+        setpoint: hand this to the vehicle link now; ``None``: hand nothing (not commanding).
+        actions: to carry out after the setpoint, in order.
+        state: the state after this step.
+        reason: one line saying why the service is in this state.
+        replies: one per operator request, in order.
+        changed: state or reason differ from before the step.
+        frame_age_s: age of the newest frame result at ``now_s`` (inf without one), seconds.
+    """
+
+    setpoint: VelocitySetpoint | None
+    actions: tuple[Action, ...]
+    state: State
+    reason: str
+    replies: tuple[Reply, ...]
+    changed: bool
+    frame_age_s: float
+
+
+@dataclass(frozen=True)
+class SupervisorConfig:
+    """The timing and limits the supervisor applies (seconds unless named otherwise)."""
+
+    command: CommandConfig
+    offboard_prestream_s: float = 0.5
+    engage_timeout_s: float = 3.0
+    hold_retry_s: float = 2.0
+    leave_timeout_s: float = 10.0
+    require_armed_to_engage: bool = True
+    override_max_duration_s: float = 10.0
+    override_respects_brake: bool = True
+    autostart: bool = False
+
+    @classmethod
+    def from_config(cls, cfg: CompanionConfig) -> SupervisorConfig:
+        v, s = cfg.vehicle, cfg.service
+        return cls(
+            command=cfg.command,
+            offboard_prestream_s=v.offboard_prestream_s,
+            engage_timeout_s=v.engage_timeout_s,
+            hold_retry_s=v.hold_retry_s,
+            leave_timeout_s=v.leave_timeout_s,
+            require_armed_to_engage=v.require_armed_to_engage,
+            override_max_duration_s=s.override_max_duration_s,
+            override_respects_brake=s.override_respects_brake,
+            autostart=s.autostart,
+        )
+
+
+@dataclass
+class _Engaging:
+    since_s: float
+    mode_at_request: str
+    start_sent_s: float | None = None
+    start_pending: bool = False
+
+
+@dataclass
+class _Leaving:
+    since_s: float
+    what: str  # why we leave, e.g. "operator disengage"
+    start_sent_s: float | None  # an offboard start we asked for that may still take effect
+    start_pending: bool
+    last_hold_s: float | None = None
+    holds: int = 0
+
+
+@dataclass
+class _Memory:
+    """Everything the supervisor remembers between steps (mutable, private)."""
+
+    state: State = State.PASSIVE
+    reason: str = "started passive: waiting for an engage request"
+    activity: State = State.ENGAGED  # engaged / paused / override, while commanding
+    streaming: bool = False  # we have handed setpoints and not stopped the stream since
+    owns_offboard: bool = False  # the vehicle is in offboard because we put it there
+    engaging: _Engaging | None = None
+    leaving: _Leaving | None = None
+    override: Override | None = None
+    override_until_s: float = 0.0
+    autostart_pending: bool = False
+    shutting_down: bool = False
+    course_heading_rad: float | None = None  # heading at engagement (course hold), radians
+    course_altitude_m: float | None = None  # altitude (-down) at engagement (course hold), metres
+    clear_since_s: float | None = None  # capture time since which the decisions are straight and CLEAR
+    actions: list[Action] = field(default_factory=list)
+
+
+_COMMANDING = (State.ENGAGED, State.DEGRADED, State.PAUSED, State.OVERRIDE)
+
+
+class Supervisor:
+    """The service's state machine (see the module doc). Pure: every input is an argument."""
+
+    def __init__(self, cfg: SupervisorConfig) -> None:
+        self._cfg = cfg
+        self._m = _Memory(autostart_pending=cfg.autostart)
+
+    # ------------------------------------------------------------------------------------ queries
+
+    @property
+    def config(self) -> SupervisorConfig:
+        return self._cfg
+
+    @property
+    def state(self) -> State:
+        return self._m.state
+
+    @property
+    def reason(self) -> str:
+        return self._m.reason
+
+    @property
+    def engaged(self) -> bool:
+        """True while the service commands the vehicle in offboard (engaged, degraded, paused, override)."""
+        return self._commanding()
+
+    @property
+    def streaming(self) -> bool:
+        """True while setpoints are being handed to the link (and MAVSDK re-sends the last one)."""
+        return self._m.streaming
+
+    @property
+    def owns_offboard(self) -> bool:
+        return self._m.owns_offboard
+
+    @property
+    def finished(self) -> bool:
+        """After :class:`Shutdown`: True once nothing is streamed and offboard is no longer ours."""
+        m = self._m
+        return m.shutting_down and not m.streaming and m.leaving is None and m.engaging is None
+
+    def override_status(self, now_s: float) -> dict[str, float] | None:
+        """The active override (yaw, pitch, speed fraction, seconds left), or None."""
+        m = self._m
+        if m.override is None or not self._commanding():
+            return None
+        return {
+            "yaw": m.override.yaw,
+            "pitch": m.override.pitch,
+            "speed_fraction": m.override.speed_fraction,
+            "remaining_s": max(0.0, m.override_until_s - now_s),
+        }
+
+    # ------------------------------------------------------------------------------------ update
+
+    def reconfigure(self, cfg: SupervisorConfig) -> None:
+        """Swap the limits and timings; the state is kept (autostart is consumed only at start)."""
+        self._cfg = cfg
+
+    def step(
+        self,
+        now_s: float,
+        latest: FrameOutcome | None,
+        vehicle: VehicleState,
+        requests: Sequence[Request] = (),
+        camera_ok: bool = True,
+    ) -> StepOutput:
+        """Advance to ``now_s`` and decide.
+
+        Args:
+            now_s: the shell's monotonic time, seconds (the clock of the frame timestamps).
+            latest: the newest frame result (its ``timestamp_s`` is the capture time), or None.
+            vehicle: the vehicle's latest state.
+            requests: operator requests and action results received since the last step.
+            camera_ok: False while the camera is gone (reconnecting): frames count as stale at once.
+        """
+        m = self._m
+        before = (m.state, m.reason)
+        m.actions = []
+        age_s = math.inf if latest is None else max(0.0, now_s - latest.timestamp_s)
+        if not math.isfinite(age_s):
+            age_s = math.inf
+        fresh = camera_ok and age_s <= self._cfg.command.stale_frame_timeout_s
+        if latest is None or not is_straight_clear(latest.decision):
+            m.clear_since_s = None
+        elif m.clear_since_s is None:
+            m.clear_since_s = latest.timestamp_s
+
+        for r in requests:
+            if isinstance(r, ActionResult):
+                self._on_action_result(now_s, r)
+        self._observe_vehicle(now_s, vehicle)
+        replies = tuple(
+            self._on_request(now_s, r, vehicle, fresh, age_s, camera_ok)
+            for r in requests
+            if not isinstance(r, ActionResult)
+        )
+        if m.autostart_pending and m.state is State.PASSIVE and not m.shutting_down:
+            if self._engage_refusal(vehicle, fresh, age_s, camera_ok) is None:
+                m.autostart_pending = False
+                self._begin_engage(now_s, vehicle, "autostart")
+        self._advance(now_s, vehicle, fresh, age_s, camera_ok)
+        setpoint = self._output(now_s, latest, age_s, vehicle)
+        return StepOutput(
+            setpoint=setpoint,
+            actions=tuple(m.actions),
+            state=m.state,
+            reason=m.reason,
+            replies=replies,
+            changed=(m.state, m.reason) != before,
+            frame_age_s=age_s,
+        )
+
+    # ------------------------------------------------------------------------------------ internals
+
+    def _commanding(self) -> bool:
+        m = self._m
+        return m.owns_offboard and m.leaving is None and m.state in _COMMANDING
+
+    def _set(self, state: State, reason: str) -> None:
+        self._m.state = state
+        self._m.reason = reason
+
+    def _stop_stream(self) -> None:
+        """Stop commanding: a final zero (see _output) and STOP_SETPOINTS; forget offboard."""
+        m = self._m
+        if m.streaming:
+            m.actions.append(Action.STOP_SETPOINTS)
+        m.streaming = False
+        m.owns_offboard = False
+        m.engaging = None
+        m.leaving = None
+        m.override = None
+
+    def _on_action_result(self, now_s: float, r: ActionResult) -> None:
+        m = self._m
+        if r.action is not Action.START_OFFBOARD:
+            return  # HOLD: retried from the vehicle's mode; STOP_SETPOINTS: nothing to follow up
+        if m.engaging is not None:
+            m.engaging.start_pending = False
+            if not r.ok:
+                self._stop_stream()
+                self._set(State.DISENGAGED, f"offboard start refused: {r.message or 'no reason given'}")
+        elif m.leaving is not None:
+            m.leaving.start_pending = False
+            if not r.ok:
+                m.leaving.start_sent_s = None  # it will not take effect
+
+    def _observe_vehicle(self, now_s: float, v: VehicleState) -> None:
+        m = self._m
+        if not v.connected:
+            if m.streaming and (m.engaging is not None or m.owns_offboard or m.leaving is not None):
+                # We cannot see the mode any more, so no mode change is sent blind: stop the stream so
+                # that PX4's own offboard-loss failsafe acts if it is still in offboard.
+                self._stop_stream()
+                self._set(
+                    State.FAILSAFE,
+                    "vehicle link lost while commanding: setpoints stopped so that PX4's offboard-loss failsafe acts",
+                )
+            return
+        if m.owns_offboard and not v.in_offboard:
+            if m.leaving is not None and m.leaving.holds > 0:
+                what = m.leaving.what
+                self._stop_stream()  # our Hold took (or the pilot moved at the same time): done
+                self._set(m.state, f"{what}: left offboard (vehicle in {v.flight_mode})")
+                return
+            was = m.state.value
+            self._stop_stream()
+            self._set(
+                State.DISENGAGED,
+                f"vehicle left OFFBOARD for {v.flight_mode} while {was} (pilot or PX4 failsafe); "
+                "not commanding, not re-engaging",
+            )
+            return
+        e = m.engaging
+        if e is not None:
+            if v.flight_mode not in (e.mode_at_request, "OFFBOARD"):
+                # The pilot moved the switch while we were engaging: never fight it.
+                self._stop_stream()
+                self._set(State.DISENGAGED, f"pilot changed the mode to {v.flight_mode} during engage; not engaging")
+            elif v.in_offboard and e.start_sent_s is not None:
+                m.engaging = None
+                m.owns_offboard = True
+                m.activity = State.ENGAGED
+                # Course hold (when its gains are set) steers back to the heading and altitude of now.
+                m.course_heading_rad = _finite_or_none(v.attitude_rad, 2)
+                down = _finite_or_none(v.position_ned_m, 2)
+                m.course_altitude_m = None if down is None else -down
+                self._set(State.ENGAGED, "engaged: avoiding obstacles")
+        elif m.leaving is not None and v.in_offboard and m.leaving.start_sent_s is not None:
+            m.owns_offboard = True  # the start we asked for took effect after all: ours to leave
+
+    def _engage_refusal(self, v: VehicleState, fresh: bool, age_s: float, camera_ok: bool) -> str | None:
+        m = self._m
+        if m.shutting_down:
+            return "the service is shutting down"
+        if m.state in (State.ENGAGING, *_COMMANDING):
+            return f"already {m.state.value}"
+        if m.leaving is not None:
+            return "still leaving offboard (waiting for Hold)"
+        if not v.connected:
+            return "no vehicle: the autopilot's heartbeat is not being received"
+        if v.flight_mode == "UNKNOWN":
+            return "the vehicle's flight mode is not known yet"
+        if self._cfg.require_armed_to_engage and not v.armed:
+            return "vehicle is disarmed (the service never arms it)"
+        if v.in_offboard:
+            return "vehicle is already in OFFBOARD under another controller; switch to a manual mode first"
+        if not fresh:
+            if not camera_ok:
+                return "camera is not delivering frames"
+            if math.isinf(age_s):
+                return "no frame processed yet"
+            return f"newest frame is {age_s:.2f} s old (> {self._cfg.command.stale_frame_timeout_s:g} s)"
+        return None
+
+    def _begin_engage(self, now_s: float, v: VehicleState, why: str) -> None:
+        m = self._m
+        m.engaging = _Engaging(since_s=now_s, mode_at_request=v.flight_mode)
+        m.streaming = True
+        m.owns_offboard = False
+        m.override = None
+        self._set(State.ENGAGING, f"{why}: streaming zero setpoints before requesting offboard")
+
+    def _begin_leave(self, now_s: float, state: State, what: str) -> None:
+        """Stop commanding because of ``what``; leave offboard to Hold if it is (or may become) ours."""
+        m = self._m
+        e = m.engaging
+        m.override = None
+        m.engaging = None
+        if e is not None and e.start_sent_s is None:
+            self._stop_stream()  # offboard was never requested: nothing to leave
+            self._set(state, what)
+            return
+        if m.leaving is None:
+            m.leaving = _Leaving(
+                since_s=now_s,
+                what=what,
+                start_sent_s=e.start_sent_s if e is not None else None,
+                start_pending=e.start_pending if e is not None else False,
+            )
+        else:
+            m.leaving.what = what
+        self._set(state, f"{what}: leaving offboard to Hold")
+
+    def _on_request(
+        self, now_s: float, r: Request, v: VehicleState, fresh: bool, age_s: float, camera_ok: bool
+    ) -> Reply:
+        m = self._m
+        cfg = self._cfg
+        if isinstance(r, Engage):
+            refusal = self._engage_refusal(v, fresh, age_s, camera_ok)
+            if refusal is not None:
+                return Reply(r, False, f"engage refused: {refusal}")
+            m.autostart_pending = False
+            self._begin_engage(now_s, v, "engage requested")
+            return Reply(r, True, "engaging")
+        if isinstance(r, Disengage):
+            if m.engaging is not None or self._commanding():
+                self._begin_leave(now_s, State.DISENGAGED, "operator disengage")
+                return Reply(r, True, "disengaging")
+            if m.state is State.FAILSAFE:
+                self._set(State.DISENGAGED, f"operator disengage after failsafe ({m.reason})")
+                return Reply(r, True, "disengaged")
+            m.autostart_pending = False
+            return Reply(r, True, f"not engaged ({m.state.value})")
+        if isinstance(r, Pause):
+            if not self._commanding():
+                return Reply(r, False, f"pause refused: not engaged ({m.state.value})")
+            m.activity = State.PAUSED
+            m.override = None
+            return Reply(r, True, "paused: zero velocity in offboard until resume")
+        if isinstance(r, Resume):
+            if not self._commanding():
+                return Reply(r, False, f"resume refused: not engaged ({m.state.value})")
+            was = m.activity
+            m.activity = State.ENGAGED
+            m.override = None
+            return Reply(r, True, "automatic" if was is not State.ENGAGED else "already automatic")
+        if isinstance(r, Override):
+            if not self._commanding():
+                return Reply(r, False, f"override refused: not engaged ({m.state.value})")
+            if not fresh:
+                return Reply(r, False, f"override refused: frames are stale ({age_s:.2f} s); the way ahead is unknown")
+            values = (r.yaw, r.pitch, r.speed_fraction, r.duration_s)
+            if not all(math.isfinite(x) for x in values):
+                return Reply(r, False, "override refused: yaw, pitch, speed and duration_s must be finite")
+            if not (-1.0 <= r.yaw <= 1.0 and -1.0 <= r.pitch <= 1.0 and 0.0 <= r.speed_fraction <= 1.0):
+                return Reply(r, False, "override refused: yaw and pitch must be in [-1, 1], speed in [0, 1]")
+            if not 0.0 < r.duration_s <= cfg.override_max_duration_s:
+                return Reply(
+                    r,
+                    False,
+                    f"override refused: duration_s {r.duration_s:g} must be in (0, "
+                    f"{cfg.override_max_duration_s:g}] (service.override_max_duration_s)",
+                )
+            m.activity = State.OVERRIDE
+            m.override = r
+            m.override_until_s = now_s + r.duration_s
+            return Reply(r, True, f"override for {r.duration_s:g} s")
+        if isinstance(r, Shutdown):
+            m.shutting_down = True
+            m.autostart_pending = False
+            if m.engaging is not None or self._commanding() or m.leaving is not None:
+                self._begin_leave(now_s, State.DISENGAGED, "shutdown")
+            elif m.streaming:
+                self._stop_stream()
+            return Reply(r, True, "shutting down")
+        return Reply(r, False, f"unknown request {type(r).__name__}")
+
+    def _advance(self, now_s: float, v: VehicleState, fresh: bool, age_s: float, camera_ok: bool) -> None:
+        """Timers: prestream, engage timeout, staleness and failsafe, override expiry, leaving."""
+        m = self._m
+        cfg = self._cfg
+        cmd = cfg.command
+        e = m.engaging
+        if e is not None:
+            if not fresh:
+                self._begin_leave(now_s, State.DISENGAGED, "frames went stale during engage; not engaging")
+            elif e.start_sent_s is None:
+                if now_s - e.since_s >= cfg.offboard_prestream_s:
+                    e.start_sent_s = now_s
+                    e.start_pending = True
+                    m.actions.append(Action.START_OFFBOARD)
+                    self._set(State.ENGAGING, "offboard requested: waiting for the autopilot to confirm")
+            elif now_s - e.start_sent_s > cfg.engage_timeout_s:
+                self._begin_leave(
+                    now_s,
+                    State.DISENGAGED,
+                    f"offboard not confirmed within {cfg.engage_timeout_s:g} s (vehicle in {v.flight_mode}); not engaging",
+                )
+        if self._commanding():
+            if age_s > cmd.failsafe_timeout_s:
+                what = "no frame processed" if math.isinf(age_s) else f"newest frame {age_s:.1f} s old"
+                self._begin_leave(
+                    now_s,
+                    State.FAILSAFE,
+                    f"{what} (> failsafe_timeout_s {cmd.failsafe_timeout_s:g} s)",
+                )
+            else:
+                if m.activity is State.OVERRIDE and now_s >= m.override_until_s:
+                    m.activity = State.ENGAGED
+                    m.override = None
+                if not fresh:
+                    why = (
+                        "camera lost (reconnecting)"
+                        if not camera_ok
+                        else f"frames stale (newest older than {cmd.stale_frame_timeout_s:g} s)"
+                    )
+                    self._set(State.DEGRADED, f"{why}: zero velocity")
+                elif m.activity is State.PAUSED:
+                    self._set(State.PAUSED, "paused by the operator: zero velocity in offboard")
+                elif m.activity is State.OVERRIDE:
+                    self._set(State.OVERRIDE, "manual override (automatic again when it expires)")
+                else:
+                    self._set(State.ENGAGED, "engaged: avoiding obstacles")
+        lv = m.leaving
+        if lv is not None:
+            if v.in_offboard:
+                if lv.last_hold_s is None or now_s - lv.last_hold_s >= cfg.hold_retry_s:
+                    lv.last_hold_s = now_s
+                    lv.holds += 1
+                    m.owns_offboard = True
+                    m.actions.append(Action.HOLD)
+            elif not m.owns_offboard:
+                # Not in offboard and never confirmed in it: done once a pending start can no longer
+                # take effect.
+                start_may_land = lv.start_sent_s is not None and (
+                    lv.start_pending or now_s - lv.start_sent_s <= cfg.engage_timeout_s
+                )
+                if not start_may_land:
+                    self._stop_stream()
+            if m.leaving is not None and now_s - lv.since_s > cfg.leave_timeout_s:
+                self._stop_stream()
+                self._set(
+                    m.state,
+                    f"{lv.what}: Hold not confirmed within {cfg.leave_timeout_s:g} s: setpoints stopped so "
+                    "that PX4's offboard-loss failsafe acts",
+                )
+
+    def _output(
+        self, now_s: float, latest: FrameOutcome | None, age_s: float, v: VehicleState
+    ) -> VelocitySetpoint | None:
+        m = self._m
+        if Action.STOP_SETPOINTS in m.actions:
+            return ZERO_SETPOINT  # the last value MAVSDK holds must be zero before it stops
+        if not m.streaming:
+            return None
+        if m.engaging is not None or m.leaving is not None or not self._commanding():
+            return ZERO_SETPOINT
+        if m.state is State.ENGAGED and latest is not None:
+            return self._engaged_setpoint(now_s, latest, age_s, v)
+        if m.state is State.OVERRIDE and m.override is not None:
+            return self._override_setpoint(m.override, latest)
+        return ZERO_SETPOINT  # degraded, paused
+
+    def _engaged_setpoint(self, now_s: float, latest: FrameOutcome, age_s: float, v: VehicleState) -> VelocitySetpoint:
+        """The decision's setpoint, with course hold (inert unless its gains are set in ``command``)."""
+        m = self._m
+        heading_error = altitude_error = None
+        heading_now = _finite_or_none(v.attitude_rad, 2)
+        if m.course_heading_rad is not None and heading_now is not None:
+            heading_error = m.course_heading_rad - heading_now  # positive: the course lies to the right
+        down_now = _finite_or_none(v.position_ned_m, 2)
+        if m.course_altitude_m is not None and down_now is not None:
+            altitude_error = m.course_altitude_m - (-down_now)  # positive: climb back
+        refined = getattr(latest, "refined", None)
+        return setpoint_for(
+            latest.decision,
+            age_s,
+            self._cfg.command,
+            heading_error_rad=heading_error,
+            altitude_error_m=altitude_error,
+            region_depths_m=getattr(refined, "depth_m", None),
+            clear_for_s=None if m.clear_since_s is None else max(0.0, now_s - m.clear_since_s),
+        )
+
+    def _override_setpoint(self, o: Override, latest: FrameOutcome | None) -> VelocitySetpoint:
+        cmd = self._cfg.command
+        forward = cmd.cruise_speed_m_s * o.speed_fraction
+        if self._cfg.override_respects_brake and (latest is None or latest.decision.kind is DecisionKind.BRAKE):
+            forward = 0.0  # something near ahead: turning and climbing are allowed, going on is not
+        return VelocitySetpoint(
+            forward_m_s=forward,
+            right_m_s=0.0,
+            down_m_s=0.0 - o.pitch * cmd.max_vertical_speed_m_s,
+            yaw_rate_deg_s=o.yaw * cmd.max_yaw_rate_deg_s,
+        )
+
+
+def _finite_or_none(values: object, index: int) -> float | None:
+    """``values[index]`` as a float when ``values`` is an array-like with a finite number there."""
+    if values is None:
+        return None
+    try:
+        x = float(values[index])  # type: ignore[index]
+    except (TypeError, IndexError, ValueError):
+        return None
+    return x if math.isfinite(x) else None

@@ -1,0 +1,463 @@
+"""Camera sources behind :class:`~companion.interfaces.CameraSource`: ``uvc`` (a ZED over V4L2),
+``replay`` (a recording) and ``sim`` (the renderer).
+
+Every ``read`` blocks in the capture thread and returns a :class:`~companion.interfaces.Frame` whose
+image is a uint8 (H, 2W, 3) BGR side-by-side frame, timestamped with ``clock()`` (the process's
+monotonic clock, seconds) when it was read. A source never reuses an image array it has handed out
+unless that array is read-only (the consumer may still be processing it).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from companion.errors import CameraError
+from companion.interfaces import CameraSource, Frame
+
+if TYPE_CHECKING:
+    from companion.config import CompanionConfig
+    from companion.core.render import Pose, Scene
+
+log = logging.getLogger(__name__)
+
+Clock = Callable[[], float]
+PoseProvider = Callable[[], "Pose"]
+
+
+def _check_frame(image: object, source: str, width_px: int, height_px: int) -> np.ndarray:
+    """A frame as the pipeline needs it, or a CameraError naming what is wrong with it."""
+    if not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
+        shape = getattr(image, "shape", None)
+        dtype = getattr(image, "dtype", type(image).__name__)
+        raise CameraError(f"{source}: frame is {dtype} {shape}, expected uint8 (H, 2W, 3) BGR")
+    if image.shape[:2] != (height_px, 2 * width_px):
+        raise CameraError(
+            f"{source}: frame is {image.shape[1]}x{image.shape[0]}, expected side-by-side "
+            f"{2 * width_px}x{height_px} (two {width_px}x{height_px} eyes)"
+        )
+    return image
+
+
+class _Pacer:
+    """Sleeps so that frames come out at ``period_s`` (restarts the grid when it falls behind)."""
+
+    def __init__(self, period_s: float, clock: Clock, stop: threading.Event) -> None:
+        self.period_s = period_s
+        self._clock = clock
+        self._stop = stop
+        self._next: float | None = None
+
+    def wait(self) -> None:
+        now = self._clock()
+        if self._next is None or now - self._next > self.period_s:
+            self._next = now  # first frame, or we fell behind by more than a frame: no burst
+        delay = self._next - now
+        if delay > 0:
+            self._stop.wait(delay)
+        self._next += self.period_s
+
+
+# ---------------------------------------------------------------------------------------------- UVC
+
+
+class UvcCamera:
+    """A ZED (or any side-by-side UVC stereo camera) through OpenCV's V4L2 backend.
+
+    The ZED shows up as one UVC device whose frame is both eyes side by side (width 2·W). The mode
+    (W, H, fps) is validated against the ZED's modes at config time; here it is asked for with
+    FOURCC YUYV and checked against what the driver actually gives.
+    """
+
+    def __init__(self, device: str, width_px: int, height_px: int, fps_hz: float, clock: Clock = time.monotonic):
+        self.name = f"uvc:{device}"
+        self.device = device
+        self.width_px = width_px
+        self.height_px = height_px
+        self.fps_hz = fps_hz
+        self._clock = clock
+        self._cap = None
+        self._seq = 0
+
+    @property
+    def eye_size_px(self) -> tuple[int, int]:
+        return (self.width_px, self.height_px)
+
+    def open(self) -> None:
+        import cv2
+
+        self.close()
+        index: int | str = int(self.device) if self.device.isdigit() else self.device
+        cap = cv2.VideoCapture(index, cv2.CAP_V4L2)
+        if not cap.isOpened():
+            cap.release()
+            raise CameraError(f"{self.name}: cannot open the camera (unplugged, or no permission: group 'video')")
+        cap.set(cv2.CAP_PROP_FOURCC, cv2.VideoWriter_fourcc(*"YUYV"))
+        cap.set(cv2.CAP_PROP_FRAME_WIDTH, 2 * self.width_px)
+        cap.set(cv2.CAP_PROP_FRAME_HEIGHT, self.height_px)
+        cap.set(cv2.CAP_PROP_FPS, self.fps_hz)
+        # One buffered frame: the newest frame matters, not a queue of old ones.
+        cap.set(cv2.CAP_PROP_BUFFERSIZE, 1)
+        got_w = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH))
+        got_h = int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
+        if (got_w, got_h) != (2 * self.width_px, self.height_px):
+            cap.release()
+            raise CameraError(
+                f"{self.name}: asked for {2 * self.width_px}x{self.height_px} (side by side) but the "
+                f"driver gives {got_w}x{got_h}; is it a ZED, and is the mode one it supports?"
+            )
+        got_fps = cap.get(cv2.CAP_PROP_FPS)
+        if got_fps and abs(got_fps - self.fps_hz) > 0.5:
+            log.warning("%s: asked for %.0f fps, the driver reports %.1f", self.name, self.fps_hz, got_fps)
+        self._cap = cap
+        log.info("%s: open at %dx%d@%g (YUYV)", self.name, 2 * self.width_px, self.height_px, self.fps_hz)
+
+    def read(self) -> Frame:
+        cap = self._cap
+        if cap is None:
+            raise CameraError(f"{self.name}: not open")
+        ok, image = cap.read()
+        t = self._clock()
+        if not ok or image is None:
+            raise CameraError(f"{self.name}: no frame (camera unplugged or stalled)")
+        image = _check_frame(image, self.name, self.width_px, self.height_px)
+        self._seq += 1
+        return Frame(image=image, timestamp_s=t, seq=self._seq)
+
+    def close(self) -> None:
+        cap, self._cap = self._cap, None
+        if cap is not None:
+            cap.release()
+
+
+# ---------------------------------------------------------------------------------------------- replay
+
+
+class ReplayCamera:
+    """Frames from a recording (see :mod:`companion.service.recording`), at the recorded rate (its
+    timestamps) or at ``rate_hz``; optionally looping. The end of a non-looping recording raises a
+    CameraError with ``ended=True`` in its context (the capture thread then stops reopening it).
+
+    Args:
+        path: the recording (a folder of PNGs with timestamps.csv, or an .mkv/.avi with its sidecar).
+        width_px, height_px: the expected eye size (a recording of another size is an error).
+        rate_hz: deliver at this rate; None = the recorded timestamps (``fallback_fps_hz`` without them).
+        loop: start again at the end.
+        preload: decode every frame at open (costs memory: H·2W·3 bytes a frame).
+    """
+
+    def __init__(
+        self,
+        path: Path,
+        width_px: int,
+        height_px: int,
+        *,
+        rate_hz: float | None = None,
+        fallback_fps_hz: float = 30.0,
+        loop: bool = False,
+        preload: bool = False,
+        clock: Clock = time.monotonic,
+    ) -> None:
+        self.name = f"replay:{path}"
+        self.path = Path(path)
+        self.width_px = width_px
+        self.height_px = height_px
+        self.rate_hz = rate_hz
+        self.fallback_fps_hz = fallback_fps_hz
+        self.loop = loop
+        self.preload = preload
+        self._clock = clock
+        self._stop = threading.Event()
+        self._video = None
+        self._files: list[Path] = []
+        self._frames: list[np.ndarray] | None = None
+        self._times: np.ndarray | None = None
+        self._index = 0
+        self._seq = 0
+        self._t0_wall: float | None = None
+        self._t0_rec = 0.0
+        self._pacer: _Pacer | None = None
+        self._opened = False
+
+    @property
+    def eye_size_px(self) -> tuple[int, int]:
+        return (self.width_px, self.height_px)
+
+    @property
+    def frame_count(self) -> int:
+        if self._frames is not None:
+            return len(self._frames)
+        return len(self._files) if self._files else (len(self._times) if self._times is not None else 0)
+
+    def open(self) -> None:
+        from companion.service.recording import VIDEO_SUFFIXES, read_timestamps
+
+        self.close()
+        self._stop.clear()
+        p = self.path
+        if not p.exists():
+            raise CameraError(f"{self.name}: no such recording")
+        ts = read_timestamps(p)
+        self._times = ts.timestamp_s if ts is not None else None
+        if p.is_dir():
+            self._files = sorted(p.glob("frame_*.png"))
+            if not self._files:
+                raise CameraError(f"{self.name}: no frame_*.png in the folder")
+            if self._times is not None and len(self._times) != len(self._files):
+                raise CameraError(
+                    f"{self.name}: {len(self._files)} frames but {len(self._times)} timestamps"
+                )
+        elif p.suffix.lower() in VIDEO_SUFFIXES:
+            self._open_video()
+        else:
+            raise CameraError(f"{self.name}: not a recording (a folder, or a {'/'.join(VIDEO_SUFFIXES)} file)")
+        if self.preload:
+            frames = []
+            while True:
+                image = self._decode_next(allow_end=True)
+                if image is None:
+                    break
+                frames.append(image)
+            if not frames:
+                raise CameraError(f"{self.name}: the recording has no frames")
+            self._frames = frames
+            self._release_video()
+        self._index = 0
+        self._t0_wall = None
+        period = 1.0 / (self.rate_hz or self.fallback_fps_hz)
+        self._pacer = _Pacer(period, self._clock, self._stop)
+        self._opened = True
+        log.info("%s: open (%s)", self.name, "preloaded" if self.preload else "streaming from disk")
+
+    def _open_video(self) -> None:
+        import cv2
+
+        self._release_video()
+        cap = cv2.VideoCapture(str(self.path))
+        if not cap.isOpened():
+            raise CameraError(f"{self.name}: OpenCV cannot open the video")
+        self._video = cap
+
+    def _release_video(self) -> None:
+        video, self._video = self._video, None
+        if video is not None:
+            video.release()
+
+    def _decode_next(self, allow_end: bool) -> np.ndarray | None:
+        """The frame at ``self._index`` (advancing it), or None at the end."""
+        import cv2
+
+        i = self._index
+        if self._frames is not None:
+            if i >= len(self._frames):
+                return None
+            self._index += 1
+            return self._frames[i]
+        if self._files:
+            if i >= len(self._files):
+                return None
+            image = cv2.imread(str(self._files[i]), cv2.IMREAD_COLOR)
+            if image is None:
+                raise CameraError(f"{self.name}: cannot decode {self._files[i].name}")
+        else:
+            if self._video is None:
+                return None
+            ok, image = self._video.read()
+            if not ok:
+                return None
+        self._index += 1
+        return _check_frame(image, f"{self.name} frame {i}", self.width_px, self.height_px)
+
+    def _rewind(self) -> None:
+        self._index = 0
+        if self._video is not None:
+            self._open_video()
+
+    def read(self) -> Frame:
+        if not self._opened:
+            raise CameraError(f"{self.name}: not open")
+        index = self._index
+        image = self._decode_next(allow_end=True)
+        if image is None:
+            if not self.loop:
+                raise CameraError(f"{self.name}: end of the recording", ended=True)
+            self._rewind()
+            self._t0_wall = None
+            index = 0
+            image = self._decode_next(allow_end=False)
+            if image is None:
+                raise CameraError(f"{self.name}: the recording has no frames", ended=True)
+        self._wait_for(index)
+        t = self._clock()
+        self._seq += 1
+        return Frame(image=image, timestamp_s=t, seq=self._seq)
+
+    def _wait_for(self, index: int) -> None:
+        if self.rate_hz is None and self._times is not None and index < len(self._times):
+            # At the recorded timestamps: frame i is due at t0 + (t_i - t_0).
+            now = self._clock()
+            if self._t0_wall is None:
+                self._t0_wall, self._t0_rec = now, float(self._times[index])
+            due = self._t0_wall + float(self._times[index]) - self._t0_rec
+            if due - now > 0:
+                self._stop.wait(due - now)
+            elif now - due > 0.5:
+                self._t0_wall, self._t0_rec = now, float(self._times[index])  # fell behind: re-anchor
+            return
+        assert self._pacer is not None
+        self._pacer.wait()
+
+    def close(self) -> None:
+        self._stop.set()
+        self._release_video()
+        self._opened = False
+
+
+# ---------------------------------------------------------------------------------------------- sim
+
+
+class SimCamera:
+    """Side-by-side frames rendered by :mod:`companion.core.render` at ``fps_hz``.
+
+    The pose comes from ``pose_provider`` (the simulator drives it from its vehicle's pose) or is the
+    fixed ``pose``; with a fixed pose and no noise the frame is rendered once and handed out read-only.
+    The rig is the ideal one of the calibration config (no calibration file), so the pipeline sees the
+    same geometry the renderer used.
+
+    Args:
+        geometry: the rectified rig (one eye's size, focal length, baseline).
+        scene: the world to draw.
+        fps_hz: frame rate, Hz.
+        pose: the fixed pose when there is no provider.
+        pose_provider: called once per frame, in the capture thread; returns a Pose.
+        noise_grey: per-frame Gaussian sensor noise, grey levels (0 = none).
+    """
+
+    def __init__(
+        self,
+        geometry,
+        scene: Scene,
+        fps_hz: float,
+        *,
+        pose: Pose | None = None,
+        pose_provider: PoseProvider | None = None,
+        noise_grey: float = 0.0,
+        seed: int = 0,
+        clock: Clock = time.monotonic,
+    ) -> None:
+        from companion.core.render import Pose
+
+        self.name = "sim"
+        self.geometry = geometry
+        self.scene = scene
+        self.fps_hz = fps_hz
+        self.pose = pose if pose is not None else Pose.at(2.0, 0.0, 1.5)
+        self.pose_provider = pose_provider
+        self.noise_grey = noise_grey
+        self.seed = seed
+        self._clock = clock
+        self._stop = threading.Event()
+        self._renderer = None
+        self._rng = np.random.default_rng(seed)
+        self._fixed: np.ndarray | None = None
+        self._pacer: _Pacer | None = None
+        self._seq = 0
+
+    @property
+    def eye_size_px(self) -> tuple[int, int]:
+        return (self.geometry.width_px, self.geometry.height_px)
+
+    def open(self) -> None:
+        from companion.core.render import StereoRenderer
+
+        self._stop.clear()
+        if self._renderer is None:
+            self._renderer = StereoRenderer(self.geometry, self.scene, seed=self.seed)
+        self._pacer = _Pacer(1.0 / self.fps_hz, self._clock, self._stop)
+
+    def _render(self, pose: Pose) -> np.ndarray:
+        from companion.core.render import Photometry
+
+        assert self._renderer is not None
+        if self.noise_grey > 0:
+            noise = Photometry(noise_std=self.noise_grey)
+            return self._renderer.render_side_by_side(pose, left=noise, right=noise, rng=self._rng)
+        return self._renderer.render_side_by_side(pose)
+
+    def read(self) -> Frame:
+        if self._renderer is None or self._pacer is None:
+            raise CameraError("sim: not open")
+        self._pacer.wait()
+        if self.pose_provider is not None:
+            try:
+                pose = self.pose_provider()
+            except Exception as err:
+                raise CameraError(f"sim: the pose provider failed: {type(err).__name__}: {err}") from err
+            image = self._render(pose)
+        elif self.noise_grey > 0:
+            image = self._render(self.pose)
+        else:
+            if self._fixed is None:
+                self._fixed = self._render(self.pose)
+                self._fixed.setflags(write=False)
+            image = self._fixed
+        t = self._clock()
+        self._seq += 1
+        return Frame(image=image, timestamp_s=t, seq=self._seq)
+
+    def close(self) -> None:
+        self._stop.set()
+
+
+def sim_camera_from_config(
+    cfg: CompanionConfig, pose_provider: PoseProvider | None = None, clock: Clock = time.monotonic
+) -> SimCamera:
+    """The ``sim`` source of ``cfg.camera``: the corridor scene, the ideal rig of ``cfg.calibration``."""
+    from companion.core.geometry import StereoGeometry
+    from companion.core.render import Pose, corridor_scene
+
+    cam = cfg.camera
+    geometry = StereoGeometry.ideal(
+        cam.width_px, cam.height_px, hfov_deg=cfg.calibration.ideal_hfov_deg, baseline_m=cfg.calibration.ideal_baseline_m
+    )
+    scene = corridor_scene(n_obstacles=cam.sim_obstacles, seed=cam.sim_scene_seed)
+    pose = Pose.at(cam.sim_north_m, cam.sim_east_m, cam.sim_altitude_m, yaw_rad=math.radians(cam.sim_yaw_deg))
+    return SimCamera(
+        geometry,
+        scene,
+        cam.fps_hz,
+        pose=pose,
+        pose_provider=pose_provider,
+        noise_grey=cam.sim_noise_grey,
+        seed=cam.sim_scene_seed,
+        clock=clock,
+    )
+
+
+def make_camera(
+    cfg: CompanionConfig, pose_provider: PoseProvider | None = None, clock: Clock = time.monotonic
+) -> CameraSource:
+    """The camera source ``cfg.camera.source`` names (not yet opened)."""
+    cam = cfg.camera
+    if cam.source == "uvc":
+        return UvcCamera(cam.device, cam.width_px, cam.height_px, cam.fps_hz, clock=clock)
+    if cam.source == "replay":
+        assert cam.replay_path is not None  # the config validator guarantees it
+        return ReplayCamera(
+            cam.replay_path,
+            cam.width_px,
+            cam.height_px,
+            rate_hz=cam.replay_rate_hz,
+            fallback_fps_hz=cam.fps_hz,
+            loop=cam.replay_loop,
+            preload=cam.replay_preload,
+            clock=clock,
+        )
+    return sim_camera_from_config(cfg, pose_provider=pose_provider, clock=clock)

@@ -1,0 +1,998 @@
+"""``companion run``: the asyncio daemon, a thin shell around the pipeline and the supervisor.
+
+Threads and tasks::
+
+    capture thread ──newest frame──▶ FrameMailbox (one slot) ──▶ pipeline thread (one frame at a time:
+    (blocking read, reconnect                                     Pipeline.process; between frames the
+     with back-off)                                               jobs: build, reconfigure, reset)
+                                                                          │ newest FrameResult (posted to the loop)
+                                                                          ▼
+    control server task (ZeroMQ ROUTER) ──requests──▶ control loop task ──setpoint──▶ VehicleLink (MAVSDK)
+    signal handlers (TERM/INT/HUP)                    (Supervisor.step at the setpoint rate and on every
+                                                       new result or request; the ONLY place that feeds
+                                                       the systemd watchdog)
+    health task (ZeroMQ PUB, 10 Hz + every state change)     vehicle connector task (waits for the autopilot)
+
+The control loop never waits for the pipeline: it steps on a fixed grid (``vehicle.setpoint_rate_hz``)
+whatever the vision rate, and also as soon as a new result arrives, so a decision reaches the vehicle
+without waiting for the next tick. If the control loop stalls, the watchdog is not fed and systemd kills
+the process (MAVSDK's 20 Hz re-sending dies with it), and PX4's offboard-loss failsafe takes over.
+
+Shutdown (first SIGTERM/SIGINT): the supervisor sends zero and, if we own offboard, Hold; then the
+stream stops (no mode change), ZeroMQ closes, the camera and the pipeline (GPU) are released. A second
+signal exits at once with :data:`~companion.exitcodes.FORCED_EXIT`. SIGHUP reloads the config file.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import logging
+import os
+import signal
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from companion import exitcodes
+from companion.config import CompanionConfig, apply_patch, load_config
+from companion.config.service import RESTART_FIELDS
+from companion.core.supervisor import (
+    Action,
+    ActionResult,
+    Disengage,
+    Engage,
+    Override,
+    Pause,
+    Reply,
+    Resume,
+    Shutdown,
+    Supervisor,
+    SupervisorConfig,
+)
+from companion.core.types import REGION_NAMES, ZERO_SETPOINT, VelocitySetpoint
+from companion.errors import CompanionError, ConfigError, FrameError, ProtocolError, VehicleError
+from companion.interfaces import CameraSource, Frame, VehicleLink
+from companion.service import protocol
+from companion.service.capture import CaptureThread, FrameMailbox, ProcessingThread
+from companion.service.notify import Notifier, watchdog_interval_s
+
+log = logging.getLogger(__name__)
+
+Clock = Callable[[], float]
+
+
+class RequestRefused(CompanionError):
+    """The supervisor refused an operator request (engage while disarmed, override when not engaged, ...)."""
+
+
+class StartupError(CompanionError):
+    """The service could not start; the process exits with STARTUP_FAILURE (78)."""
+
+
+@dataclass(frozen=True)
+class Processed:
+    """A frame result with where it came from."""
+
+    result: Any  # companion.core.pipeline.FrameResult
+    seq: int
+    done_s: float
+
+
+def resolve_config_paths(cfg: CompanionConfig, base_dir: Path | None) -> CompanionConfig:
+    """``cfg`` with relative file paths made absolute against ``base_dir`` (the config file's folder).
+
+    A config file names files relative to itself, never to the working directory of whoever started
+    the service. Without a file (``base_dir`` None) relative paths are left as given.
+    """
+    if base_dir is None:
+        return cfg
+
+    def fix(p: Path | None) -> Path | None:
+        return None if p is None or p.is_absolute() else base_dir / p
+
+    updates: dict[str, Any] = {}
+    if cfg.calibration.file is not None and not cfg.calibration.file.is_absolute():
+        updates["calibration"] = cfg.calibration.model_copy(update={"file": fix(cfg.calibration.file)})
+    if cfg.camera.replay_path is not None and not cfg.camera.replay_path.is_absolute():
+        updates["camera"] = cfg.camera.model_copy(update={"replay_path": fix(cfg.camera.replay_path)})
+    bus_updates = {
+        name: fix(getattr(cfg.bus, name))
+        for name in ("curve_server_secret_key_file", "curve_authorized_keys_dir")
+        if getattr(cfg.bus, name) is not None and not getattr(cfg.bus, name).is_absolute()
+    }
+    if bus_updates:
+        updates["bus"] = cfg.bus.model_copy(update=bus_updates)
+    return cfg.model_copy(update=updates) if updates else cfg
+
+
+def restart_required(current: CompanionConfig, new: CompanionConfig) -> list[str]:
+    """The dotted fields that differ and that only a restart applies (camera, bus, vehicle.connection)."""
+    out = []
+    for path in RESTART_FIELDS:
+        section, _, name = path.partition(".")
+        a, b = getattr(current, section), getattr(new, section)
+        if name:
+            if getattr(a, name) != getattr(b, name):
+                out.append(path)
+        else:
+            out += [f"{section}.{f}" for f in type(a).model_fields if getattr(a, f) != getattr(b, f)]
+    return out
+
+
+def keep_restart_fields(current: CompanionConfig, new: CompanionConfig) -> CompanionConfig:
+    """``new`` with the restart-only fields of ``current`` (they are not applied until a restart)."""
+    vehicle = new.vehicle.model_copy(update={"connection": current.vehicle.connection})
+    return new.model_copy(update={"camera": current.camera, "bus": current.bus, "vehicle": vehicle})
+
+
+async def _wait_event(event: asyncio.Event, timeout_s: float) -> None:
+    """Wait until ``event`` is set or ``timeout_s`` passed (then the event is set by the timer: the
+    callers re-check their own conditions).
+
+    Not ``asyncio.wait_for``: before Python 3.12 it can swallow a cancellation that arrives as the
+    awaited event fires, and a loop task that ignores its cancellation hangs the shutdown.
+    """
+    if event.is_set():
+        return
+    timer = asyncio.get_running_loop().call_later(max(0.0, timeout_s), event.set)
+    try:
+        await event.wait()
+    finally:
+        timer.cancel()
+
+
+def _percentile_ms(values: collections.deque, q: float) -> float | None:
+    if not values:
+        return None
+    return float(np.percentile(np.fromiter(values, np.float64), q)) * 1e3
+
+
+def _setpoint_dict(sp: VelocitySetpoint | None) -> dict[str, float] | None:
+    if sp is None:
+        return None
+    return {
+        "forward_m_s": sp.forward_m_s,
+        "right_m_s": sp.right_m_s,
+        "down_m_s": sp.down_m_s,
+        "yaw_rate_deg_s": sp.yaw_rate_deg_s,
+    }
+
+
+class Service:
+    """The daemon. Build it, then ``await run()`` (or :func:`run_service` from the CLI).
+
+    Args:
+        cfg: the configuration (validated).
+        config_path: the file it came from (for ``reload`` and SIGHUP), or None.
+        camera: the camera source; default: the one ``cfg.camera`` names.
+        link: the vehicle link; default: MAVSDK on ``cfg.vehicle.connection``.
+        clock: monotonic clock, seconds (the clock of frame timestamps).
+        install_signals: handle SIGTERM/SIGINT/SIGHUP (only possible in the main thread).
+        notifier: sd_notify sender; default: from ``$NOTIFY_SOCKET`` (None when not under systemd).
+    """
+
+    def __init__(
+        self,
+        cfg: CompanionConfig,
+        *,
+        config_path: Path | None = None,
+        camera: CameraSource | None = None,
+        link: VehicleLink | None = None,
+        clock: Clock = time.monotonic,
+        install_signals: bool = True,
+        notifier: Notifier | None = None,
+        environ: dict[str, str] | None = None,
+    ) -> None:
+        self.config_path = config_path
+        self.config = resolve_config_paths(cfg, config_path.parent if config_path else None)
+        self._camera = camera
+        self.link = link
+        self._clock = clock
+        self._install_signals = install_signals
+        self._environ = dict(os.environ) if environ is None else environ
+        self._notifier = notifier if notifier is not None else Notifier.from_environment(self._environ)
+        self._watchdog_s = watchdog_interval_s(self._environ)
+        self.supervisor = Supervisor(SupervisorConfig.from_config(self.config))
+        self.config_version = 1
+        self.exit_code = exitcodes.OK
+        self.ready = threading.Event()  # set once READY=1 was sent (for tests and embedding)
+        self.stopped = threading.Event()
+        self.bus = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._processor: ProcessingThread | None = None
+        self._pipeline = None
+        self._mailbox = FrameMailbox()
+        self._capture: CaptureThread | None = None
+        self._tasks: list[asyncio.Task] = []
+        self._action_tasks: set[asyncio.Task] = set()
+        self._pending: list[tuple[Any, asyncio.Future | None]] = []
+        self._latest: Processed | None = None
+        self._last_stepped_seq: int | None = None
+        self._last_processed_key: tuple[int, float] | None = None
+        self._processed = 0
+        self._processed_twice = 0
+        self._frame_errors = 0
+        self._processed_times: collections.deque = collections.deque(maxlen=256)
+        self._latency_s: collections.deque = collections.deque(maxlen=500)
+        self._last_latency_s: float | None = None
+        self._last_setpoint: VelocitySetpoint | None = None
+        self._last_setpoint_s: float | None = None
+        self._setpoints_sent = 0
+        self._last_error: str | None = None
+        self._vehicle_status = "connecting"
+        self._signals = 0
+        self._health_seq = 0
+        self._last_watchdog_s = -1e9
+        self._shutdown_reason: str | None = None
+        self._config_lock: asyncio.Lock | None = None
+        # Events are created in run(), on the loop that uses them.
+        self._wake: asyncio.Event | None = None
+        self._first_result: asyncio.Event | None = None
+        self._health_now: asyncio.Event | None = None
+        self._shutdown: asyncio.Event | None = None
+        self.latencies_s: list[float] = []  # every frame-to-setpoint latency (bench); bounded by its user
+        self.record_latencies = False
+        self.processed_seqs: list[int] = []
+        self.record_seqs = False
+
+    # ================================================================================ lifecycle
+
+    async def run(self) -> int:
+        """Start, serve until a shutdown is requested, stop cleanly. Returns the process exit code."""
+        self._loop = asyncio.get_running_loop()
+        self._wake = asyncio.Event()
+        self._first_result = asyncio.Event()
+        self._health_now = asyncio.Event()
+        self._shutdown = asyncio.Event()
+        self._config_lock = asyncio.Lock()
+        try:
+            await self._start()
+        except (CompanionError, OSError) as err:
+            log.error("startup failed: %s", err)
+            return await self._startup_failed(err)
+        except Exception as err:  # a bug: logged with its traceback; a restart would only repeat it
+            log.exception("startup failed")
+            return await self._startup_failed(err)
+        try:
+            self._notify("READY=1", f"STATUS={self.supervisor.state.value}: {self.supervisor.reason}")
+            self.ready.set()
+            log.info("ready: %s", self.supervisor.reason)
+            await self._shutdown.wait()
+            await self._stop()
+        finally:
+            await self._cleanup()
+            self.stopped.set()
+        return self.exit_code
+
+    async def _startup_failed(self, err: BaseException) -> int:
+        self._notify(f"STATUS=startup failed: {err}")
+        self._error(f"startup failed: {err}")
+        await self._cleanup()
+        self.exit_code = exitcodes.STARTUP_FAILURE
+        self.stopped.set()
+        return self.exit_code
+
+    async def _start(self) -> None:
+        cfg = self.config
+        loop = self._loop
+        assert loop is not None
+        if self._install_signals:
+            self._setup_signals()
+        from companion.service.bus import Bus
+
+        self.bus = Bus(cfg.bus)
+        self.bus.open()
+        self._processor = ProcessingThread(
+            self._mailbox,
+            self._process,
+            self._on_result_threadsafe,
+            skip_late_frames=cfg.service.skip_late_frames,
+            clock=self._clock,
+        )
+        self._processor.start()
+        try:
+            # Built in the thread that uses it (CuPy's current device is per thread).
+            self._pipeline = await asyncio.wrap_future(self._processor.submit(self._build_pipeline, cfg))
+        except CompanionError as err:
+            raise StartupError(f"pipeline: {err}") from None
+        self._processor.processing_enabled.set()
+        if self._camera is None:
+            from companion.service.camera import make_camera
+
+            self._camera = make_camera(cfg, clock=self._clock)
+        eye = tuple(self._camera.eye_size_px)
+        if eye != (cfg.camera.width_px, cfg.camera.height_px):
+            raise StartupError(
+                f"camera {self._camera.name} gives {eye[0]}x{eye[1]} eyes but camera.width_px/height_px say "
+                f"{cfg.camera.width_px}x{cfg.camera.height_px}"
+            )
+        self._capture = CaptureThread(
+            self._camera,
+            self._mailbox,
+            on_status=self._on_camera_status_threadsafe,
+            reconnect_initial_s=cfg.camera.reconnect_initial_s,
+            reconnect_max_s=cfg.camera.reconnect_max_s,
+            clock=self._clock,
+        )
+        self._capture.start()
+        # Ready means the whole chain works: a frame captured AND processed.
+        await _wait_event(self._first_result, cfg.camera.open_timeout_s)
+        if self._processed == 0:
+            status = self._capture.status()
+            what = "no frame" if status.frames == 0 else "no frame processed"
+            problem = self._last_error or status.last_error
+            raise StartupError(
+                f"camera {status.source}: {what} within camera.open_timeout_s = {cfg.camera.open_timeout_s:g} s"
+                + (f" ({problem})" if problem else "")
+            ) from None
+        if self.link is None:
+            from companion.service.vehicle import MavsdkVehicleLink
+
+            self.link = MavsdkVehicleLink(cfg.vehicle.connection, clock=self._clock)
+        opener = getattr(self.link, "open", None)  # MAVSDK: add the connection now, fail fast on a bad URL
+        if opener is not None:
+            try:
+                await opener()
+            except VehicleError as err:
+                raise StartupError(str(err)) from None
+        self._spawn(self._vehicle_connector(), "vehicle connector")
+        self._spawn(self._control_loop(), "control loop", critical=True)
+        self._spawn(self._health_loop(), "health")
+        self._spawn(self._control_server(), "control server")
+
+    def _reconfigure_pipeline(self, cfg: CompanionConfig) -> list[str]:
+        """In the pipeline thread: swap the config in; release a replaced estimator (GPU threads)."""
+        old = self._pipeline.estimator
+        changed = self._pipeline.reconfigure(cfg)
+        if self._pipeline.estimator is not old:
+            closer = getattr(old, "close", None)
+            if closer is not None:
+                closer()
+        return changed
+
+    def _build_pipeline(self, cfg: CompanionConfig) -> Any:
+        from companion.core.pipeline import Pipeline
+
+        return Pipeline(cfg, cfg.camera.width_px, cfg.camera.height_px, clock=time.perf_counter)
+
+    def _spawn(self, coro: Any, name: str, critical: bool = False) -> None:
+        assert self._loop is not None
+        task = self._loop.create_task(coro, name=name)
+        task.add_done_callback(lambda t: self._task_done(t, name, critical))
+        self._tasks.append(task)
+
+    def _task_done(self, task: asyncio.Task, name: str, critical: bool) -> None:
+        if task.cancelled():
+            return
+        err = task.exception()
+        if err is None:
+            return
+        log.error("task %s died: %r", name, err, exc_info=err)
+        self._error(f"internal error in {name}: {type(err).__name__}: {err}")
+        # Whatever died, stop cleanly (zero, Hold if ours) and let systemd restart us passive.
+        self.request_shutdown(f"internal error in {name}", exit_code=exitcodes.INTERNAL_ERROR)
+
+    def request_shutdown(self, reason: str = "requested", exit_code: int | None = None) -> None:
+        """Begin a clean shutdown (call on the loop; see :meth:`request_shutdown_threadsafe`)."""
+        if exit_code is not None and self.exit_code == exitcodes.OK:
+            self.exit_code = exit_code
+        if self._shutdown is not None and not self._shutdown.is_set():
+            self._shutdown_reason = reason
+            log.info("shutting down: %s", reason)
+            self._shutdown.set()
+
+    def request_shutdown_threadsafe(self, reason: str = "requested") -> None:
+        if self._loop is not None and not self._loop.is_closed():
+            self._loop.call_soon_threadsafe(self.request_shutdown, reason)
+
+    async def _stop(self) -> None:
+        """Zero, Hold if we own offboard, stop the stream; then everything else goes."""
+        self._notify("STOPPING=1", "STATUS=stopping: zero setpoint, leaving offboard if ours")
+        timeout_s = self.config.service.shutdown_timeout_s
+        fut = self._submit(Shutdown())
+        deadline = self._clock() + timeout_s
+        control_alive = any(t.get_name() == "control loop" and not t.done() for t in self._tasks)
+        while control_alive and not self.supervisor.finished and self._clock() < deadline:
+            await asyncio.sleep(0.02)
+            control_alive = any(t.get_name() == "control loop" and not t.done() for t in self._tasks)
+        if fut is not None and not fut.done():
+            fut.cancel()
+        if not self.supervisor.finished:
+            log.warning(
+                "Hold not confirmed within %.1f s: stopping the setpoint stream anyway (PX4's offboard-loss "
+                "failsafe takes over if it is still in offboard)",
+                timeout_s,
+            )
+            await self._safe_link_call("stop_setpoints")
+        await self._publish_health()
+
+    async def _cleanup(self) -> None:
+        """Release everything; safe after a failed start and safe twice."""
+        tasks = list(self._tasks) + list(self._action_tasks)
+        for task in tasks:
+            task.cancel()
+        if tasks:
+            # Their errors were logged by _task_done / the action runners; a task that ignores its
+            # cancellation must not hang the shutdown.
+            _, stuck = await asyncio.wait(tasks, timeout=2.0)
+            for task in stuck:
+                log.error("task %s did not stop within 2 s; leaving it", task.get_name())
+        self._tasks = []
+        self._action_tasks.clear()
+        if self.bus is not None:
+            self.bus.close()
+            self.bus = None
+        if self._capture is not None:
+            await asyncio.get_running_loop().run_in_executor(None, self._capture.stop)
+        if self._processor is not None:
+            await asyncio.get_running_loop().run_in_executor(None, self._processor.stop)
+            self._processor = None
+        if self._pipeline is not None:
+            closer = getattr(self._pipeline.estimator, "close", None)  # the GPU backend frees its memory
+            if closer is not None:
+                try:
+                    closer()
+                except Exception:
+                    log.exception("releasing the disparity backend failed")
+            self._pipeline = None
+        if self.link is not None:
+            try:
+                await self.link.close()
+            except Exception:
+                log.exception("closing the vehicle link failed")
+        if self._notifier is not None:
+            self._notifier.close()
+            self._notifier = None
+
+    # ================================================================================ signals
+
+    def _setup_signals(self) -> None:
+        loop = self._loop
+        assert loop is not None
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            loop.add_signal_handler(sig, self._on_stop_signal, sig)
+        loop.add_signal_handler(signal.SIGHUP, self._on_hup)
+
+    def _on_stop_signal(self, sig: int) -> None:
+        name = signal.Signals(sig).name
+        self._signals += 1
+        log.info("%s: clean shutdown (send it again to force the exit)", name)
+        # The second signal must work even if the loop is stuck: a plain handler, run by the
+        # interpreter between bytecodes, not by the event loop.
+        loop = self._loop
+        assert loop is not None
+        for s in (signal.SIGTERM, signal.SIGINT):
+            loop.remove_signal_handler(s)
+            signal.signal(s, _force_exit)
+        self.request_shutdown(name)
+
+    def _on_hup(self) -> None:
+        log.info("SIGHUP: reloading %s", self.config_path or "(no config file)")
+        assert self._loop is not None
+        task = self._loop.create_task(self._reload_logged())
+        self._action_tasks.add(task)
+        task.add_done_callback(self._action_tasks.discard)
+
+    async def _reload_logged(self) -> None:
+        try:
+            result = await self.reload()
+            log.info("reload applied: %s", result)
+        except CompanionError as err:
+            log.error("reload rejected, the old config stays: %s", err)
+            self._error(f"reload rejected: {err}")
+
+    # ================================================================================ frames
+
+    def _call_on_loop(self, fn: Callable[..., None], *args: Any) -> None:
+        """From another thread: run ``fn(*args)`` on the event loop (dropped once the loop is gone)."""
+        loop = self._loop
+        if loop is None or loop.is_closed():
+            return
+        try:
+            loop.call_soon_threadsafe(fn, *args)
+        except RuntimeError:
+            pass  # the loop closed between the check and the call: we are shutting down
+
+    def _on_camera_status_threadsafe(self, state: str) -> None:
+        self._call_on_loop(self._on_camera_status, state)
+
+    def _on_camera_status(self, state: str) -> None:
+        if state in ("reconnecting", "ended") and self._capture is not None:
+            self._error(f"camera: {self._capture.status().last_error}")
+        if state == "streaming" and self._pipeline is not None and self._processor is not None:
+            # A new stream: the release filter's memory is of the old one.
+            self._processor.submit(self._pipeline.reset)
+        self._wake_control()
+        self._kick_health()
+
+    def _process(self, frame: Frame) -> Any:
+        """In the pipeline thread: one frame -> FrameResult (FrameError etc. go to _on_result)."""
+        key = (frame.seq, frame.timestamp_s)
+        if key == self._last_processed_key:
+            # Cannot happen with the mailbox; counted (and refused) to prove it. (A sequence number
+            # that goes back is not this: a source may restart its count when it is reopened.)
+            self._processed_twice += 1
+            raise FrameError(f"frame {frame.seq} handed over twice")
+        self._last_processed_key = key
+        return self._pipeline.process(frame.image, frame.timestamp_s)
+
+    def _on_result_threadsafe(self, frame: Frame, result: Any, err: BaseException | None) -> None:
+        self._call_on_loop(self._on_result, frame, result, err, self._clock())
+
+    def _on_result(self, frame: Frame, result: Any, err: BaseException | None, done_s: float) -> None:
+        """On the loop: record a frame's outcome and wake the control loop."""
+        if err is not None:
+            self._frame_errors += 1
+            if isinstance(err, FrameError):
+                self._error(f"frame {frame.seq} rejected: {err}")
+                log.warning("frame %d rejected: %s", frame.seq, err)
+            elif isinstance(err, CompanionError):
+                self._error(f"frame {frame.seq}: {err}")
+                log.error("frame %d: %s", frame.seq, err)
+            else:  # a bug in a stage: keep flying safely (frames age -> zero velocity -> Hold)
+                self._error(f"frame {frame.seq}: internal error {type(err).__name__}: {err}")
+                log.error("processing frame %d failed", frame.seq, exc_info=err)
+            return
+        self._processed += 1
+        self._processed_times.append(done_s)
+        if self.record_seqs:
+            self.processed_seqs.append(frame.seq)
+        self._latest = Processed(result=result, seq=frame.seq, done_s=done_s)
+        if self._first_result is not None:
+            self._first_result.set()
+        self._wake_control()
+
+    # ================================================================================ control loop
+
+    def _wake_control(self) -> None:
+        if self._wake is not None:
+            self._wake.set()
+
+    def _kick_health(self) -> None:
+        if self._health_now is not None:
+            self._health_now.set()
+
+    def _submit(self, request: Any) -> asyncio.Future | None:
+        """Queue a supervisor request for the next step; the future gets its :class:`Reply`."""
+        if self._loop is None:
+            return None
+        fut = None if isinstance(request, ActionResult) else self._loop.create_future()
+        self._pending.append((request, fut))
+        self._wake_control()
+        return fut
+
+    async def _control_loop(self) -> None:
+        assert self._wake is not None
+        next_tick = self._clock()
+        while True:
+            period = 1.0 / self.config.vehicle.setpoint_rate_hz
+            timeout = next_tick - self._clock()
+            if timeout > 0:
+                await _wait_event(self._wake, timeout)
+            self._wake.clear()
+            now = self._clock()
+            ticked = now >= next_tick
+            if ticked:
+                next_tick += period
+                if next_tick <= now:
+                    next_tick = now + period  # we were late: no burst of catch-up steps
+            try:
+                await self._control_step(now, ticked)
+            except asyncio.CancelledError:
+                raise
+            except Exception as err:
+                # A bug here must not leave MAVSDK re-sending a stale setpoint: zero now, then a clean
+                # shutdown (Hold if ours) and a restart by systemd, passive.
+                log.exception("control step failed")
+                self._error(f"internal error in the control loop: {type(err).__name__}: {err}")
+                await self._safe_link_call("send_setpoint", ZERO_SETPOINT)
+                raise
+            self._feed_watchdog(now)
+
+    async def _control_step(self, now: float, ticked: bool) -> None:
+        latest = self._latest
+        new_frame = latest is not None and latest.seq != self._last_stepped_seq
+        pending, self._pending = self._pending, []
+        capture = self._capture.status() if self._capture is not None else None
+        vehicle = self.link.state() if self.link is not None else None
+        if vehicle is None:
+            from companion.interfaces import VehicleState
+
+            vehicle = VehicleState()
+        out = self.supervisor.step(
+            now,
+            latest.result if latest is not None else None,
+            vehicle,
+            [r for r, _ in pending],
+            camera_ok=capture.ok if capture is not None else False,
+        )
+        replies = iter(out.replies)
+        for _, fut in pending:
+            if fut is None:
+                continue
+            reply = next(replies)
+            if not fut.done():
+                fut.set_result(reply)
+        if out.setpoint is not None:
+            sent = await self._safe_link_call("send_setpoint", out.setpoint)
+            if sent:
+                t_sent = self._clock()
+                self._last_setpoint = out.setpoint
+                self._last_setpoint_s = t_sent
+                self._setpoints_sent += 1
+                if new_frame and self.supervisor.engaged and latest is not None:
+                    latency = t_sent - latest.result.timestamp_s
+                    self._last_latency_s = latency
+                    self._latency_s.append(latency)
+                    if self.record_latencies:
+                        self.latencies_s.append(latency)
+        if new_frame and latest is not None:
+            self._last_stepped_seq = latest.seq
+        for action in out.actions:
+            if action is Action.STOP_SETPOINTS:
+                # Right after the final zero, on the loop: nothing non-zero is ever left to re-send.
+                await self._safe_link_call("stop_setpoints")
+            else:
+                self._run_action(action)
+        if out.changed:
+            log.info("state %s: %s", out.state.value, out.reason)
+            self._notify(f"STATUS={out.state.value}: {out.reason}")
+            self._kick_health()
+
+    def _run_action(self, action: Action) -> None:
+        """START_OFFBOARD / HOLD wait for the autopilot's ack (seconds): run them beside the loop and
+        report the outcome to the supervisor."""
+
+        async def runner() -> None:
+            assert self.link is not None
+            try:
+                if action is Action.START_OFFBOARD:
+                    await self.link.start_offboard()
+                else:
+                    await self.link.hold()
+                self._submit(ActionResult(action, True))
+                log.info("%s accepted", action.value)
+            except VehicleError as err:
+                log.warning("%s failed: %s", action.value, err)
+                self._error(f"{action.value}: {err}")
+                self._submit(ActionResult(action, False, str(err)))
+            except asyncio.CancelledError:
+                raise
+            except Exception as err:
+                log.exception("%s failed", action.value)
+                self._error(f"{action.value}: {type(err).__name__}: {err}")
+                self._submit(ActionResult(action, False, f"{type(err).__name__}: {err}"))
+
+        assert self._loop is not None
+        task = self._loop.create_task(runner(), name=action.value)
+        self._action_tasks.add(task)
+        task.add_done_callback(self._action_tasks.discard)
+
+    async def _safe_link_call(self, name: str, *args: Any) -> bool:
+        if self.link is None:
+            return False
+        try:
+            await getattr(self.link, name)(*args)
+            return True
+        except VehicleError as err:
+            self._error(f"vehicle: {err}")
+            log.debug("%s: %s", name, err)
+        except asyncio.CancelledError:
+            raise
+        except Exception as err:
+            log.exception("vehicle link %s failed", name)
+            self._error(f"vehicle link {name}: {type(err).__name__}: {err}")
+        return False
+
+    def _feed_watchdog(self, now: float) -> None:
+        # Only here: a stalled control loop starves the watchdog and systemd kills the process.
+        if self._watchdog_s is None or self._notifier is None:
+            return
+        if now - self._last_watchdog_s >= self._watchdog_s / 4.0:
+            self._last_watchdog_s = now
+            self._notifier.notify("WATCHDOG=1")
+
+    def _notify(self, *fields: str) -> None:
+        if self._notifier is not None:
+            self._notifier.notify(*fields)
+
+    def _error(self, message: str) -> None:
+        self._last_error = message
+
+    async def _vehicle_connector(self) -> None:
+        assert self.link is not None
+        timeout_s = self.config.vehicle.connect_timeout_s
+        while True:
+            try:
+                await self.link.connect(timeout_s)
+            except VehicleError as err:
+                if err.context.get("kind") == "connection":
+                    self._error(str(err))
+                    self.request_shutdown(str(err), exit_code=exitcodes.STARTUP_FAILURE)
+                    return
+                self._vehicle_status = "waiting"
+                log.warning("%s; still waiting", err)
+                continue
+            self._vehicle_status = "connected"
+            self._kick_health()
+            return
+
+    # ================================================================================ health
+
+    def health_message(self) -> dict[str, Any]:
+        """The health message (see the README's field list)."""
+        now = self._clock()
+        latest = self._latest
+        capture = self._capture.status() if self._capture is not None else None
+        v = self.link.state() if self.link is not None else None
+        recent = [t for t in self._processed_times if now - t <= 1.0]
+        result = latest.result if latest is not None else None
+        decision = result.decision if result is not None else None
+        self._health_seq += 1
+        vehicle_link = self._vehicle_status
+        if v is not None and self._vehicle_status == "connected":
+            vehicle_link = "connected" if v.connected else "lost"
+        return {
+            "type": "health",
+            "seq": self._health_seq,
+            "time_s": now,
+            "unix_time_s": time.time(),
+            "state": self.supervisor.state.value,
+            "reason": self.supervisor.reason,
+            "engaged": self.supervisor.engaged,
+            "config_version": self.config_version,
+            "fps": float(len(recent)),
+            "frame_age_ms": (now - result.timestamp_s) * 1e3 if result is not None else None,
+            "stages_ms": dict(result.timings_ms) if result is not None else {},
+            "frame_to_setpoint_ms": {
+                "last": self._last_latency_s * 1e3 if self._last_latency_s is not None else None,
+                "median": _percentile_ms(self._latency_s, 50),
+                "p99": _percentile_ms(self._latency_s, 99),
+                "samples": len(self._latency_s),
+            },
+            "regions_m": result.refined.as_dict() if result is not None else {n: None for n in REGION_NAMES},
+            "yaw": decision.yaw if decision is not None else None,
+            "pitch": decision.pitch if decision is not None else None,
+            "decision": (
+                {
+                    "kind": decision.kind.value,
+                    "speed_fraction": decision.speed_fraction,
+                    "reason": decision.reason,
+                }
+                if decision is not None
+                else None
+            ),
+            "setpoint": _setpoint_dict(self._last_setpoint),
+            "setpoint_age_ms": (now - self._last_setpoint_s) * 1e3 if self._last_setpoint_s is not None else None,
+            "setpoints_sent": self._setpoints_sent,
+            "override": self.supervisor.override_status(now),
+            "camera": (
+                {
+                    "source": capture.source,
+                    "status": capture.state,
+                    "fps": capture.fps,
+                    "frames": capture.frames,
+                    "reconnects": capture.reconnects,
+                    "last_error": capture.last_error,
+                }
+                if capture is not None
+                else None
+            ),
+            "vehicle": {
+                "link": vehicle_link,
+                "flight_mode": v.flight_mode if v is not None else "UNKNOWN",
+                "armed": v.armed if v is not None else False,
+                "in_offboard": v.in_offboard if v is not None else False,
+                "position_ned_m": v.position_ned_m.tolist() if v is not None and v.position_ned_m is not None else None,
+                "attitude_rad": v.attitude_rad.tolist() if v is not None and v.attitude_rad is not None else None,
+            },
+            "processed_frames": self._processed,
+            "dropped_frames": (capture.dropped if capture is not None else 0) + self._skipped_frames(),
+            "processed_twice": self._processed_twice,
+            "frame_errors": self._frame_errors,
+            "last_error": self._last_error,
+        }
+
+    def _skipped_frames(self) -> int:
+        return self._processor.skipped if self._processor is not None else 0
+
+    async def _publish_health(self) -> None:
+        if self.bus is None:
+            return
+        try:
+            await self.bus.publish(protocol.encode(self.health_message()))
+        except asyncio.CancelledError:
+            raise
+        except Exception:
+            log.exception("publishing health failed")
+
+    async def _health_loop(self) -> None:
+        assert self._health_now is not None
+        while True:
+            await _wait_event(self._health_now, 1.0 / self.config.bus.health_rate_hz)
+            self._health_now.clear()
+            await self._publish_health()
+
+    # ================================================================================ control plane
+
+    async def _control_server(self) -> None:
+        import zmq
+
+        assert self.bus is not None and self.bus.control is not None
+        sock = self.bus.control
+        while True:
+            frames = await sock.recv_multipart()
+            reply = await self.handle_frames(frames)
+            if reply is None:
+                continue
+            try:
+                await sock.send_multipart(reply)
+            except zmq.ZMQError as err:  # the client went away before its reply: nothing to do
+                log.debug("control reply not delivered: %s", err)
+
+    async def handle_frames(self, frames: list[bytes]) -> list[bytes] | None:
+        """One ROUTER message in, one reply out (the envelope mirrored). Never raises."""
+        if len(frames) < 2:
+            return None  # no identity and payload: nothing we could reply to
+        identity, rest = frames[0], frames[1:]
+        if len(rest) >= 2 and rest[0] == b"":
+            envelope, parts = [identity, b""], rest[1:]  # REQ client
+        else:
+            envelope, parts = [identity], rest  # DEALER client
+        if len(parts) != 1:
+            message = protocol.error_reply(
+                None, None, "ProtocolError", f"expected one JSON frame after the envelope, got {len(parts)} frames"
+            )
+        else:
+            message = await self.handle_raw(parts[0])
+        return envelope + [protocol.encode(message)]
+
+    async def handle_raw(self, raw: bytes) -> dict[str, Any]:
+        """One request's bytes -> the reply object. Never raises (errors become error replies)."""
+        cmd = rid = None
+        try:
+            request = protocol.parse_request(raw, self._request_adapter(), self.config.bus.max_request_bytes)
+            cmd, rid = request.cmd, request.id
+            result = await self.handle_request(request)
+            return protocol.ok_reply(cmd, rid, result)
+        except ProtocolError as err:
+            cmd = cmd or err.context.get("cmd")
+            rid = rid if rid is not None else err.context.get("id")
+            log.info("bad request: %s", err)
+            return protocol.error_reply(cmd, rid, "ProtocolError", str(err))
+        except CompanionError as err:
+            log.info("%s request failed: %s", cmd, err)
+            return protocol.error_reply(cmd, rid, type(err).__name__, str(err))
+        except asyncio.CancelledError:
+            raise
+        except Exception as err:
+            log.exception("request %s failed", cmd)
+            self._error(f"internal error handling {cmd}: {type(err).__name__}: {err}")
+            return protocol.error_reply(cmd, rid, "InternalError", f"{type(err).__name__}: {err}")
+
+    def _request_adapter(self) -> Any:
+        adapter = getattr(self, "_adapter", None)
+        if adapter is None:
+            adapter = self._adapter = protocol.request_adapter()
+        return adapter
+
+    async def handle_request(self, request: Any) -> dict[str, Any]:
+        """Carry out one validated request; returns the reply's result, raises CompanionError."""
+        cmd = request.cmd
+        if cmd == "ping":
+            return {"pong": True, "time_s": self._clock(), "state": self.supervisor.state.value}
+        if cmd == "status":
+            return self.health_message()
+        if cmd == "get_config":
+            data = self.config.model_dump(mode="json")
+            if request.section is None:
+                return {"config": data, "config_version": self.config_version, "path": str(self.config_path or "")}
+            if request.section not in data:
+                raise ProtocolError(
+                    f"get_config: no section {request.section!r}; sections are {', '.join(data)}"
+                )
+            return {"section": request.section, "config": data[request.section], "config_version": self.config_version}
+        if cmd == "set_config":
+            new = apply_patch(self.config, request.patch)
+            return await self.apply_config(new, "set_config")
+        if cmd == "reload":
+            return await self.reload()
+        supervisor_request = {
+            "engage": Engage,
+            "disengage": Disengage,
+            "pause": Pause,
+            "resume": Resume,
+        }.get(cmd)
+        if supervisor_request is not None:
+            return await self._supervise(supervisor_request())
+        if cmd == "override":
+            return await self._supervise(
+                Override(yaw=request.yaw, pitch=request.pitch, speed_fraction=request.speed, duration_s=request.duration_s)
+            )
+        raise ProtocolError(f"unknown cmd {cmd!r}")
+
+    async def _supervise(self, request: Any) -> dict[str, Any]:
+        fut = self._submit(request)
+        assert fut is not None
+        try:
+            reply: Reply = await asyncio.wait_for(fut, 2.0)
+        except asyncio.TimeoutError:
+            raise RequestRefused(f"{type(request).__name__.lower()}: the control loop did not answer within 2 s") from None
+        if not reply.ok:
+            raise RequestRefused(reply.message)
+        return {"message": reply.message, "state": self.supervisor.state.value, "reason": self.supervisor.reason}
+
+    async def reload(self) -> dict[str, Any]:
+        """Re-read the config file and apply it (validated whole first)."""
+        if self.config_path is None:
+            raise ConfigError("reload: the service was started without --config; there is no file to read")
+        new = load_config(self.config_path)
+        new = resolve_config_paths(new, self.config_path.parent)
+        return await self.apply_config(new, f"reload of {self.config_path}")
+
+    async def apply_config(self, new: CompanionConfig, source: str) -> dict[str, Any]:
+        """Swap in a validated config: build first (in the pipeline thread), swap only on success.
+
+        Fields that need a restart are reported in ``restart_required`` and not applied.
+        """
+        assert self._config_lock is not None
+        async with self._config_lock:
+            current = self.config
+            later = restart_required(current, new)
+            applied = keep_restart_fields(current, new)
+            changed = [name for name in type(applied).model_fields if getattr(applied, name) != getattr(current, name)]
+            if self._pipeline is not None and self._processor is not None:
+                try:
+                    # In the pipeline thread, between two frames: never racing one.
+                    await asyncio.wrap_future(self._processor.submit(self._reconfigure_pipeline, applied))
+                except CompanionError as err:
+                    raise ConfigError(f"{source}: rejected, the old config stays: {err}") from None
+                except Exception as err:
+                    log.exception("%s: building the new pipeline failed", source)
+                    raise ConfigError(
+                        f"{source}: rejected, the old config stays: {type(err).__name__}: {err}"
+                    ) from None
+            self.supervisor.reconfigure(SupervisorConfig.from_config(applied))
+            if self._processor is not None:
+                self._processor.skip_late_frames = applied.service.skip_late_frames
+            self.config = applied
+            if changed:
+                self.config_version += 1
+            if later:
+                log.warning("%s: %s need a restart to take effect", source, ", ".join(later))
+            log.info("%s applied (changed: %s)", source, ", ".join(changed) or "nothing")
+            self._kick_health()
+            return {"changed": changed, "restart_required": later, "config_version": self.config_version}
+
+
+def _force_exit(signum: int, frame: Any) -> None:
+    """Second SIGTERM/SIGINT: leave now. MAVSDK dies with us, so its re-sending stops and PX4's
+    offboard-loss failsafe takes over."""
+    log.warning("%s again: forced exit", signal.Signals(signum).name)
+    for handler in logging.getLogger().handlers:
+        try:
+            handler.flush()
+        except Exception:  # nothing more can be done about a broken log handler at this point
+            pass
+    os._exit(exitcodes.FORCED_EXIT)
+
+
+def run_service(config_path: Path | None) -> int:
+    """``companion run``: load the config, run the daemon, return the exit code (78 on startup failure)."""
+    try:
+        cfg = load_config(config_path)
+    except ConfigError as err:
+        log.error("startup failed: %s", err)
+        notifier = Notifier.from_environment()
+        if notifier is not None:
+            notifier.notify(f"STATUS=startup failed: {err}")
+            notifier.close()
+        return exitcodes.STARTUP_FAILURE
+    service = Service(cfg, config_path=config_path.resolve() if config_path is not None else None)
+    return asyncio.run(service.run())

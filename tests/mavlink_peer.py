@@ -1,0 +1,380 @@
+"""A MAVLink autopilot peer that behaves like PX4 where the service depends on it.
+
+Written with pymavlink (MAVLink 2, common dialect) over a plain UDP socket, in a background thread.
+The service's real MAVSDK link talks to it on localhost, and tests assert on what arrives on the wire.
+
+What it does, like PX4:
+
+* HEARTBEAT (``MAV_AUTOPILOT_PX4``, quadrotor) with ``MAV_MODE_FLAG_CUSTOM_MODE_ENABLED`` and the PX4
+  custom mode (main mode in bits 16-23, sub mode in bits 24-31), the armed flag; sent at
+  ``heartbeat_hz`` and at once after every mode change.
+* COMMAND_LONG: ``MAV_CMD_DO_SET_MODE`` (param2 main mode, param3 sub mode) acked; OFFBOARD is
+  accepted only when setpoints have been arriving (at least ``offboard_min_setpoints`` in the last
+  second, the newest within ``offboard_loss_timeout_s``), else DENIED. ``COMPONENT_ARM_DISARM`` acked.
+  ``REQUEST_MESSAGE`` for AUTOPILOT_VERSION answered; message-interval requests acked; anything else
+  UNSUPPORTED.
+* Offboard-loss failsafe: in OFFBOARD with no setpoint for ``offboard_loss_timeout_s`` it switches to
+  Hold (AUTO.LOITER) by itself, as PX4's COM_OF_LOSS_T does.
+* Telemetry at ``telemetry_hz``: LOCAL_POSITION_NED, ATTITUDE, EXTENDED_SYS_STATE (in air),
+  SYS_STATUS, GLOBAL_POSITION_INT. The position integrates the commanded body velocity in OFFBOARD.
+
+Everything received is recorded with the monotonic receive time: :attr:`setpoints` (every
+SET_POSITION_TARGET_LOCAL_NED), :attr:`commands` (every COMMAND_LONG) and :attr:`mode_log`.
+"""
+
+from __future__ import annotations
+
+import math
+import socket
+import threading
+import time
+from dataclasses import dataclass
+
+from pymavlink.dialects.v20 import common as mavlink
+
+# PX4 custom main modes (px4_custom_mode.h) and AUTO sub modes.
+MAIN_MANUAL = 1
+MAIN_ALTCTL = 2
+MAIN_POSCTL = 3
+MAIN_AUTO = 4
+MAIN_ACRO = 5
+MAIN_OFFBOARD = 6
+MAIN_STABILIZED = 7
+SUB_AUTO_READY = 1
+SUB_AUTO_TAKEOFF = 2
+SUB_AUTO_LOITER = 3
+SUB_AUTO_MISSION = 4
+SUB_AUTO_RTL = 5
+SUB_AUTO_LAND = 6
+
+#: Mode name (as MAVSDK's telemetry names it) -> (main, sub).
+MODES: dict[str, tuple[int, int]] = {
+    "MANUAL": (MAIN_MANUAL, 0),
+    "ALTCTL": (MAIN_ALTCTL, 0),
+    "POSCTL": (MAIN_POSCTL, 0),
+    "OFFBOARD": (MAIN_OFFBOARD, 0),
+    "STABILIZED": (MAIN_STABILIZED, 0),
+    "HOLD": (MAIN_AUTO, SUB_AUTO_LOITER),
+    "MISSION": (MAIN_AUTO, SUB_AUTO_MISSION),
+    "RETURN_TO_LAUNCH": (MAIN_AUTO, SUB_AUTO_RTL),
+    "LAND": (MAIN_AUTO, SUB_AUTO_LAND),
+    "TAKEOFF": (MAIN_AUTO, SUB_AUTO_TAKEOFF),
+}
+_MODE_NAMES = {v: k for k, v in MODES.items()}
+
+
+def free_udp_port() -> int:
+    """An unused localhost UDP port (ephemeral; tiny race between this and its use)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@dataclass(frozen=True)
+class Setpoint:
+    """One SET_POSITION_TARGET_LOCAL_NED as received: monotonic time (s), frame, type mask, velocity
+    (m/s, body frame for MAV_FRAME_BODY_NED), yaw rate (rad/s), and the peer's mode when it arrived."""
+
+    t_s: float
+    frame: int
+    type_mask: int
+    vx: float
+    vy: float
+    vz: float
+    yaw_rate: float
+    mode: str
+
+    @property
+    def is_zero(self) -> bool:
+        return self.vx == 0.0 and self.vy == 0.0 and self.vz == 0.0 and self.yaw_rate == 0.0
+
+
+@dataclass(frozen=True)
+class Command:
+    """One COMMAND_LONG as received: monotonic time (s), command id, params 1-7, result sent back."""
+
+    t_s: float
+    command: int
+    params: tuple[float, ...]
+    result: int
+
+    @property
+    def mode(self) -> str | None:
+        """The mode a DO_SET_MODE asked for, by name (None for other commands)."""
+        if self.command != mavlink.MAV_CMD_DO_SET_MODE:
+            return None
+        return _MODE_NAMES.get((int(self.params[1]), int(self.params[2])), f"?{self.params[1:3]}")
+
+
+class Px4Peer:
+    """The autopilot end of a UDP MAVLink link, run in a daemon thread.
+
+    Args:
+        port: the localhost UDP port where the service's MAVSDK listens (``udpin://127.0.0.1:PORT``);
+            None (the default): a free one, chosen after the peer's own socket is bound so that the
+            two can never be the same port. Read it back from :attr:`port`.
+        mode: initial flight mode name (see :data:`MODES`).
+        armed: initial armed state (a vehicle already flying, by default).
+        heartbeat_hz, telemetry_hz: send rates, Hz.
+        offboard_loss_timeout_s: PX4's COM_OF_LOSS_T: OFFBOARD without setpoints this long -> Hold.
+        offboard_min_setpoints: setpoints needed in the last second before OFFBOARD is accepted.
+        deny_modes: modes whose DO_SET_MODE is answered DENIED (e.g. {"HOLD"} for a stuck shutdown).
+    """
+
+    def __init__(
+        self,
+        port: int | None = None,
+        *,
+        mode: str = "POSCTL",
+        armed: bool = True,
+        heartbeat_hz: float = 5.0,
+        telemetry_hz: float = 20.0,
+        offboard_loss_timeout_s: float = 1.0,
+        offboard_min_setpoints: int = 3,
+        deny_modes: frozenset[str] = frozenset(),
+        system_id: int = 1,
+    ) -> None:
+        self.deny_modes = set(deny_modes)
+        self.port = port
+        self.heartbeat_hz = heartbeat_hz
+        self.telemetry_hz = telemetry_hz
+        self.offboard_loss_timeout_s = offboard_loss_timeout_s
+        self.offboard_min_setpoints = offboard_min_setpoints
+        self._mav = mavlink.MAVLink(None, srcSystem=system_id, srcComponent=mavlink.MAV_COMP_ID_AUTOPILOT1)
+        self._mav.robust_parsing = True
+        self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self._sock.bind(("127.0.0.1", 0))
+        self._sock.settimeout(0.005)
+        if self.port is None:
+            self.port = free_udp_port()
+        self._lock = threading.Lock()
+        self._mode = mode
+        self._armed = armed
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._boot_s = time.monotonic()
+        self._pos = [0.0, 0.0, -1.5]
+        self._yaw_rad = 0.0
+        self._last_vel = (0.0, 0.0, 0.0, 0.0)
+        self.setpoints: list[Setpoint] = []
+        self.commands: list[Command] = []
+        self.mode_log: list[tuple[float, str, str]] = []  # (t_s, mode, why)
+        self.silent = False  # True: stop sending anything (a link cut from the autopilot side)
+
+    # ------------------------------------------------------------------ control from the test
+
+    def start(self) -> Px4Peer:
+        self._thread = threading.Thread(target=self._run, name="px4-peer", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+        self._sock.close()
+
+    def __enter__(self) -> Px4Peer:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    @property
+    def mode(self) -> str:
+        with self._lock:
+            return self._mode
+
+    @property
+    def armed(self) -> bool:
+        with self._lock:
+            return self._armed
+
+    def set_mode(self, mode: str, why: str = "pilot") -> None:
+        """Switch mode as a pilot's RC switch would (no command involved)."""
+        with self._lock:
+            self._set_mode_locked(mode, why)
+        self._send_heartbeat()
+
+    def setpoints_since(self, t_s: float) -> list[Setpoint]:
+        with self._lock:
+            return [s for s in self.setpoints if s.t_s >= t_s]
+
+    def commands_since(self, t_s: float) -> list[Command]:
+        with self._lock:
+            return [c for c in self.commands if c.t_s >= t_s]
+
+    def mode_commands(self) -> list[Command]:
+        with self._lock:
+            return [c for c in self.commands if c.command == mavlink.MAV_CMD_DO_SET_MODE]
+
+    def wait_for(self, predicate, timeout_s: float, poll_s: float = 0.01) -> bool:
+        """Poll ``predicate()`` until it is true or ``timeout_s`` passes; returns the last value."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if predicate():
+                return True
+            time.sleep(poll_s)
+        return bool(predicate())
+
+    # ------------------------------------------------------------------ the thread
+
+    def _set_mode_locked(self, mode: str, why: str) -> None:
+        if mode != self._mode:
+            self._mode = mode
+            self.mode_log.append((time.monotonic(), mode, why))
+
+    def _send(self, msg: mavlink.MAVLink_message) -> None:
+        if self.silent:
+            return
+        try:
+            self._sock.sendto(msg.pack(self._mav), ("127.0.0.1", self.port))
+        except OSError:
+            pass  # nobody listening yet (ECONNREFUSED on loopback): like a radio, keep going
+
+    def _time_boot_ms(self) -> int:
+        return int((time.monotonic() - self._boot_s) * 1000) & 0xFFFFFFFF
+
+    def _send_heartbeat(self) -> None:
+        with self._lock:
+            main, sub = MODES[self._mode]
+            armed = self._armed
+        base = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (mavlink.MAV_MODE_FLAG_SAFETY_ARMED if armed else 0)
+        custom = (main << 16) | (sub << 24)
+        self._send(
+            self._mav.heartbeat_encode(
+                mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4, base, custom, mavlink.MAV_STATE_ACTIVE
+            )
+        )
+
+    def _send_telemetry(self, dt_s: float) -> None:
+        with self._lock:
+            if self._mode == "OFFBOARD":
+                fwd, right, down, yaw_rate = self._last_vel
+            else:
+                fwd = right = down = yaw_rate = 0.0
+            c, s = math.cos(self._yaw_rad), math.sin(self._yaw_rad)
+            vn, ve = c * fwd - s * right, s * fwd + c * right
+            self._pos[0] += vn * dt_s
+            self._pos[1] += ve * dt_s
+            self._pos[2] += down * dt_s
+            self._yaw_rad = (self._yaw_rad + yaw_rate * dt_s + math.pi) % (2 * math.pi) - math.pi
+            x, y, z = self._pos
+            yaw = self._yaw_rad
+        t = self._time_boot_ms()
+        self._send(self._mav.local_position_ned_encode(t, x, y, z, vn, ve, down))
+        self._send(self._mav.attitude_encode(t, 0.0, 0.0, yaw, 0.0, 0.0, yaw_rate))
+        self._send(self._mav.extended_sys_state_encode(mavlink.MAV_VTOL_STATE_MC, mavlink.MAV_LANDED_STATE_IN_AIR))
+        self._send(
+            self._mav.global_position_int_encode(
+                t, 473977420 + int(x * 90), 85455940 + int(y * 130), int((488.0 - z) * 1000), int(-z * 1000),
+                int(vn * 100), int(ve * 100), int(down * 100), int(math.degrees(yaw) % 360 * 100),
+            )
+        )
+        sensors = 0xFFFFFF
+        self._send(self._mav.sys_status_encode(sensors, sensors, sensors, 200, 16000, 1000, 80, 0, 0, 0, 0, 0, 0))
+
+    def _ack(self, command: int, result: int) -> None:
+        self._send(self._mav.command_ack_encode(command, result))
+
+    def _offboard_allowed_locked(self, now: float) -> bool:
+        recent = [s for s in self.setpoints[-50:] if now - s.t_s <= 1.0]
+        return len(recent) >= self.offboard_min_setpoints and now - recent[-1].t_s <= self.offboard_loss_timeout_s
+
+    def _handle_command(self, msg: mavlink.MAVLink_command_long_message, now: float) -> None:
+        params = (msg.param1, msg.param2, msg.param3, msg.param4, msg.param5, msg.param6, msg.param7)
+        cmd = msg.command
+        result = mavlink.MAV_RESULT_UNSUPPORTED
+        send_hb = False
+        with self._lock:
+            if cmd == mavlink.MAV_CMD_DO_SET_MODE:
+                wanted = _MODE_NAMES.get((int(msg.param2), int(msg.param3)))
+                refused = (
+                    wanted is None
+                    or wanted in self.deny_modes
+                    or (wanted == "OFFBOARD" and not self._offboard_allowed_locked(now))  # PX4: no stream, no offboard
+                )
+                if refused:
+                    result = mavlink.MAV_RESULT_DENIED
+                else:
+                    self._set_mode_locked(wanted, "command")
+                    result = mavlink.MAV_RESULT_ACCEPTED
+                    send_hb = True
+            elif cmd == mavlink.MAV_CMD_COMPONENT_ARM_DISARM:
+                self._armed = msg.param1 > 0.5
+                result = mavlink.MAV_RESULT_ACCEPTED
+                send_hb = True
+            elif cmd in (mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, mavlink.MAV_CMD_REQUEST_MESSAGE):
+                result = mavlink.MAV_RESULT_ACCEPTED
+            self.commands.append(Command(now, cmd, params, result))
+        self._ack(cmd, result)
+        if cmd == mavlink.MAV_CMD_REQUEST_MESSAGE and int(msg.param1) == mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION:
+            self._send_autopilot_version()
+        if send_hb:
+            self._send_heartbeat()
+
+    def _send_autopilot_version(self) -> None:
+        caps = (
+            mavlink.MAV_PROTOCOL_CAPABILITY_MAVLINK2
+            | mavlink.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_LOCAL_NED
+            | mavlink.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
+            | mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_INT
+        )
+        self._send(
+            self._mav.autopilot_version_encode(
+                caps, (1 << 24) | (15 << 16) | (0 << 8) | 255, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0, 1234
+            )
+        )
+
+    def _handle(self, msg: mavlink.MAVLink_message, now: float) -> None:
+        kind = msg.get_type()
+        if kind == "SET_POSITION_TARGET_LOCAL_NED":
+            with self._lock:
+                self.setpoints.append(
+                    Setpoint(now, msg.coordinate_frame, msg.type_mask, msg.vx, msg.vy, msg.vz, msg.yaw_rate, self._mode)
+                )
+                self._last_vel = (msg.vx, msg.vy, msg.vz, msg.yaw_rate)
+        elif kind == "COMMAND_LONG":
+            self._handle_command(msg, now)
+        elif kind == "PARAM_REQUEST_LIST":
+            self._send(self._mav.param_value_encode(b"COM_OF_LOSS_T", self.offboard_loss_timeout_s, 9, 1, 0))
+
+    def _run(self) -> None:
+        hb_period = 1.0 / self.heartbeat_hz
+        tel_period = 1.0 / self.telemetry_hz
+        next_hb = next_tel = time.monotonic()
+        last_tel = next_tel
+        while not self._stop.is_set():
+            now = time.monotonic()
+            if now >= next_hb:
+                self._send_heartbeat()
+                next_hb = now + hb_period
+            if now >= next_tel:
+                self._send_telemetry(now - last_tel)
+                last_tel = now
+                next_tel = now + tel_period
+            with self._lock:
+                lost = (
+                    self._mode == "OFFBOARD"
+                    and (not self.setpoints or now - self.setpoints[-1].t_s > self.offboard_loss_timeout_s)
+                )
+                if lost:
+                    self._set_mode_locked("HOLD", "offboard loss failsafe")
+            if lost:
+                self._send_heartbeat()
+            try:
+                data = self._sock.recv(4096)
+            except (TimeoutError, socket.timeout):
+                continue
+            except OSError:
+                if self._stop.is_set():
+                    return
+                continue
+            now = time.monotonic()
+            try:
+                msgs = self._mav.parse_buffer(data) or []
+            except mavlink.MAVError:
+                continue  # a corrupt datagram: PX4 drops it too
+            for msg in msgs:
+                if msg.get_type() != "BAD_DATA":
+                    self._handle(msg, now)

@@ -1,0 +1,282 @@
+"""An instrumented fake vehicle link, a camera that can be stopped, and an in-process service runner."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+import time
+from dataclasses import dataclass, replace
+
+import zmq
+
+from companion.config import CompanionConfig, parse_config
+from companion.core.types import VelocitySetpoint
+from companion.errors import CameraError, VehicleError
+from companion.interfaces import Frame, VehicleState
+
+
+@dataclass(frozen=True)
+class Sent:
+    t_s: float
+    setpoint: VelocitySetpoint
+
+
+class FakeLink:
+    """A VehicleLink that behaves like PX4 behind MAVSDK (offboard accepted after a setpoint, mode
+    changes on request or by the 'pilot') and records every call with its monotonic time."""
+
+    def __init__(self, mode: str = "POSCTL", armed: bool = True, refuse_offboard: bool = False) -> None:
+        self._lock = threading.Lock()
+        self._state = VehicleState(connected=False, armed=armed, flight_mode=mode, in_offboard=mode == "OFFBOARD")
+        self.refuse_offboard = refuse_offboard
+        self.sent: list[Sent] = []
+        self.calls: list[tuple[float, str]] = []
+        self.streaming = False
+        self.closed = False
+
+    async def connect(self, timeout_s: float) -> None:
+        with self._lock:
+            self._state = replace(self._state, connected=True, timestamp_s=time.monotonic())
+
+    async def send_setpoint(self, setpoint: VelocitySetpoint) -> None:
+        with self._lock:
+            self.sent.append(Sent(time.monotonic(), setpoint))
+            self.streaming = True
+
+    async def start_offboard(self) -> None:
+        await asyncio.sleep(0.01)
+        with self._lock:
+            self.calls.append((time.monotonic(), "start_offboard"))
+            if self.refuse_offboard or not self.streaming:
+                raise VehicleError("offboard start refused: DENIED")
+            self._set_mode_locked("OFFBOARD")
+
+    async def hold(self) -> None:
+        await asyncio.sleep(0.01)
+        with self._lock:
+            self.calls.append((time.monotonic(), "hold"))
+            self._set_mode_locked("HOLD")
+
+    async def stop_setpoints(self) -> None:
+        with self._lock:
+            self.calls.append((time.monotonic(), "stop_setpoints"))
+            self.streaming = False
+
+    def state(self) -> VehicleState:
+        with self._lock:
+            return self._state
+
+    async def close(self) -> None:
+        self.closed = True
+
+    # the test's side
+    def _set_mode_locked(self, mode: str) -> None:
+        self._state = replace(self._state, flight_mode=mode, in_offboard=mode == "OFFBOARD", timestamp_s=time.monotonic())
+
+    def pilot_sets_mode(self, mode: str) -> None:
+        with self._lock:
+            self.calls.append((time.monotonic(), f"pilot:{mode}"))
+            self._set_mode_locked(mode)
+
+    def sent_since(self, t_s: float) -> list[Sent]:
+        with self._lock:
+            return [s for s in self.sent if s.t_s >= t_s]
+
+    def call_names(self) -> list[str]:
+        with self._lock:
+            return [c for _, c in self.calls]
+
+
+class GatedCamera:
+    """Wraps a camera source; ``freeze()`` makes read() block (frames stop) until ``thaw()``;
+    ``fail()`` makes the next read raise (the camera unplugged) until ``thaw()``."""
+
+    def __init__(self, inner) -> None:
+        self.inner = inner
+        self.name = f"gated:{inner.name}"
+        self._open = threading.Event()
+        self._open.set()
+        self._fail = False
+        self._closed = threading.Event()
+
+    @property
+    def eye_size_px(self):
+        return self.inner.eye_size_px
+
+    def open(self) -> None:
+        if self._fail:
+            raise CameraError(f"{self.name}: unplugged")
+        self._closed.clear()
+        self.inner.open()
+
+    def read(self) -> Frame:
+        while not self._open.is_set():
+            if self._closed.is_set():
+                raise CameraError(f"{self.name}: closed")
+            self._open.wait(0.02)
+        if self._fail:
+            raise CameraError(f"{self.name}: unplugged")
+        return self.inner.read()
+
+    def close(self) -> None:
+        self._closed.set()
+        self.inner.close()
+
+    def freeze(self) -> None:
+        self._open.clear()
+
+    def fail(self) -> None:
+        self._fail = True
+
+    def thaw(self) -> None:
+        self._fail = False
+        self._open.set()
+
+
+def service_config(tmp_path, **sections) -> CompanionConfig:
+    """Defaults with ipc endpoints in ``tmp_path`` and the given section overrides."""
+    data = {
+        "bus": {
+            "health_endpoint": f"ipc://{tmp_path}/health.sock",
+            "control_endpoint": f"ipc://{tmp_path}/control.sock",
+        },
+        "camera": {"source": "sim", "fps_hz": 15.0},
+        "stereo": {"backend": "opencv-bm"},
+    }
+    for key, value in sections.items():
+        data.setdefault(key, {}).update(value)
+    return parse_config(data)
+
+
+class ServiceRunner:
+    """Runs a Service on its own event loop in a background thread."""
+
+    def __init__(self, service) -> None:
+        self.service = service
+        self.exit_code: int | None = None
+        self._thread = threading.Thread(target=self._run, name="service", daemon=True)
+
+    def _run(self) -> None:
+        self.exit_code = asyncio.run(self.service.run())
+
+    def start(self, timeout_s: float = 30.0) -> ServiceRunner:
+        self._thread.start()
+        deadline = time.monotonic() + timeout_s
+        while not self.service.ready.is_set():
+            if self.service.stopped.is_set() or time.monotonic() > deadline:
+                raise AssertionError(f"service did not start (exit {self.exit_code})")
+            time.sleep(0.01)
+        return self
+
+    def stop(self, timeout_s: float = 15.0) -> int | None:
+        self.service.request_shutdown_threadsafe("test done")
+        self._thread.join(timeout_s)
+        if self._thread.is_alive():
+            import faulthandler
+            import sys
+
+            faulthandler.dump_traceback(file=sys.stderr, all_threads=True)
+        assert not self._thread.is_alive(), "service did not stop"
+        return self.exit_code
+
+    def __enter__(self) -> ServiceRunner:
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        if self._thread.is_alive():
+            self.stop()
+
+
+class Client:
+    """A synchronous ZeroMQ control client (REQ or DEALER) and health subscriber."""
+
+    def __init__(self, control: str, health: str | None = None, kind: int = zmq.REQ) -> None:
+        self.ctx = zmq.Context()
+        self.kind = kind
+        self.control_endpoint = control
+        self.sock = self._new_sock()
+        self.sub = None
+        if health is not None:
+            self.sub = self.ctx.socket(zmq.SUB)
+            self.sub.setsockopt(zmq.LINGER, 0)
+            self.sub.setsockopt(zmq.SUBSCRIBE, b"")
+            self.sub.connect(health)
+
+    def _new_sock(self):
+        sock = self.ctx.socket(self.kind)
+        sock.setsockopt(zmq.LINGER, 0)
+        sock.setsockopt(zmq.RCVTIMEO, 5000)
+        sock.connect(self.control_endpoint)
+        return sock
+
+    def raw(self, payload: bytes) -> dict:
+        import json
+
+        if self.kind == zmq.DEALER:
+            self.sock.send_multipart([payload])
+        else:
+            self.sock.send(payload)
+        return json.loads(self.sock.recv())
+
+    def call(self, cmd: str, **fields) -> dict:
+        import json
+
+        return self.raw(json.dumps({"cmd": cmd, **fields}).encode())
+
+    def health(self, timeout_s: float = 3.0, predicate=None) -> dict:
+        """The next health message published after this call that satisfies ``predicate``."""
+        import json
+
+        assert self.sub is not None
+        while self.sub.poll(0):
+            self.sub.recv()  # drop the backlog: only messages from now on count
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if self.sub.poll(50):
+                msg = json.loads(self.sub.recv())
+                if predicate is None or predicate(msg):
+                    return msg
+        raise AssertionError("no (matching) health message")
+
+    def close(self) -> None:
+        self.sock.close(0)
+        if self.sub is not None:
+            self.sub.close(0)
+        self.ctx.term()
+
+
+def avoid_scene_camera(fps_hz: float = 15.0, width_px: int = 672, height_px: int = 376):
+    """A sim camera (ideal 90-degree rig, as the default calibration) 1.5 m from a wall on the
+    left-front: the default controller avoids to the right (AVOID, yaw about +0.4)."""
+    from companion.core.geometry import StereoGeometry
+    from companion.core.render import Box, Pose, Scene
+    from companion.service.camera import SimCamera
+
+    geometry = StereoGeometry.ideal(width_px, height_px, hfov_deg=90.0, baseline_m=0.12)
+    scene = Scene(
+        obstacles=(Box.on_ground(1.5, -0.6, (0.3, 1.2, 3.0)),),
+        backdrop_centre_ne_m=(0.0, 0.0),
+        backdrop_half_size_m=30.0,
+    )
+    return SimCamera(geometry, scene, fps_hz, pose=Pose.at(0.0, 0.0, 1.5))
+
+
+def expected_result(cfg: CompanionConfig, camera):
+    """What the pipeline decides for the (fixed) frame of ``camera``: (FrameResult, setpoint)."""
+    from companion.core.command import setpoint_for
+    from companion.core.pipeline import Pipeline
+
+    camera.open()
+    frame = camera.read()
+    w, h = camera.eye_size_px
+    result = Pipeline(cfg, w, h).process(frame.image, 0.0)
+    return result, setpoint_for(result.decision, 0.0, cfg.command)
+
+
+def wait_until(predicate, timeout_s: float, poll_s: float = 0.01) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(poll_s)
+    return bool(predicate())

@@ -1,0 +1,221 @@
+"""`python -m companion run` as a real process: sd_notify, SIGHUP reload, SIGTERM clean shutdown on the
+wire, a second SIGTERM forces the exit, startup failures exit 78."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from mavlink_peer import Px4Peer
+
+from companion import exitcodes
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _write_config(path: Path, port: int, extra: str = "", cruise: float = 1.0) -> None:
+    tmp = path.parent
+    path.write_text(
+        f"""
+[bus]
+health_endpoint = "ipc://{tmp}/h.sock"
+control_endpoint = "ipc://{tmp}/c.sock"
+[camera]
+fps_hz = 10.0
+[stereo]
+backend = "opencv-bm"
+[vehicle]
+connection = "udpin://127.0.0.1:{port}"
+[service]
+autostart = true
+[command]
+cruise_speed_m_s = {cruise}
+{extra}
+""",
+        encoding="utf-8",
+    )
+
+
+class Notifications:
+    """A NOTIFY_SOCKET for the child: collects its sd_notify datagrams."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        self.sock.bind(str(path))
+        self.sock.settimeout(0.05)
+        self.messages: list[tuple[float, str]] = []
+
+    def poll(self) -> None:
+        while True:
+            try:
+                data = self._recv()
+            except (TimeoutError, socket.timeout):
+                return
+            for line in data.decode().splitlines():
+                self.messages.append((time.monotonic(), line))
+
+    def wait_for(self, prefix: str, timeout_s: float) -> bool:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            self.poll()
+            if any(m.startswith(prefix) for _, m in self.messages):
+                return True
+        return False
+
+    def lines(self, prefix: str) -> list[str]:
+        self.poll()
+        return [m for _, m in self.messages if m.startswith(prefix)]
+
+    def close(self) -> None:
+        self.poll()  # keep what arrived until now; lines() after close() reads the collected ones
+        self.sock.close()
+        self.sock = None
+
+    def _recv(self) -> bytes:
+        if self.sock is None:
+            raise TimeoutError
+        return self.sock.recv(4096)
+
+
+def _spawn(config: Path, notify: Notifications | None, watchdog_usec: int | None = None) -> subprocess.Popen:
+    env = dict(os.environ)
+    env.pop("NOTIFY_SOCKET", None)
+    env.pop("WATCHDOG_USEC", None)
+    if notify is not None:
+        env["NOTIFY_SOCKET"] = str(notify.path)
+    if watchdog_usec is not None:
+        env["WATCHDOG_USEC"] = str(watchdog_usec)
+    return subprocess.Popen(
+        [sys.executable, "-m", "companion", "--log-level", "INFO", "run", "--config", str(config)],
+        cwd=str(config.parent),  # nothing may depend on the working directory
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
+def _finish(proc: subprocess.Popen, timeout_s: float = 15.0) -> tuple[int, str]:
+    try:
+        _, err = proc.communicate(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        _, err = proc.communicate()
+        raise AssertionError(f"process did not exit; stderr:\n{err[-3000:]}") from None
+    return proc.returncode, err
+
+
+def test_sighup_reload_and_sigterm_clean_shutdown_on_the_wire(tmp_path: Path) -> None:
+    config = tmp_path / "companion.toml"
+    notify = Notifications(tmp_path / "notify.sock")
+    with Px4Peer(heartbeat_hz=5.0) as peer:
+        port = peer.port
+        _write_config(config, port, cruise=1.0)
+        proc = _spawn(config, notify, watchdog_usec=1_000_000)
+        try:
+            assert notify.wait_for("READY=1", 30.0), "no READY=1"
+            # autostart: engaged on the wire, flying the corridor (clear ahead) at the cruise speed.
+            assert peer.wait_for(lambda: peer.mode == "OFFBOARD", 15.0), peer.commands
+            assert peer.wait_for(lambda: peer.setpoints[-1].vx == pytest.approx(1.0), 3.0)
+
+            _write_config(config, port, cruise=0.7)
+            proc.send_signal(signal.SIGHUP)
+            assert peer.wait_for(lambda: peer.setpoints[-1].vx == pytest.approx(0.7, abs=1e-6), 3.0)
+
+            _write_config(config, port, cruise=-3.0)  # invalid: rejected, the old one stays
+            proc.send_signal(signal.SIGHUP)
+            time.sleep(0.7)
+            assert proc.poll() is None
+            assert peer.setpoints[-1].vx == pytest.approx(0.7, abs=1e-6)
+
+            assert len(notify.lines("WATCHDOG=1")) >= 3
+            assert any("engaged" in line for line in notify.lines("STATUS="))
+
+            t_term = time.monotonic()
+            proc.send_signal(signal.SIGTERM)
+            rc, err = _finish(proc)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+            notify.close()
+        assert rc == exitcodes.OK, err[-3000:]
+        assert "cruise_speed_m_s" in err and "reload rejected" in err  # the bad reload named the field
+        holds = [c for c in peer.commands_since(t_term) if c.mode == "HOLD"]
+        assert len(holds) == 1 and peer.mode == "HOLD"
+        sent = peer.setpoints_since(t_term)
+        # MAVSDK's own 20 Hz re-send of the last setpoint may land in the instant the signal arrives;
+        # from the first zero on, everything is zero, and the zero precedes the Hold.
+        first_zero = next(i for i, s in enumerate(sent) if s.is_zero)
+        assert sent[first_zero].t_s < holds[0].t_s and all(s.is_zero for s in sent[first_zero:])
+        assert all(s.t_s - t_term < 0.06 for s in sent[:first_zero]), sent[:first_zero]
+        assert notify.lines("STOPPING=1")
+
+
+def test_second_sigterm_forces_the_exit(tmp_path: Path) -> None:
+    config = tmp_path / "companion.toml"
+    with Px4Peer(heartbeat_hz=5.0, deny_modes=frozenset({"HOLD"})) as peer:
+        port = peer.port
+        _write_config(config, port)
+        proc = _spawn(config, None)
+        try:
+            if not peer.wait_for(lambda: peer.mode == "OFFBOARD", 30.0):
+                proc.kill()
+                _, err = proc.communicate()
+                raise AssertionError(f"never engaged; peer commands {peer.commands}; stderr:\n{err[-4000:]}")
+            proc.send_signal(signal.SIGTERM)  # clean shutdown waits for a Hold that is denied
+            assert peer.wait_for(lambda: any(c.mode == "HOLD" for c in peer.mode_commands()), 5.0)
+            time.sleep(0.3)
+            assert proc.poll() is None
+            t0 = time.monotonic()
+            proc.send_signal(signal.SIGTERM)
+            rc, err = _finish(proc, 5.0)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+    assert rc == exitcodes.FORCED_EXIT, err[-3000:]
+    assert time.monotonic() - t0 < 3.0
+    assert "forced exit" in err
+
+
+def test_bad_config_is_a_startup_failure(tmp_path: Path) -> None:
+    config = tmp_path / "companion.toml"
+    config.write_text("[command]\nstale_frame_timeout_s = 0.5\nfailsafe_timeout_s = 0.2\n")
+    proc = _spawn(config, None)
+    rc, err = _finish(proc)
+    assert rc == exitcodes.STARTUP_FAILURE
+    assert "failsafe_timeout_s" in err and str(config) in err
+    assert "Traceback" not in err
+
+
+def test_no_camera_is_a_startup_failure_after_the_timeout(tmp_path: Path) -> None:
+    config = tmp_path / "companion.toml"
+    config.write_text(
+        f"""
+[bus]
+health_endpoint = "ipc://{tmp_path}/h.sock"
+control_endpoint = "ipc://{tmp_path}/c.sock"
+[camera]
+source = "uvc"
+device = "/dev/video-companion-test-missing"
+open_timeout_s = 1.0
+[stereo]
+backend = "opencv-bm"
+"""
+    )
+    notify = Notifications(tmp_path / "notify.sock")
+    t0 = time.monotonic()
+    proc = _spawn(config, notify)
+    rc, err = _finish(proc)
+    elapsed = time.monotonic() - t0
+    notify.close()
+    assert rc == exitcodes.STARTUP_FAILURE, err[-2000:]
+    assert elapsed >= 1.0
+    assert "no frame within camera.open_timeout_s" in err and "video-companion-test-missing" in err
+    assert notify.lines("STATUS=startup failed") and not notify.lines("READY=1")
