@@ -373,12 +373,12 @@ class StereoRenderer:
             # Texture coordinate (metres) times (n_c . r) is a_s . r: homogeneous, exact per ray.
             p_s = (sig_s[:, None] * n_c + delta[:, None] * es_c) @ kinv
             p_t = (sig_t[:, None] * n_c + delta[:, None] * et_c) @ kinv
+            # An eye exactly in a face's plane (delta = 0) sees it edge-on: its row is inf/NaN, and
+            # that face is not drawn for that eye (vis_* below), so the values are never used.
             with np.errstate(divide="ignore", invalid="ignore"):
                 inv = 1.0 / delta
-            # Negate so that the homogeneous w = -(n_c . r) > 0 on the visible side.
-            params = np.concatenate(
-                [n_c * inv[:, None], -p_s, -p_t, -p_w], axis=1
-            )
+                # Negate so that the homogeneous w = -(n_c . r) > 0 on the visible side.
+                params = np.concatenate([n_c * inv[:, None], -p_s, -p_t, -p_w], axis=1)
             eye_params.append(params.tolist())
         tex_offset = self._tex_offset[idx].tolist()
         vis_l = (side_l[idx] > 1e-9).tolist()
