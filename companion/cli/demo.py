@@ -57,16 +57,22 @@ class _OverlayPicker:
         kind = result.decision.kind
         label = f"t{frame.timestamp_s:05.2f}s_{kind.value}"
         if self.first is None:
-            self.first = (label, self._draw(frame, result))
+            self.first = (label, self._snap(frame, result))
         elif kind is not DecisionKind.CLEAR and kind is not self._prev_kind and len(self.events) < self.max_events:
-            self.events.append((label, self._draw(frame, result)))
+            self.events.append((label, self._snap(frame, result)))
         centre = float(result.refined.depth_m[REGION_INDEX["center"]])
         if not math.isnan(centre) and (self.nearest is None or centre < self.nearest[0]):
-            self.nearest = (centre, label, self._draw(frame, result))
-        self.last = (label, self._draw(frame, result))
+            self.nearest = (centre, label, self._snap(frame, result))
+        self.last = (label, self._snap(frame, result))
         self._prev_kind = kind
 
-    def _draw(self, frame: Any, result: Any) -> Any:
+    @staticmethod
+    def _snap(frame: Any, result: Any) -> tuple[Any, Any]:
+        """What drawing needs later (a copy of the frame: the camera may reuse its buffer); drawing
+        waits until the flight is over, and only for the frames kept."""
+        return frame.image.copy(), result
+
+    def _draw(self, snap: tuple[Any, Any]) -> Any:
         import cv2
         import numpy as np
 
@@ -74,7 +80,8 @@ class _OverlayPicker:
         from companion.core.regions import RegionLayout
         from companion.core.stereo import split_side_by_side
 
-        left, _ = split_side_by_side(frame.image)
+        image, result = snap
+        left, _ = split_side_by_side(image)
         # Small simulated eyes: draw at twice the size so the labels stay legible.
         k = 2 if left.shape[1] < 600 else 1
         layout = RegionLayout(self.layout.row_edges * k, self.layout.col_edges * k)
@@ -86,13 +93,14 @@ class _OverlayPicker:
                             near_m=self.near_m, far_m=self.far_m, disparity=disp, max_disparity_px=self.max_disp)
 
     def images(self) -> list[tuple[str, Any]]:
-        out = [self.first] if self.first else []
-        out += self.events
+        """(label, overlay image) of the frames kept, drawn now."""
+        kept = [self.first] if self.first else []
+        kept += self.events
         if self.nearest is not None:
-            out.append((self.nearest[1] + "_nearest", self.nearest[2]))
+            kept.append((self.nearest[1] + "_nearest", self.nearest[2]))
         if self.last is not None:
-            out.append((self.last[0] + "_last", self.last[1]))
-        return out
+            kept.append((self.last[0] + "_last", self.last[1]))
+        return [(label, self._draw(snap)) for label, snap in kept]
 
 
 def run(args: argparse.Namespace) -> int:
