@@ -32,6 +32,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--warmup", type=int, default=10, help="untimed frames first (default 10)")
     p.add_argument("--sizes", default=None, help="e.g. 672x376:64,1280x720:128 (the default)")
     p.add_argument("--e2e", action="store_true", help="frame-to-setpoint latency of the service instead")
+    p.add_argument(
+        "--no-rectify",
+        action="store_true",
+        help="skip the rectification remap (default: time it with a ZED-like calibration, as a real camera needs)",
+    )
     p.add_argument("--json", type=Path, metavar="OUT", help="also write the figures as JSON")
     p.set_defaults(func=run)
 
@@ -62,13 +67,25 @@ def run(args: argparse.Namespace) -> int:
 
 def run_cpu_bench(args: argparse.Namespace, sizes: list[Any]) -> dict[str, Any]:
     """Time the CPU pipeline per stage at each size; print a table; return the figures."""
-    from companion.bench import format_table, machine_description, rendered_frames, stats_ms
+    import tempfile
+
+    with tempfile.TemporaryDirectory(prefix="companion-bench-") as tmp:
+        return _run_cpu_bench(args, sizes, Path(tmp))
+
+
+def _run_cpu_bench(args: argparse.Namespace, sizes: list[Any], tmp: Path) -> dict[str, Any]:
+    from companion.bench import format_table, machine_description, rendered_frames, stats_ms, write_bench_calibration
     from companion.config import CompanionConfig
     from companion.core.fuzzy.bench import bench_fuzzy
     from companion.core.pipeline import Pipeline
     from companion.core.render import bench_render
 
-    report: dict[str, Any] = {"machine": machine_description(), "backend": args.backend, "sizes": {}}
+    report: dict[str, Any] = {
+        "machine": machine_description(),
+        "backend": args.backend,
+        "rectify": not args.no_rectify,
+        "sizes": {},
+    }
     print(f"machine: {report['machine']}")
     rows = []
     for size in sizes:
@@ -78,7 +95,12 @@ def run_cpu_bench(args: argparse.Namespace, sizes: list[Any]) -> dict[str, Any]:
                 "stereo": cfg.stereo.model_copy(
                     update={"backend": args.backend, "num_disparities": size.num_disparities}
                 ),
-                "calibration": cfg.calibration.model_copy(update={"ideal_hfov_deg": 87.0}),
+                "calibration": cfg.calibration.model_copy(
+                    update={
+                        "ideal_hfov_deg": 87.0,
+                        "file": None if args.no_rectify else write_bench_calibration(size, tmp),
+                    }
+                ),
             }
         )
         _, frames = rendered_frames(size, n=min(32, args.frames + args.warmup))

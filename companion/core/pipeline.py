@@ -32,9 +32,9 @@ from companion.core.fuzzy.avoidance import AvoidanceController
 from companion.core.geometry import StereoGeometry
 from companion.core.lut import DepthLUT, release_filter
 from companion.core.regions import RegionLayout, reduce_regions, region_layout
-from companion.core.stereo import check_pair, split_side_by_side, to_grey
+from companion.core.stereo import split_frame, to_grey
 from companion.core.types import Decision, RegionDepths
-from companion.errors import BackendError, FrameError
+from companion.errors import BackendError
 
 log = logging.getLogger(__name__)
 
@@ -102,13 +102,7 @@ class CpuRegionEstimator:
         clock = self._clock
         timings: dict[str, float] = {}
         t0 = clock()
-        left, right = split_side_by_side(frame)
-        check_pair(left, right)
-        if left.shape[:2] != (self.height_px, self.width_px):
-            raise FrameError(
-                f"frame eye size {left.shape[1]}x{left.shape[0]} differs from the configured "
-                f"{self.width_px}x{self.height_px}"
-            )
+        left, right = split_frame(frame, self.width_px, self.height_px)
         gl = to_grey(left, out=self._grey_l)
         gr = to_grey(right, out=self._grey_r)
         t1 = clock()

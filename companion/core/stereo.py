@@ -120,3 +120,24 @@ def check_pair(left: np.ndarray, right: np.ndarray) -> None:
 
     if left.shape != right.shape or left.dtype != right.dtype:
         raise FrameError(f"left and right images differ: left is {size(left)}, right is {size(right)}")
+
+
+def split_frame(frame: np.ndarray, width_px: int, height_px: int) -> tuple[np.ndarray, np.ndarray]:
+    """Split a side-by-side frame and check each eye is ``width_px`` x ``height_px``.
+
+    The one validation every estimator runs first (CPU and GPU alike).
+
+    Returns:
+        ``(left, right)`` views into ``frame``.
+
+    Raises:
+        FrameError: the frame is malformed (see :func:`split_side_by_side`), the eyes differ, or the
+            eye size is not the configured one.
+    """
+    left, right = split_side_by_side(frame)
+    check_pair(left, right)
+    if left.shape[:2] != (height_px, width_px):
+        raise FrameError(
+            f"frame eye size {left.shape[1]}x{left.shape[0]} differs from the configured {width_px}x{height_px}"
+        )
+    return left, right

@@ -26,12 +26,21 @@ import argparse
 import datetime
 import os
 import sys
+import tempfile
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from companion.bench import BenchSize, format_table, machine_description, rendered_frames, stats_ms
+from companion.bench import (
+    BenchSize,
+    format_table,
+    machine_description,
+    rendered_frames,
+    stats_ms,
+    write_bench_calibration,
+)
 
 #: Upload settings tried for the whole-frame figure (gpu config overrides), besides the default.
 UPLOAD_VARIANTS: tuple[dict[str, Any], ...] = (
@@ -62,13 +71,17 @@ def _variant_name(opts: dict[str, Any]) -> str:
 SASS_LANE_INSTR_PER_PX_D = 16.1
 
 
-def _cfg(size: BenchSize, **gpu: Any) -> Any:
+def _cfg(size: BenchSize, calib: Path | None, **gpu: Any) -> Any:
+    """The benchmark config; ``calib``: a calibration file (the remap is timed) or None (identity)."""
     from companion.config import CompanionConfig
 
+    calibration: dict[str, Any] = {"ideal_hfov_deg": 87.0}
+    if calib is not None:
+        calibration["file"] = str(calib)
     return CompanionConfig.model_validate(
         {
             "stereo": {"backend": "cupy", "num_disparities": size.num_disparities, "block_size_px": 9},
-            "calibration": {"ideal_hfov_deg": 87.0},
+            "calibration": calibration,
             "gpu": gpu,
         }
     )
@@ -233,7 +246,7 @@ def _time_estimator(est: Any, frames: list[np.ndarray], warmup: int, n: int) -> 
     return stats_ms(wall), {k: stats_ms(v) for k, v in stages.items()}
 
 
-def _opencv(size: BenchSize, frames: list[np.ndarray], warmup: int, n: int) -> dict[str, Any]:
+def _opencv(size: BenchSize, calib: Path | None, frames: list[np.ndarray], warmup: int, n: int) -> dict[str, Any]:
     import cv2
 
     from companion.core.pipeline import CpuRegionEstimator
@@ -260,7 +273,7 @@ def _opencv(size: BenchSize, frames: list[np.ndarray], warmup: int, n: int) -> d
         if i >= warmup:
             bm_t.append((t1 - t0) * 1e3)
             grey_bm_t.append((t2 - t1) * 1e3)
-    cfg = _cfg(size).model_copy()
+    cfg = _cfg(size, calib)
     cfg = cfg.model_copy(update={"stereo": cfg.stereo.model_copy(update={"backend": "opencv-bm", "cpu_threads": 0})})
     cpu = CpuRegionEstimator(cfg, size.width_px, size.height_px)
     cpu_t = []
@@ -313,11 +326,14 @@ def run_gpu_bench(args: argparse.Namespace, sizes: list[BenchSize]) -> dict[str,
     )
     sys.stdout.flush()
     rows = []
+    tmp = tempfile.TemporaryDirectory(prefix="companion-bench-")
+    report["rectify"] = not args.no_rectify
     for size in sizes:
+        calib = None if args.no_rectify else write_bench_calibration(size, Path(tmp.name))
         _, frames = rendered_frames(size, n=min(16, max(2, n + warmup)))
         entry: dict[str, Any] = {}
         # stages (CUDA events)
-        est = CupyRegionEstimator(_cfg(size, stage_timing=True), size.width_px, size.height_px)
+        est = CupyRegionEstimator(_cfg(size, calib, stage_timing=True), size.width_px, size.height_px)
         _, stages = _time_estimator(est, frames, warmup, n)
         entry["stages"] = stages
         entry["plan"] = {
@@ -330,14 +346,14 @@ def run_gpu_bench(args: argparse.Namespace, sizes: list[BenchSize]) -> dict[str,
         # whole frame: the default config first and again after the variants (the host's copy and
         # PCIe bandwidth drift within a run; the slower of the two is the headline)
         whole: dict[str, Any] = {}
-        e = CupyRegionEstimator(_cfg(size), size.width_px, size.height_px)
+        e = CupyRegionEstimator(_cfg(size, calib), size.width_px, size.height_px)
         whole["default_first"], _ = _time_estimator(e, frames, warmup, n)
         e.close()
         for opts in UPLOAD_VARIANTS:
-            e = CupyRegionEstimator(_cfg(size, **opts), size.width_px, size.height_px)
+            e = CupyRegionEstimator(_cfg(size, calib, **opts), size.width_px, size.height_px)
             whole[_variant_name(opts)], _ = _time_estimator(e, frames, warmup, n)
             e.close()
-        e = CupyRegionEstimator(_cfg(size), size.width_px, size.height_px)
+        e = CupyRegionEstimator(_cfg(size, calib), size.width_px, size.height_px)
         whole["default_last"], _ = _time_estimator(e, frames, warmup, n)
         whole["default"] = max(whole["default_first"], whole["default_last"], key=lambda v: v["median_ms"])
         buf = e.frame_buffer(3)
@@ -351,7 +367,7 @@ def run_gpu_bench(args: argparse.Namespace, sizes: list[BenchSize]) -> dict[str,
         whole["frame_in_staging_buffer"] = stats_ms(in_place)
         e.close()
         entry["whole_frame"] = whole
-        entry["opencv"] = _opencv(size, frames, warmup, n)
+        entry["opencv"] = _opencv(size, calib, frames, warmup, n)
         gpu_med = whole["default"]["median_ms"]
         entry["speedup_vs_stereobm"] = entry["opencv"]["stereobm"]["median_ms"] / gpu_med
         entry["speedup_vs_grey_plus_stereobm"] = entry["opencv"]["grey_plus_stereobm"]["median_ms"] / gpu_med
@@ -413,4 +429,5 @@ def run_gpu_bench(args: argparse.Namespace, sizes: list[BenchSize]) -> dict[str,
                 f"{lim['issue_utilisation'] * 100:.0f}%"
             )
     sys.stdout.flush()
+    tmp.cleanup()  # (on an error, TemporaryDirectory cleans up when collected)
     return report

@@ -38,9 +38,9 @@ from companion.core.calibration import make_rectifier
 from companion.core.geometry import StereoGeometry
 from companion.core.pipeline import RegionEstimate
 from companion.core.regions import RegionLayout, region_layout
-from companion.core.stereo import check_pair, split_side_by_side
+from companion.core.stereo import split_frame
 from companion.core.types import N_REGIONS, RegionDepths
-from companion.errors import BackendError, FrameError
+from companion.errors import BackendError
 from companion.gpu.plan import DisparityPlan, kernel_defines, plan_disparity
 
 log = logging.getLogger(__name__)
@@ -324,13 +324,7 @@ class CupyRegionEstimator:
             BackendError: a CUDA error.
         """
         t0 = self._clock()
-        left, right = split_side_by_side(frame)
-        check_pair(left, right)
-        if left.shape[:2] != (self.height_px, self.width_px):
-            raise FrameError(
-                f"frame eye size {left.shape[1]}x{left.shape[0]} differs from the configured "
-                f"{self.width_px}x{self.height_px}"
-            )
+        left, right = split_frame(frame, self.width_px, self.height_px)
         channels = 1 if frame.ndim == 2 else int(frame.shape[2])
         timings: dict[str, float] = {}
         try:

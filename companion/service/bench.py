@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from companion.core.types import VelocitySetpoint
+from companion.errors import CompanionError
 from companion.interfaces import VehicleState
 
 log = logging.getLogger(__name__)
@@ -138,8 +139,15 @@ def measure_e2e(
     t0 = time.monotonic()
     thread.start()
     try:
-        if not service.ready.wait(60.0):
-            raise RuntimeError("the service did not start within 60 s")
+        deadline = time.monotonic() + 60.0
+        while not service.ready.wait(0.1):
+            if not thread.is_alive():
+                raise CompanionError(
+                    f"e2e bench: the service exited during start-up (exit code {result.get('exit')}); "
+                    "its log above says why"
+                )
+            if time.monotonic() > deadline:
+                raise CompanionError("e2e bench: the service did not start within 60 s")
         t_ready = time.monotonic()
         # Warm up, then count from a clean slate.
         while len(service.latencies_s) < warmup and time.monotonic() - t_ready < max_wall_s:
@@ -161,7 +169,7 @@ def measure_e2e(
         service.request_shutdown_threadsafe("bench done")
         thread.join(30.0)
     if not latencies:
-        raise RuntimeError(f"no frame-to-setpoint latency measured (service state {health1['state']}: {health1['reason']})")
+        raise CompanionError(f"no frame-to-setpoint latency measured (service state {health1['state']}: {health1['reason']})")
     seq_arr = np.asarray(seqs, np.int64)
     processed = int(health1["processed_frames"] - health0["processed_frames"])
     dropped = int(health1["dropped_frames"] - health0["dropped_frames"])

@@ -7,8 +7,8 @@ so a missing barrier shows up as a wrong result. Slow (one core, seconds per sma
 the exact kernel code, which made it possible to check every configuration against the NumPy reference
 before spending GPU time. ``python -m companion.gpu.hostemu`` runs a self-check.
 
-Not imported by the package; needs ``g++`` on the PATH and a source checkout (the C++ files are not
-package data).
+Not imported by the package; needs ``g++`` on the PATH. tests/test_gpu_kernels_on_cpu.py runs it in CI,
+which has no GPU, so the kernel source itself is checked against the reference on every change.
 """
 
 from __future__ import annotations
