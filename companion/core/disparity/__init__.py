@@ -8,7 +8,7 @@ pair in, float32 ``(H, W)`` disparity in pixels out, NaN where invalid (never 0)
 from __future__ import annotations
 
 from companion.config.core import StereoConfig
-from companion.core.disparity.base import DisparityMatcher, check_pair
+from companion.core.disparity.base import DisparityMatcher, check_grey_pair
 from companion.core.disparity.opencv import OpenCVBMMatcher, OpenCVSGBMMatcher, set_cv_threads
 from companion.core.disparity.reference import INVALID, ReferenceMatcher, sad_block_match, valid_area
 from companion.errors import BackendError
@@ -19,7 +19,7 @@ __all__ = [
     "OpenCVBMMatcher",
     "OpenCVSGBMMatcher",
     "ReferenceMatcher",
-    "check_pair",
+    "check_grey_pair",
     "make_cpu_matcher",
     "sad_block_match",
     "set_cv_threads",

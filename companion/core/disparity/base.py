@@ -37,7 +37,7 @@ class DisparityMatcher(Protocol):
         ...
 
 
-def check_pair(left: np.ndarray, right: np.ndarray) -> tuple[int, int]:
+def check_grey_pair(left: np.ndarray, right: np.ndarray) -> tuple[int, int]:
     """Validate a rectified grey pair and return its ``(H, W)``.
 
     Raises:

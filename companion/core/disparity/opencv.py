@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 
 from companion.config.core import StereoConfig
-from companion.core.disparity.base import check_out, check_pair
+from companion.core.disparity.base import check_out, check_grey_pair
 from companion.errors import FrameError
 
 _PREFILTER = MappingProxyType({
@@ -64,7 +64,7 @@ class _OpenCVMatcher:
             left, right: uint8 ``(H, W)`` rectified grey images.
             out: optional float32 ``(H, W)`` C-contiguous array to write into.
         """
-        shape = check_pair(left, right)
+        shape = check_grey_pair(left, right)
         out = check_out(out, shape)
         if self._raw is None or self._raw.shape != shape:
             self._raw = np.empty(shape, dtype=np.int16)

@@ -50,7 +50,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
-from companion.core.disparity.base import check_out, check_pair
+from companion.core.disparity.base import check_out, check_grey_pair
 
 #: Target size of one band's int32 integral image, bytes (bounds memory; ~20 MB keeps it in L3-ish).
 _BAND_BYTES = 24 * 1024 * 1024
@@ -116,7 +116,7 @@ def sad_block_match(
     Raises:
         FrameError: bad images. ValueError: bad parameters or ``out``.
     """
-    h, w = check_pair(left, right)
+    h, w = check_grey_pair(left, right)
     _check_params(num_disparities, block_size, uniqueness_ratio_pct, texture_threshold_grey)
     D, b = int(num_disparities), int(block_size)
     r = b // 2
@@ -235,7 +235,7 @@ class ReferenceMatcher:
 
     def compute(self, left: np.ndarray, right: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """float32 ``(H, W)`` disparity, px, NaN where invalid (see the module rules)."""
-        shape = check_pair(left, right)
+        shape = check_grey_pair(left, right)
         out = check_out(out, shape)
         if self._int_buf is None or self._int_buf.shape != shape:
             self._int_buf = np.empty(shape, dtype=np.int16)
