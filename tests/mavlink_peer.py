@@ -30,6 +30,7 @@ import threading
 import time
 from dataclasses import dataclass
 
+from peers.fakes import wait_until
 from pymavlink.dialects.v20 import common as mavlink
 
 # PX4 custom main modes (px4_custom_mode.h) and AUTO sub modes.
@@ -210,12 +211,7 @@ class Px4Peer:
 
     def wait_for(self, predicate, timeout_s: float, poll_s: float = 0.01) -> bool:
         """Poll ``predicate()`` until it is true or ``timeout_s`` passes; returns the last value."""
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            if predicate():
-                return True
-            time.sleep(poll_s)
-        return bool(predicate())
+        return wait_until(predicate, timeout_s, poll_s)
 
     # ------------------------------------------------------------------ the thread
 

@@ -274,6 +274,7 @@ def expected_result(cfg: CompanionConfig, camera):
 
 
 def wait_until(predicate, timeout_s: float, poll_s: float = 0.01) -> bool:
+    """Poll ``predicate()`` until it is true or ``timeout_s`` passes; returns the last value."""
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         if predicate():
