@@ -69,6 +69,8 @@ class VehicleState:
         position_ned_m: float (3,) local position north, east, down in metres, or None if unknown.
         attitude_rad: float (3,) roll, pitch, yaw in radians (yaw from north, positive clockwise), or None.
         timestamp_s: when this state was last updated, on the consumer's clock, seconds.
+        position_timestamp_s: when ``position_ned_m`` was last received, on the consumer's clock,
+            seconds (None before the first).
     """
 
     connected: bool = False
@@ -78,6 +80,7 @@ class VehicleState:
     position_ned_m: np.ndarray | None = None
     attitude_rad: np.ndarray | None = None
     timestamp_s: float = 0.0
+    position_timestamp_s: float | None = None
 
 
 @runtime_checkable

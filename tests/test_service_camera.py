@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from pathlib import Path
@@ -12,9 +13,19 @@ import pytest
 from companion.config import parse_config
 from companion.errors import CameraError, ConfigError
 from companion.interfaces import CameraSource, Frame
-from companion.service.camera import ReplayCamera, UvcCamera, make_camera, sim_camera_from_config
+from companion.service.camera import (
+    PoseUnavailable,
+    ReplayCamera,
+    UvcCamera,
+    make_camera,
+    sim_camera_from_config,
+)
 from companion.service.capture import CaptureThread, FrameMailbox
-from companion.service.recording import RecordingWriter, read_timestamps, timestamps_path
+from companion.service.recording import (
+    RecordingWriter,
+    read_timestamps,
+    timestamps_path,
+)
 
 
 def _frames(n: int, w: int = 32, h: int = 24) -> list[np.ndarray]:
@@ -149,13 +160,82 @@ def test_sim_camera_follows_its_pose_provider() -> None:
     from companion.core.render import Pose
 
     cfg = parse_config({"camera": {"fps_hz": 100.0, "width_px": 160, "height_px": 120}})
-    poses = iter([Pose.at(2.0, 0.0, 1.5), Pose.at(30.0, 0.0, 1.5)])
+    poses = iter([(Pose.at(2.0, 0.0, 1.5), 7.0), (Pose.at(30.0, 0.0, 1.5), 7.5)])
     cam = sim_camera_from_config(cfg, pose_provider=lambda: next(poses))
     cam.open()
     a, b = cam.read(), cam.read()
     assert not np.array_equal(a.image, b.image)
+    assert (a.timestamp_s, b.timestamp_s) == (7.0, 7.5)  # stamped with the pose's time
     with pytest.raises(CameraError, match="pose provider failed"):
         cam.read()  # the provider raises StopIteration
+
+
+class _Telemetry:
+    """A vehicle link's state() whose position arrives when the test says."""
+
+    def __init__(self) -> None:
+        from companion.interfaces import VehicleState
+
+        self.value = VehicleState()
+
+    def __call__(self):
+        return self.value
+
+    def arrive(self, position, attitude, at_s: float) -> None:
+        from dataclasses import replace
+
+        self.value = replace(
+            self.value,
+            position_ned_m=np.asarray(position, dtype=np.float64),
+            attitude_rad=np.asarray(attitude, dtype=np.float64),
+            position_timestamp_s=at_s,
+        )
+
+
+def test_telemetry_pose_is_placed_in_the_scene_and_stamped_with_its_arrival() -> None:
+    from companion.service.camera import telemetry_pose_provider
+    from companion.sim.placement import CoursePlacement
+
+    now = [100.0]
+    tel = _Telemetry()
+    # The course origin at local (10, 5, -0.4), its north axis heading east (90 deg).
+    provide = telemetry_pose_provider(tel, CoursePlacement((10.0, 5.0, -0.4), math.pi / 2), 0.3, lambda: now[0])
+    with pytest.raises(PoseUnavailable, match="no vehicle pose"):
+        provide()
+    # 2 m east of the origin in the local frame, 1.5 m above its ground, heading east (+ a little roll).
+    tel.arrive([10.0, 7.0, -1.9], [0.05, -0.02, math.pi / 2], at_s=99.95)
+    pose, t = provide()
+    assert t == 99.95
+    np.testing.assert_allclose(pose.position_ned_m, (2.0, 0.0, -1.5), atol=1e-12)  # 2 m along the course
+    assert pose.yaw_rad == pytest.approx(0.0, abs=1e-12)
+    assert (pose.roll_rad, pose.pitch_rad) == (0.05, -0.02)
+    now[0] = 100.4  # telemetry stopped 0.45 s ago
+    with pytest.raises(PoseUnavailable, match="0.45 s old"):
+        provide()
+
+
+def test_sim_camera_on_telemetry_waits_for_a_pose_then_reports_it_missing() -> None:
+    from companion.service.camera import telemetry_pose_provider
+    from companion.sim.placement import CoursePlacement
+
+    cfg = parse_config(
+        {"camera": {"fps_hz": 100.0, "width_px": 160, "height_px": 120, "sim_world": "course", "sim_course": "head-on", "sim_pose": "telemetry"}}
+    )
+    tel = _Telemetry()
+    provider = telemetry_pose_provider(tel, CoursePlacement(), 0.3, time.monotonic)
+    cam = sim_camera_from_config(cfg, pose_provider=provider)
+    cam.pose_wait_s = 0.1
+    cam.open()
+    t0 = time.monotonic()
+    with pytest.raises(CameraError, match="no vehicle pose from telemetry yet"):
+        cam.read()
+    assert time.monotonic() - t0 >= 0.1  # retried for pose_wait_s before giving up
+    tel.arrive([0.0, 0.0, -1.5], [0.0, 0.0, 0.0], at_s=time.monotonic())
+    far = cam.read()
+    tel.arrive([3.5, 0.0, -1.5], [0.0, 0.0, 0.0], at_s=time.monotonic())
+    near = cam.read()  # the head-on box (5 m north) now fills more of the view
+    assert not np.array_equal(far.image, near.image)
+    cam.close()
 
 
 # ---------------------------------------------------------------------------------------------- mailbox

@@ -29,7 +29,12 @@ from companion.config.core import (
     StereoConfig,
 )
 from companion.config.gpu import GpuConfig
-from companion.config.service import BusConfig, CameraConfig, ServiceConfig, VehicleConfig
+from companion.config.service import (
+    BusConfig,
+    CameraConfig,
+    ServiceConfig,
+    VehicleConfig,
+)
 from companion.config.sim import SimConfig
 from companion.errors import ConfigError
 

@@ -11,12 +11,15 @@ import json
 import math
 import textwrap
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from pydantic import BaseModel
 from pydantic.fields import FieldInfo
 
 from companion.config._base import StrictModel
+
+if TYPE_CHECKING:
+    from companion.config import CompanionConfig
 
 _WRAP = 98
 
@@ -113,7 +116,14 @@ def render_default_toml() -> str:
         "# [brackets]. Unknown keys are rejected. Reload a running service with `companion ctl reload`",
         "# or `systemctl reload companion`.",
     ]
-    for name in CompanionConfig.model_fields:
+    return render_config_toml(cfg, out)
+
+
+def render_config_toml(cfg: CompanionConfig, header: list[str]) -> str:
+    """``cfg`` as documented TOML text that loads back to an equal config, after the ``header`` lines
+    (comments)."""
+    out = list(header)
+    for name in type(cfg).model_fields:
         out.append("")
         out += _section(name, getattr(cfg, name))
     return "\n".join(out) + "\n"

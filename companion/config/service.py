@@ -111,6 +111,52 @@ class CameraConfig(StrictModel):
     sim_noise_grey: float = Field(
         default=0.0, ge=0.0, le=50.0, description="sim: standard deviation of the per-frame sensor noise, grey levels (0 = none)."
     )
+    sim_world: Literal["corridor", "course"] = Field(
+        default="corridor",
+        description=(
+            "sim: the scene: 'corridor' (sim_scene_seed, sim_obstacles) or 'course', a course of the "
+            "simulator's library (sim_course, sim_course_seed), as `companion sim` and `companion sitl` fly it."
+        ),
+    )
+    sim_course: Literal["corridor", "doorway", "forest", "pitch", "side", "deadend", "head-on"] = Field(
+        default="doorway", description="sim, world 'course': the course kind."
+    )
+    sim_course_seed: int = Field(default=0, ge=0, le=2**31 - 1, description="sim, world 'course': the course seed.")
+    sim_pose: Literal["fixed", "telemetry"] = Field(
+        default="fixed",
+        description=(
+            "sim: where the camera is: 'fixed' at sim_north_m/sim_east_m/sim_altitude_m/sim_yaw_deg, or "
+            "'telemetry': the vehicle's pose as the autopilot reports it over the vehicle link (PX4 SITL "
+            "in the loop), placed in the scene by sim_origin_*."
+        ),
+    )
+    sim_origin_north_m: float = Field(
+        default=0.0, ge=-1e5, le=1e5, description="sim, telemetry pose: the scene origin's north in the autopilot's local frame, metres."
+    )
+    sim_origin_east_m: float = Field(
+        default=0.0, ge=-1e5, le=1e5, description="sim, telemetry pose: the scene origin's east in the autopilot's local frame, metres."
+    )
+    sim_origin_down_m: float = Field(
+        default=0.0,
+        ge=-1e4,
+        le=1e4,
+        description="sim, telemetry pose: the scene's ground as a local down coordinate of the autopilot (its z on the ground), metres.",
+    )
+    sim_origin_yaw_deg: float = Field(
+        default=0.0,
+        ge=-180.0,
+        le=180.0,
+        description="sim, telemetry pose: the scene's north axis as a heading in the autopilot's local frame, degrees clockwise from north.",
+    )
+    sim_pose_max_age_s: float = Field(
+        default=0.3,
+        gt=0.0,
+        le=5.0,
+        description=(
+            "sim, telemetry pose: a pose older than this gives no frame (as from a camera that stopped), "
+            "so the service's stale-frame failsafe acts when telemetry stops, seconds."
+        ),
+    )
 
     @model_validator(mode="after")
     def _check(self) -> CameraConfig:

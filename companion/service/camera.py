@@ -20,7 +20,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from companion.errors import CameraError
-from companion.interfaces import CameraSource, Frame
+from companion.interfaces import CameraSource, Frame, VehicleState
+from companion.sim.placement import CoursePlacement
 
 if TYPE_CHECKING:
     from companion.config import CompanionConfig
@@ -29,7 +30,13 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 Clock = Callable[[], float]
-PoseProvider = Callable[[], "Pose"]
+#: Returns the pose to render and when it was true, on the camera's clock (seconds). Raises
+#: :class:`PoseUnavailable` while there is no usable pose.
+PoseProvider = Callable[[], "tuple[Pose, float]"]
+
+
+class PoseUnavailable(CameraError):
+    """The pose provider has no usable pose now (none received yet, or too old)."""
 
 
 def _check_frame(image: object, source: str, width_px: int, height_px: int) -> np.ndarray:
@@ -336,8 +343,12 @@ class SimCamera:
         scene: the world to draw.
         fps_hz: frame rate, Hz.
         pose: the fixed pose when there is no provider.
-        pose_provider: called once per frame, in the capture thread; returns a Pose.
+        pose_provider: called once per frame, in the capture thread; returns ``(pose, time_s)``, the
+            frame is stamped with ``time_s``. While it raises :class:`PoseUnavailable`, ``read`` retries
+            once per frame period for up to ``pose_wait_s``, then raises that CameraError (frames stop,
+            so the service's stale-frame failsafe acts).
         noise_grey: per-frame Gaussian sensor noise, grey levels (0 = none).
+        pose_wait_s: see ``pose_provider``, seconds.
     """
 
     def __init__(
@@ -351,6 +362,7 @@ class SimCamera:
         noise_grey: float = 0.0,
         seed: int = 0,
         clock: Clock = time.monotonic,
+        pose_wait_s: float = 1.0,
     ) -> None:
         from companion.core.render import Pose
 
@@ -362,6 +374,7 @@ class SimCamera:
         self.pose_provider = pose_provider
         self.noise_grey = noise_grey
         self.seed = seed
+        self.pose_wait_s = pose_wait_s
         self._clock = clock
         self._stop = threading.Event()
         self._renderer = None
@@ -396,12 +409,11 @@ class SimCamera:
             raise CameraError("sim: not open")
         self._pacer.wait()
         if self.pose_provider is not None:
-            try:
-                pose = self.pose_provider()
-            except Exception as err:
-                raise CameraError(f"sim: the pose provider failed: {type(err).__name__}: {err}") from err
+            pose, t = self._next_pose()
             image = self._render(pose)
-        elif self.noise_grey > 0:
+            self._seq += 1
+            return Frame(image=image, timestamp_s=t, seq=self._seq)
+        if self.noise_grey > 0:
             image = self._render(self.pose)
         else:
             if self._fixed is None:
@@ -412,22 +424,84 @@ class SimCamera:
         self._seq += 1
         return Frame(image=image, timestamp_s=t, seq=self._seq)
 
+    def _next_pose(self) -> tuple[Pose, float]:
+        assert self.pose_provider is not None
+        deadline = self._clock() + self.pose_wait_s
+        while True:
+            try:
+                pose, t = self.pose_provider()
+            except PoseUnavailable:
+                if self._clock() >= deadline or self._stop.is_set():
+                    raise
+                self._stop.wait(1.0 / self.fps_hz)
+            except Exception as err:
+                raise CameraError(f"sim: the pose provider failed: {type(err).__name__}: {err}") from err
+            else:
+                return pose, t
+
     def close(self) -> None:
         self._stop.set()
+
+
+def telemetry_pose_provider(
+    state: Callable[[], VehicleState], placement: CoursePlacement, max_age_s: float, clock: Clock
+) -> PoseProvider:
+    """A pose provider that reads the vehicle link's telemetry: the newest local position and attitude,
+    placed in the scene by ``placement``, stamped with the time the position arrived.
+
+    Raises (from the provider): :class:`PoseUnavailable` when no position or attitude has arrived yet
+    or the newest position is older than ``max_age_s`` seconds.
+    """
+
+    def provide() -> tuple[Pose, float]:
+        v = state()
+        if v.position_ned_m is None or v.attitude_rad is None or v.position_timestamp_s is None:
+            raise PoseUnavailable("sim: no vehicle pose from telemetry yet")
+        age_s = clock() - v.position_timestamp_s
+        if age_s > max_age_s:
+            raise PoseUnavailable(
+                f"sim: the vehicle's telemetry pose is {age_s:.2f} s old (camera.sim_pose_max_age_s = {max_age_s:g} s)"
+            )
+        return placement.pose_in_course(v.position_ned_m, v.attitude_rad), v.position_timestamp_s
+
+    return provide
+
+
+def sim_scene_from_config(cfg: CompanionConfig) -> Scene:
+    """The scene ``cfg.camera`` names: the corridor, or a course of the simulator's library."""
+    from companion.core.render import corridor_scene
+
+    cam = cfg.camera
+    if cam.sim_world == "course":
+        from companion.sim.courses import head_on_course, make_course
+
+        course = head_on_course(cam.sim_course_seed) if cam.sim_course == "head-on" else make_course(cam.sim_course, cam.sim_course_seed)
+        return course.scene
+    return corridor_scene(n_obstacles=cam.sim_obstacles, seed=cam.sim_scene_seed)
+
+
+def placement_from_config(cfg: CompanionConfig) -> CoursePlacement:
+    """Where ``cfg.camera.sim_origin_*`` puts the scene in the autopilot's local frame."""
+    cam = cfg.camera
+    return CoursePlacement(
+        (cam.sim_origin_north_m, cam.sim_origin_east_m, cam.sim_origin_down_m), math.radians(cam.sim_origin_yaw_deg)
+    )
 
 
 def sim_camera_from_config(
     cfg: CompanionConfig, pose_provider: PoseProvider | None = None, clock: Clock = time.monotonic
 ) -> SimCamera:
-    """The ``sim`` source of ``cfg.camera``: the corridor scene, the ideal rig of ``cfg.calibration``."""
+    """The ``sim`` source of ``cfg.camera``: its scene (:func:`sim_scene_from_config`), the ideal rig of
+    ``cfg.calibration``; the pose is fixed unless a ``pose_provider`` is given."""
     from companion.core.geometry import StereoGeometry
-    from companion.core.render import Pose, corridor_scene
+    from companion.core.render import Pose
 
     cam = cfg.camera
     geometry = StereoGeometry.ideal(
         cam.width_px, cam.height_px, hfov_deg=cfg.calibration.ideal_hfov_deg, baseline_m=cfg.calibration.ideal_baseline_m
     )
-    scene = corridor_scene(n_obstacles=cam.sim_obstacles, seed=cam.sim_scene_seed)
+    scene = sim_scene_from_config(cfg)
+    seed = cam.sim_course_seed if cam.sim_world == "course" else cam.sim_scene_seed
     pose = Pose.at(cam.sim_north_m, cam.sim_east_m, cam.sim_altitude_m, yaw_rad=math.radians(cam.sim_yaw_deg))
     return SimCamera(
         geometry,
@@ -436,7 +510,7 @@ def sim_camera_from_config(
         pose=pose,
         pose_provider=pose_provider,
         noise_grey=cam.sim_noise_grey,
-        seed=cam.sim_scene_seed,
+        seed=seed,
         clock=clock,
     )
 

@@ -56,7 +56,13 @@ from companion.core.supervisor import (
     SupervisorConfig,
 )
 from companion.core.types import REGION_NAMES, ZERO_SETPOINT, VelocitySetpoint
-from companion.errors import CompanionError, ConfigError, FrameError, ProtocolError, VehicleError
+from companion.errors import (
+    CompanionError,
+    ConfigError,
+    FrameError,
+    ProtocolError,
+    VehicleError,
+)
 from companion.interfaces import CameraSource, Frame, VehicleLink
 from companion.service import protocol
 from companion.service.capture import CaptureThread, FrameMailbox, ProcessingThread
@@ -302,10 +308,31 @@ class Service:
         except CompanionError as err:
             raise StartupError(f"pipeline: {err}") from None
         self._processor.processing_enabled.set()
-        if self._camera is None:
-            from companion.service.camera import make_camera
+        # The link before the camera: a simulated camera may render from the vehicle's telemetry.
+        if self.link is None:
+            from companion.service.vehicle import MavsdkVehicleLink
 
-            self._camera = make_camera(cfg, clock=self._clock)
+            self.link = MavsdkVehicleLink(cfg.vehicle.connection, clock=self._clock)
+        opener = getattr(self.link, "open", None)  # MAVSDK: add the connection now, fail fast on a bad URL
+        if opener is not None:
+            try:
+                await opener()
+            except VehicleError as err:
+                raise StartupError(str(err)) from None
+        self._spawn(self._vehicle_connector(), "vehicle connector")
+        if self._camera is None:
+            from companion.service.camera import (
+                make_camera,
+                placement_from_config,
+                telemetry_pose_provider,
+            )
+
+            provider = None
+            if cfg.camera.source == "sim" and cfg.camera.sim_pose == "telemetry":
+                provider = telemetry_pose_provider(
+                    self.link.state, placement_from_config(cfg), cfg.camera.sim_pose_max_age_s, self._clock
+                )
+            self._camera = make_camera(cfg, pose_provider=provider, clock=self._clock)
         eye = tuple(self._camera.eye_size_px)
         if eye != (cfg.camera.width_px, cfg.camera.height_px):
             raise StartupError(
@@ -331,17 +358,6 @@ class Service:
                 f"camera {status.source}: {what} within camera.open_timeout_s = {cfg.camera.open_timeout_s:g} s"
                 + (f" ({problem})" if problem else "")
             ) from None
-        if self.link is None:
-            from companion.service.vehicle import MavsdkVehicleLink
-
-            self.link = MavsdkVehicleLink(cfg.vehicle.connection, clock=self._clock)
-        opener = getattr(self.link, "open", None)  # MAVSDK: add the connection now, fail fast on a bad URL
-        if opener is not None:
-            try:
-                await opener()
-            except VehicleError as err:
-                raise StartupError(str(err)) from None
-        self._spawn(self._vehicle_connector(), "vehicle connector")
         self._spawn(self._control_loop(), "control loop", critical=True)
         self._spawn(self._health_loop(), "health")
         self._spawn(self._control_server(), "control server")

@@ -162,7 +162,10 @@ class MavsdkVehicleLink:
         assert self._telemetry is not None
         async for pv in self._telemetry.subscribe_position_velocity_ned():
             p = pv.position
-            self._update(position_ned_m=np.array([p.north_m, p.east_m, p.down_m], dtype=np.float64))
+            self._update(
+                position_ned_m=np.array([p.north_m, p.east_m, p.down_m], dtype=np.float64),
+                position_timestamp_s=self._clock(),
+            )
 
     async def _watch_attitude(self) -> None:
         assert self._telemetry is not None

@@ -40,13 +40,11 @@ from companion.errors import CameraError
 from companion.interfaces import Frame
 from companion.sim.camera import SimCamera
 from companion.sim.courses import Course
-from companion.sim.scoring import ClearanceField, Outcome, is_success
+from companion.sim.scoring import Judge, Outcome
 from companion.sim.vehicle import SimVehicle, VehicleParams, wrap_angle_rad
 
 #: Events scheduled at k/rate fire when the simulated time is within this of it (float steps).
 _EPS_S = 1e-9
-#: |yaw rate| below which a stopped vehicle counts as holding (not turning on the spot), deg/s.
-_HELD_YAW_RATE_DEG_S = 3.0
 
 
 class LogKind(enum.IntEnum):
@@ -258,7 +256,6 @@ def fly(
     vehicle = SimVehicle(params, course.start)
     camera = make_camera(course, cfg, vehicle, pipeline, textures, camera_fail_after_s)
     camera.open()
-    field_ = ClearanceField(course.scene)
     radius = params.collision_radius_m
 
     dt = 1.0 / sim.physics_rate_hz
@@ -287,13 +284,7 @@ def fly(
     camera_ok = True
     n_cam = n_sp = 0
     last_steer_s = -math.inf
-    stopped_since: float | None = None
-    path_length = 0.0
-    pos = vehicle.model.position_ned_m.copy()
-    clearance = field_.distance_m(pos) - radius
-    min_clear, min_clear_at = clearance, pos.copy()
-    outcome: Outcome | None = None
-    reason = ""
+    judge = Judge(course, radius, sim.held_speed_m_s, sim.held_after_s, vehicle.model.position_ned_m)
     sp = ZERO_SETPOINT
     kind = LogKind.NONE
 
@@ -308,7 +299,7 @@ def fly(
         rows.dyaw.append(d.yaw if d is not None else 0.0)
         rows.dpitch.append(d.pitch if d is not None else 0.0)
         rows.sp.append((sp.forward_m_s, sp.right_m_s, sp.down_m_s, sp.yaw_rate_deg_s))
-        rows.clear.append(clearance)
+        rows.clear.append(judge.clearance_m)
 
     while True:
         t = vehicle.time_s
@@ -376,38 +367,9 @@ def fly(
 
         # -- physics and the verdict
         vehicle.step(dt)
-        t = vehicle.time_s
-        new_pos = vehicle.model.position_ned_m
-        path_length += float(np.linalg.norm(new_pos - pos))
-        pos = new_pos.copy()
-        clearance = field_.distance_m(pos) - radius
-        if clearance < min_clear:
-            min_clear, min_clear_at = clearance, pos.copy()
         m = vehicle.model
-        if m.speed_m_s < sim.held_speed_m_s and abs(math.degrees(m.yaw_rate_rad_s)) < _HELD_YAW_RATE_DEG_S:
-            stopped_since = t if stopped_since is None else stopped_since
-        else:
-            stopped_since = None
-        if clearance < 0.0:
-            outcome = Outcome.COLLISION
-            reason = f"collision at t = {t:.2f} s at north {pos[0]:.2f} m, east {pos[1]:+.2f} m, altitude {-pos[2]:.2f} m"
-        elif course.in_goal(pos):
-            outcome = Outcome.GOAL
-            reason = f"goal reached at t = {t:.2f} s"
-        elif not course.in_bounds(pos):
-            outcome = Outcome.OUT_OF_BOUNDS
-            reason = f"left the course bounds at t = {t:.2f} s at north {pos[0]:.2f} m, east {pos[1]:+.2f} m"
-        elif stopped_since is not None and t - stopped_since >= sim.held_after_s:
-            outcome = Outcome.HELD
-            reason = (
-                f"held safely: stopped since t = {stopped_since:.2f} s at north {pos[0]:.2f} m "
-                f"(clearance {clearance:.2f} m)"
-            )
-        elif t >= course.time_limit_s:
-            outcome = Outcome.TIMEOUT
-            reason = f"time limit {course.time_limit_s:.0f} s reached at north {pos[0]:.2f} m"
-        if outcome is not None:
-            log_row(t)
+        if judge.update(vehicle.time_s, m.position_ned_m, m.speed_m_s, m.yaw_rate_rad_s) is not None:
+            log_row(vehicle.time_s)
             break
 
     camera.close()
@@ -439,20 +401,21 @@ def fly(
         pipeline_ms=float(np.median(pipe_ms)) if pipe_ms else 0.0,
         render_ms=float(np.median(render_ms)) if render_ms else 0.0,
     )
+    outcome = judge.outcome
     assert outcome is not None
     return FlightResult(
         course=course,
         outcome=outcome,
-        success=is_success(outcome, course.hold_is_success),
+        success=judge.success,
         time_s=vehicle.time_s,
-        path_length_m=path_length,
-        min_clearance_m=min_clear,
-        min_clearance_at_ned_m=min_clear_at,
-        final_position_ned_m=pos,
+        path_length_m=judge.path_length_m,
+        min_clearance_m=judge.min_clearance_m,
+        min_clearance_at_ned_m=judge.min_clearance_at_ned_m,
+        final_position_ned_m=judge.position_ned_m,
         collision_radius_m=radius,
         frames=len(f_t),
         decisions=counts,
-        reason=reason,
+        reason=judge.reason,
         log=log,
         frame_log=frame_log,
         timing=timing,

@@ -21,10 +21,14 @@ from __future__ import annotations
 
 import enum
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from companion.core.render import Box, Pillar, Scene
+
+if TYPE_CHECKING:
+    from companion.sim.courses import Course
 
 
 class Outcome(str, enum.Enum):
@@ -96,3 +100,93 @@ class ClearanceField:
 def is_success(outcome: Outcome, hold_is_success: bool) -> bool:
     """Goal reached, or held safely where the course counts that as success."""
     return outcome is Outcome.GOAL or (outcome is Outcome.HELD and hold_is_success)
+
+
+#: |yaw rate| below which a stopped vehicle counts as holding (not turning on the spot), deg/s.
+HELD_YAW_RATE_DEG_S = 3.0
+
+
+class Judge:
+    """The verdict on a flight, fed one position sample at a time (the kinematic simulator feeds every
+    physics step; the PX4 SITL harness feeds PX4's own position telemetry).
+
+    Checks, in the order of the module docstring, at every :meth:`update`: collision, goal, out of
+    bounds, held, timeout. Keeps the minimum clearance (and where it was) and the path length.
+
+    Args:
+        course: the course, in its own frame (positions given to :meth:`update` must be too).
+        collision_radius_m: radius of the vehicle's collision sphere, metres.
+        held_speed_m_s: below this speed (and |yaw rate| < 3 deg/s) the vehicle counts as stopped.
+        held_after_s: stopped this long = held.
+        start_position_ned_m: float ``(3,)`` NED metres, the first sample (clearance is checked there).
+        start_time_s: time of that sample, seconds (the course's time limit counts from it).
+    """
+
+    def __init__(
+        self,
+        course: Course,
+        collision_radius_m: float,
+        held_speed_m_s: float,
+        held_after_s: float,
+        start_position_ned_m: np.ndarray,
+        start_time_s: float = 0.0,
+    ) -> None:
+        self.course = course
+        self.radius_m = float(collision_radius_m)
+        self.held_speed_m_s = float(held_speed_m_s)
+        self.held_after_s = float(held_after_s)
+        self.start_time_s = float(start_time_s)
+        self._field = ClearanceField(course.scene)
+        self.position_ned_m = np.array(start_position_ned_m, dtype=np.float64).reshape(3)
+        self.clearance_m = self._field.distance_m(self.position_ned_m) - self.radius_m
+        self.min_clearance_m = self.clearance_m
+        self.min_clearance_at_ned_m = self.position_ned_m.copy()
+        self.path_length_m = 0.0
+        self.outcome: Outcome | None = None
+        self.reason = ""
+        self._stopped_since: float | None = None
+
+    def update(self, time_s: float, position_ned_m: np.ndarray, speed_m_s: float, yaw_rate_rad_s: float) -> Outcome | None:
+        """Take one sample (time in seconds, float ``(3,)`` NED metres in the course frame, ground speed
+        m/s, yaw rate rad/s); returns the outcome once the flight is decided (and keeps returning it)."""
+        if self.outcome is not None:
+            return self.outcome
+        pos = np.array(position_ned_m, dtype=np.float64).reshape(3)
+        self.path_length_m += float(np.linalg.norm(pos - self.position_ned_m))
+        self.position_ned_m = pos
+        clearance = self._field.distance_m(pos) - self.radius_m
+        self.clearance_m = clearance
+        if clearance < self.min_clearance_m:
+            self.min_clearance_m, self.min_clearance_at_ned_m = clearance, pos.copy()
+        t = float(time_s)
+        if speed_m_s < self.held_speed_m_s and abs(math.degrees(yaw_rate_rad_s)) < HELD_YAW_RATE_DEG_S:
+            self._stopped_since = t if self._stopped_since is None else self._stopped_since
+        else:
+            self._stopped_since = None
+        course = self.course
+        if clearance < 0.0:
+            self.outcome = Outcome.COLLISION
+            self.reason = (
+                f"collision at t = {t:.2f} s at north {pos[0]:.2f} m, east {pos[1]:+.2f} m, altitude {-pos[2]:.2f} m"
+            )
+        elif course.in_goal(pos):
+            self.outcome = Outcome.GOAL
+            self.reason = f"goal reached at t = {t:.2f} s"
+        elif not course.in_bounds(pos):
+            self.outcome = Outcome.OUT_OF_BOUNDS
+            self.reason = f"left the course bounds at t = {t:.2f} s at north {pos[0]:.2f} m, east {pos[1]:+.2f} m"
+        elif self._stopped_since is not None and t - self._stopped_since >= self.held_after_s:
+            self.outcome = Outcome.HELD
+            self.reason = (
+                f"held safely: stopped since t = {self._stopped_since:.2f} s at north {pos[0]:.2f} m "
+                f"(clearance {clearance:.2f} m)"
+            )
+        elif t - self.start_time_s >= course.time_limit_s:
+            self.outcome = Outcome.TIMEOUT
+            self.reason = f"time limit {course.time_limit_s:.0f} s reached at north {pos[0]:.2f} m"
+        return self.outcome
+
+    @property
+    def success(self) -> bool:
+        """Decided, and a success for this course."""
+        return self.outcome is not None and is_success(self.outcome, self.course.hold_is_success)

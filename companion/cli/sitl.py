@@ -1,0 +1,117 @@
+"""``companion sitl``: fly the service against PX4 SITL (SIH) through the simulator's courses."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import time
+from pathlib import Path
+from typing import Any
+
+from companion.errors import InputError
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add ``sitl``."""
+    p = sub.add_parser(
+        "sitl",
+        help="fly the service against PX4 SITL (SIH quadrotor) through simulated obstacle courses",
+        description=(
+            "PX4 in the loop: PX4's SIH quadrotor flies, the service (`companion run`, in its own process) "
+            "commands it over MAVSDK exactly as on the vehicle, and its camera renders each frame from the "
+            "pose PX4 reports, inside a course whose geometry is known. The ground station here arms, takes "
+            "off to the course height, sends the same `engage` a user would, judges PX4's own position "
+            "against the true geometry (goal, collision, held, timeout; minimum clearance), and lands. "
+            "PX4 must be running (`make px4_sitl sihsim_quadx` in PX4-Autopilot), or name its build "
+            "folder with --px4-build / $COMPANION_PX4_BUILD to have it started fresh for every course."
+        ),
+    )
+    what = p.add_mutually_exclusive_group(required=True)
+    what.add_argument("--course", metavar="KIND", help="course kind: corridor, doorway, forest, pitch, side, deadend, head-on")
+    what.add_argument("--suite", metavar="NAME", help="a suite of courses: quick (12 flights) or standard (54)")
+    p.add_argument("--seed", type=int, default=0, help="--course: the course seed (default 0)")
+    p.add_argument("--config", type=Path, help="TOML config of the service (default: built-in defaults)")
+    p.add_argument("--instance", type=int, default=0, help="PX4 SITL instance number (ports 14540+N, system id N+1; default 0)")
+    p.add_argument("--connect", metavar="URL", help="the service's vehicle link (default udpin://127.0.0.1:14540+N, PX4's API link)")
+    p.add_argument("--pilot", metavar="URL", default="udpin://127.0.0.1:14550", help="the ground station's link (default PX4's GCS link, udpin://127.0.0.1:14550)")
+    p.add_argument("--px4-build", type=Path, metavar="DIR", help="PX4 build folder (build/px4_sitl_default): start PX4 fresh for every course")
+    p.add_argument("--plot", type=Path, metavar="OUT.png", help="--course: draw the flight")
+    p.add_argument("--plot-dir", type=Path, metavar="DIR", help="--suite: draw every flight into this folder")
+    p.add_argument("--workdir", type=Path, metavar="DIR", help="keep PX4's and the service's files and logs here (default: a temporary folder)")
+    p.add_argument("--service-log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"], help="the service's log level")
+    p.set_defaults(func=run)
+
+
+def describe_sitl(flight: Any) -> list[str]:
+    """The lines printed for one SITL flight."""
+    from companion.cli.sim import describe_flight
+
+    r = flight.result
+    lines = [line for line in describe_flight(r) if not line.startswith(("time:", "frames:"))]
+    d = r.decisions
+    total = max(1, sum(d.values()))
+    modes = ", ".join(f"{m} at {t:.1f} s" for t, m in flight.px4_modes) or "none"
+    lines += [
+        f"time:          {r.time_s:.1f} s from OFFBOARD to the verdict (real time, PX4 in the loop)",
+        f"frames:        {r.frames} processed; the setpoint came from clear {100 * d.get('clear', 0) / total:.0f} %, "
+        f"avoid {100 * d.get('avoid', 0) / total:.0f} %, brake {100 * d.get('brake', 0) / total:.0f} % of the time",
+        f"engage:        OFFBOARD {flight.engage_s:.2f} s after the request; max speed {flight.max_speed_m_s:.2f} m/s",
+        f"PX4 modes:     {modes}",
+        f"service exit:  {flight.service_exit_code}",
+    ]
+    return lines
+
+
+def run(args: argparse.Namespace) -> int:
+    from companion.cli.sim import _check_plot_path, write_plot
+    from companion.config import load_config
+    from companion.sim.courses import head_on_course, make_course
+    from companion.sim.suite import suite_courses, suite_table
+    from companion.sitl.flight import fly_courses
+    from companion.sitl.px4 import Px4Ports, find_px4_build
+
+    if not 0 <= args.instance <= 9:
+        raise InputError(f"--instance must be 0..9, got {args.instance}")
+    cfg = load_config(args.config)
+    if args.course is not None:
+        if args.plot_dir is not None:
+            raise InputError("--plot-dir goes with --suite; use --plot with --course")
+        courses = [head_on_course(args.seed) if args.course == "head-on" else make_course(args.course, args.seed)]
+    else:
+        if args.plot is not None:
+            raise InputError("--plot goes with --course; use --plot-dir with --suite")
+        courses = [make_course(kind, seed) for kind, seed in suite_courses(args.suite)]
+    plot_path = _check_plot_path(args.plot) if args.plot is not None else None
+    if args.plot_dir is not None:
+        args.plot_dir.mkdir(parents=True, exist_ok=True)
+    build = find_px4_build(args.px4_build)
+    ports = Px4Ports(args.instance)
+    workdir = args.workdir.expanduser().resolve() if args.workdir is not None else None
+    print(f"PX4 SITL: {'started from ' + str(build) if build else 'already running'}, instance {args.instance}; "
+          f"service link {args.connect or ports.service_url}, pilot link {args.pilot}", flush=True)
+
+    def progress(done: int, total: int, flight: Any) -> None:
+        if total > 1:
+            print(f"[{done:2d}/{total}] {flight.result.summary()}", flush=True)
+            if args.plot_dir is not None:
+                write_plot(flight.result, args.plot_dir / f"{flight.result.course.name}.png", side_view=True)
+
+    t0 = time.perf_counter()
+    flights = asyncio.run(
+        fly_courses(
+            courses, cfg, ports=ports, pilot_url=args.pilot, workdir=workdir, px4_build=build,
+            progress=progress, service_log_level=args.service_log_level, service_url=args.connect,
+        )
+    )
+    if len(flights) == 1:
+        for line in describe_sitl(flights[0]):
+            print(line)
+        if plot_path is not None:
+            write_plot(flights[0].result, plot_path, side_view=True)
+            print(f"plot:          {plot_path}")
+        return 0 if flights[0].result.success else 1
+    results = [f.result for f in flights]
+    print()
+    print(suite_table(results))
+    print(f"\n{len(results)} flights with PX4 in the loop in {time.perf_counter() - t0:.0f} s")
+    return 0 if all(r.success for r in results) else 1

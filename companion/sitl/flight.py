@@ -1,0 +1,349 @@
+"""One course with PX4 SITL in the loop, and a suite of them.
+
+A flight, as a user would fly it:
+
+1. the pilot (ground station) brings the vehicle to the ground, disarmed, ready to arm;
+2. the pilot takes off to the course's start altitude; PX4 ends the take-off in Hold;
+3. the course is placed at the hovering vehicle: its start at the vehicle's position, its north axis
+   along the vehicle's heading, its ground the start altitude below it
+   (:class:`~companion.sim.placement.CoursePlacement`), so the flight starts at the course's start pose;
+4. the service starts (``companion run``, camera ``sim`` rendering from the pose PX4 reports);
+5. ``engage`` on the service's control socket; the service streams setpoints and enters offboard;
+6. PX4's own position telemetry, in the course frame, is judged against the true geometry by the
+   same :class:`~companion.sim.scoring.Judge` as the kinematic simulator (goal, collision, held,
+   out of bounds, timeout; minimum clearance). On a collision or leaving the bounds the pilot takes
+   over with Hold at once, as a safety pilot would;
+7. ``disengage`` (the service leaves offboard to Hold), the pilot lands, the service is stopped.
+
+The result is a :class:`~companion.sim.loop.FlightResult` like the kinematic simulator's (so the same
+tables and plots), plus what only SITL shows (:class:`SitlFlight`).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+import tempfile
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from companion.config import CompanionConfig
+from companion.sim.courses import Course
+from companion.sim.loop import (
+    FlightLog,
+    FlightResult,
+    FlightTiming,
+    LogKind,
+    simulator_config,
+)
+from companion.sim.placement import CoursePlacement
+from companion.sim.scoring import Judge, Outcome
+from companion.sitl.pilot import Pilot, Sample
+from companion.sitl.px4 import Px4Ports, Px4Sitl, SitlError
+from companion.sitl.service import ServiceProcess
+
+log = logging.getLogger(__name__)
+
+#: PX4 parameters the harness sets before every flight (what they do: the README's SITL section).
+SITL_PARAMS: dict[str, float | int] = {
+    "COM_OF_LOSS_T": 0.5,  # offboard setpoints missing this long = offboard loss, seconds
+    "COM_OBL_RC_ACT": 5,  # offboard loss -> Hold
+}
+
+_KIND = {"clear": LogKind.CLEAR, "avoid": LogKind.AVOID, "brake": LogKind.BRAKE}
+
+
+@dataclass(frozen=True)
+class SitlFlight:
+    """One SITL flight.
+
+    Attributes:
+        result: the verdict, shaped like the kinematic simulator's (times from engagement, positions
+            in the course frame).
+        placement: where the course lay in PX4's local frame.
+        engage_s: from the ``engage`` request to PX4 reporting OFFBOARD, seconds.
+        px4_modes: PX4's mode changes during the judged flight, ``(seconds since engagement, mode)``.
+        service_exit_code: the service's exit code after SIGTERM (0 = clean).
+        max_speed_m_s: highest ground speed PX4 reported while judged, m/s.
+    """
+
+    result: FlightResult
+    placement: CoursePlacement
+    engage_s: float
+    px4_modes: tuple[tuple[float, str], ...] = field(default=())
+    service_exit_code: int | None = None
+    max_speed_m_s: float = 0.0
+
+
+def sitl_config(cfg: CompanionConfig, course: Course, placement: CoursePlacement, connection: str, workdir: Path) -> CompanionConfig:
+    """The service's config for a SITL flight: ``cfg`` with the camera rendering ``course`` from the
+    telemetry pose (the simulator's eye size, frame rate and noise), the vehicle link on
+    ``connection`` (PX4's API link), ZeroMQ on private ``ipc://`` endpoints in ``workdir``, and no calibration file (the
+    rendered rig is ideal)."""
+    cfg = simulator_config(cfg)
+    sim = cfg.sim
+    n, e, d = placement.origin_ned_m
+    camera = cfg.camera.model_copy(
+        update={
+            "source": "sim",
+            "width_px": sim.eye_width_px,
+            "height_px": sim.eye_height_px,
+            "fps_hz": sim.camera_rate_hz,
+            "sim_world": "course",
+            "sim_course": course.kind,
+            "sim_course_seed": course.seed,
+            "sim_pose": "telemetry",
+            "sim_origin_north_m": n,
+            "sim_origin_east_m": e,
+            "sim_origin_down_m": d,
+            "sim_origin_yaw_deg": math.degrees(placement.yaw_rad),
+            "sim_noise_grey": sim.noise_std_grey,
+        }
+    )
+    data = cfg.model_dump(mode="python")
+    data["camera"] = camera.model_dump(mode="python")
+    data["vehicle"]["connection"] = connection
+    data["bus"].update(
+        health_endpoint=f"ipc://{workdir}/health.sock", control_endpoint=f"ipc://{workdir}/control.sock"
+    )
+    data["service"]["autostart"] = False
+    return CompanionConfig.model_validate(data)
+
+
+class _Recorder:
+    """Judges PX4's telemetry and keeps the rows of the flight log."""
+
+    def __init__(self, course: Course, cfg: CompanionConfig, placement: CoursePlacement, first: Sample) -> None:
+        self.placement = placement
+        self.t0 = first.time_s
+        self.judge = Judge(
+            course,
+            cfg.sim.collision_radius_m,
+            cfg.sim.held_speed_m_s,
+            cfg.sim.held_after_s,
+            placement.position_in_course(first.position_ned_m),
+            start_time_s=0.0,
+        )
+        self.rows: dict[str, list[Any]] = {k: [] for k in ("t", "pos", "vel", "att", "kind", "dyaw", "dpitch", "sp", "clear")}
+        self.max_speed = 0.0
+
+    def add(self, s: Sample, health: dict[str, Any] | None) -> Outcome | None:
+        t = s.time_s - self.t0
+        pos = self.placement.position_in_course(s.position_ned_m)
+        vel = self.placement.vector_in_course(s.velocity_ned_m_s)
+        speed = float(np.linalg.norm(vel))
+        self.max_speed = max(self.max_speed, speed)
+        outcome = self.judge.update(t, pos, speed, s.yaw_rate_rad_s)
+        att = s.attitude_rad.copy()
+        att[2] = math.remainder(att[2] - self.placement.yaw_rad, 2.0 * math.pi)
+        h = health or {}
+        state = h.get("state")
+        decision = h.get("decision") or {}
+        if s.flight_mode != "OFFBOARD":
+            kind = LogKind.HOLD
+        elif state == "degraded":
+            kind = LogKind.STALE
+        else:
+            kind = _KIND.get(decision.get("kind"), LogKind.NONE)
+        sp = h.get("setpoint") or {}
+        r = self.rows
+        r["t"].append(t)
+        r["pos"].append(pos)
+        r["vel"].append(vel)
+        r["att"].append(att)
+        r["kind"].append(int(kind))
+        r["dyaw"].append(float(h.get("yaw") or 0.0))
+        r["dpitch"].append(float(h.get("pitch") or 0.0))
+        r["sp"].append(tuple(float(sp.get(k) or 0.0) for k in ("forward_m_s", "right_m_s", "down_m_s", "yaw_rate_deg_s")))
+        r["clear"].append(self.judge.clearance_m)
+        return outcome
+
+    def log(self) -> FlightLog:
+        r = self.rows
+        return FlightLog(
+            t_s=np.asarray(r["t"], dtype=np.float64),
+            position_ned_m=np.asarray(r["pos"], dtype=np.float64).reshape(-1, 3),
+            velocity_ned_m_s=np.asarray(r["vel"], dtype=np.float64).reshape(-1, 3),
+            attitude_rad=np.asarray(r["att"], dtype=np.float64).reshape(-1, 3),
+            kind=np.asarray(r["kind"], dtype=np.int8),
+            decision_yaw=np.asarray(r["dyaw"], dtype=np.float64),
+            decision_pitch=np.asarray(r["dpitch"], dtype=np.float64),
+            setpoint=np.asarray(r["sp"], dtype=np.float64).reshape(-1, 4),
+            clearance_m=np.asarray(r["clear"], dtype=np.float64),
+        )
+
+
+async def prepare_flight(
+    course: Course,
+    cfg: CompanionConfig,
+    pilot: Pilot,
+    ports: Px4Ports,
+    workdir: Path,
+    service_log_level: str = "INFO",
+    service_url: str | None = None,
+) -> tuple[CoursePlacement, ServiceProcess]:
+    """Steps 1 and 2 (ready, parameters, take-off), the placement of step 3, and the service of step
+    4, not yet started. Returns ``(placement, service)``."""
+    await pilot.make_ready()
+    await pilot.set_params(SITL_PARAMS)
+    start_altitude_m = -float(course.start.position_ned_m[2])
+    await pilot.take_off(start_altitude_m)
+    # The course start where the vehicle hovers now, along its heading, its ground start_altitude_m
+    # below it: as in the kinematic simulator, the flight starts exactly at the course's start pose
+    # (whatever height PX4's estimator put the ground at).
+    hover = pilot.latest()
+    placement = CoursePlacement(
+        (float(hover.position_ned_m[0]), float(hover.position_ned_m[1]), float(hover.position_ned_m[2]) + start_altitude_m),
+        float(hover.attitude_rad[2]),
+    )
+    service_cfg = sitl_config(cfg, course, placement, service_url or ports.service_url, workdir)
+    return placement, ServiceProcess(service_cfg, workdir, service_log_level)
+
+
+async def fly_course(
+    course: Course,
+    cfg: CompanionConfig,
+    pilot: Pilot,
+    ports: Px4Ports,
+    workdir: Path,
+    *,
+    service_log_level: str = "INFO",
+    service_url: str | None = None,
+) -> SitlFlight:
+    """Fly ``course`` with PX4 SITL (already running, ``pilot`` connected to it) and the service.
+
+    Raises:
+        SitlError: PX4 or the service did not do what a step needed (the step is named).
+    """
+    wall0 = time.monotonic()
+    placement, service = await prepare_flight(course, cfg, pilot, ports, workdir, service_log_level, service_url)
+    exit_code: int | None = None
+    try:
+        await service.start()
+        t_req = time.monotonic()
+        await service.request({"cmd": "engage"})
+        t_offboard = await pilot.wait_for("OFFBOARD after engage", lambda: pilot.flight_mode == "OFFBOARD", 10.0)
+        recorder = _Recorder(course, cfg, placement, pilot.latest())
+        seen = len(pilot.samples)
+        modes_from = len(pilot.mode_changes)
+        outcome: Outcome | None = None
+        while outcome is None:
+            await asyncio.sleep(0.02)
+            fresh = pilot.samples[seen:]
+            seen += len(fresh)
+            for s in fresh:
+                outcome = recorder.add(s, service.health)
+                if outcome is not None:
+                    break
+            if not fresh and time.monotonic() - pilot.latest().time_s > 2.0:
+                raise SitlError("PX4 position telemetry stopped for 2 s during the flight")
+        if outcome in (Outcome.COLLISION, Outcome.OUT_OF_BOUNDS):
+            await pilot.hold()  # the safety pilot takes over
+        elif service.state in ("engaged", "engaging", "degraded", "paused", "override", "failsafe"):
+            await service.request({"cmd": "disengage"})
+            # Let the service finish leaving offboard (its Hold) before the pilot commands Land.
+            await pilot.wait_for("PX4 out of OFFBOARD after disengage", lambda: pilot.flight_mode != "OFFBOARD", 10.0)
+            await service.wait_state(("disengaged", "passive"), 5.0)
+        modes = tuple((t - recorder.t0, m) for t, m in pilot.mode_changes[modes_from:])
+        await pilot.land()
+    finally:
+        exit_code = await service.stop()
+    judge = recorder.judge
+    assert judge.outcome is not None
+    processed = [h.get("processed_frames", 0) for t, h in service.health_history if t >= t_offboard]
+    frames = int(processed[-1] - processed[0]) if processed else 0
+    flight_log = recorder.log()
+    kinds = flight_log.kind
+    result = FlightResult(
+        course=course,
+        outcome=judge.outcome,
+        success=judge.success,
+        time_s=float(flight_log.t_s[-1]) if len(flight_log.t_s) else 0.0,
+        path_length_m=judge.path_length_m,
+        min_clearance_m=judge.min_clearance_m,
+        min_clearance_at_ned_m=judge.min_clearance_at_ned_m,
+        final_position_ned_m=judge.position_ned_m,
+        collision_radius_m=judge.radius_m,
+        frames=frames,
+        # Telemetry rows (50 Hz) per decision kind: the share of the flight each kind drove.
+        decisions={name: int(np.count_nonzero(kinds == int(k))) for name, k in _KIND.items()},
+        reason=judge.reason,
+        log=flight_log,
+        timing=FlightTiming(wall_s=time.monotonic() - wall0, pipeline_ms=float("nan"), render_ms=float("nan")),
+    )
+    return SitlFlight(
+        result=result,
+        placement=placement,
+        engage_s=t_offboard - t_req,
+        px4_modes=modes,
+        service_exit_code=exit_code,
+        max_speed_m_s=recorder.max_speed,
+    )
+
+
+async def fly_courses(
+    courses: Sequence[Course],
+    cfg: CompanionConfig,
+    *,
+    ports: Px4Ports,
+    pilot_url: str,
+    workdir: Path | None = None,
+    px4_build: Path | None = None,
+    progress: Callable[[int, int, SitlFlight], None] | None = None,
+    service_log_level: str = "INFO",
+    service_url: str | None = None,
+) -> list[SitlFlight]:
+    """Fly ``courses`` one after another.
+
+    With ``px4_build``, PX4 is started fresh (new parameters and storage) for every course and stopped
+    after it: every flight starts from the same vehicle. Without it, PX4 must already be running on
+    ``ports``; between courses the vehicle lands where it is, and the next course is placed under it.
+    ``service_url`` overrides the service's vehicle link (default: PX4's API link of ``ports``).
+
+    Raises:
+        SitlError: PX4 or the service failed a step (the course is named).
+    """
+    own_tmp = None
+    if workdir is None:
+        own_tmp = tempfile.TemporaryDirectory(prefix="companion-sitl-")
+        workdir = Path(own_tmp.name)
+    flights: list[SitlFlight] = []
+    pilot: Pilot | None = None
+    px4: Px4Sitl | None = None
+    try:
+        for i, course in enumerate(courses):
+            run_dir = workdir / f"{i:02d}-{course.name}"
+            if px4_build is not None and px4 is None:
+                px4 = Px4Sitl(px4_build, run_dir / "px4", ports.instance)
+                await asyncio.to_thread(px4.start)
+            if pilot is None:
+                pilot = Pilot(pilot_url, ports.system_id)
+                await pilot.connect()
+            try:
+                flight = await fly_course(
+                    course, cfg, pilot, ports, run_dir / "service", service_log_level=service_log_level, service_url=service_url
+                )
+            except SitlError as err:
+                raise SitlError(f"{course.name}: {err}") from None
+            flights.append(flight)
+            if progress is not None:
+                progress(i + 1, len(courses), flight)
+            if px4 is not None:  # a fresh PX4 (and a fresh link to it) for the next course
+                await pilot.close()
+                pilot = None
+                await asyncio.to_thread(px4.stop)
+                px4 = None
+    finally:
+        if pilot is not None:
+            await pilot.close()
+        if px4 is not None:
+            await asyncio.to_thread(px4.stop)
+        if own_tmp is not None:
+            own_tmp.cleanup()
+    return flights
