@@ -209,6 +209,8 @@ def test_telemetry_pose_is_placed_in_the_scene_and_stamped_with_its_arrival() ->
     np.testing.assert_allclose(pose.position_ned_m, (2.0, 0.0, -1.5), atol=1e-12)  # 2 m along the course
     assert pose.yaw_rad == pytest.approx(0.0, abs=1e-12)
     assert (pose.roll_rad, pose.pitch_rad) == (0.05, -0.02)
+    provide.placement = CoursePlacement((8.0, 7.0, -0.4), 0.0)  # re-placed live (set_config)
+    np.testing.assert_allclose(provide()[0].position_ned_m, (2.0, 0.0, -1.5), atol=1e-12)
     now[0] = 100.4  # telemetry stopped 0.45 s ago
     with pytest.raises(PoseUnavailable, match="0.45 s old"):
         provide()

@@ -429,3 +429,14 @@ def test_camera_gone_gives_zero_at_once_and_it_reconnects(tmp_path: Path) -> Non
         assert client.call("status")["result"]["camera"]["reconnects"] == 1
         assert not link.sent[-1].setpoint.is_zero
         client.close()
+
+
+def test_the_sim_scene_placement_applies_live_but_the_rest_of_the_camera_waits_for_a_restart() -> None:
+    from companion.config import parse_config
+    from companion.service.daemon import keep_restart_fields, restart_required
+
+    old = parse_config({})
+    new = parse_config({"camera": {"sim_origin_north_m": 3.0, "sim_origin_yaw_deg": 45.0, "fps_hz": 15.0}})
+    assert restart_required(old, new) == ["camera.fps_hz"]
+    kept = keep_restart_fields(old, new)
+    assert (kept.camera.sim_origin_north_m, kept.camera.sim_origin_yaw_deg, kept.camera.fps_hz) == (3.0, 45.0, 30.0)

@@ -206,3 +206,37 @@ def test_vehicle_link_lost_stops_the_stream_without_a_mode_change(flying) -> Non
     # PX4's own offboard-loss failsafe acts (the stream stopped, nothing keeps it alive).
     assert peer.wait_for(lambda: peer.mode == "HOLD", 2.0)
     assert peer.mode_log[-1][2] == "offboard loss failsafe"
+
+
+def test_sim_camera_renders_from_the_autopilots_telemetry_and_stops_with_it(tmp_path: Path) -> None:
+    """camera.sim_pose = "telemetry" (PX4 SITL in the loop): frames come from the pose the autopilot
+    reports over the service's own link; when that telemetry stops, frames stop (stale-frame failsafe)."""
+    peer = Px4Peer(mode="POSCTL", heartbeat_hz=5.0).start()
+    cfg = service_config(
+        tmp_path,
+        vehicle={"connection": f"udpin://127.0.0.1:{peer.port}", "connect_timeout_s": 5.0},
+        camera={
+            "width_px": 160, "height_px": 120, "sim_world": "course", "sim_course": "head-on",
+            "sim_pose": "telemetry", "open_timeout_s": 15.0,
+        },
+    )
+    service = Service(cfg, install_signals=False, environ={})  # camera and link from the config
+    runner = ServiceRunner(service).start()
+    client = None
+    try:
+        assert wait_until(lambda: service.ready.is_set() or service.stopped.is_set(), 20.0)
+        assert service.ready.is_set(), service.exit_code
+        client = Client(service.bus.control_endpoint, service.bus.health_endpoint)
+        assert wait_until(lambda: _status(client)["camera"]["status"] == "streaming", 5.0)
+        frames = _status(client)["camera"]["frames"]
+        assert wait_until(lambda: _status(client)["camera"]["frames"] > frames + 5, 3.0)
+        peer.silent = True  # the autopilot stops talking: no pose, so no frame
+        assert wait_until(lambda: "telemetry" in str(_status(client)["camera"]["last_error"]), 5.0)
+        assert _status(client)["frame_age_ms"] > 500.0
+        peer.silent = False
+        assert wait_until(lambda: _status(client)["camera"]["status"] == "streaming" and _status(client)["frame_age_ms"] < 300.0, 10.0)
+    finally:
+        if client is not None:
+            client.close()
+        runner.stop()
+        peer.stop()

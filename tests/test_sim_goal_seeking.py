@@ -85,3 +85,27 @@ def test_straight_clear_is_what_the_resume_timer_counts() -> None:
     assert not is_straight_clear(None)
     assert not is_straight_clear(Decision(DecisionKind.CLEAR, 0.2, 0.0, 1.0, "side rule"))
     assert not is_straight_clear(Decision(DecisionKind.AVOID, 0.0, 0.0, 0.5, "x"))
+
+
+BRAKE = Decision(DecisionKind.BRAKE, 0.0, 0.0, 0.0, "wall ahead")
+
+
+def test_brake_position_hold_flies_back_to_where_the_brake_began() -> None:
+    cmd = CommandConfig(brake_hold_gain_per_s=1.0, brake_hold_max_speed_m_s=0.3)
+    assert setpoint_for(BRAKE, 0.1, cmd).is_zero  # no position: plain zero velocity
+    sp = setpoint_for(BRAKE, 0.1, cmd, brake_offset_body_m=np.array([0.2, -0.1, 0.05]))
+    assert (sp.forward_m_s, sp.right_m_s, sp.down_m_s, sp.yaw_rate_deg_s) == pytest.approx((-0.2, 0.1, -0.05, 0.0))
+    far = setpoint_for(BRAKE, 0.1, cmd, brake_offset_body_m=np.array([2.0, 0.0, 0.0]))
+    assert far.forward_m_s == pytest.approx(-0.3)  # clipped
+    assert setpoint_for(BRAKE, 0.6, cmd, brake_offset_body_m=np.array([0.2, 0.0, 0.0])).is_zero  # stale: zero
+    assert setpoint_for(BRAKE, 0.1, cmd, brake_offset_body_m=np.array([np.nan, 0.0, 0.0])).is_zero
+    off = CommandConfig(brake_hold_gain_per_s=0.0)
+    assert setpoint_for(BRAKE, 0.1, off, brake_offset_body_m=np.array([0.2, 0.0, 0.0])).is_zero
+
+
+def test_brake_offset_is_in_the_body_frame() -> None:
+    from companion.core.command import brake_offset_body
+
+    # Heading east: 0.3 m further east is 0.3 m forward; 0.1 m south is 0.1 m to the right.
+    off = brake_offset_body(np.array([9.9, 5.3, -1.5]), np.array([10.0, 5.0, -1.5]), math.pi / 2)
+    np.testing.assert_allclose(off, (0.3, 0.1, 0.0), atol=1e-12)

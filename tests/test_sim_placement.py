@@ -72,3 +72,19 @@ def test_judge_collision_held_and_timeout() -> None:
     limit = j.course.time_limit_s
     assert j.update(10.0 + limit - 0.1, np.array([1.0, 0.0, -1.5]), 0.5, 0.0) is None  # counts from start_time_s
     assert j.update(10.0 + limit, np.array([1.1, 0.0, -1.5]), 0.5, 0.0) is Outcome.TIMEOUT
+
+
+def test_judge_with_a_held_radius_calls_a_wandering_hover_held_but_not_a_creep() -> None:
+    course = head_on_course(0)
+    start = np.array([3.0, 0.0, -1.5])
+    hover = Judge(course, 0.25, 0.05, 2.0, start, 0.0, held_radius_m=0.15)
+    rng = np.random.default_rng(0)
+    out = None
+    for k in range(1, 60):  # +-5 cm of wander at a noisy 0.2 m/s: still in place
+        out = hover.update(0.05 * k, start + rng.uniform(-0.05, 0.05, 3), 0.2, 0.0)
+        if out is not None:
+            break
+    assert out is Outcome.HELD and 2.0 <= 0.05 * k <= 2.1
+    creep = Judge(course, 0.25, 0.05, 2.0, start, 0.0, held_radius_m=0.15)
+    for k in range(1, 60):  # 0.1 m/s towards the box: never held
+        assert creep.update(0.05 * k, start + np.array([0.005 * k, 0.0, 0.0]), 0.1, 0.0) is None

@@ -18,7 +18,7 @@ import pytest
 
 from companion.config import load_config
 from companion.sim.courses import head_on_course
-from companion.sitl.flight import SITL_PARAMS, fly_course, prepare_flight
+from companion.sitl.flight import SITL_PARAMS, fly_course, prepare_flight, start_and_place
 from companion.sitl.pilot import Pilot
 from companion.sitl.px4 import PX4_BUILD_ENV, Px4Ports, Px4Sitl, find_px4_build
 
@@ -47,8 +47,9 @@ async def _engaged(px4: Px4Sitl, workdir: Path, box_north_m: float = 30.0):
     """Take off, start the service on a course with a far box, engage; returns (pilot, service, t_offboard)."""
     pilot = Pilot(PILOT_URL, px4.ports.system_id)
     await pilot.connect()
-    _, service = await prepare_flight(head_on_course(0, box_north_m=box_north_m), load_config(None), pilot, px4.ports, workdir)
-    await service.start()
+    course = head_on_course(0, box_north_m=box_north_m)
+    service = await prepare_flight(course, load_config(None), pilot, px4.ports, workdir)
+    await start_and_place(service, pilot, course)
     await service.request({"cmd": "engage"})
     t = await pilot.wait_for("OFFBOARD after engage", lambda: pilot.flight_mode == "OFFBOARD", 10.0)
     return pilot, service, t

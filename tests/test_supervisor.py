@@ -666,3 +666,22 @@ def test_course_hold_is_off_with_zero_gains() -> None:
     h.engage()
     h.vehicle = replace(vehicle("OFFBOARD"), attitude_rad=np.array([0.0, 0.0, -0.5]))
     assert h.run(2.0)[-1].setpoint.yaw_rate_deg_s == pytest.approx(0.0, abs=1e-9)
+
+
+def test_brake_holds_the_position_where_it_began() -> None:
+    import numpy as np
+
+    h = Harness(SupervisorConfig.from_config(CompanionConfig()))
+    h.engage()
+    h.vehicle = replace(vehicle("OFFBOARD"), attitude_rad=np.array([0.0, 0.0, 0.0]), position_ned_m=np.array([4.0, 0.0, -1.5]))
+    h.frame = Result(h.now, BRAKE)
+    assert h.step().setpoint == ZERO_SETPOINT  # the brake begins here
+    # Drifting on with the velocity-estimate error: 0.2 m forward, 0.1 m left.
+    h.vehicle = replace(h.vehicle, position_ned_m=np.array([4.2, -0.1, -1.5]))
+    h.frame = Result(h.now, BRAKE)
+    sp = h.step().setpoint
+    assert (sp.forward_m_s, sp.right_m_s, sp.down_m_s) == pytest.approx((-0.2, 0.1, 0.0))
+    h.frame = Result(h.now, CLEAR)
+    assert h.step().setpoint.forward_m_s > 0.0  # clear again: on, and the latch is forgotten
+    h.frame = Result(h.now, BRAKE)
+    assert h.step().setpoint == ZERO_SETPOINT  # a new brake begins where the vehicle is now

@@ -647,6 +647,20 @@ class CommandConfig(StrictModel):
             "seconds: an obstacle just passed is beside or below the vehicle, out of the camera's view."
         ),
     )
+    brake_hold_gain_per_s: float = Field(
+        default=1.0,
+        ge=0.0,
+        le=10.0,
+        description=(
+            "Brake position hold: while braking, command a velocity back to where the brake began, "
+            "this gain times the distance, per second (0 = plain zero velocity). Zero velocity lets a "
+            "real multicopter drift with its velocity-estimate error (PX4 SITL: into the obstacle within "
+            "20 s); holding the position does not."
+        ),
+    )
+    brake_hold_max_speed_m_s: float = Field(
+        default=0.3, ge=0.0, le=2.0, description="Brake position hold: the largest speed it commands, m/s."
+    )
     hold_clear_depth_m: float = Field(
         default=2.25,
         ge=0.0,

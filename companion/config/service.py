@@ -3,7 +3,8 @@
 Owned by the daemon work (issue 5). Every field: type, default, bounds, unit in its name, description.
 Sections or fields that the running service cannot change without a restart (the camera, the vehicle
 connection, the bus endpoints and keys) are listed in :data:`RESTART_FIELDS`; a live ``set_config`` or
-``reload`` reports them and leaves them as they are until the next start.
+``reload`` reports them and leaves them as they are until the next start, except the scene placement
+of :data:`LIVE_CAMERA_FIELDS`.
 """
 
 from __future__ import annotations
@@ -30,6 +31,10 @@ ZED_MODES: Mapping[tuple[int, int], tuple[float, ...]] = MappingProxyType(
 
 #: Dotted paths (a section, or section.field) that take effect only at the next start.
 RESTART_FIELDS: tuple[str, ...] = ("camera", "bus", "vehicle.connection")
+#: Fields inside a restart-only section that apply live anyway: where the simulated scene lies in the
+#: autopilot's frame (the PX4 SITL harness places the course at the hovering vehicle just before
+#: ``engage``).
+LIVE_CAMERA_FIELDS: tuple[str, ...] = ("sim_origin_north_m", "sim_origin_east_m", "sim_origin_down_m", "sim_origin_yaw_deg")
 
 _CONNECTION_SCHEMES = ("udpin://", "udpout://", "udp://", "tcpin://", "tcpout://", "tcp://", "serial://")
 _ZMQ_SCHEMES = ("tcp://", "ipc://", "inproc://")

@@ -69,6 +69,24 @@ def _altitude_hold_down_m_s(
     return down
 
 
+def brake_offset_body(position_ned_m: np.ndarray, brake_at_ned_m: np.ndarray, yaw_rad: float) -> np.ndarray:
+    """Where the vehicle is relative to where its brake began, in the body frame (yaw only: forward,
+    right, down), float ``(3,)`` metres, from NED positions (float ``(3,)`` metres) and the heading."""
+    d = np.asarray(position_ned_m, dtype=np.float64) - np.asarray(brake_at_ned_m, dtype=np.float64)
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    return np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1], d[2]])
+
+
+def _brake_hold(offset_body_m: np.ndarray | None, cmd: CommandConfig) -> VelocitySetpoint:
+    if offset_body_m is None or cmd.brake_hold_gain_per_s == 0.0:
+        return ZERO_SETPOINT
+    offset = np.asarray(offset_body_m, dtype=np.float64).reshape(3)
+    if not np.all(np.isfinite(offset)):
+        return ZERO_SETPOINT
+    v = np.clip(-cmd.brake_hold_gain_per_s * offset, -cmd.brake_hold_max_speed_m_s, cmd.brake_hold_max_speed_m_s)
+    return VelocitySetpoint(forward_m_s=float(v[0]), right_m_s=float(v[1]), down_m_s=float(v[2]), yaw_rate_deg_s=0.0)
+
+
 def setpoint_for(
     decision: Decision | None,
     since_last_frame_s: float,
@@ -78,11 +96,15 @@ def setpoint_for(
     altitude_error_m: float | None = None,
     region_depths_m: np.ndarray | None = None,
     clear_for_s: float | None = None,
+    brake_offset_body_m: np.ndarray | None = None,
 ) -> VelocitySetpoint:
     """The setpoint to send for ``decision``, made ``since_last_frame_s`` seconds after its frame.
 
     * No decision, a frame older than ``cmd.stale_frame_timeout_s``, or a non-finite age: zero velocity.
-    * BRAKE (or a decision carrying a non-finite number): zero velocity.
+    * BRAKE (or a decision carrying a non-finite number): zero velocity; with ``brake_offset_body_m``
+      (float ``(3,)`` metres: the vehicle's position now minus where the brake began, in the body
+      frame: forward, right, down) and ``cmd.brake_hold_gain_per_s`` > 0, the velocity back there
+      instead: ``clip(-gain · offset, ±brake_hold_max_speed_m_s)`` per axis (brake position hold).
     * Otherwise forward = ``cruise_speed_m_s · speed_fraction`` (m/s), yaw rate =
       ``yaw · max_yaw_rate_deg_s`` (deg/s, positive turns right), down = ``-pitch · max_vertical_speed_m_s``
       (m/s; pitch up = climb = negative down). yaw and pitch are clipped to [-1, 1], the speed fraction
@@ -104,8 +126,10 @@ def setpoint_for(
     """
     if decision is None or not math.isfinite(since_last_frame_s):
         return ZERO_SETPOINT
-    if since_last_frame_s > cmd.stale_frame_timeout_s or decision.kind is DecisionKind.BRAKE:
+    if since_last_frame_s > cmd.stale_frame_timeout_s:
         return ZERO_SETPOINT
+    if decision.kind is DecisionKind.BRAKE:
+        return _brake_hold(brake_offset_body_m, cmd)
     yaw, pitch, speed = decision.yaw, decision.pitch, decision.speed_fraction
     if not (math.isfinite(yaw) and math.isfinite(pitch) and math.isfinite(speed)):
         return ZERO_SETPOINT

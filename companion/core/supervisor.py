@@ -52,7 +52,9 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Protocol, Union
 
-from companion.core.command import is_straight_clear, setpoint_for
+import numpy as np
+
+from companion.core.command import brake_offset_body, is_straight_clear, setpoint_for
 from companion.core.types import ZERO_SETPOINT, Decision, DecisionKind, VelocitySetpoint
 
 if TYPE_CHECKING:
@@ -244,6 +246,7 @@ class _Memory:
     course_heading_rad: float | None = None  # heading at engagement (course hold), radians
     course_altitude_m: float | None = None  # altitude (-down) at engagement (course hold), metres
     clear_since_s: float | None = None  # capture time since which the decisions are straight and CLEAR
+    brake_at_ned_m: np.ndarray | None = None  # where the current brake began (brake position hold), NED metres
     actions: list[Action] = field(default_factory=list)
 
 
@@ -436,6 +439,7 @@ class Supervisor:
                 m.activity = State.ENGAGED
                 # Course hold (when its gains are set) steers back to the heading and altitude of now.
                 m.course_heading_rad = _finite_or_none(v.attitude_rad, 2)
+                m.brake_at_ned_m = None
                 down = _finite_or_none(v.position_ned_m, 2)
                 m.course_altitude_m = None if down is None else -down
                 self._set(State.ENGAGED, "engaged: avoiding obstacles")
@@ -657,6 +661,16 @@ class Supervisor:
         if m.course_altitude_m is not None and down_now is not None:
             altitude_error = m.course_altitude_m - (-down_now)  # positive: climb back
         refined = getattr(latest, "refined", None)
+        brake_offset = None
+        pos = v.position_ned_m
+        braking = latest.decision.kind is DecisionKind.BRAKE and pos is not None and heading_now is not None
+        if not braking:
+            m.brake_at_ned_m = None
+        else:
+            pos = np.asarray(pos, dtype=np.float64)
+            if m.brake_at_ned_m is None:
+                m.brake_at_ned_m = pos.copy()
+            brake_offset = brake_offset_body(pos, m.brake_at_ned_m, heading_now)
         return setpoint_for(
             latest.decision,
             age_s,
@@ -665,6 +679,7 @@ class Supervisor:
             altitude_error_m=altitude_error,
             region_depths_m=getattr(refined, "depth_m", None),
             clear_for_s=None if m.clear_since_s is None else max(0.0, now_s - m.clear_since_s),
+            brake_offset_body_m=brake_offset,
         )
 
     def _override_setpoint(self, o: Override, latest: FrameOutcome | None) -> VelocitySetpoint:

@@ -443,28 +443,42 @@ class SimCamera:
         self._stop.set()
 
 
-def telemetry_pose_provider(
-    state: Callable[[], VehicleState], placement: CoursePlacement, max_age_s: float, clock: Clock
-) -> PoseProvider:
+class TelemetryPose:
     """A pose provider that reads the vehicle link's telemetry: the newest local position and attitude,
-    placed in the scene by ``placement``, stamped with the time the position arrived.
+    placed in the scene by :attr:`placement`, stamped with the time the position arrived.
 
-    Raises (from the provider): :class:`PoseUnavailable` when no position or attitude has arrived yet
-    or the newest position is older than ``max_age_s`` seconds.
+    ``placement`` may be replaced at any time (the daemon does it on a live config change); a read uses
+    the one it finds.
+
+    Raises (when called): :class:`PoseUnavailable` when no position or attitude has arrived yet or the
+    newest position is older than ``max_age_s`` seconds.
     """
 
-    def provide() -> tuple[Pose, float]:
-        v = state()
+    def __init__(
+        self, state: Callable[[], VehicleState], placement: CoursePlacement, max_age_s: float, clock: Clock
+    ) -> None:
+        self._state = state
+        self.placement = placement
+        self.max_age_s = max_age_s
+        self._clock = clock
+
+    def __call__(self) -> tuple[Pose, float]:
+        v = self._state()
         if v.position_ned_m is None or v.attitude_rad is None or v.position_timestamp_s is None:
             raise PoseUnavailable("sim: no vehicle pose from telemetry yet")
-        age_s = clock() - v.position_timestamp_s
-        if age_s > max_age_s:
+        age_s = self._clock() - v.position_timestamp_s
+        if age_s > self.max_age_s:
             raise PoseUnavailable(
-                f"sim: the vehicle's telemetry pose is {age_s:.2f} s old (camera.sim_pose_max_age_s = {max_age_s:g} s)"
+                f"sim: the vehicle's telemetry pose is {age_s:.2f} s old (camera.sim_pose_max_age_s = {self.max_age_s:g} s)"
             )
-        return placement.pose_in_course(v.position_ned_m, v.attitude_rad), v.position_timestamp_s
+        return self.placement.pose_in_course(v.position_ned_m, v.attitude_rad), v.position_timestamp_s
 
-    return provide
+
+def telemetry_pose_provider(
+    state: Callable[[], VehicleState], placement: CoursePlacement, max_age_s: float, clock: Clock
+) -> TelemetryPose:
+    """The :class:`TelemetryPose` over ``state`` (a vehicle link's ``state`` method)."""
+    return TelemetryPose(state, placement, max_age_s, clock)
 
 
 def sim_scene_from_config(cfg: CompanionConfig) -> Scene:

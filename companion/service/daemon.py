@@ -35,13 +35,13 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from companion import exitcodes
 from companion.config import CompanionConfig, apply_patch, load_config
-from companion.config.service import RESTART_FIELDS
+from companion.config.service import LIVE_CAMERA_FIELDS, RESTART_FIELDS
 from companion.core.supervisor import (
     Action,
     ActionResult,
@@ -67,6 +67,9 @@ from companion.interfaces import CameraSource, Frame, VehicleLink
 from companion.service import protocol
 from companion.service.capture import CaptureThread, FrameMailbox, ProcessingThread
 from companion.service.notify import Notifier, watchdog_interval_s
+
+if TYPE_CHECKING:
+    from companion.service.camera import TelemetryPose
 
 log = logging.getLogger(__name__)
 
@@ -127,14 +130,16 @@ def restart_required(current: CompanionConfig, new: CompanionConfig) -> list[str
             if getattr(a, name) != getattr(b, name):
                 out.append(path)
         else:
-            out += [f"{section}.{f}" for f in type(a).model_fields if getattr(a, f) != getattr(b, f)]
+            live = LIVE_CAMERA_FIELDS if section == "camera" else ()
+            out += [f"{section}.{f}" for f in type(a).model_fields if f not in live and getattr(a, f) != getattr(b, f)]
     return out
 
 
 def keep_restart_fields(current: CompanionConfig, new: CompanionConfig) -> CompanionConfig:
     """``new`` with the restart-only fields of ``current`` (they are not applied until a restart)."""
     vehicle = new.vehicle.model_copy(update={"connection": current.vehicle.connection})
-    return new.model_copy(update={"camera": current.camera, "bus": current.bus, "vehicle": vehicle})
+    camera = current.camera.model_copy(update={f: getattr(new.camera, f) for f in LIVE_CAMERA_FIELDS})
+    return new.model_copy(update={"camera": camera, "bus": current.bus, "vehicle": vehicle})
 
 
 async def _wait_event(event: asyncio.Event, timeout_s: float) -> None:
@@ -198,6 +203,7 @@ class Service:
         self.config_path = config_path
         self.config = resolve_config_paths(cfg, config_path.parent if config_path else None)
         self._camera = camera
+        self._telemetry_pose: TelemetryPose | None = None  # the sim camera's pose source, when it has one
         self.link = link
         self._clock = clock
         self._install_signals = install_signals
@@ -327,12 +333,11 @@ class Service:
                 telemetry_pose_provider,
             )
 
-            provider = None
             if cfg.camera.source == "sim" and cfg.camera.sim_pose == "telemetry":
-                provider = telemetry_pose_provider(
+                self._telemetry_pose = telemetry_pose_provider(
                     self.link.state, placement_from_config(cfg), cfg.camera.sim_pose_max_age_s, self._clock
                 )
-            self._camera = make_camera(cfg, pose_provider=provider, clock=self._clock)
+            self._camera = make_camera(cfg, pose_provider=self._telemetry_pose, clock=self._clock)
         eye = tuple(self._camera.eye_size_px)
         if eye != (cfg.camera.width_px, cfg.camera.height_px):
             raise StartupError(
@@ -975,6 +980,10 @@ class Service:
                         f"{source}: rejected, the old config stays: {type(err).__name__}: {err}"
                     ) from None
             self.supervisor.reconfigure(SupervisorConfig.from_config(applied))
+            if self._telemetry_pose is not None:
+                from companion.service.camera import placement_from_config
+
+                self._telemetry_pose.placement = placement_from_config(applied)  # one reference swap
             if self._processor is not None:
                 self._processor.skip_late_frames = applied.service.skip_late_frames
             self.config = applied

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import enum
 import math
+from collections import deque
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -120,6 +121,9 @@ class Judge:
         held_after_s: stopped this long = held.
         start_position_ned_m: float ``(3,)`` NED metres, the first sample (clearance is checked there).
         start_time_s: time of that sample, seconds (the course's time limit counts from it).
+        held_radius_m: if set, "stopped" means instead: every sample of the last ``held_after_s``
+            lies within this distance of the newest one (for measured positions, whose velocity
+            estimate is too noisy for ``held_speed_m_s``: PX4's hover wanders at up to 0.2 m/s).
     """
 
     def __init__(
@@ -130,8 +134,11 @@ class Judge:
         held_after_s: float,
         start_position_ned_m: np.ndarray,
         start_time_s: float = 0.0,
+        held_radius_m: float | None = None,
     ) -> None:
         self.course = course
+        self.held_radius_m = held_radius_m
+        self._recent: deque[tuple[float, np.ndarray]] = deque()
         self.radius_m = float(collision_radius_m)
         self.held_speed_m_s = float(held_speed_m_s)
         self.held_after_s = float(held_after_s)
@@ -159,7 +166,9 @@ class Judge:
         if clearance < self.min_clearance_m:
             self.min_clearance_m, self.min_clearance_at_ned_m = clearance, pos.copy()
         t = float(time_s)
-        if speed_m_s < self.held_speed_m_s and abs(math.degrees(yaw_rate_rad_s)) < HELD_YAW_RATE_DEG_S:
+        if self.held_radius_m is not None:
+            self._stopped_since = self._stopped_in_place_since(t, pos)
+        elif speed_m_s < self.held_speed_m_s and abs(math.degrees(yaw_rate_rad_s)) < HELD_YAW_RATE_DEG_S:
             self._stopped_since = t if self._stopped_since is None else self._stopped_since
         else:
             self._stopped_since = None
@@ -185,6 +194,20 @@ class Judge:
             self.outcome = Outcome.TIMEOUT
             self.reason = f"time limit {course.time_limit_s:.0f} s reached at north {pos[0]:.2f} m"
         return self.outcome
+
+    def _stopped_in_place_since(self, t: float, pos: np.ndarray) -> float | None:
+        """The start of the window of samples within ``held_radius_m`` of ``pos``, if it covers
+        ``held_after_s``; else None."""
+        assert self.held_radius_m is not None
+        self._recent.append((t, pos))
+        while self._recent and t - self._recent[0][0] > self.held_after_s + 1.0:
+            self._recent.popleft()
+        since = t
+        for ts, p in reversed(self._recent):
+            if float(np.linalg.norm(p - pos)) > self.held_radius_m:
+                break
+            since = ts
+        return since if t - since >= self.held_after_s else None
 
     @property
     def success(self) -> bool:

@@ -4,10 +4,11 @@ A flight, as a user would fly it:
 
 1. the pilot (ground station) brings the vehicle to the ground, disarmed, ready to arm;
 2. the pilot takes off to the course's start altitude; PX4 ends the take-off in Hold;
-3. the course is placed at the hovering vehicle: its start at the vehicle's position, its north axis
-   along the vehicle's heading, its ground the start altitude below it
-   (:class:`~companion.sim.placement.CoursePlacement`), so the flight starts at the course's start pose;
-4. the service starts (``companion run``, camera ``sim`` rendering from the pose PX4 reports);
+3. the service starts (``companion run``, camera ``sim`` rendering from the pose PX4 reports);
+4. once the hover is steady, the course is placed at the vehicle: its start at the vehicle's position,
+   its north axis along the vehicle's heading, its ground the start altitude below it
+   (:class:`~companion.sim.placement.CoursePlacement`; a live ``set_config``), so the flight starts
+   at the course's start pose;
 5. ``engage`` on the service's control socket; the service streams setpoints and enters offboard;
 6. PX4's own position telemetry, in the course frame, is judged against the true geometry by the
    same :class:`~companion.sim.scoring.Judge` as the kinematic simulator (goal, collision, held,
@@ -54,7 +55,18 @@ log = logging.getLogger(__name__)
 SITL_PARAMS: dict[str, float | int] = {
     "COM_OF_LOSS_T": 0.5,  # offboard setpoints missing this long = offboard loss, seconds
     "COM_OBL_RC_ACT": 5,  # offboard loss -> Hold
+    # SIH only, never on a real vehicle: EKF2's noise model raised to SIH's simulated IMU noise
+    # (simulator_sih/sih.cpp, armed: accel sigma 0.5/1.7/1.4 m/s^2, gyro 0.14/0.07/0.03 rad/s per 250 Hz
+    # sample). With the defaults (0.35, 0.015) EKF2 trusted its IMU prediction too much: against SIH's
+    # ground truth (in PX4's ULog) its yaw drifted 20-30 deg and its velocity 0.3-0.5 m/s within a
+    # minute, so the vehicle crabbed 20-30 deg off where its camera looked. With these: 2-6 deg.
+    "EKF2_GYR_NOISE": 0.1,
+    "EKF2_ACC_NOISE": 1.0,
 }
+
+#: Held = every position of the last ``sim.held_after_s`` within this of the newest (PX4's estimated
+#: velocity wanders too much in a hover for the kinematic simulator's speed threshold), metres.
+HELD_RADIUS_M = 0.15
 
 _KIND = {"clear": LogKind.CLEAR, "avoid": LogKind.AVOID, "brake": LogKind.BRAKE}
 
@@ -129,6 +141,7 @@ class _Recorder:
             cfg.sim.held_after_s,
             placement.position_in_course(first.position_ned_m),
             start_time_s=0.0,
+            held_radius_m=HELD_RADIUS_M,
         )
         self.rows: dict[str, list[Any]] = {k: [] for k in ("t", "pos", "vel", "att", "kind", "dyaw", "dpitch", "sp", "clear")}
         self.max_speed = 0.0
@@ -179,6 +192,16 @@ class _Recorder:
         )
 
 
+def placement_at(pilot: Pilot, course: Course) -> CoursePlacement:
+    """The course placed at the vehicle now: its start at the vehicle's position, its north along the
+    vehicle's heading, its ground the course's start altitude below the vehicle (whatever height
+    PX4's estimator put the ground at), so that the flight starts at the course's start pose."""
+    hover = pilot.latest()
+    start_altitude_m = -float(course.start.position_ned_m[2])
+    n, e, d = (float(x) for x in hover.position_ned_m)
+    return CoursePlacement((n, e, d + start_altitude_m), float(hover.attitude_rad[2]))
+
+
 async def prepare_flight(
     course: Course,
     cfg: CompanionConfig,
@@ -187,23 +210,32 @@ async def prepare_flight(
     workdir: Path,
     service_log_level: str = "INFO",
     service_url: str | None = None,
-) -> tuple[CoursePlacement, ServiceProcess]:
-    """Steps 1 and 2 (ready, parameters, take-off), the placement of step 3, and the service of step
-    4, not yet started. Returns ``(placement, service)``."""
+) -> ServiceProcess:
+    """Steps 1 and 2 (ready, parameters, take-off); returns the service of step 4, not yet started
+    (its config has the course placed where the vehicle hovers now; :func:`start_and_place` moves it)."""
     await pilot.make_ready()
     await pilot.set_params(SITL_PARAMS)
-    start_altitude_m = -float(course.start.position_ned_m[2])
-    await pilot.take_off(start_altitude_m)
-    # The course start where the vehicle hovers now, along its heading, its ground start_altitude_m
-    # below it: as in the kinematic simulator, the flight starts exactly at the course's start pose
-    # (whatever height PX4's estimator put the ground at).
-    hover = pilot.latest()
-    placement = CoursePlacement(
-        (float(hover.position_ned_m[0]), float(hover.position_ned_m[1]), float(hover.position_ned_m[2]) + start_altitude_m),
-        float(hover.attitude_rad[2]),
-    )
-    service_cfg = sitl_config(cfg, course, placement, service_url or ports.service_url, workdir)
-    return placement, ServiceProcess(service_cfg, workdir, service_log_level)
+    await pilot.take_off(-float(course.start.position_ned_m[2]))
+    service_cfg = sitl_config(cfg, course, placement_at(pilot, course), service_url or ports.service_url, workdir)
+    return ServiceProcess(service_cfg, workdir, service_log_level)
+
+
+async def start_and_place(service: ServiceProcess, pilot: Pilot, course: Course) -> CoursePlacement:
+    """Steps 4 and 3: start the service, wait for a steady hover, and place the course at the vehicle
+    *now* with a live ``set_config`` of ``camera.sim_origin_*`` (the hover drifts while the service
+    starts: a placement taken earlier would start the flight off the course's start pose)."""
+    await service.start()
+    await pilot.wait_steady(1.0)
+    placement = placement_at(pilot, course)
+    n, e, d = placement.origin_ned_m
+    origin = {
+        "sim_origin_north_m": n,
+        "sim_origin_east_m": e,
+        "sim_origin_down_m": d,
+        "sim_origin_yaw_deg": math.degrees(placement.yaw_rad),
+    }
+    await service.request({"cmd": "set_config", "patch": {"camera": origin}})
+    return placement
 
 
 async def fly_course(
@@ -222,10 +254,10 @@ async def fly_course(
         SitlError: PX4 or the service did not do what a step needed (the step is named).
     """
     wall0 = time.monotonic()
-    placement, service = await prepare_flight(course, cfg, pilot, ports, workdir, service_log_level, service_url)
+    service = await prepare_flight(course, cfg, pilot, ports, workdir, service_log_level, service_url)
     exit_code: int | None = None
     try:
-        await service.start()
+        placement = await start_and_place(service, pilot, course)
         t_req = time.monotonic()
         await service.request({"cmd": "engage"})
         t_offboard = await pilot.wait_for("OFFBOARD after engage", lambda: pilot.flight_mode == "OFFBOARD", 10.0)

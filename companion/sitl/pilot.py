@@ -213,13 +213,18 @@ class Pilot:
 
     async def take_off(self, altitude_m: float, timeout_s: float = 30.0) -> None:
         """Arm, take off to ``altitude_m`` above the take-off point, and wait until PX4 has finished
-        the take-off (it switches to Hold) and the vehicle is steady (slower than 0.3 m/s for 1 s: PX4 SIH hovers with a few cm/s of wander)."""
+        the take-off (it switches to Hold) and the vehicle is steady (:meth:`wait_steady`, 1 s)."""
         await self.action.set_takeoff_altitude(float(altitude_m))
         await self.action.arm()
         await self.action.takeoff()
         await self.wait_for("take-off", lambda: self.flight_mode == "TAKEOFF", 10.0)
         # Take-off ends in Hold (AUTO.LOITER): wait for it, so the service finds a pilot-chosen mode.
         await self.wait_for("Hold after take-off", lambda: self.flight_mode == "HOLD", timeout_s)
+        await self.wait_steady(1.0, timeout_s)
+
+    async def wait_steady(self, for_s: float, timeout_s: float = 30.0) -> None:
+        """Wait until the vehicle has been slower than 0.3 m/s for ``for_s`` seconds (PX4 SIH hovers
+        with a few cm/s of wander)."""
         steady_since: list[float] = []
 
         def steady() -> bool:
@@ -229,9 +234,9 @@ class Pilot:
                 return False
             if not steady_since:
                 steady_since.append(s.time_s)
-            return s.time_s - steady_since[0] >= 1.0
+            return s.time_s - steady_since[0] >= for_s
 
-        await self.wait_for("a steady hover after take-off", steady, timeout_s)
+        await self.wait_for("a steady hover", steady, timeout_s)
 
     async def hold(self) -> None:
         await self.action.hold()

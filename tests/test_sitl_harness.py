@@ -1,0 +1,63 @@
+"""The SITL harness's pure parts (CI has no PX4): where it finds PX4, the ports, the service's config."""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from pathlib import Path
+
+import pytest
+
+from companion.config import load_config, parse_config
+from companion.config.document import render_config_toml
+from companion.sim.courses import make_course
+from companion.sim.placement import CoursePlacement
+from companion.sitl.flight import sitl_config
+from companion.sitl.px4 import PX4_BUILD_ENV, Px4Ports, SitlError, find_px4_build
+
+
+def test_px4_build_is_found_from_the_argument_or_the_environment(tmp_path: Path) -> None:
+    assert find_px4_build(None, environ={}) is None
+    with pytest.raises(SitlError, match="not a PX4 SITL build folder"):
+        find_px4_build(None, environ={PX4_BUILD_ENV: str(tmp_path)})
+    (tmp_path / "bin").mkdir()
+    (tmp_path / "bin/px4").touch()
+    (tmp_path / "etc/init.d-posix").mkdir(parents=True)
+    (tmp_path / "etc/init.d-posix/rcS").touch()
+    assert find_px4_build(None, environ={PX4_BUILD_ENV: str(tmp_path)}) == tmp_path.resolve()
+    assert find_px4_build(tmp_path, environ={}) == tmp_path.resolve()
+
+
+def test_ports_follow_px4s_startup_script() -> None:
+    p = Px4Ports(3)
+    assert (p.api_port, p.system_id, p.service_url) == (14543, 4, "udpin://127.0.0.1:14543")
+    assert Px4Ports(0).pilot_url == "udpin://127.0.0.1:14550"
+
+
+def test_the_service_config_renders_the_course_from_telemetry_and_round_trips(tmp_path: Path) -> None:
+    user = parse_config({"command": {"cruise_speed_m_s": 0.8}, "service": {"autostart": True}})
+    placement = CoursePlacement((1.0, -2.0, -0.3), math.radians(30.0))
+    cfg = sitl_config(user, make_course("forest", 5), placement, "udpin://127.0.0.1:14541", tmp_path)
+    cam = cfg.camera
+    assert (cam.source, cam.sim_world, cam.sim_course, cam.sim_course_seed, cam.sim_pose) == ("sim", "course", "forest", 5, "telemetry")
+    assert (cam.sim_origin_north_m, cam.sim_origin_east_m, cam.sim_origin_down_m) == (1.0, -2.0, -0.3)
+    assert cam.sim_origin_yaw_deg == pytest.approx(30.0)
+    assert (cam.width_px, cam.height_px, cam.fps_hz) == (user.sim.eye_width_px, user.sim.eye_height_px, user.sim.camera_rate_hz)
+    assert cfg.vehicle.connection == "udpin://127.0.0.1:14541"
+    assert cfg.bus.control_endpoint == f"ipc://{tmp_path}/control.sock"
+    assert cfg.service.autostart is False  # engaged by the harness's request, as a user would
+    assert cfg.command.cruise_speed_m_s == 0.8  # the user's tuning flies
+    # What the harness writes for `companion run` loads back to the same config.
+    assert parse_config(tomllib.loads(render_config_toml(cfg, ["# test"]))) == cfg
+
+
+def test_sitl_cli_rejects_bad_arguments_with_one_line(capsys: pytest.CaptureFixture[str]) -> None:
+    from companion.cli import main
+
+    assert main(["sitl", "--course", "doorway", "--instance", "12"]) == 2
+    assert "--instance must be 0..9" in capsys.readouterr().err
+    assert main(["sitl", "--suite", "quick", "--plot", "x.png"]) == 2
+    assert "--plot goes with --course" in capsys.readouterr().err
+    assert main(["sitl", "--course", "nowhere"]) == 2
+    assert "unknown course" in capsys.readouterr().err
+    assert load_config(None).camera.sim_pose == "fixed"  # the default service is untouched
