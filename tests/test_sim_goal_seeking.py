@@ -109,3 +109,29 @@ def test_brake_offset_is_in_the_body_frame() -> None:
     # Heading east: 0.3 m further east is 0.3 m forward; 0.1 m south is 0.1 m to the right.
     off = brake_offset_body(np.array([9.9, 5.3, -1.5]), np.array([10.0, 5.0, -1.5]), math.pi / 2)
     np.testing.assert_allclose(off, (0.3, 0.1, 0.0), atol=1e-12)
+
+
+def test_line_offset_is_signed_toward_the_line() -> None:
+    from companion.core.command import line_offset_m
+
+    origin = np.array([0.0, 0.0, -1.5])
+    assert line_offset_m(np.array([5.0, -0.4, -1.5]), origin, 0.0) == pytest.approx(0.4)  # left of a north line
+    assert line_offset_m(np.array([5.0, 0.4, -1.5]), origin, 0.0) == pytest.approx(-0.4)
+    assert line_offset_m(np.array([0.3, 5.0, -1.5]), origin, math.pi / 2) == pytest.approx(0.3)  # facing east, north is left
+
+
+def test_line_hold_turns_toward_the_line_only_when_heading_hold_acts() -> None:
+    cmd = CommandConfig(heading_hold_gain_per_s=1.0, max_heading_hold_rate_deg_s=20.0, line_hold_gain_per_m=0.5,
+                        max_line_hold_angle_deg=30.0, hold_resume_delay_s=1.0)
+    # On the heading, 0.4 m left of the line: aim atan(0.2) = 11.3 deg to the right.
+    sp = setpoint_for(CLEAR, 0.1, cmd, heading_error_rad=0.0, line_offset_m=0.4, clear_for_s=5.0)
+    assert sp.yaw_rate_deg_s == pytest.approx(math.degrees(math.atan(0.2)))
+    far = setpoint_for(CLEAR, 0.1, cmd, heading_error_rad=0.0, line_offset_m=-50.0, clear_for_s=5.0)
+    assert far.yaw_rate_deg_s == pytest.approx(-20.0)  # at most 30 deg aimed, rate-limited to 20 deg/s
+    assert setpoint_for(CLEAR, 0.1, cmd, heading_error_rad=0.0, line_offset_m=0.4, clear_for_s=0.5).yaw_rate_deg_s == 0.0
+    off = CommandConfig(heading_hold_gain_per_s=1.0, line_hold_gain_per_m=0.0)
+    assert setpoint_for(CLEAR, 0.1, off, heading_error_rad=0.0, line_offset_m=0.4, clear_for_s=5.0).yaw_rate_deg_s == 0.0
+    # Toward a side seen blocked: nothing.
+    blocked = setpoint_for(CLEAR, 0.1, cmd, heading_error_rad=0.0, line_offset_m=0.4, clear_for_s=5.0,
+                           region_depths_m=_depths(right=0.5))
+    assert blocked.yaw_rate_deg_s == 0.0

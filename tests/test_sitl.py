@@ -71,14 +71,14 @@ def test_offboard_engages_and_px4_flies_the_setpoints(px4: Px4Sitl, tmp_path: Pa
     async def scenario() -> None:
         pilot, service, t_on = await _engaged(px4, tmp_path)
         try:
-            await asyncio.sleep(5.0)  # nothing within 3 m: straight ahead at the cruise speed
+            await asyncio.sleep(5.0)  # the box is 30 m ahead: forward at (up to) the cruise speed
             assert pilot.flight_mode == "OFFBOARD" and service.state == "engaged"
-            assert (service.health or {})["setpoint"]["forward_m_s"] == pytest.approx(cruise)
-            recent = [s for s in pilot.samples if s.time_s > t_on + 3.0]
-            speeds = [float(np.linalg.norm(s.velocity_ned_m_s[:2])) for s in recent]
-            # PX4 flies what it is sent. Its estimate, not the truth: SIH's EKF2 here reports 0.7-0.8 m/s
-            # while SIH's ground truth (in PX4's log) flies 0.8-1.2 m/s (docs/benchmarks.md).
-            assert 0.6 * cruise < np.median(speeds) < 1.25 * cruise
+            window = (t_on + 3.0, t_on + 5.0)
+            sent = [h["setpoint"]["forward_m_s"] for t, h in service.health_history if window[0] <= t <= window[1] and h.get("setpoint")]
+            flown = [float(np.linalg.norm(s.velocity_ned_m_s[:2])) for s in pilot.samples if window[0] <= s.time_s <= window[1]]
+            assert 0.5 * cruise <= np.median(sent) <= cruise
+            # PX4 flies what it is sent (its own velocity estimate, median over 2 s).
+            assert 0.6 * np.median(sent) < np.median(flown) < 1.25 * np.median(sent)
             await service.request({"cmd": "disengage"})
             await pilot.wait_for("Hold after disengage", lambda: pilot.flight_mode == "HOLD", 5.0)
         finally:

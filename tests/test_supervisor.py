@@ -628,6 +628,7 @@ def test_course_hold_steers_back_to_the_heading_at_engagement_when_enabled() -> 
         {
             "command": {
                 "heading_hold_gain_per_s": 1.0,
+                "line_hold_gain_per_m": 0.0,  # the heading alone here (line hold: test_sim_goal_seeking)
                 "altitude_hold_gain_per_s": 0.5,
                 "hold_resume_delay_s": 1.0,
                 "max_heading_hold_rate_deg_s": 20.0,
@@ -685,3 +686,22 @@ def test_brake_holds_the_position_where_it_began() -> None:
     assert h.step().setpoint.forward_m_s > 0.0  # clear again: on, and the latch is forgotten
     h.frame = Result(h.now, BRAKE)
     assert h.step().setpoint == ZERO_SETPOINT  # a new brake begins where the vehicle is now
+
+
+def test_line_hold_steers_back_to_the_engagement_line() -> None:
+    import numpy as np
+
+    from companion.config import parse_config
+
+    cfg = parse_config({"command": {"heading_hold_gain_per_s": 1.0, "line_hold_gain_per_m": 0.5, "hold_resume_delay_s": 0.0}})
+    # Engagement records the heading and position the vehicle has when OFFBOARD is confirmed.
+    h2 = Harness(SupervisorConfig.from_config(cfg))
+    h2.vehicle = replace(vehicle(), attitude_rad=np.array([0.0, 0.0, 0.0]), position_ned_m=np.array([0.0, 0.0, -1.5]))
+    h2.step(Engage())
+    h2.run(0.6)
+    h2.vehicle = replace(h2.vehicle, flight_mode="OFFBOARD", in_offboard=True)
+    assert h2.step().state is State.ENGAGED
+    # 5 m on, 0.4 m left of the line, still on the heading: turn right toward the line.
+    h2.vehicle = replace(h2.vehicle, position_ned_m=np.array([5.0, -0.4, -1.5]))
+    sp = h2.run(0.5)[-1].setpoint
+    assert sp.yaw_rate_deg_s == pytest.approx(math.degrees(math.atan(0.2)), rel=1e-6)

@@ -626,6 +626,20 @@ class CommandConfig(StrictModel):
     max_heading_hold_rate_deg_s: float = Field(
         default=20.0, ge=0.0, le=360.0, description="Course hold: largest yaw rate it commands, deg/s."
     )
+    line_hold_gain_per_m: float = Field(
+        default=0.5,
+        ge=0.0,
+        le=10.0,
+        description=(
+            "Course hold, line: also steer back to the line through the engagement point along the "
+            "engagement heading: the heading aimed at turns toward the line by atan(this × cross-track "
+            "distance), per metre (0 = off: hold the heading only, and drift sideways with the "
+            "autopilot's heading-estimate error)."
+        ),
+    )
+    max_line_hold_angle_deg: float = Field(
+        default=30.0, ge=0.0, le=89.0, description="Course hold, line: the largest turn toward the line, degrees."
+    )
     altitude_hold_gain_per_s: float = Field(
         default=0.5,
         ge=0.0,

@@ -44,12 +44,27 @@ def _side_open(region_depths_m: np.ndarray | None, side: str, clear_depth_m: flo
     return depth >= clear_depth_m  # False for NaN: unknown blocks
 
 
+def line_offset_m(position_ned_m: np.ndarray, origin_ned_m: np.ndarray, heading_rad: float) -> float:
+    """Signed distance of a position (float ``(3,)`` NED metres) from the horizontal line through
+    ``origin_ned_m`` along ``heading_rad``, metres: positive = the line lies to the right of the
+    position (the vehicle is left of it)."""
+    d = np.asarray(position_ned_m, dtype=np.float64) - np.asarray(origin_ned_m, dtype=np.float64)
+    right_of_line = -math.sin(heading_rad) * d[0] + math.cos(heading_rad) * d[1]
+    return float(-right_of_line)
+
+
 def _heading_hold_deg_s(
-    heading_error_rad: float | None, region_depths_m: np.ndarray | None, cmd: CommandConfig
+    heading_error_rad: float | None,
+    region_depths_m: np.ndarray | None,
+    cmd: CommandConfig,
+    line_offset: float | None = None,
 ) -> float:
     if heading_error_rad is None or cmd.heading_hold_gain_per_s == 0.0 or not math.isfinite(heading_error_rad):
         return 0.0
     err = (heading_error_rad + math.pi) % (2.0 * math.pi) - math.pi
+    if line_offset is not None and math.isfinite(line_offset) and cmd.line_hold_gain_per_m > 0.0:
+        limit = math.radians(cmd.max_line_hold_angle_deg)
+        err += min(limit, max(-limit, math.atan(cmd.line_hold_gain_per_m * line_offset)))
     rate = math.degrees(cmd.heading_hold_gain_per_s * err)
     rate = min(cmd.max_heading_hold_rate_deg_s, max(-cmd.max_heading_hold_rate_deg_s, rate))
     if rate != 0.0 and not _side_open(region_depths_m, "right" if rate > 0 else "left", cmd.hold_clear_depth_m):
@@ -97,6 +112,7 @@ def setpoint_for(
     region_depths_m: np.ndarray | None = None,
     clear_for_s: float | None = None,
     brake_offset_body_m: np.ndarray | None = None,
+    line_offset_m: float | None = None,
 ) -> VelocitySetpoint:
     """The setpoint to send for ``decision``, made ``since_last_frame_s`` seconds after its frame.
 
@@ -117,6 +133,9 @@ def setpoint_for(
     * ``heading_error_rad`` (heading at engagement minus heading now, radians, positive = the course
       lies to the right): adds ``clip(heading_hold_gain_per_s · error, ±max_heading_hold_rate_deg_s)``
       deg/s of yaw rate, scaled by ``1 - |yaw|``;
+    * ``line_offset_m`` (:func:`line_offset_m` of the vehicle from the line through the engagement
+      point along the engagement heading): with ``cmd.line_hold_gain_per_m`` > 0, the heading aimed at
+      turns toward the line by ``clip(atan(gain · offset), ±max_line_hold_angle_deg)``;
     * ``altitude_error_m`` (altitude at engagement minus altitude now, metres, positive = climb):
       adds ``clip(-altitude_hold_gain_per_s · error, ±max_altitude_hold_speed_m_s)`` m/s of down
       speed, scaled by ``1 - |pitch|``;
@@ -139,7 +158,7 @@ def setpoint_for(
     yaw_rate_deg_s = yaw * cmd.max_yaw_rate_deg_s
     down_m_s = 0.0 - pitch * cmd.max_vertical_speed_m_s
     if decision.kind is DecisionKind.CLEAR and (clear_for_s is None or clear_for_s >= cmd.hold_resume_delay_s):
-        yaw_rate_deg_s += (1.0 - abs(yaw)) * _heading_hold_deg_s(heading_error_rad, region_depths_m, cmd)
+        yaw_rate_deg_s += (1.0 - abs(yaw)) * _heading_hold_deg_s(heading_error_rad, region_depths_m, cmd, line_offset_m)
         down_m_s += (1.0 - abs(pitch)) * _altitude_hold_down_m_s(altitude_error_m, region_depths_m, cmd)
     return VelocitySetpoint(
         forward_m_s=cmd.cruise_speed_m_s * speed,

@@ -54,7 +54,7 @@ from typing import TYPE_CHECKING, Protocol, Union
 
 import numpy as np
 
-from companion.core.command import brake_offset_body, is_straight_clear, setpoint_for
+from companion.core.command import brake_offset_body, is_straight_clear, line_offset_m, setpoint_for
 from companion.core.types import ZERO_SETPOINT, Decision, DecisionKind, VelocitySetpoint
 
 if TYPE_CHECKING:
@@ -245,6 +245,7 @@ class _Memory:
     shutting_down: bool = False
     course_heading_rad: float | None = None  # heading at engagement (course hold), radians
     course_altitude_m: float | None = None  # altitude (-down) at engagement (course hold), metres
+    course_origin_ned_m: np.ndarray | None = None  # position at engagement (course hold, line), NED metres
     clear_since_s: float | None = None  # capture time since which the decisions are straight and CLEAR
     brake_at_ned_m: np.ndarray | None = None  # where the current brake began (brake position hold), NED metres
     actions: list[Action] = field(default_factory=list)
@@ -442,6 +443,10 @@ class Supervisor:
                 m.brake_at_ned_m = None
                 down = _finite_or_none(v.position_ned_m, 2)
                 m.course_altitude_m = None if down is None else -down
+                pos = v.position_ned_m
+                m.course_origin_ned_m = (
+                    np.asarray(pos, dtype=np.float64).copy() if pos is not None and np.all(np.isfinite(pos)) else None
+                )
                 self._set(State.ENGAGED, "engaged: avoiding obstacles")
         elif m.leaving is not None and v.in_offboard and m.leaving.start_sent_s is not None:
             m.owns_offboard = True  # the start we asked for took effect after all: ours to leave
@@ -660,6 +665,9 @@ class Supervisor:
         down_now = _finite_or_none(v.position_ned_m, 2)
         if m.course_altitude_m is not None and down_now is not None:
             altitude_error = m.course_altitude_m - (-down_now)  # positive: climb back
+        line_offset = None
+        if m.course_origin_ned_m is not None and m.course_heading_rad is not None and v.position_ned_m is not None:
+            line_offset = line_offset_m(v.position_ned_m, m.course_origin_ned_m, m.course_heading_rad)
         refined = getattr(latest, "refined", None)
         brake_offset = None
         pos = v.position_ned_m
@@ -680,6 +688,7 @@ class Supervisor:
             region_depths_m=getattr(refined, "depth_m", None),
             clear_for_s=None if m.clear_since_s is None else max(0.0, now_s - m.clear_since_s),
             brake_offset_body_m=brake_offset,
+            line_offset_m=line_offset,
         )
 
     def _override_setpoint(self, o: Override, latest: FrameOutcome | None) -> VelocitySetpoint:

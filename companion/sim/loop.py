@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from companion.config import CompanionConfig
-from companion.core.command import brake_offset_body, is_straight_clear, setpoint_for
+from companion.core.command import brake_offset_body, is_straight_clear, line_offset_m, setpoint_for
 from companion.core.pipeline import FrameResult, Pipeline
 from companion.core.render import TextureBank
 from companion.core.types import ZERO_SETPOINT, DecisionKind
@@ -357,6 +357,7 @@ def fly(
                 region_depths_m=latest.refined.depth_m if latest is not None else None,
                 clear_for_s=t - last_steer_s,
                 brake_offset_body_m=brake_offset,
+                line_offset_m=line_offset_m(m.position_ned_m, course.start.position_ned_m, heading_ref),
             )
             if vehicle.in_offboard:
                 vehicle.set_setpoint(sp)
