@@ -193,13 +193,13 @@ class _Telemetry:
 
 
 def test_telemetry_pose_is_placed_in_the_scene_and_stamped_with_its_arrival() -> None:
-    from companion.service.camera import telemetry_pose_provider
+    from companion.service.camera import TelemetryPose
     from companion.sim.placement import CoursePlacement
 
     now = [100.0]
     tel = _Telemetry()
     # The course origin at local (10, 5, -0.4), its north axis heading east (90 deg).
-    provide = telemetry_pose_provider(tel, CoursePlacement((10.0, 5.0, -0.4), math.pi / 2), 0.3, lambda: now[0])
+    provide = TelemetryPose(tel, CoursePlacement((10.0, 5.0, -0.4), math.pi / 2), 0.3, lambda: now[0])
     with pytest.raises(PoseUnavailable, match="no vehicle pose"):
         provide()
     # 2 m east of the origin in the local frame, 1.5 m above its ground, heading east (+ a little roll).
@@ -217,14 +217,14 @@ def test_telemetry_pose_is_placed_in_the_scene_and_stamped_with_its_arrival() ->
 
 
 def test_sim_camera_on_telemetry_waits_for_a_pose_then_reports_it_missing() -> None:
-    from companion.service.camera import telemetry_pose_provider
+    from companion.service.camera import TelemetryPose
     from companion.sim.placement import CoursePlacement
 
     cfg = parse_config(
         {"camera": {"fps_hz": 100.0, "width_px": 160, "height_px": 120, "sim_world": "course", "sim_course": "head-on", "sim_pose": "telemetry"}}
     )
     tel = _Telemetry()
-    provider = telemetry_pose_provider(tel, CoursePlacement(), 0.3, time.monotonic)
+    provider = TelemetryPose(tel, CoursePlacement(), 0.3, time.monotonic)
     cam = sim_camera_from_config(cfg, pose_provider=provider)
     cam.pose_wait_s = 0.1
     cam.open()

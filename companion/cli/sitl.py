@@ -65,7 +65,7 @@ def describe_sitl(flight: Any) -> list[str]:
 def run(args: argparse.Namespace) -> int:
     from companion.cli.sim import _check_plot_path, write_plot
     from companion.config import load_config
-    from companion.sim.courses import head_on_course, make_course
+    from companion.sim.courses import make_course
     from companion.sim.suite import suite_courses, suite_table
     from companion.sitl.flight import fly_courses
     from companion.sitl.px4 import Px4Ports, find_px4_build
@@ -76,7 +76,7 @@ def run(args: argparse.Namespace) -> int:
     if args.course is not None:
         if args.plot_dir is not None:
             raise InputError("--plot-dir goes with --suite; use --plot with --course")
-        courses = [head_on_course(args.seed) if args.course == "head-on" else make_course(args.course, args.seed)]
+        courses = [make_course(args.course, args.seed)]
     else:
         if args.plot is not None:
             raise InputError("--plot goes with --course; use --plot-dir with --suite")

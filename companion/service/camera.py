@@ -444,7 +444,7 @@ class SimCamera:
 
 
 class TelemetryPose:
-    """A pose provider that reads the vehicle link's telemetry: the newest local position and attitude,
+    """A pose provider that reads the vehicle link's telemetry (``state``: a vehicle link's ``state``): the newest local position and attitude,
     placed in the scene by :attr:`placement`, stamped with the time the position arrived.
 
     ``placement`` may be replaced at any time (the daemon does it on a live config change); a read uses
@@ -474,23 +474,15 @@ class TelemetryPose:
         return self.placement.pose_in_course(v.position_ned_m, v.attitude_rad), v.position_timestamp_s
 
 
-def telemetry_pose_provider(
-    state: Callable[[], VehicleState], placement: CoursePlacement, max_age_s: float, clock: Clock
-) -> TelemetryPose:
-    """The :class:`TelemetryPose` over ``state`` (a vehicle link's ``state`` method)."""
-    return TelemetryPose(state, placement, max_age_s, clock)
-
-
 def sim_scene_from_config(cfg: CompanionConfig) -> Scene:
     """The scene ``cfg.camera`` names: the corridor, or a course of the simulator's library."""
     from companion.core.render import corridor_scene
 
     cam = cfg.camera
     if cam.sim_world == "course":
-        from companion.sim.courses import head_on_course, make_course
+        from companion.sim.courses import make_course
 
-        course = head_on_course(cam.sim_course_seed) if cam.sim_course == "head-on" else make_course(cam.sim_course, cam.sim_course_seed)
-        return course.scene
+        return make_course(cam.sim_course, cam.sim_course_seed).scene
     return corridor_scene(n_obstacles=cam.sim_obstacles, seed=cam.sim_scene_seed)
 
 

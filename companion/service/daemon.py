@@ -327,14 +327,10 @@ class Service:
                 raise StartupError(str(err)) from None
         self._spawn(self._vehicle_connector(), "vehicle connector")
         if self._camera is None:
-            from companion.service.camera import (
-                make_camera,
-                placement_from_config,
-                telemetry_pose_provider,
-            )
+            from companion.service.camera import TelemetryPose, make_camera, placement_from_config
 
             if cfg.camera.source == "sim" and cfg.camera.sim_pose == "telemetry":
-                self._telemetry_pose = telemetry_pose_provider(
+                self._telemetry_pose = TelemetryPose(
                     self.link.state, placement_from_config(cfg), cfg.camera.sim_pose_max_age_s, self._clock
                 )
             self._camera = make_camera(cfg, pose_provider=self._telemetry_pose, clock=self._clock)

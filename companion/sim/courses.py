@@ -280,15 +280,18 @@ MAX_SEED = 2**31 - 1
 
 
 def make_course(kind: str, seed: int) -> Course:
-    """The course of ``kind`` (one of :data:`COURSE_KINDS`) for ``seed`` (0 .. 2**31 - 1).
+    """The course of ``kind`` (one of :data:`COURSE_KINDS`, or ``head-on``: :func:`head_on_course`) for
+    ``seed`` (0 .. 2**31 - 1).
 
     Raises:
         InputError: unknown kind or a seed out of range.
     """
-    if kind not in _BUILDERS:
-        raise InputError(f"unknown course {kind!r}; courses are {', '.join(COURSE_KINDS)}")
+    if kind not in _BUILDERS and kind != "head-on":
+        raise InputError(f"unknown course {kind!r}; courses are {', '.join(COURSE_KINDS)}, head-on")
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not 0 <= int(seed) <= MAX_SEED:
         raise InputError(f"bad seed {seed!r}: expected an integer in 0..{MAX_SEED}")
+    if kind == "head-on":
+        return head_on_course(int(seed))
     return _BUILDERS[kind](int(seed))
 
 

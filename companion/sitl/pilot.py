@@ -187,15 +187,25 @@ class Pilot:
 
     # ------------------------------------------------------------------ commands
 
+    async def _do(self, what: str, call: Callable[[], Any]) -> Any:
+        """Await one MAVSDK request; its refusal becomes a SitlError naming ``what``."""
+        from mavsdk.asyncio.plugins.action import ActionError
+        from mavsdk.asyncio.plugins.param import ParamError
+
+        try:
+            return await call()
+        except (ActionError, ParamError) as err:
+            raise SitlError(f"PX4 refused {what}: {err} (mode {self.flight_mode}, armed {self.armed})") from None
+
     async def set_params(self, params: dict[str, float | int]) -> None:
         """Set PX4 parameters (ints as INT32, floats as FLOAT) and read each back."""
         for name, value in params.items():
             if isinstance(value, int):
-                await self.param.set_param_int(name, value)
-                got: float = await self.param.get_param_int(name)
+                await self._do(f"setting {name}", lambda: self.param.set_param_int(name, value))
+                got: float = await self._do(f"reading {name}", lambda: self.param.get_param_int(name))
             else:
-                await self.param.set_param_float(name, float(value))
-                got = await self.param.get_param_float(name)
+                await self._do(f"setting {name}", lambda: self.param.set_param_float(name, float(value)))
+                got = await self._do(f"reading {name}", lambda: self.param.get_param_float(name))
             if not math.isclose(float(got), float(value), rel_tol=1e-6, abs_tol=1e-6):
                 raise SitlError(f"PX4 parameter {name}: set {value}, reads back {got}")
             log.info("PX4 parameter %s = %s", name, value)
@@ -207,16 +217,16 @@ class Pilot:
         if self.in_air or self.armed:
             await self.land(timeout_s)
         if self.flight_mode not in ("HOLD", "POSCTL", "ALTCTL", "MANUAL", "STABILIZED"):
-            await self.action.hold()
+            await self._do("Hold", self.action.hold)
             await self.wait_for("Hold on the ground", lambda: self.flight_mode == "HOLD", 10.0)
         await self.wait_for("ready to arm (health checks)", lambda: self.armable, timeout_s)
 
     async def take_off(self, altitude_m: float, timeout_s: float = 30.0) -> None:
         """Arm, take off to ``altitude_m`` above the take-off point, and wait until PX4 has finished
         the take-off (it switches to Hold) and the vehicle is steady (:meth:`wait_steady`, 1 s)."""
-        await self.action.set_takeoff_altitude(float(altitude_m))
-        await self.action.arm()
-        await self.action.takeoff()
+        await self._do("the take-off altitude", lambda: self.action.set_takeoff_altitude(float(altitude_m)))
+        await self._do("arming", self.action.arm)
+        await self._do("take-off", self.action.takeoff)
         await self.wait_for("take-off", lambda: self.flight_mode == "TAKEOFF", 10.0)
         # Take-off ends in Hold (AUTO.LOITER): wait for it, so the service finds a pilot-chosen mode.
         await self.wait_for("Hold after take-off", lambda: self.flight_mode == "HOLD", timeout_s)
@@ -239,13 +249,13 @@ class Pilot:
         await self.wait_for("a steady hover", steady, timeout_s)
 
     async def hold(self) -> None:
-        await self.action.hold()
+        await self._do("Hold", self.action.hold)
 
     async def land(self, timeout_s: float = 60.0) -> None:
         """Land where it is and wait until disarmed (PX4 disarms after landing)."""
         if self.armed and self.in_air:
             for attempt in range(3):
-                await self.action.land()
+                await self._do("Land", self.action.land)
                 try:
                     await self.wait_for("Land mode", lambda: self.flight_mode == "LAND" or not self.armed, 3.0)
                     break
@@ -254,7 +264,7 @@ class Pilot:
                     log.warning("PX4 did not enter Land (mode %s); asking again", self.flight_mode)
             await self.wait_for("landed and disarmed", lambda: not self.armed, timeout_s)
         elif self.armed:
-            await self.action.disarm()
+            await self._do("disarming", self.action.disarm)
             await self.wait_for("disarmed", lambda: not self.armed, 10.0)
 
     async def close(self) -> None:
