@@ -61,3 +61,13 @@ def test_sitl_cli_rejects_bad_arguments_with_one_line(capsys: pytest.CaptureFixt
     assert main(["sitl", "--course", "nowhere"]) == 2
     assert "unknown course" in capsys.readouterr().err
     assert load_config(None).camera.sim_pose == "fixed"  # the default service is untouched
+
+
+def test_placement_fields_are_the_inverse_of_placement_from_config() -> None:
+    from companion.service.camera import placement_fields, placement_from_config
+
+    placement = CoursePlacement((1.5, -2.0, -0.3), math.radians(-120.0))
+    cfg = parse_config({"camera": placement_fields(placement)})
+    back = placement_from_config(cfg)
+    assert back.origin_ned_m == placement.origin_ned_m
+    assert back.yaw_rad == pytest.approx(placement.yaw_rad)

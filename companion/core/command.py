@@ -92,6 +92,30 @@ def brake_offset_body(position_ned_m: np.ndarray, brake_at_ned_m: np.ndarray, ya
     return np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1], d[2]])
 
 
+class BrakeLatch:
+    """Where the current brake began (brake position hold): latched at the first BRAKE decision,
+    forgotten on any other decision or without a position and heading."""
+
+    def __init__(self) -> None:
+        self.at_ned_m: np.ndarray | None = None
+
+    def reset(self) -> None:
+        self.at_ned_m = None
+
+    def offset_body(
+        self, decision: Decision | None, position_ned_m: np.ndarray | None, yaw_rad: float | None
+    ) -> np.ndarray | None:
+        """The ``brake_offset_body_m`` for :func:`setpoint_for` (float ``(3,)`` metres, body frame),
+        or None when not braking."""
+        if decision is None or decision.kind is not DecisionKind.BRAKE or position_ned_m is None or yaw_rad is None:
+            self.at_ned_m = None
+            return None
+        pos = np.asarray(position_ned_m, dtype=np.float64)
+        if self.at_ned_m is None:
+            self.at_ned_m = pos.copy()
+        return brake_offset_body(pos, self.at_ned_m, yaw_rad)
+
+
 def _brake_hold(offset_body_m: np.ndarray | None, cmd: CommandConfig) -> VelocitySetpoint:
     if offset_body_m is None or cmd.brake_hold_gain_per_s == 0.0:
         return ZERO_SETPOINT

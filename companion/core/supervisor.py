@@ -54,7 +54,7 @@ from typing import TYPE_CHECKING, Protocol, Union
 
 import numpy as np
 
-from companion.core.command import brake_offset_body, is_straight_clear, line_offset_m, setpoint_for
+from companion.core.command import BrakeLatch, is_straight_clear, line_offset_m, setpoint_for
 from companion.core.types import ZERO_SETPOINT, Decision, DecisionKind, VelocitySetpoint
 
 if TYPE_CHECKING:
@@ -247,7 +247,7 @@ class _Memory:
     course_altitude_m: float | None = None  # altitude (-down) at engagement (course hold), metres
     course_origin_ned_m: np.ndarray | None = None  # position at engagement (course hold, line), NED metres
     clear_since_s: float | None = None  # capture time since which the decisions are straight and CLEAR
-    brake_at_ned_m: np.ndarray | None = None  # where the current brake began (brake position hold), NED metres
+    brake: BrakeLatch = field(default_factory=BrakeLatch)  # where the current brake began (brake position hold)
     actions: list[Action] = field(default_factory=list)
 
 
@@ -440,7 +440,7 @@ class Supervisor:
                 m.activity = State.ENGAGED
                 # Course hold (when its gains are set) steers back to the heading and altitude of now.
                 m.course_heading_rad = _finite_or_none(v.attitude_rad, 2)
-                m.brake_at_ned_m = None
+                m.brake.reset()
                 down = _finite_or_none(v.position_ned_m, 2)
                 m.course_altitude_m = None if down is None else -down
                 pos = v.position_ned_m
@@ -669,16 +669,7 @@ class Supervisor:
         if m.course_origin_ned_m is not None and m.course_heading_rad is not None and v.position_ned_m is not None:
             line_offset = line_offset_m(v.position_ned_m, m.course_origin_ned_m, m.course_heading_rad)
         refined = getattr(latest, "refined", None)
-        brake_offset = None
-        pos = v.position_ned_m
-        braking = latest.decision.kind is DecisionKind.BRAKE and pos is not None and heading_now is not None
-        if not braking:
-            m.brake_at_ned_m = None
-        else:
-            pos = np.asarray(pos, dtype=np.float64)
-            if m.brake_at_ned_m is None:
-                m.brake_at_ned_m = pos.copy()
-            brake_offset = brake_offset_body(pos, m.brake_at_ned_m, heading_now)
+        brake_offset = m.brake.offset_body(latest.decision, v.position_ned_m, heading_now)
         return setpoint_for(
             latest.decision,
             age_s,

@@ -494,6 +494,17 @@ def placement_from_config(cfg: CompanionConfig) -> CoursePlacement:
     )
 
 
+def placement_fields(placement: CoursePlacement) -> dict[str, float]:
+    """``camera.sim_origin_*`` for ``placement`` (the inverse of :func:`placement_from_config`)."""
+    n, e, d = placement.origin_ned_m
+    return {
+        "sim_origin_north_m": n,
+        "sim_origin_east_m": e,
+        "sim_origin_down_m": d,
+        "sim_origin_yaw_deg": math.degrees(placement.yaw_rad),
+    }
+
+
 def sim_camera_from_config(
     cfg: CompanionConfig, pose_provider: PoseProvider | None = None, clock: Clock = time.monotonic
 ) -> SimCamera:

@@ -36,6 +36,7 @@ import numpy as np
 from companion.core.types import VelocitySetpoint
 from companion.errors import VehicleError
 from companion.interfaces import VehicleState
+from companion.service.aio import cancel_and_wait, logged
 
 log = logging.getLogger(__name__)
 _mavsdk_log = logging.getLogger("companion.service.vehicle.mavsdk")
@@ -117,24 +118,16 @@ class MavsdkVehicleLink:
         self._action = ActionAsync(system)
         self._state = replace(self._state, connected=True, timestamp_s=self._clock())
         loop = asyncio.get_running_loop()
+        # A telemetry stream failing must not take the service down (logged, not raised): the state
+        # keeps its last values and `connected` tells the truth through the connection stream.
         self._tasks = [
-            loop.create_task(self._watch(self._watch_connection(system), "connection")),
-            loop.create_task(self._watch(self._watch_flight_mode(), "flight mode")),
-            loop.create_task(self._watch(self._watch_armed(), "armed")),
-            loop.create_task(self._watch(self._watch_position(), "position")),
-            loop.create_task(self._watch(self._watch_attitude(), "attitude")),
+            loop.create_task(logged(self._watch_connection(system), "MAVSDK connection subscription", log)),
+            loop.create_task(logged(self._watch_flight_mode(), "MAVSDK flight mode subscription", log)),
+            loop.create_task(logged(self._watch_armed(), "MAVSDK armed subscription", log)),
+            loop.create_task(logged(self._watch_position(), "MAVSDK position subscription", log)),
+            loop.create_task(logged(self._watch_attitude(), "MAVSDK attitude subscription", log)),
         ]
         log.info("autopilot found on %s (system id %d)", self.connection, await system.get_system_id())
-
-    async def _watch(self, coro: Any, what: str) -> None:
-        try:
-            await coro
-        except asyncio.CancelledError:
-            raise
-        except Exception:
-            # A telemetry stream failing must not take the service down; the state keeps its last
-            # values and `connected` tells the truth through the connection stream.
-            log.exception("MAVSDK %s subscription failed", what)
 
     def _update(self, **changes: Any) -> None:
         self._state = replace(self._state, timestamp_s=self._clock(), **changes)
@@ -186,7 +179,11 @@ class MavsdkVehicleLink:
 
     async def send_setpoint(self, setpoint: VelocitySetpoint) -> None:
         """Hand one body-frame velocity setpoint to MAVSDK (sent now, and re-sent by MAVSDK at 20 Hz)."""
-        from mavsdk.asyncio.plugins.offboard import OffboardAsync, OffboardError, VelocityBodyYawspeed
+        from mavsdk.asyncio.plugins.offboard import (
+            OffboardAsync,
+            OffboardError,
+            VelocityBodyYawspeed,
+        )
 
         system = self._require_system("send_setpoint")
         values = (setpoint.forward_m_s, setpoint.right_m_s, setpoint.down_m_s, setpoint.yaw_rate_deg_s)
@@ -232,13 +229,7 @@ class MavsdkVehicleLink:
         if self._closed:
             return
         self._closed = True
-        for task in self._tasks:
-            task.cancel()
-        for task in self._tasks:
-            try:
-                await task
-            except asyncio.CancelledError:
-                pass
+        await cancel_and_wait(self._tasks)
         self._tasks = []
         await self.stop_setpoints()
         for plugin in (self._telemetry, self._action):

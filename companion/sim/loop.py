@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from companion.config import CompanionConfig
-from companion.core.command import brake_offset_body, is_straight_clear, line_offset_m, setpoint_for
+from companion.core.command import BrakeLatch, is_straight_clear, line_offset_m, setpoint_for
 from companion.core.pipeline import FrameResult, Pipeline
 from companion.core.render import TextureBank
 from companion.core.types import ZERO_SETPOINT, DecisionKind
@@ -284,7 +284,7 @@ def fly(
     camera_ok = True
     n_cam = n_sp = 0
     last_steer_s = -math.inf
-    brake_at: np.ndarray | None = None  # where the current brake began (brake position hold)
+    brake = BrakeLatch()  # where the current brake began (brake position hold)
     judge = Judge(course, radius, sim.held_speed_m_s, sim.held_after_s, vehicle.model.position_ned_m)
     sp = ZERO_SETPOINT
     kind = LogKind.NONE
@@ -341,13 +341,6 @@ def fly(
             if not is_straight_clear(decision):
                 last_steer_s = t
             m = vehicle.model
-            brake_offset = None
-            if decision is not None and decision.kind is DecisionKind.BRAKE:
-                if brake_at is None:
-                    brake_at = m.position_ned_m.copy()
-                brake_offset = brake_offset_body(m.position_ned_m, brake_at, m.yaw_rad)
-            else:
-                brake_at = None
             sp = setpoint_for(
                 decision,
                 age if latest is not None else math.inf,
@@ -356,7 +349,7 @@ def fly(
                 altitude_error_m=altitude_ref - m.altitude_m,
                 region_depths_m=latest.refined.depth_m if latest is not None else None,
                 clear_for_s=t - last_steer_s,
-                brake_offset_body_m=brake_offset,
+                brake_offset_body_m=brake.offset_body(decision, m.position_ned_m, m.yaw_rad),
                 line_offset_m=line_offset_m(m.position_ned_m, course.start.position_ned_m, heading_ref),
             )
             if vehicle.in_offboard:

@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 
 from companion.config import CompanionConfig
+from companion.service.camera import placement_fields
 from companion.sim.courses import Course
 from companion.sim.loop import (
     FlightLog,
@@ -100,7 +101,6 @@ def sitl_config(cfg: CompanionConfig, course: Course, placement: CoursePlacement
     rendered rig is ideal)."""
     cfg = simulator_config(cfg)
     sim = cfg.sim
-    n, e, d = placement.origin_ned_m
     camera = cfg.camera.model_copy(
         update={
             "source": "sim",
@@ -111,10 +111,7 @@ def sitl_config(cfg: CompanionConfig, course: Course, placement: CoursePlacement
             "sim_course": course.kind,
             "sim_course_seed": course.seed,
             "sim_pose": "telemetry",
-            "sim_origin_north_m": n,
-            "sim_origin_east_m": e,
-            "sim_origin_down_m": d,
-            "sim_origin_yaw_deg": math.degrees(placement.yaw_rad),
+            **placement_fields(placement),
             "sim_noise_grey": sim.noise_std_grey,
         }
     )
@@ -227,14 +224,7 @@ async def start_and_place(service: ServiceProcess, pilot: Pilot, course: Course)
     await service.start()
     await pilot.wait_steady(1.0)
     placement = placement_at(pilot, course)
-    n, e, d = placement.origin_ned_m
-    origin = {
-        "sim_origin_north_m": n,
-        "sim_origin_east_m": e,
-        "sim_origin_down_m": d,
-        "sim_origin_yaw_deg": math.degrees(placement.yaw_rad),
-    }
-    await service.request({"cmd": "set_config", "patch": {"camera": origin}})
+    await service.request({"cmd": "set_config", "patch": {"camera": placement_fields(placement)}})
     return placement
 
 

@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from companion.service.aio import cancel_and_wait, logged
 from companion.sitl.px4 import SitlError
 
 log = logging.getLogger(__name__)
@@ -100,22 +101,14 @@ class Pilot:
         self.param = ParamAsync(self._system)
         loop = asyncio.get_running_loop()
         self._tasks = [
-            loop.create_task(self._watch(self._watch_mode())),
-            loop.create_task(self._watch(self._watch_armed())),
-            loop.create_task(self._watch(self._watch_in_air())),
-            loop.create_task(self._watch(self._watch_health())),
-            loop.create_task(self._watch(self._watch_attitude())),
-            loop.create_task(self._watch(self._watch_rates())),
-            loop.create_task(self._watch(self._watch_position())),
+            loop.create_task(logged(self._watch_mode(), "pilot: the mode subscription", log)),
+            loop.create_task(logged(self._watch_armed(), "pilot: the armed subscription", log)),
+            loop.create_task(logged(self._watch_in_air(), "pilot: the in air subscription", log)),
+            loop.create_task(logged(self._watch_health(), "pilot: the health subscription", log)),
+            loop.create_task(logged(self._watch_attitude(), "pilot: the attitude subscription", log)),
+            loop.create_task(logged(self._watch_rates(), "pilot: the rates subscription", log)),
+            loop.create_task(logged(self._watch_position(), "pilot: the position subscription", log)),
         ]
-
-    async def _watch(self, coro: Any) -> None:
-        try:
-            await coro
-        except asyncio.CancelledError:
-            raise
-        except Exception:
-            log.exception("pilot: a telemetry subscription failed")
 
     async def _watch_mode(self) -> None:
         async for mode in self.telemetry.subscribe_flight_mode():
@@ -268,13 +261,7 @@ class Pilot:
             await self.wait_for("disarmed", lambda: not self.armed, 10.0)
 
     async def close(self) -> None:
-        for task in self._tasks:
-            task.cancel()
-        for task in self._tasks:
-            try:
-                await task
-            except asyncio.CancelledError:
-                pass
+        await cancel_and_wait(self._tasks)
         self._tasks = []
         for plugin in (self.action, self.telemetry, self.param):
             if plugin is not None:

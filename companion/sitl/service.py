@@ -22,6 +22,7 @@ from typing import Any
 
 from companion.config import CompanionConfig
 from companion.config.document import render_config_toml
+from companion.service.aio import cancel_and_wait
 from companion.sitl.px4 import SitlError
 
 log = logging.getLogger(__name__)
@@ -174,11 +175,7 @@ class ServiceProcess:
                     proc.wait()
             code = proc.returncode
         if self._task is not None:
-            self._task.cancel()
-            try:
-                await self._task
-            except asyncio.CancelledError:
-                pass
+            await cancel_and_wait([self._task])
             self._task = None
         if self._sub is not None:
             self._sub.close(0)
