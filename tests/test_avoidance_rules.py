@@ -46,7 +46,9 @@ def test_rule1_centre_far_flies_straight(ctl: AvoidanceController, others: dict[
     d = ctl.decide(depths(**{**others, "center": FAR}))  # type: ignore[arg-type]
     assert d.kind is DecisionKind.CLEAR
     assert d.yaw == pytest.approx(0.0, abs=1e-9) and d.pitch == pytest.approx(0.0, abs=1e-9)
-    assert d.speed_fraction == 1.0
+    # Full speed unless a speed region (by default the sides) is near.
+    sides_near = any(others.get(k, others.get("default", FAR)) < 2.25 for k in CMD.avoid_speed_regions)
+    assert d.speed_fraction == pytest.approx(CMD.avoid_speed_fraction if sides_near else 1.0)
     assert "R1" in d.rule_strengths
 
 
@@ -127,7 +129,7 @@ def test_centre_blocked_without_escape_brakes(ctl: AvoidanceController) -> None:
 
 
 def test_centre_slightly_near_without_escape_goes_straight_slower() -> None:
-    ctl = AvoidanceController(ControllerConfig(), CommandConfig(avoid_speed_fraction=0.5))
+    ctl = AvoidanceController(ControllerConfig(), CommandConfig(avoid_speed_fraction=0.5, avoid_speed_regions=[]))
     d = ctl.decide(depths(default=NEAR, center=1.95))  # near 0.2 < brake_near_degree 0.5
     assert d.kind is DecisionKind.AVOID  # not CLEAR: CLEAR means the centre is far (see module doc)
     assert d.yaw == pytest.approx(0.0, abs=1e-9) and d.pitch == pytest.approx(0.0, abs=1e-9)
@@ -139,6 +141,22 @@ def test_speed_fraction_blends_with_centre_near_degree() -> None:
     assert ctl.decide(depths(center=NEAR)).speed_fraction == pytest.approx(0.4)
     assert ctl.decide(depths(center=1.5)).speed_fraction == pytest.approx(0.7)
     assert ctl.decide(depths()).speed_fraction == 1.0
+
+
+def test_a_near_side_slows_the_vehicle_like_a_near_centre() -> None:
+    # With the sides listed, a box passing beside the vehicle (centre clear, left at 1.5 m: near degree
+    # 0.5) slows it as much as the same box ahead would.
+    sides = AvoidanceController(
+        ControllerConfig(), CommandConfig(avoid_speed_fraction=0.4, avoid_speed_regions=["left", "right"])
+    )
+    d = sides.decide(depths(left=1.5))
+    assert d.kind is DecisionKind.CLEAR and d.yaw > 0.0  # steers away (side rule S1)
+    assert d.speed_fraction == pytest.approx(0.7)
+    assert sides.decide(depths(right=NEAR)).speed_fraction == pytest.approx(0.4)
+    assert sides.decide(depths(up=NEAR)).speed_fraction == 1.0  # not listed
+    # The default (and the paper's): the centre only.
+    centre_only = AvoidanceController(ControllerConfig(), CommandConfig(avoid_speed_fraction=0.4))
+    assert centre_only.decide(depths(left=1.5)).speed_fraction == 1.0
 
 
 # --------------------------------------------------------------------------------------------------

@@ -59,6 +59,7 @@ def test_every_field_has_a_description() -> None:
         ({"nope": {}}, "nope"),
         ({"regions": {"robust_percentile_pct": -1}}, "regions.robust_percentile_pct"),
         ({"lut": {"points_m": [[1.0, 1.0], [0.5, 2.0]]}}, "lut.points_m"),
+        ({"lut": {"median_frames": 2}}, "median_frames must be odd"),
         ({"command": {"stale_frame_timeout_s": 6.0}}, "failsafe_timeout_s"),
         ({"controller": {"main_rules": [{"name": "x", "when": "centre is far", "then": {"yaw": "left"}}]}}, "centre"),
         ({"controller": {"main_rules": [{"name": "x", "when": "center is far", "then": {"yaw": "up"}}]}}, "'up'"),
@@ -103,3 +104,12 @@ def test_load_config_errors_name_the_file(tmp_path: Path) -> None:
 def test_parse_config_rejects_unknown_top_level_keys() -> None:
     with pytest.raises(ConfigError, match="typo_section: unknown key"):
         parse_config({"stereo": {}, "typo_section": {}})
+
+
+def test_region_name_type_lists_the_regions_in_order() -> None:
+    from typing import get_args
+
+    from companion.config.core import RegionName
+    from companion.core.types import REGION_NAMES
+
+    assert get_args(RegionName) == REGION_NAMES

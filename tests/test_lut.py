@@ -123,3 +123,45 @@ def test_release_filter_property(prev: list[float], new: list[float], dt: float,
     assert (o >= lower).all()
     approach = ~(nk > pk)
     np.testing.assert_array_equal(o[approach], nk[approach])
+
+
+# --------------------------------------------------------------------------------------------------
+# Median filter
+
+
+def test_median_filter_outvotes_a_reading_that_lasts_one_frame() -> None:
+    from companion.core.lut import median_filter
+
+    far, near = np.full(3, 6.0), np.full(3, 0.4)
+    # A phantom (one near frame in open space) is outvoted; so is a one-frame drop-out to far.
+    np.testing.assert_array_equal(median_filter([far, far], near, 3), far)
+    np.testing.assert_array_equal(median_filter([near, near], far, 3), near)
+    # An obstacle that stays counts from its second frame, at the nearer of the two readings' median.
+    np.testing.assert_array_equal(median_filter([far, near], np.full(3, 0.35), 3), near)
+    # Only the newest frames - 1 history frames count.
+    np.testing.assert_array_equal(median_filter([near, near, far, far], near, 3), far)
+
+
+def test_median_filter_never_delays_unknown_and_counts_unknown_history_as_near() -> None:
+    from companion.core.lut import median_filter
+
+    far = np.array([6.0, 6.0])
+    new = np.array([np.nan, 6.0])
+    out = median_filter([far, far], new, 3)
+    assert np.isnan(out[0]) and out[1] == 6.0
+    unknown = np.array([np.nan, np.nan])
+    # Two unknown (near) frames before: a far reading is still outvoted.
+    np.testing.assert_array_equal(median_filter([unknown, unknown], far, 3), [0.0, 0.0])
+
+
+def test_median_filter_start_up_and_off() -> None:
+    from companion.core.lut import median_filter
+
+    new = np.array([1.0, 2.0])
+    np.testing.assert_array_equal(median_filter([], new, 3), new)
+    np.testing.assert_array_equal(median_filter([np.array([9.0, 9.0])], new, 3), new)  # not enough history yet
+    np.testing.assert_array_equal(median_filter([np.array([9.0, 9.0])] * 4, new, 1), new)  # 1 = off
+    with pytest.raises(ValueError, match="odd"):
+        median_filter([], new, 2)
+    with pytest.raises(ValueError, match="shape"):
+        median_filter([np.zeros(3), np.zeros(3)], new, 3)

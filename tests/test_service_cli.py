@@ -11,6 +11,7 @@ from peers.fakes import FakeLink, ServiceRunner, avoid_scene_camera, service_con
 
 from companion.bench import BenchSize
 from companion.cli import main
+from companion.config import CompanionConfig
 from companion.errors import InputError
 from companion.service.client import parse_assignments, render_health
 from companion.service.daemon import Service
@@ -36,7 +37,7 @@ def test_ctl_commands(service: Service, capsys) -> None:
     assert main(_ctl(service, "status")) == 0
     assert json.loads(capsys.readouterr().out)["state"] == "passive"
     assert main(_ctl(service, "get", "command")) == 0
-    assert json.loads(capsys.readouterr().out)["config"]["cruise_speed_m_s"] == 1.0
+    assert json.loads(capsys.readouterr().out)["config"]["cruise_speed_m_s"] == CompanionConfig().command.cruise_speed_m_s
     assert main(_ctl(service, "set", "command.cruise_speed_m_s=1.25", "controller.preferred_yaw_side=left")) == 0
     assert json.loads(capsys.readouterr().out)["changed"] == ["controller", "command"]
     assert main(_ctl(service, "set", "command.cruise_speed_m_s=-2")) == 2

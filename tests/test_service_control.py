@@ -172,13 +172,14 @@ def test_engage_refused_says_why(tmp_path: Path) -> None:
 def test_set_config_live_restart_and_invalid(running) -> None:
     service, link, client, cfg = running
     _engage(client, link)
-    forward = link.sent[-1].setpoint.forward_m_s  # cruise_speed_m_s (1.0) x the decision's speed fraction
+    forward = link.sent[-1].setpoint.forward_m_s  # cruise_speed_m_s x the decision's speed fraction
     assert forward > 0
     reply = client.call("set_config", patch={"command": {"cruise_speed_m_s": 0.5}, "camera": {"fps_hz": 10.0}})
     assert reply["ok"], reply
     assert reply["result"]["changed"] == ["command"]
     assert reply["result"]["restart_required"] == ["camera.fps_hz"]
-    assert wait_until(lambda: link.sent[-1].setpoint.forward_m_s == pytest.approx(0.5 * forward), 1.0)
+    scale = 0.5 / cfg.command.cruise_speed_m_s
+    assert wait_until(lambda: link.sent[-1].setpoint.forward_m_s == pytest.approx(scale * forward), 1.0)
     got = client.call("get_config", section="camera")["result"]["config"]
     assert got["fps_hz"] == 15.0  # not applied until a restart
     version = client.call("status")["result"]["config_version"]

@@ -135,3 +135,97 @@ def test_line_hold_turns_toward_the_line_only_when_heading_hold_acts() -> None:
     blocked = setpoint_for(CLEAR, 0.1, cmd, heading_error_rad=0.0, line_offset_m=0.4, clear_for_s=5.0,
                            region_depths_m=_depths(right=0.5))
     assert blocked.yaw_rate_deg_s == 0.0
+
+
+def test_brake_heading_hold_turns_back_to_the_heading_the_brake_began_with() -> None:
+    from companion.core.command import BrakeLatch
+
+    cmd = CommandConfig(brake_hold_gain_per_s=1.0, max_heading_hold_rate_deg_s=20.0)
+    latch = BrakeLatch()
+    pos = np.array([4.0, 0.0, -1.5])
+    latch.offset_body(BRAKE, pos, 0.5)  # the brake begins facing 0.5 rad
+    # PX4 keeps turning left after the zero yaw rate: 0.2 rad later, turn right back.
+    offset = latch.offset_body(BRAKE, pos, 0.3)
+    err = latch.heading_error_rad(0.3)
+    assert err == pytest.approx(0.2)
+    sp = setpoint_for(BRAKE, 0.1, cmd, brake_offset_body_m=offset, brake_heading_error_rad=err)
+    assert sp.yaw_rate_deg_s == pytest.approx(math.degrees(0.2))
+    assert (sp.forward_m_s, sp.right_m_s, sp.down_m_s) == pytest.approx((0.0, 0.0, 0.0))
+    big = setpoint_for(BRAKE, 0.1, cmd, brake_heading_error_rad=-1.0)
+    assert big.yaw_rate_deg_s == pytest.approx(-20.0)  # capped at max_heading_hold_rate_deg_s
+    # Across +-pi the shorter way round.
+    latch.reset()
+    latch.offset_body(BRAKE, pos, math.pi - 0.05)
+    assert latch.heading_error_rad(-math.pi + 0.05) == pytest.approx(-0.1)
+    # Any other decision forgets it; gain 0 (the paper) is plain zero.
+    latch.offset_body(CLEAR, pos, 0.0)
+    assert latch.heading_error_rad(0.0) is None
+    assert setpoint_for(BRAKE, 0.1, CommandConfig(brake_hold_gain_per_s=0.0), brake_heading_error_rad=0.3).is_zero
+    assert setpoint_for(BRAKE, 0.1, cmd, brake_heading_error_rad=math.nan).is_zero
+
+
+def test_lateral_line_hold_flies_sideways_toward_the_line() -> None:
+    cmd = CommandConfig(heading_hold_gain_per_s=0.0, line_hold_lateral_gain_per_s=0.5,
+                        max_line_hold_lateral_speed_m_s=0.3, hold_resume_delay_s=1.0, line_hold_lateral_clear_depth_m=1.0)
+    # 0.4 m left of the line, on the heading: 0.2 m/s to the right, still looking ahead.
+    sp = setpoint_for(CLEAR, 0.1, cmd, heading_error_rad=0.0, line_offset_m=0.4, clear_for_s=5.0)
+    assert sp.right_m_s == pytest.approx(0.2)
+    assert sp.yaw_rate_deg_s == 0.0 and sp.forward_m_s == pytest.approx(cmd.cruise_speed_m_s)
+    assert setpoint_for(CLEAR, 0.1, cmd, heading_error_rad=0.0, line_offset_m=-5.0, clear_for_s=5.0).right_m_s == pytest.approx(-0.3)
+    # Facing back along the course, the line is on the other hand; crossing it square, no sideways part.
+    assert setpoint_for(CLEAR, 0.1, cmd, heading_error_rad=math.pi, line_offset_m=0.4, clear_for_s=5.0).right_m_s == pytest.approx(-0.2)
+    assert setpoint_for(CLEAR, 0.1, cmd, heading_error_rad=math.pi / 2, line_offset_m=0.4, clear_for_s=5.0).right_m_s == pytest.approx(0.0, abs=1e-12)
+    # Only as course hold: after the delay, toward a side seen free, with a heading, and not with gain 0.
+    assert setpoint_for(CLEAR, 0.1, cmd, heading_error_rad=0.0, line_offset_m=0.4, clear_for_s=0.5).right_m_s == 0.0
+    # Toward a side seen near (closer than line_hold_lateral_clear_depth_m): nothing; a wall 2 m
+    # ahead-right (a doorway's wall) does not stop a sideways step.
+    assert setpoint_for(CLEAR, 0.1, cmd, heading_error_rad=0.0, line_offset_m=0.4, clear_for_s=5.0,
+                        region_depths_m=_depths(right=0.8)).right_m_s == 0.0
+    assert setpoint_for(CLEAR, 0.1, cmd, heading_error_rad=0.0, line_offset_m=0.4, clear_for_s=5.0,
+                        region_depths_m=_depths(right=2.0)).right_m_s == pytest.approx(0.2)
+    assert setpoint_for(CLEAR, 0.1, cmd, line_offset_m=0.4, clear_for_s=5.0).right_m_s == 0.0
+    off = CommandConfig(line_hold_lateral_gain_per_s=0.0)
+    assert setpoint_for(CLEAR, 0.1, off, heading_error_rad=0.0, line_offset_m=0.4, clear_for_s=5.0).right_m_s == 0.0
+    assert setpoint_for(Decision(DecisionKind.AVOID, 0.3, 0.0, 0.5, "x"), 0.1, cmd, heading_error_rad=0.0,
+                        line_offset_m=0.4, clear_for_s=5.0).right_m_s == 0.0
+
+
+def test_altitude_hold_waits_for_a_distance_flown_as_well_as_a_time() -> None:
+    cmd = CommandConfig(heading_hold_gain_per_s=1.0, altitude_hold_gain_per_s=0.5, hold_resume_delay_s=1.0,
+                        hold_resume_distance_m=1.5)
+    # Ducked under a block, slowed down: clear for 3 s but only 0.8 m further on: no climb back yet
+    # (the block's rear edge may be overhead, out of view); turning back to the heading does not wait.
+    slow = setpoint_for(CLEAR, 0.1, cmd, altitude_error_m=0.5, heading_error_rad=0.2, clear_for_s=3.0, clear_for_m=0.8)
+    assert slow.down_m_s == 0.0 and slow.yaw_rate_deg_s > 0.0
+    on = setpoint_for(CLEAR, 0.1, cmd, altitude_error_m=0.5, heading_error_rad=0.2, clear_for_s=3.0, clear_for_m=1.6)
+    assert on.down_m_s < 0.0 and on.yaw_rate_deg_s == slow.yaw_rate_deg_s
+    # Unknown distance (no position): the time alone decides, as before.
+    assert setpoint_for(CLEAR, 0.1, cmd, altitude_error_m=0.5, clear_for_s=3.0).down_m_s < 0.0
+
+
+def test_nothing_climbs_until_the_vehicle_has_flown_past_what_was_overhead() -> None:
+    from companion.core.command import OverheadMemory
+
+    cmd = CommandConfig(altitude_hold_gain_per_s=0.5, hold_resume_delay_s=0.0, hold_resume_distance_m=1.5,
+                        hold_clear_depth_m=2.25, max_vertical_speed_m_s=0.8)
+    memory = OverheadMemory()
+    assert memory.update(_depths(), np.array([0.0, 0.0, -1.0]), 2.25) is None  # nothing overhead yet
+    # Ducking under a block: the up region reads it at 0.8 m.
+    assert memory.update(_depths(up=0.8), np.array([5.0, 0.0, -1.0]), 2.25) == 0.0
+    # Under it the camera sees past its rear edge: up reads far, but only 0.6 m flown since.
+    since = memory.update(_depths(), np.array([5.6, 0.0, -1.0]), 2.25)
+    assert since == pytest.approx(0.6)
+    climb = Decision(DecisionKind.CLEAR, 0.0, 0.3, 1.0, "side rule: ground below")
+    assert setpoint_for(climb, 0.1, cmd, since_up_near_m=since).down_m_s == 0.0
+    assert setpoint_for(CLEAR, 0.1, cmd, altitude_error_m=0.5, since_up_near_m=since).down_m_s == 0.0
+    descend = Decision(DecisionKind.AVOID, 0.0, -0.5, 0.5, "R2")
+    assert setpoint_for(descend, 0.1, cmd, since_up_near_m=since).down_m_s == pytest.approx(0.4)  # descending is fine
+    # 1.5 m on: climbing is allowed again.
+    since = memory.update(_depths(), np.array([6.5, 0.0, -1.0]), 2.25)
+    assert since == pytest.approx(1.5)
+    assert setpoint_for(climb, 0.1, cmd, since_up_near_m=since).down_m_s == pytest.approx(-0.24)
+    # Unknown up latches too; no position: no answer; reset forgets.
+    assert memory.update(_depths(up=np.nan), np.array([7.0, 0.0, -1.0]), 2.25) == 0.0
+    assert memory.update(_depths(), None, 2.25) is None
+    memory.reset()
+    assert memory.update(_depths(), np.array([7.0, 0.0, -1.0]), 2.25) is None

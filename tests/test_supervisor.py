@@ -159,7 +159,7 @@ def test_engage_streams_zero_before_offboard_start_then_commands() -> None:
     h.vehicle = vehicle("OFFBOARD")
     out = h.step(ActionResult(Action.START_OFFBOARD, True))
     assert out.state is State.ENGAGED and out.changed and h.sup.engaged
-    assert out.setpoint is not None and out.setpoint.forward_m_s == pytest.approx(1.0)
+    assert out.setpoint is not None and out.setpoint.forward_m_s == pytest.approx(CompanionConfig().command.cruise_speed_m_s)
 
 
 def test_engaged_follows_the_decision() -> None:
@@ -454,7 +454,7 @@ def test_override_flies_the_manual_values_then_expires_to_automatic() -> None:
     remaining = h.sup.override_status(h.now)["remaining_s"]
     assert remaining == pytest.approx(1.0)
     outs = h.run(1.1)
-    assert outs[-1].state is State.ENGAGED and outs[-1].setpoint.forward_m_s == pytest.approx(1.0)
+    assert outs[-1].state is State.ENGAGED and outs[-1].setpoint.forward_m_s == pytest.approx(CompanionConfig().command.cruise_speed_m_s)
     assert h.sup.override_status(h.now) is None
 
 
@@ -467,7 +467,7 @@ def test_override_respects_brake() -> None:
     h2 = Harness(default_config(override_respects_brake=False))
     h2.engage()
     h2.frame = Result(h2.now, BRAKE)
-    assert h2.step(Override(1.0, 0.0, 1.0, 2.0)).setpoint.forward_m_s == pytest.approx(1.0)
+    assert h2.step(Override(1.0, 0.0, 1.0, 2.0)).setpoint.forward_m_s == pytest.approx(CompanionConfig().command.cruise_speed_m_s)
 
 
 @pytest.mark.parametrize(
@@ -629,8 +629,10 @@ def test_course_hold_steers_back_to_the_heading_at_engagement_when_enabled() -> 
             "command": {
                 "heading_hold_gain_per_s": 1.0,
                 "line_hold_gain_per_m": 0.0,  # the heading alone here (line hold: test_sim_goal_seeking)
+                "line_hold_lateral_gain_per_s": 0.0,
                 "altitude_hold_gain_per_s": 0.5,
                 "hold_resume_delay_s": 1.0,
+                "hold_resume_distance_m": 1.0,
                 "max_heading_hold_rate_deg_s": 20.0,
                 "max_altitude_hold_speed_m_s": 0.3,
             }
@@ -649,7 +651,12 @@ def test_course_hold_steers_back_to_the_heading_at_engagement_when_enabled() -> 
     h.frame = Result(h.now, CLEAR)
     early = h.step()
     assert early.setpoint.yaw_rate_deg_s == pytest.approx(0.0, abs=1e-9)  # waits hold_resume_delay_s
-    later = h.run(1.2)[-1]
+    # Clear for long enough: back to the heading; but not yet 1 m further on (slowed down under a
+    # block), so the climb back waits.
+    waiting = h.run(1.2)[-1].setpoint
+    assert waiting.yaw_rate_deg_s == pytest.approx(math.degrees(0.2), rel=1e-6) and waiting.down_m_s == 0.0
+    h.vehicle = replace(h.vehicle, position_ned_m=np.array([5.7, 0.8, -1.6]))  # 1.06 m on
+    later = h.step()
     assert later.setpoint.yaw_rate_deg_s == pytest.approx(math.degrees(0.2), rel=1e-6)
     assert later.setpoint.down_m_s == pytest.approx(-0.2, rel=1e-6)  # climb back 0.4 m at 0.5/s
     h.frame = Result(h.now, BRAKE)
@@ -682,6 +689,10 @@ def test_brake_holds_the_position_where_it_began() -> None:
     h.frame = Result(h.now, BRAKE)
     sp = h.step().setpoint
     assert (sp.forward_m_s, sp.right_m_s, sp.down_m_s) == pytest.approx((-0.2, 0.1, 0.0))
+    # Still turning left after the zero yaw rate (PX4 does for ~0.4 s): turn back to where it began.
+    h.vehicle = replace(h.vehicle, attitude_rad=np.array([0.0, 0.0, -0.1]))
+    h.frame = Result(h.now, BRAKE)
+    assert h.step().setpoint.yaw_rate_deg_s == pytest.approx(math.degrees(0.1))
     h.frame = Result(h.now, CLEAR)
     assert h.step().setpoint.forward_m_s > 0.0  # clear again: on, and the latch is forgotten
     h.frame = Result(h.now, BRAKE)

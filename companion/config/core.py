@@ -20,6 +20,9 @@ from companion.config._base import StrictModel
 from companion.core.fuzzy.rules import parse_antecedent
 from companion.core.types import REGION_NAMES
 
+#: A region's name (the same names, in the same order, as ``companion.core.types.REGION_NAMES``).
+RegionName = Literal["up_left", "up", "up_right", "left", "center", "right", "down_left", "down", "down_right"]
+
 # --------------------------------------------------------------------------------------------------
 # Calibration
 
@@ -246,6 +249,19 @@ class LutConfig(StrictModel):
             "piecewise-linearly and clamped to the table's ends. The default is the identity."
         ),
     )
+    median_frames: int = Field(
+        default=3,
+        ge=1,
+        le=9,
+        description=(
+            "Each region depth is the median of its last this many frames, odd (an unknown region "
+            "counts at once and unknown history counts as near). 1 = off (the paper). 3: a false "
+            "stereo match that lasts one frame (PX4 SITL: weak-texture patches matched 40 px off, "
+            "read 0.4 m in open space) no longer swerves the vehicle, and a near region that drops out "
+            "to far for one frame stays near, at the cost of seeing a suddenly appearing obstacle one "
+            "frame later (67 ms at 15 Hz)."
+        ),
+    )
     release_time_constant_s: float = Field(
         default=1.0,
         ge=0.0,
@@ -256,6 +272,13 @@ class LutConfig(StrictModel):
             "an obstacle leaving the centre keeps the avoidance going a little longer, for margin."
         ),
     )
+
+    @field_validator("median_frames")
+    @classmethod
+    def _odd_window(cls, v: int) -> int:
+        if v % 2 == 0:
+            raise ValueError(f"median_frames must be odd, got {v}")
+        return v
 
     @field_validator("points_m")
     @classmethod
@@ -576,7 +599,14 @@ class CommandConfig(StrictModel):
     """How a decision becomes a body-frame velocity setpoint, and when frames are too old to trust."""
 
     cruise_speed_m_s: float = Field(
-        default=1.0, ge=0.0, le=15.0, description="Forward speed when the way is clear, m/s (paper: constant)."
+        default=0.7,
+        ge=0.0,
+        le=15.0,
+        description=(
+            "Forward speed when the way is clear, m/s (paper: constant). With PX4's default velocity "
+            "response (~0.85 s lag) 1 m/s collided in the simulator and in PX4 SITL where 0.7 did not; "
+            "raise it only on a vehicle tuned to respond faster."
+        ),
     )
     avoid_speed_fraction: float = Field(
         default=0.1,
@@ -586,6 +616,17 @@ class CommandConfig(StrictModel):
             "Forward speed while the centre is fully near, as a share of the cruise speed, blended "
             "linearly with the centre's near degree. 1 = the paper's constant speed; simulator-tuned "
             "0.1 leaves time to turn before the obstacle."
+        ),
+    )
+    avoid_speed_regions: list[RegionName] = Field(
+        default=[],
+        max_length=9,
+        description=(
+            "Regions whose 'near' degree also slows the vehicle (the largest of them and the centre's "
+            "drives the avoid_speed_fraction blend); [] = the centre only (the default). "
+            "[\"left\", \"right\"] slows while a box passes beside the vehicle: in the simulator it "
+            "raised the clearances but cost goals (timeouts in corridors), and in PX4 SITL it did not "
+            "stop a flank clip; see docs/benchmarks.md."
         ),
     )
     max_yaw_rate_deg_s: float = Field(
@@ -640,6 +681,31 @@ class CommandConfig(StrictModel):
     max_line_hold_angle_deg: float = Field(
         default=30.0, ge=0.0, le=89.0, description="Course hold, line: the largest turn toward the line, degrees."
     )
+    line_hold_lateral_gain_per_s: float = Field(
+        default=1.0,
+        ge=0.0,
+        le=10.0,
+        description=(
+            "Course hold, line, sideways: also fly sideways back toward the line at this speed per metre "
+            "of cross-track distance, 1/s (0 = off: the paper never flies sideways). Turning back takes "
+            "seconds; a multicopter that drifts sideways (wind, or PX4 SITL's ~0.2 m/s velocity-estimate "
+            "error) is brought back at once, and the camera keeps looking ahead."
+        ),
+    )
+    max_line_hold_lateral_speed_m_s: float = Field(
+        default=0.3, ge=0.0, le=2.0, description="Course hold, line, sideways: the largest sideways speed it commands, m/s."
+    )
+    line_hold_lateral_clear_depth_m: float = Field(
+        default=1.0,
+        ge=0.0,
+        le=50.0,
+        description=(
+            "Course hold, line, sideways: only toward a side whose region (left, right) is at least this "
+            "deep, metres; unknown blocks it. Nearer than hold_clear_depth_m, because a slow sideways "
+            "step is not a turn toward the side: approaching a wall with a doorway, both sides read the "
+            "wall ~2 m ahead and the vehicle must still line up with the gap."
+        ),
+    )
     altitude_hold_gain_per_s: float = Field(
         default=0.5,
         ge=0.0,
@@ -661,15 +727,30 @@ class CommandConfig(StrictModel):
             "seconds: an obstacle just passed is beside or below the vehicle, out of the camera's view."
         ),
     )
+    hold_resume_distance_m: float = Field(
+        default=1.5,
+        ge=0.0,
+        le=50.0,
+        description=(
+            "Overhead memory, metres (0 = off): no climb at all (by a rule or by course hold) until the "
+            "vehicle has flown this far (horizontally) since the up region last read nearer than "
+            "hold_clear_depth_m, and course hold's altitude part also waits this far after the "
+            "decisions turned CLEAR and straight. The camera cannot see straight up: under a block, "
+            "rules that climb away from the ground (and a hold that waited only for a time) flew the "
+            "vehicle into the block's rear edge (simulator and PX4 SITL)."
+        ),
+    )
     brake_hold_gain_per_s: float = Field(
         default=1.0,
         ge=0.0,
         le=10.0,
         description=(
-            "Brake position hold: while braking, command a velocity back to where the brake began, "
-            "this gain times the distance, per second (0 = plain zero velocity). Zero velocity lets a "
-            "real multicopter drift with its velocity-estimate error (PX4 SITL: into the obstacle within "
-            "20 s); holding the position does not."
+            "Brake position and heading hold: while braking, command a velocity back to where the brake "
+            "began, this gain times the distance, and a yaw rate back to the heading it began with, this "
+            "gain times the angle (capped at max_heading_hold_rate_deg_s), per second (0 = plain zero "
+            "velocity and yaw rate). Zero velocity lets a real multicopter drift with its "
+            "velocity-estimate error (PX4 SITL: into the obstacle within 20 s), and PX4 keeps turning "
+            "~0.4 s after a zero yaw rate, which can open a false escape; holding both does not."
         ),
     )
     brake_hold_max_speed_m_s: float = Field(

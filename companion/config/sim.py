@@ -68,10 +68,13 @@ class SimConfig(StrictModel):
     )
     # -- vehicle model ---------------------------------------------------------------------------
     velocity_time_constant_s: float = Field(
-        default=0.3,
+        default=0.85,
         gt=0.0,
         le=5.0,
-        description="First-order lag of the velocity response to a velocity setpoint, seconds.",
+        description=(
+            "First-order lag of the velocity response to a velocity setpoint, seconds. Default: fitted to "
+            "PX4 SITL (SIH quadrotor, default MPC gains: 0.8-0.9 s); a crisp racer is nearer 0.3."
+        ),
     )
     max_horizontal_accel_m_s2: float = Field(
         default=3.0, gt=0.0, le=30.0, description="Horizontal acceleration limit of the vehicle, m/s²."
@@ -80,7 +83,13 @@ class SimConfig(StrictModel):
         default=2.0, gt=0.0, le=30.0, description="Vertical acceleration limit of the vehicle, m/s²."
     )
     yaw_rate_time_constant_s: float = Field(
-        default=0.15, gt=0.0, le=5.0, description="First-order lag of the yaw rate response, seconds."
+        default=0.35,
+        gt=0.0,
+        le=5.0,
+        description=(
+            "First-order lag of the yaw rate response, seconds. Default: fitted to PX4 SITL (0.3 s "
+            "plus 0.12 s of delay)."
+        ),
     )
     max_yaw_accel_deg_s2: float = Field(
         default=200.0, gt=0.0, le=5000.0, description="Yaw acceleration limit, deg/s²."

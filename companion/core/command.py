@@ -27,7 +27,8 @@ STRAIGHT_TOLERANCE = 0.01
 def is_straight_clear(decision: Decision | None) -> bool:
     """True for a CLEAR decision that does not steer (|yaw|, |pitch| < :data:`STRAIGHT_TOLERANCE`).
 
-    Callers time how long this has held and pass it to :func:`setpoint_for` as ``clear_for_s``.
+    Callers time how long this has held, and measure how far the vehicle has flown since, and pass
+    them to :func:`setpoint_for` as ``clear_for_s`` and ``clear_for_m``.
     """
     return (
         decision is not None
@@ -72,6 +73,22 @@ def _heading_hold_deg_s(
     return rate
 
 
+def _line_hold_right_m_s(
+    line_offset: float | None, heading_error_rad: float | None, region_depths_m: np.ndarray | None, cmd: CommandConfig
+) -> float:
+    if line_offset is None or cmd.line_hold_lateral_gain_per_s == 0.0 or not math.isfinite(line_offset):
+        return 0.0
+    if heading_error_rad is None or not math.isfinite(heading_error_rad):
+        return 0.0
+    limit = cmd.max_line_hold_lateral_speed_m_s
+    # Toward the line is the body's right only while facing along the course: scale by the cosine of
+    # the heading error (0 when crossing the line at right angles, reversed when facing back).
+    right = min(limit, max(-limit, cmd.line_hold_lateral_gain_per_s * line_offset)) * math.cos(heading_error_rad)
+    if right != 0.0 and not _side_open(region_depths_m, "right" if right > 0 else "left", cmd.line_hold_lateral_clear_depth_m):
+        return 0.0
+    return right
+
+
 def _altitude_hold_down_m_s(
     altitude_error_m: float | None, region_depths_m: np.ndarray | None, cmd: CommandConfig
 ) -> float:
@@ -84,6 +101,15 @@ def _altitude_hold_down_m_s(
     return down
 
 
+def horizontal_distance_m(a_ned_m: np.ndarray | None, b_ned_m: np.ndarray | None) -> float | None:
+    """Horizontal distance between two NED positions (float ``(3,)`` metres), metres; None when
+    either is missing or the distance is not finite."""
+    if a_ned_m is None or b_ned_m is None:
+        return None
+    d = float(math.hypot(float(b_ned_m[0]) - float(a_ned_m[0]), float(b_ned_m[1]) - float(a_ned_m[1])))
+    return d if math.isfinite(d) else None
+
+
 def brake_offset_body(position_ned_m: np.ndarray, brake_at_ned_m: np.ndarray, yaw_rad: float) -> np.ndarray:
     """Where the vehicle is relative to where its brake began, in the body frame (yaw only: forward,
     right, down), float ``(3,)`` metres, from NED positions (float ``(3,)`` metres) and the heading."""
@@ -93,14 +119,23 @@ def brake_offset_body(position_ned_m: np.ndarray, brake_at_ned_m: np.ndarray, ya
 
 
 class BrakeLatch:
-    """Where the current brake began (brake position hold): latched at the first BRAKE decision,
-    forgotten on any other decision or without a position and heading."""
+    """Where and facing which way the current brake began (brake position and heading hold): latched
+    at the first BRAKE decision, forgotten on any other decision or without a position and heading."""
 
     def __init__(self) -> None:
         self.at_ned_m: np.ndarray | None = None
+        self.yaw_rad: float | None = None
 
     def reset(self) -> None:
         self.at_ned_m = None
+        self.yaw_rad = None
+
+    def heading_error_rad(self, yaw_rad: float | None) -> float | None:
+        """The heading the brake began with minus ``yaw_rad`` (radians, wrapped to [-pi, pi),
+        positive = turn right to get back), or None when not braking or without a heading."""
+        if self.yaw_rad is None or yaw_rad is None or not math.isfinite(yaw_rad):
+            return None
+        return (self.yaw_rad - yaw_rad + math.pi) % (2.0 * math.pi) - math.pi
 
     def offset_body(
         self, decision: Decision | None, position_ned_m: np.ndarray | None, yaw_rad: float | None
@@ -108,22 +143,59 @@ class BrakeLatch:
         """The ``brake_offset_body_m`` for :func:`setpoint_for` (float ``(3,)`` metres, body frame),
         or None when not braking."""
         if decision is None or decision.kind is not DecisionKind.BRAKE or position_ned_m is None or yaw_rad is None:
-            self.at_ned_m = None
+            self.reset()
             return None
         pos = np.asarray(position_ned_m, dtype=np.float64)
         if self.at_ned_m is None:
             self.at_ned_m = pos.copy()
+            self.yaw_rad = float(yaw_rad)
         return brake_offset_body(pos, self.at_ned_m, yaw_rad)
 
 
-def _brake_hold(offset_body_m: np.ndarray | None, cmd: CommandConfig) -> VelocitySetpoint:
-    if offset_body_m is None or cmd.brake_hold_gain_per_s == 0.0:
+class OverheadMemory:
+    """Where the up region was last seen nearer than ``hold_clear_depth_m`` (or unknown): under a block
+    the camera cannot see straight up, so the block's rear edge is out of view while it is overhead.
+    :meth:`update` returns the horizontal distance flown since, for :func:`setpoint_for`'s
+    ``since_up_near_m`` (no climbing until it reaches ``hold_resume_distance_m``)."""
+
+    def __init__(self) -> None:
+        self.at_ned_m: np.ndarray | None = None
+
+    def reset(self) -> None:
+        self.at_ned_m = None
+
+    def update(
+        self, region_depths_m: np.ndarray | None, position_ned_m: np.ndarray | None, clear_depth_m: float
+    ) -> float | None:
+        """Latch the position when the up region (float ``(9,)`` refined depths, metres, NaN unknown) is
+        nearer than ``clear_depth_m`` metres; return metres flown horizontally since (float ``(3,)`` NED
+        positions), or None when never latched or without a position."""
+        if position_ned_m is None:
+            return None
+        pos = np.asarray(position_ned_m, dtype=np.float64)
+        if region_depths_m is not None:
+            up = float(np.asarray(region_depths_m, dtype=np.float64)[REGION_INDEX["up"]])
+            if not up >= clear_depth_m:  # NaN (unknown) latches too
+                self.at_ned_m = pos.copy()
+        return horizontal_distance_m(self.at_ned_m, pos)
+
+
+def _brake_hold(offset_body_m: np.ndarray | None, heading_error_rad: float | None, cmd: CommandConfig) -> VelocitySetpoint:
+    gain = cmd.brake_hold_gain_per_s
+    if gain == 0.0:
         return ZERO_SETPOINT
-    offset = np.asarray(offset_body_m, dtype=np.float64).reshape(3)
-    if not np.all(np.isfinite(offset)):
-        return ZERO_SETPOINT
-    v = np.clip(-cmd.brake_hold_gain_per_s * offset, -cmd.brake_hold_max_speed_m_s, cmd.brake_hold_max_speed_m_s)
-    return VelocitySetpoint(forward_m_s=float(v[0]), right_m_s=float(v[1]), down_m_s=float(v[2]), yaw_rate_deg_s=0.0)
+    v = np.zeros(3)
+    if offset_body_m is not None:
+        offset = np.asarray(offset_body_m, dtype=np.float64).reshape(3)
+        if np.all(np.isfinite(offset)):
+            v = np.clip(-gain * offset, -cmd.brake_hold_max_speed_m_s, cmd.brake_hold_max_speed_m_s)
+    yaw_rate = 0.0
+    if heading_error_rad is not None and math.isfinite(heading_error_rad):
+        # A multicopter keeps turning for a moment after a zero yaw rate (PX4: ~0.4 s), and the new
+        # view can open a false escape: turn back to the heading the brake began with.
+        limit = cmd.max_heading_hold_rate_deg_s
+        yaw_rate = min(limit, max(-limit, math.degrees(gain * heading_error_rad)))
+    return VelocitySetpoint(forward_m_s=float(v[0]), right_m_s=float(v[1]), down_m_s=float(v[2]), yaw_rate_deg_s=yaw_rate)
 
 
 def setpoint_for(
@@ -135,8 +207,11 @@ def setpoint_for(
     altitude_error_m: float | None = None,
     region_depths_m: np.ndarray | None = None,
     clear_for_s: float | None = None,
+    clear_for_m: float | None = None,
     brake_offset_body_m: np.ndarray | None = None,
+    brake_heading_error_rad: float | None = None,
     line_offset_m: float | None = None,
+    since_up_near_m: float | None = None,
 ) -> VelocitySetpoint:
     """The setpoint to send for ``decision``, made ``since_last_frame_s`` seconds after its frame.
 
@@ -144,22 +219,35 @@ def setpoint_for(
     * BRAKE (or a decision carrying a non-finite number): zero velocity; with ``brake_offset_body_m``
       (float ``(3,)`` metres: the vehicle's position now minus where the brake began, in the body
       frame: forward, right, down) and ``cmd.brake_hold_gain_per_s`` > 0, the velocity back there
-      instead: ``clip(-gain · offset, ±brake_hold_max_speed_m_s)`` per axis (brake position hold).
+      instead: ``clip(-gain · offset, ±brake_hold_max_speed_m_s)`` per axis (brake position hold);
+      with ``brake_heading_error_rad`` (the heading the brake began with minus the heading now,
+      radians, positive = turn right), a yaw rate of ``clip(gain · error, ±max_heading_hold_rate_deg_s)``
+      back to it (brake heading hold).
     * Otherwise forward = ``cruise_speed_m_s · speed_fraction`` (m/s), yaw rate =
       ``yaw · max_yaw_rate_deg_s`` (deg/s, positive turns right), down = ``-pitch · max_vertical_speed_m_s``
       (m/s; pitch up = climb = negative down). yaw and pitch are clipped to [-1, 1], the speed fraction
-      to [0, 1]. Never a sideways velocity (right_m_s = 0).
+      to [0, 1]. No sideways velocity (right_m_s = 0) but the line hold's below.
+
+    ``since_up_near_m`` (metres flown horizontally since the up region was last nearer than
+    ``cmd.hold_clear_depth_m``, :class:`OverheadMemory`; None = off): below ``cmd.hold_resume_distance_m``
+    no climb is commanded at all (neither by a rule nor by the altitude hold), since the camera cannot
+    see what is straight overhead.
 
     Course hold (all keyword inputs optional; ``None`` = off, the paper's behaviour). Only on a CLEAR
     decision, and only once ``clear_for_s`` (seconds the decisions have been straight and CLEAR; None
-    = no wait) reaches ``cmd.hold_resume_delay_s``:
+    = no wait) reaches ``cmd.hold_resume_delay_s``; the altitude hold also waits until ``clear_for_m``
+    (metres flown horizontally since then; None = no wait) reaches ``cmd.hold_resume_distance_m``:
 
     * ``heading_error_rad`` (heading at engagement minus heading now, radians, positive = the course
       lies to the right): adds ``clip(heading_hold_gain_per_s · error, ±max_heading_hold_rate_deg_s)``
       deg/s of yaw rate, scaled by ``1 - |yaw|``;
     * ``line_offset_m`` (:func:`line_offset_m` of the vehicle from the line through the engagement
       point along the engagement heading): with ``cmd.line_hold_gain_per_m`` > 0, the heading aimed at
-      turns toward the line by ``clip(atan(gain · offset), ±max_line_hold_angle_deg)``;
+      turns toward the line by ``clip(atan(gain · offset), ±max_line_hold_angle_deg)``; with
+      ``cmd.line_hold_lateral_gain_per_s`` > 0 the vehicle also flies sideways toward it at
+      ``clip(gain · offset, ±max_line_hold_lateral_speed_m_s) · cos(heading error)`` m/s (right
+      positive; needs ``heading_error_rad``; only toward a side region at least
+      ``cmd.line_hold_lateral_clear_depth_m`` deep), scaled by ``1 - |yaw|``;
     * ``altitude_error_m`` (altitude at engagement minus altitude now, metres, positive = climb):
       adds ``clip(-altitude_hold_gain_per_s · error, ±max_altitude_hold_speed_m_s)`` m/s of down
       speed, scaled by ``1 - |pitch|``;
@@ -172,7 +260,7 @@ def setpoint_for(
     if since_last_frame_s > cmd.stale_frame_timeout_s:
         return ZERO_SETPOINT
     if decision.kind is DecisionKind.BRAKE:
-        return _brake_hold(brake_offset_body_m, cmd)
+        return _brake_hold(brake_offset_body_m, brake_heading_error_rad, cmd)
     yaw, pitch, speed = decision.yaw, decision.pitch, decision.speed_fraction
     if not (math.isfinite(yaw) and math.isfinite(pitch) and math.isfinite(speed)):
         return ZERO_SETPOINT
@@ -181,12 +269,17 @@ def setpoint_for(
     speed = min(1.0, max(0.0, speed))
     yaw_rate_deg_s = yaw * cmd.max_yaw_rate_deg_s
     down_m_s = 0.0 - pitch * cmd.max_vertical_speed_m_s
+    right_m_s = 0.0
     if decision.kind is DecisionKind.CLEAR and (clear_for_s is None or clear_for_s >= cmd.hold_resume_delay_s):
         yaw_rate_deg_s += (1.0 - abs(yaw)) * _heading_hold_deg_s(heading_error_rad, region_depths_m, cmd, line_offset_m)
-        down_m_s += (1.0 - abs(pitch)) * _altitude_hold_down_m_s(altitude_error_m, region_depths_m, cmd)
+        if clear_for_m is None or clear_for_m >= cmd.hold_resume_distance_m:
+            down_m_s += (1.0 - abs(pitch)) * _altitude_hold_down_m_s(altitude_error_m, region_depths_m, cmd)
+        right_m_s = (1.0 - abs(yaw)) * _line_hold_right_m_s(line_offset_m, heading_error_rad, region_depths_m, cmd)
+    if since_up_near_m is not None and since_up_near_m < cmd.hold_resume_distance_m and down_m_s < 0.0:
+        down_m_s = 0.0  # something was overhead within the last metres: it may still be, out of view
     return VelocitySetpoint(
         forward_m_s=cmd.cruise_speed_m_s * speed,
-        right_m_s=0.0,
+        right_m_s=right_m_s,
         down_m_s=down_m_s,
         yaw_rate_deg_s=yaw_rate_deg_s,
     )

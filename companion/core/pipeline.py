@@ -18,6 +18,7 @@ from __future__ import annotations
 import importlib.util
 import logging
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol
@@ -30,7 +31,7 @@ from companion.core.depth import disparity_to_depth
 from companion.core.disparity import make_cpu_matcher
 from companion.core.fuzzy.avoidance import AvoidanceController
 from companion.core.geometry import StereoGeometry
-from companion.core.lut import DepthLUT, release_filter
+from companion.core.lut import DepthLUT, median_filter, release_filter
 from companion.core.regions import RegionLayout, reduce_regions, region_layout
 from companion.core.stereo import split_frame, to_grey
 from companion.core.types import Decision, RegionDepths
@@ -209,6 +210,7 @@ class Pipeline:
         self._apply_cheap(cfg)
         self.config = cfg
         self._filtered: np.ndarray | None = None
+        self._history: deque[np.ndarray] = deque(maxlen=cfg.lut.median_frames - 1)
         self._last_timestamp_s: float | None = None
 
     @property
@@ -240,12 +242,15 @@ class Pipeline:
         controller = AvoidanceController(cfg.controller, cfg.command)
         self.estimator, self._lut, self._controller = estimator, lut, controller
         self._release_tau_s = cfg.lut.release_time_constant_s
+        if cfg.lut.median_frames - 1 != self._history.maxlen:
+            self._history = deque(self._history, maxlen=cfg.lut.median_frames - 1)
         self.config = cfg
         return changed
 
     def reset(self) -> None:
         """Forget the filter's memory (e.g. after a camera reconnect)."""
         self._filtered = None
+        self._history.clear()
         self._last_timestamp_s = None
 
     def process(self, frame: np.ndarray, timestamp_s: float, want_disparity: bool = False) -> FrameResult:
@@ -258,7 +263,9 @@ class Pipeline:
         t0 = clock()
         est = self.estimator.estimate(frame, want_disparity=want_disparity)
         t1 = clock()
-        refined = self._lut.apply(est.regions.depth_m)
+        looked_up = self._lut.apply(est.regions.depth_m)
+        refined = median_filter(self._history, looked_up, self.config.lut.median_frames)
+        self._history.append(looked_up)
         dt_s = 0.0 if self._last_timestamp_s is None else max(0.0, timestamp_s - self._last_timestamp_s)
         refined = release_filter(self._filtered, refined, dt_s, self._release_tau_s)
         self._filtered = refined

@@ -54,7 +54,14 @@ from typing import TYPE_CHECKING, Protocol, Union
 
 import numpy as np
 
-from companion.core.command import BrakeLatch, is_straight_clear, line_offset_m, setpoint_for
+from companion.core.command import (
+    BrakeLatch,
+    OverheadMemory,
+    horizontal_distance_m,
+    is_straight_clear,
+    line_offset_m,
+    setpoint_for,
+)
 from companion.core.types import ZERO_SETPOINT, Decision, DecisionKind, VelocitySetpoint
 
 if TYPE_CHECKING:
@@ -247,7 +254,9 @@ class _Memory:
     course_altitude_m: float | None = None  # altitude (-down) at engagement (course hold), metres
     course_origin_ned_m: np.ndarray | None = None  # position at engagement (course hold, line), NED metres
     clear_since_s: float | None = None  # capture time since which the decisions are straight and CLEAR
+    clear_since_ned_m: np.ndarray | None = None  # the vehicle's position then (None: not known), NED metres
     brake: BrakeLatch = field(default_factory=BrakeLatch)  # where the current brake began (brake position hold)
+    overhead: OverheadMemory = field(default_factory=OverheadMemory)  # where something was last overhead
     actions: list[Action] = field(default_factory=list)
 
 
@@ -339,8 +348,10 @@ class Supervisor:
         fresh = camera_ok and age_s <= self._cfg.command.stale_frame_timeout_s
         if latest is None or not is_straight_clear(latest.decision):
             m.clear_since_s = None
+            m.clear_since_ned_m = None
         elif m.clear_since_s is None:
             m.clear_since_s = latest.timestamp_s
+            m.clear_since_ned_m = None if vehicle.position_ned_m is None else np.array(vehicle.position_ned_m, dtype=np.float64)
 
         for r in requests:
             if isinstance(r, ActionResult):
@@ -441,6 +452,7 @@ class Supervisor:
                 # Course hold (when its gains are set) steers back to the heading and altitude of now.
                 m.course_heading_rad = _finite_or_none(v.attitude_rad, 2)
                 m.brake.reset()
+                m.overhead.reset()
                 down = _finite_or_none(v.position_ned_m, 2)
                 m.course_altitude_m = None if down is None else -down
                 pos = v.position_ned_m
@@ -678,8 +690,11 @@ class Supervisor:
             altitude_error_m=altitude_error,
             region_depths_m=getattr(refined, "depth_m", None),
             clear_for_s=None if m.clear_since_s is None else max(0.0, now_s - m.clear_since_s),
+            clear_for_m=horizontal_distance_m(m.clear_since_ned_m, v.position_ned_m),
             brake_offset_body_m=brake_offset,
+            brake_heading_error_rad=m.brake.heading_error_rad(heading_now),
             line_offset_m=line_offset,
+            since_up_near_m=m.overhead.update(getattr(refined, "depth_m", None), v.position_ned_m, self._cfg.command.hold_clear_depth_m),
         )
 
     def _override_setpoint(self, o: Override, latest: FrameOutcome | None) -> VelocitySetpoint:

@@ -32,7 +32,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from companion.config import CompanionConfig
-from companion.core.command import BrakeLatch, is_straight_clear, line_offset_m, setpoint_for
+from companion.core.command import (
+    BrakeLatch,
+    OverheadMemory,
+    horizontal_distance_m,
+    is_straight_clear,
+    line_offset_m,
+    setpoint_for,
+)
 from companion.core.pipeline import FrameResult, Pipeline
 from companion.core.render import TextureBank
 from companion.core.types import ZERO_SETPOINT, DecisionKind
@@ -284,7 +291,9 @@ def fly(
     camera_ok = True
     n_cam = n_sp = 0
     last_steer_s = -math.inf
+    last_steer_ned_m: np.ndarray | None = None  # where the decisions last steered (None: not yet)
     brake = BrakeLatch()  # where the current brake began (brake position hold)
+    overhead = OverheadMemory()  # where something was last seen overhead
     judge = Judge(course, radius, sim.held_speed_m_s, sim.held_after_s, vehicle.model.position_ned_m)
     sp = ZERO_SETPOINT
     kind = LogKind.NONE
@@ -340,6 +349,7 @@ def fly(
             decision = latest.decision if latest is not None else None
             if not is_straight_clear(decision):
                 last_steer_s = t
+                last_steer_ned_m = vehicle.model.position_ned_m.copy()
             m = vehicle.model
             sp = setpoint_for(
                 decision,
@@ -349,8 +359,13 @@ def fly(
                 altitude_error_m=altitude_ref - m.altitude_m,
                 region_depths_m=latest.refined.depth_m if latest is not None else None,
                 clear_for_s=t - last_steer_s,
+                clear_for_m=horizontal_distance_m(last_steer_ned_m, m.position_ned_m),
                 brake_offset_body_m=brake.offset_body(decision, m.position_ned_m, m.yaw_rad),
+                brake_heading_error_rad=brake.heading_error_rad(m.yaw_rad),
                 line_offset_m=line_offset_m(m.position_ned_m, course.start.position_ned_m, heading_ref),
+                since_up_near_m=overhead.update(
+                    latest.refined.depth_m if latest is not None else None, m.position_ned_m, cmd.hold_clear_depth_m
+                ),
             )
             if vehicle.in_offboard:
                 vehicle.set_setpoint(sp)

@@ -28,7 +28,8 @@ g. Else straight on with the engine's outputs (the main system's, or the corner'
    non-CLEAR decision into CLEAR.
 h. When one output fired and the other did not (e.g. a pure vertical escape), the controller sets the
    unfired one to 0 on purpose: the engine itself reports it as not fired (``None``), never as 0.
-i. ``speed_fraction = 1 + (cmd.avoid_speed_fraction - 1)·near`` for CLEAR and AVOID, 0 for BRAKE;
+i. ``speed_fraction = 1 + (cmd.avoid_speed_fraction - 1)·slow`` for CLEAR and AVOID, 0 for BRAKE, where
+   ``slow`` is the largest "near" degree of the centre and the regions in ``cmd.avoid_speed_regions``;
    yaw and pitch are clipped to [-1, 1]; BRAKE gives yaw = pitch = 0.
 
 :func:`~companion.core.command.setpoint_for` turns a :class:`~companion.core.types.Decision` into a
@@ -132,7 +133,7 @@ class AvoidanceController:
 
     Args:
         cfg: the fuzzy controller's configuration.
-        cmd: the command mapping (only ``avoid_speed_fraction`` is used here).
+        cmd: the command mapping (only ``avoid_speed_fraction`` and ``avoid_speed_regions`` are used here).
 
     Raises:
         ConfigError: a rule base that cannot be compiled (e.g. an output term zero on every sample).
@@ -150,6 +151,7 @@ class AvoidanceController:
         self._main = _Compiled(self.main_system, neutral, "", set())
         self._corner = _Compiled(self.corner_system, neutral, "corner:", set(self._main.names))
         self._near_c = self.main_system.atom("center", "near")
+        self._speed_atoms = [self.main_system.atom(region, "near") for region in cmd.avoid_speed_regions]
         self._unknown = float(cfg.unknown_depth_m)
         self._min_escape = float(cfg.min_escape_strength)
         self._min_command = float(cfg.min_escape_command)
@@ -177,16 +179,19 @@ class AvoidanceController:
         d = self.prepare(depth_m)
         main = self.main_system.infer(d)
         near = float(main.memberships[self._near_c])
+        # The speed blend follows the nearest of the speed regions (the centre, and by default the
+        # sides: an obstacle passing beside the vehicle is still within reach of a lagging turn).
+        slow = max([near, *(float(main.memberships[a]) for a in self._speed_atoms)])
         s_main = main.strengths.tolist()
         strengths = {k: v for k, v in zip(self._main.keys, s_main) if v > 0.0}
         esc, esc_i = _escape(s_main, self._main.escape_idx)
         if esc >= self._min_escape and self._commands(main):
             if near > 0.0:
                 return self._steer(
-                    DecisionKind.AVOID, main, near, f"main controller: escape by {self._main.names[esc_i]} "
+                    DecisionKind.AVOID, main, slow, f"main controller: escape by {self._main.names[esc_i]} "
                     f"({esc:.2f}), centre near {near:.2f}", strengths
                 )
-            return self._steer(DecisionKind.CLEAR, main, near, "centre clear", strengths)
+            return self._steer(DecisionKind.CLEAR, main, slow, "centre clear", strengths)
 
         corner: InferenceResult | None = None
         if self._corner.has_rules:
@@ -196,7 +201,7 @@ class AvoidanceController:
             c_esc, c_i = _escape(s_corner, self._corner.escape_idx)
             if c_esc >= self._min_escape and self._commands(corner):
                 return self._steer(
-                    DecisionKind.AVOID, corner, near, f"corner controller: escape by {self._corner.names[c_i]} "
+                    DecisionKind.AVOID, corner, slow, f"corner controller: escape by {self._corner.names[c_i]} "
                     f"({c_esc:.2f}); main controller found none (best {esc:.2f})", strengths
                 )
 
@@ -212,9 +217,9 @@ class AvoidanceController:
             )
         source = main if main_fired or corner is None else corner
         if near == 0.0:
-            return self._steer(DecisionKind.CLEAR, source, near, "centre clear", strengths)
+            return self._steer(DecisionKind.CLEAR, source, slow, "centre clear", strengths)
         return self._steer(
-            DecisionKind.AVOID, source, near,
+            DecisionKind.AVOID, source, slow,
             f"centre partly near ({near:.2f} < brake {self._brake_near:.2f}), no escape: straight on, slowing",
             strengths,
         )
@@ -225,9 +230,9 @@ class AvoidanceController:
         return max(abs(_clip1(res.values["yaw"])), abs(_clip1(res.values["pitch"]))) >= self._min_command
 
     def _steer(
-        self, kind: DecisionKind, res: InferenceResult, near: float, reason: str, strengths: dict[str, float]
+        self, kind: DecisionKind, res: InferenceResult, slow: float, reason: str, strengths: dict[str, float]
     ) -> Decision:
-        speed = 1.0 + (self._avoid_speed - 1.0) * near
+        speed = 1.0 + (self._avoid_speed - 1.0) * slow
         return Decision(
             kind=kind,
             yaw=_clip1(res.values["yaw"]),
