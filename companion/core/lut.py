@@ -1,9 +1,10 @@
-"""Depth refinement look-up table (paper section VI) and the per-region release filter.
+"""Depth refinement look-up table (paper section VI) and the per-region median and release filters.
 
 The LUT maps a computed depth to a true depth piecewise-linearly through measured pairs, clamped to
 the table's ends. The median filter outvotes a reading that lasts one frame (a false stereo match
-rarely survives two frames; an obstacle does). The release filter keeps an approaching obstacle instant and smooths a receding one, so a flickering near
-match does not make the region depth bounce back to far every other frame.
+rarely survives two frames; an obstacle does). The release filter keeps an approaching obstacle
+instant and smooths a receding one, so a flickering near match does not make the region depth bounce
+back to far every other frame.
 """
 
 from __future__ import annotations

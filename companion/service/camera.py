@@ -444,8 +444,9 @@ class SimCamera:
 
 
 class TelemetryPose:
-    """A pose provider that reads the vehicle link's telemetry (``state``: a vehicle link's ``state``): the newest local position and attitude,
-    placed in the scene by :attr:`placement`, stamped with the time the position arrived.
+    """A pose provider that reads the vehicle link's telemetry (``state``: a vehicle link's ``state``):
+    the newest local position and attitude, placed in the scene by :attr:`placement`, stamped with the
+    time the position arrived.
 
     ``placement`` may be replaced at any time (the daemon does it on a live config change); a read uses
     the one it finds.

@@ -179,8 +179,8 @@ class AvoidanceController:
         d = self.prepare(depth_m)
         main = self.main_system.infer(d)
         near = float(main.memberships[self._near_c])
-        # The speed blend follows the nearest of the speed regions (the centre, and by default the
-        # sides: an obstacle passing beside the vehicle is still within reach of a lagging turn).
+        # The speed blend follows the nearest of the centre and cmd.avoid_speed_regions (none by
+        # default; the sides slow the vehicle while a box passes beside it).
         slow = max([near, *(float(main.memberships[a]) for a in self._speed_atoms)])
         s_main = main.strengths.tolist()
         strengths = {k: v for k, v in zip(self._main.keys, s_main) if v > 0.0}
