@@ -356,6 +356,42 @@ def test_disparity_preview_is_the_block_maximum() -> None:
     np.testing.assert_array_equal(res.disparity, exp)
 
 
+@pytest.mark.parametrize(("preview", "block"), [(4, 4), (4, 8), (0, 4), (2, 6)])
+def test_memory_blocks_equal_the_cpu_reference(preview: int, block: int) -> None:
+    """``near_blocks`` (the obstacle memory's input) is :func:`block_max` of the reference disparity,
+    whether the device reduced it (preview factor) or the host did."""
+    from companion.core.memory import block_max
+
+    w, h = 330, 190
+    left, right = _textured_pair(h, w, np.random.default_rng(11))
+    cfg = _cfg(D=64, disparity_preview_downsample=preview)
+    cfg = cfg.model_copy(update={"memory": cfg.memory.model_copy(update={"block_px": block})})
+    res = _gpu(cfg, w, h).estimate(_grey_frame(left, right), near_block_px=block)
+    assert res.disparity is None
+    np.testing.assert_array_equal(res.near_blocks, block_max(_ref_float(left, right, cfg), block))
+
+
+def test_memory_block_size_must_suit_the_preview_factor() -> None:
+    from companion.errors import ConfigError
+
+    cfg = _cfg(D=64, disparity_preview_downsample=4)
+    cfg = cfg.model_copy(update={"memory": cfg.memory.model_copy(update={"block_px": 6})})
+    with pytest.raises(ConfigError, match="memory.block_px"):
+        _gpu(cfg, 160, 90)
+
+
+def test_pipeline_memory_points_equal_the_cpu_reference() -> None:
+    w, h = 320, 180
+    cfg = _cfg(D=64, disparity_preview_downsample=4)
+    _, frames = rendered_frames(BenchSize(w, h, 64), 3)
+    ref_cfg = cfg.model_copy(update={"stereo": cfg.stereo.model_copy(update={"backend": "reference"})})
+    gpu, ref = Pipeline(cfg, w, h), Pipeline(ref_cfg, w, h)
+    for k, frame in enumerate(frames):
+        a, b = gpu.process(frame, timestamp_s=0.1 * k), ref.process(frame, timestamp_s=0.1 * k)
+        np.testing.assert_array_equal(a.near_points_cam_m, b.near_points_cam_m)
+        assert a.view_limits == b.view_limits
+
+
 # --------------------------------------------------------------------------------------------------
 # contract and validation
 

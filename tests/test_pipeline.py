@@ -134,3 +134,37 @@ def test_wrong_frame_size_is_a_frame_error() -> None:
         pipeline.process(frame[:, 2:-2], timestamp_s=0.0)
     with pytest.raises(FrameError):
         pipeline.process(frame[:, :-1], timestamp_s=0.0)  # odd side-by-side width
+
+
+def test_memory_points_land_on_the_obstacle_seen() -> None:
+    """A box 1 m ahead to the left: after memory.confirm_frames frames its near face comes back as
+    points, placed (through the pose) on that face; nothing comes from the open right side."""
+    from companion.core.memory import camera_points_to_ned
+
+    box = Box.on_ground(1.0 + 0.5, -1.0, (1.0, 1.6, 6.0))  # near face 1.0 m north, east -1.8 .. -0.2
+    cfg, pipeline, frame, _ = _render(Scene(obstacles=(box,)))
+    cfg = apply_patch(cfg, {"memory": {"max_depth_m": 1.2}})  # the box, not the ground 1.5 m below
+    pipeline.reconfigure(cfg)
+    results = [pipeline.process(frame, timestamp_s=0.1 * k) for k in range(cfg.memory.confirm_frames)]
+    assert all(r.near_points_cam_m is not None and r.view_limits is not None for r in results)
+    assert results[0].near_points_cam_m.shape == (0, 3)  # not confirmed yet
+    pts = camera_points_to_ned(results[-1].near_points_cam_m, POSE)
+    assert len(pts) >= 5
+    assert np.all(np.abs(pts[:, 0] - 1.0) < 0.1), pts  # on the near face
+    assert np.all((pts[:, 1] > -1.9) & (pts[:, 1] < -0.1)), pts
+    view = results[-1].view_limits
+    unmatched = cfg.stereo.num_disparities - 1  # the left columns block matching cannot search
+    assert view.left_rad == pytest.approx(np.arctan((W / 2 - 0.5 - unmatched) / pipeline.geometry.focal_px), rel=1e-3)
+    assert view.right_rad == pytest.approx(np.arctan((W / 2 - 0.5) / pipeline.geometry.focal_px), rel=1e-3)
+    assert view.min_range_m == pytest.approx(pipeline.geometry.focal_baseline_px_m / unmatched)
+
+
+def test_memory_off_gives_no_points_and_can_be_switched_live() -> None:
+    cfg, pipeline, frame, _ = _render(Scene(obstacles=(_wall(1.0),)))
+    off = apply_patch(cfg, {"memory": {"duration_s": 0.0}})
+    pipeline.reconfigure(off)
+    r = pipeline.process(frame, timestamp_s=0.0)
+    assert r.near_points_cam_m is None and r.view_limits is None and "memory_ms" not in r.timings_ms
+    pipeline.reconfigure(cfg)
+    r = pipeline.process(frame, timestamp_s=0.1)
+    assert r.near_points_cam_m is not None and "memory_ms" in r.timings_ms

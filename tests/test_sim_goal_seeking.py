@@ -229,3 +229,28 @@ def test_nothing_climbs_until_the_vehicle_has_flown_past_what_was_overhead() -> 
     assert memory.update(_depths(), None, 2.25) is None
     memory.reset()
     assert memory.update(_depths(), np.array([7.0, 0.0, -1.0]), 2.25) is None
+
+
+def test_facing_away_from_the_course_it_stops_and_turns_back_in_place_whatever_the_sides_read() -> None:
+    """A vehicle that turned around in a corridor has walls beside it nearer than hold_clear_depth_m,
+    which block the ordinary hold; past turn_back_angle_deg it turns back in place instead."""
+    walls = _depths(left=1.5, right=1.5, up_left=1.5, up_right=1.5, down_left=1.5, down_right=1.5)
+    kw = {"region_depths_m": walls, "clear_for_s": 5.0, "altitude_error_m": 0.5}
+    sp = setpoint_for(CLEAR, 0.1, HOLD, heading_error_rad=-math.radians(150.0), **kw)
+    assert (sp.forward_m_s, sp.right_m_s, sp.down_m_s, sp.yaw_rate_deg_s) == (0.0, 0.0, 0.0, -20.0)
+    sp = setpoint_for(CLEAR, 0.1, HOLD, heading_error_rad=math.radians(170.0), **kw)
+    assert sp.yaw_rate_deg_s == 20.0 and sp.forward_m_s == 0.0
+    # The line counts: 95 deg off the heading, and the line 2 m further that way, is past 100 deg.
+    cmd = HOLD.model_copy(update={"line_hold_gain_per_m": 0.5})
+    sp = setpoint_for(CLEAR, 0.1, cmd, heading_error_rad=math.radians(95.0), line_offset_m=2.0, **kw)
+    assert sp.forward_m_s == 0.0 and sp.yaw_rate_deg_s == 20.0
+    # Below the angle, or off (180), the ordinary hold, which the near walls block.
+    sp = setpoint_for(CLEAR, 0.1, HOLD, heading_error_rad=-math.radians(90.0), **kw)
+    assert sp.forward_m_s == HOLD.cruise_speed_m_s and sp.yaw_rate_deg_s == 0.0
+    off = HOLD.model_copy(update={"turn_back_angle_deg": 180.0})
+    sp = setpoint_for(CLEAR, 0.1, off, heading_error_rad=-math.radians(150.0), **kw)
+    assert sp.forward_m_s == HOLD.cruise_speed_m_s and sp.yaw_rate_deg_s == 0.0
+    # Only on CLEAR after the resume delay: avoiding, or just clear, the controller flies.
+    assert setpoint_for(CLEAR, 0.1, HOLD, heading_error_rad=3.0, region_depths_m=walls, clear_for_s=0.5).forward_m_s > 0.0
+    avoid = Decision(DecisionKind.AVOID, 0.5, 0.0, 0.5, "x")
+    assert setpoint_for(avoid, 0.1, HOLD, heading_error_rad=3.0, **kw).yaw_rate_deg_s == pytest.approx(0.5 * HOLD.max_yaw_rate_deg_s)

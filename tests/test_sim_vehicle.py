@@ -121,6 +121,33 @@ def test_params_reject_nonsense() -> None:
         VehicleModel(VehicleParams(), Pose.at(0, 0, 1)).step(-1.0)
 
 
+def test_drift_moves_the_position_not_the_velocity_seeded_and_of_the_asked_size() -> None:
+    """sim.drift_speed_m_s: the position wanders (PX4's estimate error) while the tracked velocity
+    stays at the setpoint; the same seed flies the same drift; the stationary std is as asked."""
+    params = VehicleParams(drift_speed_m_s=0.2, drift_time_constant_s=2.0)
+
+    def hover(seed: int, seconds: float) -> tuple[np.ndarray, np.ndarray]:
+        m = VehicleModel(params, Pose.at(0, 0, 1.5), seed=seed)
+        drift = []
+        for _ in range(int(round(seconds / DT))):
+            m.step(DT)
+            drift.append(m.drift_ned_m_s.copy())
+        assert np.all(m.velocity_ned_m_s == 0.0)  # the vehicle "thinks" it hovers
+        return m.position_ned_m, np.asarray(drift)
+
+    a, drift = hover(1, 400.0)
+    b, _ = hover(1, 400.0)
+    c, _ = hover(2, 400.0)
+    assert np.array_equal(a, b) and not np.array_equal(a, c)
+    assert a[2] == pytest.approx(-1.5) and np.all(drift[:, 2] == 0.0)  # horizontal only
+    assert np.std(drift[:, :2], axis=0) == pytest.approx([0.2, 0.2], rel=0.25)
+    still = VehicleModel(VehicleParams(), Pose.at(0, 0, 1.5), seed=1)
+    _run(still, 2.0)
+    assert np.array_equal(still.position_ned_m, [0.0, 0.0, -1.5])  # 0 = no drift
+    with pytest.raises(ValueError, match="drift_speed_m_s"):
+        VehicleParams(drift_speed_m_s=-0.1)
+
+
 def test_vehicle_link_protocol_and_async_wrappers() -> None:
     v = SimVehicle(VehicleParams(), Pose.at(1.0, 2.0, 1.5, yaw_rad=0.2))
     assert isinstance(v, VehicleLink)

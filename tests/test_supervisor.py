@@ -716,3 +716,46 @@ def test_line_hold_steers_back_to_the_engagement_line() -> None:
     h2.vehicle = replace(h2.vehicle, position_ned_m=np.array([5.0, -0.4, -1.5]))
     sp = h2.run(0.5)[-1].setpoint
     assert sp.yaw_rate_deg_s == pytest.approx(math.degrees(math.atan(0.2)), rel=1e-6)
+
+
+@dataclass(frozen=True)
+class SeenResult:
+    timestamp_s: float
+    decision: Decision
+    near_points_cam_m: object = None
+    view_limits: object = None
+
+
+def test_a_remembered_obstacle_beside_the_vehicle_pushes_it_away() -> None:
+    """A frame's near points go into the memory from the pose at capture; once out of view and
+    within memory.guard_distance_m, the engaged setpoint moves away from them."""
+    import numpy as np
+
+    from companion.core.memory import ViewLimits
+
+    view = ViewLimits(math.radians(32.0), math.radians(44.0), 0.3)
+    h = Harness(SupervisorConfig.from_config(CompanionConfig()))
+    h.engage()
+    at = np.array([0.0, 0.0, -1.5])
+    h.vehicle = replace(vehicle("OFFBOARD"), attitude_rad=np.zeros(3), position_ned_m=at, position_timestamp_s=h.now)
+    # A box corner 0.5 m ahead and 0.3 m left (in view: 31°), seen at the last pose.
+    h.frame = SeenResult(h.now, CLEAR, np.array([[-0.3, 0.0, 0.5]]), view)
+    sp = h.step(fresh_frame=False).setpoint
+    assert sp.right_m_s == 0.0  # in view: the live controller's business
+    # 0.5 m on, the corner is beside the vehicle, 0.3 m to its left and out of view.
+    h.vehicle = replace(h.vehicle, position_ned_m=np.array([0.5, 0.0, -1.5]), position_timestamp_s=h.now + 0.05)
+    h.frame = SeenResult(h.now + 0.03, CLEAR, np.empty((0, 3)), view)
+    sp = h.step(fresh_frame=False).setpoint
+    mem = CompanionConfig().memory
+    assert sp.right_m_s == pytest.approx(mem.guard_gain_per_s * (mem.guard_distance_m - 0.3))
+    assert sp.forward_m_s == pytest.approx(CompanionConfig().command.cruise_speed_m_s)
+    # With the memory off nothing is remembered.
+    off = CompanionConfig().model_copy(update={"memory": mem.model_copy(update={"duration_s": 0.0})})
+    h2 = Harness(SupervisorConfig.from_config(off))
+    h2.engage()
+    h2.vehicle = replace(vehicle("OFFBOARD"), attitude_rad=np.zeros(3), position_ned_m=at, position_timestamp_s=h2.now)
+    h2.frame = SeenResult(h2.now, CLEAR, np.array([[-0.3, 0.0, 0.5]]), view)
+    h2.step(fresh_frame=False)
+    h2.vehicle = replace(h2.vehicle, position_ned_m=np.array([0.5, 0.0, -1.5]), position_timestamp_s=h2.now + 0.05)
+    h2.frame = SeenResult(h2.now + 0.03, CLEAR, np.empty((0, 3)), view)
+    assert h2.step(fresh_frame=False).setpoint.right_m_s == 0.0

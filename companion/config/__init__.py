@@ -23,6 +23,7 @@ from companion.config.core import (
     ControllerConfig,
     InputTerm,
     LutConfig,
+    MemoryConfig,
     OutputTerm,
     RegionsConfig,
     RuleConfig,
@@ -53,6 +54,7 @@ __all__ = [
     "GpuConfig",
     "InputTerm",
     "LutConfig",
+    "MemoryConfig",
     "OutputTerm",
     "RegionsConfig",
     "RuleConfig",
@@ -75,6 +77,7 @@ class CompanionConfig(StrictModel):
     lut: LutConfig = Field(default_factory=LutConfig)
     controller: ControllerConfig = Field(default_factory=ControllerConfig)
     command: CommandConfig = Field(default_factory=CommandConfig)
+    memory: MemoryConfig = Field(default_factory=MemoryConfig)
     camera: CameraConfig = Field(default_factory=CameraConfig)
     vehicle: VehicleConfig = Field(default_factory=VehicleConfig)
     bus: BusConfig = Field(default_factory=BusConfig)

@@ -110,6 +110,23 @@ class SimConfig(StrictModel):
         le=5.0,
         description="The vehicle is a sphere of this radius around its centre for collisions and clearance, metres.",
     )
+    drift_speed_m_s: float = Field(
+        default=0.0,
+        ge=0.0,
+        le=2.0,
+        description=(
+            "Standard deviation of a random horizontal drift added to the vehicle's motion, per axis, "
+            "m/s; 0 = none. It models the position estimate's error as PX4 SITL shows it: with SIH's "
+            "GPS, EKF2's velocity is off by ~0.2 m/s rms, so the vehicle wanders while the velocity it "
+            "reports and tracks reads the setpoint. Seeded by the course."
+        ),
+    )
+    drift_time_constant_s: float = Field(
+        default=4.0,
+        gt=0.0,
+        le=60.0,
+        description="Correlation time of that drift (a first-order Gauss-Markov process), seconds.",
+    )
     # -- scoring ---------------------------------------------------------------------------------
     held_after_s: float = Field(
         default=3.0,

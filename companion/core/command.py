@@ -14,10 +14,17 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from companion.core.types import REGION_INDEX, ZERO_SETPOINT, Decision, DecisionKind, VelocitySetpoint
+from companion.core.memory import apply_guard
+from companion.core.types import (
+    REGION_INDEX,
+    ZERO_SETPOINT,
+    Decision,
+    DecisionKind,
+    VelocitySetpoint,
+)
 
 if TYPE_CHECKING:
-    from companion.config.core import CommandConfig
+    from companion.config.core import CommandConfig, MemoryConfig
 
 #: A CLEAR decision whose |yaw| and |pitch| are below this counts as flying straight (course hold may
 #: act); anything larger is the controller steering, and course hold waits.
@@ -54,18 +61,27 @@ def line_offset_m(position_ned_m: np.ndarray, origin_ned_m: np.ndarray, heading_
     return float(-right_of_line)
 
 
+def _aim_error_rad(heading_error_rad: float | None, line_offset: float | None, cmd: CommandConfig) -> float | None:
+    """How far (radians, positive = right) the heading course hold aims at lies from the heading now:
+    the course heading, turned toward the line; None when course hold is off or has no heading."""
+    if heading_error_rad is None or cmd.heading_hold_gain_per_s == 0.0 or not math.isfinite(heading_error_rad):
+        return None
+    err = (heading_error_rad + math.pi) % (2.0 * math.pi) - math.pi
+    if line_offset is not None and math.isfinite(line_offset) and cmd.line_hold_gain_per_m > 0.0:
+        limit = math.radians(cmd.max_line_hold_angle_deg)
+        err += min(limit, max(-limit, math.atan(cmd.line_hold_gain_per_m * line_offset)))
+    return err
+
+
 def _heading_hold_deg_s(
     heading_error_rad: float | None,
     region_depths_m: np.ndarray | None,
     cmd: CommandConfig,
     line_offset: float | None = None,
 ) -> float:
-    if heading_error_rad is None or cmd.heading_hold_gain_per_s == 0.0 or not math.isfinite(heading_error_rad):
+    err = _aim_error_rad(heading_error_rad, line_offset, cmd)
+    if err is None:
         return 0.0
-    err = (heading_error_rad + math.pi) % (2.0 * math.pi) - math.pi
-    if line_offset is not None and math.isfinite(line_offset) and cmd.line_hold_gain_per_m > 0.0:
-        limit = math.radians(cmd.max_line_hold_angle_deg)
-        err += min(limit, max(-limit, math.atan(cmd.line_hold_gain_per_m * line_offset)))
     rate = math.degrees(cmd.heading_hold_gain_per_s * err)
     rate = min(cmd.max_heading_hold_rate_deg_s, max(-cmd.max_heading_hold_rate_deg_s, rate))
     if rate != 0.0 and not _side_open(region_depths_m, "right" if rate > 0 else "left", cmd.hold_clear_depth_m):
@@ -212,6 +228,8 @@ def setpoint_for(
     brake_heading_error_rad: float | None = None,
     line_offset_m: float | None = None,
     since_up_near_m: float | None = None,
+    guard_m: np.ndarray | None = None,
+    guard_cfg: MemoryConfig | None = None,
 ) -> VelocitySetpoint:
     """The setpoint to send for ``decision``, made ``since_last_frame_s`` seconds after its frame.
 
@@ -233,6 +251,10 @@ def setpoint_for(
     no climb is commanded at all (neither by a rule nor by the altitude hold), since the camera cannot
     see what is straight overhead.
 
+    ``guard_m`` (:meth:`~companion.core.memory.ObstacleMemory.guard`: remembered points out of view
+    near the vehicle) with ``guard_cfg``: on any fresh decision, BRAKE included, the horizontal
+    velocity toward each is removed and a push away added (:func:`~companion.core.memory.apply_guard`).
+
     Course hold (all keyword inputs optional; ``None`` = off, the paper's behaviour). Only on a CLEAR
     decision, and only once ``clear_for_s`` (seconds the decisions have been straight and CLEAR; None
     = no wait) reaches ``cmd.hold_resume_delay_s``; the altitude hold also waits until ``clear_for_m``
@@ -251,6 +273,9 @@ def setpoint_for(
     * ``altitude_error_m`` (altitude at engagement minus altitude now, metres, positive = climb):
       adds ``clip(-altitude_hold_gain_per_s · error, ±max_altitude_hold_speed_m_s)`` m/s of down
       speed, scaled by ``1 - |pitch|``;
+    * turning back: when the heading aimed at (the two above) lies more than ``cmd.turn_back_angle_deg``
+      away, none of this: forward and sideways speed 0, and a yaw rate of
+      ``±max_heading_hold_rate_deg_s`` toward it, whatever the side regions read;
     * ``region_depths_m`` (float ``(9,)`` refined region depths, metres, NaN unknown): when given,
       the hold turns toward a side (right, left) or climbs/descends (up, down) only while that region
       is at least ``cmd.hold_clear_depth_m`` deep.
@@ -260,10 +285,10 @@ def setpoint_for(
     if since_last_frame_s > cmd.stale_frame_timeout_s:
         return ZERO_SETPOINT
     if decision.kind is DecisionKind.BRAKE:
-        return _brake_hold(brake_offset_body_m, brake_heading_error_rad, cmd)
+        return _guarded(_brake_hold(brake_offset_body_m, brake_heading_error_rad, cmd), guard_m, guard_cfg)
     yaw, pitch, speed = decision.yaw, decision.pitch, decision.speed_fraction
     if not (math.isfinite(yaw) and math.isfinite(pitch) and math.isfinite(speed)):
-        return ZERO_SETPOINT
+        return _guarded(ZERO_SETPOINT, guard_m, guard_cfg)
     yaw = min(1.0, max(-1.0, yaw))
     pitch = min(1.0, max(-1.0, pitch))
     speed = min(1.0, max(0.0, speed))
@@ -271,15 +296,28 @@ def setpoint_for(
     down_m_s = 0.0 - pitch * cmd.max_vertical_speed_m_s
     right_m_s = 0.0
     if decision.kind is DecisionKind.CLEAR and (clear_for_s is None or clear_for_s >= cmd.hold_resume_delay_s):
+        aim = _aim_error_rad(heading_error_rad, line_offset_m, cmd)
+        if aim is not None and abs(aim) > math.radians(cmd.turn_back_angle_deg) and cmd.turn_back_angle_deg < 180.0:
+            # Facing away from the course: stop and turn back in place (module doc, turning back).
+            rate = math.copysign(cmd.max_heading_hold_rate_deg_s, aim)
+            return _guarded(VelocitySetpoint(0.0, 0.0, 0.0, rate), guard_m, guard_cfg)
         yaw_rate_deg_s += (1.0 - abs(yaw)) * _heading_hold_deg_s(heading_error_rad, region_depths_m, cmd, line_offset_m)
         if clear_for_m is None or clear_for_m >= cmd.hold_resume_distance_m:
             down_m_s += (1.0 - abs(pitch)) * _altitude_hold_down_m_s(altitude_error_m, region_depths_m, cmd)
         right_m_s = (1.0 - abs(yaw)) * _line_hold_right_m_s(line_offset_m, heading_error_rad, region_depths_m, cmd)
     if since_up_near_m is not None and since_up_near_m < cmd.hold_resume_distance_m and down_m_s < 0.0:
         down_m_s = 0.0  # something was overhead within the last metres: it may still be, out of view
-    return VelocitySetpoint(
+    sp = VelocitySetpoint(
         forward_m_s=cmd.cruise_speed_m_s * speed,
         right_m_s=right_m_s,
         down_m_s=down_m_s,
         yaw_rate_deg_s=yaw_rate_deg_s,
     )
+    return _guarded(sp, guard_m, guard_cfg)
+
+
+def _guarded(sp: VelocitySetpoint, guard_m: np.ndarray | None, cfg: MemoryConfig | None) -> VelocitySetpoint:
+    if guard_m is None or cfg is None or len(guard_m) == 0:
+        return sp
+    forward, right = apply_guard(sp.forward_m_s, sp.right_m_s, guard_m, cfg)
+    return VelocitySetpoint(forward_m_s=forward, right_m_s=right, down_m_s=sp.down_m_s, yaw_rate_deg_s=sp.yaw_rate_deg_s)

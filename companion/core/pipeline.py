@@ -32,6 +32,7 @@ from companion.core.disparity import make_cpu_matcher
 from companion.core.fuzzy.avoidance import AvoidanceController
 from companion.core.geometry import StereoGeometry
 from companion.core.lut import DepthLUT, median_filter, release_filter
+from companion.core.memory import BlockMax, NearCells, ViewLimits, view_limits
 from companion.core.regions import RegionLayout, reduce_regions, region_layout
 from companion.core.stereo import split_frame, to_grey
 from companion.core.types import Decision, RegionDepths
@@ -55,11 +56,15 @@ class RegionEstimate:
         timings_ms: stage name -> milliseconds, in pipeline order.
         disparity: float32 (H, W) disparity in pixels (NaN invalid) when asked for, else None. A GPU
             estimator may return a downsampled image.
+        near_blocks: when asked for with ``near_block_px``: float32 ``(ceil(H/b), ceil(W/b))`` the
+            largest valid disparity of each ``b``-pixel block, pixels, NaN none
+            (:class:`~companion.core.memory.BlockMax`); a buffer valid until the next estimate.
     """
 
     regions: RegionDepths
     timings_ms: dict[str, float]
     disparity: np.ndarray | None = None
+    near_blocks: np.ndarray | None = None
 
 
 class RegionEstimator(Protocol):
@@ -69,8 +74,9 @@ class RegionEstimator(Protocol):
     geometry: StereoGeometry
     layout: RegionLayout
 
-    def estimate(self, frame: np.ndarray, want_disparity: bool = False) -> RegionEstimate:
-        """``frame``: uint8 (H, 2W, 3) BGR or (H, 2W) grey side-by-side image."""
+    def estimate(self, frame: np.ndarray, want_disparity: bool = False, near_block_px: int = 0) -> RegionEstimate:
+        """``frame``: uint8 (H, 2W, 3) BGR or (H, 2W) grey side-by-side image; ``near_block_px`` > 0
+        also returns the block-maximum disparity (the obstacle memory's input)."""
         ...
 
 
@@ -98,8 +104,9 @@ class CpuRegionEstimator:
         self._rect_r = np.empty(shape, np.uint8)
         self._disparity = np.empty(shape, np.float32)
         self._depth = np.empty(shape, np.float32)
+        self._block_max: BlockMax | None = None
 
-    def estimate(self, frame: np.ndarray, want_disparity: bool = False) -> RegionEstimate:
+    def estimate(self, frame: np.ndarray, want_disparity: bool = False, near_block_px: int = 0) -> RegionEstimate:
         clock = self._clock
         timings: dict[str, float] = {}
         t0 = clock()
@@ -116,10 +123,18 @@ class CpuRegionEstimator:
         timings["disparity_ms"] = (t3 - t2) * 1e3
         depth = disparity_to_depth(disp, self.geometry.focal_baseline_px_m, out=self._depth)
         regions = reduce_regions(depth, self.layout, self._regions_cfg)
+        near = None
+        if near_block_px > 0:
+            if self._block_max is None or self._block_max.block_px != near_block_px:
+                self._block_max = BlockMax(disp.shape, near_block_px)
+            near = self._block_max(disp)
         t4 = clock()
         timings["regions_ms"] = (t4 - t3) * 1e3
         return RegionEstimate(
-            regions=regions, timings_ms=timings, disparity=disp.copy() if want_disparity else None
+            regions=regions,
+            timings_ms=timings,
+            disparity=disp.copy() if want_disparity else None,
+            near_blocks=near,
         )
 
 
@@ -175,6 +190,11 @@ class FrameResult:
         decision: the controller's decision.
         timings_ms: stage -> milliseconds, plus ``total_ms``.
         disparity: float32 disparity image when asked for (for overlays), else None.
+        near_points_cam_m: with the obstacle memory on (``memory.duration_s`` > 0): float64 ``(K, 3)``
+            confirmed near points in the camera frame (x right, y down, z forward), metres
+            (:class:`~companion.core.memory.NearCells`); else None.
+        view_limits: with the memory on, what the rig measures (:func:`~companion.core.memory.view_limits`),
+            for the guard; else None.
     """
 
     timestamp_s: float
@@ -183,6 +203,16 @@ class FrameResult:
     decision: Decision
     timings_ms: dict[str, float] = field(default_factory=dict)
     disparity: np.ndarray | None = None
+    near_points_cam_m: np.ndarray | None = None
+    view_limits: ViewLimits | None = None
+
+
+def _near_cells(cfg: CompanionConfig, geometry: StereoGeometry, width_px: int, height_px: int) -> NearCells | None:
+    """The obstacle memory's per-frame stage, or None when the memory is off."""
+    if cfg.memory.duration_s <= 0.0:
+        return None
+    b = cfg.memory.block_px
+    return NearCells(cfg.memory, geometry, (-(-height_px // b), -(-width_px // b)))
 
 
 class Pipeline:
@@ -212,10 +242,17 @@ class Pipeline:
         self._filtered: np.ndarray | None = None
         self._history: deque[np.ndarray] = deque(maxlen=cfg.lut.median_frames - 1)
         self._last_timestamp_s: float | None = None
+        self._near = _near_cells(cfg, self.estimator.geometry, width_px, height_px)
+        self._view_limits = view_limits(self.estimator.geometry, cfg.stereo.num_disparities)
 
     @property
     def geometry(self) -> StereoGeometry:
         return self.estimator.geometry
+
+    @property
+    def near_cells(self) -> int:
+        """Points one frame can give the obstacle memory (0 when it is off)."""
+        return 0 if self._near is None else self._near.cells
 
     def _apply_cheap(self, cfg: CompanionConfig) -> None:
         self._lut = DepthLUT(cfg.lut.points_m)
@@ -240,7 +277,11 @@ class Pipeline:
             estimator = make_estimator(cfg, self.width_px, self.height_px, clock=self._clock)
         lut = DepthLUT(cfg.lut.points_m)
         controller = AvoidanceController(cfg.controller, cfg.command)
-        self.estimator, self._lut, self._controller = estimator, lut, controller
+        near = self._near
+        if estimator is not self.estimator or cfg.memory != self.config.memory:
+            near = _near_cells(cfg, estimator.geometry, self.width_px, self.height_px)
+        self.estimator, self._lut, self._controller, self._near = estimator, lut, controller, near
+        self._view_limits = view_limits(estimator.geometry, cfg.stereo.num_disparities)
         self._release_tau_s = cfg.lut.release_time_constant_s
         if cfg.lut.median_frames - 1 != self._history.maxlen:
             self._history = deque(self._history, maxlen=cfg.lut.median_frames - 1)
@@ -252,6 +293,8 @@ class Pipeline:
         self._filtered = None
         self._history.clear()
         self._last_timestamp_s = None
+        if self._near is not None:
+            self._near.reset()
 
     def process(self, frame: np.ndarray, timestamp_s: float, want_disparity: bool = False) -> FrameResult:
         """Run the whole pipeline on one side-by-side frame captured at ``timestamp_s`` (seconds).
@@ -261,7 +304,11 @@ class Pipeline:
         """
         clock = self._clock
         t0 = clock()
-        est = self.estimator.estimate(frame, want_disparity=want_disparity)
+        near = self._near
+        if near is None:
+            est = self.estimator.estimate(frame, want_disparity=want_disparity)
+        else:
+            est = self.estimator.estimate(frame, want_disparity=want_disparity, near_block_px=near.cfg.block_px)
         t1 = clock()
         looked_up = self._lut.apply(est.regions.depth_m)
         refined = median_filter(self._history, looked_up, self.config.lut.median_frames)
@@ -273,10 +320,16 @@ class Pipeline:
         t2 = clock()
         decision = self._controller.decide(refined)
         t3 = clock()
+        points = None
+        if near is not None and est.near_blocks is not None:
+            points = near.points(est.near_blocks)
+        t4 = clock()
         timings = dict(est.timings_ms)
         timings["lut_ms"] = (t2 - t1) * 1e3
         timings["fuzzy_ms"] = (t3 - t2) * 1e3
-        timings["total_ms"] = (t3 - t0) * 1e3
+        if points is not None:
+            timings["memory_ms"] = (t4 - t3) * 1e3
+        timings["total_ms"] = (t4 - t0) * 1e3
         return FrameResult(
             timestamp_s=timestamp_s,
             raw=est.regions,
@@ -284,4 +337,6 @@ class Pipeline:
             decision=decision,
             timings_ms=timings,
             disparity=est.disparity,
+            near_points_cam_m=points,
+            view_limits=None if points is None else self._view_limits,
         )

@@ -48,12 +48,14 @@ from __future__ import annotations
 
 import enum
 import math
+from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Protocol, Union
 
 import numpy as np
 
+from companion.config.core import MemoryConfig
 from companion.core.command import (
     BrakeLatch,
     OverheadMemory,
@@ -62,12 +64,20 @@ from companion.core.command import (
     line_offset_m,
     setpoint_for,
 )
+from companion.core.memory import ObstacleMemory, ViewLimits, camera_points_to_ned
+from companion.core.render.pose import Pose
 from companion.core.types import ZERO_SETPOINT, Decision, DecisionKind, VelocitySetpoint
 
 if TYPE_CHECKING:
     from companion.config import CompanionConfig
     from companion.config.core import CommandConfig
     from companion.interfaces import VehicleState
+
+
+#: Vehicle poses kept to place a frame's points from the pose it was captured at (20 Hz: 3 s).
+_POSE_HISTORY = 64
+#: A frame's points go into the memory only with a pose this near its capture time, seconds.
+_POSE_MATCH_S = 0.2
 
 
 class State(str, enum.Enum):
@@ -200,6 +210,7 @@ class SupervisorConfig:
     override_max_duration_s: float = 10.0
     override_respects_brake: bool = True
     autostart: bool = False
+    memory: MemoryConfig = field(default_factory=MemoryConfig)
 
     @classmethod
     def from_config(cls, cfg: CompanionConfig) -> SupervisorConfig:
@@ -214,6 +225,7 @@ class SupervisorConfig:
             override_max_duration_s=s.override_max_duration_s,
             override_respects_brake=s.override_respects_brake,
             autostart=s.autostart,
+            memory=cfg.memory,
         )
 
 
@@ -257,6 +269,11 @@ class _Memory:
     clear_since_ned_m: np.ndarray | None = None  # the vehicle's position then (None: not known), NED metres
     brake: BrakeLatch = field(default_factory=BrakeLatch)  # where the current brake began (brake position hold)
     overhead: OverheadMemory = field(default_factory=OverheadMemory)  # where something was last overhead
+    obstacles: ObstacleMemory = field(default_factory=ObstacleMemory)  # near points seen (the guard)
+    poses: deque[tuple[float, Pose]] = field(default_factory=lambda: deque(maxlen=_POSE_HISTORY))  # (time s, pose)
+    last_frame_s: float | None = None  # capture time of the newest frame put in the memory
+    view_limits: ViewLimits | None = None  # what the rig measures, from the frames
+    guarding: int = 0  # remembered points (one per sector) that shaped the last engaged setpoint
     actions: list[Action] = field(default_factory=list)
 
 
@@ -318,6 +335,11 @@ class Supervisor:
 
     # ------------------------------------------------------------------------------------ update
 
+    def memory_status(self) -> dict[str, float | int]:
+        """The obstacle memory for the health message: ``points`` remembered (5 cm cubes),
+        ``guarding``: how many (one per 45° sector) pushed the last engaged setpoint."""
+        return {"points": len(self._m.obstacles), "guarding": self._m.guarding}
+
     def reconfigure(self, cfg: SupervisorConfig) -> None:
         """Swap the limits and timings; the state is kept (autostart is consumed only at start)."""
         self._cfg = cfg
@@ -357,6 +379,7 @@ class Supervisor:
             if isinstance(r, ActionResult):
                 self._on_action_result(now_s, r)
         self._observe_vehicle(now_s, vehicle)
+        self._remember(now_s, latest, vehicle)
         replies = tuple(
             self._on_request(now_s, r, vehicle, fresh, age_s, camera_ok)
             for r in requests
@@ -379,6 +402,26 @@ class Supervisor:
         )
 
     # ------------------------------------------------------------------------------------ internals
+
+    def _remember(self, now_s: float, latest: FrameOutcome | None, v: VehicleState) -> None:
+        """Keep the vehicle's recent poses, and put a new frame's near points in the obstacle memory
+        from the pose nearest its capture time (none within :data:`_POSE_MATCH_S`: not put)."""
+        m = self._m
+        pose = _pose_of(v)
+        if pose is not None:
+            t = v.position_timestamp_s if v.position_timestamp_s is not None else now_s
+            if not m.poses or t > m.poses[-1][0]:
+                m.poses.append((float(t), pose))
+        points = getattr(latest, "near_points_cam_m", None)
+        if latest is None or points is None or latest.timestamp_s == m.last_frame_s:
+            return
+        m.last_frame_s = latest.timestamp_s
+        m.view_limits = getattr(latest, "view_limits", None)
+        if self._cfg.memory.duration_s <= 0.0 or not m.poses:
+            return
+        t_seen, seen_from = min(m.poses, key=lambda tp: abs(tp[0] - latest.timestamp_s))
+        if abs(t_seen - latest.timestamp_s) <= _POSE_MATCH_S:
+            m.obstacles.add(camera_points_to_ned(points, seen_from), latest.timestamp_s, self._cfg.memory.duration_s)
 
     def _commanding(self) -> bool:
         m = self._m
@@ -682,6 +725,10 @@ class Supervisor:
             line_offset = line_offset_m(v.position_ned_m, m.course_origin_ned_m, m.course_heading_rad)
         refined = getattr(latest, "refined", None)
         brake_offset = m.brake.offset_body(latest.decision, v.position_ned_m, heading_now)
+        guard = None
+        if self._cfg.memory.duration_s > 0.0 and m.view_limits is not None and v.position_ned_m is not None and heading_now is not None:
+            guard = m.obstacles.guard(v.position_ned_m, heading_now, now_s, self._cfg.memory, m.view_limits)
+        m.guarding = 0 if guard is None else len(guard)
         return setpoint_for(
             latest.decision,
             age_s,
@@ -695,6 +742,8 @@ class Supervisor:
             brake_heading_error_rad=m.brake.heading_error_rad(heading_now),
             line_offset_m=line_offset,
             since_up_near_m=m.overhead.update(getattr(refined, "depth_m", None), v.position_ned_m, self._cfg.command.hold_clear_depth_m),
+            guard_m=guard,
+            guard_cfg=self._cfg.memory,
         )
 
     def _override_setpoint(self, o: Override, latest: FrameOutcome | None) -> VelocitySetpoint:
@@ -708,6 +757,20 @@ class Supervisor:
             down_m_s=0.0 - o.pitch * cmd.max_vertical_speed_m_s,
             yaw_rate_deg_s=o.yaw * cmd.max_yaw_rate_deg_s,
         )
+
+
+def _pose_of(v: VehicleState) -> Pose | None:
+    """The vehicle's pose when its position and attitude are known and finite."""
+    if v.position_ned_m is None or v.attitude_rad is None:
+        return None
+    try:
+        p = np.asarray(v.position_ned_m, dtype=np.float64).reshape(3)
+        a = np.asarray(v.attitude_rad, dtype=np.float64).reshape(3)
+    except (TypeError, ValueError):
+        return None
+    if not (np.all(np.isfinite(p)) and np.all(np.isfinite(a))):
+        return None
+    return Pose((float(p[0]), float(p[1]), float(p[2])), float(a[2]), float(a[1]), float(a[0]))
 
 
 def _finite_or_none(values: object, index: int) -> float | None:

@@ -36,11 +36,12 @@ import numpy as np
 from companion.config import CompanionConfig
 from companion.core.calibration import make_rectifier
 from companion.core.geometry import StereoGeometry
+from companion.core.memory import block_max
 from companion.core.pipeline import RegionEstimate
 from companion.core.regions import RegionLayout, region_layout
 from companion.core.stereo import split_frame
 from companion.core.types import N_REGIONS, RegionDepths
-from companion.errors import BackendError
+from companion.errors import BackendError, ConfigError
 from companion.gpu.plan import DisparityPlan, kernel_defines, plan_disparity
 
 log = logging.getLogger(__name__)
@@ -104,6 +105,12 @@ class CupyRegionEstimator:
         self._clock = clock
         self._gpu_cfg = cfg.gpu
         self._regions_cfg = cfg.regions
+        f = cfg.gpu.disparity_preview_downsample
+        if cfg.memory.duration_s > 0.0 and f >= 2 and cfg.memory.block_px % f != 0:
+            raise ConfigError(
+                f"memory.block_px ({cfg.memory.block_px}) must be a multiple of "
+                f"gpu.disparity_preview_downsample ({f}): the GPU reduces the disparity to blocks of that size"
+            )
         rectifier = make_rectifier(cfg.calibration, self.width_px, self.height_px)
         self.geometry: StereoGeometry = rectifier.geometry
         self.layout: RegionLayout = region_layout(self.geometry, cfg.regions)
@@ -304,7 +311,7 @@ class CupyRegionEstimator:
         shape = (self.height_px, 2 * self.width_px) + ((channels,) if channels > 1 else ())
         return self._host_frame[: math.prod(shape)].reshape(shape)
 
-    def estimate(self, frame: np.ndarray, want_disparity: bool = False) -> RegionEstimate:
+    def estimate(self, frame: np.ndarray, want_disparity: bool = False, near_block_px: int = 0) -> RegionEstimate:
         """9 raw region depths of one side-by-side frame.
 
         Args:
@@ -312,6 +319,10 @@ class CupyRegionEstimator:
             want_disparity: also return the disparity: float32 px, NaN invalid; downsampled by
                 ``gpu.disparity_preview_downsample`` (each cell the largest valid disparity of its
                 block), or at full resolution when that is 0 or 1.
+            near_block_px: > 0: also return ``near_blocks``, the largest valid disparity of each
+                block of this many pixels (the obstacle memory's input; a multiple of the preview
+                factor, which the device computes); the CPU reference is
+                :func:`~companion.core.memory.block_max`.
 
         Returns:
             :class:`~companion.core.pipeline.RegionEstimate` with ``timings_ms``: ``upload_ms`` (host
@@ -328,7 +339,7 @@ class CupyRegionEstimator:
         channels = 1 if frame.ndim == 2 else int(frame.shape[2])
         timings: dict[str, float] = {}
         try:
-            return self._estimate(frame, channels, want_disparity, t0, timings)
+            return self._estimate(frame, channels, want_disparity, near_block_px, t0, timings)
         finally:
             if self._registered:  # an error left the caller's frame page-locked: wait, then unlock
                 try:
@@ -340,9 +351,17 @@ class CupyRegionEstimator:
                     log.error("could not unlock the caller's frame after an error: %s", err)
 
     def _estimate(
-        self, frame: np.ndarray, channels: int, want_disparity: bool, t0: float, timings: dict[str, float]
+        self,
+        frame: np.ndarray,
+        channels: int,
+        want_disparity: bool,
+        near_block_px: int,
+        t0: float,
+        timings: dict[str, float],
     ) -> RegionEstimate:
         cp = self._cp
+        # The memory's blocks come from the same device disparity and preview as an overlay's.
+        want_device_disparity = want_disparity or near_block_px > 0
         clock = self._clock
         comp = self._stream
         try:
@@ -353,11 +372,11 @@ class CupyRegionEstimator:
                     self._upload_band(src, band, self._band_events[k])
                     comp.wait_event(self._band_events[k])
                     if ev:
-                        self._enqueue_band(k, channels, src.swapped, want_disparity, events=ev)
+                        self._enqueue_band(k, channels, src.swapped, want_device_disparity, events=ev)
                     elif self._graph_ok:
-                        self._graph(k, channels, src.swapped, want_disparity).launch(comp)
+                        self._graph(k, channels, src.swapped, want_device_disparity).launch(comp)
                     else:
-                        self._enqueue_band(k, channels, src.swapped, want_disparity)
+                        self._enqueue_band(k, channels, src.swapped, want_device_disparity)
                 t1 = clock()
                 try:
                     comp.synchronize()
@@ -378,7 +397,8 @@ class CupyRegionEstimator:
         res = self._result
         regions = RegionDepths(depth_m=res[:N_REGIONS].copy(), valid_fraction=res[N_REGIONS:].copy())
         disparity = self._host_disparity() if want_disparity else None
-        return RegionEstimate(regions=regions, timings_ms=timings, disparity=disparity)
+        near = self._near_blocks(near_block_px) if near_block_px > 0 else None
+        return RegionEstimate(regions=regions, timings_ms=timings, disparity=disparity, near_blocks=near)
 
     def rectified_pair(self) -> tuple[np.ndarray, np.ndarray]:
         """Copies of the last frame's rectified grey eyes, uint8 ``(H, W)`` each (tests, debugging)."""
@@ -568,6 +588,14 @@ class CupyRegionEstimator:
                 cp.cuda.runtime.memcpyAsync(self._disp_host_mem.ptr, self._disp.data.ptr, h * w * 2, d2h, s.ptr)
         if events:
             events[4].record(s)
+
+    def _near_blocks(self, block_px: int) -> np.ndarray:
+        f = self._preview_factor
+        if f > 1:
+            if block_px % f != 0:
+                raise ConfigError(f"memory.block_px ({block_px}) must be a multiple of gpu.disparity_preview_downsample ({f})")
+            return self._preview_host if block_px == f else block_max(self._preview_host, block_px // f)
+        return block_max(self._host_disparity(), block_px)
 
     def _host_disparity(self) -> np.ndarray:
         if self._preview_factor > 1:

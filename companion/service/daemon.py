@@ -789,6 +789,7 @@ class Service:
             "setpoint_age_ms": (now - self._last_setpoint_s) * 1e3 if self._last_setpoint_s is not None else None,
             "setpoints_sent": self._setpoints_sent,
             "override": self.supervisor.override_status(now),
+            "memory": self.supervisor.memory_status(),
             "camera": (
                 {
                     "source": capture.source,

@@ -40,14 +40,15 @@ from companion.core.command import (
     line_offset_m,
     setpoint_for,
 )
+from companion.core.memory import ObstacleMemory, camera_points_to_ned
 from companion.core.pipeline import FrameResult, Pipeline
-from companion.core.render import TextureBank
+from companion.core.render import Pose, TextureBank
 from companion.core.types import ZERO_SETPOINT, DecisionKind
 from companion.errors import CameraError
 from companion.interfaces import Frame
 from companion.sim.camera import SimCamera
 from companion.sim.courses import Course
-from companion.sim.scoring import Judge, Outcome
+from companion.sim.scoring import HELD_RADIUS_M, Judge, Outcome
 from companion.sim.vehicle import SimVehicle, VehicleParams, wrap_angle_rad
 
 #: Events scheduled at k/rate fire when the simulated time is within this of it (float steps).
@@ -260,7 +261,7 @@ def fly(
     sim, cmd = cfg.sim, cfg.command
     pipeline = Pipeline(cfg, sim.eye_width_px, sim.eye_height_px)
     params = VehicleParams.from_config(sim)
-    vehicle = SimVehicle(params, course.start)
+    vehicle = SimVehicle(params, course.start, seed=course.seed)
     camera = make_camera(course, cfg, vehicle, pipeline, textures, camera_fail_after_s)
     camera.open()
     radius = params.collision_radius_m
@@ -286,7 +287,7 @@ def fly(
     pipe_ms: list[float] = []
     render_ms: list[float] = []
 
-    pending: deque[tuple[float, FrameResult]] = deque()
+    pending: deque[tuple[float, FrameResult, Pose]] = deque()
     latest: FrameResult | None = None
     camera_ok = True
     n_cam = n_sp = 0
@@ -294,7 +295,16 @@ def fly(
     last_steer_ned_m: np.ndarray | None = None  # where the decisions last steered (None: not yet)
     brake = BrakeLatch()  # where the current brake began (brake position hold)
     overhead = OverheadMemory()  # where something was last seen overhead
-    judge = Judge(course, radius, sim.held_speed_m_s, sim.held_after_s, vehicle.model.position_ned_m)
+    memory = ObstacleMemory() if cfg.memory.duration_s > 0.0 else None
+    judge = Judge(
+        course,
+        radius,
+        sim.held_speed_m_s,
+        sim.held_after_s,
+        vehicle.model.position_ned_m,
+        # With drift the velocity no longer tells whether the vehicle stays put: judge as with PX4.
+        held_radius_m=HELD_RADIUS_M if sim.drift_speed_m_s > 0.0 else None,
+    )
     sp = ZERO_SETPOINT
     kind = LogKind.NONE
 
@@ -327,7 +337,7 @@ def fly(
                 p1 = clock()
                 render_ms.append((p0 - r0) * 1e3)
                 pipe_ms.append((p1 - p0) * 1e3)
-                pending.append((frame.timestamp_s + sim.processing_latency_s, res))
+                pending.append((frame.timestamp_s + sim.processing_latency_s, res, vehicle.pose()))
                 f_t.append(frame.timestamp_s)
                 f_pos.append(vehicle.model.position_ned_m.copy())
                 f_depth.append(np.asarray(res.refined.depth_m, dtype=np.float64).copy())
@@ -338,7 +348,11 @@ def fly(
                 if on_frame is not None:
                     on_frame(frame, res)
         while pending and pending[0][0] <= t + _EPS_S:
-            latest = pending.popleft()[1]
+            _, latest, seen_from = pending.popleft()
+            if memory is not None and latest.near_points_cam_m is not None:
+                memory.add(
+                    camera_points_to_ned(latest.near_points_cam_m, seen_from), latest.timestamp_s, cfg.memory.duration_s
+                )
 
         # -- setpoint, at the service's rate and by the service's rule
         if t >= n_sp * sp_period - _EPS_S:
@@ -366,6 +380,10 @@ def fly(
                 since_up_near_m=overhead.update(
                     latest.refined.depth_m if latest is not None else None, m.position_ned_m, cmd.hold_clear_depth_m
                 ),
+                guard_m=memory.guard(m.position_ned_m, m.yaw_rad, t, cfg.memory, latest.view_limits)
+                if memory is not None and latest is not None and latest.view_limits is not None
+                else None,
+                guard_cfg=cfg.memory,
             )
             if vehicle.in_offboard:
                 vehicle.set_setpoint(sp)

@@ -32,6 +32,11 @@ if TYPE_CHECKING:
     from companion.sim.courses import Course
 
 
+#: Held, for a vehicle whose velocity does not tell (PX4's estimate wanders in a hover; the simulator
+#: with ``sim.drift_speed_m_s``): every position of the last ``sim.held_after_s`` within this of the
+#: newest, metres.
+HELD_RADIUS_M = 0.15
+
 class Outcome(str, enum.Enum):
     """How a flight ended."""
 

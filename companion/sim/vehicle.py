@@ -48,6 +48,10 @@ class VehicleParams:
         tilt_with_acceleration: tilt the body with the acceleration (camera pose follows).
         attitude_time_constant_s: lag of that tilt, seconds (> 0).
         collision_radius_m: radius of the collision sphere, metres (> 0).
+        drift_speed_m_s: standard deviation of a random horizontal drift velocity added to the
+            motion, per axis, m/s (>= 0; 0 = none). It models the estimator's error as PX4 shows it:
+            the position moves while the velocity the vehicle reports (and tracks) does not.
+        drift_time_constant_s: correlation time of that drift (Ornstein-Uhlenbeck), seconds (> 0).
     """
 
     velocity_time_constant_s: float = 0.3
@@ -58,6 +62,8 @@ class VehicleParams:
     tilt_with_acceleration: bool = True
     attitude_time_constant_s: float = 0.1
     collision_radius_m: float = 0.25
+    drift_speed_m_s: float = 0.0
+    drift_time_constant_s: float = 4.0
 
     def __post_init__(self) -> None:
         for name in (
@@ -68,10 +74,13 @@ class VehicleParams:
             "max_yaw_accel_deg_s2",
             "attitude_time_constant_s",
             "collision_radius_m",
+            "drift_time_constant_s",
         ):
             v = float(getattr(self, name))
             if not (v > 0.0 and math.isfinite(v)):
                 raise ValueError(f"VehicleParams.{name} must be finite and > 0, got {v}")
+        if not (self.drift_speed_m_s >= 0.0 and math.isfinite(self.drift_speed_m_s)):
+            raise ValueError(f"VehicleParams.drift_speed_m_s must be finite and >= 0, got {self.drift_speed_m_s}")
 
     @classmethod
     def from_config(cls, sim: object) -> VehicleParams:
@@ -86,9 +95,10 @@ class VehicleModel:
         params: the dynamics.
         start: initial pose (only position and yaw are used: the vehicle starts level, at rest).
         time_s: initial simulated time, seconds.
+        seed: seed of the drift's random generator (the same seed flies the same drift).
     """
 
-    def __init__(self, params: VehicleParams, start: Pose, time_s: float = 0.0) -> None:
+    def __init__(self, params: VehicleParams, start: Pose, time_s: float = 0.0, seed: int = 0) -> None:
         self.params = params
         self.time_s = float(time_s)
         self.position_ned_m = np.array(start.position_ned_m, dtype=np.float64)
@@ -99,6 +109,8 @@ class VehicleModel:
         self.roll_rad = 0.0
         self.accel_ned_m_s2 = np.zeros(3)
         self.setpoint: VelocitySetpoint = ZERO_SETPOINT
+        self._rng = np.random.default_rng(seed)
+        self.drift_ned_m_s = np.zeros(3)  # the estimator-like drift now (horizontal), m/s
 
     def command(self, setpoint: VelocitySetpoint) -> None:
         """Set the velocity/yaw-rate setpoint tracked from now on (non-finite values are refused)."""
@@ -132,6 +144,12 @@ class VehicleModel:
         acc[2] = min(p.max_vertical_accel_m_s2, max(-p.max_vertical_accel_m_s2, acc[2]))
         v_new = v + acc * dt_s
         self.position_ned_m = self.position_ned_m + 0.5 * (v + v_new) * dt_s
+        if p.drift_speed_m_s > 0.0:
+            # Ornstein-Uhlenbeck, exact over dt: stationary std drift_speed_m_s per horizontal axis.
+            a = math.exp(-dt_s / p.drift_time_constant_s)
+            noise = self._rng.standard_normal(2) * (p.drift_speed_m_s * math.sqrt(1.0 - a * a))
+            self.drift_ned_m_s[:2] = a * self.drift_ned_m_s[:2] + noise
+            self.position_ned_m = self.position_ned_m + self.drift_ned_m_s * dt_s
         self.velocity_ned_m_s = v_new
         self.accel_ned_m_s2 = acc
 
@@ -183,10 +201,11 @@ class SimVehicle:
         params: the dynamics.
         start: initial pose (level, at rest).
         time_s: initial simulated time, seconds.
+        seed: seed of the drift's random generator (see :class:`VehicleParams`).
     """
 
-    def __init__(self, params: VehicleParams, start: Pose, time_s: float = 0.0) -> None:
-        self.model = VehicleModel(params, start, time_s)
+    def __init__(self, params: VehicleParams, start: Pose, time_s: float = 0.0, seed: int = 0) -> None:
+        self.model = VehicleModel(params, start, time_s, seed)
         self.flight_mode = "POSCTL"
         self._last_setpoint: VelocitySetpoint | None = None
         self._connected = False

@@ -45,7 +45,7 @@ from companion.sim.loop import (
     simulator_config,
 )
 from companion.sim.placement import CoursePlacement
-from companion.sim.scoring import Judge, Outcome
+from companion.sim.scoring import HELD_RADIUS_M, Judge, Outcome
 from companion.sitl.pilot import Pilot, Sample
 from companion.sitl.px4 import Px4Ports, Px4Sitl, SitlError
 from companion.sitl.service import ServiceProcess
@@ -65,9 +65,6 @@ SITL_PARAMS: dict[str, float | int] = {
     "EKF2_ACC_NOISE": 1.0,
 }
 
-#: Held = every position of the last ``sim.held_after_s`` within this of the newest (PX4's estimated
-#: velocity wanders too much in a hover for the kinematic simulator's speed threshold), metres.
-HELD_RADIUS_M = 0.15
 
 _KIND = {"clear": LogKind.CLEAR, "avoid": LogKind.AVOID, "brake": LogKind.BRAKE}
 

@@ -1,0 +1,345 @@
+"""Obstacle memory and the out-of-view guard (pure NumPy; time is passed in).
+
+The camera sees only ahead (ZED: about ±44°). An obstacle the vehicle turned away from, or is
+flying past, leaves the view while it is still beside the vehicle, and a multicopter drifts with its
+position estimate's error (PX4 SITL: ~0.2 m/s) sideways into it. So what the camera saw near is
+kept for a few seconds (``memory.duration_s``) as points in the local NED frame, and a point that is
+out of view (or nearer than the stereo rig can see) and within ``memory.guard_distance_m`` of the
+vehicle, horizontally, guards it: :func:`apply_guard` removes the velocity toward it and adds a push
+away (see :func:`~companion.core.command.setpoint_for`).
+
+From one frame to points (:func:`block_max`, :class:`NearCells`):
+
+1. :class:`BlockMax`: the disparity image reduced to the largest valid disparity of each
+   ``block_px``-square block (the nearest surface in it), float32, NaN for none. The GPU estimator
+   computes this on the device; :func:`block_max` is the CPU reference it must match.
+2. cells: the block image split into ``grid_rows × grid_cols`` cells; a cell with fewer valid blocks
+   than ``min_valid_fraction`` is empty, else its disparity is the ``k``-th largest valid block with
+   ``k = max(1, ceil(robust_percentile_pct/100 · n_valid))`` (as the regions do), its depth
+   ``f·B/d``.
+3. confirmation: a cell's depth is the median of its last ``confirm_frames`` depths, an empty cell
+   counting as far, so that a false match lasting one frame is not remembered.
+4. points: each cell nearer than ``max_depth_m`` gives one point, on its centre ray at that depth,
+   in the camera frame (x right, y down, z forward, metres).
+
+The memory lives in the vehicle's position estimate; a real estimate drifts against the world, which
+is why it is short.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from companion.config.core import MemoryConfig
+from companion.core.geometry import StereoGeometry
+from companion.core.render.pose import Pose
+
+#: Sectors (of the full circle around the vehicle) the guard keeps one nearest point from.
+GUARD_SECTORS = 8
+#: Highest camera rate the memory's capacity is sized for, frames per second.
+MAX_FRAME_RATE_HZ = 60.0
+
+
+class BlockMax:
+    """The largest valid disparity of each ``block_px × block_px`` block (the nearest surface in it),
+    into buffers allocated once for one image shape.
+
+    Args:
+        shape: ``(H, W)`` of the disparity images, pixels.
+        block_px: block side, pixels (>= 1).
+    """
+
+    def __init__(self, shape: tuple[int, int], block_px: int) -> None:
+        b = int(block_px)
+        if b < 1:
+            raise ValueError(f"block_px must be >= 1, got {block_px}")
+        h, w = int(shape[0]), int(shape[1])
+        self.shape = (h, w)
+        self.block_px = b
+        self.out_shape = (-(-h // b), -(-w // b))
+        oh, ow = self.out_shape
+        self._pad = np.full((oh * b, ow * b), np.nan, dtype=np.float32)  # partial edge blocks: NaN fill
+        self._cols = np.empty((oh * b, ow), dtype=np.float32)
+        self._out = np.empty((oh, ow), dtype=np.float32)
+
+    def __call__(self, disparity: np.ndarray) -> np.ndarray:
+        """``disparity``: float32 ``(H, W)`` pixels, NaN invalid → float32 ``out_shape``, NaN where a
+        block has no valid pixel. The result is a buffer reused by the next call."""
+        if disparity.shape != self.shape:
+            raise ValueError(f"disparity must be {self.shape}, got {disparity.shape}")
+        h, w = self.shape
+        b = self.block_px
+        oh, ow = self.out_shape
+        np.copyto(self._pad[:h, :w], disparity, casting="same_kind")
+        with np.errstate(invalid="ignore"):
+            np.fmax.reduce(self._pad.reshape(oh * b, ow, b), axis=2, out=self._cols)
+            np.fmax.reduce(self._cols.reshape(oh, b, ow), axis=1, out=self._out)
+        return self._out
+
+
+def block_max(disparity: np.ndarray, block_px: int) -> np.ndarray:
+    """:class:`BlockMax` of one image, as a new float32 ``(ceil(H/b), ceil(W/b))`` array: the CPU
+    reference of the GPU estimator's device-side reduction."""
+    d = np.asarray(disparity, dtype=np.float32)
+    if d.ndim != 2:
+        raise ValueError(f"disparity must be 2-D, got shape {d.shape}")
+    return BlockMax((d.shape[0], d.shape[1]), block_px)(d).copy()
+
+
+class NearCells:
+    """Per frame: disparity blocks → confirmed near points in the camera frame (module doc, 2-4).
+
+    Built once per (config, geometry, block image shape): the index tables and every block's ray are
+    precomputed, and the per-frame history is a fixed-length deque.
+
+    Args:
+        cfg: the memory section.
+        geometry: the rectified rig (focal length, principal point, f·B), pixels.
+        block_shape: ``(rows, cols)`` of the block image :class:`BlockMax` makes of one frame.
+    """
+
+    def __init__(self, cfg: MemoryConfig, geometry: StereoGeometry, block_shape: tuple[int, int]) -> None:
+        self.cfg = cfg
+        self._fb = float(geometry.focal_baseline_px_m)
+        bh, bw = int(block_shape[0]), int(block_shape[1])
+        self.block_shape = (bh, bw)
+        rows, cols = min(cfg.grid_rows, bh), min(cfg.grid_cols, bw)
+        r_edges = np.round(np.linspace(0, bh, rows + 1)).astype(np.int64)
+        c_edges = np.round(np.linspace(0, bw, cols + 1)).astype(np.int64)
+        per_cell = int(np.max(np.diff(r_edges))) * int(np.max(np.diff(c_edges)))
+        # Flat block indices of each cell; padding points at an extra block that is always NaN.
+        pad = bh * bw
+        index = np.full((rows * cols, per_cell), pad, dtype=np.int64)
+        count = np.zeros(rows * cols, dtype=np.int64)
+        for r in range(rows):
+            for c in range(cols):
+                yy, xx = np.mgrid[r_edges[r] : r_edges[r + 1], c_edges[c] : c_edges[c + 1]]
+                flat = (yy * bw + xx).reshape(-1)
+                index[r * cols + c, : flat.size] = flat
+                count[r * cols + c] = flat.size
+        self._index = index
+        self._count = count
+        # The ray (x/z, y/z) through each block's centre (pixel centres at integers); a point is put
+        # on the ray of the block that gave its cell's depth, not the cell's centre, so that a wall
+        # seen at a grazing angle is not placed nearer the vehicle's path than it is.
+        b = cfg.block_px
+        f, cx, cy = float(geometry.focal_px), float(geometry.cx_px), float(geometry.cy_px)
+        by, bx = np.mgrid[0:bh, 0:bw]
+        rays = np.zeros((pad + 1, 2))
+        rays[:pad, 0] = ((bx.reshape(-1) + 0.5) * b - 0.5 - cx) / f
+        rays[:pad, 1] = ((by.reshape(-1) + 0.5) * b - 0.5 - cy) / f
+        self._block_rays = rays
+        self._flat = np.full(pad + 1, np.nan, dtype=np.float32)
+        self._gather = np.empty(index.shape, dtype=np.float32)
+        self._rows = np.arange(rows * cols)
+        self._depths: deque[np.ndarray] = deque(maxlen=cfg.confirm_frames)
+        self._rays: deque[np.ndarray] = deque(maxlen=cfg.confirm_frames)
+
+    @property
+    def cells(self) -> int:
+        return int(self._count.size)
+
+    def reset(self) -> None:
+        """Forget the confirmation history (camera reconnect, reconfigure)."""
+        self._depths.clear()
+        self._rays.clear()
+
+    def cell_depths(self, blocks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """One frame's cells, unconfirmed, from its block image (float32 ``block_shape`` pixels, NaN
+        none): depth float64 ``(cells,)`` metres (+inf for an empty cell) and the ray the depth was
+        seen along, float64 ``(cells, 2)`` (x/z, y/z)."""
+        if blocks.shape != self.block_shape:
+            raise ValueError(f"block image must be {self.block_shape}, got {blocks.shape}")
+        self._flat[:-1] = blocks.reshape(-1)
+        vals = self._gather
+        np.take(self._flat, self._index, out=vals)
+        valid = vals > 0.0  # NaN compares False
+        n_valid = valid.sum(axis=1)
+        vals[~valid] = -np.inf
+        order = np.argsort(vals, axis=1)  # ascending: the k-th largest is at per_cell - k
+        k = np.maximum(1, np.ceil(self.cfg.robust_percentile_pct * n_valid / 100.0)).astype(np.int64)
+        pick = order[self._rows, vals.shape[1] - np.minimum(k, vals.shape[1])]
+        d = vals[self._rows, pick].astype(np.float64)
+        ok = (n_valid > 0) & (n_valid >= self.cfg.min_valid_fraction * self._count) & (d > 0.0)
+        depth = np.full(d.shape, np.inf)
+        depth[ok] = self._fb / d[ok]
+        return depth, self._block_rays[self._index[self._rows, pick]]
+
+    def points(self, blocks: np.ndarray) -> np.ndarray:
+        """This frame's confirmed near points, float64 ``(K, 3)`` camera frame (x right, y down,
+        z forward) metres, ``K <= cells``; call once per frame, in order (it keeps the history)."""
+        depth, rays = self.cell_depths(blocks)
+        self._depths.append(depth)
+        self._rays.append(rays)
+        n = self.cfg.confirm_frames
+        if len(self._depths) < n:
+            return np.empty((0, 3))
+        # The median frame of each cell (an empty cell, inf, counts as far), and the ray it saw.
+        stack = np.stack(self._depths)
+        which = np.argsort(stack, axis=0, kind="stable")[n // 2]
+        z = stack[which, self._rows]
+        near = z <= self.cfg.max_depth_m
+        ray = np.stack(self._rays)[which, self._rows][near]
+        z = z[near]
+        return np.stack([ray[:, 0] * z, ray[:, 1] * z, z], axis=1)
+
+
+@dataclass(frozen=True)
+class ViewLimits:
+    """What the rig measures: bearings off the optical axis (radians, both positive) out to which
+    the left and right sides are matched, and the nearest depth it can match, metres."""
+
+    left_rad: float
+    right_rad: float
+    min_range_m: float
+
+
+def view_limits(geometry: StereoGeometry, num_disparities: int) -> ViewLimits:
+    """What the rig measures (:class:`ViewLimits`): the image's sides, where the left image's first
+    ``num_disparities - 1`` columns count as unseen (no match can be searched there: their partners
+    would lie left of the right image, so block matching leaves them invalid; 64 disparities at
+    336 px: the left 19° of a 90° view), and ``f·B / (num_disparities - 1)`` metres."""
+    f, cx = float(geometry.focal_px), float(geometry.cx_px)
+    return ViewLimits(
+        left_rad=math.atan(max(0.0, cx - (num_disparities - 1)) / f),
+        right_rad=math.atan(max(0.0, geometry.width_px - 1 - cx) / f),
+        min_range_m=float(geometry.focal_baseline_px_m) / max(1, num_disparities - 1),
+    )
+
+
+def camera_points_to_ned(points_cam_m: np.ndarray, pose: Pose) -> np.ndarray:
+    """Camera-frame points (float ``(K, 3)`` metres) seen from ``pose`` → NED, float64 ``(K, 3)`` m."""
+    p = np.asarray(points_cam_m, dtype=np.float64).reshape(-1, 3)
+    return p @ pose.ned_from_camera().T + np.asarray(pose.position_ned_m, dtype=np.float64)
+
+
+class ObstacleMemory:
+    """Remembered near points, NED metres, one per ``voxel_m`` cube, with the time each cube was
+    last seen occupied (re-seeing a cube refreshes it instead of adding a copy, so a vehicle that
+    hovers in front of a wall does not fill the memory with it).
+
+    Args:
+        max_points: most cubes kept; beyond it the least recently seen are dropped.
+        voxel_m: the cube side, metres.
+    """
+
+    def __init__(self, max_points: int = 20000, voxel_m: float = 0.05) -> None:
+        self.max_points = int(max_points)
+        self.voxel_m = float(voxel_m)
+        self._keys = np.empty(0, dtype=np.int64)
+        self._pts = np.empty((0, 3))
+        self._t = np.empty(0)
+
+    def __len__(self) -> int:
+        return int(self._keys.size)
+
+    def reset(self) -> None:
+        self._keys = np.empty(0, dtype=np.int64)
+        self._pts = np.empty((0, 3))
+        self._t = np.empty(0)
+
+    def _key(self, p: np.ndarray) -> np.ndarray:
+        q = np.floor(p / self.voxel_m).astype(np.int64) + (1 << 20)  # ±52 km at 5 cm: never wraps
+        return (q[:, 0] << 42) | (q[:, 1] << 21) | q[:, 2]
+
+    def add(self, points_ned_m: np.ndarray, t_s: float, duration_s: float) -> None:
+        """Remember ``points_ned_m`` (float ``(K, 3)`` metres; non-finite rows are dropped) as seen at
+        ``t_s`` seconds, and forget what was last seen more than ``duration_s`` before it."""
+        p = np.asarray(points_ned_m, dtype=np.float64).reshape(-1, 3)
+        p = p[np.all(np.isfinite(p) & (np.abs(p) < 1e6), axis=1)]
+        if not math.isfinite(t_s):
+            return
+        keep = (t_s - self._t) <= duration_s
+        keys, pts, ts = self._keys[keep], self._pts[keep], self._t[keep]
+        if len(p):
+            new_keys, first = np.unique(self._key(p), return_index=True)
+            # Refresh the cubes seen again, add the rest.
+            old = np.isin(keys, new_keys)
+            keys = np.concatenate([keys[~old], new_keys])
+            pts = np.concatenate([pts[~old], p[first]])
+            ts = np.concatenate([ts[~old], np.full(new_keys.size, float(t_s))])
+        if keys.size > self.max_points:
+            newest = np.argsort(ts, kind="stable")[-self.max_points :]
+            keys, pts, ts = keys[newest], pts[newest], ts[newest]
+        self._keys, self._pts, self._t = keys, pts, ts
+
+    def guard(
+        self,
+        position_ned_m: np.ndarray,
+        yaw_rad: float,
+        now_s: float,
+        cfg: MemoryConfig,
+        view: ViewLimits,
+    ) -> np.ndarray | None:
+        """The points that guard the vehicle now, nearest per sector, or None for none.
+
+        A point guards when it was seen within ``cfg.duration_s`` of ``now_s``, lies within
+        ``cfg.height_band_m`` of the vehicle's altitude and within ``cfg.guard_distance_m`` of it
+        horizontally, and the camera cannot see it now: its bearing from the heading lies beyond
+        the side of ``view`` it is on, or it is nearer than ``view.min_range_m``.
+
+        Returns:
+            float64 ``(S, 3)``, ``S <= GUARD_SECTORS``: horizontal distance (metres) and the unit
+            direction to the point in the body frame (forward, right), the nearest of each sector.
+        """
+        pos = np.asarray(position_ned_m, dtype=np.float64).reshape(-1)
+        if pos.shape != (3,) or not np.all(np.isfinite(pos)) or not math.isfinite(yaw_rad):
+            return None
+        live = (now_s - self._t) <= cfg.duration_s
+        if not np.any(live):
+            return None
+        rel = self._pts[live] - pos
+        band = np.abs(rel[:, 2]) <= cfg.height_band_m
+        c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+        fwd = c * rel[:, 0] + s * rel[:, 1]
+        right = -s * rel[:, 0] + c * rel[:, 1]
+        dist = np.hypot(fwd, right)
+        bearing = np.arctan2(right, fwd)
+        unseen = (bearing < -view.left_rad) | (bearing > view.right_rad) | (dist < view.min_range_m)
+        keep = band & unseen & (dist < cfg.guard_distance_m) & (dist > 1e-6)
+        if not np.any(keep):
+            return None
+        dist, fwd, right, bearing = dist[keep], fwd[keep], right[keep], bearing[keep]
+        sector = np.minimum(GUARD_SECTORS - 1, ((bearing + math.pi) / (2.0 * math.pi) * GUARD_SECTORS).astype(np.int64))
+        out = []
+        for k in np.unique(sector):
+            i = np.flatnonzero(sector == k)
+            j = i[np.argmin(dist[i])]
+            out.append((dist[j], fwd[j] / dist[j], right[j] / dist[j]))
+        return np.asarray(out, dtype=np.float64)
+
+
+def apply_guard(
+    forward_m_s: float, right_m_s: float, guard_m: np.ndarray | None, cfg: MemoryConfig
+) -> tuple[float, float]:
+    """A horizontal body-frame velocity (m/s) with the guard applied. For each guarding point
+    (:meth:`ObstacleMemory.guard` rows: distance m, unit forward, unit right): a push away of
+    ``guard_gain_per_s · (guard_distance_m - distance)`` (the summed push capped at
+    ``max_guard_speed_m_s``), and when the point lies on the path (ahead along the velocity and within
+    ``keep_out_m`` of its line) the velocity's component toward it is removed, so that the vehicle
+    slides past it instead of running into it; a point beside the path does not slow the vehicle."""
+    if guard_m is None or len(guard_m) == 0:
+        return forward_m_s, right_m_s
+    g = np.asarray(guard_m, dtype=np.float64).reshape(-1, 3)
+    v = np.array([forward_m_s, right_m_s], dtype=np.float64)
+    speed = float(np.hypot(v[0], v[1]))
+    push = np.zeros(2)
+    for dist, uf, ur in g:
+        u = np.array([uf, ur])
+        toward = float(v @ u)
+        if toward > 0.0 and speed > 0.0:
+            cross_track = dist * abs(uf * v[1] - ur * v[0]) / speed
+            if cross_track < cfg.keep_out_m:
+                v -= toward * u
+        push -= cfg.guard_gain_per_s * max(0.0, cfg.guard_distance_m - dist) * u
+    n = float(np.hypot(push[0], push[1]))
+    if n > cfg.max_guard_speed_m_s > 0.0:
+        push *= cfg.max_guard_speed_m_s / n
+    elif cfg.max_guard_speed_m_s == 0.0:
+        push[:] = 0.0
+    v += push
+    return float(v[0]), float(v[1])

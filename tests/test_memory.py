@@ -1,0 +1,208 @@
+"""The obstacle memory and the out-of-view guard (companion.core.memory)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from companion.config import CompanionConfig, parse_config
+from companion.config.core import MemoryConfig
+from companion.core.command import setpoint_for
+from companion.core.geometry import StereoGeometry
+from companion.core.memory import (
+    BlockMax,
+    NearCells,
+    ObstacleMemory,
+    ViewLimits,
+    apply_guard,
+    block_max,
+    camera_points_to_ned,
+    view_limits,
+)
+from companion.core.render.pose import Pose
+from companion.core.types import ZERO_SETPOINT, Decision, DecisionKind
+
+GEOM = StereoGeometry(width_px=128, height_px=64, focal_px=100.0, cx_px=63.5, cy_px=31.5, baseline_m=0.12)
+CFG = MemoryConfig(grid_rows=2, grid_cols=4, block_px=4, robust_percentile_pct=0.0, min_valid_fraction=0.1)
+VIEW = ViewLimits(left_rad=math.radians(32.0), right_rad=math.radians(44.0), min_range_m=0.19)
+
+
+def test_view_limits_leave_out_the_columns_block_matching_cannot_search() -> None:
+    v = view_limits(GEOM, 16)
+    assert v.left_rad == pytest.approx(math.atan((63.5 - 15) / 100.0))  # 15 columns never matched
+    assert v.right_rad == pytest.approx(math.atan(63.5 / 100.0))
+    assert v.min_range_m == pytest.approx(100.0 * 0.12 / 15)
+    assert view_limits(GEOM, 80).left_rad == 0.0  # nothing matched left of the principal point
+
+
+def test_block_max_is_the_nan_aware_maximum_of_each_block_partial_edges_included() -> None:
+    rng = np.random.default_rng(0)
+    d = rng.uniform(1, 60, (10, 13)).astype(np.float32)
+    d[rng.random(d.shape) < 0.3] = np.nan
+    d[0:4, 0:4] = np.nan  # a block with no valid pixel
+    got = block_max(d, 4)
+    assert got.shape == (3, 4)
+    for r in range(3):
+        for c in range(4):
+            blk = d[4 * r : 4 * r + 4, 4 * c : 4 * c + 4]
+            want = np.nanmax(blk) if np.any(np.isfinite(blk)) else np.nan
+            assert np.array_equal(got[r, c], np.float32(want), equal_nan=True)
+    assert np.array_equal(block_max(d, 1), d, equal_nan=True)
+
+
+def test_block_max_reuses_its_buffers_and_checks_the_shape() -> None:
+    bm = BlockMax((8, 8), 4)
+    a = bm(np.ones((8, 8), np.float32))
+    b = bm(np.full((8, 8), 2.0, np.float32))
+    assert a is b and float(b[0, 0]) == 2.0
+    with pytest.raises(ValueError, match="must be"):
+        bm(np.ones((8, 9), np.float32))
+
+
+def blocks_with(disparity_px: float | None, rows: slice = slice(6, 10), cols: slice = slice(26, 30)) -> np.ndarray:
+    """A 16 x 32 block image (128 x 64 eye at 4 px): far background (1 px) and one near patch."""
+    b = np.full((16, 32), 1.0, np.float32)
+    if disparity_px is not None:
+        b[rows, cols] = disparity_px
+    return b
+
+
+def test_near_cells_need_confirming_frames_and_put_the_point_on_the_ray_it_was_seen_along() -> None:
+    cells = NearCells(CFG, GEOM, (16, 32))
+    d = GEOM.focal_baseline_px_m / 12.0  # 12 px: 1.0 m
+    assert cells.points(blocks_with(12.0)).shape == (0, 3)  # not yet confirmed (3 frames)
+    assert cells.points(blocks_with(12.0)).shape == (0, 3)
+    pts = cells.points(blocks_with(12.0))
+    assert len(pts) >= 1
+    z = pts[:, 2]
+    assert z == pytest.approx(np.full(len(z), d))
+    # The patch spans blocks 26-29 (pixels 104-119): the point is on one of those blocks' rays.
+    x_px = pts[:, 0] / z * GEOM.focal_px + GEOM.cx_px
+    assert np.all((x_px >= 104) & (x_px < 120))
+    assert np.all(np.abs(x_px - ((np.round((x_px + 0.5) / 4 - 0.5) + 0.5) * 4 - 0.5)) < 1e-9)  # a block centre
+
+
+def test_a_false_match_lasting_one_frame_is_not_remembered() -> None:
+    cells = NearCells(CFG, GEOM, (16, 32))
+    for b in (blocks_with(None), blocks_with(12.0), blocks_with(None), blocks_with(None)):
+        assert cells.points(b).shape == (0, 3)
+
+
+def test_only_cells_nearer_than_max_depth_and_valid_enough_give_points() -> None:
+    cells = NearCells(CFG.model_copy(update={"max_depth_m": 0.5}), GEOM, (16, 32))
+    for _ in range(3):
+        pts = cells.points(blocks_with(12.0))  # 1.0 m: beyond 0.5 m
+    assert pts.shape == (0, 3)
+    sparse = NearCells(CFG.model_copy(update={"min_valid_fraction": 0.5}), GEOM, (16, 32))
+    b = np.full((16, 32), np.nan, np.float32)
+    b[7, 27] = 40.0  # one valid block of 64 in its cell
+    for _ in range(3):
+        pts = sparse.points(b)
+    assert pts.shape == (0, 3)
+
+
+def test_camera_points_to_ned_follows_the_pose() -> None:
+    pose = Pose((1.0, 2.0, -1.5), math.pi / 2)  # facing east
+    p = camera_points_to_ned(np.array([[0.0, 0.0, 2.0], [1.0, 0.0, 0.0]]), pose)
+    assert p[0] == pytest.approx([1.0, 4.0, -1.5])  # 2 m ahead = 2 m east
+    assert p[1] == pytest.approx([0.0, 2.0, -1.5])  # 1 m right of east = 1 m south
+
+
+def test_memory_refreshes_a_cube_seen_again_forgets_after_duration_and_keeps_at_most_max_points() -> None:
+    mem = ObstacleMemory(max_points=3)
+    mem.add(np.array([[1.0, 0.0, -1.5]]), 0.0, 10.0)
+    mem.add(np.array([[1.01, 0.01, -1.49]]), 5.0, 10.0)  # the same 5 cm cube: refreshed, not added
+    assert len(mem) == 1
+    mem.add(np.array([[3.0, 0.0, -1.5], [np.nan, 0.0, 0.0]]), 14.0, 10.0)  # NaN row dropped
+    assert len(mem) == 2  # the first, refreshed at 5 s, is 9 s old
+    mem.add(np.empty((0, 3)), 15.5, 10.0)
+    assert len(mem) == 1  # now 10.5 s old: forgotten
+    mem.add(np.array([[5.0, 0, 0], [6.0, 0, 0], [7.0, 0, 0]]), 16.0, 10.0)
+    assert len(mem) == 3
+    mem.reset()
+    assert len(mem) == 0
+
+
+def guard_cfg(**kw: float) -> MemoryConfig:
+    return MemoryConfig().model_copy(update=kw)
+
+
+@pytest.mark.parametrize(
+    ("point", "yaw", "expect"),
+    [
+        ((0.0, -0.4, -1.5), 0.0, (0.4, 0.0, -1.0)),  # 0.4 m left, out of view: guards
+        ((0.3, -0.3, -1.5), 0.0, (math.hypot(0.3, 0.3), math.sqrt(0.5), -math.sqrt(0.5))),  # 45° left: unmatched
+        ((0.3, 0.3, -1.5), 0.0, (math.hypot(0.3, 0.3), math.sqrt(0.5), math.sqrt(0.5))),  # 45° right: past 44°
+        ((0.4, 0.3, -1.5), 0.0, None),  # 37° right: matched, the live view's
+        ((0.4, 0.0, -1.5), math.pi / 2, (0.4, 0.0, -1.0)),  # facing east, 0.4 m north is on the left
+        ((-0.4, 0.0, -1.5), 0.0, (0.4, -1.0, 0.0)),  # behind
+        ((0.4, 0.1, -1.5), 0.0, None),  # ahead, in view and beyond the rig's nearest depth: the live view's
+        ((0.15, 0.0, -1.5), 0.0, (0.15, 1.0, 0.0)),  # ahead but nearer than the rig sees (0.19 m): guards
+        ((0.0, -0.7, -1.5), 0.0, None),  # beyond guard_distance_m
+        ((0.0, -0.4, -0.5), 0.0, None),  # 1 m above: outside the height band
+    ],
+)
+def test_guard_picks_out_of_view_points_near_the_vehicle(point, yaw, expect) -> None:
+    mem = ObstacleMemory()
+    mem.add(np.array([point]), 0.0, 30.0)
+    g = mem.guard(np.array([0.0, 0.0, -1.5]), yaw, 1.0, guard_cfg(), VIEW)
+    if expect is None:
+        assert g is None
+    else:
+        assert g is not None and g.shape == (1, 3)
+        assert g[0] == pytest.approx(expect, abs=1e-9)
+
+
+def test_guard_forgets_old_points_and_keeps_the_nearest_per_sector() -> None:
+    mem = ObstacleMemory()
+    mem.add(np.array([[0.0, -0.5, -1.5], [0.0, -0.3, -1.5], [0.0, 0.45, -1.5]]), 0.0, 30.0)
+    g = mem.guard(np.zeros(3) + [0, 0, -1.5], 0.0, 1.0, guard_cfg(), VIEW)
+    assert sorted(np.round(g[:, 0], 6).tolist()) == [0.3, 0.45]  # left: the nearer of two; right
+    assert mem.guard(np.array([0.0, 0.0, -1.5]), 0.0, 40.0, guard_cfg(), VIEW) is None
+    assert mem.guard(np.array([np.nan, 0.0, -1.5]), 0.0, 1.0, guard_cfg(), VIEW) is None
+
+
+def test_apply_guard_removes_motion_toward_the_point_and_pushes_away_capped() -> None:
+    cfg = guard_cfg(guard_distance_m=0.6, guard_gain_per_s=1.5, max_guard_speed_m_s=0.5, keep_out_m=0.35)
+    left = np.array([[0.4, 0.0, -1.0]])  # 0.4 m to the left
+    f, r = apply_guard(0.0, -0.3, left, cfg)  # sliding left, into it
+    assert (f, r) == pytest.approx((0.0, 1.5 * 0.2))  # the leftward 0.3 removed, pushed right 0.3
+    f, r = apply_guard(0.7, -0.3, left, cfg)  # forward and left: it lies 0.4·0.92 = 0.37 m off the path
+    assert (f, r) == pytest.approx((0.7, -0.3 + 0.3))  # beside the path: only the push
+    ahead_left = np.array([[0.4, math.sqrt(0.5), -math.sqrt(0.5)]])  # 45° ahead-left, 0.28 m off the path
+    f, r = apply_guard(0.7, 0.0, ahead_left, cfg)
+    toward = 0.7 * math.sqrt(0.5)
+    assert (f, r) == pytest.approx((0.7 - toward * math.sqrt(0.5) - 0.3 * math.sqrt(0.5), toward * math.sqrt(0.5) + 0.3 * math.sqrt(0.5)))
+    f, r = apply_guard(0.0, 0.0, np.array([[0.1, 0.0, -1.0]]), cfg)
+    assert (f, r) == pytest.approx((0.0, 0.5))  # 0.75 capped at 0.5
+    f, r = apply_guard(0.0, 0.2, left, cfg)
+    assert r == pytest.approx(0.2 + 0.3)  # already moving away: kept, plus the push
+    assert apply_guard(0.7, -0.3, None, cfg) == (0.7, -0.3)
+    only_stop = cfg.model_copy(update={"guard_gain_per_s": 0.0})
+    assert apply_guard(0.0, -0.3, left, only_stop) == pytest.approx((0.0, 0.0))
+
+
+def test_setpoint_for_guards_every_fresh_decision_but_never_a_stale_one() -> None:
+    cmd = CompanionConfig().command
+    cfg = guard_cfg()
+    left = np.array([[0.3, 0.0, -1.0]])
+    brake = Decision(DecisionKind.BRAKE, 0.0, 0.0, 0.0, "wall")
+    clear = Decision(DecisionKind.CLEAR, 0.0, 0.0, 1.0, "clear")
+    sp = setpoint_for(brake, 0.0, cmd, guard_m=left, guard_cfg=cfg)
+    assert sp.right_m_s == pytest.approx(0.45) and sp.forward_m_s == 0.0
+    sp = setpoint_for(clear, 0.0, cmd, guard_m=left, guard_cfg=cfg)
+    assert sp.forward_m_s == pytest.approx(cmd.cruise_speed_m_s) and sp.right_m_s == pytest.approx(0.45)
+    assert setpoint_for(clear, cmd.stale_frame_timeout_s + 0.1, cmd, guard_m=left, guard_cfg=cfg) == ZERO_SETPOINT
+    assert setpoint_for(None, 0.0, cmd, guard_m=left, guard_cfg=cfg) == ZERO_SETPOINT
+
+
+def test_memory_config_is_validated() -> None:
+    from companion.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="confirm_frames"):
+        parse_config({"memory": {"confirm_frames": 2}})
+    with pytest.raises(ConfigError, match="guard_distance_m"):
+        parse_config({"memory": {"guard_distance_m": 0.0}})
+    assert parse_config({"memory": {"duration_s": 0.0}}).memory.duration_s == 0.0
