@@ -206,3 +206,27 @@ def test_memory_config_is_validated() -> None:
     with pytest.raises(ConfigError, match="guard_distance_m"):
         parse_config({"memory": {"guard_distance_m": 0.0}})
     assert parse_config({"memory": {"duration_s": 0.0}}).memory.duration_s == 0.0
+
+
+def test_sides_near_tells_which_side_has_a_remembered_point_within_hold_clear_m() -> None:
+    mem = ObstacleMemory()
+    cfg = guard_cfg(hold_clear_m=1.0)
+    here = np.array([0.0, 0.0, -1.5])
+    assert mem.sides_near(here, 0.0, 1.0, cfg) == (False, False)
+    mem.add(np.array([[-0.5, -0.6, -1.5]]), 0.0, 30.0)  # behind-left, 0.78 m
+    assert mem.sides_near(here, 0.0, 1.0, cfg) == (True, False)
+    assert mem.sides_near(here, math.pi, 1.0, cfg) == (False, True)  # facing south it is on the right
+    assert mem.sides_near(here, 0.0, 1.0, cfg.model_copy(update={"hold_clear_m": 0.5})) == (False, False)
+    assert mem.sides_near(here, 0.0, 40.0, cfg) == (False, False)  # forgotten
+    assert mem.sides_near(np.array([np.nan, 0, 0]), 0.0, 1.0, cfg) is None
+
+
+def test_course_hold_neither_turns_nor_slides_toward_a_remembered_side() -> None:
+    cmd = CompanionConfig().command.model_copy(update={"hold_resume_delay_s": 0.0})
+    clear = Decision(DecisionKind.CLEAR, 0.0, 0.0, 1.0, "clear")
+    kw = {"heading_error_rad": -0.3, "line_offset_m": -0.5, "clear_for_s": 5.0}  # the course lies left
+    free = setpoint_for(clear, 0.0, cmd, **kw)
+    assert free.yaw_rate_deg_s < 0.0 and free.right_m_s < 0.0
+    blocked = setpoint_for(clear, 0.0, cmd, remembered_sides=(True, False), **kw)
+    assert blocked.yaw_rate_deg_s == 0.0 and blocked.right_m_s == 0.0
+    assert setpoint_for(clear, 0.0, cmd, remembered_sides=(False, True), **kw) == free

@@ -142,7 +142,9 @@ def test_killing_the_service_lets_px4_offboard_loss_failsafe_act(px4: Px4Sitl, t
 
     delay = _run(scenario())
     print(f"service killed: PX4 in Hold (COM_OBL_RC_ACT = 5) after {delay:.2f} s (COM_OF_LOSS_T = {SITL_PARAMS['COM_OF_LOSS_T']} s)")
-    assert delay < float(SITL_PARAMS["COM_OF_LOSS_T"]) + 1.0
+    # PX4 switches COM_OF_LOSS_T after the last setpoint; the pilot learns the new mode from PX4's
+    # HEARTBEAT, sent at 1 Hz, so the observed delay is that plus up to 1 s (measured: 1.20-1.56 s).
+    assert delay < float(SITL_PARAMS["COM_OF_LOSS_T"]) + 1.5
 
 
 def test_a_pilot_mode_change_disengages_the_service_for_good(px4: Px4Sitl, tmp_path: Path) -> None:

@@ -905,6 +905,17 @@ class MemoryConfig(StrictModel):
     max_guard_speed_m_s: float = Field(
         default=0.5, ge=0.0, le=2.0, description="The largest speed the push commands, m/s."
     )
+    hold_clear_m: float = Field(
+        default=1.0,
+        ge=0.0,
+        le=5.0,
+        description=(
+            "Course hold neither turns nor slides toward a side with a remembered point within this "
+            "of the vehicle, horizontally, metres (0 = off): an obstacle just passed is beside or "
+            "behind it, out of view (PX4 SITL: turning back toward the line right after a box, the "
+            "vehicle swung into the box's rear corner)."
+        ),
+    )
     height_band_m: float = Field(
         default=0.4,
         gt=0.0,

@@ -45,7 +45,14 @@ def is_straight_clear(decision: Decision | None) -> bool:
     )
 
 
-def _side_open(region_depths_m: np.ndarray | None, side: str, clear_depth_m: float) -> bool:
+def _side_open(
+    region_depths_m: np.ndarray | None,
+    side: str,
+    clear_depth_m: float,
+    remembered: tuple[bool, bool] | None = None,
+) -> bool:
+    if remembered is not None and ((side == "left" and remembered[0]) or (side == "right" and remembered[1])):
+        return False  # something remembered near on that side, out of view
     if region_depths_m is None:
         return True
     depth = float(region_depths_m[REGION_INDEX[side]])
@@ -78,19 +85,24 @@ def _heading_hold_deg_s(
     region_depths_m: np.ndarray | None,
     cmd: CommandConfig,
     line_offset: float | None = None,
+    remembered: tuple[bool, bool] | None = None,
 ) -> float:
     err = _aim_error_rad(heading_error_rad, line_offset, cmd)
     if err is None:
         return 0.0
     rate = math.degrees(cmd.heading_hold_gain_per_s * err)
     rate = min(cmd.max_heading_hold_rate_deg_s, max(-cmd.max_heading_hold_rate_deg_s, rate))
-    if rate != 0.0 and not _side_open(region_depths_m, "right" if rate > 0 else "left", cmd.hold_clear_depth_m):
+    if rate != 0.0 and not _side_open(region_depths_m, "right" if rate > 0 else "left", cmd.hold_clear_depth_m, remembered):
         return 0.0
     return rate
 
 
 def _line_hold_right_m_s(
-    line_offset: float | None, heading_error_rad: float | None, region_depths_m: np.ndarray | None, cmd: CommandConfig
+    line_offset: float | None,
+    heading_error_rad: float | None,
+    region_depths_m: np.ndarray | None,
+    cmd: CommandConfig,
+    remembered: tuple[bool, bool] | None = None,
 ) -> float:
     if line_offset is None or cmd.line_hold_lateral_gain_per_s == 0.0 or not math.isfinite(line_offset):
         return 0.0
@@ -100,7 +112,8 @@ def _line_hold_right_m_s(
     # Toward the line is the body's right only while facing along the course: scale by the cosine of
     # the heading error (0 when crossing the line at right angles, reversed when facing back).
     right = min(limit, max(-limit, cmd.line_hold_lateral_gain_per_s * line_offset)) * math.cos(heading_error_rad)
-    if right != 0.0 and not _side_open(region_depths_m, "right" if right > 0 else "left", cmd.line_hold_lateral_clear_depth_m):
+    side = "right" if right > 0 else "left"
+    if right != 0.0 and not _side_open(region_depths_m, side, cmd.line_hold_lateral_clear_depth_m, remembered):
         return 0.0
     return right
 
@@ -230,6 +243,7 @@ def setpoint_for(
     since_up_near_m: float | None = None,
     guard_m: np.ndarray | None = None,
     guard_cfg: MemoryConfig | None = None,
+    remembered_sides: tuple[bool, bool] | None = None,
 ) -> VelocitySetpoint:
     """The setpoint to send for ``decision``, made ``since_last_frame_s`` seconds after its frame.
 
@@ -278,7 +292,10 @@ def setpoint_for(
       ``±max_heading_hold_rate_deg_s`` toward it, whatever the side regions read;
     * ``region_depths_m`` (float ``(9,)`` refined region depths, metres, NaN unknown): when given,
       the hold turns toward a side (right, left) or climbs/descends (up, down) only while that region
-      is at least ``cmd.hold_clear_depth_m`` deep.
+      is at least ``cmd.hold_clear_depth_m`` deep;
+    * ``remembered_sides`` (:meth:`~companion.core.memory.ObstacleMemory.sides_near`: (left, right),
+      True where a remembered point lies near on that side): the hold neither turns nor slides
+      toward such a side (an obstacle just passed is beside or behind the vehicle, out of view).
     """
     if decision is None or not math.isfinite(since_last_frame_s):
         return ZERO_SETPOINT
@@ -301,10 +318,14 @@ def setpoint_for(
             # Facing away from the course: stop and turn back in place (module doc, turning back).
             rate = math.copysign(cmd.max_heading_hold_rate_deg_s, aim)
             return _guarded(VelocitySetpoint(0.0, 0.0, 0.0, rate), guard_m, guard_cfg)
-        yaw_rate_deg_s += (1.0 - abs(yaw)) * _heading_hold_deg_s(heading_error_rad, region_depths_m, cmd, line_offset_m)
+        yaw_rate_deg_s += (1.0 - abs(yaw)) * _heading_hold_deg_s(
+            heading_error_rad, region_depths_m, cmd, line_offset_m, remembered_sides
+        )
         if clear_for_m is None or clear_for_m >= cmd.hold_resume_distance_m:
             down_m_s += (1.0 - abs(pitch)) * _altitude_hold_down_m_s(altitude_error_m, region_depths_m, cmd)
-        right_m_s = (1.0 - abs(yaw)) * _line_hold_right_m_s(line_offset_m, heading_error_rad, region_depths_m, cmd)
+        right_m_s = (1.0 - abs(yaw)) * _line_hold_right_m_s(
+            line_offset_m, heading_error_rad, region_depths_m, cmd, remembered_sides
+        )
     if since_up_near_m is not None and since_up_near_m < cmd.hold_resume_distance_m and down_m_s < 0.0:
         down_m_s = 0.0  # something was overhead within the last metres: it may still be, out of view
     sp = VelocitySetpoint(

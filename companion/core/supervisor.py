@@ -725,9 +725,11 @@ class Supervisor:
             line_offset = line_offset_m(v.position_ned_m, m.course_origin_ned_m, m.course_heading_rad)
         refined = getattr(latest, "refined", None)
         brake_offset = m.brake.offset_body(latest.decision, v.position_ned_m, heading_now)
-        guard = None
-        if self._cfg.memory.duration_s > 0.0 and m.view_limits is not None and v.position_ned_m is not None and heading_now is not None:
-            guard = m.obstacles.guard(v.position_ned_m, heading_now, now_s, self._cfg.memory, m.view_limits)
+        guard = sides = None
+        if self._cfg.memory.duration_s > 0.0 and v.position_ned_m is not None and heading_now is not None:
+            sides = m.obstacles.sides_near(v.position_ned_m, heading_now, now_s, self._cfg.memory)
+            if m.view_limits is not None:
+                guard = m.obstacles.guard(v.position_ned_m, heading_now, now_s, self._cfg.memory, m.view_limits)
         m.guarding = 0 if guard is None else len(guard)
         return setpoint_for(
             latest.decision,
@@ -744,6 +746,7 @@ class Supervisor:
             since_up_near_m=m.overhead.update(getattr(refined, "depth_m", None), v.position_ned_m, self._cfg.command.hold_clear_depth_m),
             guard_m=guard,
             guard_cfg=self._cfg.memory,
+            remembered_sides=sides,
         )
 
     def _override_setpoint(self, o: Override, latest: FrameOutcome | None) -> VelocitySetpoint:

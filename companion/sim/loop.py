@@ -384,6 +384,7 @@ def fly(
                 if memory is not None and latest is not None and latest.view_limits is not None
                 else None,
                 guard_cfg=cfg.memory,
+                remembered_sides=None if memory is None else memory.sides_near(m.position_ned_m, m.yaw_rad, t, cfg.memory),
             )
             if vehicle.in_offboard:
                 vehicle.set_setpoint(sp)
