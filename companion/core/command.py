@@ -266,8 +266,9 @@ def setpoint_for(
     see what is straight overhead.
 
     ``guard_m`` (:meth:`~companion.core.memory.ObstacleMemory.guard`: remembered points out of view
-    near the vehicle) with ``guard_cfg``: on any fresh decision, BRAKE included, the horizontal
-    velocity toward each is removed and a push away added (:func:`~companion.core.memory.apply_guard`).
+    near the vehicle) with ``guard_cfg``: on any fresh decision, BRAKE included, a push away from each
+    is added and the horizontal velocity toward those on the path removed
+    (:func:`~companion.core.memory.apply_guard`).
 
     Course hold (all keyword inputs optional; ``None`` = off, the paper's behaviour). Only on a CLEAR
     decision, and only once ``clear_for_s`` (seconds the decisions have been straight and CLEAR; None

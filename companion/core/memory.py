@@ -1,12 +1,15 @@
 """Obstacle memory and the out-of-view guard (pure NumPy; time is passed in).
 
-The camera sees only ahead (ZED: about ±44°). An obstacle the vehicle turned away from, or is
-flying past, leaves the view while it is still beside the vehicle, and a multicopter drifts with its
-position estimate's error (PX4 SITL: ~0.2 m/s) sideways into it. So what the camera saw near is
-kept for a few seconds (``memory.duration_s``) as points in the local NED frame, and a point that is
-out of view (or nearer than the stereo rig can see) and within ``memory.guard_distance_m`` of the
-vehicle, horizontally, guards it: :func:`apply_guard` removes the velocity toward it and adds a push
-away (see :func:`~companion.core.command.setpoint_for`).
+The camera measures only ahead (ZED: about ±44°, less on the left, :func:`view_limits`). An obstacle
+the vehicle turned away from, or is flying past, leaves the view while it is still beside the vehicle,
+and a multicopter drifts with its position estimate's error (PX4 SITL: ~0.2 m/s) sideways into it. So
+what the camera saw near is kept (``memory.duration_s`` after it was last seen) as points in the local
+NED frame, one per 5 cm cube (:class:`ObstacleMemory`), and a point that is out of the measured view
+(or nearer than the rig can see) and within ``memory.guard_distance_m`` of the vehicle, horizontally,
+guards it: :func:`apply_guard` pushes the vehicle away, and removes the velocity toward the point
+when the point is on its path (see :func:`~companion.core.command.setpoint_for`). Course hold also
+neither turns nor slides toward a side with a point within ``memory.hold_clear_m``
+(:meth:`ObstacleMemory.sides_near`).
 
 From one frame to points (:func:`block_max`, :class:`NearCells`):
 
@@ -19,11 +22,11 @@ From one frame to points (:func:`block_max`, :class:`NearCells`):
    ``f·B/d``.
 3. confirmation: a cell's depth is the median of its last ``confirm_frames`` depths, an empty cell
    counting as far, so that a false match lasting one frame is not remembered.
-4. points: each cell nearer than ``max_depth_m`` gives one point, on its centre ray at that depth,
-   in the camera frame (x right, y down, z forward, metres).
+4. points: each cell nearer than ``max_depth_m`` gives one point at that depth, on the ray of the block
+   it came from, in the camera frame (x right, y down, z forward, metres).
 
 The memory lives in the vehicle's position estimate; a real estimate drifts against the world, which
-is why it is short.
+is why points are forgotten.
 """
 
 from __future__ import annotations
@@ -40,8 +43,6 @@ from companion.core.render.pose import Pose
 
 #: Sectors (of the full circle around the vehicle) the guard keeps one nearest point from.
 GUARD_SECTORS = 8
-#: Highest camera rate the memory's capacity is sized for, frames per second.
-MAX_FRAME_RATE_HZ = 60.0
 
 
 class BlockMax:

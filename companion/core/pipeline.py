@@ -249,11 +249,6 @@ class Pipeline:
     def geometry(self) -> StereoGeometry:
         return self.estimator.geometry
 
-    @property
-    def near_cells(self) -> int:
-        """Points one frame can give the obstacle memory (0 when it is off)."""
-        return 0 if self._near is None else self._near.cells
-
     def _apply_cheap(self, cfg: CompanionConfig) -> None:
         self._lut = DepthLUT(cfg.lut.points_m)
         self._release_tau_s = cfg.lut.release_time_constant_s
