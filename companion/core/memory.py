@@ -150,10 +150,6 @@ class NearCells:
         self._depths: deque[np.ndarray] = deque(maxlen=cfg.confirm_frames)
         self._rays: deque[np.ndarray] = deque(maxlen=cfg.confirm_frames)
 
-    @property
-    def cells(self) -> int:
-        return int(self._count.size)
-
     def reset(self) -> None:
         """Forget the confirmation history (camera reconnect, reconfigure)."""
         self._depths.clear()
@@ -278,19 +274,43 @@ class ObstacleMemory:
             keys, pts, ts = keys[newest], pts[newest], ts[newest]
         self._keys, self._pts, self._t = keys, pts, ts
 
+    def _nearby(
+        self, position_ned_m: np.ndarray, yaw_rad: float, now_s: float, cfg: MemoryConfig, radius_m: float
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """The points seen within ``cfg.duration_s`` of ``now_s``, within ``cfg.height_band_m`` of the
+        vehicle's altitude and within ``radius_m`` of it horizontally, in the body frame: forward,
+        right and horizontal distance, float64 ``(N,)`` metres each; None without a finite position
+        and heading."""
+        pos = np.asarray(position_ned_m, dtype=np.float64).reshape(-1)
+        if pos.shape != (3,) or not np.all(np.isfinite(pos)) or not math.isfinite(yaw_rad):
+            return None
+        rel = self._pts[(now_s - self._t) <= cfg.duration_s] - pos
+        c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+        fwd = c * rel[:, 0] + s * rel[:, 1]
+        right = -s * rel[:, 0] + c * rel[:, 1]
+        dist = np.hypot(fwd, right)
+        keep = (np.abs(rel[:, 2]) <= cfg.height_band_m) & (dist < radius_m)
+        return fwd[keep], right[keep], dist[keep]
+
+    def hold_inputs(
+        self, position_ned_m: np.ndarray, yaw_rad: float, now_s: float, cfg: MemoryConfig, view: ViewLimits | None
+    ) -> tuple[np.ndarray | None, tuple[bool, bool] | None]:
+        """:meth:`guard` (None without ``view``) and :meth:`sides_near`, from one pass over the
+        memory: what :func:`~companion.core.command.setpoint_for` takes as ``guard_m`` and
+        ``remembered_sides``."""
+        near = self._nearby(position_ned_m, yaw_rad, now_s, cfg, max(cfg.guard_distance_m, cfg.hold_clear_m))
+        if near is None:
+            return None, None
+        return (None if view is None else _guard_rows(*near, cfg, view)), _sides(*near, cfg)
+
     def sides_near(
         self, position_ned_m: np.ndarray, yaw_rad: float, now_s: float, cfg: MemoryConfig
     ) -> tuple[bool, bool] | None:
         """Whether a point seen within ``cfg.duration_s`` lies within ``cfg.hold_clear_m`` of the
         vehicle horizontally (and ``cfg.height_band_m`` vertically) on its left, on its right (the
         body's right component < 0, > 0); None without a finite position and heading."""
-        pos = np.asarray(position_ned_m, dtype=np.float64).reshape(-1)
-        if pos.shape != (3,) or not np.all(np.isfinite(pos)) or not math.isfinite(yaw_rad):
-            return None
-        rel = self._pts[(now_s - self._t) <= cfg.duration_s] - pos
-        rel = rel[(np.abs(rel[:, 2]) <= cfg.height_band_m) & (np.hypot(rel[:, 0], rel[:, 1]) < cfg.hold_clear_m)]
-        right = -math.sin(yaw_rad) * rel[:, 0] + math.cos(yaw_rad) * rel[:, 1]
-        return bool(np.any(right < 0.0)), bool(np.any(right > 0.0))
+        near = self._nearby(position_ned_m, yaw_rad, now_s, cfg, cfg.hold_clear_m)
+        return None if near is None else _sides(*near, cfg)
 
     def guard(
         self,
@@ -311,31 +331,33 @@ class ObstacleMemory:
             float64 ``(S, 3)``, ``S <= GUARD_SECTORS``: horizontal distance (metres) and the unit
             direction to the point in the body frame (forward, right), the nearest of each sector.
         """
-        pos = np.asarray(position_ned_m, dtype=np.float64).reshape(-1)
-        if pos.shape != (3,) or not np.all(np.isfinite(pos)) or not math.isfinite(yaw_rad):
-            return None
-        live = (now_s - self._t) <= cfg.duration_s
-        if not np.any(live):
-            return None
-        rel = self._pts[live] - pos
-        band = np.abs(rel[:, 2]) <= cfg.height_band_m
-        c, s = math.cos(yaw_rad), math.sin(yaw_rad)
-        fwd = c * rel[:, 0] + s * rel[:, 1]
-        right = -s * rel[:, 0] + c * rel[:, 1]
-        dist = np.hypot(fwd, right)
-        bearing = np.arctan2(right, fwd)
-        unseen = (bearing < -view.left_rad) | (bearing > view.right_rad) | (dist < view.min_range_m)
-        keep = band & unseen & (dist < cfg.guard_distance_m) & (dist > 1e-6)
-        if not np.any(keep):
-            return None
-        dist, fwd, right, bearing = dist[keep], fwd[keep], right[keep], bearing[keep]
-        sector = np.minimum(GUARD_SECTORS - 1, ((bearing + math.pi) / (2.0 * math.pi) * GUARD_SECTORS).astype(np.int64))
-        out = []
-        for k in np.unique(sector):
-            i = np.flatnonzero(sector == k)
-            j = i[np.argmin(dist[i])]
-            out.append((dist[j], fwd[j] / dist[j], right[j] / dist[j]))
-        return np.asarray(out, dtype=np.float64)
+        near = self._nearby(position_ned_m, yaw_rad, now_s, cfg, cfg.guard_distance_m)
+        return None if near is None else _guard_rows(*near, cfg, view)
+
+
+def _sides(fwd: np.ndarray, right: np.ndarray, dist: np.ndarray, cfg: MemoryConfig) -> tuple[bool, bool]:
+    """(left, right): a point within ``cfg.hold_clear_m`` on that side (body-frame arrays, metres)."""
+    close = dist < cfg.hold_clear_m
+    return bool(np.any(close & (right < 0.0))), bool(np.any(close & (right > 0.0)))
+
+
+def _guard_rows(
+    fwd: np.ndarray, right: np.ndarray, dist: np.ndarray, cfg: MemoryConfig, view: ViewLimits
+) -> np.ndarray | None:
+    """:meth:`ObstacleMemory.guard`'s rows from body-frame points (forward, right, distance, metres)."""
+    bearing = np.arctan2(right, fwd)
+    unseen = (bearing < -view.left_rad) | (bearing > view.right_rad) | (dist < view.min_range_m)
+    keep = unseen & (dist < cfg.guard_distance_m) & (dist > 1e-6)
+    if not np.any(keep):
+        return None
+    dist, fwd, right, bearing = dist[keep], fwd[keep], right[keep], bearing[keep]
+    sector = np.minimum(GUARD_SECTORS - 1, ((bearing + math.pi) / (2.0 * math.pi) * GUARD_SECTORS).astype(np.int64))
+    out = []
+    for k in np.unique(sector):
+        i = np.flatnonzero(sector == k)
+        j = i[np.argmin(dist[i])]
+        out.append((dist[j], fwd[j] / dist[j], right[j] / dist[j]))
+    return np.asarray(out, dtype=np.float64)
 
 
 def apply_guard(

@@ -236,23 +236,25 @@ class Pipeline:
         self.width_px = width_px
         self.height_px = height_px
         self._clock = clock
-        self.estimator = estimator or make_estimator(cfg, width_px, height_px, clock=clock)
-        self._apply_cheap(cfg)
-        self.config = cfg
+        estimator = estimator or make_estimator(cfg, width_px, height_px, clock=clock)
         self._filtered: np.ndarray | None = None
         self._history: deque[np.ndarray] = deque(maxlen=cfg.lut.median_frames - 1)
         self._last_timestamp_s: float | None = None
-        self._near = _near_cells(cfg, self.estimator.geometry, width_px, height_px)
-        self._view_limits = view_limits(self.estimator.geometry, cfg.stereo.num_disparities)
+        self._install(cfg, estimator, _near_cells(cfg, estimator.geometry, width_px, height_px))
 
     @property
     def geometry(self) -> StereoGeometry:
         return self.estimator.geometry
 
-    def _apply_cheap(self, cfg: CompanionConfig) -> None:
-        self._lut = DepthLUT(cfg.lut.points_m)
+    def _install(self, cfg: CompanionConfig, estimator: RegionEstimator, near: NearCells | None) -> None:
+        """Build the LUT and the controller for ``cfg``, then swap in everything at once (if a build
+        raises, nothing has changed)."""
+        lut = DepthLUT(cfg.lut.points_m)
+        controller = AvoidanceController(cfg.controller, cfg.command)
+        self.estimator, self._lut, self._controller, self._near = estimator, lut, controller, near
+        self._view_limits = view_limits(estimator.geometry, cfg.stereo.num_disparities)
         self._release_tau_s = cfg.lut.release_time_constant_s
-        self._controller = AvoidanceController(cfg.controller, cfg.command)
+        self.config = cfg
 
     def reconfigure(self, cfg: CompanionConfig) -> list[str]:
         """Swap in a new, already validated config; returns the sections that changed.
@@ -270,17 +272,12 @@ class Pipeline:
         estimator = self.estimator
         if any(s in changed for s in ESTIMATOR_SECTIONS):
             estimator = make_estimator(cfg, self.width_px, self.height_px, clock=self._clock)
-        lut = DepthLUT(cfg.lut.points_m)
-        controller = AvoidanceController(cfg.controller, cfg.command)
         near = self._near
         if estimator is not self.estimator or cfg.memory != self.config.memory:
             near = _near_cells(cfg, estimator.geometry, self.width_px, self.height_px)
-        self.estimator, self._lut, self._controller, self._near = estimator, lut, controller, near
-        self._view_limits = view_limits(estimator.geometry, cfg.stereo.num_disparities)
-        self._release_tau_s = cfg.lut.release_time_constant_s
+        self._install(cfg, estimator, near)
         if cfg.lut.median_frames - 1 != self._history.maxlen:
             self._history = deque(self._history, maxlen=cfg.lut.median_frames - 1)
-        self.config = cfg
         return changed
 
     def reset(self) -> None:

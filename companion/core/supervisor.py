@@ -727,9 +727,7 @@ class Supervisor:
         brake_offset = m.brake.offset_body(latest.decision, v.position_ned_m, heading_now)
         guard = sides = None
         if self._cfg.memory.duration_s > 0.0 and v.position_ned_m is not None and heading_now is not None:
-            sides = m.obstacles.sides_near(v.position_ned_m, heading_now, now_s, self._cfg.memory)
-            if m.view_limits is not None:
-                guard = m.obstacles.guard(v.position_ned_m, heading_now, now_s, self._cfg.memory, m.view_limits)
+            guard, sides = m.obstacles.hold_inputs(v.position_ned_m, heading_now, now_s, self._cfg.memory, m.view_limits)
         m.guarding = 0 if guard is None else len(guard)
         return setpoint_for(
             latest.decision,

@@ -105,12 +105,8 @@ class CupyRegionEstimator:
         self._clock = clock
         self._gpu_cfg = cfg.gpu
         self._regions_cfg = cfg.regions
-        f = cfg.gpu.disparity_preview_downsample
-        if cfg.memory.duration_s > 0.0 and f >= 2 and cfg.memory.block_px % f != 0:
-            raise ConfigError(
-                f"memory.block_px ({cfg.memory.block_px}) must be a multiple of "
-                f"gpu.disparity_preview_downsample ({f}): the GPU reduces the disparity to blocks of that size"
-            )
+        if cfg.memory.duration_s > 0.0:
+            _check_block_px(cfg.memory.block_px, cfg.gpu.disparity_preview_downsample)
         rectifier = make_rectifier(cfg.calibration, self.width_px, self.height_px)
         self.geometry: StereoGeometry = rectifier.geometry
         self.layout: RegionLayout = region_layout(self.geometry, cfg.regions)
@@ -592,8 +588,7 @@ class CupyRegionEstimator:
     def _near_blocks(self, block_px: int) -> np.ndarray:
         f = self._preview_factor
         if f > 1:
-            if block_px % f != 0:
-                raise ConfigError(f"memory.block_px ({block_px}) must be a multiple of gpu.disparity_preview_downsample ({f})")
+            _check_block_px(block_px, f)
             return self._preview_host if block_px == f else block_max(self._preview_host, block_px // f)
         return block_max(self._host_disparity(), block_px)
 
@@ -617,6 +612,15 @@ class CupyRegionEstimator:
                 self._counter.fill(0)
         except Exception as err:  # the context may be unusable; the next frame reports it
             log.error("GPU estimator could not reset its state after an error: %s", err)
+
+
+def _check_block_px(block_px: int, preview_factor: int) -> None:
+    """The memory's blocks are built from the device's preview blocks: a multiple of their size."""
+    if preview_factor >= 2 and block_px % preview_factor != 0:
+        raise ConfigError(
+            f"memory.block_px ({block_px}) must be a multiple of gpu.disparity_preview_downsample "
+            f"({preview_factor}): the GPU reduces the disparity to blocks of that size"
+        )
 
 
 class _CopyCrew:

@@ -365,6 +365,10 @@ def fly(
                 last_steer_s = t
                 last_steer_ned_m = vehicle.model.position_ned_m.copy()
             m = vehicle.model
+            guard = sides = None
+            if memory is not None:
+                view = latest.view_limits if latest is not None else None
+                guard, sides = memory.hold_inputs(m.position_ned_m, m.yaw_rad, t, cfg.memory, view)
             sp = setpoint_for(
                 decision,
                 age if latest is not None else math.inf,
@@ -380,11 +384,9 @@ def fly(
                 since_up_near_m=overhead.update(
                     latest.refined.depth_m if latest is not None else None, m.position_ned_m, cmd.hold_clear_depth_m
                 ),
-                guard_m=memory.guard(m.position_ned_m, m.yaw_rad, t, cfg.memory, latest.view_limits)
-                if memory is not None and latest is not None and latest.view_limits is not None
-                else None,
+                guard_m=guard,
                 guard_cfg=cfg.memory,
-                remembered_sides=None if memory is None else memory.sides_near(m.position_ned_m, m.yaw_rad, t, cfg.memory),
+                remembered_sides=sides,
             )
             if vehicle.in_offboard:
                 vehicle.set_setpoint(sp)
