@@ -71,6 +71,8 @@ class VehicleState:
         timestamp_s: when this state was last updated, on the consumer's clock, seconds.
         position_timestamp_s: when ``position_ned_m`` was last received, on the consumer's clock,
             seconds (None before the first).
+        velocity_ned_m_s: float (3,) velocity north, east, down in m/s, from the same report as
+            ``position_ned_m``, or None if unknown.
     """
 
     connected: bool = False
@@ -81,6 +83,7 @@ class VehicleState:
     attitude_rad: np.ndarray | None = None
     timestamp_s: float = 0.0
     position_timestamp_s: float | None = None
+    velocity_ned_m_s: np.ndarray | None = None
 
 
 @runtime_checkable

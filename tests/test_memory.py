@@ -184,6 +184,53 @@ def test_apply_guard_removes_motion_toward_the_point_and_pushes_away_capped() ->
     assert apply_guard(0.0, -0.3, left, only_stop) == pytest.approx((0.0, 0.0))
 
 
+def test_apply_guard_leans_against_a_motion_that_still_closes_on_a_point_on_the_actual_path() -> None:
+    """PX4 follows a setpoint ~0.85 s late: a command already turned away still leaves the vehicle
+    closing on what it was flying at; the command then moves away at counter_velocity_fraction times
+    the closing speed, capped at max_guard_speed_m_s."""
+    cfg = guard_cfg(
+        guard_distance_m=0.6, guard_gain_per_s=0.0, max_guard_speed_m_s=0.5, keep_out_m=0.35, counter_velocity_fraction=1.0
+    )
+    left = np.array([[0.4, 0.0, -1.0]])  # 0.4 m to the left
+    # Commanded straight on (the point is beside that path), but still sliding left at 0.3 m/s.
+    assert apply_guard(0.7, 0.0, left, cfg, (0.0, -0.3)) == pytest.approx((0.7, 0.3))
+    # Moving mostly forward: 0.4 m to the left lies off the actual path, nothing to lean against.
+    assert apply_guard(0.7, 0.0, left, cfg, (0.7, -0.1)) == pytest.approx((0.7, 0.0))
+    # Already moving away, or no velocity known: only the commanded path counts.
+    assert apply_guard(0.7, 0.0, left, cfg, (0.0, 0.3)) == pytest.approx((0.7, 0.0))
+    assert apply_guard(0.7, 0.0, left, cfg, None) == pytest.approx((0.7, 0.0))
+    assert apply_guard(0.7, 0.0, left, cfg, (math.nan, -0.3)) == pytest.approx((0.7, 0.0))
+    # A command already moving away faster than the counter is kept; a fast closing speed is capped,
+    # and so are the lean and the push together.
+    assert apply_guard(0.0, 0.45, left, cfg, (0.0, -0.3)) == pytest.approx((0.0, 0.45))
+    assert apply_guard(0.0, 0.0, left, cfg, (0.0, -0.9)) == pytest.approx((0.0, 0.5))
+    pushing = cfg.model_copy(update={"guard_gain_per_s": 1.5})  # push 0.3 m/s at 0.4 m
+    assert apply_guard(0.7, 0.0, left, pushing, (0.0, -0.3)) == pytest.approx((0.7, 0.5))
+    half = cfg.model_copy(update={"counter_velocity_fraction": 0.5})
+    off = cfg.model_copy(update={"counter_velocity_fraction": 0.0})
+    # A point 45° ahead-left, 0.5 m: just beside the commanded path (0.354 m off it), straight on the
+    # path actually flown. The command's motion toward it is removed, then the lean added.
+    ahead_left = np.array([[0.5, math.sqrt(0.5), -math.sqrt(0.5)]])
+    assert apply_guard(0.7, 0.0, ahead_left, cfg) == pytest.approx((0.7, 0.0))
+    assert apply_guard(0.7, 0.0, ahead_left, off, (0.3, -0.3)) == pytest.approx((0.35, 0.35))
+    lean = 0.5 * 0.3 * math.sqrt(2.0)
+    assert apply_guard(0.7, 0.0, ahead_left, half, (0.3, -0.3)) == pytest.approx(
+        (0.35 - lean * math.sqrt(0.5), 0.35 + lean * math.sqrt(0.5))
+    )
+    assert apply_guard(0.0, -0.2, left, half, (0.0, -0.3)) == pytest.approx((0.0, 0.15))
+    assert apply_guard(0.0, -0.2, left, off, (0.0, -0.3)) == pytest.approx((0.0, 0.0))
+
+
+def test_setpoint_for_hands_the_actual_velocity_to_the_guard() -> None:
+    cmd = CompanionConfig().command
+    cfg = guard_cfg(guard_gain_per_s=0.0, counter_velocity_fraction=1.0)
+    left = np.array([[0.4, 0.0, -1.0]])
+    clear = Decision(DecisionKind.CLEAR, 0.0, 0.0, 1.0, "clear")
+    sp = setpoint_for(clear, 0.0, cmd, guard_m=left, guard_cfg=cfg, velocity_body_m_s=(0.0, -0.3))
+    assert sp.right_m_s == pytest.approx(0.3) and sp.forward_m_s == pytest.approx(cmd.cruise_speed_m_s)
+    assert setpoint_for(clear, 0.0, cmd, guard_m=left, guard_cfg=cfg).right_m_s == 0.0
+
+
 def test_setpoint_for_guards_every_fresh_decision_but_never_a_stale_one() -> None:
     cmd = CompanionConfig().command
     cfg = guard_cfg()
@@ -213,9 +260,11 @@ def test_sides_near_tells_which_side_has_a_remembered_point_within_hold_clear_m(
     cfg = guard_cfg(hold_clear_m=1.0)
     here = np.array([0.0, 0.0, -1.5])
     assert mem.sides_near(here, 0.0, 1.0, cfg) == (False, False)
-    mem.add(np.array([[-0.5, -0.6, -1.5]]), 0.0, 30.0)  # behind-left, 0.78 m
+    mem.add(np.array([[-0.3, -0.6, -1.5]]), 0.0, 30.0)  # left and 0.3 m behind, 0.67 m
     assert mem.sides_near(here, 0.0, 1.0, cfg) == (True, False)
     assert mem.sides_near(here, math.pi, 1.0, cfg) == (False, True)  # facing south it is on the right
+    # Farther behind than keep_out_m: turning or sliding toward it does not close on it.
+    assert mem.sides_near(here, 0.0, 1.0, cfg.model_copy(update={"keep_out_m": 0.25})) == (False, False)
     assert mem.sides_near(here, 0.0, 1.0, cfg.model_copy(update={"hold_clear_m": 0.5})) == (False, False)
     assert mem.sides_near(here, 0.0, 40.0, cfg) == (False, False)  # forgotten
     assert mem.sides_near(np.array([np.nan, 0, 0]), 0.0, 1.0, cfg) is None

@@ -90,6 +90,10 @@ def test_setpoints_on_the_wire_stale_zero_failsafe_hold_and_pilot_takeover(flyin
         assert s.vy == 0.0
         assert s.vz == pytest.approx(expected.down_m_s, abs=1e-5)
         assert s.yaw_rate == pytest.approx(math.radians(expected.yaw_rate_deg_s), abs=1e-5)
+    # The autopilot's velocity reaches the service (the guard leans against it): the peer flies the
+    # setpoints at once, so its horizontal speed is the commanded forward speed.
+    vel = _status(client)["vehicle"]["velocity_ned_m_s"]
+    assert math.hypot(vel[0], vel[1]) == pytest.approx(expected.forward_m_s, abs=1e-3)
 
     # Frames stop: zero velocity within 0.6 s (stale timeout 0.5 s).
     camera.freeze()

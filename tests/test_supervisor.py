@@ -734,7 +734,9 @@ def test_a_remembered_obstacle_beside_the_vehicle_pushes_it_away() -> None:
     from companion.core.memory import ViewLimits
 
     view = ViewLimits(math.radians(32.0), math.radians(44.0), 0.3)
-    h = Harness(SupervisorConfig.from_config(CompanionConfig()))
+    base = CompanionConfig()
+    leaning = base.model_copy(update={"memory": base.memory.model_copy(update={"counter_velocity_fraction": 1.0})})
+    h = Harness(SupervisorConfig.from_config(leaning))
     h.engage()
     at = np.array([0.0, 0.0, -1.5])
     h.vehicle = replace(vehicle("OFFBOARD"), attitude_rad=np.zeros(3), position_ned_m=at, position_timestamp_s=h.now)
@@ -746,9 +748,16 @@ def test_a_remembered_obstacle_beside_the_vehicle_pushes_it_away() -> None:
     h.vehicle = replace(h.vehicle, position_ned_m=np.array([0.5, 0.0, -1.5]), position_timestamp_s=h.now + 0.05)
     h.frame = SeenResult(h.now + 0.03, CLEAR, np.empty((0, 3)), view)
     sp = h.step(fresh_frame=False).setpoint
-    mem = CompanionConfig().memory
+    mem = leaning.memory
     assert sp.right_m_s == pytest.approx(mem.guard_gain_per_s * (mem.guard_distance_m - 0.3))
     assert sp.forward_m_s == pytest.approx(CompanionConfig().command.cruise_speed_m_s)
+    # Still sliding left toward it at 0.4 m/s (PX4's lag): the setpoint leans against that motion
+    # (counter_velocity_fraction; off by default).
+    h.vehicle = replace(h.vehicle, velocity_ned_m_s=np.array([0.0, -0.4, 0.0]))
+    sp = h.step(fresh_frame=False).setpoint
+    lean_and_push = mem.counter_velocity_fraction * 0.4 + mem.guard_gain_per_s * (mem.guard_distance_m - 0.3)
+    assert sp.right_m_s == pytest.approx(min(lean_and_push, mem.max_guard_speed_m_s))
+    assert sp.right_m_s > mem.guard_gain_per_s * (mem.guard_distance_m - 0.3)
     # With the memory off nothing is remembered.
     off = CompanionConfig().model_copy(update={"memory": mem.model_copy(update={"duration_s": 0.0})})
     h2 = Harness(SupervisorConfig.from_config(off))

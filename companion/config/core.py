@@ -905,15 +905,28 @@ class MemoryConfig(StrictModel):
     max_guard_speed_m_s: float = Field(
         default=0.5, ge=0.0, le=2.0, description="The largest speed the push commands, m/s."
     )
+    counter_velocity_fraction: float = Field(
+        default=0.0,
+        ge=0.0,
+        le=2.0,
+        description=(
+            "While the vehicle is still moving toward a guarding point on the path it actually flies "
+            "(its velocity lags the setpoint: ~0.85 s with PX4), the setpoint moves away from it at "
+            "this fraction of that closing speed (with the push, at most max_guard_speed_m_s), so the "
+            "lag does not carry it in (0 = only stop commanding toward it). Dimensionless. Off by "
+            "default: on the kinematic suite with drift, 0.5 and 1 each cost a collision (the lean "
+            "shoves the vehicle sideways, where the camera does not see either)."
+        ),
+    )
     hold_clear_m: float = Field(
         default=1.0,
         ge=0.0,
         le=5.0,
         description=(
             "Course hold neither turns nor slides toward a side with a remembered point within this "
-            "of the vehicle, horizontally, metres (0 = off): an obstacle just passed is beside or "
-            "behind it, out of view (PX4 SITL: turning back toward the line right after a box, the "
-            "vehicle swung into the box's rear corner)."
+            "of the vehicle, horizontally, and not more than keep_out_m behind it, metres (0 = off): "
+            "an obstacle just passed is beside it, out of view (PX4 SITL: turning back toward the "
+            "line right after a box, the vehicle swung into the box's rear corner)."
         ),
     )
     height_band_m: float = Field(

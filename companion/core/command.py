@@ -147,6 +147,19 @@ def brake_offset_body(position_ned_m: np.ndarray, brake_at_ned_m: np.ndarray, ya
     return np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1], d[2]])
 
 
+def horizontal_velocity_body_m_s(velocity_ned_m_s: np.ndarray | None, yaw_rad: float | None) -> tuple[float, float] | None:
+    """A NED velocity (float ``(3,)`` m/s) as the body frame's horizontal (forward, right) m/s at
+    heading ``yaw_rad``, for :func:`setpoint_for`'s ``velocity_body_m_s``; None when either is
+    missing or not finite."""
+    if velocity_ned_m_s is None or yaw_rad is None:
+        return None
+    v = np.asarray(velocity_ned_m_s, dtype=np.float64).reshape(-1)
+    if v.size < 2 or not (math.isfinite(v[0]) and math.isfinite(v[1]) and math.isfinite(yaw_rad)):
+        return None
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    return (c * float(v[0]) + s * float(v[1]), -s * float(v[0]) + c * float(v[1]))
+
+
 class BrakeLatch:
     """Where and facing which way the current brake began (brake position and heading hold): latched
     at the first BRAKE decision, forgotten on any other decision or without a position and heading."""
@@ -244,6 +257,7 @@ def setpoint_for(
     guard_m: np.ndarray | None = None,
     guard_cfg: MemoryConfig | None = None,
     remembered_sides: tuple[bool, bool] | None = None,
+    velocity_body_m_s: tuple[float, float] | None = None,
 ) -> VelocitySetpoint:
     """The setpoint to send for ``decision``, made ``since_last_frame_s`` seconds after its frame.
 
@@ -267,7 +281,9 @@ def setpoint_for(
 
     ``guard_m`` (:meth:`~companion.core.memory.ObstacleMemory.guard`: remembered points out of view
     near the vehicle) with ``guard_cfg``: on any fresh decision, BRAKE included, a push away from each
-    is added and the horizontal velocity toward those on the path removed
+    is added and the horizontal velocity toward those on the path removed; with
+    ``velocity_body_m_s`` (the vehicle's horizontal velocity now, body frame: forward, right, m/s),
+    a point it is still closing on along its actual path is also leaned against
     (:func:`~companion.core.memory.apply_guard`).
 
     Course hold (all keyword inputs optional; ``None`` = off, the paper's behaviour). Only on a CLEAR
@@ -303,10 +319,10 @@ def setpoint_for(
     if since_last_frame_s > cmd.stale_frame_timeout_s:
         return ZERO_SETPOINT
     if decision.kind is DecisionKind.BRAKE:
-        return _guarded(_brake_hold(brake_offset_body_m, brake_heading_error_rad, cmd), guard_m, guard_cfg)
+        return _guarded(_brake_hold(brake_offset_body_m, brake_heading_error_rad, cmd), guard_m, guard_cfg, velocity_body_m_s)
     yaw, pitch, speed = decision.yaw, decision.pitch, decision.speed_fraction
     if not (math.isfinite(yaw) and math.isfinite(pitch) and math.isfinite(speed)):
-        return _guarded(ZERO_SETPOINT, guard_m, guard_cfg)
+        return _guarded(ZERO_SETPOINT, guard_m, guard_cfg, velocity_body_m_s)
     yaw = min(1.0, max(-1.0, yaw))
     pitch = min(1.0, max(-1.0, pitch))
     speed = min(1.0, max(0.0, speed))
@@ -318,7 +334,7 @@ def setpoint_for(
         if aim is not None and abs(aim) > math.radians(cmd.turn_back_angle_deg) and cmd.turn_back_angle_deg < 180.0:
             # Facing away from the course: stop and turn back in place (module doc, turning back).
             rate = math.copysign(cmd.max_heading_hold_rate_deg_s, aim)
-            return _guarded(VelocitySetpoint(0.0, 0.0, 0.0, rate), guard_m, guard_cfg)
+            return _guarded(VelocitySetpoint(0.0, 0.0, 0.0, rate), guard_m, guard_cfg, velocity_body_m_s)
         yaw_rate_deg_s += (1.0 - abs(yaw)) * _heading_hold_deg_s(
             heading_error_rad, region_depths_m, cmd, line_offset_m, remembered_sides
         )
@@ -335,11 +351,16 @@ def setpoint_for(
         down_m_s=down_m_s,
         yaw_rate_deg_s=yaw_rate_deg_s,
     )
-    return _guarded(sp, guard_m, guard_cfg)
+    return _guarded(sp, guard_m, guard_cfg, velocity_body_m_s)
 
 
-def _guarded(sp: VelocitySetpoint, guard_m: np.ndarray | None, cfg: MemoryConfig | None) -> VelocitySetpoint:
+def _guarded(
+    sp: VelocitySetpoint,
+    guard_m: np.ndarray | None,
+    cfg: MemoryConfig | None,
+    velocity_body_m_s: tuple[float, float] | None,
+) -> VelocitySetpoint:
     if guard_m is None or cfg is None or len(guard_m) == 0:
         return sp
-    forward, right = apply_guard(sp.forward_m_s, sp.right_m_s, guard_m, cfg)
+    forward, right = apply_guard(sp.forward_m_s, sp.right_m_s, guard_m, cfg, velocity_body_m_s)
     return VelocitySetpoint(forward_m_s=forward, right_m_s=right, down_m_s=sp.down_m_s, yaw_rate_deg_s=sp.yaw_rate_deg_s)

@@ -8,8 +8,9 @@ NED frame, one per 5 cm cube (:class:`ObstacleMemory`), and a point that is out 
 (or nearer than the rig can see) and within ``memory.guard_distance_m`` of the vehicle, horizontally,
 guards it: :func:`apply_guard` pushes the vehicle away, and removes the velocity toward the point
 when the point is on its path (see :func:`~companion.core.command.setpoint_for`). Course hold also
-neither turns nor slides toward a side with a point within ``memory.hold_clear_m``
-(:meth:`ObstacleMemory.sides_near`).
+neither turns nor slides toward a side with a point within ``memory.hold_clear_m``, abreast or
+ahead (:meth:`ObstacleMemory.sides_near`). The autopilot follows a setpoint late (PX4: ~0.85 s), so
+the guard also leans against the vehicle's actual motion toward a point on its actual path.
 
 From one frame to points (:func:`block_max`, :class:`NearCells`):
 
@@ -307,8 +308,9 @@ class ObstacleMemory:
         self, position_ned_m: np.ndarray, yaw_rad: float, now_s: float, cfg: MemoryConfig
     ) -> tuple[bool, bool] | None:
         """Whether a point seen within ``cfg.duration_s`` lies within ``cfg.hold_clear_m`` of the
-        vehicle horizontally (and ``cfg.height_band_m`` vertically) on its left, on its right (the
-        body's right component < 0, > 0); None without a finite position and heading."""
+        vehicle horizontally (and ``cfg.height_band_m`` vertically), not more than ``cfg.keep_out_m``
+        behind it, on its left, on its right (the body's right component < 0, > 0); None without a
+        finite position and heading."""
         near = self._nearby(position_ned_m, yaw_rad, now_s, cfg, cfg.hold_clear_m)
         return None if near is None else _sides(*near, cfg)
 
@@ -336,8 +338,11 @@ class ObstacleMemory:
 
 
 def _sides(fwd: np.ndarray, right: np.ndarray, dist: np.ndarray, cfg: MemoryConfig) -> tuple[bool, bool]:
-    """(left, right): a point within ``cfg.hold_clear_m`` on that side (body-frame arrays, metres)."""
-    close = dist < cfg.hold_clear_m
+    """(left, right): a point within ``cfg.hold_clear_m`` on that side and not more than
+    ``cfg.keep_out_m`` behind the vehicle (body-frame arrays, metres). Turning or sliding toward a
+    point farther behind does not close on it; counting it kept a vehicle flying away from the goal
+    past a pillar it had passed (kinematic forest-2 with drift)."""
+    close = (dist < cfg.hold_clear_m) & (fwd > -cfg.keep_out_m)
     return bool(np.any(close & (right < 0.0))), bool(np.any(close & (right > 0.0)))
 
 
@@ -361,32 +366,62 @@ def _guard_rows(
 
 
 def apply_guard(
-    forward_m_s: float, right_m_s: float, guard_m: np.ndarray | None, cfg: MemoryConfig
+    forward_m_s: float,
+    right_m_s: float,
+    guard_m: np.ndarray | None,
+    cfg: MemoryConfig,
+    velocity_body_m_s: tuple[float, float] | None = None,
 ) -> tuple[float, float]:
     """A horizontal body-frame velocity (m/s) with the guard applied. For each guarding point
     (:meth:`ObstacleMemory.guard` rows: distance m, unit forward, unit right): a push away of
     ``guard_gain_per_s · (guard_distance_m - distance)`` (the summed push capped at
     ``max_guard_speed_m_s``), and when the point lies on the path (ahead along the velocity and within
     ``keep_out_m`` of its line) the velocity's component toward it is removed, so that the vehicle
-    slides past it instead of running into it; a point beside the path does not slow the vehicle."""
+    slides past it instead of running into it; a point beside the path does not slow the vehicle.
+
+    ``velocity_body_m_s`` (forward, right m/s: the vehicle's velocity now, None = unknown): the
+    autopilot follows a setpoint only after a lag (PX4: ~0.85 s), so a vehicle still moving toward a
+    point on the path it is actually flying keeps closing on it after the command has turned away.
+    For such a point the command's motion toward it is removed too, and the command leans away from
+    it at ``counter_velocity_fraction`` times the closing speed (less what it already moves away):
+    leaning against the motion stops it in about a third of the distance a zero command would (a
+    first-order lag). The lean and the push together are capped at ``max_guard_speed_m_s``: a
+    vehicle shoved sideways flies into what the camera does not see either (kinematic forest-4)."""
     if guard_m is None or len(guard_m) == 0:
         return forward_m_s, right_m_s
     g = np.asarray(guard_m, dtype=np.float64).reshape(-1, 3)
     v = np.array([forward_m_s, right_m_s], dtype=np.float64)
     speed = float(np.hypot(v[0], v[1]))
-    push = np.zeros(2)
+    w = None
+    if velocity_body_m_s is not None and all(math.isfinite(x) for x in velocity_body_m_s):
+        w = np.array(velocity_body_m_s, dtype=np.float64)
+    away = np.zeros(2)  # the push and the lean, capped together
     for dist, uf, ur in g:
         u = np.array([uf, ur])
         toward = float(v @ u)
-        if toward > 0.0 and speed > 0.0:
-            cross_track = dist * abs(uf * v[1] - ur * v[0]) / speed
-            if cross_track < cfg.keep_out_m:
-                v -= toward * u
-        push -= cfg.guard_gain_per_s * max(0.0, cfg.guard_distance_m - dist) * u
-    n = float(np.hypot(push[0], push[1]))
+        if toward > 0.0 and _on_path(dist, u, v, speed, cfg.keep_out_m):
+            v -= toward * u
+        if w is not None:
+            closing = float(w @ u)
+            if closing > 0.0 and _on_path(dist, u, w, float(np.hypot(w[0], w[1])), cfg.keep_out_m):
+                toward = float(v @ u)
+                if toward > 0.0:
+                    v -= toward * u
+                    toward = 0.0
+                away -= max(0.0, cfg.counter_velocity_fraction * closing + toward) * u
+        away -= cfg.guard_gain_per_s * max(0.0, cfg.guard_distance_m - dist) * u
+    n = float(np.hypot(away[0], away[1]))
     if n > cfg.max_guard_speed_m_s > 0.0:
-        push *= cfg.max_guard_speed_m_s / n
+        away *= cfg.max_guard_speed_m_s / n
     elif cfg.max_guard_speed_m_s == 0.0:
-        push[:] = 0.0
-    v += push
+        away[:] = 0.0
+    v += away
     return float(v[0]), float(v[1])
+
+
+def _on_path(dist: float, u: np.ndarray, v: np.ndarray, speed: float, keep_out_m: float) -> bool:
+    """Whether a point ``dist`` metres away along unit ``u`` lies within ``keep_out_m`` of the line
+    of velocity ``v`` (``speed`` = its norm, > 0; the caller has checked the point is ahead of it)."""
+    if speed <= 0.0:
+        return False
+    return dist * abs(u[0] * v[1] - u[1] * v[0]) / speed < keep_out_m

@@ -60,6 +60,7 @@ from companion.core.command import (
     BrakeLatch,
     OverheadMemory,
     horizontal_distance_m,
+    horizontal_velocity_body_m_s,
     is_straight_clear,
     line_offset_m,
     setpoint_for,
@@ -745,6 +746,7 @@ class Supervisor:
             guard_m=guard,
             guard_cfg=self._cfg.memory,
             remembered_sides=sides,
+            velocity_body_m_s=horizontal_velocity_body_m_s(v.velocity_ned_m_s, heading_now),
         )
 
     def _override_setpoint(self, o: Override, latest: FrameOutcome | None) -> VelocitySetpoint:

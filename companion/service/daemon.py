@@ -809,6 +809,9 @@ class Service:
                 "in_offboard": v.in_offboard if v is not None else False,
                 "position_ned_m": v.position_ned_m.tolist() if v is not None and v.position_ned_m is not None else None,
                 "attitude_rad": v.attitude_rad.tolist() if v is not None and v.attitude_rad is not None else None,
+                "velocity_ned_m_s": (
+                    v.velocity_ned_m_s.tolist() if v is not None and v.velocity_ned_m_s is not None else None
+                ),
             },
             "processed_frames": self._processed,
             "dropped_frames": (capture.dropped if capture is not None else 0) + self._skipped_frames(),

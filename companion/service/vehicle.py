@@ -154,10 +154,11 @@ class MavsdkVehicleLink:
     async def _watch_position(self) -> None:
         assert self._telemetry is not None
         async for pv in self._telemetry.subscribe_position_velocity_ned():
-            p = pv.position
+            p, vel = pv.position, pv.velocity
             self._update(
                 position_ned_m=np.array([p.north_m, p.east_m, p.down_m], dtype=np.float64),
                 position_timestamp_s=self._clock(),
+                velocity_ned_m_s=np.array([vel.north_m_s, vel.east_m_s, vel.down_m_s], dtype=np.float64),
             )
 
     async def _watch_attitude(self) -> None:

@@ -36,6 +36,7 @@ from companion.core.command import (
     BrakeLatch,
     OverheadMemory,
     horizontal_distance_m,
+    horizontal_velocity_body_m_s,
     is_straight_clear,
     line_offset_m,
     setpoint_for,
@@ -387,6 +388,7 @@ def fly(
                 guard_m=guard,
                 guard_cfg=cfg.memory,
                 remembered_sides=sides,
+                velocity_body_m_s=horizontal_velocity_body_m_s(m.velocity_ned_m_s, m.yaw_rad),
             )
             if vehicle.in_offboard:
                 vehicle.set_setpoint(sp)
