@@ -283,8 +283,8 @@ def setpoint_for(
     near the vehicle) with ``guard_cfg``: on any fresh decision, BRAKE included, a push away from each
     is added and the horizontal velocity toward those on the path removed; with
     ``velocity_body_m_s`` (the vehicle's horizontal velocity now, body frame: forward, right, m/s),
-    a point it is still closing on along its actual path is also leaned against
-    (:func:`~companion.core.memory.apply_guard`).
+    the motion toward a point on the path it is actually flying is removed too (and, with
+    ``counter_velocity_fraction``, leaned against) (:func:`~companion.core.memory.apply_guard`).
 
     Course hold (all keyword inputs optional; ``None`` = off, the paper's behaviour). Only on a CLEAR
     decision, and only once ``clear_for_s`` (seconds the decisions have been straight and CLEAR; None

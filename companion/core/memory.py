@@ -10,7 +10,8 @@ guards it: :func:`apply_guard` pushes the vehicle away, and removes the velocity
 when the point is on its path (see :func:`~companion.core.command.setpoint_for`). Course hold also
 neither turns nor slides toward a side with a point within ``memory.hold_clear_m``, abreast or
 ahead (:meth:`ObstacleMemory.sides_near`). The autopilot follows a setpoint late (PX4: ~0.85 s), so
-the guard also leans against the vehicle's actual motion toward a point on its actual path.
+the guard also counts the path the vehicle is actually flying (and, with
+``memory.counter_velocity_fraction``, leans against its motion toward a point on it).
 
 From one frame to points (:func:`block_max`, :class:`NearCells`):
 
