@@ -279,3 +279,13 @@ def test_course_hold_neither_turns_nor_slides_toward_a_remembered_side() -> None
     blocked = setpoint_for(clear, 0.0, cmd, remembered_sides=(True, False), **kw)
     assert blocked.yaw_rate_deg_s == 0.0 and blocked.right_m_s == 0.0
     assert setpoint_for(clear, 0.0, cmd, remembered_sides=(False, True), **kw) == free
+
+
+def test_ned_to_body_horizontal_rotates_by_the_heading_for_floats_and_arrays() -> None:
+    from companion.core.frames import ned_to_body_horizontal
+
+    assert ned_to_body_horizontal(0.0, 1.0, math.pi / 2) == pytest.approx((1.0, 0.0))  # facing east
+    assert ned_to_body_horizontal(1.0, 0.0, math.pi / 2) == pytest.approx((0.0, -1.0))  # north is left
+    f, r = ned_to_body_horizontal(np.array([1.0, 0.0]), np.array([0.0, 1.0]), 0.0)
+    np.testing.assert_allclose(f, [1.0, 0.0])
+    np.testing.assert_allclose(r, [0.0, 1.0])

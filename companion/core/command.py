@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from companion.core.frames import ned_to_body_horizontal
 from companion.core.memory import apply_guard
 from companion.core.types import (
     REGION_INDEX,
@@ -64,7 +65,7 @@ def line_offset_m(position_ned_m: np.ndarray, origin_ned_m: np.ndarray, heading_
     ``origin_ned_m`` along ``heading_rad``, metres: positive = the line lies to the right of the
     position (the vehicle is left of it)."""
     d = np.asarray(position_ned_m, dtype=np.float64) - np.asarray(origin_ned_m, dtype=np.float64)
-    right_of_line = -math.sin(heading_rad) * d[0] + math.cos(heading_rad) * d[1]
+    _, right_of_line = ned_to_body_horizontal(d[0], d[1], heading_rad)
     return float(-right_of_line)
 
 
@@ -143,8 +144,8 @@ def brake_offset_body(position_ned_m: np.ndarray, brake_at_ned_m: np.ndarray, ya
     """Where the vehicle is relative to where its brake began, in the body frame (yaw only: forward,
     right, down), float ``(3,)`` metres, from NED positions (float ``(3,)`` metres) and the heading."""
     d = np.asarray(position_ned_m, dtype=np.float64) - np.asarray(brake_at_ned_m, dtype=np.float64)
-    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
-    return np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1], d[2]])
+    forward, right = ned_to_body_horizontal(d[0], d[1], yaw_rad)
+    return np.array([forward, right, d[2]])
 
 
 def horizontal_velocity_body_m_s(velocity_ned_m_s: np.ndarray | None, yaw_rad: float | None) -> tuple[float, float] | None:
@@ -156,8 +157,7 @@ def horizontal_velocity_body_m_s(velocity_ned_m_s: np.ndarray | None, yaw_rad: f
     v = np.asarray(velocity_ned_m_s, dtype=np.float64).reshape(-1)
     if v.size < 2 or not (math.isfinite(v[0]) and math.isfinite(v[1]) and math.isfinite(yaw_rad)):
         return None
-    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
-    return (c * float(v[0]) + s * float(v[1]), -s * float(v[0]) + c * float(v[1]))
+    return ned_to_body_horizontal(float(v[0]), float(v[1]), yaw_rad)
 
 
 class BrakeLatch:

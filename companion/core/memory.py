@@ -40,6 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from companion.config.core import MemoryConfig
+from companion.core.frames import ned_to_body_horizontal
 from companion.core.geometry import StereoGeometry
 from companion.core.render.pose import Pose
 
@@ -287,9 +288,7 @@ class ObstacleMemory:
         if pos.shape != (3,) or not np.all(np.isfinite(pos)) or not math.isfinite(yaw_rad):
             return None
         rel = self._pts[(now_s - self._t) <= cfg.duration_s] - pos
-        c, s = math.cos(yaw_rad), math.sin(yaw_rad)
-        fwd = c * rel[:, 0] + s * rel[:, 1]
-        right = -s * rel[:, 0] + c * rel[:, 1]
+        fwd, right = ned_to_body_horizontal(rel[:, 0], rel[:, 1], yaw_rad)
         dist = np.hypot(fwd, right)
         keep = (np.abs(rel[:, 2]) <= cfg.height_band_m) & (dist < radius_m)
         return fwd[keep], right[keep], dist[keep]

@@ -1,0 +1,19 @@
+"""Frame rotations shared by the command and the obstacle memory (pure; no state)."""
+
+from __future__ import annotations
+
+import math
+from typing import TypeVar
+
+import numpy as np
+
+T = TypeVar("T", float, np.ndarray)
+
+
+def ned_to_body_horizontal(north: T, east: T, yaw_rad: float) -> tuple[T, T]:
+    """A horizontal NED vector (north, east: floats, or float arrays of one shape; any unit) in the
+    body frame of a vehicle heading ``yaw_rad`` (radians from north, clockwise): (forward, right),
+    same unit and shape. Yaw only: roll and pitch are left out, as for PX4's body-frame velocity
+    setpoints."""
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    return c * north + s * east, -s * north + c * east
