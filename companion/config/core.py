@@ -770,6 +770,28 @@ class CommandConfig(StrictModel):
     brake_hold_max_speed_m_s: float = Field(
         default=0.3, ge=0.0, le=2.0, description="Brake position hold: the largest speed it commands, m/s."
     )
+    no_progress_timeout_s: float = Field(
+        default=20.0,
+        ge=0.0,
+        le=600.0,
+        description=(
+            "Progress watchdog, seconds (0 = off): engaged with course hold, when the vehicle has not got "
+            "progress_step_m farther along the course (the line from where it was engaged, along the "
+            "heading it had then) for this long, the service stops trying: it holds position (as a "
+            "brake does), its state becomes paused with the reason, and it waits for the pilot (resume "
+            "tries again, or take over). A vehicle circling in front of an obstacle it cannot get past, "
+            "or following a wall away from the only opening, only spends battery near obstacles."
+        ),
+    )
+    progress_step_m: float = Field(
+        default=1.0,
+        gt=0.0,
+        le=50.0,
+        description=(
+            "Progress watchdog: how much farther along the course (metres) counts as progress and "
+            "restarts no_progress_timeout_s."
+        ),
+    )
     hold_clear_depth_m: float = Field(
         default=2.25,
         ge=0.0,

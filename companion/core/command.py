@@ -69,6 +69,61 @@ def line_offset_m(position_ned_m: np.ndarray, origin_ned_m: np.ndarray, heading_
     return float(-right_of_line)
 
 
+def along_course_m(position_ned_m: np.ndarray, origin_ned_m: np.ndarray, heading_rad: float) -> float:
+    """How far (metres) a position (float ``(3,)`` NED metres) lies along the course: its horizontal
+    component from ``origin_ned_m`` along ``heading_rad`` (negative = behind the origin)."""
+    d = np.asarray(position_ned_m, dtype=np.float64) - np.asarray(origin_ned_m, dtype=np.float64)
+    forward, _ = ned_to_body_horizontal(d[0], d[1], heading_rad)
+    return float(forward)
+
+
+#: The decision the progress watchdog substitutes while it holds (:class:`ProgressWatch`): a brake,
+#: so the brake position and heading hold and the guard act as for any brake.
+NO_PROGRESS_HOLD = Decision(
+    kind=DecisionKind.BRAKE, yaw=0.0, pitch=0.0, speed_fraction=0.0, reason="no progress along the course: holding"
+)
+
+
+class ProgressWatch:
+    """The progress watchdog's clock (``command.no_progress_timeout_s``): the time since the vehicle
+    last got ``command.progress_step_m`` farther along the course (:func:`along_course_m`).
+
+    The caller passes the distance along the course and the time; :meth:`update` says whether the
+    limit has passed. A position that is unknown or not finite restarts the clock (nothing is judged
+    without it)."""
+
+    def __init__(self) -> None:
+        self._mark_m: float | None = None
+        self._since_s: float | None = None
+
+    def reset(self) -> None:
+        """Start again (engage, resume, anything that was not the automatic flight)."""
+        self._mark_m = None
+        self._since_s = None
+
+    def update(self, along_m: float | None, now_s: float, cmd: CommandConfig) -> bool:
+        """Feed the distance along the course now (metres; None = unknown) at ``now_s`` seconds;
+        True once it has not grown by ``cmd.progress_step_m`` for more than
+        ``cmd.no_progress_timeout_s`` (always False when that is 0 or course hold is off)."""
+        if (
+            cmd.no_progress_timeout_s <= 0.0
+            or cmd.heading_hold_gain_per_s == 0.0
+            or along_m is None
+            or not math.isfinite(along_m)
+            or not math.isfinite(now_s)
+        ):
+            self.reset()
+            return False
+        if self._mark_m is None or self._since_s is None or along_m >= self._mark_m + cmd.progress_step_m:
+            self._mark_m, self._since_s = float(along_m), float(now_s)
+        return now_s - self._since_s > cmd.no_progress_timeout_s
+
+    @property
+    def mark_m(self) -> float | None:
+        """The distance along the course (metres) the clock last restarted at, or None."""
+        return self._mark_m
+
+
 def _aim_error_rad(heading_error_rad: float | None, line_offset: float | None, cmd: CommandConfig) -> float | None:
     """How far (radians, positive = right) the heading course hold aims at lies from the heading now:
     the course heading, turned toward the line; None when course hold is off or has no heading."""

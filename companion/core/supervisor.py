@@ -22,8 +22,11 @@ States (:class:`State`)::
   ``engage_timeout_s``, frames going stale, or a pilot's mode change: *disengaged*.
 * **engaged**: the setpoint of the newest decision (:func:`~companion.core.command.setpoint_for`:
   zero on BRAKE; with the ``command`` course-hold gains set, steering back to the heading and altitude
-  the vehicle had when it was engaged). **paused**: zero velocity in offboard until ``resume``. **override**: a manual
-  yaw/pitch/speed for a bounded time, then *engaged* again.
+  the vehicle had when it was engaged). **paused**: zero velocity in offboard until ``resume``; or,
+  by the progress watchdog (``command.no_progress_timeout_s``, :class:`~companion.core.command.ProgressWatch`:
+  engaged, the vehicle got no farther along the course for that long), a brake's position hold, with
+  the guard, until ``resume``. **override**: a manual yaw/pitch/speed for a bounded time, then
+  *engaged* again.
 * **degraded**: while engaged/paused/override, the newest frame is older than
   ``stale_frame_timeout_s`` (or the camera is gone): zero velocity. Fresh frames return to the activity.
 * **failsafe**: the newest frame is older than ``failsafe_timeout_s``: zero velocity and Hold (we own
@@ -57,8 +60,11 @@ import numpy as np
 
 from companion.config.core import MemoryConfig
 from companion.core.command import (
+    NO_PROGRESS_HOLD,
     BrakeLatch,
     OverheadMemory,
+    ProgressWatch,
+    along_course_m,
     horizontal_distance_m,
     horizontal_velocity_body_m_s,
     is_straight_clear,
@@ -271,6 +277,8 @@ class _Memory:
     brake: BrakeLatch = field(default_factory=BrakeLatch)  # where the current brake began (brake position hold)
     overhead: OverheadMemory = field(default_factory=OverheadMemory)  # where something was last overhead
     obstacles: ObstacleMemory = field(default_factory=ObstacleMemory)  # near points seen (the guard)
+    progress: ProgressWatch = field(default_factory=ProgressWatch)  # the progress watchdog's clock
+    stalled: bool = False  # paused by the progress watchdog (not by the operator)
     poses: deque[tuple[float, Pose]] = field(default_factory=lambda: deque(maxlen=_POSE_HISTORY))  # (time s, pose)
     last_frame_s: float | None = None  # capture time of the newest frame put in the memory
     view_limits: ViewLimits | None = None  # what the rig measures, from the frames
@@ -493,6 +501,8 @@ class Supervisor:
                 m.engaging = None
                 m.owns_offboard = True
                 m.activity = State.ENGAGED
+                m.stalled = False
+                m.progress.reset()
                 # Course hold (when its gains are set) steers back to the heading and altitude of now.
                 m.course_heading_rad = _finite_or_none(v.attitude_rad, 2)
                 m.brake.reset()
@@ -585,6 +595,7 @@ class Supervisor:
             if not self._commanding():
                 return Reply(r, False, f"pause refused: not engaged ({m.state.value})")
             m.activity = State.PAUSED
+            m.stalled = False
             m.override = None
             return Reply(r, True, "paused: zero velocity in offboard until resume")
         if isinstance(r, Resume):
@@ -592,6 +603,7 @@ class Supervisor:
                 return Reply(r, False, f"resume refused: not engaged ({m.state.value})")
             was = m.activity
             m.activity = State.ENGAGED
+            m.stalled = False
             m.override = None
             return Reply(r, True, "automatic" if was is not State.ENGAGED else "already automatic")
         if isinstance(r, Override):
@@ -659,18 +671,26 @@ class Supervisor:
                     m.activity = State.ENGAGED
                     m.override = None
                 if not fresh:
+                    m.progress.reset()
                     why = (
                         "camera lost (reconnecting)"
                         if not camera_ok
                         else f"frames stale (newest older than {cmd.stale_frame_timeout_s:g} s)"
                     )
                     self._set(State.DEGRADED, f"{why}: zero velocity")
-                elif m.activity is State.PAUSED:
-                    self._set(State.PAUSED, "paused by the operator: zero velocity in offboard")
-                elif m.activity is State.OVERRIDE:
-                    self._set(State.OVERRIDE, "manual override (automatic again when it expires)")
                 else:
-                    self._set(State.ENGAGED, "engaged: avoiding obstacles")
+                    if m.activity is State.ENGAGED and self._no_progress(now_s, v):
+                        m.activity = State.PAUSED
+                        m.stalled = True
+                    if m.activity is not State.ENGAGED:
+                        m.progress.reset()  # the watchdog times the automatic flight only
+                    if m.activity is State.PAUSED:
+                        reason = self._stalled_reason() if m.stalled else "paused by the operator: zero velocity in offboard"
+                        self._set(State.PAUSED, reason)
+                    elif m.activity is State.OVERRIDE:
+                        self._set(State.OVERRIDE, "manual override (automatic again when it expires)")
+                    else:
+                        self._set(State.ENGAGED, "engaged: avoiding obstacles")
         lv = m.leaving
         if lv is not None:
             if v.in_offboard:
@@ -707,13 +727,36 @@ class Supervisor:
             return ZERO_SETPOINT
         if m.state is State.ENGAGED and latest is not None:
             return self._engaged_setpoint(now_s, latest, age_s, v)
+        if m.state is State.PAUSED and m.stalled and latest is not None:
+            return self._engaged_setpoint(now_s, latest, age_s, v, hold=True)
         if m.state is State.OVERRIDE and m.override is not None:
             return self._override_setpoint(m.override, latest)
         return ZERO_SETPOINT  # degraded, paused
 
-    def _engaged_setpoint(self, now_s: float, latest: FrameOutcome, age_s: float, v: VehicleState) -> VelocitySetpoint:
-        """The decision's setpoint, with course hold (inert unless its gains are set in ``command``)."""
+    def _no_progress(self, now_s: float, v: VehicleState) -> bool:
+        """The progress watchdog (:class:`~companion.core.command.ProgressWatch`) fed the position now."""
         m = self._m
+        along = None
+        if m.course_origin_ned_m is not None and m.course_heading_rad is not None and v.position_ned_m is not None:
+            along = along_course_m(v.position_ned_m, m.course_origin_ned_m, m.course_heading_rad)
+        return m.progress.update(along, now_s, self._cfg.command)
+
+    def _stalled_reason(self) -> str:
+        cmd = self._cfg.command
+        return (
+            f"no progress along the course for {cmd.no_progress_timeout_s:g} s "
+            f"(less than {cmd.progress_step_m:g} m: command.no_progress_timeout_s, progress_step_m): "
+            "holding position; resume to try again, or take over"
+        )
+
+    def _engaged_setpoint(
+        self, now_s: float, latest: FrameOutcome, age_s: float, v: VehicleState, hold: bool = False
+    ) -> VelocitySetpoint:
+        """The decision's setpoint, with course hold (inert unless its gains are set in ``command``);
+        ``hold``: the progress watchdog's hold (:data:`~companion.core.command.NO_PROGRESS_HOLD`)
+        instead of the decision."""
+        m = self._m
+        decision = NO_PROGRESS_HOLD if hold else latest.decision
         heading_error = altitude_error = None
         heading_now = _finite_or_none(v.attitude_rad, 2)
         if m.course_heading_rad is not None and heading_now is not None:
@@ -725,13 +768,13 @@ class Supervisor:
         if m.course_origin_ned_m is not None and m.course_heading_rad is not None and v.position_ned_m is not None:
             line_offset = line_offset_m(v.position_ned_m, m.course_origin_ned_m, m.course_heading_rad)
         refined = getattr(latest, "refined", None)
-        brake_offset = m.brake.offset_body(latest.decision, v.position_ned_m, heading_now)
+        brake_offset = m.brake.offset_body(decision, v.position_ned_m, heading_now)
         guard = sides = None
         if self._cfg.memory.duration_s > 0.0 and v.position_ned_m is not None and heading_now is not None:
             guard, sides = m.obstacles.hold_inputs(v.position_ned_m, heading_now, now_s, self._cfg.memory, m.view_limits)
         m.guarding = 0 if guard is None else len(guard)
         return setpoint_for(
-            latest.decision,
+            decision,
             age_s,
             self._cfg.command,
             heading_error_rad=heading_error,

@@ -38,6 +38,9 @@ from companion.core.command import (
     horizontal_distance_m,
     horizontal_velocity_body_m_s,
     is_straight_clear,
+    NO_PROGRESS_HOLD,
+    ProgressWatch,
+    along_course_m,
     line_offset_m,
     setpoint_for,
 )
@@ -296,6 +299,8 @@ def fly(
     last_steer_ned_m: np.ndarray | None = None  # where the decisions last steered (None: not yet)
     brake = BrakeLatch()  # where the current brake began (brake position hold)
     overhead = OverheadMemory()  # where something was last seen overhead
+    progress = ProgressWatch()  # the progress watchdog (the service pauses; here the flight holds to the end)
+    stalled = False
     memory = ObstacleMemory() if cfg.memory.duration_s > 0.0 else None
     judge = Judge(
         course,
@@ -362,10 +367,15 @@ def fly(
             if vehicle.in_offboard and age > cmd.failsafe_timeout_s:
                 vehicle.set_hold()
             decision = latest.decision if latest is not None else None
+            m = vehicle.model
+            stalled = stalled or progress.update(
+                along_course_m(m.position_ned_m, course.start.position_ned_m, heading_ref), t, cmd
+            )
+            if stalled and decision is not None:
+                decision = NO_PROGRESS_HOLD
             if not is_straight_clear(decision):
                 last_steer_s = t
                 last_steer_ned_m = vehicle.model.position_ned_m.copy()
-            m = vehicle.model
             guard = sides = None
             if memory is not None:
                 view = latest.view_limits if latest is not None else None

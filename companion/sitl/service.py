@@ -43,6 +43,7 @@ class ServiceProcess:
         self.log_level = log_level
         self.config_path = workdir / "companion.toml"
         self.log_path = workdir / "service.log"
+        self.health_log_path = workdir / "health.jsonl"
         self.health: dict[str, Any] | None = None
         self.health_at_s: float | None = None
         self.health_history: list[tuple[float, dict[str, Any]]] = []
@@ -183,4 +184,11 @@ class ServiceProcess:
         if self._ctx is not None:
             self._ctx.term()
             self._ctx = None
+        if self.health_history:
+            await asyncio.to_thread(self._write_health_log)
         return code
+
+    def _write_health_log(self) -> None:
+        with self.health_log_path.open("w", encoding="utf-8") as f:
+            for _, message in self.health_history:
+                f.write(json.dumps(message) + "\n")
