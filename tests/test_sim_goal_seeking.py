@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from companion.config.core import CommandConfig
-from companion.core.command import is_straight_clear, setpoint_for
+from companion.core.command import ProgressWatch, along_course_m, is_straight_clear, setpoint_for
 from companion.core.types import REGION_INDEX, Decision, DecisionKind
 
 HOLD = CommandConfig(heading_hold_gain_per_s=1.0, max_heading_hold_rate_deg_s=20.0, altitude_hold_gain_per_s=0.5,
@@ -254,3 +254,27 @@ def test_facing_away_from_the_course_it_stops_and_turns_back_in_place_whatever_t
     assert setpoint_for(CLEAR, 0.1, HOLD, heading_error_rad=3.0, region_depths_m=walls, clear_for_s=0.5).forward_m_s > 0.0
     avoid = Decision(DecisionKind.AVOID, 0.5, 0.0, 0.5, "x")
     assert setpoint_for(avoid, 0.1, HOLD, heading_error_rad=3.0, **kw).yaw_rate_deg_s == pytest.approx(0.5 * HOLD.max_yaw_rate_deg_s)
+
+
+def test_along_course_is_the_distance_along_the_engagement_heading() -> None:
+    origin = np.array([1.0, 2.0, -1.5])
+    assert along_course_m(np.array([4.0, 2.0, -3.0]), origin, 0.0) == pytest.approx(3.0)  # north, height ignored
+    assert along_course_m(np.array([1.0, 5.0, -1.5]), origin, 0.0) == pytest.approx(0.0)  # abeam
+    assert along_course_m(np.array([1.0, 5.0, -1.5]), origin, math.pi / 2) == pytest.approx(3.0)  # facing east
+    assert along_course_m(np.array([0.0, 2.0, -1.5]), origin, 0.0) == pytest.approx(-1.0)  # behind
+
+
+def test_progress_watch_times_the_last_step_along_the_course() -> None:
+    cmd = CommandConfig(no_progress_timeout_s=10.0, progress_step_m=1.0)
+    w = ProgressWatch()
+    assert not w.update(0.0, 0.0, cmd) and w.mark_m == 0.0
+    assert not w.update(0.9, 9.0, cmd)  # not a step yet
+    assert not w.update(1.0, 9.5, cmd) and w.mark_m == 1.0  # a step: the clock restarts
+    assert not w.update(-3.0, 19.5, cmd)  # going back is not progress, and the limit is not passed yet
+    assert w.update(1.9, 19.6, cmd)  # 10.1 s without a whole step
+    # Unknown position, or the watchdog off (no timeout, or no course hold): never, and it restarts.
+    assert not w.update(None, 30.0, cmd) and w.mark_m is None
+    assert not w.update(float("nan"), 31.0, cmd)
+    for off in (CommandConfig(no_progress_timeout_s=0.0), CommandConfig(heading_hold_gain_per_s=0.0)):
+        w = ProgressWatch()
+        assert not any(w.update(0.0, t, off) for t in range(0, 100, 5))

@@ -143,3 +143,16 @@ def test_realtime_paces_simulated_time_to_the_clock(bank) -> None:
     # The fake clock only moves when the loop sleeps: it slept the whole simulated flight.
     assert sum(slept) == pytest.approx(result.time_s, abs=0.1)
     assert result.timing is not None and result.timing.wall_s == pytest.approx(sum(slept))
+
+
+def test_the_progress_watchdog_holds_the_flight(bank) -> None:
+    """Nothing counts as progress (50 m steps): after no_progress_timeout_s the loop substitutes the
+    watchdog's brake, as the service does, and the flight ends held where it stopped."""
+    cfg = apply_patch(CFG, {"command": {"no_progress_timeout_s": 3.0, "progress_step_m": 50.0}})
+    result = fly(head_on_course(seed=2, box_north_m=25.0), cfg, textures=bank)
+    log = result.log
+    assert log is not None and result.outcome is Outcome.HELD, result.reason
+    braking = log.t_s[log.kind == LogKind.BRAKE]
+    assert braking.size and braking[0] == pytest.approx(3.0, abs=0.1)
+    assert np.all(log.kind[log.t_s > braking[0]] == LogKind.BRAKE)
+    assert result.min_clearance_m > 1.0

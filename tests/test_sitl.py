@@ -10,6 +10,7 @@ it at the end. Without the variable every test here is skipped, saying so.
 from __future__ import annotations
 
 import asyncio
+import json
 import time
 from pathlib import Path
 
@@ -101,6 +102,9 @@ def test_a_head_on_obstacle_is_avoided_with_clearance(px4: Px4Sitl, tmp_path: Pa
     assert r.outcome.value in ("goal", "held"), r.reason
     assert r.min_clearance_m > 0.1, r.reason
     assert flight.service_exit_code == 0
+    # What the service saw and commanded is kept for looking into the flight afterwards.
+    health = [json.loads(line) for line in (tmp_path / "health.jsonl").read_text().splitlines()]
+    assert any(h["state"] == "engaged" and h["setpoint"] is not None for h in health)
 
 
 def test_frames_stopping_give_zero_velocity_then_hold_on_px4(px4: Px4Sitl, tmp_path: Path) -> None:

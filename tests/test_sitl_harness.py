@@ -71,3 +71,43 @@ def test_placement_fields_are_the_inverse_of_placement_from_config() -> None:
     back = placement_from_config(cfg)
     assert back.origin_ned_m == placement.origin_ned_m
     assert back.yaw_rad == pytest.approx(placement.yaw_rad)
+
+
+def test_the_service_process_keeps_every_health_message_in_its_workdir(tmp_path: Path) -> None:
+    import asyncio
+    import json
+
+    from companion.sitl.service import ServiceProcess
+
+    service = ServiceProcess(load_config(None), tmp_path)
+    sent = [{"type": "health", "seq": k, "state": "engaged"} for k in range(3)]
+    service.health_history.extend((float(k), h) for k, h in enumerate(sent))
+    assert asyncio.run(service.stop()) is None  # never started: nothing to stop, the log is written
+    lines = (tmp_path / "health.jsonl").read_text().splitlines()
+    assert [json.loads(line) for line in lines] == sent
+
+
+def test_the_flight_log_names_what_drove_each_row() -> None:
+    import numpy as np
+
+    from companion.sim.loop import LogKind
+    from companion.sitl.flight import _Recorder
+    from companion.sitl.pilot import Sample
+
+    course = make_course("doorway", 0)
+    placement = CoursePlacement((0.0, 0.0, -1.5), 0.0)
+
+    def sample(t: float, mode: str = "OFFBOARD") -> Sample:
+        return Sample(t, np.array([0.1 * t, 0.0, -1.5]), np.array([0.1, 0.0, 0.0]), np.zeros(3), 0.0, mode)
+
+    rec = _Recorder(course, load_config(None), placement, sample(0.0))
+    health = [
+        {"state": "engaged", "decision": {"kind": "clear"}},
+        {"state": "engaged", "decision": {"kind": "avoid"}},
+        {"state": "degraded", "decision": {"kind": "clear"}},
+        {"state": "paused", "decision": {"kind": "clear"}},  # the progress watchdog's hold
+        {"state": "engaged", "decision": {"kind": "clear"}},
+    ]
+    for k, h in enumerate(health):
+        rec.add(sample(0.05 * k, "HOLD" if k == 4 else "OFFBOARD"), h)
+    assert rec.log().kind.tolist() == [LogKind.CLEAR, LogKind.AVOID, LogKind.STALE, LogKind.BRAKE, LogKind.HOLD]

@@ -768,3 +768,106 @@ def test_a_remembered_obstacle_beside_the_vehicle_pushes_it_away() -> None:
     h2.vehicle = replace(h2.vehicle, position_ned_m=np.array([0.5, 0.0, -1.5]), position_timestamp_s=h2.now + 0.05)
     h2.frame = SeenResult(h2.now + 0.03, CLEAR, np.empty((0, 3)), view)
     assert h2.step(fresh_frame=False).setpoint.right_m_s == 0.0
+
+
+# ------------------------------------------------------------------------------------ progress watchdog
+
+
+def _engaged_at(position_ned_m, *, cfg: SupervisorConfig | None = None) -> Harness:
+    """A harness engaged with the defaults (course hold on) at ``position_ned_m``, facing north."""
+    import numpy as np
+
+    h = Harness(cfg)
+    h.vehicle = replace(vehicle(), attitude_rad=np.array([0.0, 0.0, 0.0]), position_ned_m=np.array(position_ned_m, dtype=float))
+    h.step(Engage())
+    h.run(0.6)
+    h.vehicle = replace(h.vehicle, flight_mode="OFFBOARD", in_offboard=True)
+    assert h.step().state is State.ENGAGED
+    return h
+
+
+def test_no_progress_pauses_with_a_position_hold_and_resume_goes_on() -> None:
+    import numpy as np
+
+    cmd = CompanionConfig().command
+    assert cmd.no_progress_timeout_s == 20.0 and cmd.progress_step_m == 1.0
+    h = _engaged_at([0.0, 0.0, -1.5])
+    # Circling in front of something: 0.8 m along the course at most, for the whole timeout.
+    for k in range(int(cmd.no_progress_timeout_s / 0.05) - 2):
+        a = k * 0.05
+        h.vehicle = replace(h.vehicle, position_ned_m=np.array([0.4 + 0.4 * math.cos(a), 0.4 * math.sin(a), -1.5]))
+        assert h.step().state is State.ENGAGED
+    outs = h.run(0.2)
+    stalled = outs[-1]
+    assert stalled.state is State.PAUSED and "no progress along the course for 20 s" in stalled.reason
+    assert "resume" in stalled.reason
+    # The hold is a brake's: back toward where it began, here zero as the vehicle stays put.
+    where = h.vehicle.position_ned_m.copy()
+    h.vehicle = replace(h.vehicle, position_ned_m=where + np.array([0.2, 0.0, 0.0]))
+    sp = h.step().setpoint
+    assert sp.forward_m_s == pytest.approx(-0.2)
+    assert all(o.state is State.PAUSED and o.setpoint.forward_m_s <= 0.0 for o in h.run(30.0))
+    out = h.step(Resume())
+    assert out.replies[0].ok and out.state is State.ENGAGED and out.setpoint.forward_m_s > 0.0
+    # The clock starts again at resume: another full timeout before the next pause.
+    assert all(o.state is State.ENGAGED for o in h.run(cmd.no_progress_timeout_s - 1.0))
+
+
+def test_progress_keeps_the_flight_going() -> None:
+    import numpy as np
+
+    h = _engaged_at([0.0, 0.0, -1.5])
+    # 1.1 m along the course every 15 s: slow, but progress.
+    for k in range(int(60.0 / 0.05)):
+        h.vehicle = replace(h.vehicle, position_ned_m=np.array([1.1 * (k * 0.05 // 15.0), 3.0, -1.5]))
+        assert h.step().state is State.ENGAGED
+
+
+def test_no_progress_watchdog_off_without_course_hold_or_timeout() -> None:
+    import numpy as np
+
+    from companion.config import parse_config
+
+    for patch in ({"no_progress_timeout_s": 0.0}, {"heading_hold_gain_per_s": 0.0}):
+        cfg = SupervisorConfig.from_config(parse_config({"command": patch}))
+        h = _engaged_at([0.0, 0.0, -1.5], cfg=cfg)
+        h.vehicle = replace(h.vehicle, position_ned_m=np.array([0.0, 0.0, -1.5]))
+        assert all(o.state is State.ENGAGED for o in h.run(30.0))
+
+
+def test_no_progress_clock_waits_while_paused_stale_or_overridden() -> None:
+    import numpy as np
+
+    h = _engaged_at([0.0, 0.0, -1.5])
+    h.run(15.0)
+    h.step(Pause())
+    h.run(30.0)
+    assert h.step(Resume()).state is State.ENGAGED
+    assert all(o.state is State.ENGAGED for o in h.run(15.0))  # 15 s since resume, not 60
+    h.run(4.0, fresh_frame=False)  # stale: degraded, the clock restarts when frames return
+    assert all(o.state is State.ENGAGED for o in h.run(15.0))
+    h.vehicle = replace(h.vehicle, position_ned_m=np.array([0.0, 0.0, -1.5]))
+    assert h.run(6.0)[-1].state is State.PAUSED
+    # An operator's pause replaces the watchdog's: zero velocity, the operator's reason.
+    out = h.step(Pause())
+    assert out.state is State.PAUSED and out.reason.startswith("paused by the operator") and out.setpoint == ZERO_SETPOINT
+
+
+def test_course_hold_waits_while_a_clear_decision_still_turns() -> None:
+    """The release filter lets an escape's yaw fade over a few CLEAR decisions. Course hold (and its
+    turning back in place) waits for straight CLEAR decisions, as in the simulator: acting at once,
+    it turned the vehicle back against the escape's last turn (PX4 SITL, corridor-0 and doorway-4)."""
+    import numpy as np
+
+    h = _engaged_at([0.0, 0.0, -1.5])
+    h.vehicle = replace(h.vehicle, attitude_rad=np.array([0.0, 0.0, math.radians(120.0)]))  # facing away
+    fading = Decision(DecisionKind.CLEAR, yaw=0.3, pitch=0.0, speed_fraction=1.0, reason="release")
+    h.frame = Result(h.now, fading)
+    cmd = h.cfg.command
+    for out in h.run(3.0):
+        assert out.setpoint.yaw_rate_deg_s == pytest.approx(0.3 * cmd.max_yaw_rate_deg_s)
+        assert out.setpoint.forward_m_s == pytest.approx(cmd.cruise_speed_m_s)
+    h.frame = Result(h.now, CLEAR)
+    assert h.step().setpoint.yaw_rate_deg_s == 0.0  # straight and CLEAR: the wait starts now
+    turned = h.run(cmd.hold_resume_delay_s + 0.1)[-1].setpoint
+    assert turned.forward_m_s == 0.0 and turned.yaw_rate_deg_s == -cmd.max_heading_hold_rate_deg_s  # back in place

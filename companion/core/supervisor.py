@@ -780,8 +780,11 @@ class Supervisor:
             heading_error_rad=heading_error,
             altitude_error_m=altitude_error,
             region_depths_m=getattr(refined, "depth_m", None),
-            clear_for_s=None if m.clear_since_s is None else max(0.0, now_s - m.clear_since_s),
-            clear_for_m=horizontal_distance_m(m.clear_since_ned_m, v.position_ned_m),
+            # Not straight and CLEAR now (a CLEAR decision still turning, as the release filter lets
+            # an escape fade, included): course hold waits from zero, as in the simulator. None here
+            # would mean "no wait", and turning back in place then fought the escape's last turn.
+            clear_for_s=0.0 if m.clear_since_s is None else max(0.0, now_s - m.clear_since_s),
+            clear_for_m=0.0 if m.clear_since_s is None else horizontal_distance_m(m.clear_since_ned_m, v.position_ned_m),
             brake_offset_body_m=brake_offset,
             brake_heading_error_rad=m.brake.heading_error_rad(heading_now),
             line_offset_m=line_offset,

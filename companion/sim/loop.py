@@ -33,14 +33,14 @@ import numpy as np
 
 from companion.config import CompanionConfig
 from companion.core.command import (
+    NO_PROGRESS_HOLD,
     BrakeLatch,
     OverheadMemory,
+    ProgressWatch,
+    along_course_m,
     horizontal_distance_m,
     horizontal_velocity_body_m_s,
     is_straight_clear,
-    NO_PROGRESS_HOLD,
-    ProgressWatch,
-    along_course_m,
     line_offset_m,
     setpoint_for,
 )

@@ -156,6 +156,8 @@ class _Recorder:
             kind = LogKind.HOLD
         elif state == "degraded":
             kind = LogKind.STALE
+        elif state == "paused":
+            kind = LogKind.BRAKE  # holding (the progress watchdog, or an operator's pause), as the simulator logs it
         else:
             kind = _KIND.get(decision.get("kind"), LogKind.NONE)
         sp = h.get("setpoint") or {}
