@@ -111,3 +111,59 @@ def test_the_flight_log_names_what_drove_each_row() -> None:
     for k, h in enumerate(health):
         rec.add(sample(0.05 * k, "HOLD" if k == 4 else "OFFBOARD"), h)
     assert rec.log().kind.tolist() == [LogKind.CLEAR, LogKind.AVOID, LogKind.STALE, LogKind.BRAKE, LogKind.HOLD]
+
+
+def test_a_suite_flies_a_course_again_with_a_fresh_px4_when_a_step_failed(tmp_path: Path, monkeypatch) -> None:
+    """SIH sometimes starts without baro or compass data and lands: with a PX4 build the harness
+    starts another PX4 and flies that course once more; a second failure ends the suite, named."""
+    import asyncio
+
+    import companion.sitl.flight as flight_mod
+
+    events: list[str] = []
+
+    class FakePx4:
+        def __init__(self, build, workdir, instance) -> None:
+            self.workdir = workdir
+
+        def start(self) -> None:
+            events.append(f"start {self.workdir.relative_to(tmp_path)}")
+
+        def stop(self) -> None:
+            events.append("stop")
+
+    class FakePilot:
+        def __init__(self, url, system_id) -> None:
+            pass
+
+        async def connect(self) -> None:
+            pass
+
+        async def close(self) -> None:
+            pass
+
+    fails = {"doorway-0": 1, "forest-0": 2}
+
+    async def fake_fly(course, cfg, pilot, ports, workdir, **kw):
+        if fails.get(course.name, 0):
+            fails[course.name] -= 1
+            raise SitlError("the service refused 'engage': vehicle is disarmed")
+        events.append(f"flew {course.name}")
+        return course.name
+
+    monkeypatch.setattr(flight_mod, "Px4Sitl", FakePx4)
+    monkeypatch.setattr(flight_mod, "Pilot", FakePilot)
+    monkeypatch.setattr(flight_mod, "fly_course", fake_fly)
+    courses = [make_course("corridor", 0), make_course("doorway", 0), make_course("forest", 0)]
+    ports = Px4Ports(0)
+
+    async def suite():
+        return await flight_mod.fly_courses(courses, load_config(None), ports=ports, pilot_url="udpin://x", workdir=tmp_path, px4_build=tmp_path)
+
+    with pytest.raises(SitlError, match="^forest-0: the service refused"):
+        asyncio.run(suite())
+    assert events == [
+        "start 00-corridor-0/px4", "flew corridor-0", "stop",
+        "start 01-doorway-0/px4", "stop", "start 01-doorway-0/retry/px4", "flew doorway-0", "stop",
+        "start 02-forest-0/px4", "stop", "start 02-forest-0/retry/px4", "stop",
+    ]  # fmt: skip

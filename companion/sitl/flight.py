@@ -323,12 +323,15 @@ async def fly_courses(
     """Fly ``courses`` one after another.
 
     With ``px4_build``, PX4 is started fresh (new parameters and storage) for every course and stopped
-    after it: every flight starts from the same vehicle. Without it, PX4 must already be running on
+    after it: every flight starts from the same vehicle. A course whose PX4 or service step fails is
+    then flown once more with another fresh PX4 (SIH sometimes starts without baro or compass data,
+    fails its preflight checks and lands: a fault of the simulator's start, not a verdict on the
+    service); its files are under ``retry/``. Without it, PX4 must already be running on
     ``ports``; between courses the vehicle lands where it is, and the next course is placed under it.
     ``service_url`` overrides the service's vehicle link (default: PX4's API link of ``ports``).
 
     Raises:
-        SitlError: PX4 or the service failed a step (the course is named).
+        SitlError: PX4 or the service failed a step (the course is named), twice with ``px4_build``.
     """
     own_tmp = None
     if workdir is None:
@@ -339,27 +342,37 @@ async def fly_courses(
     px4: Px4Sitl | None = None
     try:
         for i, course in enumerate(courses):
-            run_dir = workdir / f"{i:02d}-{course.name}"
-            if px4_build is not None and px4 is None:
-                px4 = Px4Sitl(px4_build, run_dir / "px4", ports.instance)
-                await asyncio.to_thread(px4.start)
-            if pilot is None:
-                pilot = Pilot(pilot_url, ports.system_id)
-                await pilot.connect()
-            try:
-                flight = await fly_course(
-                    course, cfg, pilot, ports, run_dir / "service", service_log_level=service_log_level, service_url=service_url
-                )
-            except SitlError as err:
-                raise SitlError(f"{course.name}: {err}") from None
-            flights.append(flight)
-            if progress is not None:
-                progress(i + 1, len(courses), flight)
-            if px4 is not None:  # a fresh PX4 (and a fresh link to it) for the next course
-                await pilot.close()
-                pilot = None
-                await asyncio.to_thread(px4.stop)
-                px4 = None
+            attempts = 2 if px4_build is not None else 1
+            for attempt in range(attempts):
+                run_dir = workdir / f"{i:02d}-{course.name}"
+                if attempt:
+                    run_dir = run_dir / "retry"
+                try:
+                    if px4_build is not None and px4 is None:
+                        px4 = Px4Sitl(px4_build, run_dir / "px4", ports.instance)
+                        await asyncio.to_thread(px4.start)
+                    if pilot is None:
+                        pilot = Pilot(pilot_url, ports.system_id)
+                        await pilot.connect()
+                    flight = await fly_course(
+                        course, cfg, pilot, ports, run_dir / "service", service_log_level=service_log_level, service_url=service_url
+                    )
+                except SitlError as err:
+                    if attempt + 1 == attempts:
+                        raise SitlError(f"{course.name}: {err}") from None
+                    log.warning("%s: %s; flying it again with a fresh PX4", course.name, err)
+                else:
+                    flights.append(flight)
+                    if progress is not None:
+                        progress(i + 1, len(courses), flight)
+                if px4 is not None:  # a fresh PX4 (and a fresh link to it) for the next course or attempt
+                    if pilot is not None:
+                        await pilot.close()
+                        pilot = None
+                    await asyncio.to_thread(px4.stop)
+                    px4 = None
+                if len(flights) == i + 1:
+                    break
     finally:
         if pilot is not None:
             await pilot.close()
