@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from companion.config.core import CommandConfig
-from companion.core.command import ProgressWatch, along_course_m, is_straight_clear, setpoint_for
+from companion.core.command import ProgressWatch, along_course_m, is_heading_clear, is_straight_clear, setpoint_for
 from companion.core.types import REGION_INDEX, Decision, DecisionKind
 
 HOLD = CommandConfig(heading_hold_gain_per_s=1.0, max_heading_hold_rate_deg_s=20.0, altitude_hold_gain_per_s=0.5,
@@ -278,3 +278,23 @@ def test_progress_watch_times_the_last_step_along_the_course() -> None:
     for off in (CommandConfig(no_progress_timeout_s=0.0), CommandConfig(heading_hold_gain_per_s=0.0)):
         w = ProgressWatch()
         assert not any(w.update(0.0, t, off) for t in range(0, 100, 5))
+
+
+def test_a_climb_alone_does_not_keep_the_heading_hold_waiting() -> None:
+    """The down regions see the ground near at low altitude and the controller climbs a little on
+    CLEAR decisions: the heading hold and turning back wait only for decisions that do not turn
+    (heading_clear_for_s), the altitude hold for decisions that neither turn nor climb (clear_for_s).
+    With one timer for both, a PX4 flight facing 95° off its course flew 6 m out of bounds."""
+    climbing = Decision(DecisionKind.CLEAR, 0.0, 0.2, 1.0, "centre clear")
+    assert is_heading_clear(climbing) and not is_straight_clear(climbing)
+    kw = {"heading_error_rad": math.radians(150.0), "altitude_error_m": 0.5, "clear_for_s": 0.0}
+    sp = setpoint_for(climbing, 0.1, HOLD, heading_clear_for_s=5.0, **kw)
+    # Turning back in place, the decision's climb kept, the altitude hold waiting.
+    assert (sp.forward_m_s, sp.yaw_rate_deg_s) == (0.0, 20.0)
+    assert sp.down_m_s == pytest.approx(-0.2 * HOLD.max_vertical_speed_m_s)
+    assert setpoint_for(climbing, 0.1, HOLD, heading_clear_for_s=0.5, **kw).forward_m_s == HOLD.cruise_speed_m_s
+    sp = setpoint_for(climbing, 0.1, HOLD, heading_error_rad=0.1, heading_clear_for_s=5.0, clear_for_s=0.0, altitude_error_m=0.5)
+    assert sp.yaw_rate_deg_s == pytest.approx(math.degrees(0.1))  # the heading hold acts
+    assert sp.down_m_s == pytest.approx(-0.2 * HOLD.max_vertical_speed_m_s)  # the altitude hold waits
+    # Without heading_clear_for_s, one timer as before.
+    assert setpoint_for(climbing, 0.1, HOLD, heading_error_rad=0.1, clear_for_s=0.0).yaw_rate_deg_s == 0.0

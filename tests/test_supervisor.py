@@ -871,3 +871,15 @@ def test_course_hold_waits_while_a_clear_decision_still_turns() -> None:
     assert h.step().setpoint.yaw_rate_deg_s == 0.0  # straight and CLEAR: the wait starts now
     turned = h.run(cmd.hold_resume_delay_s + 0.1)[-1].setpoint
     assert turned.forward_m_s == 0.0 and turned.yaw_rate_deg_s == -cmd.max_heading_hold_rate_deg_s  # back in place
+
+
+def test_a_clear_decision_that_only_climbs_lets_course_hold_turn_back() -> None:
+    import numpy as np
+
+    h = _engaged_at([0.0, 0.0, -1.5])
+    h.vehicle = replace(h.vehicle, attitude_rad=np.array([0.0, 0.0, math.radians(-120.0)]))  # facing away
+    h.frame = Result(h.now, Decision(DecisionKind.CLEAR, yaw=0.0, pitch=0.2, speed_fraction=1.0, reason="ground"))
+    cmd = h.cfg.command
+    out = h.run(cmd.hold_resume_delay_s + 0.2)[-1]
+    assert out.setpoint.forward_m_s == 0.0 and out.setpoint.yaw_rate_deg_s == cmd.max_heading_hold_rate_deg_s
+    assert out.setpoint.down_m_s == pytest.approx(-0.2 * cmd.max_vertical_speed_m_s)  # its climb kept

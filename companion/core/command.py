@@ -32,6 +32,14 @@ if TYPE_CHECKING:
 STRAIGHT_TOLERANCE = 0.01
 
 
+def is_heading_clear(decision: Decision | None) -> bool:
+    """True for a CLEAR decision that does not turn (|yaw| < :data:`STRAIGHT_TOLERANCE`), whatever its
+    pitch: a slight climb away from the ground seen by the down regions does not keep the heading
+    hold from acting. Callers time how long this has held and pass it to :func:`setpoint_for` as
+    ``heading_clear_for_s``."""
+    return decision is not None and decision.kind is DecisionKind.CLEAR and abs(decision.yaw) < STRAIGHT_TOLERANCE
+
+
 def is_straight_clear(decision: Decision | None) -> bool:
     """True for a CLEAR decision that does not steer (|yaw|, |pitch| < :data:`STRAIGHT_TOLERANCE`).
 
@@ -305,6 +313,7 @@ def setpoint_for(
     region_depths_m: np.ndarray | None = None,
     clear_for_s: float | None = None,
     clear_for_m: float | None = None,
+    heading_clear_for_s: float | None = None,
     brake_offset_body_m: np.ndarray | None = None,
     brake_heading_error_rad: float | None = None,
     line_offset_m: float | None = None,
@@ -342,9 +351,12 @@ def setpoint_for(
     ``counter_velocity_fraction``, leaned against) (:func:`~companion.core.memory.apply_guard`).
 
     Course hold (all keyword inputs optional; ``None`` = off, the paper's behaviour). Only on a CLEAR
-    decision, and only once ``clear_for_s`` (seconds the decisions have been straight and CLEAR; None
-    = no wait) reaches ``cmd.hold_resume_delay_s``; the altitude hold also waits until ``clear_for_m``
-    (metres flown horizontally since then; None = no wait) reaches ``cmd.hold_resume_distance_m``:
+    decision. The heading, line and turning back wait until ``heading_clear_for_s`` (seconds the
+    decisions have been CLEAR without turning, :func:`is_heading_clear`; None = ``clear_for_s``)
+    reaches ``cmd.hold_resume_delay_s``; the altitude hold until ``clear_for_s`` (seconds they have
+    been CLEAR without turning or climbing, :func:`is_straight_clear`; None = no wait) does, and
+    ``clear_for_m`` (metres flown horizontally since then; None = no wait) reaches
+    ``cmd.hold_resume_distance_m``:
 
     * ``heading_error_rad`` (heading at engagement minus heading now, radians, positive = the course
       lies to the right): adds ``clip(heading_hold_gain_per_s · error, ±max_heading_hold_rate_deg_s)``
@@ -361,7 +373,8 @@ def setpoint_for(
       speed, scaled by ``1 - |pitch|``;
     * turning back: when the heading aimed at (the two above) lies more than ``cmd.turn_back_angle_deg``
       away, none of this: forward and sideways speed 0, and a yaw rate of
-      ``±max_heading_hold_rate_deg_s`` toward it, whatever the side regions read;
+      ``±max_heading_hold_rate_deg_s`` toward it, whatever the side regions read (the decision's
+      own climb or descent is kept, the altitude hold waits);
     * ``region_depths_m`` (float ``(9,)`` refined region depths, metres, NaN unknown): when given,
       the hold turns toward a side (right, left) or climbs/descends (up, down) only while that region
       is at least ``cmd.hold_clear_depth_m`` deep;
@@ -384,24 +397,34 @@ def setpoint_for(
     yaw_rate_deg_s = yaw * cmd.max_yaw_rate_deg_s
     down_m_s = 0.0 - pitch * cmd.max_vertical_speed_m_s
     right_m_s = 0.0
-    if decision.kind is DecisionKind.CLEAR and (clear_for_s is None or clear_for_s >= cmd.hold_resume_delay_s):
+    forward_m_s = cmd.cruise_speed_m_s * speed
+    clear = decision.kind is DecisionKind.CLEAR
+    heading_wait_s = heading_clear_for_s if heading_clear_for_s is not None else clear_for_s
+    turning_back = False
+    if clear and (heading_wait_s is None or heading_wait_s >= cmd.hold_resume_delay_s):
         aim = _aim_error_rad(heading_error_rad, line_offset_m, cmd)
         if aim is not None and abs(aim) > math.radians(cmd.turn_back_angle_deg) and cmd.turn_back_angle_deg < 180.0:
             # Facing away from the course: stop and turn back in place (module doc, turning back).
-            rate = math.copysign(cmd.max_heading_hold_rate_deg_s, aim)
-            return _guarded(VelocitySetpoint(0.0, 0.0, 0.0, rate), guard_m, guard_cfg, velocity_body_m_s)
-        yaw_rate_deg_s += (1.0 - abs(yaw)) * _heading_hold_deg_s(
-            heading_error_rad, region_depths_m, cmd, line_offset_m, remembered_sides
-        )
-        if clear_for_m is None or clear_for_m >= cmd.hold_resume_distance_m:
-            down_m_s += (1.0 - abs(pitch)) * _altitude_hold_down_m_s(altitude_error_m, region_depths_m, cmd)
-        right_m_s = (1.0 - abs(yaw)) * _line_hold_right_m_s(
-            line_offset_m, heading_error_rad, region_depths_m, cmd, remembered_sides
-        )
+            forward_m_s, yaw_rate_deg_s = 0.0, math.copysign(cmd.max_heading_hold_rate_deg_s, aim)
+            turning_back = True
+        else:
+            yaw_rate_deg_s += (1.0 - abs(yaw)) * _heading_hold_deg_s(
+                heading_error_rad, region_depths_m, cmd, line_offset_m, remembered_sides
+            )
+            right_m_s = (1.0 - abs(yaw)) * _line_hold_right_m_s(
+                line_offset_m, heading_error_rad, region_depths_m, cmd, remembered_sides
+            )
+    if (
+        clear
+        and not turning_back
+        and (clear_for_s is None or clear_for_s >= cmd.hold_resume_delay_s)
+        and (clear_for_m is None or clear_for_m >= cmd.hold_resume_distance_m)
+    ):
+        down_m_s += (1.0 - abs(pitch)) * _altitude_hold_down_m_s(altitude_error_m, region_depths_m, cmd)
     if since_up_near_m is not None and since_up_near_m < cmd.hold_resume_distance_m and down_m_s < 0.0:
         down_m_s = 0.0  # something was overhead within the last metres: it may still be, out of view
     sp = VelocitySetpoint(
-        forward_m_s=cmd.cruise_speed_m_s * speed,
+        forward_m_s=forward_m_s,
         right_m_s=right_m_s,
         down_m_s=down_m_s,
         yaw_rate_deg_s=yaw_rate_deg_s,

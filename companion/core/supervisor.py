@@ -67,6 +67,7 @@ from companion.core.command import (
     along_course_m,
     horizontal_distance_m,
     horizontal_velocity_body_m_s,
+    is_heading_clear,
     is_straight_clear,
     line_offset_m,
     setpoint_for,
@@ -274,6 +275,7 @@ class _Memory:
     course_origin_ned_m: np.ndarray | None = None  # position at engagement (course hold, line), NED metres
     clear_since_s: float | None = None  # capture time since which the decisions are straight and CLEAR
     clear_since_ned_m: np.ndarray | None = None  # the vehicle's position then (None: not known), NED metres
+    heading_clear_since_s: float | None = None  # capture time since which the decisions are CLEAR and do not turn
     brake: BrakeLatch = field(default_factory=BrakeLatch)  # where the current brake began (brake position hold)
     overhead: OverheadMemory = field(default_factory=OverheadMemory)  # where something was last overhead
     obstacles: ObstacleMemory = field(default_factory=ObstacleMemory)  # near points seen (the guard)
@@ -383,6 +385,10 @@ class Supervisor:
         elif m.clear_since_s is None:
             m.clear_since_s = latest.timestamp_s
             m.clear_since_ned_m = None if vehicle.position_ned_m is None else np.array(vehicle.position_ned_m, dtype=np.float64)
+        if latest is None or not is_heading_clear(latest.decision):
+            m.heading_clear_since_s = None
+        elif m.heading_clear_since_s is None:
+            m.heading_clear_since_s = latest.timestamp_s
 
         for r in requests:
             if isinstance(r, ActionResult):
@@ -785,6 +791,7 @@ class Supervisor:
             # would mean "no wait", and turning back in place then fought the escape's last turn.
             clear_for_s=0.0 if m.clear_since_s is None else max(0.0, now_s - m.clear_since_s),
             clear_for_m=0.0 if m.clear_since_s is None else horizontal_distance_m(m.clear_since_ned_m, v.position_ned_m),
+            heading_clear_for_s=0.0 if m.heading_clear_since_s is None else max(0.0, now_s - m.heading_clear_since_s),
             brake_offset_body_m=brake_offset,
             brake_heading_error_rad=m.brake.heading_error_rad(heading_now),
             line_offset_m=line_offset,

@@ -40,6 +40,7 @@ from companion.core.command import (
     along_course_m,
     horizontal_distance_m,
     horizontal_velocity_body_m_s,
+    is_heading_clear,
     is_straight_clear,
     line_offset_m,
     setpoint_for,
@@ -297,6 +298,7 @@ def fly(
     n_cam = n_sp = 0
     last_steer_s = -math.inf
     last_steer_ned_m: np.ndarray | None = None  # where the decisions last steered (None: not yet)
+    last_turn_s = -math.inf  # when the decisions last turned (yaw; a climb alone does not count)
     brake = BrakeLatch()  # where the current brake began (brake position hold)
     overhead = OverheadMemory()  # where something was last seen overhead
     progress = ProgressWatch()  # the progress watchdog (the service pauses; here the flight holds to the end)
@@ -376,6 +378,8 @@ def fly(
             if not is_straight_clear(decision):
                 last_steer_s = t
                 last_steer_ned_m = vehicle.model.position_ned_m.copy()
+            if not is_heading_clear(decision):
+                last_turn_s = t
             guard = sides = None
             if memory is not None:
                 view = latest.view_limits if latest is not None else None
@@ -389,6 +393,7 @@ def fly(
                 region_depths_m=latest.refined.depth_m if latest is not None else None,
                 clear_for_s=t - last_steer_s,
                 clear_for_m=horizontal_distance_m(last_steer_ned_m, m.position_ned_m),
+                heading_clear_for_s=t - last_turn_s,
                 brake_offset_body_m=brake.offset_body(decision, m.position_ned_m, m.yaw_rad),
                 brake_heading_error_rad=brake.heading_error_rad(m.yaw_rad),
                 line_offset_m=line_offset_m(m.position_ned_m, course.start.position_ned_m, heading_ref),
