@@ -738,7 +738,10 @@ class CommandConfig(StrictModel):
         le=60.0,
         description=(
             "Course hold resumes only after the decisions have been CLEAR and straight this long, "
-            "seconds: an obstacle just passed is beside or below the vehicle, out of the camera's view."
+            "seconds: an obstacle just passed is beside or below the vehicle, out of the camera's view. "
+            "The heading part (and turning back) counts decisions that do not turn, the altitude part "
+            "ones that neither turn nor climb (a slight climb away from the ground must not keep a "
+            "vehicle facing away from its course from turning back)."
         ),
     )
     hold_resume_distance_m: float = Field(
