@@ -68,21 +68,27 @@ def _side_open(
     return depth >= clear_depth_m  # False for NaN: unknown blocks
 
 
+def _offset_along_heading(
+    position_ned_m: np.ndarray, reference_ned_m: np.ndarray, heading_rad: float
+) -> tuple[float, float, float]:
+    """``position_ned_m - reference_ned_m`` (float ``(3,)`` NED metres) in the frame of
+    ``heading_rad`` (yaw only): forward, right, down, metres."""
+    d = np.asarray(position_ned_m, dtype=np.float64) - np.asarray(reference_ned_m, dtype=np.float64)
+    forward, right = ned_to_body_horizontal(float(d[0]), float(d[1]), heading_rad)
+    return forward, right, float(d[2])
+
+
 def line_offset_m(position_ned_m: np.ndarray, origin_ned_m: np.ndarray, heading_rad: float) -> float:
     """Signed distance of a position (float ``(3,)`` NED metres) from the horizontal line through
     ``origin_ned_m`` along ``heading_rad``, metres: positive = the line lies to the right of the
     position (the vehicle is left of it)."""
-    d = np.asarray(position_ned_m, dtype=np.float64) - np.asarray(origin_ned_m, dtype=np.float64)
-    _, right_of_line = ned_to_body_horizontal(d[0], d[1], heading_rad)
-    return float(-right_of_line)
+    return -_offset_along_heading(position_ned_m, origin_ned_m, heading_rad)[1]
 
 
 def along_course_m(position_ned_m: np.ndarray, origin_ned_m: np.ndarray, heading_rad: float) -> float:
     """How far (metres) a position (float ``(3,)`` NED metres) lies along the course: its horizontal
     component from ``origin_ned_m`` along ``heading_rad`` (negative = behind the origin)."""
-    d = np.asarray(position_ned_m, dtype=np.float64) - np.asarray(origin_ned_m, dtype=np.float64)
-    forward, _ = ned_to_body_horizontal(d[0], d[1], heading_rad)
-    return float(forward)
+    return _offset_along_heading(position_ned_m, origin_ned_m, heading_rad)[0]
 
 
 #: The decision the progress watchdog substitutes while it holds (:class:`ProgressWatch`): a brake,
@@ -206,9 +212,7 @@ def horizontal_distance_m(a_ned_m: np.ndarray | None, b_ned_m: np.ndarray | None
 def brake_offset_body(position_ned_m: np.ndarray, brake_at_ned_m: np.ndarray, yaw_rad: float) -> np.ndarray:
     """Where the vehicle is relative to where its brake began, in the body frame (yaw only: forward,
     right, down), float ``(3,)`` metres, from NED positions (float ``(3,)`` metres) and the heading."""
-    d = np.asarray(position_ned_m, dtype=np.float64) - np.asarray(brake_at_ned_m, dtype=np.float64)
-    forward, right = ned_to_body_horizontal(d[0], d[1], yaw_rad)
-    return np.array([forward, right, d[2]])
+    return np.array(_offset_along_heading(position_ned_m, brake_at_ned_m, yaw_rad))
 
 
 def horizontal_velocity_body_m_s(velocity_ned_m_s: np.ndarray | None, yaw_rad: float | None) -> tuple[float, float] | None:

@@ -739,11 +739,16 @@ class Supervisor:
             return self._override_setpoint(m.override, latest)
         return ZERO_SETPOINT  # degraded, paused
 
+    def _course_ready(self, v: VehicleState) -> bool:
+        """Whether the course (origin and heading at engagement) and the vehicle's position are known."""
+        m = self._m
+        return m.course_origin_ned_m is not None and m.course_heading_rad is not None and v.position_ned_m is not None
+
     def _no_progress(self, now_s: float, v: VehicleState) -> bool:
         """The progress watchdog (:class:`~companion.core.command.ProgressWatch`) fed the position now."""
         m = self._m
         along = None
-        if m.course_origin_ned_m is not None and m.course_heading_rad is not None and v.position_ned_m is not None:
+        if self._course_ready(v):
             along = along_course_m(v.position_ned_m, m.course_origin_ned_m, m.course_heading_rad)
         return m.progress.update(along, now_s, self._cfg.command)
 
@@ -771,7 +776,7 @@ class Supervisor:
         if m.course_altitude_m is not None and down_now is not None:
             altitude_error = m.course_altitude_m - (-down_now)  # positive: climb back
         line_offset = None
-        if m.course_origin_ned_m is not None and m.course_heading_rad is not None and v.position_ned_m is not None:
+        if self._course_ready(v):
             line_offset = line_offset_m(v.position_ned_m, m.course_origin_ned_m, m.course_heading_rad)
         refined = getattr(latest, "refined", None)
         brake_offset = m.brake.offset_body(decision, v.position_ned_m, heading_now)
