@@ -752,7 +752,7 @@ def test_a_remembered_obstacle_beside_the_vehicle_pushes_it_away() -> None:
     assert sp.right_m_s == pytest.approx(mem.guard_gain_per_s * (mem.guard_distance_m - 0.3))
     assert sp.forward_m_s == pytest.approx(CompanionConfig().command.cruise_speed_m_s)
     # Still sliding left toward it at 0.4 m/s (PX4's lag): the setpoint leans against that motion
-    # (counter_velocity_fraction; off by default).
+    # (counter_velocity_fraction).
     h.vehicle = replace(h.vehicle, velocity_ned_m_s=np.array([0.0, -0.4, 0.0]))
     sp = h.step(fresh_frame=False).setpoint
     lean_and_push = mem.counter_velocity_fraction * 0.4 + mem.guard_gain_per_s * (mem.guard_distance_m - 0.3)
