@@ -361,18 +361,18 @@ async def fly_courses(
                     if attempt + 1 == attempts:
                         raise SitlError(f"{course.name}: {err}") from None
                     log.warning("%s: %s; flying it again with a fresh PX4", course.name, err)
-                else:
-                    flights.append(flight)
-                    if progress is not None:
-                        progress(i + 1, len(courses), flight)
-                if px4 is not None:  # a fresh PX4 (and a fresh link to it) for the next course or attempt
-                    if pilot is not None:
-                        await pilot.close()
-                        pilot = None
-                    await asyncio.to_thread(px4.stop)
-                    px4 = None
-                if len(flights) == i + 1:
-                    break
+                    continue
+                finally:
+                    if px4 is not None:  # a fresh PX4 (and a fresh link to it) for the next course or attempt
+                        if pilot is not None:
+                            await pilot.close()
+                            pilot = None
+                        await asyncio.to_thread(px4.stop)
+                        px4 = None
+                flights.append(flight)
+                if progress is not None:
+                    progress(i + 1, len(courses), flight)
+                break
     finally:
         if pilot is not None:
             await pilot.close()
