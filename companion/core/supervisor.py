@@ -645,81 +645,91 @@ class Supervisor:
 
     def _advance(self, now_s: float, v: VehicleState, fresh: bool, age_s: float, camera_ok: bool) -> None:
         """Timers: prestream, engage timeout, staleness and failsafe, override expiry, leaving."""
+        if self._m.engaging is not None:
+            self._advance_engaging(now_s, v, fresh)
+        if self._commanding():
+            self._advance_commanding(now_s, v, fresh, age_s, camera_ok)
+        if self._m.leaving is not None:
+            self._advance_leaving(now_s, v)
+
+    def _advance_engaging(self, now_s: float, v: VehicleState, fresh: bool) -> None:
+        """Engaging: prestream, then request offboard; give up on stale frames or no confirmation."""
+        cfg = self._cfg
+        e = self._m.engaging
+        if not fresh:
+            self._begin_leave(now_s, State.DISENGAGED, "frames went stale during engage; not engaging")
+        elif e.start_sent_s is None:
+            if now_s - e.since_s >= cfg.offboard_prestream_s:
+                e.start_sent_s = now_s
+                e.start_pending = True
+                self._m.actions.append(Action.START_OFFBOARD)
+                self._set(State.ENGAGING, "offboard requested: waiting for the autopilot to confirm")
+        elif now_s - e.start_sent_s > cfg.engage_timeout_s:
+            self._begin_leave(
+                now_s,
+                State.DISENGAGED,
+                f"offboard not confirmed within {cfg.engage_timeout_s:g} s (vehicle in {v.flight_mode}); not engaging",
+            )
+
+    def _advance_commanding(self, now_s: float, v: VehicleState, fresh: bool, age_s: float, camera_ok: bool) -> None:
+        """In offboard and commanding: the failsafe, override expiry, staleness and the progress watchdog."""
+        m = self._m
+        cmd = self._cfg.command
+        if age_s > cmd.failsafe_timeout_s:
+            what = "no frame processed" if math.isinf(age_s) else f"newest frame {age_s:.1f} s old"
+            self._begin_leave(now_s, State.FAILSAFE, f"{what} (> failsafe_timeout_s {cmd.failsafe_timeout_s:g} s)")
+            return
+        if m.activity is State.OVERRIDE and now_s >= m.override_until_s:
+            m.activity = State.ENGAGED
+            m.override = None
+        if not fresh:
+            m.progress.reset()
+            why = (
+                "camera lost (reconnecting)"
+                if not camera_ok
+                else f"frames stale (newest older than {cmd.stale_frame_timeout_s:g} s)"
+            )
+            self._set(State.DEGRADED, f"{why}: zero velocity")
+            return
+        if m.activity is State.ENGAGED and self._no_progress(now_s, v):
+            m.activity = State.PAUSED
+            m.stalled = True
+        if m.activity is not State.ENGAGED:
+            m.progress.reset()  # the watchdog times the automatic flight only
+        if m.activity is State.PAUSED:
+            reason = self._stalled_reason() if m.stalled else "paused by the operator: zero velocity in offboard"
+            self._set(State.PAUSED, reason)
+        elif m.activity is State.OVERRIDE:
+            self._set(State.OVERRIDE, "manual override (automatic again when it expires)")
+        else:
+            self._set(State.ENGAGED, "engaged: avoiding obstacles")
+
+    def _advance_leaving(self, now_s: float, v: VehicleState) -> None:
+        """Leaving offboard: ask for Hold until confirmed; stop the setpoints when it never is."""
         m = self._m
         cfg = self._cfg
-        cmd = cfg.command
-        e = m.engaging
-        if e is not None:
-            if not fresh:
-                self._begin_leave(now_s, State.DISENGAGED, "frames went stale during engage; not engaging")
-            elif e.start_sent_s is None:
-                if now_s - e.since_s >= cfg.offboard_prestream_s:
-                    e.start_sent_s = now_s
-                    e.start_pending = True
-                    m.actions.append(Action.START_OFFBOARD)
-                    self._set(State.ENGAGING, "offboard requested: waiting for the autopilot to confirm")
-            elif now_s - e.start_sent_s > cfg.engage_timeout_s:
-                self._begin_leave(
-                    now_s,
-                    State.DISENGAGED,
-                    f"offboard not confirmed within {cfg.engage_timeout_s:g} s (vehicle in {v.flight_mode}); not engaging",
-                )
-        if self._commanding():
-            if age_s > cmd.failsafe_timeout_s:
-                what = "no frame processed" if math.isinf(age_s) else f"newest frame {age_s:.1f} s old"
-                self._begin_leave(
-                    now_s,
-                    State.FAILSAFE,
-                    f"{what} (> failsafe_timeout_s {cmd.failsafe_timeout_s:g} s)",
-                )
-            else:
-                if m.activity is State.OVERRIDE and now_s >= m.override_until_s:
-                    m.activity = State.ENGAGED
-                    m.override = None
-                if not fresh:
-                    m.progress.reset()
-                    why = (
-                        "camera lost (reconnecting)"
-                        if not camera_ok
-                        else f"frames stale (newest older than {cmd.stale_frame_timeout_s:g} s)"
-                    )
-                    self._set(State.DEGRADED, f"{why}: zero velocity")
-                else:
-                    if m.activity is State.ENGAGED and self._no_progress(now_s, v):
-                        m.activity = State.PAUSED
-                        m.stalled = True
-                    if m.activity is not State.ENGAGED:
-                        m.progress.reset()  # the watchdog times the automatic flight only
-                    if m.activity is State.PAUSED:
-                        reason = self._stalled_reason() if m.stalled else "paused by the operator: zero velocity in offboard"
-                        self._set(State.PAUSED, reason)
-                    elif m.activity is State.OVERRIDE:
-                        self._set(State.OVERRIDE, "manual override (automatic again when it expires)")
-                    else:
-                        self._set(State.ENGAGED, "engaged: avoiding obstacles")
         lv = m.leaving
-        if lv is not None:
-            if v.in_offboard:
-                if lv.last_hold_s is None or now_s - lv.last_hold_s >= cfg.hold_retry_s:
-                    lv.last_hold_s = now_s
-                    lv.holds += 1
-                    m.owns_offboard = True
-                    m.actions.append(Action.HOLD)
-            elif not m.owns_offboard:
-                # Not in offboard and never confirmed in it: done once a pending start can no longer
-                # take effect.
-                start_may_land = lv.start_sent_s is not None and (
-                    lv.start_pending or now_s - lv.start_sent_s <= cfg.engage_timeout_s
-                )
-                if not start_may_land:
-                    self._stop_stream()
-            if m.leaving is not None and now_s - lv.since_s > cfg.leave_timeout_s:
+        if v.in_offboard:
+            if lv.last_hold_s is None or now_s - lv.last_hold_s >= cfg.hold_retry_s:
+                lv.last_hold_s = now_s
+                lv.holds += 1
+                m.owns_offboard = True
+                m.actions.append(Action.HOLD)
+        elif not m.owns_offboard:
+            # Not in offboard and never confirmed in it: done once a pending start can no longer
+            # take effect.
+            start_may_land = lv.start_sent_s is not None and (
+                lv.start_pending or now_s - lv.start_sent_s <= cfg.engage_timeout_s
+            )
+            if not start_may_land:
                 self._stop_stream()
-                self._set(
-                    m.state,
-                    f"{lv.what}: Hold not confirmed within {cfg.leave_timeout_s:g} s: setpoints stopped so "
-                    "that PX4's offboard-loss failsafe acts",
-                )
+        if m.leaving is not None and now_s - lv.since_s > cfg.leave_timeout_s:
+            self._stop_stream()
+            self._set(
+                m.state,
+                f"{lv.what}: Hold not confirmed within {cfg.leave_timeout_s:g} s: setpoints stopped so "
+                "that PX4's offboard-loss failsafe acts",
+            )
 
     def _output(
         self, now_s: float, latest: FrameOutcome | None, age_s: float, v: VehicleState
@@ -780,9 +790,9 @@ class Supervisor:
             line_offset = line_offset_m(v.position_ned_m, m.course_origin_ned_m, m.course_heading_rad)
         refined = getattr(latest, "refined", None)
         brake_offset = m.brake.offset_body(decision, v.position_ned_m, heading_now)
-        guard = sides = None
+        guard = sides = gap = None
         if self._cfg.memory.duration_s > 0.0 and v.position_ned_m is not None and heading_now is not None:
-            guard, sides = m.obstacles.hold_inputs(v.position_ned_m, heading_now, now_s, self._cfg.memory, m.view_limits)
+            guard, sides, gap = m.obstacles.hold_inputs(v.position_ned_m, heading_now, now_s, self._cfg.memory, m.view_limits)
         m.guarding = 0 if guard is None else len(guard)
         return setpoint_for(
             decision,
@@ -805,6 +815,7 @@ class Supervisor:
             guard_cfg=self._cfg.memory,
             remembered_sides=sides,
             velocity_body_m_s=horizontal_velocity_body_m_s(v.velocity_ned_m_s, heading_now),
+            gap_offset_m=gap,
         )
 
     def _override_setpoint(self, o: Override, latest: FrameOutcome | None) -> VelocitySetpoint:
