@@ -281,6 +281,58 @@ def test_course_hold_neither_turns_nor_slides_toward_a_remembered_side() -> None
     assert setpoint_for(clear, 0.0, cmd, remembered_sides=(False, True), **kw) == free
 
 
+def test_gap_offset_is_the_middle_between_the_nearest_points_left_and_right() -> None:
+    """A 1.2 m doorway 1 m ahead whose middle lies 0.3 m right: its jambs bound the gap, not the wall
+    beyond them; a wide gap, one side only, points beyond the lookahead or centering off: no gap."""
+    from companion.core.memory import gap_offset_m
+
+    cfg = MemoryConfig()
+    right = np.concatenate([np.linspace(-2.0, -0.3, 18), np.linspace(0.9, 2.5, 17)])  # wall, door -0.3..0.9
+    fwd = np.full_like(right, 1.0)
+    assert gap_offset_m(fwd, right, cfg) == pytest.approx(0.3)
+    assert gap_offset_m(fwd[right < 0], right[right < 0], cfg) is None  # one side only
+    wide = cfg.model_copy(update={"gap_max_width_m": 1.1})
+    assert gap_offset_m(fwd, right, wide) is None
+    assert gap_offset_m(fwd + cfg.gap_lookahead_m, right, cfg) is None  # beyond the lookahead
+    assert gap_offset_m(fwd - 1.0 - cfg.keep_out_m - 0.01, right, cfg) is None  # passed, behind
+    off = cfg.model_copy(update={"gap_centering_gain_per_s": 0.0})
+    assert gap_offset_m(fwd, right, off) is None
+
+
+def test_hold_inputs_find_a_doorway_from_the_memory() -> None:
+    """The remembered jambs of a door 1 m ahead (beyond hold_clear_m and the guard) give the gap."""
+    mem = ObstacleMemory()
+    cfg = MemoryConfig()
+    wall = np.array([[1.0, e, -1.5] for e in np.arange(-2.0, 2.51, 0.05) if not -0.3 < e < 0.9])
+    mem.add(wall, 0.0, 30.0)
+    here = np.array([0.0, 0.0, -1.5])
+    got = mem.hold_inputs(here, 0.0, 0.5, cfg, VIEW)
+    assert got.guard_m is None and got.sides == (False, False)  # beyond the guard and hold_clear_m
+    assert got.gap_offset_m == pytest.approx(0.3, abs=0.03)
+    # Facing south the same door lies behind: no gap.
+    assert mem.hold_inputs(here, math.pi, 0.5, cfg, VIEW).gap_offset_m is None
+
+
+def test_a_clear_decision_slides_toward_the_middle_of_a_gap_instead_of_the_line() -> None:
+    cfg = MemoryConfig()
+    cmd = CompanionConfig().command.model_copy(update={"hold_resume_delay_s": 0.0})
+    clear = Decision(DecisionKind.CLEAR, 0.0, 0.0, 1.0, "clear")
+    kw = {"heading_error_rad": 0.0, "line_offset_m": -0.5, "clear_for_s": 5.0, "guard_cfg": cfg}  # line left
+    assert setpoint_for(clear, 0.0, cmd, **kw).right_m_s < 0.0
+    sp = setpoint_for(clear, 0.0, cmd, gap_offset_m=0.1, **kw)  # the gap's middle 0.1 m right
+    assert sp.right_m_s == pytest.approx(cfg.gap_centering_gain_per_s * 0.1)
+    far = setpoint_for(clear, 0.0, cmd, gap_offset_m=2.0, **kw)
+    assert far.right_m_s == pytest.approx(cfg.max_gap_centering_speed_m_s)
+    # At once, without course hold's wait; scaled down while the decision turns.
+    waiting = setpoint_for(clear, 0.0, cmd, gap_offset_m=0.1, **{**kw, "clear_for_s": 0.0, "heading_clear_for_s": 0.0})
+    assert waiting.right_m_s == pytest.approx(sp.right_m_s)
+    turning = Decision(DecisionKind.CLEAR, 0.5, 0.0, 1.0, "clear")
+    assert setpoint_for(turning, 0.0, cmd, gap_offset_m=0.1, **kw).right_m_s == pytest.approx(0.5 * sp.right_m_s)
+    # Only on CLEAR: an avoiding decision keeps its own (no sideways) velocity.
+    avoid = Decision(DecisionKind.AVOID, 0.3, 0.0, 0.5, "avoid")
+    assert setpoint_for(avoid, 0.0, cmd, gap_offset_m=0.1, **kw).right_m_s == 0.0
+
+
 def test_ned_to_body_horizontal_rotates_by_the_heading_for_floats_and_arrays() -> None:
     from companion.core.frames import ned_to_body_horizontal
 

@@ -955,6 +955,41 @@ class MemoryConfig(StrictModel):
             "line right after a box, the vehicle swung into the box's rear corner)."
         ),
     )
+    gap_centering_gain_per_s: float = Field(
+        default=1.0,
+        ge=0.0,
+        le=10.0,
+        description=(
+            "Gap centering: with remembered points on both sides of the vehicle, abreast or up to "
+            "gap_lookahead_m ahead, less than gap_max_width_m apart sideways (a doorway, two pillars), "
+            "a CLEAR decision flies sideways toward the middle between the nearest of each side at "
+            "this speed per metre off it, 1/s, instead of the line hold's sideways step (0 = off). "
+            "The centre region sees through a gap the vehicle is off-centre in: with PX4 SITL the "
+            "vehicle came to doorways 0.1-0.4 m off their middle and passed the jamb with 0.01-0.06 m."
+        ),
+    )
+    max_gap_centering_speed_m_s: float = Field(
+        default=0.3, ge=0.0, le=2.0, description="Gap centering: the largest sideways speed it commands, m/s."
+    )
+    gap_max_width_m: float = Field(
+        default=2.0,
+        gt=0.0,
+        le=10.0,
+        description=(
+            "Gap centering: only a gap narrower than this (sideways, between the nearest remembered "
+            "points left and right) is centred in, metres; wider ones leave room for course hold."
+        ),
+    )
+    gap_lookahead_m: float = Field(
+        default=1.5,
+        gt=0.0,
+        le=10.0,
+        description=(
+            "Gap centering: points up to this far ahead of the vehicle (and abreast, down to keep_out_m "
+            "behind) count as its sides, metres: far enough to line up with a doorway before its "
+            "jambs leave the view, near enough not to centre on what lies beyond a turn."
+        ),
+    )
     height_band_m: float = Field(
         default=0.4,
         gt=0.0,

@@ -326,6 +326,7 @@ def setpoint_for(
     guard_cfg: MemoryConfig | None = None,
     remembered_sides: tuple[bool, bool] | None = None,
     velocity_body_m_s: tuple[float, float] | None = None,
+    gap_offset_m: float | None = None,
 ) -> VelocitySetpoint:
     """The setpoint to send for ``decision``, made ``since_last_frame_s`` seconds after its frame.
 
@@ -385,6 +386,13 @@ def setpoint_for(
     * ``remembered_sides`` (:meth:`~companion.core.memory.ObstacleMemory.sides_near`: (left, right),
       True where a remembered point lies near on that side): the hold neither turns nor slides
       toward such a side (an obstacle just passed is beside or behind the vehicle, out of view).
+
+    Gap centering: ``gap_offset_m`` (:func:`~companion.core.memory.gap_offset_m`: where the middle of
+    a narrow gap between remembered points lies, sideways, metres, positive = right; None = no gap)
+    with ``guard_cfg``: on a CLEAR decision (not turning back) the sideways speed is
+    ``clip(gap_centering_gain_per_s · offset, ±max_gap_centering_speed_m_s)``, scaled by ``1 - |yaw|``,
+    instead of the line hold's, at once (no wait): the centre region sees through a gap the vehicle is
+    off-centre in, and the line need not run through the gap's middle.
     """
     if decision is None or not math.isfinite(since_last_frame_s):
         return ZERO_SETPOINT
@@ -425,6 +433,9 @@ def setpoint_for(
         and (clear_for_m is None or clear_for_m >= cmd.hold_resume_distance_m)
     ):
         down_m_s += (1.0 - abs(pitch)) * _altitude_hold_down_m_s(altitude_error_m, region_depths_m, cmd)
+    if clear and not turning_back and gap_offset_m is not None and guard_cfg is not None and math.isfinite(gap_offset_m):
+        limit = guard_cfg.max_gap_centering_speed_m_s
+        right_m_s = (1.0 - abs(yaw)) * min(limit, max(-limit, guard_cfg.gap_centering_gain_per_s * gap_offset_m))
     if since_up_near_m is not None and since_up_near_m < cmd.hold_resume_distance_m and down_m_s < 0.0:
         down_m_s = 0.0  # something was overhead within the last metres: it may still be, out of view
     sp = VelocitySetpoint(

@@ -36,6 +36,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -46,6 +47,14 @@ from companion.core.render.pose import Pose
 
 #: Sectors (of the full circle around the vehicle) the guard keeps one nearest point from.
 GUARD_SECTORS = 8
+
+
+class HoldInputs(NamedTuple):
+    """What the memory gives :func:`~companion.core.command.setpoint_for` for one setpoint."""
+
+    guard_m: np.ndarray | None  # :meth:`ObstacleMemory.guard` rows, or None
+    sides: tuple[bool, bool] | None  # :meth:`ObstacleMemory.sides_near`, or None
+    gap_offset_m: float | None  # :func:`gap_offset_m`, or None
 
 
 class BlockMax:
@@ -295,14 +304,18 @@ class ObstacleMemory:
 
     def hold_inputs(
         self, position_ned_m: np.ndarray, yaw_rad: float, now_s: float, cfg: MemoryConfig, view: ViewLimits | None
-    ) -> tuple[np.ndarray | None, tuple[bool, bool] | None]:
-        """:meth:`guard` (None without ``view``) and :meth:`sides_near`, from one pass over the
-        memory: what :func:`~companion.core.command.setpoint_for` takes as ``guard_m`` and
-        ``remembered_sides``."""
-        near = self._nearby(position_ned_m, yaw_rad, now_s, cfg, max(cfg.guard_distance_m, cfg.hold_clear_m))
+    ) -> HoldInputs:
+        """:meth:`guard` (None without ``view``), :meth:`sides_near` and :func:`gap_offset_m`, from one
+        pass over the memory: what :func:`~companion.core.command.setpoint_for` takes as ``guard_m``,
+        ``remembered_sides`` and ``gap_offset_m``."""
+        radius = max(cfg.guard_distance_m, cfg.hold_clear_m)
+        if cfg.gap_centering_gain_per_s > 0.0:
+            radius = max(radius, math.hypot(cfg.gap_lookahead_m, cfg.gap_max_width_m))
+        near = self._nearby(position_ned_m, yaw_rad, now_s, cfg, radius)
         if near is None:
-            return None, None
-        return (None if view is None else _guard_rows(*near, cfg, view)), _sides(*near, cfg)
+            return HoldInputs(None, None, None)
+        guard = None if view is None else _guard_rows(*near, cfg, view)  # each filters by its own distance
+        return HoldInputs(guard, _sides(*near, cfg), gap_offset_m(near[0], near[1], cfg))
 
     def sides_near(
         self, position_ned_m: np.ndarray, yaw_rad: float, now_s: float, cfg: MemoryConfig
@@ -335,6 +348,30 @@ class ObstacleMemory:
         """
         near = self._nearby(position_ned_m, yaw_rad, now_s, cfg, cfg.guard_distance_m)
         return None if near is None else _guard_rows(*near, cfg, view)
+
+
+def gap_offset_m(fwd: np.ndarray, right: np.ndarray, cfg: MemoryConfig) -> float | None:
+    """Where the middle of a narrow gap lies, sideways from the vehicle, metres (positive = right),
+    or None when there is no such gap (or centering is off).
+
+    ``fwd``, ``right``: remembered points in the body frame, horizontal metres, float ``(N,)``. The
+    points from ``cfg.keep_out_m`` behind to ``cfg.gap_lookahead_m`` ahead are the vehicle's sides;
+    the nearest on the left (sideways) and the nearest on the right bound the gap, which counts when
+    both exist and lie less than ``cfg.gap_max_width_m`` apart. A jamb is nearer sideways than the
+    wall beyond it, so a doorway is bounded by its jambs."""
+    if cfg.gap_centering_gain_per_s == 0.0:
+        return None
+    fwd = np.asarray(fwd, dtype=np.float64)
+    right = np.asarray(right, dtype=np.float64)
+    beside = (fwd > -cfg.keep_out_m) & (fwd < cfg.gap_lookahead_m)
+    left_m = -right[beside & (right < 0.0)]
+    right_m = right[beside & (right > 0.0)]
+    if left_m.size == 0 or right_m.size == 0:
+        return None
+    lo, hi = float(left_m.min()), float(right_m.min())
+    if lo + hi >= cfg.gap_max_width_m:
+        return None
+    return 0.5 * (hi - lo)
 
 
 def _sides(fwd: np.ndarray, right: np.ndarray, dist: np.ndarray, cfg: MemoryConfig) -> tuple[bool, bool]:

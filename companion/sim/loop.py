@@ -380,10 +380,10 @@ def fly(
                 last_steer_ned_m = vehicle.model.position_ned_m.copy()
             if not is_heading_clear(decision):
                 last_turn_s = t
-            guard = sides = None
+            guard = sides = gap = None
             if memory is not None:
                 view = latest.view_limits if latest is not None else None
-                guard, sides = memory.hold_inputs(m.position_ned_m, m.yaw_rad, t, cfg.memory, view)
+                guard, sides, gap = memory.hold_inputs(m.position_ned_m, m.yaw_rad, t, cfg.memory, view)
             sp = setpoint_for(
                 decision,
                 age if latest is not None else math.inf,
@@ -404,6 +404,7 @@ def fly(
                 guard_cfg=cfg.memory,
                 remembered_sides=sides,
                 velocity_body_m_s=horizontal_velocity_body_m_s(m.velocity_ned_m_s, m.yaw_rad),
+                gap_offset_m=gap,
             )
             if vehicle.in_offboard:
                 vehicle.set_setpoint(sp)
