@@ -286,7 +286,7 @@ def test_gap_offset_is_the_middle_between_the_nearest_points_left_and_right() ->
     beyond them; a wide gap, one side only, points beyond the lookahead or centering off: no gap."""
     from companion.core.memory import gap_offset_m
 
-    cfg = MemoryConfig()
+    cfg = MemoryConfig(gap_centering_gain_per_s=1.0)  # off by default
     right = np.concatenate([np.linspace(-2.0, -0.3, 18), np.linspace(0.9, 2.5, 17)])  # wall, door -0.3..0.9
     fwd = np.full_like(right, 1.0)
     assert gap_offset_m(fwd, right, cfg) == pytest.approx(0.3)
@@ -302,7 +302,7 @@ def test_gap_offset_is_the_middle_between_the_nearest_points_left_and_right() ->
 def test_hold_inputs_find_a_doorway_from_the_memory() -> None:
     """The remembered jambs of a door 1 m ahead (beyond hold_clear_m and the guard) give the gap."""
     mem = ObstacleMemory()
-    cfg = MemoryConfig()
+    cfg = MemoryConfig(gap_centering_gain_per_s=1.0)  # off by default
     wall = np.array([[1.0, e, -1.5] for e in np.arange(-2.0, 2.51, 0.05) if not -0.3 < e < 0.9])
     mem.add(wall, 0.0, 30.0)
     here = np.array([0.0, 0.0, -1.5])
@@ -314,7 +314,7 @@ def test_hold_inputs_find_a_doorway_from_the_memory() -> None:
 
 
 def test_a_clear_decision_slides_toward_the_middle_of_a_gap_instead_of_the_line() -> None:
-    cfg = MemoryConfig()
+    cfg = MemoryConfig(gap_centering_gain_per_s=1.0)  # off by default
     cmd = CompanionConfig().command.model_copy(update={"hold_resume_delay_s": 0.0})
     clear = Decision(DecisionKind.CLEAR, 0.0, 0.0, 1.0, "clear")
     kw = {"heading_error_rad": 0.0, "line_offset_m": -0.5, "clear_for_s": 5.0, "guard_cfg": cfg}  # line left
@@ -331,6 +331,9 @@ def test_a_clear_decision_slides_toward_the_middle_of_a_gap_instead_of_the_line(
     # Only on CLEAR: an avoiding decision keeps its own (no sideways) velocity.
     avoid = Decision(DecisionKind.AVOID, 0.3, 0.0, 0.5, "avoid")
     assert setpoint_for(avoid, 0.0, cmd, gap_offset_m=0.1, **kw).right_m_s == 0.0
+    # Off (the default): the line hold's sideways step stays.
+    off = {**kw, "guard_cfg": MemoryConfig()}
+    assert setpoint_for(clear, 0.0, cmd, gap_offset_m=0.1, **off) == setpoint_for(clear, 0.0, cmd, **off)
 
 
 def test_ned_to_body_horizontal_rotates_by_the_heading_for_floats_and_arrays() -> None:

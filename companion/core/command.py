@@ -433,7 +433,8 @@ def setpoint_for(
         and (clear_for_m is None or clear_for_m >= cmd.hold_resume_distance_m)
     ):
         down_m_s += (1.0 - abs(pitch)) * _altitude_hold_down_m_s(altitude_error_m, region_depths_m, cmd)
-    if clear and not turning_back and gap_offset_m is not None and guard_cfg is not None and math.isfinite(gap_offset_m):
+    gap_on = gap_offset_m is not None and guard_cfg is not None and guard_cfg.gap_centering_gain_per_s > 0.0
+    if clear and not turning_back and gap_on and math.isfinite(gap_offset_m):
         limit = guard_cfg.max_gap_centering_speed_m_s
         right_m_s = (1.0 - abs(yaw)) * min(limit, max(-limit, guard_cfg.gap_centering_gain_per_s * gap_offset_m))
     if since_up_near_m is not None and since_up_near_m < cmd.hold_resume_distance_m and down_m_s < 0.0:

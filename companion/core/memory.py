@@ -9,7 +9,8 @@ NED frame, one per 5 cm cube (:class:`ObstacleMemory`), and a point that is out 
 guards it: :func:`apply_guard` pushes the vehicle away, and removes the velocity toward the point
 when the point is on its path (see :func:`~companion.core.command.setpoint_for`). Course hold also
 neither turns nor slides toward a side with a point within ``memory.hold_clear_m``, abreast or
-ahead (:meth:`ObstacleMemory.sides_near`). The autopilot follows a setpoint late (PX4: ~0.85 s), so
+ahead (:meth:`ObstacleMemory.sides_near`), and between points on both sides of a narrow gap (a
+doorway) a clear decision slides toward the gap's middle (:func:`gap_offset_m`). The autopilot follows a setpoint late (PX4: ~0.85 s), so
 the guard also counts the path the vehicle is actually flying (and, with
 ``memory.counter_velocity_fraction``, leans against its motion toward a point on it).
 
