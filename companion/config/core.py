@@ -940,7 +940,7 @@ class MemoryConfig(StrictModel):
             "this fraction of that closing speed (with the push, at most max_guard_speed_m_s), so the "
             "lag does not carry it in (0 = only stop commanding toward it). Dimensionless. Default 0.5: "
             "with PX4 SITL the vehicle pushed off one jamb of a 1.1-1.3 m doorway slid on into the "
-            "other (2 collisions in 14 doorway flights at 0, none in 9 at 0.5); 1 shoves the vehicle "
+            "other (2 collisions in 14 doorway flights at 0, none in 18 at 0.5); 1 shoves the vehicle "
             "sideways, where the camera does not see either (a kinematic collision)."
         ),
     )
