@@ -65,7 +65,7 @@ def rendered_frames(size: BenchSize, n: int, seed: int = 0) -> tuple[StereoGeome
 
     Distinct frames so that caches do not flatter the figures. The rig is ZED-like (87° HFOV, 12 cm).
     """
-    from companion.core.render import Photometry, Pose, StereoRenderer, corridor_scene
+    from companion.sim.render import Photometry, Pose, StereoRenderer, corridor_scene
 
     geometry = StereoGeometry.ideal(size.width_px, size.height_px, hfov_deg=87.0, baseline_m=0.12)
     scene = corridor_scene(length_m=80.0, width_m=6.0, n_obstacles=18, seed=seed)

@@ -13,7 +13,7 @@ import pytest
 
 from companion.cli import main
 from companion.core.geometry import StereoGeometry
-from companion.core.render import Box, Pose, Scene, StereoRenderer
+from companion.sim.render import Box, Pose, Scene, StereoRenderer
 
 DATA = Path(__file__).resolve().parent / "data"
 

@@ -18,7 +18,8 @@ from companion.bench import BenchSize, rendered_frames
 from companion.config import CompanionConfig
 from companion.core.calibration import Rectifier, StereoCalibration, make_rectifier, remap_linear_reference
 from companion.core.disparity.reference import sad_block_match
-from companion.core.pipeline import CpuRegionEstimator, Pipeline, cuda_available, make_estimator
+from companion.backends import cuda_available, make_estimator, make_pipeline
+from companion.core.estimator import CpuRegionEstimator
 from companion.core.stereo import split_side_by_side, to_grey
 from companion.errors import FrameError
 
@@ -385,7 +386,7 @@ def test_pipeline_memory_points_equal_the_cpu_reference() -> None:
     cfg = _cfg(D=64, disparity_preview_downsample=4)
     _, frames = rendered_frames(BenchSize(w, h, 64), 3)
     ref_cfg = cfg.model_copy(update={"stereo": cfg.stereo.model_copy(update={"backend": "reference"})})
-    gpu, ref = Pipeline(cfg, w, h), Pipeline(ref_cfg, w, h)
+    gpu, ref = make_pipeline(cfg, w, h), make_pipeline(ref_cfg, w, h)
     for k, frame in enumerate(frames):
         a, b = gpu.process(frame, timestamp_s=0.1 * k), ref.process(frame, timestamp_s=0.1 * k)
         np.testing.assert_array_equal(a.near_points_cam_m, b.near_points_cam_m)
@@ -424,12 +425,12 @@ def test_make_estimator_and_pipeline_use_the_gpu() -> None:
         c = cfg.model_copy(update={"stereo": cfg.stereo.model_copy(update={"backend": backend})})
         est = make_estimator(c, w, h)
         assert est.name == "cupy"
-    pipe = Pipeline(cfg, w, h)
+    pipe = make_pipeline(cfg, w, h)
     _, frames = rendered_frames(BenchSize(w, h, 64), 2)
     out = pipe.process(frames[0], timestamp_s=0.0, want_disparity=True)
     assert out.disparity is not None and out.disparity.shape == (45, 80)
     assert out.raw.depth_m.shape == (9,)
-    ref = Pipeline(cfg.model_copy(update={"stereo": cfg.stereo.model_copy(update={"backend": "reference"})}), w, h)
+    ref = make_pipeline(cfg.model_copy(update={"stereo": cfg.stereo.model_copy(update={"backend": "reference"})}), w, h)
     np.testing.assert_array_equal(ref.process(frames[0], timestamp_s=0.0).raw.depth_m, out.raw.depth_m)
 
 

@@ -21,7 +21,7 @@ from companion.core.memory import (
     camera_points_to_ned,
     view_limits,
 )
-from companion.core.render.pose import Pose
+from companion.core.pose import Pose
 from companion.core.types import ZERO_SETPOINT, Decision, DecisionKind
 
 GEOM = StereoGeometry(width_px=128, height_px=64, focal_px=100.0, cx_px=63.5, cy_px=31.5, baseline_m=0.12)

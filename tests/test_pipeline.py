@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 
 from companion.config import CompanionConfig, apply_patch
-from companion.core.pipeline import CpuRegionEstimator, Pipeline
+from companion.backends import make_pipeline
+from companion.core.estimator import CpuRegionEstimator
 from companion.core.regions import reduce_regions
-from companion.core.render import Box, Pose, Scene, StereoRenderer
+from companion.sim.render import Box, Pose, Scene, StereoRenderer
 from companion.core.types import REGION_INDEX, DecisionKind
 
 W, H = 672, 376
@@ -18,7 +19,7 @@ POSE = Pose.at(0.0, 0.0, ALT_M)
 
 def _render(scene: Scene, seed: int = 1):
     cfg = CompanionConfig()
-    pipeline = Pipeline(cfg, W, H)
+    pipeline = make_pipeline(cfg, W, H)
     renderer = StereoRenderer(pipeline.geometry, scene, seed=seed)
     result = renderer.render(POSE)
     frame = result.side_by_side()

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from companion.core.geometry import StereoGeometry
-from companion.core.render import (
+from companion.sim.render import (
     Box,
     Photometry,
     Pillar,

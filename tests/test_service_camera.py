@@ -157,7 +157,7 @@ def test_sim_camera_renders_the_configured_pose_read_only_at_its_rate() -> None:
 
 
 def test_sim_camera_follows_its_pose_provider() -> None:
-    from companion.core.render import Pose
+    from companion.sim.render import Pose
 
     cfg = parse_config({"camera": {"fps_hz": 100.0, "width_px": 160, "height_px": 120}})
     poses = iter([(Pose.at(2.0, 0.0, 1.5), 7.0), (Pose.at(30.0, 0.0, 1.5), 7.5)])

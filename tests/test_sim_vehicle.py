@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from companion.core.render import Pose, Scene
+from companion.sim.render import Pose, Scene
 from companion.core.types import VelocitySetpoint
 from companion.errors import VehicleError
 from companion.interfaces import CameraSource, VehicleLink

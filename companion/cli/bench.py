@@ -77,8 +77,8 @@ def _run_cpu_bench(args: argparse.Namespace, sizes: list[Any], tmp: Path) -> dic
     from companion.bench import format_table, machine_description, rendered_frames, stats_ms, write_bench_calibration
     from companion.config import CompanionConfig
     from companion.core.fuzzy.bench import bench_fuzzy
-    from companion.core.pipeline import Pipeline
-    from companion.core.render import bench_render
+    from companion.backends import make_pipeline
+    from companion.sim.render import bench_render
 
     report: dict[str, Any] = {
         "machine": machine_description(),
@@ -104,7 +104,7 @@ def _run_cpu_bench(args: argparse.Namespace, sizes: list[Any], tmp: Path) -> dic
             }
         )
         _, frames = rendered_frames(size, n=min(32, args.frames + args.warmup))
-        pipeline = Pipeline(cfg, size.width_px, size.height_px)
+        pipeline = make_pipeline(cfg, size.width_px, size.height_px)
         per_stage: dict[str, list[float]] = {}
         for i in range(args.warmup + args.frames):
             result = pipeline.process(frames[i % len(frames)], timestamp_s=i / 30.0)

@@ -71,7 +71,7 @@ def run(args: argparse.Namespace) -> int:
     from companion.config import apply_patch, load_config
     from companion.core.command import setpoint_for
     from companion.core.overlay import draw_overlay
-    from companion.core.pipeline import Pipeline
+    from companion.backends import make_pipeline
     from companion.core.stereo import split_side_by_side
 
     cfg = load_config(args.config)
@@ -85,7 +85,7 @@ def run(args: argparse.Namespace) -> int:
     frame = load_frame(args)
     left, _ = split_side_by_side(frame)
     height, width = left.shape[:2]
-    pipeline = Pipeline(cfg, width, height)
+    pipeline = make_pipeline(cfg, width, height)
     result = pipeline.process(frame, timestamp_s=0.0, want_disparity=args.overlay is not None)
     setpoint = setpoint_for(result.decision, since_last_frame_s=0.0, cmd=cfg.command)
     g = pipeline.geometry

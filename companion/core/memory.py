@@ -44,7 +44,7 @@ import numpy as np
 from companion.config.core import MemoryConfig
 from companion.core.frames import ned_to_body_horizontal
 from companion.core.geometry import StereoGeometry
-from companion.core.render.pose import Pose
+from companion.core.pose import Pose
 
 #: Sectors (of the full circle around the vehicle) the guard keeps one nearest point from.
 GUARD_SECTORS = 8

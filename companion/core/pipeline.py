@@ -2,10 +2,12 @@
 
 Two layers:
 
-* a :class:`RegionEstimator` turns one ZED side-by-side frame into 9 raw region depths (split, grey,
-  rectify, disparity, depth, robust minimum). This is the expensive part and has two implementations
-  with one contract: :class:`CpuRegionEstimator` here (OpenCV or the NumPy reference) and the CuPy
-  one in :mod:`companion.gpu`, which must produce what the CPU reference produces.
+* a :class:`~companion.core.estimator.RegionEstimator` turns one ZED side-by-side frame into 9 raw
+  region depths (split, grey, rectify, disparity, depth, robust minimum). This is the expensive part;
+  its implementations (the CPU one in :mod:`companion.core.estimator`, the CuPy one in
+  :mod:`companion.gpu`) share one contract and are built by a factory the caller passes in
+  (:func:`companion.backends.make_pipeline` passes the backend registry's), so the core imports no
+  backend.
 * :class:`Pipeline` owns an estimator and the cheap, host-side stages that both share: the depth
   look-up table, the release filter and the avoidance controller.
 
@@ -15,168 +17,26 @@ timings are instrumentation and use an injectable ``clock`` (default :func:`time
 
 from __future__ import annotations
 
-import importlib.util
 import logging
 import time
 from collections import deque
-from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Protocol
 
 import numpy as np
 
 from companion.config import CompanionConfig
-from companion.core.calibration import make_rectifier
-from companion.core.depth import disparity_to_depth
-from companion.core.disparity import make_cpu_matcher
+from companion.core.estimator import Clock, EstimatorFactory, RegionEstimator
 from companion.core.fuzzy.avoidance import AvoidanceController
 from companion.core.geometry import StereoGeometry
 from companion.core.lut import DepthLUT, median_filter, release_filter
-from companion.core.memory import BlockMax, NearCells, ViewLimits, view_limits
-from companion.core.regions import RegionLayout, reduce_regions, region_layout
-from companion.core.stereo import split_frame, to_grey
+from companion.core.memory import NearCells, ViewLimits, view_limits
 from companion.core.types import Decision, RegionDepths
-from companion.errors import BackendError
 
 log = logging.getLogger(__name__)
-
-Clock = Callable[[], float]
 
 #: Config sections whose change requires a new estimator (new maps, matcher or kernels). A change
 #: elsewhere (LUT, controller, command) applies on the next frame with no rebuild.
 ESTIMATOR_SECTIONS = ("calibration", "stereo", "regions", "gpu")
-
-
-@dataclass(frozen=True)
-class RegionEstimate:
-    """What an estimator returns for one frame.
-
-    Attributes:
-        regions: raw region depths (before the LUT), metres, NaN = unknown.
-        timings_ms: stage name -> milliseconds, in pipeline order.
-        disparity: float32 (H, W) disparity in pixels (NaN invalid) when asked for, else None. A GPU
-            estimator may return a downsampled image.
-        near_blocks: when asked for with ``near_block_px``: float32 ``(ceil(H/b), ceil(W/b))`` the
-            largest valid disparity of each ``b``-pixel block, pixels, NaN none
-            (:class:`~companion.core.memory.BlockMax`); a buffer valid until the next estimate.
-    """
-
-    regions: RegionDepths
-    timings_ms: dict[str, float]
-    disparity: np.ndarray | None = None
-    near_blocks: np.ndarray | None = None
-
-
-class RegionEstimator(Protocol):
-    """Turns one side-by-side frame into 9 raw region depths."""
-
-    name: str
-    geometry: StereoGeometry
-    layout: RegionLayout
-
-    def estimate(self, frame: np.ndarray, want_disparity: bool = False, near_block_px: int = 0) -> RegionEstimate:
-        """``frame``: uint8 (H, 2W, 3) BGR or (H, 2W) grey side-by-side image; ``near_block_px`` > 0
-        also returns the block-maximum disparity (the obstacle memory's input)."""
-        ...
-
-
-class CpuRegionEstimator:
-    """The CPU path: OpenCV StereoBM/SGBM or the exact NumPy reference.
-
-    Built once per (config, resolution): the rectification maps, the matcher and every per-frame
-    buffer are allocated here, so :meth:`estimate` allocates nothing large.
-    """
-
-    def __init__(self, cfg: CompanionConfig, width_px: int, height_px: int, clock: Clock = time.perf_counter):
-        self.width_px = width_px
-        self.height_px = height_px
-        self._clock = clock
-        self._regions_cfg = cfg.regions
-        self._rectifier = make_rectifier(cfg.calibration, width_px, height_px)
-        self.geometry: StereoGeometry = self._rectifier.geometry
-        self._matcher = make_cpu_matcher(cfg.stereo)
-        self.name = self._matcher.name
-        self.layout: RegionLayout = region_layout(self.geometry, cfg.regions)
-        shape = (height_px, width_px)
-        self._grey_l = np.empty(shape, np.uint8)
-        self._grey_r = np.empty(shape, np.uint8)
-        self._rect_l = np.empty(shape, np.uint8)
-        self._rect_r = np.empty(shape, np.uint8)
-        self._disparity = np.empty(shape, np.float32)
-        self._depth = np.empty(shape, np.float32)
-        self._block_max: BlockMax | None = None
-
-    def estimate(self, frame: np.ndarray, want_disparity: bool = False, near_block_px: int = 0) -> RegionEstimate:
-        clock = self._clock
-        timings: dict[str, float] = {}
-        t0 = clock()
-        left, right = split_frame(frame, self.width_px, self.height_px)
-        gl = to_grey(left, out=self._grey_l)
-        gr = to_grey(right, out=self._grey_r)
-        t1 = clock()
-        timings["grey_ms"] = (t1 - t0) * 1e3
-        rl, rr = self._rectifier.rectify(gl, gr, out_left=self._rect_l, out_right=self._rect_r)
-        t2 = clock()
-        timings["rectify_ms"] = (t2 - t1) * 1e3
-        disp = self._matcher.compute(rl, rr, out=self._disparity)
-        t3 = clock()
-        timings["disparity_ms"] = (t3 - t2) * 1e3
-        depth = disparity_to_depth(disp, self.geometry.focal_baseline_px_m, out=self._depth)
-        regions = reduce_regions(depth, self.layout, self._regions_cfg)
-        near = None
-        if near_block_px > 0:
-            if self._block_max is None or self._block_max.block_px != near_block_px:
-                self._block_max = BlockMax(disp.shape, near_block_px)
-            near = self._block_max(disp)
-        t4 = clock()
-        timings["regions_ms"] = (t4 - t3) * 1e3
-        return RegionEstimate(
-            regions=regions,
-            timings_ms=timings,
-            disparity=disp.copy() if want_disparity else None,
-            near_blocks=near,
-        )
-
-
-def cuda_available() -> bool:
-    """True when CuPy imports and sees at least one CUDA device."""
-    if importlib.util.find_spec("cupy") is None:
-        return False
-    try:
-        import cupy
-
-        return cupy.cuda.runtime.getDeviceCount() > 0
-    except Exception as err:  # CuPy raises several types when the driver or runtime is missing
-        log.debug("CuPy present but no usable CUDA device: %s", err)
-        return False
-
-
-def resolve_backend(cfg: CompanionConfig) -> str:
-    """The backend ``cfg.stereo.backend`` means on this machine ("auto" → cupy or opencv-bm)."""
-    backend = cfg.stereo.backend
-    if backend == "auto":
-        return "cupy" if cuda_available() else "opencv-bm"
-    return backend
-
-
-def make_estimator(
-    cfg: CompanionConfig, width_px: int, height_px: int, clock: Clock = time.perf_counter
-) -> RegionEstimator:
-    """Build the estimator the config asks for (``auto``: CuPy when a CUDA device is present).
-
-    Raises:
-        BackendError: ``cupy`` requested on a machine without a usable CUDA device.
-    """
-    backend = resolve_backend(cfg)
-    if backend == "cupy":
-        if not cuda_available():
-            raise BackendError("stereo.backend = 'cupy' but no CUDA device with CuPy is available; use 'auto'")
-        from companion.gpu import CupyRegionEstimator
-
-        return CupyRegionEstimator(cfg, width_px, height_px, clock=clock)
-    if backend != cfg.stereo.backend:
-        cfg = cfg.model_copy(update={"stereo": cfg.stereo.model_copy(update={"backend": backend})})
-    return CpuRegionEstimator(cfg, width_px, height_px, clock=clock)
 
 
 @dataclass(frozen=True)
@@ -221,6 +81,8 @@ class Pipeline:
     Args:
         cfg: the whole configuration.
         width_px, height_px: size of one eye.
+        make_estimator: builds the estimator for a config (now, unless ``estimator`` is given, and
+            again when a change needs a new one); :func:`companion.backends.make_estimator`.
         estimator: an estimator to use instead of building one from ``cfg`` (tests, GPU sharing).
         clock: timing clock for the per-stage figures.
     """
@@ -230,13 +92,16 @@ class Pipeline:
         cfg: CompanionConfig,
         width_px: int,
         height_px: int,
+        *,
+        make_estimator: EstimatorFactory,
         estimator: RegionEstimator | None = None,
         clock: Clock = time.perf_counter,
     ):
         self.width_px = width_px
         self.height_px = height_px
         self._clock = clock
-        estimator = estimator or make_estimator(cfg, width_px, height_px, clock=clock)
+        self._make_estimator = make_estimator
+        estimator = estimator or make_estimator(cfg, width_px, height_px, clock)
         self._filtered: np.ndarray | None = None
         self._history: deque[np.ndarray] = deque(maxlen=cfg.lut.median_frames - 1)
         self._last_timestamp_s: float | None = None
@@ -271,7 +136,7 @@ class Pipeline:
         ]
         estimator = self.estimator
         if any(s in changed for s in ESTIMATOR_SECTIONS):
-            estimator = make_estimator(cfg, self.width_px, self.height_px, clock=self._clock)
+            estimator = self._make_estimator(cfg, self.width_px, self.height_px, self._clock)
         near = self._near
         if estimator is not self.estimator or cfg.memory != self.config.memory:
             near = _near_cells(cfg, estimator.geometry, self.width_px, self.height_px)

@@ -73,7 +73,7 @@ from companion.core.command import (
     setpoint_for,
 )
 from companion.core.memory import ObstacleMemory, ViewLimits, camera_points_to_ned
-from companion.core.render.pose import Pose
+from companion.core.pose import Pose
 from companion.core.types import ZERO_SETPOINT, Decision, DecisionKind, VelocitySetpoint
 
 if TYPE_CHECKING:

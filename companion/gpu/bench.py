@@ -249,7 +249,7 @@ def _time_estimator(est: Any, frames: list[np.ndarray], warmup: int, n: int) -> 
 def _opencv(size: BenchSize, calib: Path | None, frames: list[np.ndarray], warmup: int, n: int) -> dict[str, Any]:
     import cv2
 
-    from companion.core.pipeline import CpuRegionEstimator
+    from companion.core.estimator import CpuRegionEstimator
     from companion.core.stereo import split_side_by_side, to_grey
 
     threads = os.cpu_count() or 1

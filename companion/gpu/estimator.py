@@ -17,7 +17,7 @@ event per band):
 3. the 9 depths and 9 valid fractions (144 bytes) come back to a pinned host buffer.
 
 Each band's GPU work is captured once as a CUDA graph and replayed. The results equal
-:class:`~companion.core.pipeline.CpuRegionEstimator` with the ``reference`` backend.
+:class:`~companion.core.estimator.CpuRegionEstimator` with the ``reference`` backend.
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ from companion.config import CompanionConfig
 from companion.core.calibration import make_rectifier
 from companion.core.geometry import StereoGeometry
 from companion.core.memory import block_max
-from companion.core.pipeline import RegionEstimate
+from companion.core.estimator import RegionEstimate
 from companion.core.regions import RegionLayout, region_layout
 from companion.core.stereo import split_frame
 from companion.core.types import N_REGIONS, RegionDepths
@@ -321,7 +321,7 @@ class CupyRegionEstimator:
                 :func:`~companion.core.memory.block_max`.
 
         Returns:
-            :class:`~companion.core.pipeline.RegionEstimate` with ``timings_ms``: ``upload_ms`` (host
+            :class:`~companion.core.estimator.RegionEstimate` with ``timings_ms``: ``upload_ms`` (host
             copies into pinned memory and queueing every band's DMA and kernels), ``gpu_ms`` (from then
             until the results are on the host); with ``gpu.stage_timing`` (one band) also the GPU
             times ``h2d_ms``, ``grey_rectify_ms``, ``disparity_regions_ms``, ``d2h_ms`` from events.

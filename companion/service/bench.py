@@ -196,7 +196,7 @@ def measure_e2e(
 def run_e2e_bench(args: argparse.Namespace, sizes: list[Any]) -> dict[str, Any]:
     """Frame-to-setpoint latency for each size with ``args.backend`` (and cupy too when CUDA is there)."""
     from companion.bench import format_table, machine_description
-    from companion.core.pipeline import cuda_available
+    from companion.backends import cuda_available
 
     backends = [args.backend]
     if args.backend != "cupy" and cuda_available():

@@ -25,7 +25,7 @@ from companion.sim.placement import CoursePlacement
 
 if TYPE_CHECKING:
     from companion.config import CompanionConfig
-    from companion.core.render import Pose, Scene
+    from companion.sim.render import Pose, Scene
 
 log = logging.getLogger(__name__)
 
@@ -331,7 +331,7 @@ class ReplayCamera:
 
 
 class SimCamera:
-    """Side-by-side frames rendered by :mod:`companion.core.render` at ``fps_hz``.
+    """Side-by-side frames rendered by :mod:`companion.sim.render` at ``fps_hz``.
 
     The pose comes from ``pose_provider`` (the simulator drives it from its vehicle's pose) or is the
     fixed ``pose``; with a fixed pose and no noise the frame is rendered once and handed out read-only.
@@ -364,7 +364,7 @@ class SimCamera:
         clock: Clock = time.monotonic,
         pose_wait_s: float = 1.0,
     ) -> None:
-        from companion.core.render import Pose
+        from companion.sim.render import Pose
 
         self.name = "sim"
         self.geometry = geometry
@@ -388,7 +388,7 @@ class SimCamera:
         return (self.geometry.width_px, self.geometry.height_px)
 
     def open(self) -> None:
-        from companion.core.render import StereoRenderer
+        from companion.sim.render import StereoRenderer
 
         self._stop.clear()
         if self._renderer is None:
@@ -396,7 +396,7 @@ class SimCamera:
         self._pacer = _Pacer(1.0 / self.fps_hz, self._clock, self._stop)
 
     def _render(self, pose: Pose) -> np.ndarray:
-        from companion.core.render import Photometry
+        from companion.sim.render import Photometry
 
         assert self._renderer is not None
         if self.noise_grey > 0:
@@ -477,7 +477,7 @@ class TelemetryPose:
 
 def sim_scene_from_config(cfg: CompanionConfig) -> Scene:
     """The scene ``cfg.camera`` names: the corridor, or a course of the simulator's library."""
-    from companion.core.render import corridor_scene
+    from companion.sim.render import corridor_scene
 
     cam = cfg.camera
     if cam.sim_world == "course":
@@ -512,7 +512,7 @@ def sim_camera_from_config(
     """The ``sim`` source of ``cfg.camera``: its scene (:func:`sim_scene_from_config`), the ideal rig of
     ``cfg.calibration``; the pose is fixed unless a ``pose_provider`` is given."""
     from companion.core.geometry import StereoGeometry
-    from companion.core.render import Pose
+    from companion.sim.render import Pose
 
     cam = cfg.camera
     geometry = StereoGeometry.ideal(

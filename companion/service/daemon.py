@@ -37,35 +37,34 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
 
 from companion import exitcodes
-from companion.config import CompanionConfig, apply_patch, load_config
-from companion.config.service import LIVE_CAMERA_FIELDS, RESTART_FIELDS
+from companion.config import CompanionConfig, load_config
 from companion.core.supervisor import (
     Action,
     ActionResult,
-    Disengage,
-    Engage,
-    Override,
-    Pause,
-    Reply,
-    Resume,
     Shutdown,
     Supervisor,
     SupervisorConfig,
 )
-from companion.core.types import REGION_NAMES, ZERO_SETPOINT, VelocitySetpoint
+from companion.core.types import ZERO_SETPOINT, VelocitySetpoint
 from companion.errors import (
     CompanionError,
     ConfigError,
     FrameError,
-    ProtocolError,
     VehicleError,
 )
 from companion.interfaces import CameraSource, Frame, VehicleLink
-from companion.service import protocol
+from companion.service.aio import wait_event
 from companion.service.capture import CaptureThread, FrameMailbox, ProcessingThread
+from companion.service.control import (  # noqa: F401 (re-exported: the daemon's public names)
+    ControlPlane,
+    RequestRefused,
+    keep_restart_fields,
+    resolve_config_paths,
+    restart_required,
+)
+from companion.service.health import HealthReporter
 from companion.service.notify import Notifier, watchdog_interval_s
 
 if TYPE_CHECKING:
@@ -74,10 +73,6 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 Clock = Callable[[], float]
-
-
-class RequestRefused(CompanionError):
-    """The supervisor refused an operator request (engage while disarmed, override when not engaged, ...)."""
 
 
 class StartupError(CompanionError):
@@ -93,89 +88,7 @@ class Processed:
     done_s: float
 
 
-def resolve_config_paths(cfg: CompanionConfig, base_dir: Path | None) -> CompanionConfig:
-    """``cfg`` with relative file paths made absolute against ``base_dir`` (the config file's folder).
-
-    A config file names files relative to itself, never to the working directory of whoever started
-    the service. Without a file (``base_dir`` None) relative paths are left as given.
-    """
-    if base_dir is None:
-        return cfg
-
-    def fix(p: Path | None) -> Path | None:
-        return None if p is None or p.is_absolute() else base_dir / p
-
-    updates: dict[str, Any] = {}
-    if cfg.calibration.file is not None and not cfg.calibration.file.is_absolute():
-        updates["calibration"] = cfg.calibration.model_copy(update={"file": fix(cfg.calibration.file)})
-    if cfg.camera.replay_path is not None and not cfg.camera.replay_path.is_absolute():
-        updates["camera"] = cfg.camera.model_copy(update={"replay_path": fix(cfg.camera.replay_path)})
-    bus_updates = {
-        name: fix(getattr(cfg.bus, name))
-        for name in ("curve_server_secret_key_file", "curve_authorized_keys_dir")
-        if getattr(cfg.bus, name) is not None and not getattr(cfg.bus, name).is_absolute()
-    }
-    if bus_updates:
-        updates["bus"] = cfg.bus.model_copy(update=bus_updates)
-    return cfg.model_copy(update=updates) if updates else cfg
-
-
-def restart_required(current: CompanionConfig, new: CompanionConfig) -> list[str]:
-    """The dotted fields that differ and that only a restart applies (camera, bus, vehicle.connection)."""
-    out = []
-    for path in RESTART_FIELDS:
-        section, _, name = path.partition(".")
-        a, b = getattr(current, section), getattr(new, section)
-        if name:
-            if getattr(a, name) != getattr(b, name):
-                out.append(path)
-        else:
-            live = LIVE_CAMERA_FIELDS if section == "camera" else ()
-            out += [f"{section}.{f}" for f in type(a).model_fields if f not in live and getattr(a, f) != getattr(b, f)]
-    return out
-
-
-def keep_restart_fields(current: CompanionConfig, new: CompanionConfig) -> CompanionConfig:
-    """``new`` with the restart-only fields of ``current`` (they are not applied until a restart)."""
-    vehicle = new.vehicle.model_copy(update={"connection": current.vehicle.connection})
-    camera = current.camera.model_copy(update={f: getattr(new.camera, f) for f in LIVE_CAMERA_FIELDS})
-    return new.model_copy(update={"camera": camera, "bus": current.bus, "vehicle": vehicle})
-
-
-async def _wait_event(event: asyncio.Event, timeout_s: float) -> None:
-    """Wait until ``event`` is set or ``timeout_s`` passed (then the event is set by the timer: the
-    callers re-check their own conditions).
-
-    Not ``asyncio.wait_for``: before Python 3.12 it can swallow a cancellation that arrives as the
-    awaited event fires, and a loop task that ignores its cancellation hangs the shutdown.
-    """
-    if event.is_set():
-        return
-    timer = asyncio.get_running_loop().call_later(max(0.0, timeout_s), event.set)
-    try:
-        await event.wait()
-    finally:
-        timer.cancel()
-
-
-def _percentile_ms(values: collections.deque, q: float) -> float | None:
-    if not values:
-        return None
-    return float(np.percentile(np.fromiter(values, np.float64), q)) * 1e3
-
-
-def _setpoint_dict(sp: VelocitySetpoint | None) -> dict[str, float] | None:
-    if sp is None:
-        return None
-    return {
-        "forward_m_s": sp.forward_m_s,
-        "right_m_s": sp.right_m_s,
-        "down_m_s": sp.down_m_s,
-        "yaw_rate_deg_s": sp.yaw_rate_deg_s,
-    }
-
-
-class Service:
+class Service(ControlPlane, HealthReporter):
     """The daemon. Build it, then ``await run()`` (or :func:`run_service` from the CLI).
 
     Args:
@@ -350,7 +263,7 @@ class Service:
         )
         self._capture.start()
         # Ready means the whole chain works: a frame captured AND processed.
-        await _wait_event(self._first_result, cfg.camera.open_timeout_s)
+        await wait_event(self._first_result, cfg.camera.open_timeout_s)
         if self._processed == 0:
             status = self._capture.status()
             what = "no frame" if status.frames == 0 else "no frame processed"
@@ -374,9 +287,9 @@ class Service:
         return changed
 
     def _build_pipeline(self, cfg: CompanionConfig) -> Any:
-        from companion.core.pipeline import Pipeline
+        from companion.backends import make_pipeline
 
-        return Pipeline(cfg, cfg.camera.width_px, cfg.camera.height_px, clock=time.perf_counter)
+        return make_pipeline(cfg, cfg.camera.width_px, cfg.camera.height_px, clock=time.perf_counter)
 
     def _spawn(self, coro: Any, name: str, critical: bool = False) -> None:
         assert self._loop is not None
@@ -591,7 +504,7 @@ class Service:
             period = 1.0 / self.config.vehicle.setpoint_rate_hz
             timeout = next_tick - self._clock()
             if timeout > 0:
-                await _wait_event(self._wake, timeout)
+                await wait_event(self._wake, timeout)
             self._wake.clear()
             now = self._clock()
             ticked = now >= next_tick
@@ -740,260 +653,6 @@ class Service:
             self._kick_health()
             return
 
-    # ================================================================================ health
-
-    def health_message(self) -> dict[str, Any]:
-        """The health message (see the README's field list)."""
-        now = self._clock()
-        latest = self._latest
-        capture = self._capture.status() if self._capture is not None else None
-        v = self.link.state() if self.link is not None else None
-        recent = [t for t in self._processed_times if now - t <= 1.0]
-        result = latest.result if latest is not None else None
-        decision = result.decision if result is not None else None
-        self._health_seq += 1
-        vehicle_link = self._vehicle_status
-        if v is not None and self._vehicle_status == "connected":
-            vehicle_link = "connected" if v.connected else "lost"
-        return {
-            "type": "health",
-            "seq": self._health_seq,
-            "time_s": now,
-            "unix_time_s": time.time(),
-            "state": self.supervisor.state.value,
-            "reason": self.supervisor.reason,
-            "engaged": self.supervisor.engaged,
-            "config_version": self.config_version,
-            "fps": float(len(recent)),
-            "frame_age_ms": (now - result.timestamp_s) * 1e3 if result is not None else None,
-            "stages_ms": dict(result.timings_ms) if result is not None else {},
-            "frame_to_setpoint_ms": {
-                "last": self._last_latency_s * 1e3 if self._last_latency_s is not None else None,
-                "median": _percentile_ms(self._latency_s, 50),
-                "p99": _percentile_ms(self._latency_s, 99),
-                "samples": len(self._latency_s),
-            },
-            "regions_m": result.refined.as_dict() if result is not None else {n: None for n in REGION_NAMES},
-            "yaw": decision.yaw if decision is not None else None,
-            "pitch": decision.pitch if decision is not None else None,
-            "decision": (
-                {
-                    "kind": decision.kind.value,
-                    "speed_fraction": decision.speed_fraction,
-                    "reason": decision.reason,
-                }
-                if decision is not None
-                else None
-            ),
-            "setpoint": _setpoint_dict(self._last_setpoint),
-            "setpoint_age_ms": (now - self._last_setpoint_s) * 1e3 if self._last_setpoint_s is not None else None,
-            "setpoints_sent": self._setpoints_sent,
-            "override": self.supervisor.override_status(now),
-            "memory": self.supervisor.memory_status(),
-            "camera": (
-                {
-                    "source": capture.source,
-                    "status": capture.state,
-                    "fps": capture.fps,
-                    "frames": capture.frames,
-                    "reconnects": capture.reconnects,
-                    "last_error": capture.last_error,
-                }
-                if capture is not None
-                else None
-            ),
-            "vehicle": {
-                "link": vehicle_link,
-                "flight_mode": v.flight_mode if v is not None else "UNKNOWN",
-                "armed": v.armed if v is not None else False,
-                "in_offboard": v.in_offboard if v is not None else False,
-                "position_ned_m": v.position_ned_m.tolist() if v is not None and v.position_ned_m is not None else None,
-                "attitude_rad": v.attitude_rad.tolist() if v is not None and v.attitude_rad is not None else None,
-                "velocity_ned_m_s": (
-                    v.velocity_ned_m_s.tolist() if v is not None and v.velocity_ned_m_s is not None else None
-                ),
-            },
-            "processed_frames": self._processed,
-            "dropped_frames": (capture.dropped if capture is not None else 0) + self._skipped_frames(),
-            "processed_twice": self._processed_twice,
-            "frame_errors": self._frame_errors,
-            "last_error": self._last_error,
-        }
-
-    def _skipped_frames(self) -> int:
-        return self._processor.skipped if self._processor is not None else 0
-
-    async def _publish_health(self) -> None:
-        if self.bus is None:
-            return
-        try:
-            await self.bus.publish(protocol.encode(self.health_message()))
-        except asyncio.CancelledError:
-            raise
-        except Exception:
-            log.exception("publishing health failed")
-
-    async def _health_loop(self) -> None:
-        assert self._health_now is not None
-        while True:
-            await _wait_event(self._health_now, 1.0 / self.config.bus.health_rate_hz)
-            self._health_now.clear()
-            await self._publish_health()
-
-    # ================================================================================ control plane
-
-    async def _control_server(self) -> None:
-        import zmq
-
-        assert self.bus is not None and self.bus.control is not None
-        sock = self.bus.control
-        while True:
-            frames = await sock.recv_multipart()
-            reply = await self.handle_frames(frames)
-            if reply is None:
-                continue
-            try:
-                await sock.send_multipart(reply)
-            except zmq.ZMQError as err:  # the client went away before its reply: nothing to do
-                log.debug("control reply not delivered: %s", err)
-
-    async def handle_frames(self, frames: list[bytes]) -> list[bytes] | None:
-        """One ROUTER message in, one reply out (the envelope mirrored). Never raises."""
-        if len(frames) < 2:
-            return None  # no identity and payload: nothing we could reply to
-        identity, rest = frames[0], frames[1:]
-        if len(rest) >= 2 and rest[0] == b"":
-            envelope, parts = [identity, b""], rest[1:]  # REQ client
-        else:
-            envelope, parts = [identity], rest  # DEALER client
-        if len(parts) != 1:
-            message = protocol.error_reply(
-                None, None, "ProtocolError", f"expected one JSON frame after the envelope, got {len(parts)} frames"
-            )
-        else:
-            message = await self.handle_raw(parts[0])
-        return envelope + [protocol.encode(message)]
-
-    async def handle_raw(self, raw: bytes) -> dict[str, Any]:
-        """One request's bytes -> the reply object. Never raises (errors become error replies)."""
-        cmd = rid = None
-        try:
-            request = protocol.parse_request(raw, self._request_adapter(), self.config.bus.max_request_bytes)
-            cmd, rid = request.cmd, request.id
-            result = await self.handle_request(request)
-            return protocol.ok_reply(cmd, rid, result)
-        except ProtocolError as err:
-            cmd = cmd or err.context.get("cmd")
-            rid = rid if rid is not None else err.context.get("id")
-            log.info("bad request: %s", err)
-            return protocol.error_reply(cmd, rid, "ProtocolError", str(err))
-        except CompanionError as err:
-            log.info("%s request failed: %s", cmd, err)
-            return protocol.error_reply(cmd, rid, type(err).__name__, str(err))
-        except asyncio.CancelledError:
-            raise
-        except Exception as err:
-            log.exception("request %s failed", cmd)
-            self._error(f"internal error handling {cmd}: {type(err).__name__}: {err}")
-            return protocol.error_reply(cmd, rid, "InternalError", f"{type(err).__name__}: {err}")
-
-    def _request_adapter(self) -> Any:
-        adapter = getattr(self, "_adapter", None)
-        if adapter is None:
-            adapter = self._adapter = protocol.request_adapter()
-        return adapter
-
-    async def handle_request(self, request: Any) -> dict[str, Any]:
-        """Carry out one validated request; returns the reply's result, raises CompanionError."""
-        cmd = request.cmd
-        if cmd == "ping":
-            return {"pong": True, "time_s": self._clock(), "state": self.supervisor.state.value}
-        if cmd == "status":
-            return self.health_message()
-        if cmd == "get_config":
-            data = self.config.model_dump(mode="json")
-            if request.section is None:
-                return {"config": data, "config_version": self.config_version, "path": str(self.config_path or "")}
-            if request.section not in data:
-                raise ProtocolError(
-                    f"get_config: no section {request.section!r}; sections are {', '.join(data)}"
-                )
-            return {"section": request.section, "config": data[request.section], "config_version": self.config_version}
-        if cmd == "set_config":
-            new = apply_patch(self.config, request.patch)
-            return await self.apply_config(new, "set_config")
-        if cmd == "reload":
-            return await self.reload()
-        supervisor_request = {
-            "engage": Engage,
-            "disengage": Disengage,
-            "pause": Pause,
-            "resume": Resume,
-        }.get(cmd)
-        if supervisor_request is not None:
-            return await self._supervise(supervisor_request())
-        if cmd == "override":
-            return await self._supervise(
-                Override(yaw=request.yaw, pitch=request.pitch, speed_fraction=request.speed, duration_s=request.duration_s)
-            )
-        raise ProtocolError(f"unknown cmd {cmd!r}")
-
-    async def _supervise(self, request: Any) -> dict[str, Any]:
-        fut = self._submit(request)
-        assert fut is not None
-        try:
-            reply: Reply = await asyncio.wait_for(fut, 2.0)
-        except asyncio.TimeoutError:
-            raise RequestRefused(f"{type(request).__name__.lower()}: the control loop did not answer within 2 s") from None
-        if not reply.ok:
-            raise RequestRefused(reply.message)
-        return {"message": reply.message, "state": self.supervisor.state.value, "reason": self.supervisor.reason}
-
-    async def reload(self) -> dict[str, Any]:
-        """Re-read the config file and apply it (validated whole first)."""
-        if self.config_path is None:
-            raise ConfigError("reload: the service was started without --config; there is no file to read")
-        new = load_config(self.config_path)
-        new = resolve_config_paths(new, self.config_path.parent)
-        return await self.apply_config(new, f"reload of {self.config_path}")
-
-    async def apply_config(self, new: CompanionConfig, source: str) -> dict[str, Any]:
-        """Swap in a validated config: build first (in the pipeline thread), swap only on success.
-
-        Fields that need a restart are reported in ``restart_required`` and not applied.
-        """
-        assert self._config_lock is not None
-        async with self._config_lock:
-            current = self.config
-            later = restart_required(current, new)
-            applied = keep_restart_fields(current, new)
-            changed = [name for name in type(applied).model_fields if getattr(applied, name) != getattr(current, name)]
-            if self._pipeline is not None and self._processor is not None:
-                try:
-                    # In the pipeline thread, between two frames: never racing one.
-                    await asyncio.wrap_future(self._processor.submit(self._reconfigure_pipeline, applied))
-                except CompanionError as err:
-                    raise ConfigError(f"{source}: rejected, the old config stays: {err}") from None
-                except Exception as err:
-                    log.exception("%s: building the new pipeline failed", source)
-                    raise ConfigError(
-                        f"{source}: rejected, the old config stays: {type(err).__name__}: {err}"
-                    ) from None
-            self.supervisor.reconfigure(SupervisorConfig.from_config(applied))
-            if self._telemetry_pose is not None:
-                from companion.service.camera import placement_from_config
-
-                self._telemetry_pose.placement = placement_from_config(applied)  # one reference swap
-            if self._processor is not None:
-                self._processor.skip_late_frames = applied.service.skip_late_frames
-            self.config = applied
-            if changed:
-                self.config_version += 1
-            if later:
-                log.warning("%s: %s need a restart to take effect", source, ", ".join(later))
-            log.info("%s applied (changed: %s)", source, ", ".join(changed) or "nothing")
-            self._kick_health()
-            return {"changed": changed, "restart_required": later, "config_version": self.config_version}
 
 
 def _force_exit(signum: int, frame: Any) -> None:

@@ -15,7 +15,7 @@ from collections.abc import Callable
 import numpy as np
 
 from companion.core.geometry import StereoGeometry
-from companion.core.render import Photometry, Pose, Scene, StereoRenderer, TextureBank
+from companion.sim.render import Photometry, Pose, Scene, StereoRenderer, TextureBank
 from companion.errors import CameraError
 from companion.interfaces import Frame
 

@@ -1,6 +1,6 @@
 """Procedural, seeded obstacle courses: the worlds the simulator flies the pipeline through.
 
-Every course is a :class:`Course`: a :class:`~companion.core.render.Scene` (textured boxes and pillars
+Every course is a :class:`Course`: a :class:`~companion.sim.render.Scene` (textured boxes and pillars
 on a textured ground, closed by a textured backdrop; the geometry is the ground truth for collisions
 and clearance), a start pose, a goal region, bounds, a time limit and whether holding safely counts
 as a success. Course ``kind`` + ``seed`` determine everything (same pair, same course).
@@ -33,7 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from companion.core.render import Box, Obstacle, Pillar, Pose, Scene
+from companion.sim.render import Box, Obstacle, Pillar, Pose, Scene
 from companion.errors import InputError
 
 #: Course kinds, in the order the suite and the tables list them.

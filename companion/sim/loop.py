@@ -46,8 +46,9 @@ from companion.core.command import (
     setpoint_for,
 )
 from companion.core.memory import ObstacleMemory, camera_points_to_ned
+from companion.backends import make_pipeline
 from companion.core.pipeline import FrameResult, Pipeline
-from companion.core.render import Pose, TextureBank
+from companion.sim.render import Pose, TextureBank
 from companion.core.types import ZERO_SETPOINT, DecisionKind
 from companion.errors import CameraError
 from companion.interfaces import Frame
@@ -264,7 +265,7 @@ def fly(
     wall0 = clock()
     cfg = simulator_config(cfg)
     sim, cmd = cfg.sim, cfg.command
-    pipeline = Pipeline(cfg, sim.eye_width_px, sim.eye_height_px)
+    pipeline = make_pipeline(cfg, sim.eye_width_px, sim.eye_height_px)
     params = VehicleParams.from_config(sim)
     vehicle = SimVehicle(params, course.start, seed=course.seed)
     camera = make_camera(course, cfg, vehicle, pipeline, textures, camera_fail_after_s)

@@ -16,7 +16,7 @@ import math
 import cv2
 import numpy as np
 
-from companion.core.render import Box, Obstacle
+from companion.sim.render import Box, Obstacle
 from companion.sim.loop import FlightResult, LogKind
 from companion.sim.scoring import Outcome
 

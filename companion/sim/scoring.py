@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from companion.core.render import Box, Pillar, Scene
+from companion.sim.render import Box, Pillar, Scene
 
 if TYPE_CHECKING:
     from companion.sim.courses import Course

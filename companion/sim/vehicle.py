@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from companion.core.render import Pose
+from companion.sim.render import Pose
 from companion.core.types import ZERO_SETPOINT, VelocitySetpoint
 from companion.errors import VehicleError
 from companion.interfaces import VehicleState

@@ -249,7 +249,7 @@ def avoid_scene_camera(fps_hz: float = 15.0, width_px: int = 672, height_px: int
     """A sim camera (ideal 90-degree rig, as the default calibration) 1.5 m from a wall on the
     left-front: the default controller avoids to the right (AVOID, yaw about +0.4)."""
     from companion.core.geometry import StereoGeometry
-    from companion.core.render import Box, Pose, Scene
+    from companion.sim.render import Box, Pose, Scene
     from companion.service.camera import SimCamera
 
     geometry = StereoGeometry.ideal(width_px, height_px, hfov_deg=90.0, baseline_m=0.12)
@@ -264,12 +264,12 @@ def avoid_scene_camera(fps_hz: float = 15.0, width_px: int = 672, height_px: int
 def expected_result(cfg: CompanionConfig, camera):
     """What the pipeline decides for the (fixed) frame of ``camera``: (FrameResult, setpoint)."""
     from companion.core.command import setpoint_for
-    from companion.core.pipeline import Pipeline
+    from companion.backends import make_pipeline
 
     camera.open()
     frame = camera.read()
     w, h = camera.eye_size_px
-    result = Pipeline(cfg, w, h).process(frame.image, 0.0)
+    result = make_pipeline(cfg, w, h).process(frame.image, 0.0)
     return result, setpoint_for(result.decision, 0.0, cfg.command)
 
 

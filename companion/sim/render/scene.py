@@ -14,7 +14,7 @@ from typing import Union
 
 import numpy as np
 
-from companion.core.render.pose import _finite3
+from companion.core.pose import _finite3
 
 
 def _as_points(points_ned_m: np.ndarray | Iterable[float]) -> tuple[np.ndarray, bool]:

@@ -34,10 +34,10 @@ import cv2
 import numpy as np
 
 from companion.core.geometry import StereoGeometry
-from companion.core.render.faces import FaceArrays, scene_faces
-from companion.core.render.pose import CAMERA_TO_BODY, Pose, _finite3
-from companion.core.render.scene import Scene, corridor_scene
-from companion.core.render.texture import Material, TextureBank
+from companion.sim.render.faces import FaceArrays, scene_faces
+from companion.core.pose import CAMERA_TO_BODY, Pose, _finite3
+from companion.sim.render.scene import Scene, corridor_scene
+from companion.sim.render.texture import Material, TextureBank
 
 #: Extra pixels around the image inside the clip frustum: keeps clipped edges off the image.
 _GUARD_PX = 4.0

@@ -7,8 +7,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from companion.core.render.scene import Box, Pillar, Scene
-from companion.core.render.texture import Material
+from companion.sim.render.scene import Box, Pillar, Scene
+from companion.sim.render.texture import Material
 
 
 @dataclass(frozen=True)

@@ -3,21 +3,21 @@ pairs with the left eye's ground-truth depth. Pure core (NumPy/OpenCV only).
 
 Public API::
 
-    from companion.core.render import StereoRenderer, Scene, Box, Pillar, Pose
+    from companion.sim.render import StereoRenderer, Scene, Box, Pillar, Pose
 """
 
 from __future__ import annotations
 
-from companion.core.render.pose import CAMERA_TO_BODY, Pose
-from companion.core.render.renderer import (
+from companion.core.pose import CAMERA_TO_BODY, Pose
+from companion.sim.render.renderer import (
     Photometry,
     RenderResult,
     StereoRenderer,
     bench_render,
     bench_scene,
 )
-from companion.core.render.scene import Box, Obstacle, Pillar, Scene, corridor_scene
-from companion.core.render.texture import Material, TextureBank
+from companion.sim.render.scene import Box, Obstacle, Pillar, Scene, corridor_scene
+from companion.sim.render.texture import Material, TextureBank
 
 __all__ = [
     "CAMERA_TO_BODY",

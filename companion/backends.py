@@ -1,0 +1,110 @@
+"""The disparity backends, in one place: a backend name -> the factory of its region estimator.
+
+The core (:mod:`companion.core`) defines the estimator contract and the CPU implementation and never
+imports a backend; the GPU backend (:mod:`companion.gpu`) depends on the core, not the other way round.
+This module plugs them together: :data:`BACKENDS` maps each ``stereo.backend`` name to a
+:class:`Backend`, :func:`make_estimator` builds the one a config asks for, and :func:`make_pipeline`
+builds a :class:`~companion.core.pipeline.Pipeline` that rebuilds its estimator through the same
+registry when the config changes. A new backend is one entry here.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import logging
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from types import MappingProxyType
+
+from companion.config import CompanionConfig
+from companion.core.estimator import Clock, CpuRegionEstimator, RegionEstimator
+from companion.core.pipeline import Pipeline
+from companion.errors import BackendError
+
+log = logging.getLogger(__name__)
+
+
+def cuda_available() -> bool:
+    """True when CuPy imports and sees at least one CUDA device."""
+    if importlib.util.find_spec("cupy") is None:
+        return False
+    try:
+        import cupy
+
+        return cupy.cuda.runtime.getDeviceCount() > 0
+    except Exception as err:  # CuPy raises several types when the driver or runtime is missing
+        log.debug("CuPy present but no usable CUDA device: %s", err)
+        return False
+
+
+def _cpu(cfg: CompanionConfig, width_px: int, height_px: int, clock: Clock) -> RegionEstimator:
+    return CpuRegionEstimator(cfg, width_px, height_px, clock=clock)
+
+
+def _cupy(cfg: CompanionConfig, width_px: int, height_px: int, clock: Clock) -> RegionEstimator:
+    if not cuda_available():
+        raise BackendError("stereo.backend = 'cupy' but no CUDA device with CuPy is available; use 'auto'")
+    from companion.gpu import CupyRegionEstimator  # imported only when asked for: CuPy is optional
+
+    return CupyRegionEstimator(cfg, width_px, height_px, clock=clock)
+
+
+@dataclass(frozen=True)
+class Backend:
+    """One ``stereo.backend``.
+
+    Attributes:
+        name: the config value.
+        factory: builds its estimator: ``factory(cfg, width_px, height_px, clock)``.
+        needs_gpu: True when it needs CuPy and a CUDA device.
+    """
+
+    name: str
+    factory: Callable[[CompanionConfig, int, int, Clock], RegionEstimator]
+    needs_gpu: bool = False
+
+
+#: Every concrete backend by name (``auto`` is resolved by :func:`resolve_backend`, not listed).
+BACKENDS: Mapping[str, Backend] = MappingProxyType(
+    {
+        "opencv-bm": Backend("opencv-bm", _cpu),
+        "opencv-sgbm": Backend("opencv-sgbm", _cpu),
+        "reference": Backend("reference", _cpu),
+        "cupy": Backend("cupy", _cupy, needs_gpu=True),
+    }
+)
+
+
+def resolve_backend(cfg: CompanionConfig) -> str:
+    """The backend ``cfg.stereo.backend`` means on this machine ("auto" → cupy or opencv-bm)."""
+    backend = cfg.stereo.backend
+    if backend == "auto":
+        return "cupy" if cuda_available() else "opencv-bm"
+    return backend
+
+
+def make_estimator(
+    cfg: CompanionConfig, width_px: int, height_px: int, clock: Clock = time.perf_counter
+) -> RegionEstimator:
+    """Build the estimator the config asks for (``auto``: CuPy when a CUDA device is present).
+
+    Raises:
+        BackendError: ``cupy`` requested on a machine without a usable CUDA device.
+    """
+    name = resolve_backend(cfg)
+    if name != cfg.stereo.backend:
+        cfg = cfg.model_copy(update={"stereo": cfg.stereo.model_copy(update={"backend": name})})
+    return BACKENDS[name].factory(cfg, width_px, height_px, clock)
+
+
+def make_pipeline(
+    cfg: CompanionConfig,
+    width_px: int,
+    height_px: int,
+    estimator: RegionEstimator | None = None,
+    clock: Clock = time.perf_counter,
+) -> Pipeline:
+    """A :class:`~companion.core.pipeline.Pipeline` whose estimator (built now, and again when a config
+    change needs a new one) comes from :func:`make_estimator`; ``estimator`` replaces the first one."""
+    return Pipeline(cfg, width_px, height_px, make_estimator=make_estimator, estimator=estimator, clock=clock)

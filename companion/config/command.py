@@ -1,0 +1,228 @@
+"""Config of decision -> velocity setpoint: speeds, rates, course hold, brake hold, watchdog (``[command]``)."""
+
+from __future__ import annotations
+
+from pydantic import Field, model_validator
+
+from companion.config._base import StrictModel
+from companion.config.regions import RegionName
+
+
+class CommandConfig(StrictModel):
+    """How a decision becomes a body-frame velocity setpoint, and when frames are too old to trust."""
+
+    cruise_speed_m_s: float = Field(
+        default=0.7,
+        ge=0.0,
+        le=15.0,
+        description=(
+            "Forward speed when the way is clear, m/s (paper: constant). With PX4's default velocity "
+            "response (~0.85 s lag) 1 m/s collided in the simulator and in PX4 SITL where 0.7 did not; "
+            "raise it only on a vehicle tuned to respond faster."
+        ),
+    )
+    avoid_speed_fraction: float = Field(
+        default=0.1,
+        ge=0.0,
+        le=1.0,
+        description=(
+            "Forward speed while the centre is fully near, as a share of the cruise speed, blended "
+            "linearly with the centre's near degree. 1 = the paper's constant speed; simulator-tuned "
+            "0.1 leaves time to turn before the obstacle."
+        ),
+    )
+    avoid_speed_regions: list[RegionName] = Field(
+        default=[],
+        max_length=9,
+        description=(
+            "Regions whose 'near' degree also slows the vehicle (the largest of them and the centre's "
+            "drives the avoid_speed_fraction blend); [] = the centre only (the default). "
+            "[\"left\", \"right\"] slows while a box passes beside the vehicle: in the simulator it "
+            "raised the clearances but cost goals (timeouts in corridors), and in PX4 SITL it did not "
+            "stop a flank clip; see docs/benchmarks.md."
+        ),
+    )
+    max_yaw_rate_deg_s: float = Field(
+        default=90.0,
+        ge=0.0,
+        le=360.0,
+        description=(
+            "Yaw rate commanded at fuzzy yaw ±1, deg/s (the default output terms defuzzify to at most "
+            "±0.63, so 90 gives up to 57 deg/s)."
+        ),
+    )
+    max_vertical_speed_m_s: float = Field(
+        default=0.8, ge=0.0, le=5.0, description="Vertical speed commanded at fuzzy pitch ±1, m/s."
+    )
+    stale_frame_timeout_s: float = Field(
+        default=0.5,
+        gt=0.0,
+        le=10.0,
+        description="A newest frame older than this gives a zero-velocity setpoint (state degraded), seconds.",
+    )
+    failsafe_timeout_s: float = Field(
+        default=5.0,
+        gt=0.0,
+        le=120.0,
+        description="A newest frame older than this makes the service leave offboard to Hold (state failsafe), seconds.",
+    )
+    # Course hold (goal seeking). Not in the paper, whose controller only avoids: a vehicle that yawed
+    # away never came back. Applies only when the caller passes the errors to setpoint_for.
+    heading_hold_gain_per_s: float = Field(
+        default=0.8,
+        ge=0.0,
+        le=10.0,
+        description=(
+            "Course hold: on a CLEAR decision, yaw back toward the heading at engagement at this rate "
+            "per radian of heading error, 1/s (0 = off: the paper's behaviour)."
+        ),
+    )
+    max_heading_hold_rate_deg_s: float = Field(
+        default=20.0, ge=0.0, le=360.0, description="Course hold: largest yaw rate it commands, deg/s."
+    )
+    turn_back_angle_deg: float = Field(
+        default=100.0,
+        ge=0.0,
+        le=180.0,
+        description=(
+            "Course hold, turning back: facing more than this many degrees away from the heading course "
+            "hold aims at (line included), on a CLEAR decision past hold_resume_delay_s, the vehicle "
+            "stops going forward and turns toward the course in place at max_heading_hold_rate_deg_s, "
+            "whatever its side regions read (a turn in place moves it toward nothing, and the obstacle "
+            "memory guards its flanks); 180 = off. Without it a vehicle that had turned around in a "
+            "corridor (PX4 SITL, corridor-0) flew back out of it: the walls beside it read nearer than "
+            "hold_clear_depth_m, so course hold never turned it."
+        ),
+    )
+    line_hold_gain_per_m: float = Field(
+        default=0.5,
+        ge=0.0,
+        le=10.0,
+        description=(
+            "Course hold, line: also steer back to the line through the engagement point along the "
+            "engagement heading: the heading aimed at turns toward the line by atan(this × cross-track "
+            "distance), per metre (0 = off: hold the heading only, and drift sideways with the "
+            "autopilot's heading-estimate error)."
+        ),
+    )
+    max_line_hold_angle_deg: float = Field(
+        default=30.0, ge=0.0, le=89.0, description="Course hold, line: the largest turn toward the line, degrees."
+    )
+    line_hold_lateral_gain_per_s: float = Field(
+        default=1.0,
+        ge=0.0,
+        le=10.0,
+        description=(
+            "Course hold, line, sideways: also fly sideways back toward the line at this speed per metre "
+            "of cross-track distance, 1/s (0 = off: the paper never flies sideways). Turning back takes "
+            "seconds; a multicopter that drifts sideways (wind, or PX4 SITL's ~0.2 m/s velocity-estimate "
+            "error) is brought back at once, and the camera keeps looking ahead."
+        ),
+    )
+    max_line_hold_lateral_speed_m_s: float = Field(
+        default=0.3, ge=0.0, le=2.0, description="Course hold, line, sideways: the largest sideways speed it commands, m/s."
+    )
+    line_hold_lateral_clear_depth_m: float = Field(
+        default=1.0,
+        ge=0.0,
+        le=50.0,
+        description=(
+            "Course hold, line, sideways: only toward a side whose region (left, right) is at least this "
+            "deep, metres; unknown blocks it. Nearer than hold_clear_depth_m, because a slow sideways "
+            "step is not a turn toward the side: approaching a wall with a doorway, both sides read the "
+            "wall ~2 m ahead and the vehicle must still line up with the gap."
+        ),
+    )
+    altitude_hold_gain_per_s: float = Field(
+        default=0.5,
+        ge=0.0,
+        le=10.0,
+        description=(
+            "Course hold: on a CLEAR decision, climb or descend back toward the altitude at engagement "
+            "at this speed per metre of altitude error, 1/s (0 = off)."
+        ),
+    )
+    max_altitude_hold_speed_m_s: float = Field(
+        default=0.3, ge=0.0, le=5.0, description="Course hold: largest vertical speed it commands, m/s."
+    )
+    hold_resume_delay_s: float = Field(
+        default=1.5,
+        ge=0.0,
+        le=60.0,
+        description=(
+            "Course hold resumes only after the decisions have been CLEAR and straight this long, "
+            "seconds: an obstacle just passed is beside or below the vehicle, out of the camera's view. "
+            "The heading part (and turning back) counts decisions that do not turn, the altitude part "
+            "ones that neither turn nor climb (a slight climb away from the ground must not keep a "
+            "vehicle facing away from its course from turning back)."
+        ),
+    )
+    hold_resume_distance_m: float = Field(
+        default=1.5,
+        ge=0.0,
+        le=50.0,
+        description=(
+            "Overhead memory, metres (0 = off): no climb at all (by a rule or by course hold) until the "
+            "vehicle has flown this far (horizontally) since the up region last read nearer than "
+            "hold_clear_depth_m, and course hold's altitude part also waits this far after the "
+            "decisions turned CLEAR and straight. The camera cannot see straight up: under a block, "
+            "rules that climb away from the ground (and a hold that waited only for a time) flew the "
+            "vehicle into the block's rear edge (simulator and PX4 SITL)."
+        ),
+    )
+    brake_hold_gain_per_s: float = Field(
+        default=1.0,
+        ge=0.0,
+        le=10.0,
+        description=(
+            "Brake position and heading hold: while braking, command a velocity back to where the brake "
+            "began, this gain times the distance, and a yaw rate back to the heading it began with, this "
+            "gain times the angle (capped at max_heading_hold_rate_deg_s), per second (0 = plain zero "
+            "velocity and yaw rate). Zero velocity lets a real multicopter drift with its "
+            "velocity-estimate error (PX4 SITL: into the obstacle within 20 s), and PX4 keeps turning "
+            "~0.4 s after a zero yaw rate, which can open a false escape; holding both does not."
+        ),
+    )
+    brake_hold_max_speed_m_s: float = Field(
+        default=0.3, ge=0.0, le=2.0, description="Brake position hold: the largest speed it commands, m/s."
+    )
+    no_progress_timeout_s: float = Field(
+        default=20.0,
+        ge=0.0,
+        le=600.0,
+        description=(
+            "Progress watchdog, seconds (0 = off): engaged with course hold, when the vehicle has not got "
+            "progress_step_m farther along the course (the line from where it was engaged, along the "
+            "heading it had then) for this long, the service stops trying: it holds position (as a "
+            "brake does), its state becomes paused with the reason, and it waits for the pilot (resume "
+            "tries again, or take over). A vehicle circling in front of an obstacle it cannot get past, "
+            "or following a wall away from the only opening, only spends battery near obstacles."
+        ),
+    )
+    progress_step_m: float = Field(
+        default=1.0,
+        gt=0.0,
+        le=50.0,
+        description=(
+            "Progress watchdog: how much farther along the course (metres) counts as progress and "
+            "restarts no_progress_timeout_s."
+        ),
+    )
+    hold_clear_depth_m: float = Field(
+        default=2.25,
+        ge=0.0,
+        le=50.0,
+        description=(
+            "Course hold turns (climbs, descends) toward a side only while that side's region (left, "
+            "right, up, down) is at least this deep, metres; unknown blocks it."
+        ),
+    )
+
+    @model_validator(mode="after")
+    def _order(self) -> CommandConfig:
+        if self.failsafe_timeout_s <= self.stale_frame_timeout_s:
+            raise ValueError(
+                f"failsafe_timeout_s ({self.failsafe_timeout_s}) must exceed stale_frame_timeout_s "
+                f"({self.stale_frame_timeout_s})"
+            )
+        return self

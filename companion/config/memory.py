@@ -1,0 +1,198 @@
+"""Config of the obstacle memory and the out-of-view guard (``[memory]``)."""
+
+from __future__ import annotations
+
+from pydantic import Field, field_validator
+
+from companion.config._base import StrictModel
+
+
+class MemoryConfig(StrictModel):
+    """Obstacle memory: what the camera saw near, kept for a few seconds in the local (NED) frame, so
+    that an obstacle the vehicle turned away from or flew past still keeps it away. The camera sees
+    only ahead (ZED: ~±44°), and a multicopter drifts with its position estimate's error (PX4 SITL:
+    ~0.2 m/s), sideways into what it no longer sees. Not in the paper."""
+
+    duration_s: float = Field(
+        default=30.0,
+        ge=0.0,
+        le=300.0,
+        description=(
+            "How long a point seen near is remembered after it was last seen, seconds; 0 = off (the "
+            "paper). Long enough to outlast a brake, a hold or a turn in place in a dead end (an "
+            "obstacle beside the vehicle is out of view the whole time: 17 s in one simulated dead "
+            "end), short because the memory lives in the vehicle's position estimate, which drifts "
+            "against the world."
+        ),
+    )
+    max_depth_m: float = Field(
+        default=2.5,
+        gt=0.0,
+        le=10.0,
+        description=(
+            "Only cells nearer than this are remembered, metres. Far enough that a wall 1 m to the "
+            "side is remembered: the leftmost num_disparities columns are never matched, so a side "
+            "wall first shows at ~32° off the heading, 1.6 times its lateral distance ahead."
+        ),
+    )
+    grid_rows: int = Field(default=6, ge=1, le=64, description="Rows of the image's memory cells.")
+    grid_cols: int = Field(
+        default=24,
+        ge=1,
+        le=128,
+        description=(
+            "Columns of the image's memory cells: each cell gives at most one remembered point per "
+            "frame, at its robust nearest depth, on the ray of the block that depth came from."
+        ),
+    )
+    block_px: int = Field(
+        default=4,
+        ge=1,
+        le=16,
+        description=(
+            "The disparity image is first reduced to the largest valid disparity of each block of this "
+            "many pixels square (the GPU does this on the device: it must be a multiple of "
+            "gpu.disparity_preview_downsample there), then cells are reduced from blocks."
+        ),
+    )
+    robust_percentile_pct: float = Field(
+        default=25.0,
+        ge=0.0,
+        le=100.0,
+        description=(
+            "A cell's disparity is the k-th largest of its blocks' with k = max(1, ceil(pct/100 · "
+            "valid blocks)): something near must fill this share of a cell to be remembered. Each "
+            "block is already its nearest pixel, so a small patch of false matches fills many blocks; "
+            "at 5 % a weak-texture patch matched wrong for 2 frames of 3 was remembered and pushed a "
+            "simulated vehicle into a pillar."
+        ),
+    )
+    min_valid_fraction: float = Field(
+        default=0.1,
+        ge=0.0,
+        le=1.0,
+        description=(
+            "A cell with fewer valid blocks than this fraction gives no point (unknown ahead is the "
+            "regions' business: the controller treats it as near)."
+        ),
+    )
+    confirm_frames: int = Field(
+        default=3,
+        ge=1,
+        le=9,
+        description=(
+            "A cell's depth is the median of its last this many frames, odd, a cell seen nothing in "
+            "counting as far: a false match that lasts one frame is not remembered."
+        ),
+    )
+    guard_distance_m: float = Field(
+        default=0.6,
+        gt=0.0,
+        le=5.0,
+        description=(
+            "A remembered point out of the camera's view (or nearer than it can see) this near to the "
+            "vehicle's centre, horizontally, pushes the vehicle away (and stops its motion toward it when "
+            "on its path, keep_out_m), metres. Default: the 0.25 m vehicle plus 0.35 m, below the 0.66 m a centred vehicle has "
+            "to either side of a 0.82 m doorway gap."
+        ),
+    )
+    keep_out_m: float = Field(
+        default=0.35,
+        gt=0.0,
+        le=5.0,
+        description=(
+            "A guarding point within this of the path ahead (the line of the commanded velocity) stops "
+            "the motion toward it, metres: the 0.25 m vehicle plus 0.1 m. Points farther from the path "
+            "only push, so that passing between two pillars is not stalled."
+        ),
+    )
+    guard_gain_per_s: float = Field(
+        default=1.5,
+        ge=0.0,
+        le=10.0,
+        description=(
+            "The push away: this gain times how far inside guard_distance_m the point is, per second "
+            "(m/s per metre); 0 = only stop the motion toward it."
+        ),
+    )
+    max_guard_speed_m_s: float = Field(
+        default=0.5, ge=0.0, le=2.0, description="The largest speed the push commands, m/s."
+    )
+    counter_velocity_fraction: float = Field(
+        default=0.5,
+        ge=0.0,
+        le=2.0,
+        description=(
+            "While the vehicle is still moving toward a guarding point on the path it actually flies "
+            "(its velocity lags the setpoint: ~0.85 s with PX4), the setpoint moves away from it at "
+            "this fraction of that closing speed (with the push, at most max_guard_speed_m_s), so the "
+            "lag does not carry it in (0 = only stop commanding toward it). Dimensionless. Default 0.5: "
+            "with PX4 SITL the vehicle pushed off one jamb of a 1.1-1.3 m doorway slid on into the "
+            "other (2 collisions in 14 doorway flights at 0, none in 18 at 0.5); 1 shoves the vehicle "
+            "sideways, where the camera does not see either (a kinematic collision)."
+        ),
+    )
+    hold_clear_m: float = Field(
+        default=1.0,
+        ge=0.0,
+        le=5.0,
+        description=(
+            "Course hold neither turns nor slides toward a side with a remembered point within this "
+            "of the vehicle, horizontally, and not more than keep_out_m behind it, metres (0 = off): "
+            "an obstacle just passed is beside it, out of view (PX4 SITL: turning back toward the "
+            "line right after a box, the vehicle swung into the box's rear corner)."
+        ),
+    )
+    gap_centering_gain_per_s: float = Field(
+        default=0.0,
+        ge=0.0,
+        le=10.0,
+        description=(
+            "Gap centering: with remembered points on both sides of the vehicle, abreast or up to "
+            "gap_lookahead_m ahead, less than gap_max_width_m apart sideways (a doorway, two pillars), "
+            "a CLEAR decision flies sideways toward the middle between the nearest of each side at "
+            "this speed per metre off it, 1/s, instead of the line hold's sideways step (0 = off). "
+            "Off by default: at 1 it raised PX4 SITL's doorway clearances from 0.01-0.08 m to "
+            "0.10-0.25 m, but a false near point in the memory made a false gap, and with the guard's "
+            "push away from the same point it slid a forest flight into a pillar (1 collision in 27 "
+            "flights); the kinematic suite gave 100 % with and without drift."
+        ),
+    )
+    max_gap_centering_speed_m_s: float = Field(
+        default=0.3, ge=0.0, le=2.0, description="Gap centering: the largest sideways speed it commands, m/s."
+    )
+    gap_max_width_m: float = Field(
+        default=2.0,
+        gt=0.0,
+        le=10.0,
+        description=(
+            "Gap centering: only a gap narrower than this (sideways, between the nearest remembered "
+            "points left and right) is centred in, metres; wider ones leave room for course hold."
+        ),
+    )
+    gap_lookahead_m: float = Field(
+        default=1.5,
+        gt=0.0,
+        le=10.0,
+        description=(
+            "Gap centering: points up to this far ahead of the vehicle (and abreast, down to keep_out_m "
+            "behind) count as its sides, metres: far enough to line up with a doorway before its "
+            "jambs leave the view, near enough not to centre on what lies beyond a turn."
+        ),
+    )
+    height_band_m: float = Field(
+        default=0.4,
+        gt=0.0,
+        le=5.0,
+        description=(
+            "Only points within this much of the vehicle's altitude guard it, metres (the ground and "
+            "what is overhead are the regions' business)."
+        ),
+    )
+
+    @field_validator("confirm_frames")
+    @classmethod
+    def _odd_confirm(cls, v: int) -> int:
+        if v % 2 == 0:
+            raise ValueError(f"confirm_frames must be odd, got {v}")
+        return v

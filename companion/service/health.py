@@ -1,0 +1,142 @@
+"""The service's health concern: the health message (see docs/service.md for its fields) and its publisher.
+
+:class:`HealthReporter` is a part of :class:`~companion.service.daemon.Service` (a mixin): it reads the
+counters and state the daemon keeps (frames processed, latencies, the last setpoint, the supervisor, the
+capture thread and the vehicle link) and publishes the message on the bus at ``bus.health_rate_hz`` and
+on every state change. It runs on the service's event loop and never commands anything.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import logging
+import time
+from typing import Any
+
+import numpy as np
+
+from companion.core.types import REGION_NAMES, VelocitySetpoint
+from companion.service import protocol
+from companion.service.aio import wait_event
+
+log = logging.getLogger(__name__)
+
+
+def _percentile_ms(values: collections.deque, q: float) -> float | None:
+    if not values:
+        return None
+    return float(np.percentile(np.fromiter(values, np.float64), q)) * 1e3
+
+
+def _setpoint_dict(sp: VelocitySetpoint | None) -> dict[str, float] | None:
+    if sp is None:
+        return None
+    return {
+        "forward_m_s": sp.forward_m_s,
+        "right_m_s": sp.right_m_s,
+        "down_m_s": sp.down_m_s,
+        "yaw_rate_deg_s": sp.yaw_rate_deg_s,
+    }
+
+
+class HealthReporter:
+    """The health part of the service (mixed into :class:`~companion.service.daemon.Service`)."""
+
+    def health_message(self) -> dict[str, Any]:
+        """The health message (see the README's field list)."""
+        now = self._clock()
+        latest = self._latest
+        capture = self._capture.status() if self._capture is not None else None
+        v = self.link.state() if self.link is not None else None
+        recent = [t for t in self._processed_times if now - t <= 1.0]
+        result = latest.result if latest is not None else None
+        decision = result.decision if result is not None else None
+        self._health_seq += 1
+        vehicle_link = self._vehicle_status
+        if v is not None and self._vehicle_status == "connected":
+            vehicle_link = "connected" if v.connected else "lost"
+        return {
+            "type": "health",
+            "seq": self._health_seq,
+            "time_s": now,
+            "unix_time_s": time.time(),
+            "state": self.supervisor.state.value,
+            "reason": self.supervisor.reason,
+            "engaged": self.supervisor.engaged,
+            "config_version": self.config_version,
+            "fps": float(len(recent)),
+            "frame_age_ms": (now - result.timestamp_s) * 1e3 if result is not None else None,
+            "stages_ms": dict(result.timings_ms) if result is not None else {},
+            "frame_to_setpoint_ms": {
+                "last": self._last_latency_s * 1e3 if self._last_latency_s is not None else None,
+                "median": _percentile_ms(self._latency_s, 50),
+                "p99": _percentile_ms(self._latency_s, 99),
+                "samples": len(self._latency_s),
+            },
+            "regions_m": result.refined.as_dict() if result is not None else {n: None for n in REGION_NAMES},
+            "yaw": decision.yaw if decision is not None else None,
+            "pitch": decision.pitch if decision is not None else None,
+            "decision": (
+                {
+                    "kind": decision.kind.value,
+                    "speed_fraction": decision.speed_fraction,
+                    "reason": decision.reason,
+                }
+                if decision is not None
+                else None
+            ),
+            "setpoint": _setpoint_dict(self._last_setpoint),
+            "setpoint_age_ms": (now - self._last_setpoint_s) * 1e3 if self._last_setpoint_s is not None else None,
+            "setpoints_sent": self._setpoints_sent,
+            "override": self.supervisor.override_status(now),
+            "memory": self.supervisor.memory_status(),
+            "camera": (
+                {
+                    "source": capture.source,
+                    "status": capture.state,
+                    "fps": capture.fps,
+                    "frames": capture.frames,
+                    "reconnects": capture.reconnects,
+                    "last_error": capture.last_error,
+                }
+                if capture is not None
+                else None
+            ),
+            "vehicle": {
+                "link": vehicle_link,
+                "flight_mode": v.flight_mode if v is not None else "UNKNOWN",
+                "armed": v.armed if v is not None else False,
+                "in_offboard": v.in_offboard if v is not None else False,
+                "position_ned_m": v.position_ned_m.tolist() if v is not None and v.position_ned_m is not None else None,
+                "attitude_rad": v.attitude_rad.tolist() if v is not None and v.attitude_rad is not None else None,
+                "velocity_ned_m_s": (
+                    v.velocity_ned_m_s.tolist() if v is not None and v.velocity_ned_m_s is not None else None
+                ),
+            },
+            "processed_frames": self._processed,
+            "dropped_frames": (capture.dropped if capture is not None else 0) + self._skipped_frames(),
+            "processed_twice": self._processed_twice,
+            "frame_errors": self._frame_errors,
+            "last_error": self._last_error,
+        }
+
+    def _skipped_frames(self) -> int:
+        return self._processor.skipped if self._processor is not None else 0
+
+    async def _publish_health(self) -> None:
+        if self.bus is None:
+            return
+        try:
+            await self.bus.publish(protocol.encode(self.health_message()))
+        except asyncio.CancelledError:
+            raise
+        except Exception:
+            log.exception("publishing health failed")
+
+    async def _health_loop(self) -> None:
+        assert self._health_now is not None
+        while True:
+            await wait_event(self._health_now, 1.0 / self.config.bus.health_rate_hz)
+            self._health_now.clear()
+            await self._publish_health()
