@@ -59,19 +59,8 @@ from typing import TYPE_CHECKING, Protocol, Union
 import numpy as np
 
 from companion.config.core import MemoryConfig
-from companion.core.command import (
-    NO_PROGRESS_HOLD,
-    BrakeLatch,
-    OverheadMemory,
-    ProgressWatch,
-    along_course_m,
-    horizontal_distance_m,
-    horizontal_velocity_body_m_s,
-    is_heading_clear,
-    is_straight_clear,
-    line_offset_m,
-    setpoint_for,
-)
+from companion.core.command import NO_PROGRESS_HOLD
+from companion.core.course import CourseHold
 from companion.core.memory import ObstacleMemory, ViewLimits, camera_points_to_ned
 from companion.core.pose import Pose
 from companion.core.types import ZERO_SETPOINT, Decision, DecisionKind, VelocitySetpoint
@@ -270,16 +259,8 @@ class _Memory:
     override_until_s: float = 0.0
     autostart_pending: bool = False
     shutting_down: bool = False
-    course_heading_rad: float | None = None  # heading at engagement (course hold), radians
-    course_altitude_m: float | None = None  # altitude (-down) at engagement (course hold), metres
-    course_origin_ned_m: np.ndarray | None = None  # position at engagement (course hold, line), NED metres
-    clear_since_s: float | None = None  # capture time since which the decisions are straight and CLEAR
-    clear_since_ned_m: np.ndarray | None = None  # the vehicle's position then (None: not known), NED metres
-    heading_clear_since_s: float | None = None  # capture time since which the decisions are CLEAR and do not turn
-    brake: BrakeLatch = field(default_factory=BrakeLatch)  # where the current brake began (brake position hold)
-    overhead: OverheadMemory = field(default_factory=OverheadMemory)  # where something was last overhead
+    course: CourseHold = field(default_factory=CourseHold)  # course hold's timers, latches and progress clock
     obstacles: ObstacleMemory = field(default_factory=ObstacleMemory)  # near points seen (the guard)
-    progress: ProgressWatch = field(default_factory=ProgressWatch)  # the progress watchdog's clock
     stalled: bool = False  # paused by the progress watchdog (not by the operator)
     poses: deque[tuple[float, Pose]] = field(default_factory=lambda: deque(maxlen=_POSE_HISTORY))  # (time s, pose)
     last_frame_s: float | None = None  # capture time of the newest frame put in the memory
@@ -379,16 +360,10 @@ class Supervisor:
         if not math.isfinite(age_s):
             age_s = math.inf
         fresh = camera_ok and age_s <= self._cfg.command.stale_frame_timeout_s
-        if latest is None or not is_straight_clear(latest.decision):
-            m.clear_since_s = None
-            m.clear_since_ned_m = None
-        elif m.clear_since_s is None:
-            m.clear_since_s = latest.timestamp_s
-            m.clear_since_ned_m = None if vehicle.position_ned_m is None else np.array(vehicle.position_ned_m, dtype=np.float64)
-        if latest is None or not is_heading_clear(latest.decision):
-            m.heading_clear_since_s = None
-        elif m.heading_clear_since_s is None:
-            m.heading_clear_since_s = latest.timestamp_s
+        if latest is None:
+            m.course.observe(None, None, vehicle.position_ned_m)
+        else:
+            m.course.observe(latest.decision, latest.timestamp_s, vehicle.position_ned_m)
 
         for r in requests:
             if isinstance(r, ActionResult):
@@ -508,17 +483,8 @@ class Supervisor:
                 m.owns_offboard = True
                 m.activity = State.ENGAGED
                 m.stalled = False
-                m.progress.reset()
-                # Course hold (when its gains are set) steers back to the heading and altitude of now.
-                m.course_heading_rad = _finite_or_none(v.attitude_rad, 2)
-                m.brake.reset()
-                m.overhead.reset()
-                down = _finite_or_none(v.position_ned_m, 2)
-                m.course_altitude_m = None if down is None else -down
-                pos = v.position_ned_m
-                m.course_origin_ned_m = (
-                    np.asarray(pos, dtype=np.float64).copy() if pos is not None and np.all(np.isfinite(pos)) else None
-                )
+                # Course hold (when its gains are set) steers back to the heading, line and altitude of now.
+                m.course.engage(v.position_ned_m, _finite_or_none(v.attitude_rad, 2))
                 self._set(State.ENGAGED, "engaged: avoiding obstacles")
         elif m.leaving is not None and v.in_offboard and m.leaving.start_sent_s is not None:
             m.owns_offboard = True  # the start we asked for took effect after all: ours to leave
@@ -683,7 +649,7 @@ class Supervisor:
             m.activity = State.ENGAGED
             m.override = None
         if not fresh:
-            m.progress.reset()
+            m.course.progress.reset()
             why = (
                 "camera lost (reconnecting)"
                 if not camera_ok
@@ -695,7 +661,7 @@ class Supervisor:
             m.activity = State.PAUSED
             m.stalled = True
         if m.activity is not State.ENGAGED:
-            m.progress.reset()  # the watchdog times the automatic flight only
+            m.course.progress.reset()  # the watchdog times the automatic flight only
         if m.activity is State.PAUSED:
             reason = self._stalled_reason() if m.stalled else "paused by the operator: zero velocity in offboard"
             self._set(State.PAUSED, reason)
@@ -749,18 +715,9 @@ class Supervisor:
             return self._override_setpoint(m.override, latest)
         return ZERO_SETPOINT  # degraded, paused
 
-    def _course_ready(self, v: VehicleState) -> bool:
-        """Whether the course (origin and heading at engagement) and the vehicle's position are known."""
-        m = self._m
-        return m.course_origin_ned_m is not None and m.course_heading_rad is not None and v.position_ned_m is not None
-
     def _no_progress(self, now_s: float, v: VehicleState) -> bool:
         """The progress watchdog (:class:`~companion.core.command.ProgressWatch`) fed the position now."""
-        m = self._m
-        along = None
-        if self._course_ready(v):
-            along = along_course_m(v.position_ned_m, m.course_origin_ned_m, m.course_heading_rad)
-        return m.progress.update(along, now_s, self._cfg.command)
+        return self._m.course.no_progress(v.position_ned_m, now_s, self._cfg.command)
 
     def _stalled_reason(self) -> str:
         cmd = self._cfg.command
@@ -778,44 +735,25 @@ class Supervisor:
         instead of the decision."""
         m = self._m
         decision = NO_PROGRESS_HOLD if hold else latest.decision
-        heading_error = altitude_error = None
         heading_now = _finite_or_none(v.attitude_rad, 2)
-        if m.course_heading_rad is not None and heading_now is not None:
-            heading_error = m.course_heading_rad - heading_now  # positive: the course lies to the right
-        down_now = _finite_or_none(v.position_ned_m, 2)
-        if m.course_altitude_m is not None and down_now is not None:
-            altitude_error = m.course_altitude_m - (-down_now)  # positive: climb back
-        line_offset = None
-        if self._course_ready(v):
-            line_offset = line_offset_m(v.position_ned_m, m.course_origin_ned_m, m.course_heading_rad)
         refined = getattr(latest, "refined", None)
-        brake_offset = m.brake.offset_body(decision, v.position_ned_m, heading_now)
         guard = sides = gap = None
         if self._cfg.memory.duration_s > 0.0 and v.position_ned_m is not None and heading_now is not None:
             guard, sides, gap = m.obstacles.hold_inputs(v.position_ned_m, heading_now, now_s, self._cfg.memory, m.view_limits)
         m.guarding = 0 if guard is None else len(guard)
-        return setpoint_for(
+        return m.course.setpoint(
             decision,
+            now_s,
             age_s,
             self._cfg.command,
-            heading_error_rad=heading_error,
-            altitude_error_m=altitude_error,
+            position_ned_m=v.position_ned_m,
+            yaw_rad=heading_now,
+            velocity_ned_m_s=v.velocity_ned_m_s,
             region_depths_m=getattr(refined, "depth_m", None),
-            # Not straight and CLEAR now (a CLEAR decision still turning, as the release filter lets
-            # an escape fade, included): course hold waits from zero, as in the simulator. None here
-            # would mean "no wait", and turning back in place then fought the escape's last turn.
-            clear_for_s=0.0 if m.clear_since_s is None else max(0.0, now_s - m.clear_since_s),
-            clear_for_m=0.0 if m.clear_since_s is None else horizontal_distance_m(m.clear_since_ned_m, v.position_ned_m),
-            heading_clear_for_s=0.0 if m.heading_clear_since_s is None else max(0.0, now_s - m.heading_clear_since_s),
-            brake_offset_body_m=brake_offset,
-            brake_heading_error_rad=m.brake.heading_error_rad(heading_now),
-            line_offset_m=line_offset,
-            since_up_near_m=m.overhead.update(getattr(refined, "depth_m", None), v.position_ned_m, self._cfg.command.hold_clear_depth_m),
             guard_m=guard,
-            guard_cfg=self._cfg.memory,
             remembered_sides=sides,
-            velocity_body_m_s=horizontal_velocity_body_m_s(v.velocity_ned_m_s, heading_now),
             gap_offset_m=gap,
+            memory_cfg=self._cfg.memory,
         )
 
     def _override_setpoint(self, o: Override, latest: FrameOutcome | None) -> VelocitySetpoint:

@@ -11,9 +11,9 @@ Timing (all simulated; deterministic for a course and config):
 * **setpoints** at ``sim.setpoint_rate_hz`` (20 Hz): the service's rule, exactly:
   :func:`~companion.core.command.setpoint_for` on the newest applied decision with its age, so a
   frame older than ``command.stale_frame_timeout_s`` gives zero velocity; older than
-  ``command.failsafe_timeout_s`` the vehicle is switched to HOLD. Course hold gets the heading and
-  altitude at engagement (the start pose), the newest region depths and how long the decisions
-  have been straight and CLEAR.
+  ``command.failsafe_timeout_s`` the vehicle is switched to HOLD. Course hold is the service's own
+  bookkeeping (:class:`~companion.core.course.CourseHold`, the course being the start pose), fed the
+  same clock as on the vehicle: a decision's timers run from its frame's capture time.
 
 Events due at the same instant run in the order camera, decision, setpoint, physics. The flight ends
 on the first outcome (:mod:`companion.sim.scoring`). ``realtime=True`` sleeps so that simulated time
@@ -31,31 +31,20 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from companion.config import CompanionConfig
-from companion.core.command import (
-    NO_PROGRESS_HOLD,
-    BrakeLatch,
-    OverheadMemory,
-    ProgressWatch,
-    along_course_m,
-    horizontal_distance_m,
-    horizontal_velocity_body_m_s,
-    is_heading_clear,
-    is_straight_clear,
-    line_offset_m,
-    setpoint_for,
-)
-from companion.core.memory import ObstacleMemory, camera_points_to_ned
 from companion.backends import make_pipeline
+from companion.config import CompanionConfig
+from companion.core.command import NO_PROGRESS_HOLD
+from companion.core.course import CourseHold
+from companion.core.memory import ObstacleMemory, camera_points_to_ned
 from companion.core.pipeline import FrameResult, Pipeline
-from companion.sim.render import Pose, TextureBank
 from companion.core.types import ZERO_SETPOINT, DecisionKind
 from companion.errors import CameraError
 from companion.interfaces import Frame
 from companion.sim.camera import SimCamera
 from companion.sim.courses import Course
+from companion.sim.render import Pose, TextureBank
 from companion.sim.scoring import HELD_RADIUS_M, Judge, Outcome
-from companion.sim.vehicle import SimVehicle, VehicleParams, wrap_angle_rad
+from companion.sim.vehicle import SimVehicle, VehicleParams
 
 #: Events scheduled at k/rate fire when the simulated time is within this of it (float steps).
 _EPS_S = 1e-9
@@ -275,8 +264,6 @@ def fly(
     dt = 1.0 / sim.physics_rate_hz
     cam_period = 1.0 / sim.camera_rate_hz
     sp_period = 1.0 / sim.setpoint_rate_hz
-    heading_ref = course.start.yaw_rad
-    altitude_ref = -course.start.position_ned_m[2]
 
     # Engage as the service does: a first (zero) setpoint, then offboard.
     vehicle.set_setpoint(ZERO_SETPOINT)
@@ -297,13 +284,9 @@ def fly(
     latest: FrameResult | None = None
     camera_ok = True
     n_cam = n_sp = 0
-    last_steer_s = -math.inf
-    last_steer_ned_m: np.ndarray | None = None  # where the decisions last steered (None: not yet)
-    last_turn_s = -math.inf  # when the decisions last turned (yaw; a climb alone does not count)
-    brake = BrakeLatch()  # where the current brake began (brake position hold)
-    overhead = OverheadMemory()  # where something was last seen overhead
-    progress = ProgressWatch()  # the progress watchdog (the service pauses; here the flight holds to the end)
-    stalled = False
+    hold = CourseHold()  # course hold's bookkeeping, the service's own (core/course.py)
+    hold.engage(course.start.position_ned_m, course.start.yaw_rad)  # the course: the start pose
+    stalled = False  # the progress watchdog fired (the service pauses; here the flight holds to the end)
     memory = ObstacleMemory() if cfg.memory.duration_s > 0.0 else None
     judge = Judge(
         course,
@@ -371,41 +354,27 @@ def fly(
                 vehicle.set_hold()
             decision = latest.decision if latest is not None else None
             m = vehicle.model
-            stalled = stalled or progress.update(
-                along_course_m(m.position_ned_m, course.start.position_ned_m, heading_ref), t, cmd
-            )
+            hold.observe(decision, latest.timestamp_s if latest is not None else None, m.position_ned_m)
+            stalled = stalled or hold.no_progress(m.position_ned_m, t, cmd)
             if stalled and decision is not None:
                 decision = NO_PROGRESS_HOLD
-            if not is_straight_clear(decision):
-                last_steer_s = t
-                last_steer_ned_m = vehicle.model.position_ned_m.copy()
-            if not is_heading_clear(decision):
-                last_turn_s = t
             guard = sides = gap = None
             if memory is not None:
                 view = latest.view_limits if latest is not None else None
                 guard, sides, gap = memory.hold_inputs(m.position_ned_m, m.yaw_rad, t, cfg.memory, view)
-            sp = setpoint_for(
+            sp = hold.setpoint(
                 decision,
+                t,
                 age if latest is not None else math.inf,
                 cmd,
-                heading_error_rad=wrap_angle_rad(heading_ref - m.yaw_rad),
-                altitude_error_m=altitude_ref - m.altitude_m,
+                position_ned_m=m.position_ned_m,
+                yaw_rad=m.yaw_rad,
+                velocity_ned_m_s=m.velocity_ned_m_s,
                 region_depths_m=latest.refined.depth_m if latest is not None else None,
-                clear_for_s=t - last_steer_s,
-                clear_for_m=horizontal_distance_m(last_steer_ned_m, m.position_ned_m),
-                heading_clear_for_s=t - last_turn_s,
-                brake_offset_body_m=brake.offset_body(decision, m.position_ned_m, m.yaw_rad),
-                brake_heading_error_rad=brake.heading_error_rad(m.yaw_rad),
-                line_offset_m=line_offset_m(m.position_ned_m, course.start.position_ned_m, heading_ref),
-                since_up_near_m=overhead.update(
-                    latest.refined.depth_m if latest is not None else None, m.position_ned_m, cmd.hold_clear_depth_m
-                ),
                 guard_m=guard,
-                guard_cfg=cfg.memory,
                 remembered_sides=sides,
-                velocity_body_m_s=horizontal_velocity_body_m_s(m.velocity_ned_m_s, m.yaw_rad),
                 gap_offset_m=gap,
+                memory_cfg=cfg.memory,
             )
             if vehicle.in_offboard:
                 vehicle.set_setpoint(sp)

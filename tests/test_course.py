@@ -1,0 +1,94 @@
+"""CourseHold: the course-hold bookkeeping the supervisor and the simulator share (one clock)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from companion.config import CompanionConfig
+from companion.core.course import CourseHold
+from companion.core.types import Decision, DecisionKind
+
+CMD = CompanionConfig().command  # heading hold on (0.8 /s), hold_resume_delay_s 1.5
+CLEAR = Decision(kind=DecisionKind.CLEAR, yaw=0.0, pitch=0.0, speed_fraction=1.0, reason="centre clear")
+TURN = Decision(kind=DecisionKind.AVOID, yaw=0.6, pitch=0.0, speed_fraction=0.5, reason="R5")
+BRAKE = Decision(kind=DecisionKind.BRAKE, yaw=0.0, pitch=0.0, speed_fraction=0.0, reason="no escape")
+ORIGIN = np.array([0.0, 0.0, -1.5])
+
+
+def _engaged() -> CourseHold:
+    hold = CourseHold()
+    hold.engage(ORIGIN, 0.0)  # course: north from the origin, 1.5 m up
+    return hold
+
+
+def _yaw_rate(hold: CourseHold, decision: Decision, now_s: float, yaw_rad: float = -0.3) -> float:
+    """The setpoint's yaw rate with the vehicle on the line, facing 0.3 rad left of the course."""
+    sp = hold.setpoint(decision, now_s, 0.05, CMD, position_ned_m=ORIGIN.copy(), yaw_rad=yaw_rad)
+    return sp.yaw_rate_deg_s
+
+
+def test_the_hold_waits_from_the_capture_time_of_the_first_clear_frame() -> None:
+    hold = _engaged()
+    hold.observe(CLEAR, 10.0, ORIGIN)  # frame captured at 10.0 s
+    hold.observe(CLEAR, 10.1, ORIGIN)  # the same stretch of CLEAR: the timer keeps its start
+    assert _yaw_rate(hold, CLEAR, 10.0 + CMD.hold_resume_delay_s - 0.01) == 0.0
+    assert _yaw_rate(hold, CLEAR, 10.0 + CMD.hold_resume_delay_s + 0.01) > 0.0  # back to the right
+
+
+def test_a_turning_decision_restarts_the_wait() -> None:
+    hold = _engaged()
+    hold.observe(CLEAR, 10.0, ORIGIN)
+    hold.observe(TURN, 11.0, ORIGIN)
+    hold.observe(CLEAR, 11.2, ORIGIN)
+    assert _yaw_rate(hold, CLEAR, 12.0) == 0.0  # 0.8 s since 11.2: still waiting
+    assert _yaw_rate(hold, CLEAR, 11.2 + CMD.hold_resume_delay_s + 0.01) > 0.0
+
+
+def test_without_a_decision_nothing_is_held_and_the_wait_restarts() -> None:
+    hold = _engaged()
+    hold.observe(CLEAR, 10.0, ORIGIN)
+    hold.observe(None, None, ORIGIN)
+    sp = hold.setpoint(None, 20.0, math.inf, CMD, position_ned_m=ORIGIN.copy(), yaw_rad=-0.3)
+    assert sp.yaw_rate_deg_s == 0.0 and sp.forward_m_s == 0.0
+    hold.observe(CLEAR, 21.0, ORIGIN)
+    assert _yaw_rate(hold, CLEAR, 21.5) == 0.0
+
+
+def test_engage_keeps_the_clear_timer_and_forgets_the_brake_and_the_progress_clock() -> None:
+    hold = CourseHold()
+    hold.observe(CLEAR, 10.0, ORIGIN)  # clear before engagement
+    hold.brake.offset_body(BRAKE, ORIGIN, 0.0)
+    assert hold.brake.at_ned_m is not None
+    assert not hold.no_progress(ORIGIN, 0.0, CMD)  # no course yet: the watchdog cannot judge
+    hold.engage(ORIGIN, 0.0)
+    assert hold.brake.at_ned_m is None and hold.progress.mark_m is None
+    assert _yaw_rate(hold, CLEAR, 12.0) > 0.0  # clear since 10.0: holds at once
+
+
+def test_unknown_heading_or_position_leaves_that_hold_off() -> None:
+    hold = CourseHold()
+    hold.engage(np.array([np.nan, 0.0, -1.5]), None)
+    assert hold.origin_ned_m is None and hold.heading_rad is None and hold.altitude_m is None
+    hold.observe(CLEAR, 0.0, ORIGIN)
+    sp = hold.setpoint(CLEAR, 5.0, 0.05, CMD, position_ned_m=np.array([0.0, 2.0, -1.0]), yaw_rad=-0.3)
+    assert sp.yaw_rate_deg_s == 0.0 and sp.right_m_s == 0.0 and sp.down_m_s == 0.0
+
+
+def test_the_progress_watchdog_fires_after_no_progress_along_the_course() -> None:
+    hold = _engaged()
+    assert not hold.no_progress(ORIGIN, 0.0, CMD)
+    beside = ORIGIN + np.array([0.5, 3.0, 0.0])  # 3 m sideways, 0.5 m along: no progress
+    assert not hold.no_progress(beside, CMD.no_progress_timeout_s - 0.1, CMD)
+    assert hold.no_progress(beside, CMD.no_progress_timeout_s + 0.1, CMD)
+    ahead = ORIGIN + np.array([CMD.progress_step_m + 0.1, 0.0, 0.0])
+    assert not hold.no_progress(ahead, CMD.no_progress_timeout_s + 0.2, CMD)  # progress restarts the clock
+
+
+def test_a_brake_holds_where_it_began() -> None:
+    hold = _engaged()
+    hold.observe(BRAKE, 1.0, ORIGIN)
+    hold.setpoint(BRAKE, 1.0, 0.05, CMD, position_ned_m=ORIGIN.copy(), yaw_rad=0.0)  # latches here
+    sp = hold.setpoint(BRAKE, 1.5, 0.05, CMD, position_ned_m=ORIGIN + np.array([0.4, 0.0, 0.0]), yaw_rad=0.0)
+    assert sp.forward_m_s < 0.0  # drifted 0.4 m forward: flies back
