@@ -252,7 +252,10 @@ def test_memory_config_is_validated() -> None:
         parse_config({"memory": {"confirm_frames": 2}})
     with pytest.raises(ConfigError, match="guard_distance_m"):
         parse_config({"memory": {"guard_distance_m": 0.0}})
-    assert parse_config({"memory": {"duration_s": 0.0}}).memory.duration_s == 0.0
+    with pytest.raises(ConfigError, match="envelope.memory_may_be_off"):  # off only where the envelope allows
+        parse_config({"memory": {"duration_s": 0.0}})
+    allowed = {"memory": {"duration_s": 0.0}, "envelope": {"memory_may_be_off": True}}
+    assert parse_config(allowed).memory.duration_s == 0.0
 
 
 def test_sides_near_tells_which_side_has_a_remembered_point_within_hold_clear_m() -> None:

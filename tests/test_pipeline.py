@@ -162,7 +162,7 @@ def test_memory_points_land_on_the_obstacle_seen() -> None:
 
 def test_memory_off_gives_no_points_and_can_be_switched_live() -> None:
     cfg, pipeline, frame, _ = _render(Scene(obstacles=(_wall(1.0),)))
-    off = apply_patch(cfg, {"memory": {"duration_s": 0.0}})
+    off = apply_patch(cfg, {"memory": {"duration_s": 0.0}, "envelope": {"memory_may_be_off": True}})
     pipeline.reconfigure(off)
     r = pipeline.process(frame, timestamp_s=0.0)
     assert r.near_points_cam_m is None and r.view_limits is None and "memory_ms" not in r.timings_ms

@@ -3,113 +3,20 @@ wire, a second SIGTERM forces the exit, startup failures exit 78."""
 
 from __future__ import annotations
 
-import os
 import signal
-import socket
-import subprocess
-import sys
 import time
 from pathlib import Path
 
 import pytest
 from mavlink_peer import Px4Peer
+from peers.process import Notifications
+from peers.process import finish as _finish
+from peers.process import spawn as _spawn
+from peers.process import write_config as _write_config
 
 from companion import exitcodes
 
 ROOT = Path(__file__).resolve().parent.parent
-
-
-def _write_config(path: Path, port: int, extra: str = "", cruise: float = 1.0) -> None:
-    tmp = path.parent
-    path.write_text(
-        f"""
-[bus]
-health_endpoint = "ipc://{tmp}/h.sock"
-control_endpoint = "ipc://{tmp}/c.sock"
-[camera]
-fps_hz = 10.0
-[stereo]
-backend = "opencv-bm"
-[vehicle]
-connection = "udpin://127.0.0.1:{port}"
-[service]
-autostart = true
-[command]
-cruise_speed_m_s = {cruise}
-{extra}
-""",
-        encoding="utf-8",
-    )
-
-
-class Notifications:
-    """A NOTIFY_SOCKET for the child: collects its sd_notify datagrams."""
-
-    def __init__(self, path: Path) -> None:
-        self.path = path
-        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-        self.sock.bind(str(path))
-        self.sock.settimeout(0.05)
-        self.messages: list[tuple[float, str]] = []
-
-    def poll(self) -> None:
-        while True:
-            try:
-                data = self._recv()
-            except (TimeoutError, socket.timeout):
-                return
-            for line in data.decode().splitlines():
-                self.messages.append((time.monotonic(), line))
-
-    def wait_for(self, prefix: str, timeout_s: float) -> bool:
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            self.poll()
-            if any(m.startswith(prefix) for _, m in self.messages):
-                return True
-        return False
-
-    def lines(self, prefix: str) -> list[str]:
-        self.poll()
-        return [m for _, m in self.messages if m.startswith(prefix)]
-
-    def close(self) -> None:
-        self.poll()  # keep what arrived until now; lines() after close() reads the collected ones
-        self.sock.close()
-        self.sock = None
-
-    def _recv(self) -> bytes:
-        if self.sock is None:
-            raise TimeoutError
-        return self.sock.recv(4096)
-
-
-def _spawn(config: Path, notify: Notifications | None, watchdog_usec: int | None = None) -> subprocess.Popen:
-    env = dict(os.environ)
-    env.pop("NOTIFY_SOCKET", None)
-    env.pop("WATCHDOG_USEC", None)
-    if notify is not None:
-        env["NOTIFY_SOCKET"] = str(notify.path)
-    if watchdog_usec is not None:
-        env["WATCHDOG_USEC"] = str(watchdog_usec)
-    return subprocess.Popen(
-        [sys.executable, "-m", "companion", "--log-level", "INFO", "run", "--config", str(config)],
-        cwd=str(config.parent),  # nothing may depend on the working directory
-        env=env,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-
-
-def _finish(proc: subprocess.Popen, timeout_s: float = 15.0) -> tuple[int, str]:
-    try:
-        _, err = proc.communicate(timeout=timeout_s)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        _, err = proc.communicate()
-        raise AssertionError(f"process did not exit; stderr:\n{err[-3000:]}") from None
-    return proc.returncode, err
 
 
 def test_sighup_reload_and_sigterm_clean_shutdown_on_the_wire(tmp_path: Path) -> None:

@@ -33,6 +33,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--sizes", default=None, help="e.g. 672x376:64,1280x720:128 (the default)")
     p.add_argument("--e2e", action="store_true", help="frame-to-setpoint latency of the service instead")
     p.add_argument(
+        "--soak",
+        action="store_true",
+        help=(
+            "run the service engaged for --duration-s with operator traffic; a row of memory, setpoint rate, "
+            "latency and dropped frames every --sample-s"
+        ),
+    )
+    p.add_argument("--duration-s", type=float, default=3600.0, help="--soak: how long, seconds (default 3600)")
+    p.add_argument("--sample-s", type=float, default=60.0, help="--soak: seconds between rows (default 60)")
+    p.add_argument(
         "--no-rectify",
         action="store_true",
         help="skip the rectification remap (default: time it with a ZED-like calibration, as a real camera needs)",
@@ -50,7 +60,13 @@ def run(args: argparse.Namespace) -> int:
         sizes = parse_sizes(args.sizes) if args.sizes else list(DEFAULT_SIZES)
     except ValueError as err:
         raise InputError(str(err)) from None
-    if args.e2e:
+    if args.soak:
+        if args.duration_s <= 0 or args.sample_s <= 0:
+            raise InputError("--duration-s and --sample-s must be > 0")
+        from companion.service.soak import run_soak
+
+        report = run_soak(args, sizes[:1] if args.sizes else [s for s in sizes if s.width_px == 672] or sizes)
+    elif args.e2e:
         from companion.service.bench import run_e2e_bench
 
         report = run_e2e_bench(args, sizes)

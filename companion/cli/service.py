@@ -15,8 +15,6 @@ from typing import Any
 from companion import exitcodes
 from companion.errors import InputError
 
-_DEFAULT_CONTROL = "tcp://127.0.0.1:5561"
-_DEFAULT_HEALTH = "tcp://127.0.0.1:5560"
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -108,10 +106,17 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _endpoint_options(p: argparse.ArgumentParser, control: bool) -> None:
-    p.add_argument("--config", type=Path, help="read the endpoints (and nothing else) from this config")
+    p.add_argument(
+        "--config",
+        type=Path,
+        help="read the endpoint from this config's [bus] table (the rest of the file may be invalid)",
+    )
     p.add_argument(
         "--endpoint",
-        help=f"ZeroMQ endpoint (default: from --config, else {_DEFAULT_CONTROL if control else _DEFAULT_HEALTH})",
+        help=(
+            "ZeroMQ endpoint (default: from --config, else the running service's socket in /run/companion, "
+            "$XDG_RUNTIME_DIR/companion or /tmp/companion-<uid>)"
+        ),
     )
     if control:
         p.add_argument("--timeout-s", type=float, default=3.0, help="reply timeout, seconds (default 3)")
@@ -120,17 +125,23 @@ def _endpoint_options(p: argparse.ArgumentParser, control: bool) -> None:
 
 
 def _endpoint(args: argparse.Namespace, control: bool) -> str:
+    from companion.config.service import AUTO_ENDPOINT
+    from companion.service.runtime import find_socket
+
+    which = "control" if control else "health"
     if args.endpoint:
         return args.endpoint
     if args.config is not None:
-        from companion.config import load_config
+        from companion.config import load_bus_config
 
-        bus = load_config(args.config).bus
+        bus = load_bus_config(args.config)
         endpoint = bus.control_endpoint if control else bus.health_endpoint
+        if endpoint == AUTO_ENDPOINT:
+            return find_socket(which)
         if endpoint.startswith("tcp://") and ("://*:" in endpoint or "0.0.0.0" in endpoint):
             endpoint = endpoint.replace("*", "127.0.0.1").replace("0.0.0.0", "127.0.0.1")
         return endpoint
-    return _DEFAULT_CONTROL if control else _DEFAULT_HEALTH
+    return find_socket(which)
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -166,10 +177,11 @@ def _ctl(args: argparse.Namespace) -> int:
 def _watch(args: argparse.Namespace) -> int:
     import zmq
 
-    from companion.service.client import ClientError, curve_client_options, render_health
+    from companion.service.client import ClientError, check_ipc_access, curve_client_options, render_health
 
     curve = curve_client_options(args.server_key, args.client_key)
     endpoint = _endpoint(args, control=False)
+    check_ipc_access(endpoint)
     ctx = zmq.Context()
     sock = ctx.socket(zmq.SUB)
     sock.setsockopt(zmq.LINGER, 0)

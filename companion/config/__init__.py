@@ -9,12 +9,13 @@ them ever returns a half-valid config. The defaults of every model are the docum
 
 from __future__ import annotations
 
+import json
 import sys
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from pydantic import Field, ValidationError
+from pydantic import Field, ValidationError, model_validator
 
 from companion.config._base import StrictModel
 from companion.config.core import (
@@ -29,6 +30,7 @@ from companion.config.core import (
     RuleConfig,
     StereoConfig,
 )
+from companion.config.envelope import EnvelopeConfig, envelope_violations
 from companion.config.gpu import GpuConfig
 from companion.config.service import (
     BusConfig,
@@ -51,6 +53,7 @@ __all__ = [
     "CommandConfig",
     "CompanionConfig",
     "ControllerConfig",
+    "EnvelopeConfig",
     "GpuConfig",
     "InputTerm",
     "LutConfig",
@@ -63,6 +66,7 @@ __all__ = [
     "StereoConfig",
     "VehicleConfig",
     "apply_patch",
+    "load_bus_config",
     "load_config",
     "parse_config",
 ]
@@ -84,6 +88,14 @@ class CompanionConfig(StrictModel):
     service: ServiceConfig = Field(default_factory=ServiceConfig)
     gpu: GpuConfig = Field(default_factory=GpuConfig)
     sim: SimConfig = Field(default_factory=SimConfig)
+    envelope: EnvelopeConfig = Field(default_factory=EnvelopeConfig)
+
+    @model_validator(mode="after")
+    def _within_envelope(self) -> CompanionConfig:
+        problems = envelope_violations(self)
+        if problems:
+            raise ValueError("outside the safety envelope: " + "; ".join(problems))
+        return self
 
 
 def _short_repr(value: Any, limit: int = 80) -> str:
@@ -95,14 +107,14 @@ def format_validation_error(err: ValidationError, source: str) -> str:
     """One line per problem: ``source: field.path: message (got VALUE)``, joined by '; '."""
     parts = []
     for e in err.errors(include_url=False):
-        loc = ".".join(str(x) for x in e["loc"]) or "(root)"
+        loc = ".".join(str(x) for x in e["loc"])
         msg = e["msg"].removeprefix("Value error, ")
         if e["type"] == "extra_forbidden":
             msg = "unknown key (no such setting here; check the spelling)"
         value = e.get("input")
         # A whole-model check (e.g. rule cross-references) already names the item in its message.
         got = "" if e["type"] == "missing" or isinstance(value, dict) else f" (got {_short_repr(value)})"
-        parts.append(f"{loc}: {msg}{got}")
+        parts.append(f"{loc}: {msg}{got}" if loc else msg)  # a whole-config check names its fields
     return f"{source}: invalid config: " + "; ".join(parts)
 
 
@@ -138,6 +150,29 @@ def load_config(path: Path | str | None) -> CompanionConfig:
     return parse_config(data, source=str(path))
 
 
+def load_bus_config(path: Path | str) -> BusConfig:
+    """Only the ``[bus]`` table of a TOML config file, validated alone: ``companion ctl`` and ``watch``
+    find the service with it even when the rest of the file is invalid (when a user most needs status).
+
+    Raises:
+        ConfigError: the file is missing, unreadable, not TOML, or its ``[bus]`` table is invalid.
+    """
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except OSError as err:
+        raise ConfigError(f"{path}: cannot read config: {err.strerror or err}", source=str(path)) from None
+    except tomllib.TOMLDecodeError as err:
+        raise ConfigError(f"{path}: not valid TOML: {err}", source=str(path)) from None
+    bus = data.get("bus", {})
+    if not isinstance(bus, dict):
+        raise ConfigError(f"{path}: bus: expected a table, got {type(bus).__name__}", source=str(path))
+    try:
+        return BusConfig.model_validate(bus)
+    except ValidationError as err:
+        raise ConfigError(format_validation_error(err, f"{path} [bus]"), source=str(path)) from None
+
+
 def _deep_merge(base: dict[str, Any], patch: Mapping[str, Any], path: str) -> dict[str, Any]:
     out = dict(base)
     for key, value in patch.items():
@@ -154,9 +189,18 @@ def _deep_merge(base: dict[str, Any], patch: Mapping[str, Any], path: str) -> di
 def apply_patch(config: CompanionConfig, patch: Mapping[str, Any]) -> CompanionConfig:
     """Return a new config: ``config`` with ``patch`` deep-merged in (tables merge, lists replace).
 
-    The whole result is validated; on error ``config`` is untouched and a ConfigError says which field.
+    The whole result is validated with strict types, as JSON: a number must be a number (``"2.5"``
+    and ``true`` are not), a flag a boolean. On error ``config`` is untouched and a ConfigError says
+    which field.
     """
     if not isinstance(patch, Mapping):
         raise ConfigError(f"patch: expected a table/object, got {type(patch).__name__}")
-    merged = _deep_merge(config.model_dump(mode="python"), patch, "")
-    return parse_config(merged, source="patch")
+    merged = _deep_merge(config.model_dump(mode="json"), patch, "")
+    try:
+        text = json.dumps(merged, allow_nan=False, default=str)
+    except ValueError:
+        raise ConfigError("patch: invalid config: numbers must be finite (NaN and infinity are not)") from None
+    try:
+        return CompanionConfig.model_validate_json(text, strict=True)
+    except ValidationError as err:
+        raise ConfigError(format_validation_error(err, "patch"), source="patch") from None

@@ -38,6 +38,8 @@ LIVE_CAMERA_FIELDS: tuple[str, ...] = ("sim_origin_north_m", "sim_origin_east_m"
 
 _CONNECTION_SCHEMES = ("udpin://", "udpout://", "udp://", "tcpin://", "tcpout://", "tcp://", "serial://")
 _ZMQ_SCHEMES = ("tcp://", "ipc://", "inproc://")
+#: An endpoint of ``auto``: an ipc:// socket in the service's runtime directory (companion/service/runtime.py).
+AUTO_ENDPOINT = "auto"
 
 
 def _is_loopback_tcp(endpoint: str) -> bool:
@@ -257,22 +259,60 @@ class BusConfig(StrictModel):
     """The ZeroMQ control plane (restart to change)."""
 
     health_endpoint: str = Field(
-        default="tcp://127.0.0.1:5560",
+        default="auto",
         min_length=1,
         max_length=200,
-        description="PUB endpoint for health messages (JSON). Localhost or ipc:// unless CURVE keys are set.",
+        description=(
+            "PUB endpoint for health messages (JSON). auto: ipc://<runtime dir>/health.sock (the systemd "
+            "RuntimeDirectory /run/companion, else $XDG_RUNTIME_DIR/companion, else /tmp/companion-<uid>), "
+            "mode 0660. tcp:// only on loopback unless CURVE keys are set."
+        ),
     )
     control_endpoint: str = Field(
-        default="tcp://127.0.0.1:5561",
+        default="auto",
         min_length=1,
         max_length=200,
-        description="ROUTER endpoint for JSON requests. Localhost or ipc:// unless CURVE keys are set.",
+        description=(
+            "ROUTER endpoint for JSON requests. auto: ipc://<runtime dir>/control.sock, mode 0660, so only "
+            "the service's user and group can command it. tcp:// only on loopback (then every local user "
+            "can) unless CURVE keys are set."
+        ),
     )
     health_rate_hz: float = Field(
         default=10.0, gt=0.0, le=100.0, description="Health messages per second (plus one on every state change), Hz."
     )
     max_request_bytes: int = Field(
-        default=65536, ge=256, le=16_777_216, description="Largest control request accepted, bytes; larger gets an error reply."
+        default=65536,
+        ge=256,
+        le=1_048_576,
+        description=(
+            "Largest control request accepted, bytes; up to twice this gets an error reply, anything larger "
+            "is cut off by ZeroMQ itself (the connection is dropped before the message is buffered)."
+        ),
+    )
+    requests_per_s_per_client: float = Field(
+        default=50.0,
+        gt=0.0,
+        le=1000.0,
+        description=(
+            "Request budget of one connection, requests per second (a burst of as many is allowed); "
+            "beyond it a request gets a 'RateLimited' error reply and is not carried out."
+        ),
+    )
+    max_requests_per_s: float = Field(
+        default=200.0,
+        gt=0.0,
+        le=10000.0,
+        description="Request budget of all connections together, requests per second; beyond it, 'RateLimited'.",
+    )
+    max_connections: int = Field(
+        default=32,
+        ge=1,
+        le=1000,
+        description=(
+            "Control connections at once; a further one is refused in the ZeroMQ handshake. A connection "
+            "that does not complete its handshake within 2 s is closed."
+        ),
     )
     curve_server_secret_key_file: Path | None = Field(
         default=None,
@@ -289,8 +329,8 @@ class BusConfig(StrictModel):
     @field_validator("health_endpoint", "control_endpoint")
     @classmethod
     def _zmq_scheme(cls, v: str) -> str:
-        if not v.startswith(_ZMQ_SCHEMES):
-            raise ValueError(f"endpoint {v!r} must start with one of {', '.join(_ZMQ_SCHEMES)}")
+        if v != AUTO_ENDPOINT and not v.startswith(_ZMQ_SCHEMES):
+            raise ValueError(f"endpoint {v!r} must be 'auto' or start with one of {', '.join(_ZMQ_SCHEMES)}")
         return v
 
     @model_validator(mode="after")
@@ -299,7 +339,11 @@ class BusConfig(StrictModel):
             raise ValueError(
                 "curve_server_secret_key_file and curve_authorized_keys_dir must be set together (or neither)"
             )
-        if self.health_endpoint == self.control_endpoint and not self.health_endpoint.endswith((":*", ":0")):
+        if (
+            self.health_endpoint == self.control_endpoint
+            and self.health_endpoint != AUTO_ENDPOINT
+            and not self.health_endpoint.endswith((":*", ":0"))
+        ):
             raise ValueError(f"health_endpoint and control_endpoint are the same ({self.health_endpoint})")
         if self.curve_server_secret_key_file is None:
             # Without authentication the control plane (which can engage the vehicle) must not be

@@ -1,29 +1,49 @@
-"""ZeroMQ sockets of the control plane: health PUB and control ROUTER, optionally CURVE-authenticated.
+"""ZeroMQ sockets of the control plane: health PUB and control ROUTER, each bounded, optionally CURVE-authenticated.
 
-The health socket publishes one JSON object per message (subscribe to b""). The control socket is a
-ROUTER: a REQ client's message arrives as [identity, b"", payload] and a DEALER's as [identity,
-payload]; the reply mirrors the envelope exactly. With ``bus.curve_server_secret_key_file`` and
-``bus.curve_authorized_keys_dir`` both sockets are CURVE servers and only clients whose public
-certificate is in that folder can connect (ZeroMQ's ZAP, via pyzmq's asyncio authenticator).
+The health socket publishes one JSON object per message (subscribe to b""); publishing never blocks (a
+slow subscriber loses old messages). The control socket is a ROUTER: a REQ client's message arrives as
+[identity, b"", payload] and a DEALER's as [identity, payload]; the reply mirrors the envelope exactly.
+It is read and written only by the control server's own thread (:class:`~companion.service.control.ControlServer`),
+never by the flight loop.
+
+What bounds a client, in ZeroMQ itself: a message larger than twice ``bus.max_request_bytes`` is cut
+off before it is buffered (``MAXMSGSIZE``); a connection queues at most :data:`QUEUE_MESSAGES` messages
+each way; a connection that does not finish its handshake within :data:`HANDSHAKE_TIMEOUT_MS` is closed;
+and more than ``bus.max_connections`` control connections are refused in the handshake (ZAP, the
+:class:`Gatekeeper`). With ``bus.curve_server_secret_key_file`` and ``bus.curve_authorized_keys_dir``
+both sockets are CURVE servers and only clients whose public certificate is in that folder get in.
+``ipc://`` sockets are made mode 0660 (:func:`~companion.service.runtime.restrict_socket`).
 """
 
 from __future__ import annotations
 
 import logging
+import threading
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import zmq
-import zmq.asyncio
+import zmq.auth
+from zmq.auth.thread import ThreadAuthenticator
 
 from companion.config import BusConfig
 from companion.errors import ConfigError
+from companion.service.runtime import resolve_endpoint, restrict_socket
 
 log = logging.getLogger(__name__)
 
-#: ZeroMQ drops (without a reply) messages larger than this; bus.max_request_bytes (smaller) gets an
-#: error reply instead. A guard for memory only.
-_HARD_MAX_BYTES = 32 * 1024 * 1024
+#: Messages queued per connection and direction (ZeroMQ's high-water marks): a client that floods or
+#: never reads its replies fills its own small queue, and its further messages are dropped.
+QUEUE_MESSAGES = 16
+#: Health messages queued per subscriber before old ones are dropped.
+HEALTH_QUEUE_MESSAGES = 100
+#: A connection that has not completed the ZeroMQ handshake by then is closed (a raw TCP flood holds
+#: its file descriptors no longer than this), milliseconds.
+HANDSHAKE_TIMEOUT_MS = 2000
+#: The ZAP domains of the two sockets (the gatekeeper counts the control socket's connections).
+CONTROL_DOMAIN = "companion-control"
+HEALTH_DOMAIN = "companion-health"
 
 
 def load_server_keys(secret_file: Path) -> tuple[bytes, bytes]:
@@ -32,8 +52,6 @@ def load_server_keys(secret_file: Path) -> tuple[bytes, bytes]:
     Raises:
         ConfigError: unreadable, or a public-only certificate.
     """
-    import zmq.auth
-
     try:
         public, secret = zmq.auth.load_certificate(str(secret_file))
     except (OSError, ValueError) as err:
@@ -45,26 +63,55 @@ def load_server_keys(secret_file: Path) -> tuple[bytes, bytes]:
     return public, secret
 
 
+class Gatekeeper(ThreadAuthenticator):
+    """The ZAP handler of both sockets, in its own thread: CURVE (when configured), and a limit on the
+    control socket's live connections (counted by :class:`~companion.service.control.ControlServer`
+    from the socket's monitor events)."""
+
+    def __init__(self, context: zmq.Context, max_connections: int) -> None:
+        super().__init__(context)
+        self.max_connections = max_connections
+        self.live_connections = 0  # written by the control server's thread; an int, read here
+        self.refused = 0
+
+    async def handle_zap_message(self, msg: list[bytes]) -> None:
+        if len(msg) >= 6 and msg[2] == CONTROL_DOMAIN.encode() and self.live_connections > self.max_connections:
+            self.refused += 1
+            self._send_zap_reply(msg[1], b"400", b"too many connections")
+            return
+        await super().handle_zap_message(msg)
+
+
 class Bus:
     """The two sockets, bound; :meth:`close` releases them (linger 0: nothing is held on exit).
+
+    Args:
+        cfg: the ``[bus]`` config.
+        environ: the environment that resolves ``auto`` endpoints (the runtime directory).
 
     Raises (from :meth:`open`):
         ConfigError: an endpoint cannot be bound (in use, bad address) or the CURVE files are wrong.
     """
 
-    def __init__(self, cfg: BusConfig) -> None:
+    def __init__(self, cfg: BusConfig, environ: Mapping[str, str] | None = None) -> None:
         self.cfg = cfg
-        self.ctx: zmq.asyncio.Context | None = None
-        self.health: zmq.asyncio.Socket | None = None
-        self.control: zmq.asyncio.Socket | None = None
-        self._auth: Any = None
+        self._environ = environ
+        self.ctx: zmq.Context | None = None
+        self.health: zmq.Socket | None = None
+        self.control: zmq.Socket | None = None
+        self.gatekeeper: Gatekeeper | None = None
         self.health_endpoint = cfg.health_endpoint
         self.control_endpoint = cfg.control_endpoint
+        self._publish_lock = threading.Lock()
 
     def open(self) -> None:
-        self.ctx = zmq.asyncio.Context()
+        self.ctx = zmq.Context()
         try:
+            health_endpoint = resolve_endpoint(self.cfg.health_endpoint, "health", self._environ)
+            control_endpoint = resolve_endpoint(self.cfg.control_endpoint, "control", self._environ)
             keys = None
+            self.gatekeeper = Gatekeeper(self.ctx, self.cfg.max_connections)
+            self.gatekeeper.start()
             if self.cfg.curve_enabled:
                 assert self.cfg.curve_server_secret_key_file is not None
                 assert self.cfg.curve_authorized_keys_dir is not None
@@ -72,17 +119,19 @@ class Bus:
                 allowed = self.cfg.curve_authorized_keys_dir
                 if not allowed.is_dir():
                     raise ConfigError(f"bus.curve_authorized_keys_dir {allowed}: not a folder")
-                from zmq.auth.asyncio import AsyncioAuthenticator
-
-                self._auth = AsyncioAuthenticator(self.ctx)
-                self._auth.start()
-                self._auth.configure_curve(domain="*", location=str(allowed))
-            self.health = self._bind(zmq.PUB, self.cfg.health_endpoint, "bus.health_endpoint", keys)
-            self.control = self._bind(zmq.ROUTER, self.cfg.control_endpoint, "bus.control_endpoint", keys)
-            self.control.setsockopt(zmq.ROUTER_MANDATORY, 1)
+                for domain in (CONTROL_DOMAIN, HEALTH_DOMAIN):  # pyzmq's "*" covers only an empty domain
+                    self.gatekeeper.configure_curve(domain=domain, location=str(allowed))
+            self.health = self._bind(zmq.PUB, health_endpoint, "bus.health_endpoint", keys, HEALTH_DOMAIN)
+            self.health.setsockopt(zmq.SNDHWM, HEALTH_QUEUE_MESSAGES)  # a slow subscriber loses old health
+            self.control = self._bind(zmq.ROUTER, control_endpoint, "bus.control_endpoint", keys, CONTROL_DOMAIN)
+            self.control.setsockopt(zmq.ROUTER_MANDATORY, 1)  # a reply to a gone client raises, never blocks
+            self.control.setsockopt(zmq.SNDHWM, QUEUE_MESSAGES)
+            self.control.setsockopt(zmq.RCVHWM, QUEUE_MESSAGES)
             # What the endpoints really are (a tcp port 0 is bound to an ephemeral port).
             self.health_endpoint = self.health.getsockopt_string(zmq.LAST_ENDPOINT)
             self.control_endpoint = self.control.getsockopt_string(zmq.LAST_ENDPOINT)
+            restrict_socket(self.health_endpoint)
+            restrict_socket(self.control_endpoint)
         except BaseException:
             self.close()
             raise
@@ -93,13 +142,15 @@ class Bus:
             " (CURVE)" if keys else "",
         )
 
-    def _bind(self, kind: int, endpoint: str, field: str, keys: tuple[bytes, bytes] | None) -> zmq.asyncio.Socket:
+    def _bind(
+        self, kind: int, endpoint: str, field: str, keys: tuple[bytes, bytes] | None, domain: str
+    ) -> zmq.Socket:
         assert self.ctx is not None
         sock = self.ctx.socket(kind)
         sock.setsockopt(zmq.LINGER, 0)
-        sock.setsockopt(zmq.MAXMSGSIZE, _HARD_MAX_BYTES)
-        if kind == zmq.PUB:
-            sock.setsockopt(zmq.SNDHWM, 100)  # a slow subscriber loses old health, never blocks us
+        sock.setsockopt(zmq.MAXMSGSIZE, 2 * self.cfg.max_request_bytes)
+        sock.setsockopt(zmq.HANDSHAKE_IVL, HANDSHAKE_TIMEOUT_MS)
+        sock.setsockopt_string(zmq.ZAP_DOMAIN, domain)
         if keys is not None:
             sock.curve_server = True
             sock.curve_publickey, sock.curve_secretkey = keys
@@ -110,24 +161,32 @@ class Bus:
             raise ConfigError(f"{field} {endpoint!r}: cannot bind: {err}") from None
         return sock
 
-    async def publish(self, payload: bytes) -> None:
+    def publish(self, payload: bytes) -> None:
         """Publish one health message; never blocks (a full queue drops it)."""
-        if self.health is None:
-            return
-        try:
-            await self.health.send(payload, flags=zmq.NOBLOCK)
-        except zmq.Again:
-            log.debug("health message dropped: subscribers are slow")
+        with self._publish_lock:
+            if self.health is None:
+                return
+            try:
+                self.health.send(payload, flags=zmq.NOBLOCK)
+            except zmq.Again:
+                log.debug("health message dropped: subscribers are slow")
 
     def close(self) -> None:
-        for name in ("health", "control"):
-            sock = getattr(self, name)
-            if sock is not None:
-                sock.close(linger=0)
-                setattr(self, name, None)
-        if self._auth is not None:
-            self._auth.stop()
-            self._auth = None
+        """Close both sockets and the context (the control server's thread must have stopped)."""
+        with self._publish_lock:
+            for name in ("health", "control"):
+                sock = getattr(self, name)
+                if sock is not None:
+                    sock.close(linger=0)
+                    setattr(self, name, None)
+        if self.gatekeeper is not None:
+            self.gatekeeper.stop()
+            self.gatekeeper = None
         if self.ctx is not None:
             self.ctx.term()
             self.ctx = None
+
+    def stats(self) -> dict[str, Any]:
+        """The gatekeeper's counts, for health (live control connections, refused handshakes)."""
+        g = self.gatekeeper
+        return {"connections": g.live_connections if g else 0, "refused_connections": g.refused if g else 0}

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from pathlib import Path
 from typing import Any
 
@@ -46,10 +47,32 @@ def curve_client_options(server_key: Path | None, client_key: Path | None) -> di
     return {"curve_serverkey": server_public, "curve_publickey": client_public, "curve_secretkey": client_secret}
 
 
+def check_ipc_access(endpoint: str) -> None:
+    """For an ``ipc://`` endpoint whose socket file exists: raise ClientError when this user may not
+    open it (ZeroMQ would only retry in silence).
+
+    Raises:
+        ClientError: permission denied, naming the file and what to do.
+    """
+    if not endpoint.startswith("ipc://") or endpoint.startswith("ipc://@"):
+        return
+    path = Path(endpoint.removeprefix("ipc://"))
+    try:
+        exists = path.exists()
+    except PermissionError:
+        exists = True  # the folder itself is closed to us
+    if exists and not os.access(path, os.R_OK | os.W_OK):
+        raise ClientError(
+            f"{path}: permission denied: only the service's user and the members of its group (companion) "
+            "may use it (sudo usermod -aG companion $USER, then log in again)"
+        )
+
+
 class ControlClient:
     """One DEALER connection to the control socket; ``call`` sends a request and waits for its reply."""
 
     def __init__(self, endpoint: str, timeout_s: float = 3.0, curve: dict[str, bytes] | None = None) -> None:
+        check_ipc_access(endpoint)
         self.endpoint = endpoint
         self.timeout_s = timeout_s
         self._ctx = zmq.Context()

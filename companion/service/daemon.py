@@ -44,9 +44,11 @@ from companion.core.supervisor import (
     Action,
     ActionResult,
     Shutdown,
+    State,
     Supervisor,
     SupervisorConfig,
 )
+from companion.core.safety import near_blindness
 from companion.core.types import ZERO_SETPOINT, VelocitySetpoint
 from companion.errors import (
     CompanionError,
@@ -59,6 +61,7 @@ from companion.service.aio import wait_event
 from companion.service.capture import CaptureThread, FrameMailbox, ProcessingThread
 from companion.service.control import (  # noqa: F401 (re-exported: the daemon's public names)
     ControlPlane,
+    ControlServer,
     RequestRefused,
     keep_restart_fields,
     resolve_config_paths,
@@ -66,6 +69,7 @@ from companion.service.control import (  # noqa: F401 (re-exported: the daemon's
 )
 from companion.service.health import HealthReporter
 from companion.service.notify import Notifier, watchdog_interval_s
+from companion.service.runtime import raise_open_file_limit
 
 if TYPE_CHECKING:
     from companion.service.camera import TelemetryPose
@@ -150,6 +154,8 @@ class Service(ControlPlane, HealthReporter):
         self._last_setpoint_s: float | None = None
         self._setpoints_sent = 0
         self._last_error: str | None = None
+        self._last_error_kind: str | None = None  # "config" for a rejected reload: a good one clears it
+        self.control_server: ControlServer | None = None
         self._vehicle_status = "connecting"
         self._signals = 0
         self._health_seq = 0
@@ -209,9 +215,13 @@ class Service(ControlPlane, HealthReporter):
         assert loop is not None
         if self._install_signals:
             self._setup_signals()
+        blind = near_blindness(cfg)
+        if blind is not None:
+            raise StartupError(f"config: {blind}")
         from companion.service.bus import Bus
 
-        self.bus = Bus(cfg.bus)
+        raise_open_file_limit()
+        self.bus = Bus(cfg.bus, environ=self._environ)
         self.bus.open()
         self._processor = ProcessingThread(
             self._mailbox,
@@ -274,7 +284,18 @@ class Service(ControlPlane, HealthReporter):
             ) from None
         self._spawn(self._control_loop(), "control loop", critical=True)
         self._spawn(self._health_loop(), "health")
-        self._spawn(self._control_server(), "control server")
+        # The control socket gets its own thread: no client can stall the flight loop.
+        self.control_server = ControlServer(
+            self.bus.control,
+            cfg.bus,
+            loop,
+            self.handle_local,
+            self.handle_request,
+            on_internal_error=self._control_server_error,
+            gatekeeper=self.bus.gatekeeper,
+            clock=self._clock,
+        )
+        self.control_server.start()
 
     def _reconfigure_pipeline(self, cfg: CompanionConfig) -> list[str]:
         """In the pipeline thread: swap the config in; release a replaced estimator (GPU threads)."""
@@ -355,6 +376,8 @@ class Service(ControlPlane, HealthReporter):
                 log.error("task %s did not stop within 2 s; leaving it", task.get_name())
         self._tasks = []
         self._action_tasks.clear()
+        if self.control_server is not None:
+            await asyncio.get_running_loop().run_in_executor(None, self.control_server.stop)
         if self.bus is not None:
             self.bus.close()
             self.bus = None
@@ -414,8 +437,7 @@ class Service(ControlPlane, HealthReporter):
             result = await self.reload()
             log.info("reload applied: %s", result)
         except CompanionError as err:
-            log.error("reload rejected, the old config stays: %s", err)
-            self._error(f"reload rejected: {err}")
+            log.error("reload rejected, the old config stays: %s", err)  # reload() recorded it in health
 
     # ================================================================================ frames
 
@@ -632,8 +654,28 @@ class Service(ControlPlane, HealthReporter):
         if self._notifier is not None:
             self._notifier.notify(*fields)
 
-    def _error(self, message: str) -> None:
+    def _error(self, message: str, kind: str = "fault") -> None:
+        """Record ``message`` as health's ``last_error``; ``kind`` "config" marks a rejected config change."""
         self._last_error = message
+        self._last_error_kind = kind
+
+    def _clear_error(self, kind: str) -> None:
+        """Forget ``last_error`` when it is of ``kind`` (a good reload clears an earlier rejection)."""
+        if self._last_error_kind == kind:
+            self._last_error = None
+            self._last_error_kind = None
+
+    def _control_server_error(self, message: str) -> None:
+        """From the control server's thread: a request failed with a bug, or the thread itself died."""
+        self._call_on_loop(self._error, message)
+        if self.control_server is not None and self.control_server.error is not None:
+            # Nobody could command or stop the service any more: stop cleanly (zero, Hold if ours).
+            self._call_on_loop(self.request_shutdown, "control server failed", exitcodes.INTERNAL_ERROR)
+
+    @property
+    def engaged_or_engaging(self) -> bool:
+        """True from an accepted engage until the service stops commanding (live changes are limited then)."""
+        return self.supervisor.state in (State.ENGAGING, State.ENGAGED, State.DEGRADED, State.PAUSED, State.OVERRIDE)
 
     async def _vehicle_connector(self) -> None:
         assert self.link is not None

@@ -119,6 +119,25 @@ class HealthReporter:
             "processed_twice": self._processed_twice,
             "frame_errors": self._frame_errors,
             "last_error": self._last_error,
+            "control": self._control_status(),
+        }
+
+    def _control_status(self) -> dict[str, int] | None:
+        """The control server's counts: live connections, requests received, refused by the budgets
+        (``rate_limited``) or the bound on requests in progress (``busy``), malformed (``bad``),
+        replies dropped (a client that does not read them), handshakes refused (too many connections)."""
+        server = self.control_server
+        if server is None:
+            return None
+        st = server.stats
+        return {
+            "connections": server.connections,
+            "received": st.received,
+            "rate_limited": st.rate_limited,
+            "busy": st.busy,
+            "bad": st.bad,
+            "replies_dropped": st.replies_dropped,
+            "refused_connections": self.bus.stats()["refused_connections"] if self.bus is not None else 0,
         }
 
     def _skipped_frames(self) -> int:
@@ -128,7 +147,7 @@ class HealthReporter:
         if self.bus is None:
             return
         try:
-            await self.bus.publish(protocol.encode(self.health_message()))
+            self.bus.publish(protocol.encode(self.health_message()))
         except asyncio.CancelledError:
             raise
         except Exception:

@@ -62,7 +62,10 @@ RestartPreventExitStatus={startup_failure}
 User={user}
 Group={user}
 SupplementaryGroups={groups}
+# The control and health sockets live here (bus endpoints "auto"): mode 0750 and sockets 0660, so only
+# the service and the members of its group (operators: usermod -aG companion <user>) can command it.
 RuntimeDirectory=companion
+RuntimeDirectoryMode=0750
 StateDirectory=companion
 CacheDirectory=companion
 ConfigurationDirectory=companion
@@ -86,6 +89,9 @@ LockPersonality=yes
 SystemCallArchitectures=native
 RestrictAddressFamilies=AF_UNIX AF_INET AF_INET6 AF_NETLINK
 UMask=0027
+# A flood of connections to a TCP control endpoint must not exhaust the descriptors (the service also
+# raises its soft limit itself).
+LimitNOFILE=65536
 DevicePolicy=closed
 # /dev/video* (the ZED over UVC)
 DeviceAllow=char-video4linux rw

@@ -5,7 +5,9 @@ Why our own ~20 lines instead of a library: the protocol is one datagram to the 
 headers to build (awkward on JetPack), ``cysystemd`` likewise; ``sdnotify`` is unmaintained since 2017
 and swallows every error with a bare ``except``. Here a failed send is logged, never hidden, and never
 raised into the control loop (a broken notify socket must not stop the setpoint stream; systemd's
-watchdog then does its job).
+watchdog then does its job). The socket never blocks: a receiver that does not read (its queue holds
+only ``net.unix.max_dgram_qlen`` datagrams, 10 by default) would otherwise stop the control loop,
+which sends WATCHDOG=1 from each step, inside ``sendto``; a notification it cannot take is dropped.
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ class Notifier:
 
     def __init__(self, address: str) -> None:
         self.address = "\0" + address[1:] if address.startswith("@") else address
-        self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC)
+        self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC | socket.SOCK_NONBLOCK)
         self._failed = False
 
     @classmethod
@@ -38,6 +40,11 @@ class Notifier:
         message = "\n".join(f.replace("\n", " ") for f in fields).encode("utf-8", "replace")
         try:
             self._sock.sendto(message, self.address)
+        except BlockingIOError:
+            # The receiver's queue is full: drop this one rather than stall the caller (the control
+            # loop). systemd reads at once; a notification lost now and then changes nothing.
+            log.debug("sd_notify to %r dropped: the receiver's queue is full", self.address)
+            return False
         except OSError as err:
             if not self._failed:  # log once per outage, not 20 times a second
                 log.error("sd_notify to %r failed: %s", self.address, err)

@@ -134,11 +134,14 @@ class GatedCamera:
 
 
 def service_config(tmp_path, **sections) -> CompanionConfig:
-    """Defaults with ipc endpoints in ``tmp_path`` and the given section overrides."""
+    """Defaults with ipc endpoints in ``tmp_path`` and the given section overrides. The request budgets
+    are raised: these tests poll ``status`` at 100 Hz (the budgets have tests of their own)."""
     data = {
         "bus": {
             "health_endpoint": f"ipc://{tmp_path}/health.sock",
             "control_endpoint": f"ipc://{tmp_path}/control.sock",
+            "requests_per_s_per_client": 1000.0,
+            "max_requests_per_s": 10000.0,
         },
         "camera": {"source": "sim", "fps_hz": 15.0},
         "stereo": {"backend": "opencv-bm"},

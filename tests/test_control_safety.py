@@ -1,0 +1,340 @@
+"""Only the operator can command, and live changes cannot leave the safety envelope (a running service,
+in-process, with the fake vehicle link): strict types on the wire, the envelope, what may change while
+engaged, a controller that must still see near as near, the request budgets, the connection limit,
+the socket's permissions, and the small truths (last_error, ctl with a broken file)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import zmq
+from peers.fakes import Client, FakeLink, ServiceRunner, avoid_scene_camera, service_config, wait_until
+
+from companion.config import CompanionConfig, apply_patch, load_bus_config, parse_config
+from companion.config.envelope import envelope_violations
+from companion.core.safety import near_blindness
+from companion.errors import ConfigError
+from companion.service.control import live_change_refusal
+from companion.service.daemon import Service
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _engage(client: Client, link: FakeLink) -> None:
+    assert client.call("engage")["ok"]
+    assert wait_until(lambda: link.state().in_offboard, 3.0)
+    assert wait_until(lambda: client.call("status")["result"]["state"] == "engaged", 3.0)
+
+
+@pytest.fixture()
+def running(tmp_path: Path):
+    config_path = tmp_path / "companion.toml"
+    cfg = service_config(tmp_path)
+    service = Service(
+        cfg, config_path=config_path, camera=avoid_scene_camera(15.0), link=FakeLink(), install_signals=False, environ={}
+    )
+    with ServiceRunner(service):
+        client = Client(service.bus.control_endpoint, service.bus.health_endpoint)
+        try:
+            yield service, service.link, client, config_path
+        finally:
+            client.close()
+
+
+def _error(reply: dict) -> str:
+    assert not reply["ok"], reply
+    return reply["error"]["message"]
+
+
+# ---------------------------------------------------------------------------------------------- the config
+
+
+def test_strict_types_on_the_wire() -> None:
+    cfg = CompanionConfig()
+    with pytest.raises(ConfigError, match=r"command.cruise_speed_m_s: Input should be a valid number \(got '2.5'\)"):
+        apply_patch(cfg, {"command": {"cruise_speed_m_s": "2.5"}})
+    with pytest.raises(ConfigError, match="command.cruise_speed_m_s: Input should be a valid number"):
+        apply_patch(cfg, {"command": {"cruise_speed_m_s": True}})
+    with pytest.raises(ConfigError, match="vehicle.require_armed_to_engage: Input should be a valid boolean"):
+        apply_patch(cfg, {"vehicle": {"require_armed_to_engage": 0}})
+    with pytest.raises(ConfigError, match="finite"):
+        apply_patch(cfg, {"command": {"cruise_speed_m_s": float("nan")}})
+    assert apply_patch(cfg, {"command": {"cruise_speed_m_s": 1}}).command.cruise_speed_m_s == 1.0  # an integer is a number
+
+
+@pytest.mark.parametrize(
+    ("patch", "named"),
+    [
+        ({"command": {"cruise_speed_m_s": 15.0}}, "envelope.max_horizontal_speed_m_s"),
+        ({"command": {"stale_frame_timeout_s": 2.0, "failsafe_timeout_s": 4.0}}, "envelope.max_stale_frame_timeout_s"),
+        ({"command": {"failsafe_timeout_s": 30.0}}, "envelope.max_failsafe_timeout_s"),
+        ({"vehicle": {"setpoint_rate_hz": 2.0}}, "envelope.min_setpoint_rate_hz"),
+        ({"vehicle": {"require_armed_to_engage": False}}, "envelope.arming_check_may_be_off"),
+        ({"service": {"override_max_duration_s": 300.0}}, "envelope.max_override_duration_s"),
+        ({"service": {"override_respects_brake": False}}, "envelope.override_may_ignore_brake"),
+        ({"memory": {"duration_s": 0.0}}, "envelope.memory_may_be_off"),
+        ({"command": {"brake_hold_gain_per_s": 0.0}}, "envelope.brake_hold_may_be_off"),
+        ({"command": {"max_yaw_rate_deg_s": 200.0}}, "envelope.max_yaw_rate_deg_s"),
+        ({"command": {"max_vertical_speed_m_s": 3.0}}, "envelope.max_vertical_speed_m_s"),
+    ],
+)
+def test_a_config_outside_its_envelope_is_refused_naming_the_limit(patch: dict, named: str) -> None:
+    with pytest.raises(ConfigError, match="outside the safety envelope") as err:
+        apply_patch(CompanionConfig(), patch)
+    assert named in str(err.value)
+
+
+def test_the_envelope_itself_widens_only_in_the_file() -> None:
+    wide = parse_config({"envelope": {"max_horizontal_speed_m_s": 5.0}, "command": {"cruise_speed_m_s": 4.0}})
+    assert envelope_violations(wide) == []
+    paper = ROOT / "config" / "paper.toml"
+    from companion.config import load_config
+
+    assert load_config(paper).memory.duration_s == 0.0  # the paper's profile opens the two it needs
+
+
+def test_a_controller_blind_to_near_is_refused() -> None:
+    cfg = CompanionConfig()
+    assert near_blindness(cfg) is None
+    far_lut = apply_patch(cfg, {"lut": {"points_m": [[0.2, 2.5], [40.0, 60.0]]}})
+    assert "every region 0.5 m away" in near_blindness(far_lut)
+    late_near = apply_patch(
+        cfg,
+        {
+            "controller": {
+                "input_terms": {
+                    "near": {"shape": "left_shoulder", "params_m": [0.1, 0.3]},
+                    "far": {"shape": "right_shoulder", "params_m": [0.1, 0.3]},
+                }
+            }
+        },
+    )
+    assert "not brake" in near_blindness(late_near)
+    # Rules without the paper's escapes still brake (no rule fired means brake): not blind.
+    main = [r.model_dump() for r in cfg.controller.main_rules if r.name in ("R1", "S1", "S2", "S3", "S4")]
+    assert near_blindness(apply_patch(cfg, {"controller": {"main_rules": main}})) is None
+
+
+def test_what_may_change_while_engaged() -> None:
+    cfg = CompanionConfig()
+    faster = apply_patch(cfg, {"command": {"cruise_speed_m_s": 1.0}, "controller": {"preferred_yaw_side": "left"}})
+    assert live_change_refusal(cfg, faster, engaged=True, from_file=False) is None  # tuning
+    later_stale = apply_patch(cfg, {"command": {"stale_frame_timeout_s": 0.4}})
+    assert "disengage first to change command.stale_frame_timeout_s" in live_change_refusal(
+        cfg, later_stale, engaged=True, from_file=False
+    )
+    assert live_change_refusal(cfg, later_stale, engaged=False, from_file=False) is None
+    smaller_memory = apply_patch(cfg, {"memory": {"guard_distance_m": 0.3}})
+    assert "memory.guard_distance_m" in live_change_refusal(cfg, smaller_memory, engaged=True, from_file=False)
+    widened = apply_patch(cfg, {}).model_copy(
+        update={"envelope": cfg.envelope.model_copy(update={"max_horizontal_speed_m_s": 3.0})}
+    )
+    assert "cannot change the safety envelope" in live_change_refusal(cfg, widened, engaged=False, from_file=False)
+    assert "only while not engaged" in live_change_refusal(cfg, widened, engaged=True, from_file=True)
+    assert live_change_refusal(cfg, widened, engaged=False, from_file=True) is None
+    frozen = cfg.model_copy(update={"envelope": cfg.envelope.model_copy(update={"live_changes_while_engaged": "none"})})
+    assert "no live changes while engaged" in live_change_refusal(frozen, faster.model_copy(update={"envelope": frozen.envelope}), engaged=True, from_file=False)
+
+
+# ---------------------------------------------------------------------------------------------- a running service
+
+
+def test_live_changes_while_engaged_over_the_wire(running) -> None:
+    service, link, client, _ = running
+    _engage(client, link)
+    assert client.call("set_config", patch={"command": {"cruise_speed_m_s": 0.9}})["ok"]  # tuning
+    assert "outside the safety envelope" in _error(client.call("set_config", patch={"command": {"cruise_speed_m_s": 15}}))
+    assert "disengage first" in _error(client.call("set_config", patch={"command": {"stale_frame_timeout_s": 0.3}}))
+    assert "cannot change the safety envelope" in _error(
+        client.call("set_config", patch={"envelope": {"max_horizontal_speed_m_s": 10.0}})
+    )
+    assert "not brake" in _error(client.call("set_config", patch={"lut": {"points_m": [[0.2, 2.5], [40.0, 60.0]]}}))
+    assert "valid number" in _error(client.call("set_config", patch={"command": {"cruise_speed_m_s": "0.8"}}))
+    assert service.config.command.cruise_speed_m_s == 0.9 and service.config.command.stale_frame_timeout_s == 0.5
+    assert client.call("disengage")["ok"]
+    assert wait_until(lambda: client.call("status")["result"]["state"] == "disengaged", 3.0)
+    assert client.call("set_config", patch={"command": {"stale_frame_timeout_s": 0.3}})["ok"]  # not engaged now
+
+
+def test_a_good_reload_clears_the_last_rejection(running) -> None:
+    service, _, client, config_path = running
+    config_path.write_text("[command]\ncruise_speed_m_s = -1\n")
+    assert "cruise_speed_m_s" in _error(client.call("reload"))
+    assert "reload rejected" in client.call("status")["result"]["last_error"]
+    bus = service.config.bus
+    config_path.write_text(
+        f'[bus]\nhealth_endpoint = "{bus.health_endpoint}"\ncontrol_endpoint = "{bus.control_endpoint}"\n'
+        f"requests_per_s_per_client = {bus.requests_per_s_per_client}\nmax_requests_per_s = {bus.max_requests_per_s}\n"
+        '[camera]\nsource = "sim"\nfps_hz = 15.0\n[stereo]\nbackend = "opencv-bm"\n[command]\ncruise_speed_m_s = 0.6\n'
+    )
+    assert client.call("reload")["ok"]
+    assert client.call("status")["result"]["last_error"] is None
+
+
+def test_request_budgets_answer_a_flooding_client_and_spare_the_others(tmp_path: Path) -> None:
+    cfg = service_config(tmp_path, bus={"requests_per_s_per_client": 20.0, "max_requests_per_s": 200.0})
+    service = Service(cfg, camera=avoid_scene_camera(10.0), link=FakeLink(), install_signals=False, environ={})
+    with ServiceRunner(service):
+        ctx = zmq.Context()
+        flooder = ctx.socket(zmq.DEALER)
+        flooder.connect(service.bus.control_endpoint)
+        for i in range(100):
+            flooder.send(json.dumps({"cmd": "ping", "id": i}).encode())
+        replies = []
+        while flooder.poll(1000):
+            replies.append(json.loads(flooder.recv()))
+        ok = [r for r in replies if r["ok"]]
+        limited = [r for r in replies if not r["ok"]]
+        assert len(replies) == 100
+        assert 15 <= len(ok) <= 30 and limited and all(r["error"]["type"] == "RateLimited" for r in limited)
+        assert "requests_per_s_per_client" in limited[0]["error"]["message"]
+        other = Client(service.bus.control_endpoint)
+        assert other.call("ping")["ok"]  # another client has its own budget
+        status = other.call("status")["result"]
+        assert status["control"]["rate_limited"] >= len(limited)
+        other.close()
+        flooder.close(0)
+        ctx.term()
+
+
+def test_connections_beyond_the_limit_are_refused(tmp_path: Path) -> None:
+    cfg = service_config(tmp_path, bus={"max_connections": 3})
+    service = Service(cfg, camera=avoid_scene_camera(10.0), link=FakeLink(), install_signals=False, environ={})
+    with ServiceRunner(service):
+        ctx = zmq.Context()
+        socks = []
+        for _ in range(6):
+            s = ctx.socket(zmq.DEALER)
+            s.setsockopt(zmq.LINGER, 0)
+            s.connect(service.bus.control_endpoint)
+            socks.append(s)
+            time.sleep(0.05)
+        for i, s in enumerate(socks):
+            s.send(json.dumps({"cmd": "ping", "id": i}).encode())
+        answered = sum(1 for s in socks if s.poll(500) and s.recv())
+        # The count comes from the socket's monitor, a moment behind a handshake: one more may slip in.
+        assert answered in (3, 4), answered
+        assert wait_until(lambda: service.bus.stats()["refused_connections"] >= 6 - answered, 2.0)
+        for s in socks:
+            s.close(0)
+        # Gone connections free their places.
+        assert wait_until(lambda: service.control_server.connections == 0, 3.0)
+        again = Client(service.bus.control_endpoint)
+        assert again.call("ping")["ok"]
+        again.close()
+        ctx.term()
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="needs root to try the socket as another user (uid nobody)")
+def test_another_user_cannot_use_the_control_socket(tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    run.mkdir()
+    run.chmod(0o755)  # others may enter the folder: only the socket's own mode keeps them out
+    tmp_path.chmod(0o755)
+    cfg = service_config(run)
+    service = Service(cfg, camera=avoid_scene_camera(10.0), link=FakeLink(), install_signals=False, environ={})
+    with ServiceRunner(service):
+        sock = Path(service.bus.control_endpoint.removeprefix("ipc://"))
+        assert sock.stat().st_mode & 0o777 == 0o660
+        endpoint = service.bus.control_endpoint
+        # The interpreter may lie where uid nobody cannot run it: fork this one and drop to nobody.
+        out = _as_nobody(lambda: _try_to_engage(endpoint))
+        assert out == "no reply; ControlClient: permission denied", out
+        assert service.supervisor.state.value == "passive"  # the engage never arrived
+
+
+def _try_to_engage(endpoint: str) -> str:
+    """In a process of uid nobody: a raw ZeroMQ engage, then ``companion ctl``'s client."""
+    from companion.service.client import ClientError, ControlClient
+
+    ctx = zmq.Context()
+    s = ctx.socket(zmq.DEALER)
+    s.setsockopt(zmq.LINGER, 0)
+    s.connect(endpoint)
+    s.send(b'{"cmd": "engage"}')
+    raw = "answered" if s.poll(1500) else "no reply"
+    s.close(0)
+    ctx.term()
+    try:
+        ControlClient(endpoint, timeout_s=1.0).close()
+        client = "ControlClient: connected"
+    except ClientError as err:
+        client = "ControlClient: permission denied" if "permission denied" in str(err) and "group" in str(err) else str(err)
+    return f"{raw}; {client}"
+
+
+def _as_nobody(fn) -> str:
+    """Run ``fn`` in a forked child as uid/gid nobody; its string result comes back through a pipe."""
+    r, w = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # the child: no pytest, no service threads; only fn
+        try:
+            os.close(r)
+            os.setgroups([])
+            os.setgid(65534)
+            os.setuid(65534)
+            os.write(w, fn().encode())
+        finally:
+            os._exit(0)
+    os.close(w)
+    chunks = []
+    while True:
+        data = os.read(r, 4096)
+        if not data:
+            break
+        chunks.append(data)
+    os.close(r)
+    os.waitpid(pid, 0)
+    return b"".join(chunks).decode()
+
+
+def test_ctl_finds_the_endpoint_in_a_file_whose_other_sections_are_invalid(running) -> None:
+    service, _, _, config_path = running
+    broken = config_path.parent / "broken.toml"
+    broken.write_text(
+        f'[bus]\ncontrol_endpoint = "{service.bus.control_endpoint}"\nhealth_endpoint = "{service.bus.health_endpoint}"\n'
+        "[command]\ncruise_speed_m_s = -5\n[nonsense]\nx = 1\n"
+    )
+    assert load_bus_config(broken).control_endpoint == service.bus.control_endpoint
+    out = subprocess.run(
+        [sys.executable, "-m", "companion", "ctl", "--config", str(broken), "status"], capture_output=True, text=True, timeout=30
+    )
+    assert out.returncode == 0, out.stderr
+    assert json.loads(out.stdout)["state"] == "passive"
+    watch = subprocess.run(
+        [sys.executable, "-m", "companion", "watch", "--config", str(broken), "--json", "--count", "1"],
+        capture_output=True,
+        text=True,
+        timeout=30,
+    )
+    assert watch.returncode == 0 and json.loads(watch.stdout)["type"] == "health", watch.stderr
+
+
+def test_auto_endpoints_live_in_a_private_runtime_directory(tmp_path: Path) -> None:
+    from companion.service.runtime import find_socket, resolve_endpoint, runtime_dir
+
+    env = {"XDG_RUNTIME_DIR": str(tmp_path)}
+    assert resolve_endpoint("auto", "control", env) == f"ipc://{tmp_path}/companion/control.sock"
+    assert (runtime_dir(env).stat().st_mode & 0o777) == 0o700
+    systemd = {"RUNTIME_DIRECTORY": "/run/companion"}
+    assert resolve_endpoint("auto", "health", systemd) == "ipc:///run/companion/health.sock"
+    assert resolve_endpoint("tcp://127.0.0.1:5561", "control", env) == "tcp://127.0.0.1:5561"
+    with pytest.raises(ConfigError, match="no control socket of a running service"):
+        find_socket("control", {"XDG_RUNTIME_DIR": str(tmp_path / "none")})
+
+
+def test_a_service_whose_controller_is_blind_to_near_does_not_start(tmp_path: Path) -> None:
+    import asyncio
+
+    from companion import exitcodes
+
+    cfg = service_config(tmp_path, lut={"points_m": [[0.2, 2.5], [40.0, 60.0]]})
+    service = Service(cfg, camera=avoid_scene_camera(10.0), link=FakeLink(), install_signals=False, environ={})
+    assert asyncio.run(service.run()) == exitcodes.STARTUP_FAILURE
+    assert "not brake" in service.health_message()["last_error"]
