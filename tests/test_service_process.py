@@ -26,6 +26,8 @@ def _write_config(path: Path, port: int, extra: str = "", cruise: float = 1.0) -
 [bus]
 health_endpoint = "ipc://{tmp}/h.sock"
 control_endpoint = "ipc://{tmp}/c.sock"
+[view]
+preview_endpoint = "ipc://{tmp}/p.sock"
 [camera]
 fps_hz = 10.0
 [stereo]

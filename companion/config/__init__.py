@@ -37,6 +37,7 @@ from companion.config.service import (
     VehicleConfig,
 )
 from companion.config.sim import SimConfig
+from companion.config.view import ViewConfig
 from companion.errors import ConfigError
 
 if sys.version_info >= (3, 11):
@@ -62,6 +63,7 @@ __all__ = [
     "SimConfig",
     "StereoConfig",
     "VehicleConfig",
+    "ViewConfig",
     "apply_patch",
     "load_config",
     "parse_config",
@@ -84,6 +86,7 @@ class CompanionConfig(StrictModel):
     service: ServiceConfig = Field(default_factory=ServiceConfig)
     gpu: GpuConfig = Field(default_factory=GpuConfig)
     sim: SimConfig = Field(default_factory=SimConfig)
+    view: ViewConfig = Field(default_factory=ViewConfig)
 
 
 def _short_repr(value: Any, limit: int = 80) -> str:

@@ -109,6 +109,7 @@ def measure_e2e(
                 "health_endpoint": f"ipc://{workdir}/health.sock",
                 "control_endpoint": f"ipc://{workdir}/control.sock",
             },
+            "view": {"preview_endpoint": f"ipc://{workdir}/preview.sock"},
             "service": {"autostart": True, **(service_options or {})},
             "vehicle": {"offboard_prestream_s": 0.1},
         },

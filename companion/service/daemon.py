@@ -129,6 +129,7 @@ class Service(ControlPlane, HealthReporter):
         self.ready = threading.Event()  # set once READY=1 was sent (for tests and embedding)
         self.stopped = threading.Event()
         self.bus = None
+        self.view = None  # companion.service.preview.ViewPlane: the preview and the flight recording
         self._loop: asyncio.AbstractEventLoop | None = None
         self._processor: ProcessingThread | None = None
         self._pipeline = None
@@ -213,6 +214,11 @@ class Service(ControlPlane, HealthReporter):
 
         self.bus = Bus(cfg.bus)
         self.bus.open()
+        from companion.service.preview import ViewPlane
+
+        # Off the flight path (own threads); one that cannot start is reported, and the service flies on.
+        self.view = ViewPlane(lambda: self.config, clock=self._clock, on_error=self._error)
+        self.view.open(self.bus.health_endpoint)
         self._processor = ProcessingThread(
             self._mailbox,
             self._process,
@@ -355,6 +361,9 @@ class Service(ControlPlane, HealthReporter):
                 log.error("task %s did not stop within 2 s; leaving it", task.get_name())
         self._tasks = []
         self._action_tasks.clear()
+        if self.view is not None:
+            await asyncio.get_running_loop().run_in_executor(None, self.view.close)
+            self.view = None
         if self.bus is not None:
             self.bus.close()
             self.bus = None
@@ -450,7 +459,12 @@ class Service(ControlPlane, HealthReporter):
             self._processed_twice += 1
             raise FrameError(f"frame {frame.seq} handed over twice")
         self._last_processed_key = key
-        return self._pipeline.process(frame.image, frame.timestamp_s)
+        view = self.view
+        want = view is not None and view.wants_frame()  # a viewer watches and a preview is due
+        result = self._pipeline.process(frame.image, frame.timestamp_s, want_disparity=want)
+        if want:
+            view.offer(frame, result, self._pipeline)  # references only; drawn in the preview thread
+        return result
 
     def _on_result_threadsafe(self, frame: Frame, result: Any, err: BaseException | None) -> None:
         self._call_on_loop(self._on_result, frame, result, err, self._clock())
