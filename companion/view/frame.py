@@ -74,9 +74,15 @@ def near_far_m(cfg: Any) -> tuple[float, float]:
 
 
 def _text(img: np.ndarray, text: str, org: tuple[int, int], scale: float, colour: tuple[int, int, int]) -> None:
-    thick = max(1, int(round(scale * 2)))
-    cv2.putText(img, text, org, _FONT, scale, (0, 0, 0), thick + 2, cv2.LINE_AA)
-    cv2.putText(img, text, org, _FONT, scale, colour, thick, cv2.LINE_AA)
+    """``text`` once, on a darkened box (an outline drawn with a thicker stroke does not line up with
+    the text at every OpenCV version and size)."""
+    (tw, th), base = cv2.getTextSize(text, _FONT, scale, 1)
+    x, y = org
+    y0, y1 = max(0, y - th - 3), min(img.shape[0], y + base)
+    x0, x1 = max(0, x - 3), min(img.shape[1], x + tw + 3)
+    if y1 > y0 and x1 > x0:
+        img[y0:y1, x0:x1] = (img[y0:y1, x0:x1] * 0.35).astype(np.uint8)
+    cv2.putText(img, text, org, _FONT, scale, colour, 1, cv2.LINE_AA)
 
 
 def _disparity_inset(out: np.ndarray, inp: PreviewInputs) -> None:
@@ -97,7 +103,7 @@ def _disparity_inset(out: np.ndarray, inp: PreviewInputs) -> None:
     cv2.rectangle(out, (x0, y0), (w - 1, h - 1), (255, 255, 255), 1)
     # Legend: the same colour scale, far (left) to near (right), with the depths at both ends.
     bar_h = max(5, h // 60)
-    scale = max(0.3, w / 1600.0)
+    scale = max(0.4, w / 1400.0)
     label_h = int(22 * scale) + 6
     by0 = y0 - bar_h - label_h
     if by0 < 0:
@@ -147,7 +153,7 @@ def render_preview(inp: PreviewInputs, width_px: int) -> np.ndarray:
     out = draw_overlay(small, layout, np.asarray(inp.depth_m, np.float64), inp.decision, near_m=inp.near_m, far_m=inp.far_m)
     if inp.disparity is not None and inp.disparity.size:
         _disparity_inset(out, inp)
-    scale = max(0.3, width_px / 1600.0)
+    scale = max(0.4, width_px / 1400.0)
     stamp = f"#{inp.seq}  t {inp.timestamp_s:.2f}s"
     (tw, _), _ = cv2.getTextSize(stamp, _FONT, scale, 1)
     _text(out, stamp, (width_px - tw - 6, int(22 * scale) + 4), scale, (255, 255, 255))
