@@ -139,7 +139,11 @@ function drawTimeline() {
     if (tl[i].state !== tl[i - 1].state) {
       const x = X(tl[i].t);
       g.fillRect(x, top, 1, plotBottom - top);
-      if (x - lastLabelX > 60) { g.fillText(tl[i].state, x + 2, plotTop + 10); lastLabelX = x; }
+      if (x - lastLabelX > 60) {
+        const w = g.measureText(tl[i].state).width;
+        g.fillText(tl[i].state, x + 2 + w > right ? x - w - 2 : x + 2, plotTop + 10);
+        lastLabelX = x;
+      }
     }
   }
   const maxFwd = Math.max(0.5, ...tl.map((p) => Math.abs(p.fwd || 0)));
