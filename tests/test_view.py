@@ -184,10 +184,16 @@ def test_view_access_token_origin_and_control(tmp_path: Path) -> None:
             base = f"http://127.0.0.1:{port}"
             assert _get(base + "/")[0] == 401
             assert _get(base + "/api/health")[0] == 401
-            status, body, headers = _get(base + "/?token=s3cret-token-for-the-field")
-            assert status == 200 and b"companion view" in body
-            assert "companion_view_token=s3cret-token-for-the-field" in headers["Set-Cookie"]
-            assert "HttpOnly" in headers["Set-Cookie"] and "SameSite=Strict" in headers["Set-Cookie"]
+            # ?token= once: a cookie, and a redirect that drops the token from the address bar.
+            import http.cookiejar
+
+            jar = http.cookiejar.CookieJar()
+            opener = urllib.request.build_opener(urllib.request.HTTPCookieProcessor(jar))
+            with opener.open(base + "/?token=s3cret-token-for-the-field", timeout=5) as resp:
+                status, body, headers, final = resp.status, resp.read(), dict(resp.headers), resp.url
+            assert status == 200 and b"companion view" in body and final == base + "/"
+            cookie = next(c for c in jar if c.name == "companion_view_token")
+            assert cookie.value == "s3cret-token-for-the-field" and cookie.has_nonstandard_attr("HttpOnly")
             assert "default-src 'self'" in headers["Content-Security-Policy"]
             assert b"http://" not in body and b"https://" not in body  # nothing from outside
             auth = {"Authorization": "Bearer s3cret-token-for-the-field"}

@@ -33,6 +33,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--sizes", default=None, help="e.g. 672x376:64,1280x720:128 (the default)")
     p.add_argument("--e2e", action="store_true", help="frame-to-setpoint latency of the service instead")
     p.add_argument(
+        "--viewer", action="store_true",
+        help="with --e2e: a preview subscriber watches the run (what `companion view` costs the flight loop)",
+    )
+    p.add_argument(
         "--no-rectify",
         action="store_true",
         help="skip the rectification remap (default: time it with a ZED-like calibration, as a real camera needs)",

@@ -417,6 +417,9 @@ class ViewServer:
     async def _index(self, request: Any) -> Any:
         from aiohttp import web
 
+        if self.options.token is not None and request.query.get("token"):
+            # The token goes into a cookie (set by the guard) and out of the address bar and history.
+            return web.Response(status=303, headers={"Location": "/"})
         response = web.Response(body=self._static["index.html"], content_type="text/html", charset="utf-8")
         response.headers["Content-Security-Policy"] = (
             "default-src 'self'; img-src 'self' blob: data:; connect-src 'self'; style-src 'self'; "
