@@ -165,6 +165,12 @@ class PreviewPublisher:
                     log.info("preview: no viewer left")
 
     def _run(self) -> None:
+        # Below the pipeline and the control loop: when both cores are busy the scheduler runs them
+        # first (OpenCV's drawing, resizing and JPEG encoding run without the GIL). Linux only.
+        try:
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 10)
+        except (AttributeError, OSError):
+            log.debug("preview: could not lower this thread's priority")
         next_due_s = 0.0
         while not self._stop.is_set():
             try:
