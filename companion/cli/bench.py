@@ -43,6 +43,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--duration-s", type=float, default=3600.0, help="--soak: how long, seconds (default 3600)")
     p.add_argument("--sample-s", type=float, default=60.0, help="--soak: seconds between rows (default 60)")
     p.add_argument(
+        "--viewer", action="store_true",
+        help="with --e2e: a preview subscriber watches the run (what `companion view` costs the flight loop)",
+    )
+    p.add_argument(
         "--no-rectify",
         action="store_true",
         help="skip the rectification remap (default: time it with a ZED-like calibration, as a real camera needs)",

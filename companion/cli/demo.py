@@ -31,6 +31,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--course", default=DEMO_COURSE[0], help=f"course kind (default {DEMO_COURSE[0]})")
     p.add_argument("--seed", type=int, default=DEMO_COURSE[1], help=f"course seed (default {DEMO_COURSE[1]})")
     p.add_argument("--config", type=Path, help="TOML config (default: built-in defaults)")
+    from companion.cli.sim import add_view_options
+
+    add_view_options(p)
     p.set_defaults(func=run)
 
 
@@ -130,9 +133,18 @@ def run(args: argparse.Namespace) -> int:
     near_m, far_m = _near_far_m(cfg)
     picker = _OverlayPicker(region_layout(geometry, cfg.regions), near_m, far_m, float(cfg.stereo.num_disparities))
 
-    print(f"companion demo: flying {course.name} ({course.description}) closed-loop, in simulated time")
+    bridge = None
     t0 = time.perf_counter()
-    result = fly(course, cfg, on_frame=picker, want_disparity=True)
+    if args.view:
+        from companion.cli.sim import print_view_urls
+        from companion.view.simbridge import fly_with_view
+
+        print(f"companion demo: flying {course.name} ({course.description}) closed-loop, in real time for the view")
+        result, bridge = fly_with_view(course, cfg, host=args.view_host, port=args.view_port,
+                                       title=f"companion demo: {course.name}", on_frame=picker, on_urls=print_view_urls)
+    else:
+        print(f"companion demo: flying {course.name} ({course.description}) closed-loop, in simulated time")
+        result = fly(course, cfg, on_frame=picker, want_disparity=True)
     wall = time.perf_counter() - t0
 
     # The decisions as they changed (frame by frame: what the pipeline concluded and why).
@@ -166,4 +178,8 @@ def run(args: argparse.Namespace) -> int:
     for path in written:
         print(f"  {path.name}")
     print(f"demo finished in {wall:.1f} s")
+    if bridge is not None:
+        from companion.cli.sim import finish_view
+
+        finish_view(bridge, args.view_linger_s)
     return 0

@@ -36,6 +36,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--plot", type=Path, metavar="OUT.png", help="--course: write a top-down plot of the flight")
     p.add_argument("--side-view", action="store_true", help="--course: add the altitude profile to the plot")
     p.add_argument("--realtime", action="store_true", help="--course: pace simulated time to the wall clock")
+    add_view_options(p, "--course: ")
     p.add_argument("--workers", type=int, default=2, help="--suite: worker processes (default 2)")
     p.set_defaults(func=run)
 
@@ -46,8 +47,8 @@ def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     if args.course is not None:
         return _run_course(args, cfg)
-    if args.plot is not None or args.side_view or args.realtime:
-        raise InputError("--plot, --side-view and --realtime go with --course, not --suite")
+    if args.plot is not None or args.side_view or args.realtime or args.view:
+        raise InputError("--plot, --side-view, --realtime and --view go with --course, not --suite")
     return _run_suite(args, cfg)
 
 
@@ -73,13 +74,50 @@ def _run_course(args: argparse.Namespace, cfg: Any) -> int:
 
     course = make_course(args.course, args.seed)
     plot_path = _check_plot_path(args.plot) if args.plot is not None else None
-    result = fly(course, cfg, realtime=args.realtime)
+    bridge = None
+    if args.view:
+        from companion.view.simbridge import fly_with_view
+
+        result, bridge = fly_with_view(course, cfg, host=args.view_host, port=args.view_port,
+                                       title=f"companion sim: {course.name}", on_urls=print_view_urls)
+    else:
+        result = fly(course, cfg, realtime=args.realtime)
     for line in describe_flight(result):
         print(line)
     if plot_path is not None:
         write_plot(result, plot_path, side_view=args.side_view)
         print(f"plot:          {plot_path}")
+    if bridge is not None:
+        finish_view(bridge, args.view_linger_s)
     return 0
+
+
+def add_view_options(p: argparse.ArgumentParser, prefix: str = "") -> None:
+    """``--view`` and its options (``companion sim`` and ``companion demo``)."""
+    p.add_argument(
+        "--view", action="store_true",
+        help=f"{prefix}watch the flight in the browser (the page `companion view` serves); flies in real time",
+    )
+    p.add_argument("--view-host", default="127.0.0.1", help="--view: address to serve on (default 127.0.0.1; another needs $COMPANION_VIEW_TOKEN or gets a made-up token)")
+    p.add_argument("--view-port", type=int, default=8080, help="--view: TCP port (default 8080; 0 = any free one)")
+    p.add_argument(
+        "--view-linger-s", type=float, default=None,
+        help="--view: keep the page up this long after the flight (default: until Ctrl-C)",
+    )
+
+
+def print_view_urls(urls: list[str]) -> None:
+    for url in urls:
+        print(f"view:          open {url}", flush=True)
+
+
+def finish_view(bridge: Any, linger_s: float | None) -> None:
+    """Keep the page up after the flight (``linger_s`` seconds, or until Ctrl-C), then stop it."""
+    from companion.view.simbridge import linger
+
+    if linger_s is None:
+        print("view:          the page stays up; Ctrl-C to quit", flush=True)
+    linger(bridge, linger_s)
 
 
 def _check_plot_path(path: Path) -> Path:

@@ -39,6 +39,7 @@ from companion.config.service import (
     VehicleConfig,
 )
 from companion.config.sim import SimConfig
+from companion.config.view import ViewConfig
 from companion.errors import ConfigError
 
 if sys.version_info >= (3, 11):
@@ -65,9 +66,11 @@ __all__ = [
     "SimConfig",
     "StereoConfig",
     "VehicleConfig",
+    "ViewConfig",
     "apply_patch",
     "load_bus_config",
     "load_config",
+    "load_view_config",
     "parse_config",
 ]
 
@@ -88,6 +91,7 @@ class CompanionConfig(StrictModel):
     service: ServiceConfig = Field(default_factory=ServiceConfig)
     gpu: GpuConfig = Field(default_factory=GpuConfig)
     sim: SimConfig = Field(default_factory=SimConfig)
+    view: ViewConfig = Field(default_factory=ViewConfig)
     envelope: EnvelopeConfig = Field(default_factory=EnvelopeConfig)
 
     @model_validator(mode="after")
@@ -150,12 +154,11 @@ def load_config(path: Path | str | None) -> CompanionConfig:
     return parse_config(data, source=str(path))
 
 
-def load_bus_config(path: Path | str) -> BusConfig:
-    """Only the ``[bus]`` table of a TOML config file, validated alone: ``companion ctl`` and ``watch``
-    find the service with it even when the rest of the file is invalid (when a user most needs status).
+def _load_table(path: Path | str, name: str, model: type[StrictModel]) -> Any:
+    """Table ``name`` of a TOML config file, validated alone by ``model`` (the rest of the file may be invalid).
 
     Raises:
-        ConfigError: the file is missing, unreadable, not TOML, or its ``[bus]`` table is invalid.
+        ConfigError: the file is missing, unreadable, not TOML, or that table is invalid.
     """
     path = Path(path)
     try:
@@ -164,13 +167,24 @@ def load_bus_config(path: Path | str) -> BusConfig:
         raise ConfigError(f"{path}: cannot read config: {err.strerror or err}", source=str(path)) from None
     except tomllib.TOMLDecodeError as err:
         raise ConfigError(f"{path}: not valid TOML: {err}", source=str(path)) from None
-    bus = data.get("bus", {})
-    if not isinstance(bus, dict):
-        raise ConfigError(f"{path}: bus: expected a table, got {type(bus).__name__}", source=str(path))
+    table = data.get(name, {})
+    if not isinstance(table, dict):
+        raise ConfigError(f"{path}: {name}: expected a table, got {type(table).__name__}", source=str(path))
     try:
-        return BusConfig.model_validate(bus)
+        return model.model_validate(table)
     except ValidationError as err:
-        raise ConfigError(format_validation_error(err, f"{path} [bus]"), source=str(path)) from None
+        raise ConfigError(format_validation_error(err, f"{path} [{name}]"), source=str(path)) from None
+
+
+def load_bus_config(path: Path | str) -> BusConfig:
+    """Only the ``[bus]`` table of a TOML config file: ``companion ctl``, ``watch`` and ``view`` find the
+    service with it even when the rest of the file is invalid (when a user most needs status)."""
+    return _load_table(path, "bus", BusConfig)
+
+
+def load_view_config(path: Path | str) -> ViewConfig:
+    """Only the ``[view]`` table of a TOML config file (``companion view``: where the preview is)."""
+    return _load_table(path, "view", ViewConfig)
 
 
 def _deep_merge(base: dict[str, Any], patch: Mapping[str, Any], path: str) -> dict[str, Any]:

@@ -17,6 +17,7 @@ from typing import Literal
 from pydantic import Field, field_validator, model_validator
 
 from companion.config._base import StrictModel
+from companion.config.view import VIEW_RESTART_FIELDS
 
 #: The ZED's UVC modes: one eye's (width, height) -> the frame rates it offers, Hz. The UVC frame is
 #: side by side, so its width is twice the eye's.
@@ -30,7 +31,7 @@ ZED_MODES: Mapping[tuple[int, int], tuple[float, ...]] = MappingProxyType(
 )
 
 #: Dotted paths (a section, or section.field) that take effect only at the next start.
-RESTART_FIELDS: tuple[str, ...] = ("camera", "bus", "vehicle.connection")
+RESTART_FIELDS: tuple[str, ...] = ("camera", "bus", "vehicle.connection") + tuple(f"view.{f}" for f in VIEW_RESTART_FIELDS)
 #: Fields inside a restart-only section that apply live anyway: where the simulated scene lies in the
 #: autopilot's frame (the PX4 SITL harness places the course at the hovering vehicle just before
 #: ``engage``).

@@ -79,10 +79,12 @@ def measure_e2e(
     workdir: Path,
     max_wall_s: float = 120.0,
     service_options: dict[str, Any] | None = None,
+    viewer: bool = False,
 ) -> dict[str, Any]:
     """Run the service on a replayed 60 fps recording at ``size`` with ``backend``; return the figures.
 
     ``service_options`` override fields of the ``[service]`` section (e.g. skip_late_frames).
+    ``viewer``: a preview subscriber watches the whole run (what ``companion view`` costs the service).
     """
     from companion.bench import rendered_frames, stats_ms
     from companion.config import parse_config
@@ -109,6 +111,7 @@ def measure_e2e(
                 "health_endpoint": f"ipc://{workdir}/health.sock",
                 "control_endpoint": f"ipc://{workdir}/control.sock",
             },
+            "view": {"preview_endpoint": f"ipc://{workdir}/preview.sock"},
             "service": {"autostart": True, **(service_options or {})},
             "vehicle": {"offboard_prestream_s": 0.1},
         },
@@ -138,6 +141,28 @@ def measure_e2e(
     thread = threading.Thread(target=run, name="e2e-service", daemon=True)
     t0 = time.monotonic()
     thread.start()
+    previews = [0]
+    viewing = threading.Event()
+
+    def watch() -> None:
+        import zmq
+
+        ctx = zmq.Context()
+        sub = ctx.socket(zmq.SUB)
+        sub.setsockopt(zmq.LINGER, 0)
+        sub.setsockopt(zmq.SUBSCRIBE, b"preview")
+        sub.connect(cfg.view.preview_endpoint)
+        while viewing.is_set():
+            if sub.poll(100):
+                sub.recv_multipart()
+                previews[0] += 1
+        sub.close(0)
+        ctx.term()
+
+    watcher = threading.Thread(target=watch, name="e2e-viewer", daemon=True)
+    if viewer:
+        viewing.set()
+        watcher.start()
     try:
         deadline = time.monotonic() + 60.0
         while not service.ready.wait(0.1):
@@ -164,6 +189,9 @@ def measure_e2e(
         latencies = list(service.latencies_s[n0 : n0 + frames])
         seqs = list(service.processed_seqs[seq0:])
     finally:
+        viewing.clear()
+        if watcher.is_alive():
+            watcher.join(2.0)
         if on_gc in gc.callbacks:
             gc.callbacks.remove(on_gc)
         service.request_shutdown_threadsafe("bench done")
@@ -190,6 +218,8 @@ def measure_e2e(
         "gc_collections": {f"gen{g}": n for g, n in collections.items()},
         "gc_pause_max_ms": max(gc_ms, default=0.0),
         "latencies_ms": [round(x * 1e3, 4) for x in latencies],
+        "viewer": viewer,
+        "previews_received": previews[0],
     }
 
 
@@ -203,12 +233,13 @@ def run_e2e_bench(args: argparse.Namespace, sizes: list[Any]) -> dict[str, Any]:
         backends.append("cupy")
     report: dict[str, Any] = {"machine": machine_description(), "stream_fps": STREAM_FPS_HZ, "runs": {}}
     print(f"machine: {report['machine']}")
-    print(f"e2e: frame-to-setpoint over a replayed {STREAM_FPS_HZ:g} fps stream ({args.frames} frames after {args.warmup} warm-up)")
+    watched = " with a preview viewer subscribed" if getattr(args, "viewer", False) else ", nobody watching the preview"
+    print(f"e2e: frame-to-setpoint over a replayed {STREAM_FPS_HZ:g} fps stream ({args.frames} frames after {args.warmup} warm-up){watched}")
     rows = []
     with tempfile.TemporaryDirectory(prefix="companion-e2e-") as tmp:
         for size in sizes:
             for backend in backends:
-                fig = measure_e2e(size, backend, args.frames, args.warmup, Path(tmp))
+                fig = measure_e2e(size, backend, args.frames, args.warmup, Path(tmp), viewer=getattr(args, "viewer", False))
                 key = f"{size.label}/{backend}"
                 report["runs"][key] = fig
                 lat = fig["latency_ms"]
@@ -233,6 +264,8 @@ def run_e2e_bench(args: argparse.Namespace, sizes: list[Any]) -> dict[str, Any]:
         )
     )
     for key, fig in report["runs"].items():
+        if fig["viewer"]:
+            print(f"{key}: {fig['previews_received']} preview frames received by the viewer")
         gcs = fig["gc_collections"]
         print(
             f"{key}: garbage collections during the run gen0/1/2 = {gcs['gen0']}/{gcs['gen1']}/{gcs['gen2']}, "

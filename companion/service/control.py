@@ -36,6 +36,7 @@ from zmq.utils.monitor import recv_monitor_message
 
 from companion.config import BusConfig, CompanionConfig, apply_patch, load_config
 from companion.config.service import LIVE_CAMERA_FIELDS, RESTART_FIELDS
+from companion.config.view import VIEW_RESTART_FIELDS
 from companion.core.safety import near_blindness
 from companion.core.supervisor import Disengage, Engage, Override, Pause, Reply, Resume, SupervisorConfig
 from companion.errors import CompanionError, ConfigError, ProtocolError
@@ -119,7 +120,8 @@ def keep_restart_fields(current: CompanionConfig, new: CompanionConfig) -> Compa
     """``new`` with the restart-only fields of ``current`` (they are not applied until a restart)."""
     vehicle = new.vehicle.model_copy(update={"connection": current.vehicle.connection})
     camera = current.camera.model_copy(update={f: getattr(new.camera, f) for f in LIVE_CAMERA_FIELDS})
-    return new.model_copy(update={"camera": camera, "bus": current.bus, "vehicle": vehicle})
+    view = new.view.model_copy(update={f: getattr(current.view, f) for f in VIEW_RESTART_FIELDS})
+    return new.model_copy(update={"camera": camera, "bus": current.bus, "vehicle": vehicle, "view": view})
 
 
 def changed_fields(current: CompanionConfig, new: CompanionConfig) -> list[str]:

@@ -133,6 +133,7 @@ class Service(ControlPlane, HealthReporter):
         self.ready = threading.Event()  # set once READY=1 was sent (for tests and embedding)
         self.stopped = threading.Event()
         self.bus = None
+        self.view = None  # companion.service.preview.ViewPlane: the preview and the flight recording
         self._loop: asyncio.AbstractEventLoop | None = None
         self._processor: ProcessingThread | None = None
         self._pipeline = None
@@ -223,6 +224,11 @@ class Service(ControlPlane, HealthReporter):
         raise_open_file_limit()
         self.bus = Bus(cfg.bus, environ=self._environ)
         self.bus.open()
+        from companion.service.preview import ViewPlane
+
+        # Off the flight path (own threads); one that cannot start is reported, and the service flies on.
+        self.view = ViewPlane(lambda: self.config, clock=self._clock, on_error=self._error, environ=self._environ)
+        self.view.open(self.bus.health_endpoint)
         self._processor = ProcessingThread(
             self._mailbox,
             self._process,
@@ -376,6 +382,9 @@ class Service(ControlPlane, HealthReporter):
                 log.error("task %s did not stop within 2 s; leaving it", task.get_name())
         self._tasks = []
         self._action_tasks.clear()
+        if self.view is not None:
+            await asyncio.get_running_loop().run_in_executor(None, self.view.close)
+            self.view = None
         if self.control_server is not None:
             await asyncio.get_running_loop().run_in_executor(None, self.control_server.stop)
         if self.bus is not None:
@@ -472,7 +481,12 @@ class Service(ControlPlane, HealthReporter):
             self._processed_twice += 1
             raise FrameError(f"frame {frame.seq} handed over twice")
         self._last_processed_key = key
-        return self._pipeline.process(frame.image, frame.timestamp_s)
+        view = self.view
+        want = view is not None and view.wants_frame()  # a viewer watches and a preview is due
+        result = self._pipeline.process(frame.image, frame.timestamp_s, want_disparity=want)
+        if want:
+            view.offer(frame, result, self._pipeline)  # references only; drawn in the preview thread
+        return result
 
     def _on_result_threadsafe(self, frame: Frame, result: Any, err: BaseException | None) -> None:
         self._call_on_loop(self._on_result, frame, result, err, self._clock())

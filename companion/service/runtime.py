@@ -30,7 +30,7 @@ SYSTEM_RUNTIME_DIR = Path("/run/companion")
 #: Mode of the socket files: the service's user and group may connect, nobody else.
 SOCKET_MODE = 0o660
 #: Socket file names of the two endpoints.
-SOCKET_NAMES = {"control": "control.sock", "health": "health.sock"}
+SOCKET_NAMES = {"control": "control.sock", "health": "health.sock", "preview": "preview.sock"}
 
 
 def runtime_dir(environ: Mapping[str, str] | None = None) -> Path:
@@ -69,7 +69,7 @@ def _make_private_dir(path: Path, mode: int) -> None:
 
 def resolve_endpoint(endpoint: str, which: str, environ: Mapping[str, str] | None = None) -> str:
     """``endpoint`` as the service binds it: ``auto`` becomes ``ipc://<runtime dir>/<which>.sock``
-    (``which``: "control" or "health"); anything else is returned as it is."""
+    (``which``: "control", "health" or "preview"); anything else is returned as it is."""
     if endpoint != AUTO_ENDPOINT:
         return endpoint
     return f"ipc://{runtime_dir(environ) / SOCKET_NAMES[which]}"
@@ -119,6 +119,26 @@ def find_socket(which: str, environ: Mapping[str, str] | None = None) -> str:
         f"no {which} socket of a running service in {', '.join(str(p.parent) for p in candidates)} "
         "(is the service running? name the endpoint with --endpoint, or --config to read it)"
     )
+
+
+def expected_socket(which: str, environ: Mapping[str, str] | None = None) -> str:
+    """Like :func:`find_socket`, for a client that waits for the service (``companion view``): when no
+    socket exists yet, where the service would make it (the first candidate whose folder exists, else
+    the last). ZeroMQ connects once it appears.
+
+    Raises:
+        ConfigError: the socket or its folder exists but this user may not use it.
+    """
+    try:
+        return find_socket(which, environ)
+    except ConfigError as err:
+        if "permission denied" in str(err):
+            raise
+    candidates = candidate_sockets(which, environ)
+    for path in candidates:
+        if path.parent.is_dir():
+            return f"ipc://{path}"
+    return f"ipc://{candidates[-1]}"
 
 
 def restrict_socket(endpoint: str) -> None:

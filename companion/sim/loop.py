@@ -37,7 +37,7 @@ from companion.core.command import NO_PROGRESS_HOLD
 from companion.core.course import CourseHold
 from companion.core.memory import ObstacleMemory, camera_points_to_ned
 from companion.core.pipeline import FrameResult, Pipeline
-from companion.core.types import ZERO_SETPOINT, DecisionKind
+from companion.core.types import ZERO_SETPOINT, DecisionKind, VelocitySetpoint
 from companion.errors import CameraError
 from companion.interfaces import Frame
 from companion.sim.camera import SimCamera
@@ -180,6 +180,32 @@ class FlightResult:
         )
 
 
+@dataclass(frozen=True)
+class SimStep:
+    """What the loop commanded at one setpoint tick (for a live view of the flight).
+
+    Attributes:
+        t_s: simulated time, seconds.
+        setpoint: the setpoint sent (zero while not in offboard).
+        kind: what it was (:class:`LogKind`).
+        result: the newest applied pipeline result, or None before the first.
+        frame_age_s: how old that result's frame was, seconds (None before the first).
+        position_ned_m, velocity_ned_m_s: float64 ``(3,)`` the vehicle's, NED, metres and m/s.
+        attitude_rad: float64 ``(3,)`` roll, pitch, yaw, radians.
+        in_offboard: the vehicle is in offboard (else it was switched to HOLD).
+    """
+
+    t_s: float
+    setpoint: VelocitySetpoint
+    kind: LogKind
+    result: FrameResult | None
+    frame_age_s: float | None
+    position_ned_m: np.ndarray
+    velocity_ned_m_s: np.ndarray
+    attitude_rad: np.ndarray
+    in_offboard: bool
+
+
 def simulator_config(cfg: CompanionConfig) -> CompanionConfig:
     """``cfg`` as the simulator flies it: the simulated rig is ideal and already rectified, so a
     calibration file (which describes a real camera) is dropped."""
@@ -236,6 +262,7 @@ def fly(
     camera_fail_after_s: float | None = None,
     on_frame: Callable[[Frame, FrameResult], None] | None = None,
     want_disparity: bool = False,
+    on_step: Callable[[SimStep], None] | None = None,
     clock: Callable[[], float] = time.perf_counter,
     sleep: Callable[[float], None] = time.sleep,
 ) -> FlightResult:
@@ -249,6 +276,7 @@ def fly(
         camera_fail_after_s: the camera stops delivering frames from this simulated time on.
         on_frame: called with every frame and its pipeline result (overlays, recordings).
         want_disparity: ask the pipeline for the disparity image (for ``on_frame`` overlays).
+        on_step: called at every setpoint tick with what was commanded (a live view).
         clock, sleep: wall clock and sleep, for ``realtime`` and the timing instrumentation.
     """
     wall0 = clock()
@@ -387,6 +415,20 @@ def fly(
             else:
                 sp, kind = ZERO_SETPOINT, LogKind.HOLD
             log_row(t)
+            if on_step is not None:
+                on_step(
+                    SimStep(
+                        t_s=t,
+                        setpoint=sp,
+                        kind=kind,
+                        result=latest,
+                        frame_age_s=age if latest is not None else None,
+                        position_ned_m=m.position_ned_m.copy(),
+                        velocity_ned_m_s=m.velocity_ned_m_s.copy(),
+                        attitude_rad=np.array([m.roll_rad, m.pitch_rad, m.yaw_rad]),
+                        in_offboard=vehicle.in_offboard,
+                    )
+                )
             if realtime:
                 delay = wall0 + t - clock()
                 if delay > 0.0:

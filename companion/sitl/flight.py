@@ -118,6 +118,7 @@ def sitl_config(cfg: CompanionConfig, course: Course, placement: CoursePlacement
     data["bus"].update(
         health_endpoint=f"ipc://{workdir}/health.sock", control_endpoint=f"ipc://{workdir}/control.sock"
     )
+    data["view"]["preview_endpoint"] = f"ipc://{workdir}/preview.sock"
     data["service"]["autostart"] = False
     return CompanionConfig.model_validate(data)
 

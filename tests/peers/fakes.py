@@ -145,6 +145,7 @@ def service_config(tmp_path, **sections) -> CompanionConfig:
         },
         "camera": {"source": "sim", "fps_hz": 15.0},
         "stereo": {"backend": "opencv-bm"},
+        "view": {"preview_endpoint": f"ipc://{tmp_path}/preview.sock"},
     }
     for key, value in sections.items():
         data.setdefault(key, {}).update(value)

@@ -23,6 +23,8 @@ def write_config(path: Path, port: int, extra: str = "", cruise: float = 1.0, bu
 health_endpoint = "ipc://{tmp}/h.sock"
 control_endpoint = "ipc://{tmp}/c.sock"
 {bus}
+[view]
+preview_endpoint = "ipc://{tmp}/p.sock"
 [camera]
 fps_hz = 10.0
 [stereo]

@@ -1,0 +1,536 @@
+"""The service's preview for ``companion view`` and its flight recording, both off the flight path.
+
+Threads (each with its own synchronous ZeroMQ context; none runs on the event loop)::
+
+    pipeline thread ──offer(frame, result) only when wanted──▶ PreviewPublisher thread ──XPUB──▶ viewers
+      (wants_frame(): one bool read per frame)                 (draw + JPEG at most preview_rate_hz,
+                                                                only while a subscriber exists)
+    health PUB ──▶ FlightRecorder thread ◀── preview XPUB     (health.jsonl + preview/*.jpg, bounded)
+
+The flight loop pays nothing for the preview while nobody watches: :meth:`PreviewPublisher.wants_frame`
+is False, so the pipeline asks for no disparity image and hands nothing over. While someone watches,
+the publisher raises the flag once per preview period; the pipeline then returns the disparity of
+that one frame (the CPU backend copies it, the GPU backend downloads it downsampled by
+``gpu.disparity_preview_downsample``) and hands over references to the frame and its result. Drawing
+and encoding happen in the publisher's thread; a frame offered while it is busy replaces the waiting
+one (never a queue), and a send that would block is dropped (``dropped`` counts them).
+
+ZeroMQ's XPUB socket reports subscriptions: the publisher knows whether anyone listens without any
+request. A viewer that hangs or dies costs nothing: its queue is bounded (``SNDHWM``) and the send
+never blocks.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import threading
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from companion.errors import ConfigError
+from companion.service.runtime import resolve_endpoint, restrict_socket
+
+log = logging.getLogger(__name__)
+
+Clock = Callable[[], float]
+
+
+@dataclass(frozen=True)
+class _Offer:
+    frame: Any  # companion.interfaces.Frame
+    result: Any  # companion.core.pipeline.FrameResult
+    pipeline: Any  # companion.core.pipeline.Pipeline (layout, geometry, config at that frame)
+
+
+class PreviewPublisher:
+    """Draws and publishes the preview in its own thread, only while someone subscribes.
+
+    Args:
+        view_cfg: a callable returning the ``[view]`` section in force (rate, size and quality apply live).
+        endpoint: the XPUB endpoint to bind.
+        clock: monotonic clock, seconds (the service's; frame times are on it).
+        on_error: called (in this thread) with a one-line message when drawing or sending fails.
+
+    Raises (from :meth:`start`):
+        ConfigError: the endpoint cannot be bound.
+    """
+
+    def __init__(
+        self,
+        view_cfg: Callable[[], Any],
+        endpoint: str,
+        *,
+        clock: Clock = time.monotonic,
+        on_error: Callable[[str], None] = lambda message: None,
+        environ: Mapping[str, str] | None = None,
+    ) -> None:
+        self._view_cfg = view_cfg
+        self.endpoint = endpoint
+        self._environ = environ
+        self._clock = clock
+        self._on_error = on_error
+        self._want = False
+        self._cond = threading.Condition(threading.Lock())
+        self._slot: _Offer | None = None
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._ctx: Any = None
+        self._sock: Any = None
+        self._topics: set[bytes] = set()
+        self.subscribed_since_s: float | None = None
+        self.published = 0
+        self.dropped = 0
+        self.errors = 0
+        self.last_encode_ms: float | None = None
+
+    # ------------------------------------------------------------------ any thread
+
+    def wants_frame(self) -> bool:
+        """True when the next processed frame should be offered (someone watches and a preview is due)."""
+        return self._want
+
+    def offer(self, frame: Any, result: Any, pipeline: Any) -> None:
+        """Hand over a processed frame (references only); replaces one still waiting. Cheap."""
+        with self._cond:
+            self._want = False
+            self._slot = _Offer(frame, result, pipeline)
+            self._cond.notify()
+
+    @property
+    def subscribed(self) -> bool:
+        return bool(self._topics)
+
+    def start(self) -> None:
+        import zmq
+
+        self._ctx = zmq.Context()
+        sock = self._ctx.socket(zmq.XPUB)
+        sock.setsockopt(zmq.LINGER, 0)
+        sock.setsockopt(zmq.SNDHWM, 4)  # a slow viewer loses frames, never holds them
+        try:
+            sock.bind(resolve_endpoint(self.endpoint, "preview", self._environ))
+            self.endpoint = sock.getsockopt_string(zmq.LAST_ENDPOINT)
+            restrict_socket(self.endpoint)  # the camera's view is the service's group's, like the controls
+        except (zmq.ZMQError, ConfigError) as err:
+            sock.close(0)
+            self._ctx.term()
+            self._ctx = None
+            raise ConfigError(f"view.preview_endpoint {self.endpoint!r}: cannot bind: {err}") from None
+        self._sock = sock
+        self._thread = threading.Thread(target=self._run, name="preview", daemon=True)
+        self._thread.start()
+        log.info("preview on %s", self.endpoint)
+
+    def close(self, timeout_s: float = 2.0) -> None:
+        """Stop the thread and close the socket. Safe twice."""
+        self._stop.set()
+        self._want = False
+        with self._cond:
+            self._cond.notify()
+        if self._thread is not None:
+            self._thread.join(timeout_s)
+            if self._thread.is_alive():
+                log.error("preview thread still busy after %.1f s", timeout_s)
+            self._thread = None
+        if self._sock is not None:
+            self._sock.close(0)
+            self._sock = None
+        if self._ctx is not None:
+            self._ctx.term()
+            self._ctx = None
+
+    # ------------------------------------------------------------------ the thread
+
+    def _drain_subscriptions(self) -> None:
+        import zmq
+
+        while True:
+            try:
+                msg = self._sock.recv(zmq.NOBLOCK)
+            except zmq.Again:
+                return
+            if not msg:
+                continue
+            topic = msg[1:]
+            if msg[0] == 1:
+                if not self._topics:
+                    self.subscribed_since_s = self._clock()
+                    log.info("preview: a viewer subscribed")
+                self._topics.add(topic)
+            elif msg[0] == 0:
+                self._topics.discard(topic)
+                if not self._topics:
+                    self.subscribed_since_s = None
+                    log.info("preview: no viewer left")
+
+    def _run(self) -> None:
+        # Below the pipeline and the control loop: when both cores are busy the scheduler runs them
+        # first (OpenCV's drawing, resizing and JPEG encoding run without the GIL). Linux only.
+        try:
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 10)
+        except (AttributeError, OSError):
+            log.debug("preview: could not lower this thread's priority")
+        next_due_s = 0.0
+        while not self._stop.is_set():
+            try:
+                self._drain_subscriptions()
+            except Exception as err:  # a closed socket at shutdown, or a ZeroMQ surprise
+                if self._stop.is_set():
+                    return
+                log.exception("preview: reading subscriptions failed")
+                self._report(f"preview: {type(err).__name__}: {err}")
+            now = self._clock()
+            watched = self.subscribed
+            if not watched:
+                self._want = False
+                with self._cond:
+                    self._slot = None
+            elif now >= next_due_s and self._slot is None:
+                self._want = True
+            with self._cond:
+                if self._slot is None and not self._stop.is_set():
+                    self._cond.wait(0.05)
+                offer, self._slot = self._slot, None
+            if offer is None or not watched:
+                continue
+            cfg = self._view_cfg()
+            period_s = 1.0 / cfg.preview_rate_hz
+            next_due_s = max(next_due_s + period_s, self._clock() - 0.5 * period_s)
+            self._publish(offer, cfg)
+
+    def _publish(self, offer: _Offer, cfg: Any) -> None:
+        import zmq
+
+        from companion.view.frame import encode_jpeg, near_far_m, pack
+
+        t0 = time.perf_counter()
+        try:
+            image = _render(offer, cfg.preview_width_px)
+            jpeg = encode_jpeg(image, cfg.preview_jpeg_quality)
+        except Exception as err:  # a bug in drawing must not stop the preview thread (nor anything else)
+            self.errors += 1
+            log.exception("preview: drawing frame %s failed", getattr(offer.frame, "seq", "?"))
+            self._report(f"preview: drawing failed: {type(err).__name__}: {err}")
+            return
+        encode_ms = (time.perf_counter() - t0) * 1e3
+        self.last_encode_ms = encode_ms
+        result = offer.result
+        near_m, far_m = near_far_m(offer.pipeline.config)
+        header = {
+            "type": "preview",
+            "seq": self.published + 1,
+            "frame_seq": int(offer.frame.seq),
+            "time_s": float(offer.frame.timestamp_s),
+            "unix_time_s": time.time(),
+            "width_px": int(image.shape[1]),
+            "height_px": int(image.shape[0]),
+            "encode_ms": encode_ms,
+            "near_m": near_m,
+            "far_m": far_m,
+            "decision": result.decision.kind.value,
+            "dropped": self.dropped,
+        }
+        try:
+            self._sock.send_multipart(pack(header, jpeg), flags=zmq.NOBLOCK)
+            self.published += 1
+        except zmq.Again:
+            self.dropped += 1
+        except zmq.ZMQError as err:
+            if not self._stop.is_set():
+                self._report(f"preview: send failed: {err}")
+
+    def _report(self, message: str) -> None:
+        try:
+            self._on_error(message)
+        except Exception:
+            log.exception("preview: error callback failed")
+
+
+def _render(offer: _Offer, width_px: int) -> Any:
+    from companion.view.frame import PreviewInputs, near_far_m, render_preview
+
+    pipeline = offer.pipeline
+    cfg = pipeline.config
+    near_m, far_m = near_far_m(cfg)
+    result = offer.result
+    inputs = PreviewInputs(
+        image=offer.frame.image,
+        timestamp_s=float(offer.frame.timestamp_s),
+        seq=int(offer.frame.seq),
+        depth_m=result.refined.depth_m,
+        decision=result.decision,
+        disparity=result.disparity,
+        layout=pipeline.estimator.layout,
+        focal_baseline_px_m=pipeline.geometry.focal_baseline_px_m,
+        near_m=near_m,
+        far_m=far_m,
+        max_disparity_px=float(cfg.stereo.num_disparities),
+    )
+    return render_preview(inputs, width_px)
+
+
+class FlightRecorder:
+    """Records the service's health messages (and every N-th preview frame) into a new folder, bounded.
+
+    It is a plain subscriber of the health PUB and the preview XPUB sockets, in its own thread, so the
+    service does no file I/O on its loop or in its pipeline. The run folder
+    ``record_dir/YYYYmmdd-HHMMSS[-N]/`` holds ``config.toml`` (the config at start), ``health.jsonl``
+    (one health message a line, as ``companion sitl --workdir`` writes it) and ``preview/`` (JPEG
+    frames named by the frame's time, with ``preview/index.jsonl``: one preview header a line, plus
+    its ``file``). Preview frames stop at 80 % of ``max_bytes``, health lines at 100 %.
+
+    Args:
+        record_dir: the parent folder (absolute).
+        health_endpoint: the service's health PUB endpoint.
+        preview_endpoint: the preview XPUB endpoint, or None (health only).
+        preview_every: keep every N-th preview frame (0 = none).
+        max_bytes: the run folder's bound, bytes.
+        config_text: the config as TOML, written once.
+        on_error: called with a one-line message when recording stops or fails.
+    """
+
+    def __init__(
+        self,
+        record_dir: Path,
+        health_endpoint: str,
+        preview_endpoint: str | None,
+        *,
+        preview_every: int,
+        max_bytes: int,
+        config_text: str = "",
+        on_error: Callable[[str], None] = lambda message: None,
+    ) -> None:
+        self.record_dir = record_dir
+        self.health_endpoint = health_endpoint
+        self.preview_endpoint = preview_endpoint if preview_every > 0 else None
+        self.preview_every = preview_every
+        self.max_bytes = max_bytes
+        self._config_text = config_text
+        self._on_error = on_error
+        self.run_dir: Path | None = None
+        self.bytes_written = 0
+        self.health_lines = 0
+        self.preview_frames = 0
+        self._previews_seen = 0
+        self._full_preview = False
+        self._full = False
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._ctx: Any = None
+
+    def start(self) -> Path:
+        """Create the run folder and start recording; returns the folder.
+
+        Raises:
+            OSError: the folder cannot be created or written.
+        """
+        import zmq
+
+        self.record_dir.mkdir(parents=True, exist_ok=True)
+        stamp = time.strftime("%Y%m%d-%H%M%S")
+        run = self.record_dir / stamp
+        n = 1
+        while run.exists():
+            n += 1
+            run = self.record_dir / f"{stamp}-{n}"
+        run.mkdir()
+        if self.preview_endpoint is not None:
+            (run / "preview").mkdir()
+        self.run_dir = run
+        if self._config_text:
+            self._write_bytes(run / "config.toml", self._config_text.encode("utf-8"))
+        self._ctx = zmq.Context()
+        health = self._ctx.socket(zmq.SUB)
+        health.setsockopt(zmq.LINGER, 0)
+        health.setsockopt(zmq.RCVHWM, 1000)
+        health.setsockopt(zmq.SUBSCRIBE, b"")
+        health.connect(self.health_endpoint)
+        preview = None
+        if self.preview_endpoint is not None:
+            preview = self._ctx.socket(zmq.SUB)
+            preview.setsockopt(zmq.LINGER, 0)
+            preview.setsockopt(zmq.RCVHWM, 4)
+            preview.setsockopt(zmq.SUBSCRIBE, b"preview")
+            preview.connect(self.preview_endpoint)
+        self._thread = threading.Thread(target=self._run, args=(health, preview), name="recorder", daemon=True)
+        self._thread.start()
+        log.info("recording to %s (at most %.0f MB)", run, self.max_bytes / 1e6)
+        return run
+
+    def close(self, timeout_s: float = 2.0) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout_s)
+            self._thread = None
+        if self._ctx is not None:
+            self._ctx.term()
+            self._ctx = None
+
+    def _write_bytes(self, path: Path, data: bytes) -> None:
+        path.write_bytes(data)
+        self.bytes_written += len(data)
+
+    def _run(self, health: Any, preview: Any) -> None:
+        import zmq
+
+        poller = zmq.Poller()
+        poller.register(health, zmq.POLLIN)
+        if preview is not None:
+            poller.register(preview, zmq.POLLIN)
+        assert self.run_dir is not None
+        try:
+            with (self.run_dir / "health.jsonl").open("ab") as out:
+                while not self._stop.is_set():
+                    ready = dict(poller.poll(100))
+                    if health in ready:
+                        while True:
+                            try:
+                                raw = health.recv(zmq.NOBLOCK)
+                            except zmq.Again:
+                                break
+                            self._health_line(out, raw)
+                        out.flush()
+                    if preview is not None and preview in ready:
+                        while True:
+                            try:
+                                frames = preview.recv_multipart(zmq.NOBLOCK)
+                            except zmq.Again:
+                                break
+                            self._preview_frame(frames)
+        except OSError as err:
+            log.error("recording to %s stopped: %s", self.run_dir, err)
+            self._report(f"recording stopped: {err.strerror or err}")
+        finally:
+            health.close(0)
+            if preview is not None:
+                preview.close(0)
+
+    def _health_line(self, out: Any, raw: bytes) -> None:
+        if self._full:
+            return
+        if self.bytes_written + len(raw) + 1 > self.max_bytes:
+            self._full = True
+            log.warning("recording %s: view.record_max_mb reached; no more health lines", self.run_dir)
+            self._report("recording: view.record_max_mb reached; health no longer recorded")
+            return
+        out.write(raw + b"\n")
+        self.bytes_written += len(raw) + 1
+        self.health_lines += 1
+
+    def _preview_frame(self, frames: list[bytes]) -> None:
+        from companion.view.frame import unpack
+
+        self._previews_seen += 1
+        if self._full_preview or (self._previews_seen - 1) % self.preview_every:
+            return
+        try:
+            header, jpeg = unpack(frames)
+        except Exception as err:
+            log.warning("recording: a bad preview message: %s", err)
+            return
+        if self.bytes_written + len(jpeg) > 0.8 * self.max_bytes:
+            self._full_preview = True
+            log.warning("recording %s: 80 %% of view.record_max_mb reached; no more preview frames", self.run_dir)
+            return
+        assert self.run_dir is not None
+        name = f"t{float(header.get('time_s', 0.0)):011.3f}_{int(header.get('frame_seq', 0)):07d}.jpg"
+        self._write_bytes(self.run_dir / "preview" / name, jpeg)
+        line = json.dumps({**header, "file": name}).encode("utf-8") + b"\n"
+        with (self.run_dir / "preview" / "index.jsonl").open("ab") as index:
+            index.write(line)
+        self.bytes_written += len(line)
+        self.preview_frames += 1
+
+    def _report(self, message: str) -> None:
+        try:
+            self._on_error(message)
+        except Exception:
+            log.exception("recorder: error callback failed")
+
+
+class ViewPlane:
+    """The service's preview publisher and flight recorder, as the daemon starts and stops them.
+
+    A preview or a recording that cannot start is reported (``on_error``, the log) and left out: the
+    service flies without them rather than not at all.
+
+    Args:
+        get_config: returns the whole config in force (its ``[view]`` section applies live where it can).
+        clock: the service's monotonic clock, seconds.
+        on_error: called with one line when something of the view fails (the health's ``last_error``).
+    """
+
+    def __init__(
+        self,
+        get_config: Callable[[], Any],
+        *,
+        clock: Clock = time.monotonic,
+        on_error: Callable[[str], None],
+        environ: Mapping[str, str] | None = None,
+    ) -> None:
+        self._get_config = get_config
+        self._clock = clock
+        self._on_error = on_error
+        self._environ = environ
+        self.publisher: PreviewPublisher | None = None
+        self.recorder: FlightRecorder | None = None
+
+    def open(self, health_endpoint: str) -> None:
+        cfg = self._get_config()
+        view = cfg.view
+        if view.preview_enabled:
+            publisher = PreviewPublisher(
+                lambda: self._get_config().view,
+                view.preview_endpoint,
+                clock=self._clock,
+                on_error=self._on_error,
+                environ=self._environ,
+            )
+            try:
+                publisher.start()
+                self.publisher = publisher
+            except ConfigError as err:
+                log.error("no preview: %s", err)
+                self._on_error(f"no preview: {err}")
+        if view.record_dir is not None:
+            from companion.config.document import render_config_toml
+
+            recorder = FlightRecorder(
+                view.record_dir,
+                health_endpoint,
+                self.publisher.endpoint if self.publisher is not None else None,
+                preview_every=view.record_preview_every,
+                max_bytes=int(view.record_max_mb * 1e6),
+                config_text=render_config_toml(cfg, [f"# the config in force when the service started (pid {os.getpid()})"]),
+                on_error=self._on_error,
+            )
+            try:
+                recorder.start()
+                self.recorder = recorder
+            except OSError as err:
+                log.error("not recording: view.record_dir %s: %s", view.record_dir, err.strerror or err)
+                self._on_error(f"not recording: view.record_dir {view.record_dir}: {err.strerror or err}")
+
+    def wants_frame(self) -> bool:
+        """True when the next frame should come with its disparity and be offered (a viewer, a due preview)."""
+        publisher = self.publisher
+        return publisher is not None and publisher.wants_frame()
+
+    def offer(self, frame: Any, result: Any, pipeline: Any) -> None:
+        publisher = self.publisher
+        if publisher is not None:
+            publisher.offer(frame, result, pipeline)
+
+    def close(self) -> None:
+        """Stop the recorder, then the publisher (the recorder keeps what it got). Safe twice."""
+        if self.recorder is not None:
+            self.recorder.close()
+            self.recorder = None
+        if self.publisher is not None:
+            self.publisher.close()
+            self.publisher = None

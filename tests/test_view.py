@@ -1,0 +1,366 @@
+"""The preview (drawn only while watched, off the flight path), `companion view` without a browser (access,
+control, a hung or killed view), the flight recording, `companion sim --view` and `companion review`."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+import urllib.error
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zmq
+from peers.browser import ViewProcess
+from peers.fakes import Client, FakeLink, ServiceRunner, avoid_scene_camera, service_config, wait_until
+
+from companion.config import parse_config
+from companion.errors import ConfigError, ProtocolError
+from companion.service.daemon import Service
+from companion.view.frame import PREVIEW_TOPIC, PreviewInputs, encode_jpeg, pack, render_preview, unpack
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+# ---------------------------------------------------------------------------------------------- pure parts
+
+
+def test_view_config_is_checked() -> None:
+    with pytest.raises(ConfigError, match="view.preview_endpoint: .*reachable from the network"):
+        parse_config({"view": {"preview_endpoint": "tcp://0.0.0.0:5562"}})
+    with pytest.raises(ConfigError, match="view.record_dir: .*absolute path"):
+        parse_config({"view": {"record_dir": "flights"}})
+    with pytest.raises(ConfigError, match="view.preview_rate_hz"):
+        parse_config({"view": {"preview_rate_hz": 0}})
+    cfg = parse_config({"view": {"preview_endpoint": "ipc:///tmp/p.sock", "preview_width_px": 320}})
+    assert cfg.view.preview_width_px == 320
+
+
+def test_preview_image_and_message(tmp_path: Path) -> None:
+    from companion.backends import make_pipeline
+    from companion.view.frame import near_far_m
+
+    cfg = service_config(tmp_path)
+    camera = avoid_scene_camera()
+    camera.open()
+    frame = camera.read()
+    pipeline = make_pipeline(cfg, 672, 376)
+    result = pipeline.process(frame.image, 0.0, want_disparity=True)
+    near, far = near_far_m(cfg)
+    inputs = PreviewInputs(
+        frame.image, 1.5, 7, result.refined.depth_m, result.decision, result.disparity, pipeline.estimator.layout,
+        pipeline.geometry.focal_baseline_px_m, near, far, 64.0,
+    )
+    image = render_preview(inputs, 320)
+    assert image.shape == (179, 320, 3) and image.dtype == np.uint8
+    # The inset (lower right quarter) is the disparity's colours, not the camera's grey.
+    inset = image[-40:, -70:].astype(int)
+    assert np.abs(inset[..., 0] - inset[..., 2]).mean() > 30
+    jpeg = encode_jpeg(image, 70)
+    header, body = unpack(pack({"type": "preview", "seq": 1}, jpeg))
+    assert header == {"type": "preview", "seq": 1} and body == jpeg
+    with pytest.raises(ProtocolError, match="expected"):
+        unpack([PREVIEW_TOPIC, b"{}"])
+    with pytest.raises(ProtocolError, match="not a JPEG"):
+        unpack([PREVIEW_TOPIC, b"{}", b"GIF89a"])
+
+
+# ---------------------------------------------------------------------------------------------- the service side
+
+
+def _count_disparity_requests(service: Service) -> list[float]:
+    """Wrap the pipeline's process: the times at which it was asked for a disparity image."""
+    asked: list[float] = []
+    pipeline = service._pipeline
+    original = pipeline.process
+
+    def process(image, timestamp_s, want_disparity=False):
+        if want_disparity:
+            asked.append(time.monotonic())
+        return original(image, timestamp_s, want_disparity=want_disparity)
+
+    pipeline.process = process
+    return asked
+
+
+def test_preview_only_while_watched_at_the_rate_asked_for(tmp_path: Path) -> None:
+    cfg = service_config(tmp_path, view={"preview_rate_hz": 4.0, "preview_width_px": 320})
+    service = Service(cfg, camera=avoid_scene_camera(15.0), link=FakeLink(), install_signals=False, environ={})
+    with ServiceRunner(service):
+        asked = _count_disparity_requests(service)
+        publisher = service.view.publisher
+        time.sleep(1.0)
+        assert asked == [] and publisher.published == 0 and not publisher.subscribed
+        assert service._latest.result.disparity is None  # nobody watches: no disparity image at all
+
+        ctx = zmq.Context()
+        sub = ctx.socket(zmq.SUB)
+        sub.setsockopt(zmq.SUBSCRIBE, b"preview")
+        sub.connect(cfg.view.preview_endpoint)
+        got = []
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 2.5:
+            if sub.poll(100):
+                got.append(unpack(sub.recv_multipart()))
+        sub.close(0)
+        ctx.term()
+        # 4 Hz for 2.5 s (the first frame as soon as the subscription arrives): about 10, never 15 fps.
+        assert 7 <= len(got) <= 13, len(got)
+        header, jpeg = got[-1]
+        assert header["width_px"] == 320 and header["near_m"] == 0.75 and header["decision"] == "avoid"
+        assert jpeg[:2] == b"\xff\xd8"
+        # The disparity was asked for once per preview, not per frame.
+        assert len(got) <= len(asked) <= len(got) + 3
+        assert wait_until(lambda: not publisher.subscribed, 2.0)
+        n = len(asked)
+        time.sleep(0.6)
+        assert len(asked) == n  # gone again with the viewer
+        # Size and rate apply live.
+        assert Client(cfg.bus.control_endpoint).call("set_config", patch={"view": {"preview_width_px": 400}})["ok"]
+
+
+def test_a_hung_or_killed_view_changes_nothing_for_the_service(tmp_path: Path) -> None:
+    cfg = service_config(tmp_path, view={"preview_rate_hz": 15.0})
+    link = FakeLink()
+    service = Service(cfg, camera=avoid_scene_camera(15.0), link=link, install_signals=False, environ={})
+    with ServiceRunner(service):
+        client = Client(cfg.bus.control_endpoint, cfg.bus.health_endpoint)
+        assert client.call("engage")["ok"] and wait_until(lambda: link.state().in_offboard, 3.0)
+        with ViewProcess("--health-endpoint", cfg.bus.health_endpoint, "--preview-endpoint", cfg.view.preview_endpoint,
+                         "--control-endpoint", cfg.bus.control_endpoint) as view:
+            assert wait_until(lambda: service.view.publisher.published > 5, 5.0)
+            os.kill(view.pid, signal.SIGSTOP)  # hung: reads nothing, answers nothing
+            try:
+                t0 = time.monotonic()
+                time.sleep(2.0)
+                sent = [s.t_s for s in link.sent_since(t0)]
+                health = client.health()
+            finally:
+                os.kill(view.pid, signal.SIGCONT)
+            # Setpoints kept their 20 Hz grid and health its rate; the preview dropped, never queued.
+            assert len(sent) >= 35 and max(np.diff(sent)) < 0.15, np.diff(sent).max()
+            assert health["state"] == "engaged" and health["fps"] >= 10
+            p99 = health["frame_to_setpoint_ms"]["p99"]
+            assert p99 is not None and p99 < 200
+            os.kill(view.pid, signal.SIGKILL)
+            view.proc.wait()
+        assert wait_until(lambda: not service.view.publisher.subscribed, 3.0)
+        t1 = time.monotonic()
+        time.sleep(0.5)
+        assert len(link.sent_since(t1)) >= 8 and client.health()["state"] == "engaged"
+        client.close()
+
+
+# ---------------------------------------------------------------------------------------------- access
+
+
+def _get(url: str, headers: dict[str, str] | None = None, data: bytes | None = None) -> tuple[int, bytes, dict]:
+    req = urllib.request.Request(url, data=data, headers=headers or {}, method="POST" if data is not None else "GET")
+    try:
+        with urllib.request.urlopen(req, timeout=5) as resp:
+            return resp.status, resp.read(), dict(resp.headers)
+    except urllib.error.HTTPError as err:
+        return err.code, err.read(), dict(err.headers)
+
+
+def test_view_access_token_origin_and_control(tmp_path: Path) -> None:
+    link = FakeLink()
+    cfg = service_config(tmp_path)
+    service = Service(cfg, camera=avoid_scene_camera(15.0), link=link, install_signals=False, environ={})
+    token_file = tmp_path / "token"
+    token_file.write_text("s3cret-token-for-the-field\n")
+    endpoints = ("--health-endpoint", cfg.bus.health_endpoint, "--preview-endpoint", cfg.view.preview_endpoint,
+                 "--control-endpoint", cfg.bus.control_endpoint)
+    with ServiceRunner(service):
+        # A network bind: the token is required (and shown only in the printed URL).
+        with ViewProcess(*endpoints, "--host", "0.0.0.0", "--token-file", str(token_file)) as view:
+            assert view.url.endswith("/?token=s3cret-token-for-the-field")
+            port = view.url.split(":")[2].split("/")[0]
+            base = f"http://127.0.0.1:{port}"
+            assert _get(base + "/")[0] == 401
+            assert _get(base + "/api/health")[0] == 401
+            # ?token= once: a cookie, and a redirect that drops the token from the address bar.
+            import http.cookiejar
+
+            jar = http.cookiejar.CookieJar()
+            opener = urllib.request.build_opener(urllib.request.HTTPCookieProcessor(jar))
+            with opener.open(base + "/?token=s3cret-token-for-the-field", timeout=5) as resp:
+                status, body, headers, final = resp.status, resp.read(), dict(resp.headers), resp.url
+            assert status == 200 and b"companion view" in body and final == base + "/"
+            cookie = next(c for c in jar if c.name == "companion_view_token")
+            assert cookie.value == "s3cret-token-for-the-field" and cookie.has_nonstandard_attr("HttpOnly")
+            assert "default-src 'self'" in headers["Content-Security-Policy"]
+            assert b"http://" not in body and b"https://" not in body  # nothing from outside
+            auth = {"Authorization": "Bearer s3cret-token-for-the-field"}
+            assert wait_until(lambda: json.loads(_get(base + "/api/health", auth)[1])["health"] is not None, 5.0)
+            assert _get(base + "/api/health", {"Authorization": "Bearer wrong-token-xxxx"})[0] == 401
+        # Loopback without a token: only loopback Host names; control only from the page itself.
+        with ViewProcess(*endpoints) as view:
+            base = view.url.rstrip("/")
+            assert _get(base + "/")[0] == 200
+            assert _get(base + "/", {"Host": "evil.example:8080"})[0] == 403  # DNS rebinding
+            engage = json.dumps({"cmd": "engage"}).encode()
+            assert _get(base + "/api/control", {"Content-Type": "application/json"}, engage)[0] == 403
+            page = {"Content-Type": "application/json", "X-Companion-View": "1"}
+            status, _, _ = _get(base + "/api/control", {**page, "Origin": "http://evil.example"}, engage)
+            assert status == 403 and not link.state().in_offboard
+            status, body, _ = _get(base + "/api/control", page, json.dumps({"cmd": "set_config"}).encode())
+            assert status == 400 and b"engage, disengage, pause, resume" in body
+            status, body, _ = _get(base + "/api/control", {**page, "Origin": base}, engage)
+            assert status == 200 and json.loads(body)["ok"], body
+            assert wait_until(lambda: link.state().in_offboard, 3.0)
+            status, body, _ = _get(base + "/api/control", page, engage)
+            assert status == 200 and not json.loads(body)["ok"] and "already engaged" in body.decode()
+            status, jpeg, headers = _get(base + "/preview.jpg")
+            assert status == 200 and jpeg[:2] == b"\xff\xd8" and headers["Content-Type"] == "image/jpeg"
+            timeline = json.loads(_get(base + "/api/timeline")[1])["timeline"]
+            assert timeline and {"t", "state", "kind", "yaw", "pitch"} <= set(timeline[-1])
+
+
+def test_a_network_bind_without_a_token_gets_one_made_up(tmp_path: Path) -> None:
+    env = {k: v for k, v in os.environ.items() if k != "COMPANION_VIEW_TOKEN"}
+    proc = subprocess.run(
+        [sys.executable, "-m", "companion", "view", "--token-file", str(tmp_path / "missing"), "--host", "0.0.0.0"],
+        capture_output=True, text=True, timeout=30, env=env,
+    )
+    assert proc.returncode == 2 and "--token-file" in proc.stderr and "cannot read it" in proc.stderr
+    with ViewProcess("--health-endpoint", "ipc:///nonexistent/h.sock", "--no-control", "--host", "0.0.0.0",
+                     env={"COMPANION_VIEW_TOKEN": ""}) as view:
+        assert "?token=" in view.url and len(view.url.split("?token=")[1]) >= 16
+        assert any("made up" in line for line in view.lines)
+
+
+# ---------------------------------------------------------------------------------------------- recording, review
+
+
+def test_the_service_records_health_and_preview_and_review_reports_it(tmp_path: Path) -> None:
+    rec = tmp_path / "flights"
+    cfg = service_config(tmp_path, view={"record_dir": str(rec), "record_preview_every": 1, "preview_rate_hz": 10.0})
+    link = FakeLink()
+    service = Service(cfg, camera=avoid_scene_camera(15.0), link=link, install_signals=False, environ={})
+    with ServiceRunner(service):
+        client = Client(cfg.bus.control_endpoint)
+        time.sleep(0.5)
+        assert client.call("engage")["ok"]
+        time.sleep(1.5)
+        assert client.call("pause")["ok"]
+        time.sleep(0.5)
+        assert client.call("disengage")["ok"]
+        time.sleep(0.5)
+        client.close()
+    runs = list(rec.iterdir())
+    assert len(runs) == 1
+    run = runs[0]
+    lines = (run / "health.jsonl").read_text().splitlines()
+    assert len(lines) >= 25 and json.loads(lines[-1])["type"] == "health"
+    states = {json.loads(line)["state"] for line in lines}
+    assert {"passive", "engaged", "paused", "disengaged"} <= states
+    index = [json.loads(line) for line in (run / "preview" / "index.jsonl").read_text().splitlines()]
+    assert len(index) >= 20 and all((run / "preview" / i["file"]).is_file() for i in index)
+    assert "[view]" in (run / "config.toml").read_text()
+
+    out = subprocess.run(
+        [sys.executable, "-m", "companion", "review", str(run)], capture_output=True, text=True, timeout=60, cwd=tmp_path
+    )
+    assert out.returncode == 0, out.stderr
+    html = (run / "review.html").read_text()
+    for part in ("Decisions and regions", "Setpoints against the vehicle", "Frame age", "Contact sheet", "engaged", "paused"):
+        assert part in html, part
+    assert html.count("<svg") >= 4 and "data:image/jpeg;base64," in html
+    assert "http://" not in html.replace("http://www.w3.org/2000/svg", "")
+
+
+def test_review_of_a_bounded_recording_and_of_a_sitl_workdir(tmp_path: Path) -> None:
+    from companion.service.preview import FlightRecorder
+    from companion.view.review import write_review
+
+    # The recorder's bound: preview frames stop at 80 %, health at 100 %.
+    ctx = zmq.Context()
+    pub = ctx.socket(zmq.PUB)
+    port = pub.bind_to_random_port("tcp://127.0.0.1")
+    recorder = FlightRecorder(tmp_path / "rec", f"tcp://127.0.0.1:{port}", None, preview_every=0, max_bytes=4000)
+    run = recorder.start()
+    time.sleep(0.3)
+    message = json.dumps({"type": "health", "seq": 1, "time_s": 1.0, "state": "passive", "reason": "x" * 300}).encode()
+    for _ in range(30):
+        pub.send(message)
+        time.sleep(0.005)
+    time.sleep(0.3)
+    recorder.close()
+    pub.close(0)
+    ctx.term()
+    size = (run / "health.jsonl").stat().st_size
+    assert 0 < size <= 4000 and recorder.health_lines == len((run / "health.jsonl").read_text().splitlines()) < 30
+
+    # A companion sitl --workdir: one folder per flight, each with health.jsonl and companion.toml.
+    work = tmp_path / "sitl"
+    for i, kind in enumerate(("brake", "avoid")):
+        flight = work / f"{i:02d}-doorway-{i}"
+        flight.mkdir(parents=True)
+        (flight / "companion.toml").write_text("")
+        rows = []
+        for k in range(60):
+            t = 100.0 + k * 0.1
+            decision = kind if 20 <= k < 30 else "clear"
+            rows.append({
+                "type": "health", "seq": k + 1, "time_s": t, "unix_time_s": 1.8e9 + t, "state": "engaged" if k >= 5 else "engaging",
+                "reason": "r", "engaged": k >= 5, "fps": 15.0, "frame_age_ms": 40.0, "stages_ms": {"total_ms": 17.0},
+                "frame_to_setpoint_ms": {"last": 25.0, "median": 24.0, "p99": 30.0, "samples": k},
+                "regions_m": {n: (0.6 if decision != "clear" and n == "center" else 3.0) for n in
+                              ("up_left", "up", "up_right", "left", "center", "right", "down_left", "down", "down_right")},
+                "yaw": 0.4 if decision == "avoid" else 0.0, "pitch": 0.0,
+                "decision": {"kind": decision, "speed_fraction": 0.5, "reason": "rule"},
+                "setpoint": {"forward_m_s": 1.0, "right_m_s": 0.0, "down_m_s": 0.0, "yaw_rate_deg_s": 10.0},
+                "vehicle": {"link": "connected", "flight_mode": "OFFBOARD", "armed": True, "in_offboard": True,
+                            "position_ned_m": [k * 0.1, 0.0, -1.5], "attitude_rad": [0, 0, 0.1], "velocity_ned_m_s": [1.0, 0.0, 0.0]},
+                "dropped_frames": k // 10, "processed_frames": k, "last_error": None,
+            })
+        (flight / "health.jsonl").write_text("\n".join(json.dumps(r) for r in rows) + "\n")
+    out = write_review(work, None)
+    assert out == work / "review.html"
+    html = out.read_text()
+    assert "00-doorway-0" in html and "01-doorway-1" in html
+    assert "Path from above" in html and "brake" in html and "avoid" in html
+    assert html.count("class=\"moment\"") >= 2  # one brake and one avoid moment, drawn from the regions
+
+
+# ---------------------------------------------------------------------------------------------- the simulator
+
+
+def test_sim_course_with_the_view(tmp_path: Path) -> None:
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "companion", "sim", "--course", "head-on", "--seed", "1", "--view", "--view-port", "0",
+         "--view-linger-s", "3"],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=tmp_path,
+    )
+    url = None
+    lines = []
+    assert proc.stdout is not None
+    try:
+        for line in proc.stdout:
+            lines.append(line)
+            if "view:          open " in line:
+                url = line.split("open ", 1)[1].strip()
+                break
+        assert url, "".join(lines)
+        assert wait_until(lambda: (json.loads(_get(url + "api/health")[1])["health"] or {}).get("state") == "engaged", 10.0)
+        h = json.loads(_get(url + "api/health")[1])
+        assert h["health"]["camera"]["source"].startswith("sim") and h["health"]["vehicle"]["link"] == "simulated"
+        assert wait_until(lambda: _get(url + "preview.jpg")[0] == 200, 5.0)
+        status, body, _ = _get(url + "api/control", {"Content-Type": "application/json", "X-Companion-View": "1"}, b'{"cmd": "engage"}')
+        assert status == 409 and b"no control socket" in body
+    finally:
+        proc.send_signal(signal.SIGINT)
+        try:
+            rest, _ = proc.communicate(timeout=20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            rest, _ = proc.communicate()
+    assert proc.returncode in (0, 130), "".join(lines) + rest  # 130: the Ctrl-C above, mid-flight
+    with pytest.raises(urllib.error.URLError):  # the view went with it
+        urllib.request.urlopen(url, timeout=2)
