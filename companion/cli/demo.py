@@ -89,8 +89,9 @@ class _OverlayPicker:
         disp = result.disparity
         if disp is not None and k != 1:
             disp = cv2.resize(disp, None, fx=k, fy=k, interpolation=cv2.INTER_NEAREST)
-        return draw_overlay(big, layout, np.asarray(result.refined.depth_m), result.decision,
-                            near_m=self.near_m, far_m=self.far_m, disparity=disp, max_disparity_px=self.max_disp)
+        return draw_overlay(big, layout, result.shown_depths_m(), result.decision,
+                            near_m=self.near_m, far_m=self.far_m, disparity=disp, max_disparity_px=self.max_disp,
+                            filtered=result.filtered, legend=True)
 
     def images(self) -> list[tuple[str, Any]]:
         """(label, overlay image) of the frames kept, drawn now."""

@@ -47,6 +47,7 @@ __all__ = [
     "load_zed_conf",
     "make_rectifier",
     "remap_linear_reference",
+    "save_calibration",
 ]
 
 log = logging.getLogger(__name__)
@@ -771,3 +772,67 @@ def remap_linear_reference(src: np.ndarray, map_x: np.ndarray, map_y: np.ndarray
     bot = fma(a, (p11 - p10).astype(f32), p10)
     s = fma(b, (bot - top).astype(f32), top)
     return np.clip(np.rint(s), 0, 255).astype(np.uint8)
+
+
+# --------------------------------------------------------------------------------------------------
+# Writing (the project's format)
+
+
+def save_calibration(calib: StereoCalibration, path: str | Path, metadata: Mapping[str, Any] | None = None) -> Path:
+    """Write ``calib`` in the project's format (docs/calibration.md), readable by
+    :func:`load_opencv_calibration`: ``K1 D1 K2 D2 R T`` (OpenCV's conventions, ``X_r = R X_l + T``,
+    T in metres, so ``T[0] ≈ -baseline``), ``T_units: m`` and ``image_size: [width, height]``, plus
+    ``metadata`` (numbers and strings: how it was made, its errors), which loaders ignore.
+
+    The format follows the extension: ``.yaml``/``.yml``/``.xml`` (``cv2.FileStorage``), ``.json``
+    (plain lists), ``.npz`` (``np.savez``).
+
+    Raises:
+        CalibrationError: an unknown extension, or the file cannot be written.
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in OPENCV_CALIBRATION_SUFFIXES:
+        raise CalibrationError(
+            f"calibration {path}: unknown extension {suffix!r}; expected one of {', '.join(OPENCV_CALIBRATION_SUFFIXES)}",
+            path=str(path),
+        )
+    arrays = {"K1": calib.K1, "D1": calib.D1, "K2": calib.K2, "D2": calib.D2, "R": calib.R, "T": calib.T}
+    meta: dict[str, Any] = {"T_units": "m"}
+    for key, value in (metadata or {}).items():
+        if key in arrays or key in ("image_size", "T_units"):
+            raise CalibrationError(f"calibration {path}: metadata may not be called {key!r}", path=str(path))
+        if isinstance(value, bool) or not isinstance(value, (int, float, str)):
+            raise CalibrationError(f"calibration {path}: metadata {key!r} must be a number or a string", path=str(path))
+        meta[key] = value
+    w, h = calib.image_size
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        if suffix == ".json":
+            doc: dict[str, Any] = {k: np.asarray(v).tolist() for k, v in arrays.items()}
+            doc["image_size"] = [w, h]
+            doc.update(meta)
+            path.write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
+        elif suffix == ".npz":
+            extra = {k: np.asarray(v) for k, v in meta.items()}
+            np.savez(path, **{k: np.asarray(v) for k, v in arrays.items()}, image_size=np.array([w, h]), **extra)
+        else:
+            fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+            if not fs.isOpened():
+                raise OSError(f"cv2.FileStorage cannot write {path}")
+            try:
+                for key, value in arrays.items():
+                    a = np.asarray(value, dtype=np.float64)
+                    fs.write(key, a.reshape(-1, 1) if a.ndim == 1 else a)
+                fs.startWriteStruct("image_size", cv2.FileNode_SEQ | cv2.FileNode_FLOW)
+                fs.write("", int(w))
+                fs.write("", int(h))
+                fs.endWriteStruct()
+                for key, value in meta.items():
+                    fs.write(key, value)
+            finally:
+                fs.release()
+    except (OSError, cv2.error) as err:
+        reason = getattr(err, "strerror", None) or str(err).strip().splitlines()[-1]
+        raise CalibrationError(f"cannot write calibration file {path}: {reason}", path=str(path)) from None
+    return path
