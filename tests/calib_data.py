@@ -77,10 +77,12 @@ def write_lut_captures(folder: Path, distances_m: tuple[float, ...] = (1.0, 1.5,
     :data:`LUT_GEOMETRY`, as side-by-side PNGs, and ``distances.csv`` beside them. Returns the CSV."""
     folder.mkdir(parents=True, exist_ok=True)
     rows = []
+    # One target (its face at 8 m north), the camera stepped back from it.
+    wall_m = 8.0
+    scene = Scene(obstacles=(Box.on_ground(wall_m + 0.05, 0.0, (0.1, 4.0, 3.0)),), ground=True)
+    renderer = StereoRenderer(LUT_GEOMETRY, scene, seed=seed)
     for k, d in enumerate(distances_m):
-        scene = Scene(obstacles=(Box.on_ground(d + 0.05, 0.0, (0.1, 4.0, 3.0)),), ground=True)
-        renderer = StereoRenderer(LUT_GEOMETRY, scene, seed=seed + k)
-        frame = renderer.render_side_by_side(Pose.at(0.0, 0.0, 1.5))
+        frame = renderer.render_side_by_side(Pose.at(wall_m - d, 0.0, 1.5))
         name = f"target_{k:02d}.png"
         cv2.imwrite(str(folder / name), frame)
         rows.append((name, f"{d:g}"))

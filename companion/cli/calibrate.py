@@ -304,8 +304,9 @@ def _write_rectified(path: Path, report: Any, views: list[Any], paired: list[Any
 # ------------------------------------------------------------------------------------------------ lut
 
 
-def ask_distance(prompt: str, read: Callable[[str], str] = input) -> float | None:
+def ask_distance(prompt: str, read: Callable[[str], str] | None = None) -> float | None:
     """Ask for a distance in metres until one is given; an empty answer (or the end of the input) is None."""
+    read = read or input
     while True:
         try:
             text = read(prompt).strip()

@@ -22,6 +22,8 @@ import configparser
 import json
 import logging
 import math
+import re
+import zipfile
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -113,12 +115,12 @@ class StereoCalibration:
             try:
                 a = np.array(value, dtype=np.float64)
             except (TypeError, ValueError) as exc:
-                raise CalibrationError(f"{src}: {name} is not numeric ({exc})", source=src, key=name) from None
+                raise CalibrationError(f"calibration {src}: {name} is not numeric ({exc})", source=src, key=name) from None
             if shape is None:
                 a = a.reshape(-1)
                 if a.size not in _DIST_LENGTHS:
                     raise CalibrationError(
-                        f"{src}: {name} has {a.size} coefficients; OpenCV takes 4, 5, 8, 12 or 14",
+                        f"calibration {src}: {name} has {a.size} coefficients; OpenCV takes 4, 5, 8, 12 or 14",
                         source=src,
                         key=name,
                     )
@@ -127,17 +129,17 @@ class StereoCalibration:
                     a = a.reshape(shape)
                 if a.shape != shape:
                     raise CalibrationError(
-                        f"{src}: {name} must be {shape}, got shape {a.shape}", source=src, key=name
+                        f"calibration {src}: {name} must be {shape}, got shape {a.shape}", source=src, key=name
                     )
             if not np.all(np.isfinite(a)):
-                raise CalibrationError(f"{src}: {name} has non-finite values", source=src, key=name)
+                raise CalibrationError(f"calibration {src}: {name} has non-finite values", source=src, key=name)
             return _readonly(a)
 
         for name in ("K1", "K2"):
             k = arr(name, getattr(self, name), (3, 3))
             if not (k[0, 0] > 0 and k[1, 1] > 0) or not np.allclose(k[2], (0.0, 0.0, 1.0)):
                 raise CalibrationError(
-                    f"{src}: {name} is not a camera matrix (fx, fy > 0, last row 0 0 1): {k.tolist()}",
+                    f"calibration {src}: {name} is not a camera matrix (fx, fy > 0, last row 0 0 1): {k.tolist()}",
                     source=src,
                     key=name,
                 )
@@ -146,20 +148,24 @@ class StereoCalibration:
             object.__setattr__(self, name, arr(name, getattr(self, name), None))
         rot = arr("R", self.R, (3, 3))
         if not np.allclose(rot.T @ rot, np.eye(3), atol=1e-4) or np.linalg.det(rot) <= 0:
-            raise CalibrationError(f"{src}: R is not a rotation matrix: {rot.tolist()}", source=src, key="R")
+            raise CalibrationError(
+                f"calibration {src}: R is not a rotation matrix (R^T R = I, det R = +1): {np.round(rot, 6).tolist()}",
+                source=src,
+                key="R",
+            )
         object.__setattr__(self, "R", rot)
         t = arr("T", self.T, (3,))
         if not np.linalg.norm(t) > 0:
-            raise CalibrationError(f"{src}: T is zero; the two cameras cannot coincide", source=src, key="T")
+            raise CalibrationError(f"calibration {src}: T is zero; the two cameras cannot coincide", source=src, key="T")
         object.__setattr__(self, "T", t)
         try:
             w, h = (int(v) for v in self.image_size)
         except (TypeError, ValueError):
             raise CalibrationError(
-                f"{src}: image_size must be (width, height), got {self.image_size!r}", source=src, key="image_size"
+                f"calibration {src}: image_size must be (width, height), got {self.image_size!r}", source=src, key="image_size"
             ) from None
         if w <= 0 or h <= 0:
-            raise CalibrationError(f"{src}: image_size must be positive, got {w}x{h}", source=src, key="image_size")
+            raise CalibrationError(f"calibration {src}: image_size must be positive, got {w}x{h}", source=src, key="image_size")
         object.__setattr__(self, "image_size", (w, h))
 
     @property
@@ -206,13 +212,33 @@ def _read_ini(path: Path) -> configparser.ConfigParser:
     try:
         with path.open(encoding="utf-8-sig") as f:
             parser.read_file(f, source=str(path))
+    except IsADirectoryError:
+        raise CalibrationError(f"cannot read calibration file {path}: it is a directory", path=str(path)) from None
     except OSError as exc:
         raise CalibrationError(
             f"cannot read calibration file {path}: {exc.strerror or exc}", path=str(path)
         ) from None
-    except (configparser.Error, UnicodeDecodeError) as exc:
+    except UnicodeDecodeError:
+        raise CalibrationError(
+            f"calibration file {path} is not a valid ZED .conf: it is not text (binary data)", path=str(path)
+        ) from None
+    except configparser.MissingSectionHeaderError as exc:
+        raise CalibrationError(
+            f"calibration file {path} is not a valid ZED .conf: line {exc.lineno} comes before any [SECTION] "
+            f"header ({exc.line.strip()[:40]!r})",
+            path=str(path),
+        ) from None
+    except configparser.ParsingError as exc:
+        lines = ", ".join(str(n) for n, _ in exc.errors[:3]) if getattr(exc, "errors", None) else "?"
+        raise CalibrationError(
+            f"calibration file {path} is not a valid ZED .conf: line(s) {lines} are not 'key = value'",
+            path=str(path),
+        ) from None
+    except configparser.Error as exc:
         reason = " ".join(str(exc).split())
         raise CalibrationError(f"calibration file {path} is not a valid ZED .conf: {reason}", path=str(path)) from None
+    if not parser.sections():
+        raise CalibrationError(f"calibration file {path} is not a valid ZED .conf: it has no [SECTION]s", path=str(path))
     return parser
 
 
@@ -221,7 +247,13 @@ def _section(parser: configparser.ConfigParser, name: str, path: Path) -> config
     for actual in parser.sections():
         if actual.upper() == name:
             return parser[actual]
-    raise CalibrationError(f"calibration {path} has no [{name}] section", path=str(path), key=name)
+    have = ", ".join(parser.sections()[:8]) or "none"
+    raise CalibrationError(
+        f"calibration {path} has no [{name}] section (it has: {have}); is it this camera's file, and is the "
+        "camera in a mode the file covers?",
+        path=str(path),
+        key=name,
+    )
 
 
 def _zed_value(
@@ -310,14 +342,33 @@ _REQUIRED_KEYS: Final[tuple[str, ...]] = ("K1", "D1", "K2", "D2", "R", "T")
 _T_UNIT_SCALE: Final[Mapping[str, float]] = MappingProxyType({"m": 1.0, "mm": 1e-3})
 
 
+def _opencv_parse_reason(message: str, path: Path) -> str:
+    """OpenCV's parse error without its source-file noise: ``not valid YAML: line 3: Missing , ...``.
+
+    OpenCV says ``OpenCV(5.0.0) /io/.../persistence_yml.cpp:681: error: (-212:Parsing error) parseValue
+    in function '/path/file.yaml(3): Missing , between the elements'``.
+    """
+    kind = {".xml": "XML", ".json": "JSON"}.get(path.suffix.lower(), "YAML")
+    m = re.search(r"\((\d+)\):\s*(.+?)'?\s*$", message.strip().splitlines()[-1] if message.strip() else "")
+    if m is not None:
+        why = m.group(2).strip()
+        if "Only collections" in why:
+            why = "it is not a mapping of keys (K1: ..., D1: ..., ...)"
+        return f"not valid {kind} for cv2.FileStorage: line {m.group(1)}: {why}"
+    lines = [ln.strip() for ln in message.strip().splitlines() if ln.strip()]
+    tail = lines[-1] if lines else "unknown error"
+    tail = re.sub(r"^OpenCV\([^)]*\)\s+\S+:\d+:\s*error:\s*\([^)]*\)\s*", "", tail)
+    return f"not valid {kind} for cv2.FileStorage: {tail}"
+
+
 def _filestorage_values(path: Path) -> dict[str, Any]:
     try:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
     except (cv2.error, SystemError) as exc:  # cv2 raises SystemError chained to cv2.error on parse errors
         cause = exc.__cause__ if isinstance(exc, SystemError) and exc.__cause__ is not None else exc
-        lines = [ln.strip() for ln in str(cause).strip().splitlines() if ln.strip()]
-        reason = lines[-1] if lines else type(cause).__name__
-        raise CalibrationError(f"cannot parse calibration file {path}: {reason}", path=str(path)) from None
+        raise CalibrationError(
+            f"cannot parse calibration file {path}: {_opencv_parse_reason(str(cause), path)}", path=str(path)
+        ) from None
     try:
         if not fs.isOpened():
             raise CalibrationError(f"cannot open calibration file {path} with cv2.FileStorage", path=str(path))
@@ -329,7 +380,20 @@ def _filestorage_values(path: Path) -> dict[str, Any]:
                 try:
                     values[key] = node.mat()
                 except cv2.error:
+                    if key in _REQUIRED_KEYS:
+                        raise CalibrationError(
+                            f"calibration {path}: {key} is not a matrix (an opencv-matrix needs rows, cols, dt "
+                            "and data)",
+                            path=str(path),
+                            key=key,
+                        ) from None
                     continue  # a map that is not an opencv-matrix (metadata): not ours to read
+                if values[key] is None and key in _REQUIRED_KEYS:
+                    raise CalibrationError(
+                        f"calibration {path}: {key} is not a matrix (an opencv-matrix needs rows, cols, dt and data)",
+                        path=str(path),
+                        key=key,
+                    )
             elif node.isSeq():
                 values[key] = [node.at(i).real() for i in range(node.size())]
             elif node.isString():
@@ -345,7 +409,9 @@ def _json_values(path: Path) -> dict[str, Any]:
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
     except json.JSONDecodeError as exc:
-        raise CalibrationError(f"cannot parse calibration file {path}: {exc}", path=str(path)) from None
+        raise CalibrationError(f"cannot parse calibration file {path}: not valid JSON: {exc}", path=str(path)) from None
+    except UnicodeDecodeError:
+        raise CalibrationError(f"cannot parse calibration file {path}: not valid JSON: not text (binary data)", path=str(path)) from None
     if not isinstance(data, dict):
         raise CalibrationError(f"calibration file {path} must hold a JSON object", path=str(path))
     values: dict[str, Any] = {}
@@ -363,11 +429,26 @@ def _json_values(path: Path) -> dict[str, Any]:
 
 
 def _npz_values(path: Path) -> dict[str, Any]:
+    if not zipfile.is_zipfile(path):
+        raise CalibrationError(
+            f"cannot parse calibration file {path}: not an .npz archive (write one with numpy.savez)", path=str(path)
+        )
     try:
         with np.load(path, allow_pickle=False) as npz:
+            if not hasattr(npz, "files"):
+                raise CalibrationError(f"cannot parse calibration file {path}: a single array, not an .npz archive")
             return {k: (str(npz[k]) if npz[k].dtype.kind in "US" else npz[k]) for k in npz.files}
     except ValueError as exc:
-        raise CalibrationError(f"cannot parse calibration file {path}: {exc}", path=str(path)) from None
+        reason = (
+            "it holds Python objects (pickled data), which are never loaded; save plain arrays with numpy.savez"
+            if "pickle" in str(exc).lower() or "object arrays" in str(exc).lower()
+            else str(exc)
+        )
+        raise CalibrationError(f"cannot parse calibration file {path}: {reason}", path=str(path)) from None
+    except (zipfile.BadZipFile, EOFError, KeyError, OSError) as exc:
+        raise CalibrationError(
+            f"cannot parse calibration file {path}: a damaged .npz archive ({type(exc).__name__}: {exc})", path=str(path)
+        ) from None
 
 
 def _image_size_from(values: Mapping[str, Any], path: Path) -> tuple[int, int]:
@@ -418,9 +499,13 @@ def load_opencv_calibration(path: str | Path) -> StereoCalibration:
             f"expected one of {', '.join(OPENCV_CALIBRATION_SUFFIXES)}",
             path=str(path),
         )
+    if path.is_dir():
+        raise CalibrationError(f"cannot read calibration file {path}: it is a directory", path=str(path))
     if not path.is_file():
         # Checked up front: cv2.FileStorage would only log to stderr and report "not opened".
         raise CalibrationError(f"cannot read calibration file {path}: no such file", path=str(path))
+    if path.stat().st_size == 0:
+        raise CalibrationError(f"calibration file {path} is empty", path=str(path))
     try:
         if suffix == ".json":
             values = _json_values(path)
@@ -574,12 +659,12 @@ class Rectifier:
         tx, ty = float(P2[0, 3]), float(P2[1, 3])
         if abs(ty) > abs(tx):
             raise CalibrationError(
-                f"{c.source}: T = {c.T.tolist()} m describes a vertical rig; a left/right pair is needed",
+                f"calibration {c.source}: T = {c.T.tolist()} m describes a vertical rig; a left/right pair is needed",
                 source=c.source,
             )
         if not tx < 0:
             raise CalibrationError(
-                f"{c.source}: T = {c.T.tolist()} m puts the right camera to the LEFT of the left one "
+                f"calibration {c.source}: T = {c.T.tolist()} m puts the right camera to the LEFT of the left one "
                 "(disparities would be negative); OpenCV's T[0] is -baseline for a left/right rig; "
                 "are the eyes swapped or the sign of T flipped?",
                 source=c.source,
