@@ -45,7 +45,8 @@ def generic_rig() -> Rig:
 
 def write_stereo_views(folder: Path, rig: Rig, n: int = 12, seed: int = 0, layout: str = "sbs") -> Path:
     """``n`` views of the 9x6 chessboard (40 mm) seen by ``rig``, as side-by-side PNGs (``sbs``) or
-    ``left/`` and ``right/`` files (``pair``). Returns ``folder``."""
+    ``left/`` and ``right/`` files (``pair``), named ``view_000.png`` ... as ``--live`` saves them.
+    Returns ``folder``."""
     target = chessboard_target(9, 6, 0.04, texels_per_square=32)
     w, h = rig.image_size
     left_cam = TargetCamera(rig.K1, rig.D1, rig.image_size, supersample=2)
@@ -59,12 +60,12 @@ def write_stereo_views(folder: Path, rig: Rig, n: int = 12, seed: int = 0, layou
         rr, tr = right_eye_pose(rot, t, rig.R, rig.T)
         right = right_cam.render(target, rr, tr, blur_px=0.5)
         if layout == "sbs":
-            cv2.imwrite(str(folder / f"view_{i:02d}.png"), np.concatenate([left, right], axis=1))
+            cv2.imwrite(str(folder / f"view_{i:03d}.png"), np.concatenate([left, right], axis=1))
         else:
             (folder / "left").mkdir(exist_ok=True)
             (folder / "right").mkdir(exist_ok=True)
-            cv2.imwrite(str(folder / "left" / f"view_{i:02d}.png"), left)
-            cv2.imwrite(str(folder / "right" / f"view_{i:02d}.png"), right)
+            cv2.imwrite(str(folder / "left" / f"view_{i:03d}.png"), left)
+            cv2.imwrite(str(folder / "right" / f"view_{i:03d}.png"), right)
     return folder
 
 
@@ -85,6 +86,38 @@ def write_lut_captures(folder: Path, distances_m: tuple[float, ...] = (1.0, 1.5,
         frame = renderer.render_side_by_side(Pose.at(wall_m - d, 0.0, 1.5))
         name = f"target_{k:02d}.png"
         cv2.imwrite(str(folder / name), frame)
+        rows.append((name, f"{d:g}"))
+    path = folder / "distances.csv"
+    with path.open("w", newline="", encoding="utf-8") as f:
+        w = csv.writer(f)
+        w.writerow(["file", "true_distance_m"])
+        w.writerows(rows)
+    return path
+
+
+def write_rig_lut_captures(
+    folder: Path, rig: Rig, distances_m: tuple[float, ...] = (1.0, 1.5, 2.0, 3.0, 4.0), seed: int = 0
+) -> Path:
+    """A flat target printed with a random multi-scale texture (3 m x 2 m), square to ``rig`` at each
+    distance (from the left camera), seen by the rig's raw (distorted, unrectified) eyes, as
+    side-by-side PNGs named as ``calibrate lut --live`` saves them, and ``distances.csv``. Returns the CSV."""
+    from companion.sim.render.target import PlanarTarget, board_pose
+    from companion.sim.render.texture import noise_field
+
+    rng = np.random.default_rng([seed, 0x1A7])
+    texture = np.clip(noise_field(rng, 1024) * 45.0 + 128.0, 0, 255).astype(np.uint8)
+    target = PlanarTarget(np.ascontiguousarray(texture[:683, :]), 3.0 / 1024)
+    left_cam = TargetCamera(rig.K1, rig.D1, rig.image_size, supersample=2)
+    right_cam = TargetCamera(rig.K2, rig.D2, rig.image_size, supersample=2)
+    folder.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for k, d in enumerate(distances_m):
+        rot, t = board_pose(target, d)
+        left = left_cam.render(target, rot, t, blur_px=0.5)
+        rr, tr = right_eye_pose(rot, t, rig.R, rig.T)
+        right = right_cam.render(target, rr, tr, blur_px=0.5)
+        name = f"d{k:02d}_{d:g}m_00.png"
+        cv2.imwrite(str(folder / name), cv2.cvtColor(np.concatenate([left, right], axis=1), cv2.COLOR_GRAY2BGR))
         rows.append((name, f"{d:g}"))
     path = folder / "distances.csv"
     with path.open("w", newline="", encoding="utf-8") as f:

@@ -109,7 +109,7 @@ def test_cli_writes_a_loadable_file_sets_the_config_and_process_uses_it(views_di
     assert config.read_text().startswith("# mine\n")  # the user's file is edited, not rewritten
     assert cv2.imread(str(rectified)).shape == (400, 1280, 3)
     # The service's own pipeline builds its rectifier from it (what `process` and `run` do).
-    assert main(["process", "--sbs", str(views_dir / "view_00.png"), "--config", str(config)]) == 0
+    assert main(["process", "--sbs", str(views_dir / "view_000.png"), "--config", str(config)]) == 0
     assert "warning: no calibration" not in capsys.readouterr().err
 
 
@@ -140,8 +140,8 @@ def test_too_few_views_is_refused_with_the_reason(views_dir: Path, tmp_path: Pat
 def test_mixed_sizes_are_refused(views_dir: Path, tmp_path: Path) -> None:
     for path in sorted(views_dir.glob("*.png"))[:3]:
         shutil.copy(path, tmp_path / path.name)
-    small = cv2.resize(cv2.imread(str(tmp_path / "view_00.png")), (640, 200))
-    cv2.imwrite(str(tmp_path / "view_00.png"), small)
+    small = cv2.resize(cv2.imread(str(tmp_path / "view_000.png")), (640, 200))
+    cv2.imwrite(str(tmp_path / "view_000.png"), small)
     with pytest.raises(CalibrationError, match="mixed sizes") as info:
         load_stereo_images(tmp_path)
     assert "320x200" in str(info.value) and "640x400" in str(info.value)
