@@ -238,3 +238,27 @@ def test_live_capture_keeps_new_views_only(views_dir: Path) -> None:
     views = capture_views(camera, BoardSpec.parse(BOARD), 3, on_kept=lambda i, v: kept.append(v.name), max_frames=6)
     assert [v.name for v in views] == kept == ["view_000.png", "view_001.png"]  # no board / same place: skipped
     assert np.array_equal(views[1].side_by_side(), second)
+
+
+def test_a_charuco_board_calibrates_the_rig_too(tmp_path: Path, capsys) -> None:
+    from companion.sim.render.target import TargetCamera, calibration_poses, charuco_target, right_eye_pose
+
+    rig = generic_rig()
+    target = charuco_target(7, 5, 0.05, 0.037)
+    left_cam = TargetCamera(rig.K1, rig.D1, rig.image_size, supersample=2)
+    right_cam = TargetCamera(rig.K2, rig.D2, rig.image_size, supersample=2)
+    poses = calibration_poses(target, rig.K1, rig.image_size, 10, R=rig.R, T=rig.T, K_right=rig.K2,
+                              distance_m=(0.4, 0.8), max_tilt_deg=25.0, max_roll_deg=8.0, seed=2)
+    for i, (rot, t) in enumerate(poses):
+        rr, tr = right_eye_pose(rot, t, rig.R, rig.T)
+        sbs = np.concatenate([left_cam.render(target, rot, t, blur_px=0.5), right_cam.render(target, rr, tr, blur_px=0.5)], axis=1)
+        cv2.imwrite(str(tmp_path / f"view_{i:03d}.png"), sbs)
+    out = tmp_path / "c.json"
+    code = main(["calibrate", "stereo", "--views", str(tmp_path), "--board", "charuco:7x5:0.05:0.037",
+                 "--out", str(out), "--min-coverage", "0.2", "--json"])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    c = load_calibration(out, rig.image_size)
+    assert c.K1[0, 0] == pytest.approx(rig.K1[0, 0], rel=FOCAL_TOL)
+    assert c.baseline_m == pytest.approx(0.06, rel=BASELINE_TOL)
+    assert json.loads(captured.out)["epipolar_rms_px"] < 0.2

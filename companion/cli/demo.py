@@ -80,7 +80,6 @@ class _OverlayPicker:
 
     def _draw(self, snap: tuple[Any, Any]) -> Any:
         import cv2
-        import numpy as np
 
         from companion.core.overlay import draw_overlay
         from companion.core.regions import RegionLayout

@@ -83,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
     if patch:
         cfg = apply_patch(cfg, patch)
     frame = load_frame(args)
-    left, _ = split_side_by_side(frame)
+    left, right = split_side_by_side(frame)
     height, width = left.shape[:2]
     pipeline = make_pipeline(cfg, width, height)
     result = pipeline.process(frame, timestamp_s=0.0, want_disparity=args.overlay is not None)
@@ -115,9 +115,14 @@ def run(args: argparse.Namespace) -> int:
     if args.overlay is not None:
         import cv2
 
+        from companion.core.calibration import make_rectifier
+
+        # The regions are laid out on the rectified image: draw on that (the raw eye when there is
+        # no calibration: the frame is then taken as rectified already).
+        left_view, _ = make_rectifier(cfg.calibration, width, height).rectify(left, right)
         near, far = _near_far_m(cfg)
         image = draw_overlay(
-            left,
+            left_view,
             pipeline.estimator.layout,
             result.refined.depth_m,
             result.decision,

@@ -150,9 +150,10 @@ def _legend_panel(
         (_MID, "between"),
         (_FAR, f"far (> {far_m:g} m)"),
         (None, "'~' filtered, not measured"),
-        (_DECISION_COLOUR[DecisionKind.CLEAR], "arrow: command, yaw right / pitch up"),
+        (None, "arrow: the command (right: yaw right, up: climb), by decision:"),
+        (_DECISION_COLOUR[DecisionKind.CLEAR], "clear"),
         (_DECISION_COLOUR[DecisionKind.AVOID], "avoid"),
-        (_DECISION_COLOUR[DecisionKind.BRAKE], "circle: brake and hold"),
+        (_DECISION_COLOUR[DecisionKind.BRAKE], "brake (a circle: hold)"),
     ]
     if with_inset:
         items.append((None, "inset: disparity (blue far .. red near, black no match)"))
