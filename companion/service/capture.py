@@ -255,8 +255,8 @@ class CaptureThread:
                     return False
                 self._set_state("reconnecting" if reconnecting else "opening", str(err))
                 if reports.due(self._clock()):
-                    more = f" ({reports.suppressed} more failures since the last report)" if reports.suppressed else ""
-                    log.warning("%s; retrying every %.1f s or less, next report in %.0f s%s",
+                    more = f"; {reports.suppressed} more failures since the last report" if reports.suppressed else ""
+                    log.warning("%s; retrying in %.1f s (reported again in %.0f s if it goes on%s)",
                                 err, delay, reports.interval_s, more)
                 else:
                     log.debug("%s; retrying in %.1f s", err, delay)
