@@ -218,7 +218,8 @@ def _record(args: argparse.Namespace) -> int:
         )
     if (args.frames is not None and args.frames < 1) or (args.duration_s is not None and args.duration_s <= 0):
         raise InputError("--frames must be >= 1 and --duration-s > 0")
-    camera = make_camera(cfg)
+    # Recording comes before calibrating: a camera without a calibration file records all the same.
+    camera = make_camera(cfg, require_calibration=False)
     camera.open()
     t_end = None if args.duration_s is None else time.monotonic() + args.duration_s
     try:
