@@ -21,7 +21,7 @@ from companion.errors import CalibrationError, InputError
 from companion.interfaces import Frame
 
 #: Stated tolerances for a set of 12 sharp rendered views of a 9x6 board (the figures measured on
-#: 2026-11-23 are 5-50x inside them; docs/calibration.md quotes them).
+#: 2026-11-23 are 2 to 16 times inside them; docs/calibration.md quotes both).
 FOCAL_TOL = 0.003  # relative: 1.2 px at f = 400 px
 CENTRE_TOL_PX = 2.0
 BASELINE_TOL = 0.005  # relative: 0.3 mm of 60 mm
