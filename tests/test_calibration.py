@@ -622,3 +622,58 @@ def test_make_rectifier_with_files(tmp_path: Path) -> None:
     assert isinstance(rect, Rectifier) and rect.alpha == 1.0
     with pytest.raises(CalibrationError, match="is for 672x376 but frames are 1280x720"):
         make_rectifier(CalibrationConfig(file=path), 1280, 720)
+
+
+# ------------------------------------------------------------------ garbage files name the file and the problem (issue 20)
+
+
+@pytest.mark.parametrize(
+    ("name", "content", "words"),
+    [
+        ("c.npz", b"hello world\x00\x01\x02", ["not an .npz archive"]),
+        ("c.npz", b"PK\x03\x04garbage", ["not an .npz archive"]),
+        ("c.yaml", b"%YAML:1.0\n---\nK1: [1, 2\n", ["not valid YAML", "line 3", "Missing ,"]),
+        ("c.yaml", b"\x89PNG garbage\x00\xff", ["not valid YAML", "not a mapping of keys"]),
+        ("c.yaml", b"", ["is empty"]),
+        ("c.yaml", b"K1: !!opencv-matrix\n  rows: 3\n", ["K1 is not a matrix"]),
+        ("c.xml", b'<?xml version="1.0"?>\n<opencv_storage><K1>1 2</K1', ["not valid XML", "line 2"]),
+        ("c.json", b'{"K1": [[1,0],[0,1]]', ["not valid JSON"]),
+        ("c.json", b"\xff\xfe\x00", ["not valid JSON", "binary"]),
+        ("SN1.conf", b"garbage\n[[[\n", ["not a valid ZED .conf", "line 1", "[SECTION]"]),
+        ("SN2.conf", b"\xff\xfe\x00binary", ["not a valid ZED .conf", "not text"]),
+        ("SN3.conf", b"[LEFT_CAM_VGA]\nfx=700\n", ["no [LEFT_CAM_HD] section", "it has: LEFT_CAM_VGA"]),
+    ],
+)
+def test_garbage_calibration_files_say_what_is_wrong(tmp_path: Path, name: str, content: bytes, words: list[str]) -> None:
+    path = tmp_path / name
+    path.write_bytes(content)
+    size = (1280, 720) if name.endswith(".conf") else VGA
+    with pytest.raises(CalibrationError) as info:
+        load_calibration(path, size)
+    msg = str(info.value)
+    assert str(path) in msg and "\n" not in msg and "OpenCV(" not in msg and ".cpp" not in msg, msg
+    for word in words:
+        assert word in msg, msg
+
+
+def test_npz_with_python_objects_and_a_directory_are_named(tmp_path: Path) -> None:
+    np.savez(tmp_path / "obj.npz", K1=np.array([{"a": 1}], dtype=object))
+    with pytest.raises(CalibrationError, match="Python objects"):
+        load_calibration(tmp_path / "obj.npz", VGA)
+    (tmp_path / "d.yaml").mkdir()
+    with pytest.raises(CalibrationError, match="is a directory"):
+        load_calibration(tmp_path / "d.yaml", VGA)
+
+
+@pytest.mark.parametrize("suffix", [".yaml", ".yml", ".xml", ".json", ".npz"])
+def test_save_calibration_writes_the_projects_format_in_every_container(tmp_path: Path, suffix: str) -> None:
+    from companion.core.calibration import save_calibration
+
+    rig = _distorted_rig()
+    path = save_calibration(rig, tmp_path / f"c{suffix}", {"rms_px": 0.21, "views": 14, "board": "chessboard:9x6:0.025"})
+    back = load_calibration(path, VGA)
+    for key in ("K1", "D1", "K2", "D2", "R", "T"):
+        np.testing.assert_allclose(getattr(back, key), getattr(rig, key), rtol=1e-12, atol=1e-15)
+    assert back.image_size == VGA
+    with pytest.raises(CalibrationError, match="metadata may not be called 'T'"):
+        save_calibration(rig, tmp_path / f"d{suffix}", {"T": 1.0})

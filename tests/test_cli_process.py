@@ -50,7 +50,8 @@ def test_sbs_frame_prints_json_and_writes_the_overlay(rendered, tmp_path, capsys
     assert doc["setpoint"]["yaw_rate_deg_s"] > 0
     assert "disparity_ms" in doc["timings_ms"] and "total_ms" in doc["timings_ms"]
     image = cv2.imread(str(overlay))
-    assert image is not None and image.shape == (376, 672, 3)
+    # The view (376 rows), then the legend panel below it.
+    assert image is not None and image.shape[1:] == (672, 3) and 376 + 40 < image.shape[0] < 376 + 160
 
 
 def test_left_right_pair_gives_the_same_answer(rendered, capsys) -> None:

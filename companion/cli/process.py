@@ -83,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
     if patch:
         cfg = apply_patch(cfg, patch)
     frame = load_frame(args)
-    left, _ = split_side_by_side(frame)
+    left, right = split_side_by_side(frame)
     height, width = left.shape[:2]
     pipeline = make_pipeline(cfg, width, height)
     result = pipeline.process(frame, timestamp_s=0.0, want_disparity=args.overlay is not None)
@@ -115,9 +115,14 @@ def run(args: argparse.Namespace) -> int:
     if args.overlay is not None:
         import cv2
 
+        from companion.core.calibration import make_rectifier
+
+        # The regions are laid out on the rectified image: draw on that (the raw eye when there is
+        # no calibration: the frame is then taken as rectified already).
+        left_view, _ = make_rectifier(cfg.calibration, width, height).rectify(left, right)
         near, far = _near_far_m(cfg)
         image = draw_overlay(
-            left,
+            left_view,
             pipeline.estimator.layout,
             result.refined.depth_m,
             result.decision,
@@ -125,10 +130,22 @@ def run(args: argparse.Namespace) -> int:
             far_m=far,
             disparity=result.disparity,
             max_disparity_px=float(cfg.stereo.num_disparities),
+            legend=True,
         )
         if not cv2.imwrite(str(args.overlay), image):
             raise InputError(f"{args.overlay}: cannot write the overlay image (bad extension or directory)")
         out["overlay"] = str(args.overlay.resolve())
+    if cfg.calibration.file is None:
+        # Said after the work, so that bad input still gets its one line. Not an error (rendered and
+        # simulated frames come from that ideal rig), but a real camera's depths are wrong by as much as
+        # its rig differs from it, with nothing else to say so.
+        print(
+            f"companion process: warning: no calibration (--calib, or calibration.file in --config): the frame is "
+            f"taken as already rectified by an ideal rig ({cfg.calibration.ideal_baseline_m:g} m baseline, "
+            f"{cfg.calibration.ideal_hfov_deg:g} deg horizontal field of view); a real camera's depths are off by "
+            "as much as it differs. A ZED: pass its SN<serial>.conf; another camera: `companion calibrate stereo`.",
+            file=sys.stderr,
+        )
     json.dump(out, sys.stdout, indent=2)
     sys.stdout.write("\n")
     return 0

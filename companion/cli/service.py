@@ -94,11 +94,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         description=(
             "Write /etc/systemd/system/companion.service (ExecStart: this Python with -m companion), "
             "/etc/companion/companion.toml (the documented defaults, kept if present) and create the "
-            "'companion' system user in the groups video and dialout. Needs root, unless --root."
+            "'companion' system user in the groups video and dialout. Needs root, unless --root. "
+            "Without --yes it only prints the plan and changes nothing."
         ),
     )
     p.add_argument("--root", type=Path, default=Path("/"), help="install under this folder instead of / (tests, images)")
-    p.add_argument("--dry-run", action="store_true", help="only print what would be done")
+    p.add_argument("--dry-run", action="store_true", help="only print what would be done (the default without --yes)")
+    p.add_argument("--yes", action="store_true", help="do it: write the files and create the user (without it: the plan only)")
     p.add_argument("--exec-start", help="the unit's ExecStart command line (default: this interpreter -m companion run ...)")
     p.add_argument("--no-user", action="store_true", help="do not create the system user")
     p.add_argument("--force-config", action="store_true", help="replace an existing /etc/companion/companion.toml")
@@ -228,7 +230,8 @@ def _record(args: argparse.Namespace) -> int:
         )
     if (args.frames is not None and args.frames < 1) or (args.duration_s is not None and args.duration_s <= 0):
         raise InputError("--frames must be >= 1 and --duration-s > 0")
-    camera = make_camera(cfg)
+    # Recording comes before calibrating: a camera without a calibration file records all the same.
+    camera = make_camera(cfg, require_calibration=False)
     camera.open()
     t_end = None if args.duration_s is None else time.monotonic() + args.duration_s
     try:
@@ -250,14 +253,21 @@ def _record(args: argparse.Namespace) -> int:
 def _install(args: argparse.Namespace) -> int:
     from companion.service.install import install_service
 
+    dry_run = args.dry_run or not args.yes
     steps = install_service(
         args.root,
         exec_start=args.exec_start,
-        dry_run=args.dry_run,
+        dry_run=dry_run,
         create_user=not args.no_user,
         force_config=args.force_config,
     )
+    if dry_run and not args.dry_run:
+        print(f"companion install-service: the plan (under {args.root}):")
     for step in steps:
-        would = args.dry_run and step.what.startswith(("write ", "run "))
+        would = dry_run and step.what.startswith(("write ", "run "))
         print(("would " if would else "") + step.what)
+    if dry_run and not args.dry_run:
+        # Writing /etc and creating a user deserve a deliberate "yes": a user ran it as root by accident.
+        print("nothing was changed: run it again with --yes to do this", file=sys.stderr)
+        return exitcodes.BAD_INPUT
     return exitcodes.OK

@@ -60,16 +60,53 @@ class CameraConfig(StrictModel):
 
     source: Literal["sim", "uvc", "replay"] = Field(
         default="sim",
-        description="sim: the built-in renderer; uvc: a ZED over UVC (V4L2); replay: a recording.",
+        description="sim: the built-in renderer; uvc: a camera over UVC (V4L2), see model; replay: a recording.",
+    )
+    model: Literal["zed", "sbs", "pair"] = Field(
+        default="zed",
+        description=(
+            "uvc: which camera. zed: a ZED (side by side, its modes are checked); sbs: any side-by-side UVC "
+            "stereo camera, in any mode it offers; pair: two V4L2 cameras, one per eye (device = left, "
+            "device_right = right), grabbed as close in time as the driver allows, the skew between them "
+            "reported in health. sbs and pair need a calibration file (calibration.file; make one with "
+            "`companion calibrate stereo`): the service refuses to start without one."
+        ),
     )
     width_px: int = Field(default=672, ge=64, le=4416, description="Width of ONE eye, pixels (ZED: 2208/1920/1280/672).")
-    height_px: int = Field(default=376, ge=48, le=1242, description="Height of one eye, pixels (ZED: 1242/1080/720/376).")
+    height_px: int = Field(default=376, ge=48, le=2160, description="Height of one eye, pixels (ZED: 1242/1080/720/376).")
     fps_hz: float = Field(default=30.0, gt=0.0, le=120.0, description="Requested frame rate, frames per second.")
     device: str = Field(
         default="/dev/video0",
         min_length=1,
         max_length=200,
-        description="uvc: the V4L2 device node of the ZED (or its index, e.g. '0').",
+        description="uvc: the V4L2 device node of the camera (or its index, e.g. '0'); pair: the left eye's.",
+    )
+    device_right: str | None = Field(
+        default=None,
+        min_length=1,
+        max_length=200,
+        description="uvc, model pair: the V4L2 device node (or index) of the right eye's camera.",
+    )
+    fourcc: str = Field(
+        default="YUYV",
+        min_length=4,
+        max_length=4,
+        description=(
+            "uvc: the pixel format asked of the driver, four characters: YUYV (uncompressed; the ZED's) or "
+            "MJPG (what many USB cameras need for large modes at full rate); `v4l2-ctl --list-formats-ext` "
+            "lists what a camera offers."
+        ),
+    )
+    pair_max_skew_ms: float = Field(
+        default=8.0,
+        gt=0.0,
+        le=1000.0,
+        description=(
+            "uvc, model pair: when the driver's timestamps of the two eyes' frames differ by more than "
+            "this, the earlier camera's next frame is taken instead (once per frame), milliseconds. The "
+            "skew is reported in health (camera.skew_ms); an unsynchronised pair at 30 fps can be up to "
+            "33 ms apart, which at 1 m/s is 3 cm of motion between the eyes."
+        ),
     )
     open_timeout_s: float = Field(
         default=10.0,
@@ -172,11 +209,19 @@ class CameraConfig(StrictModel):
             raise ValueError(
                 f"reconnect_max_s ({self.reconnect_max_s}) must be >= reconnect_initial_s ({self.reconnect_initial_s})"
             )
-        if self.source == "uvc":
+        if not all(33 <= ord(ch) < 127 for ch in self.fourcc):
+            raise ValueError(f"fourcc must be four printable characters (e.g. YUYV, MJPG), got {self.fourcc!r}")
+        if self.model == "pair" and self.source == "uvc":
+            if self.device_right is None:
+                raise ValueError("model = 'pair' needs device_right (the right eye's camera; device is the left's)")
+            if self.device_right == self.device:
+                raise ValueError(f"device and device_right are the same ({self.device}); a pair needs two cameras")
+        if self.source == "uvc" and self.model == "zed":
             rates = ZED_MODES.get((self.width_px, self.height_px))
             if rates is None:
                 raise ValueError(
-                    f"{self.width_px}x{self.height_px} is not a ZED mode; one eye must be one of {zed_modes_text()}"
+                    f"{self.width_px}x{self.height_px} is not a ZED mode; one eye must be one of {zed_modes_text()} "
+                    "(another side-by-side camera: model = 'sbs'; two cameras: model = 'pair')"
                 )
             if self.fps_hz not in rates:
                 raise ValueError(

@@ -22,6 +22,8 @@ import configparser
 import json
 import logging
 import math
+import re
+import zipfile
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -47,6 +49,7 @@ __all__ = [
     "load_zed_conf",
     "make_rectifier",
     "remap_linear_reference",
+    "save_calibration",
 ]
 
 log = logging.getLogger(__name__)
@@ -112,12 +115,12 @@ class StereoCalibration:
             try:
                 a = np.array(value, dtype=np.float64)
             except (TypeError, ValueError) as exc:
-                raise CalibrationError(f"{src}: {name} is not numeric ({exc})", source=src, key=name) from None
+                raise CalibrationError(f"calibration {src}: {name} is not numeric ({exc})", source=src, key=name) from None
             if shape is None:
                 a = a.reshape(-1)
                 if a.size not in _DIST_LENGTHS:
                     raise CalibrationError(
-                        f"{src}: {name} has {a.size} coefficients; OpenCV takes 4, 5, 8, 12 or 14",
+                        f"calibration {src}: {name} has {a.size} coefficients; OpenCV takes 4, 5, 8, 12 or 14",
                         source=src,
                         key=name,
                     )
@@ -126,17 +129,17 @@ class StereoCalibration:
                     a = a.reshape(shape)
                 if a.shape != shape:
                     raise CalibrationError(
-                        f"{src}: {name} must be {shape}, got shape {a.shape}", source=src, key=name
+                        f"calibration {src}: {name} must be {shape}, got shape {a.shape}", source=src, key=name
                     )
             if not np.all(np.isfinite(a)):
-                raise CalibrationError(f"{src}: {name} has non-finite values", source=src, key=name)
+                raise CalibrationError(f"calibration {src}: {name} has non-finite values", source=src, key=name)
             return _readonly(a)
 
         for name in ("K1", "K2"):
             k = arr(name, getattr(self, name), (3, 3))
             if not (k[0, 0] > 0 and k[1, 1] > 0) or not np.allclose(k[2], (0.0, 0.0, 1.0)):
                 raise CalibrationError(
-                    f"{src}: {name} is not a camera matrix (fx, fy > 0, last row 0 0 1): {k.tolist()}",
+                    f"calibration {src}: {name} is not a camera matrix (fx, fy > 0, last row 0 0 1): {k.tolist()}",
                     source=src,
                     key=name,
                 )
@@ -145,20 +148,24 @@ class StereoCalibration:
             object.__setattr__(self, name, arr(name, getattr(self, name), None))
         rot = arr("R", self.R, (3, 3))
         if not np.allclose(rot.T @ rot, np.eye(3), atol=1e-4) or np.linalg.det(rot) <= 0:
-            raise CalibrationError(f"{src}: R is not a rotation matrix: {rot.tolist()}", source=src, key="R")
+            raise CalibrationError(
+                f"calibration {src}: R is not a rotation matrix (R^T R = I, det R = +1): {np.round(rot, 6).tolist()}",
+                source=src,
+                key="R",
+            )
         object.__setattr__(self, "R", rot)
         t = arr("T", self.T, (3,))
         if not np.linalg.norm(t) > 0:
-            raise CalibrationError(f"{src}: T is zero; the two cameras cannot coincide", source=src, key="T")
+            raise CalibrationError(f"calibration {src}: T is zero; the two cameras cannot coincide", source=src, key="T")
         object.__setattr__(self, "T", t)
         try:
             w, h = (int(v) for v in self.image_size)
         except (TypeError, ValueError):
             raise CalibrationError(
-                f"{src}: image_size must be (width, height), got {self.image_size!r}", source=src, key="image_size"
+                f"calibration {src}: image_size must be (width, height), got {self.image_size!r}", source=src, key="image_size"
             ) from None
         if w <= 0 or h <= 0:
-            raise CalibrationError(f"{src}: image_size must be positive, got {w}x{h}", source=src, key="image_size")
+            raise CalibrationError(f"calibration {src}: image_size must be positive, got {w}x{h}", source=src, key="image_size")
         object.__setattr__(self, "image_size", (w, h))
 
     @property
@@ -205,13 +212,33 @@ def _read_ini(path: Path) -> configparser.ConfigParser:
     try:
         with path.open(encoding="utf-8-sig") as f:
             parser.read_file(f, source=str(path))
+    except IsADirectoryError:
+        raise CalibrationError(f"cannot read calibration file {path}: it is a directory", path=str(path)) from None
     except OSError as exc:
         raise CalibrationError(
             f"cannot read calibration file {path}: {exc.strerror or exc}", path=str(path)
         ) from None
-    except (configparser.Error, UnicodeDecodeError) as exc:
+    except UnicodeDecodeError:
+        raise CalibrationError(
+            f"calibration file {path} is not a valid ZED .conf: it is not text (binary data)", path=str(path)
+        ) from None
+    except configparser.MissingSectionHeaderError as exc:
+        raise CalibrationError(
+            f"calibration file {path} is not a valid ZED .conf: line {exc.lineno} comes before any [SECTION] "
+            f"header ({exc.line.strip()[:40]!r})",
+            path=str(path),
+        ) from None
+    except configparser.ParsingError as exc:
+        lines = ", ".join(str(n) for n, _ in exc.errors[:3]) if getattr(exc, "errors", None) else "?"
+        raise CalibrationError(
+            f"calibration file {path} is not a valid ZED .conf: line(s) {lines} are not 'key = value'",
+            path=str(path),
+        ) from None
+    except configparser.Error as exc:
         reason = " ".join(str(exc).split())
         raise CalibrationError(f"calibration file {path} is not a valid ZED .conf: {reason}", path=str(path)) from None
+    if not parser.sections():
+        raise CalibrationError(f"calibration file {path} is not a valid ZED .conf: it has no [SECTION]s", path=str(path))
     return parser
 
 
@@ -220,7 +247,13 @@ def _section(parser: configparser.ConfigParser, name: str, path: Path) -> config
     for actual in parser.sections():
         if actual.upper() == name:
             return parser[actual]
-    raise CalibrationError(f"calibration {path} has no [{name}] section", path=str(path), key=name)
+    have = ", ".join(parser.sections()[:8]) or "none"
+    raise CalibrationError(
+        f"calibration {path} has no [{name}] section (it has: {have}); is it this camera's file, and is the "
+        "camera in a mode the file covers?",
+        path=str(path),
+        key=name,
+    )
 
 
 def _zed_value(
@@ -309,14 +342,33 @@ _REQUIRED_KEYS: Final[tuple[str, ...]] = ("K1", "D1", "K2", "D2", "R", "T")
 _T_UNIT_SCALE: Final[Mapping[str, float]] = MappingProxyType({"m": 1.0, "mm": 1e-3})
 
 
+def _opencv_parse_reason(message: str, path: Path) -> str:
+    """OpenCV's parse error without its source-file noise: ``not valid YAML: line 3: Missing , ...``.
+
+    OpenCV says ``OpenCV(5.0.0) /io/.../persistence_yml.cpp:681: error: (-212:Parsing error) parseValue
+    in function '/path/file.yaml(3): Missing , between the elements'``.
+    """
+    kind = {".xml": "XML", ".json": "JSON"}.get(path.suffix.lower(), "YAML")
+    m = re.search(r"\((\d+)\):\s*(.+?)'?\s*$", message.strip().splitlines()[-1] if message.strip() else "")
+    if m is not None:
+        why = m.group(2).strip()
+        if "Only collections" in why:
+            why = "it is not a mapping of keys (K1: ..., D1: ..., ...)"
+        return f"not valid {kind} for cv2.FileStorage: line {m.group(1)}: {why}"
+    lines = [ln.strip() for ln in message.strip().splitlines() if ln.strip()]
+    tail = lines[-1] if lines else "unknown error"
+    tail = re.sub(r"^OpenCV\([^)]*\)\s+\S+:\d+:\s*error:\s*\([^)]*\)\s*", "", tail)
+    return f"not valid {kind} for cv2.FileStorage: {tail}"
+
+
 def _filestorage_values(path: Path) -> dict[str, Any]:
     try:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
     except (cv2.error, SystemError) as exc:  # cv2 raises SystemError chained to cv2.error on parse errors
         cause = exc.__cause__ if isinstance(exc, SystemError) and exc.__cause__ is not None else exc
-        lines = [ln.strip() for ln in str(cause).strip().splitlines() if ln.strip()]
-        reason = lines[-1] if lines else type(cause).__name__
-        raise CalibrationError(f"cannot parse calibration file {path}: {reason}", path=str(path)) from None
+        raise CalibrationError(
+            f"cannot parse calibration file {path}: {_opencv_parse_reason(str(cause), path)}", path=str(path)
+        ) from None
     try:
         if not fs.isOpened():
             raise CalibrationError(f"cannot open calibration file {path} with cv2.FileStorage", path=str(path))
@@ -328,7 +380,20 @@ def _filestorage_values(path: Path) -> dict[str, Any]:
                 try:
                     values[key] = node.mat()
                 except cv2.error:
+                    if key in _REQUIRED_KEYS:
+                        raise CalibrationError(
+                            f"calibration {path}: {key} is not a matrix (an opencv-matrix needs rows, cols, dt "
+                            "and data)",
+                            path=str(path),
+                            key=key,
+                        ) from None
                     continue  # a map that is not an opencv-matrix (metadata): not ours to read
+                if values[key] is None and key in _REQUIRED_KEYS:
+                    raise CalibrationError(
+                        f"calibration {path}: {key} is not a matrix (an opencv-matrix needs rows, cols, dt and data)",
+                        path=str(path),
+                        key=key,
+                    )
             elif node.isSeq():
                 values[key] = [node.at(i).real() for i in range(node.size())]
             elif node.isString():
@@ -344,7 +409,9 @@ def _json_values(path: Path) -> dict[str, Any]:
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
     except json.JSONDecodeError as exc:
-        raise CalibrationError(f"cannot parse calibration file {path}: {exc}", path=str(path)) from None
+        raise CalibrationError(f"cannot parse calibration file {path}: not valid JSON: {exc}", path=str(path)) from None
+    except UnicodeDecodeError:
+        raise CalibrationError(f"cannot parse calibration file {path}: not valid JSON: not text (binary data)", path=str(path)) from None
     if not isinstance(data, dict):
         raise CalibrationError(f"calibration file {path} must hold a JSON object", path=str(path))
     values: dict[str, Any] = {}
@@ -362,11 +429,26 @@ def _json_values(path: Path) -> dict[str, Any]:
 
 
 def _npz_values(path: Path) -> dict[str, Any]:
+    if not zipfile.is_zipfile(path):
+        raise CalibrationError(
+            f"cannot parse calibration file {path}: not an .npz archive (write one with numpy.savez)", path=str(path)
+        )
     try:
         with np.load(path, allow_pickle=False) as npz:
+            if not hasattr(npz, "files"):
+                raise CalibrationError(f"cannot parse calibration file {path}: a single array, not an .npz archive")
             return {k: (str(npz[k]) if npz[k].dtype.kind in "US" else npz[k]) for k in npz.files}
     except ValueError as exc:
-        raise CalibrationError(f"cannot parse calibration file {path}: {exc}", path=str(path)) from None
+        reason = (
+            "it holds Python objects (pickled data), which are never loaded; save plain arrays with numpy.savez"
+            if "pickle" in str(exc).lower() or "object arrays" in str(exc).lower()
+            else str(exc)
+        )
+        raise CalibrationError(f"cannot parse calibration file {path}: {reason}", path=str(path)) from None
+    except (zipfile.BadZipFile, EOFError, KeyError, OSError) as exc:
+        raise CalibrationError(
+            f"cannot parse calibration file {path}: a damaged .npz archive ({type(exc).__name__}: {exc})", path=str(path)
+        ) from None
 
 
 def _image_size_from(values: Mapping[str, Any], path: Path) -> tuple[int, int]:
@@ -417,9 +499,13 @@ def load_opencv_calibration(path: str | Path) -> StereoCalibration:
             f"expected one of {', '.join(OPENCV_CALIBRATION_SUFFIXES)}",
             path=str(path),
         )
+    if path.is_dir():
+        raise CalibrationError(f"cannot read calibration file {path}: it is a directory", path=str(path))
     if not path.is_file():
         # Checked up front: cv2.FileStorage would only log to stderr and report "not opened".
         raise CalibrationError(f"cannot read calibration file {path}: no such file", path=str(path))
+    if path.stat().st_size == 0:
+        raise CalibrationError(f"calibration file {path} is empty", path=str(path))
     try:
         if suffix == ".json":
             values = _json_values(path)
@@ -573,12 +659,12 @@ class Rectifier:
         tx, ty = float(P2[0, 3]), float(P2[1, 3])
         if abs(ty) > abs(tx):
             raise CalibrationError(
-                f"{c.source}: T = {c.T.tolist()} m describes a vertical rig; a left/right pair is needed",
+                f"calibration {c.source}: T = {c.T.tolist()} m describes a vertical rig; a left/right pair is needed",
                 source=c.source,
             )
         if not tx < 0:
             raise CalibrationError(
-                f"{c.source}: T = {c.T.tolist()} m puts the right camera to the LEFT of the left one "
+                f"calibration {c.source}: T = {c.T.tolist()} m puts the right camera to the LEFT of the left one "
                 "(disparities would be negative); OpenCV's T[0] is -baseline for a left/right rig; "
                 "are the eyes swapped or the sign of T flipped?",
                 source=c.source,
@@ -771,3 +857,67 @@ def remap_linear_reference(src: np.ndarray, map_x: np.ndarray, map_y: np.ndarray
     bot = fma(a, (p11 - p10).astype(f32), p10)
     s = fma(b, (bot - top).astype(f32), top)
     return np.clip(np.rint(s), 0, 255).astype(np.uint8)
+
+
+# --------------------------------------------------------------------------------------------------
+# Writing (the project's format)
+
+
+def save_calibration(calib: StereoCalibration, path: str | Path, metadata: Mapping[str, Any] | None = None) -> Path:
+    """Write ``calib`` in the project's format (docs/calibration.md), readable by
+    :func:`load_opencv_calibration`: ``K1 D1 K2 D2 R T`` (OpenCV's conventions, ``X_r = R X_l + T``,
+    T in metres, so ``T[0] ≈ -baseline``), ``T_units: m`` and ``image_size: [width, height]``, plus
+    ``metadata`` (numbers and strings: how it was made, its errors), which loaders ignore.
+
+    The format follows the extension: ``.yaml``/``.yml``/``.xml`` (``cv2.FileStorage``), ``.json``
+    (plain lists), ``.npz`` (``np.savez``).
+
+    Raises:
+        CalibrationError: an unknown extension, or the file cannot be written.
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in OPENCV_CALIBRATION_SUFFIXES:
+        raise CalibrationError(
+            f"calibration {path}: unknown extension {suffix!r}; expected one of {', '.join(OPENCV_CALIBRATION_SUFFIXES)}",
+            path=str(path),
+        )
+    arrays = {"K1": calib.K1, "D1": calib.D1, "K2": calib.K2, "D2": calib.D2, "R": calib.R, "T": calib.T}
+    meta: dict[str, Any] = {"T_units": "m"}
+    for key, value in (metadata or {}).items():
+        if key in arrays or key in ("image_size", "T_units"):
+            raise CalibrationError(f"calibration {path}: metadata may not be called {key!r}", path=str(path))
+        if isinstance(value, bool) or not isinstance(value, (int, float, str)):
+            raise CalibrationError(f"calibration {path}: metadata {key!r} must be a number or a string", path=str(path))
+        meta[key] = value
+    w, h = calib.image_size
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        if suffix == ".json":
+            doc: dict[str, Any] = {k: np.asarray(v).tolist() for k, v in arrays.items()}
+            doc["image_size"] = [w, h]
+            doc.update(meta)
+            path.write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
+        elif suffix == ".npz":
+            extra = {k: np.asarray(v) for k, v in meta.items()}
+            np.savez(path, **{k: np.asarray(v) for k, v in arrays.items()}, image_size=np.array([w, h]), **extra)
+        else:
+            fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+            if not fs.isOpened():
+                raise OSError(f"cv2.FileStorage cannot write {path}")
+            try:
+                for key, value in arrays.items():
+                    a = np.asarray(value, dtype=np.float64)
+                    fs.write(key, a.reshape(-1, 1) if a.ndim == 1 else a)
+                fs.startWriteStruct("image_size", cv2.FileNode_SEQ | cv2.FileNode_FLOW)
+                fs.write("", int(w))
+                fs.write("", int(h))
+                fs.endWriteStruct()
+                for key, value in meta.items():
+                    fs.write(key, value)
+            finally:
+                fs.release()
+    except (OSError, cv2.error) as err:
+        reason = getattr(err, "strerror", None) or str(err).strip().splitlines()[-1]
+        raise CalibrationError(f"cannot write calibration file {path}: {reason}", path=str(path)) from None
+    return path

@@ -176,3 +176,80 @@ def release_filter(
     else:
         step = prev
     return np.where(grow, step, new)
+
+
+def fit_lut(
+    computed_m: Sequence[float],
+    true_m: Sequence[float],
+    *,
+    extend_to_m: tuple[float, float] | None = (0.2, 40.0),
+    decimals: int = 3,
+) -> list[tuple[float, float]]:
+    """The paper's depth refinement table from measurements: the pipeline's computed depth of a flat
+    target at measured true distances.
+
+    1. Captures at the same true distance are pooled: their median computed depth.
+    2. The computed depths are made monotone in the true distance (pool-adjacent-violators, weighted
+       by the captures pooled): a table whose computed column went back would not be a function.
+    3. Points that still share a computed depth are merged (their mean true distance).
+    4. With ``extend_to_m = (lo, hi)``, the table is extended to ``lo`` and ``hi`` computed metres by
+       the nearest point's ratio true/computed (a scale error, the usual one of a wrong baseline or
+       focal length, is a ratio); else depths outside the measured range clamp to its ends.
+
+    Args:
+        computed_m, true_m: one pair per capture, metres (finite, > 0).
+        extend_to_m: see 4, or None.
+        decimals: rounding of the table's values (mm by default).
+
+    Returns:
+        ``[(computed, true), ...]``, both strictly increasing: a valid ``lut.points_m``.
+
+    Raises:
+        ValueError: mismatched lengths, a non-positive or non-finite depth, or fewer than two
+            distinct true distances (the message says which).
+    """
+    c = np.asarray(computed_m, dtype=np.float64).reshape(-1)
+    t = np.asarray(true_m, dtype=np.float64).reshape(-1)
+    if c.shape != t.shape:
+        raise ValueError(f"{c.size} computed depths but {t.size} true distances")
+    for name, a in (("computed", c), ("true", t)):
+        bad = ~(np.isfinite(a) & (a > 0))
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise ValueError(f"{name} depth #{i + 1} is {a[i]}: depths must be finite and positive")
+    distances = np.unique(t)
+    if distances.size < 2:
+        raise ValueError(
+            f"at least 2 different true distances are needed, got {distances.size} "
+            f"({', '.join(f'{d:g} m' for d in distances)})"
+        )
+    pooled_c = np.array([np.median(c[t == d]) for d in distances])
+    weight = np.array([np.count_nonzero(t == d) for d in distances], dtype=np.float64)
+    # Pool adjacent violators: blocks of (value, weight, members).
+    blocks: list[list[float]] = []  # [mean computed, weight, first index, last index]
+    for i in range(distances.size):
+        blocks.append([float(pooled_c[i]), float(weight[i]), i, i])
+        while len(blocks) > 1 and blocks[-2][0] >= blocks[-1][0]:
+            v2, w2, _, l2 = blocks.pop()
+            v1, w1, f1, _ = blocks.pop()
+            blocks.append([(v1 * w1 + v2 * w2) / (w1 + w2), w1 + w2, f1, l2])
+    points = []
+    for value, _, first, last in blocks:
+        members = slice(int(first), int(last) + 1)
+        points.append((value, float(np.average(distances[members], weights=weight[members]))))
+    if extend_to_m is not None:
+        lo, hi = extend_to_m
+        (c0, t0), (cn, tn) = points[0], points[-1]
+        if lo < c0:
+            points.insert(0, (lo, lo * t0 / c0))
+        if hi > cn:
+            points.append((hi, hi * tn / cn))
+    table: list[tuple[float, float]] = []
+    for pc, pt in points:
+        rc, rt = round(pc, decimals), round(pt, decimals)
+        if table and (rc <= table[-1][0] or rt <= table[-1][1]):
+            continue  # rounding made it equal to its neighbour: one of the two is enough
+        table.append((rc, rt))
+    if len(table) < 2:
+        raise ValueError("the measurements collapse to a single point: the target read the same at every distance")
+    return table

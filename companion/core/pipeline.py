@@ -55,6 +55,14 @@ class FrameResult:
             (:class:`~companion.core.memory.NearCells`); else None.
         view_limits: with the memory on, what the rig measures (:func:`~companion.core.memory.view_limits`),
             for the guard; else None.
+        measured: this frame's own region depths after the LUT, before the median and release
+            filters, metres (NaN unknown): what the camera measured now.
+        filtered: bool ``(9,)``: True where ``refined`` came out of the release filter (smoothing a
+            receding obstacle, or a region coming back from unknown): a blend, no frame's measurement. A
+            UI shows these as filtered. (The median over ``lut.median_frames`` picks one of the last
+            frames' measurements, so it is not marked.)
+        stand_in: bool ``(9,)``: True where ``refined`` is 0 m standing in for an unknown in the median
+            window (unknown counts as near): not a depth at all, to be shown as unknown.
     """
 
     timestamp_s: float
@@ -65,6 +73,17 @@ class FrameResult:
     disparity: np.ndarray | None = None
     near_points_cam_m: np.ndarray | None = None
     view_limits: ViewLimits | None = None
+    measured: RegionDepths | None = None
+    filtered: np.ndarray | None = None
+    stand_in: np.ndarray | None = None
+
+    def shown_depths_m(self) -> np.ndarray:
+        """float64 ``(9,)``: ``refined`` with the median's stand-ins for unknown made NaN (unknown): the
+        depths to show a person, metres."""
+        out = np.array(self.refined.depth_m, dtype=np.float64)
+        if self.stand_in is not None:
+            out[self.stand_in] = np.nan
+        return out
 
 
 def _near_cells(cfg: CompanionConfig, geometry: StereoGeometry, width_px: int, height_px: int) -> NearCells | None:
@@ -168,10 +187,16 @@ class Pipeline:
             est = self.estimator.estimate(frame, want_disparity=want_disparity, near_block_px=near.cfg.block_px)
         t1 = clock()
         looked_up = self._lut.apply(est.regions.depth_m)
-        refined = median_filter(self._history, looked_up, self.config.lut.median_frames)
+        median = median_filter(self._history, looked_up, self.config.lut.median_frames)
         self._history.append(looked_up)
+        # The LUT's output is > 0, so an exact 0 after the median is its stand-in for a recent unknown.
+        stand_in = median == 0.0
         dt_s = 0.0 if self._last_timestamp_s is None else max(0.0, timestamp_s - self._last_timestamp_s)
-        refined = release_filter(self._filtered, refined, dt_s, self._release_tau_s)
+        refined = release_filter(self._filtered, median, dt_s, self._release_tau_s)
+        # Where the release filter changed the value it is a blend, no frame's measurement (the median
+        # is one of the last frames' measurements). Unknown passes both filters at once (NaN in, NaN out).
+        filtered = (refined != median) & ~np.isnan(median)
+        stand_in &= refined == 0.0
         self._filtered = refined
         self._last_timestamp_s = timestamp_s
         t2 = clock()
@@ -196,4 +221,7 @@ class Pipeline:
             disparity=est.disparity,
             near_points_cam_m=points,
             view_limits=None if points is None else self._view_limits,
+            measured=RegionDepths(depth_m=np.asarray(looked_up, dtype=np.float64), valid_fraction=est.regions.valid_fraction),
+            filtered=filtered,
+            stand_in=stand_in,
         )

@@ -1,5 +1,6 @@
-"""Camera sources behind :class:`~companion.interfaces.CameraSource`: ``uvc`` (a ZED over V4L2),
-``replay`` (a recording) and ``sim`` (the renderer).
+"""Camera sources behind :class:`~companion.interfaces.CameraSource`: ``uvc`` (a ZED or another
+side-by-side camera over V4L2, or a pair of V4L2 cameras), ``replay`` (a recording) and ``sim`` (the
+renderer).
 
 Every ``read`` blocks in the capture thread and returns a :class:`~companion.interfaces.Frame` whose
 image is a uint8 (H, 2W, 3) BGR side-by-side frame, timestamped with ``clock()`` (the process's
@@ -9,6 +10,7 @@ unless that array is read-only (the consumer may still be processing it).
 
 from __future__ import annotations
 
+import collections
 import logging
 import math
 import threading
@@ -75,20 +77,78 @@ class _Pacer:
 # ---------------------------------------------------------------------------------------------- UVC
 
 
-class UvcCamera:
-    """A ZED (or any side-by-side UVC stereo camera) through OpenCV's V4L2 backend.
+#: Makes an OpenCV capture: ``factory(index_or_path) -> cv2.VideoCapture``-like (tests pass a fake).
+CaptureFactory = Callable[[int | str], object]
 
-    The ZED shows up as one UVC device whose frame is both eyes side by side (width 2·W). The mode
-    (W, H, fps) is validated against the ZED's modes at config time; here it is asked for with
-    FOURCC YUYV and checked against what the driver actually gives.
+
+def _v4l2_capture(index: int | str) -> object:
+    import cv2
+
+    return cv2.VideoCapture(index, cv2.CAP_V4L2)
+
+
+def _device_index(device: str) -> int | str:
+    return int(device) if device.isdigit() else device
+
+
+def _open_v4l2(
+    factory: CaptureFactory, device: str, name: str, width_px: int, height_px: int, fps_hz: float, fourcc: str, hint: str
+) -> object:
+    """Open one V4L2 device in a mode, checking that the driver gives that size; returns the capture."""
+    import cv2
+
+    cap = factory(_device_index(device))
+    if not cap.isOpened():
+        cap.release()
+        raise CameraError(f"{name}: cannot open {device} (unplugged, or no permission: group 'video')")
+    cap.set(cv2.CAP_PROP_FOURCC, cv2.VideoWriter_fourcc(*fourcc))
+    cap.set(cv2.CAP_PROP_FRAME_WIDTH, width_px)
+    cap.set(cv2.CAP_PROP_FRAME_HEIGHT, height_px)
+    cap.set(cv2.CAP_PROP_FPS, fps_hz)
+    # One buffered frame: the newest frame matters, not a queue of old ones.
+    cap.set(cv2.CAP_PROP_BUFFERSIZE, 1)
+    got_w = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH))
+    got_h = int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
+    if (got_w, got_h) != (width_px, height_px):
+        cap.release()
+        raise CameraError(
+            f"{name}: asked {device} for {width_px}x{height_px} ({fourcc}) but the driver gives {got_w}x{got_h}; {hint}"
+        )
+    got_fps = cap.get(cv2.CAP_PROP_FPS)
+    if got_fps and abs(got_fps - fps_hz) > 0.5:
+        log.warning("%s: asked %s for %.0f fps, the driver reports %.1f", name, device, fps_hz, got_fps)
+    return cap
+
+
+class UvcCamera:
+    """A side-by-side stereo camera over UVC (OpenCV's V4L2 backend): a ZED, or any camera whose
+    frame is both eyes side by side (width 2·W).
+
+    ``model`` ``zed``: the mode (W, H, fps) was validated against the ZED's modes at config time;
+    ``sbs``: any mode, checked only against what the driver actually gives. The mode is asked for
+    with ``fourcc`` (YUYV for the ZED).
     """
 
-    def __init__(self, device: str, width_px: int, height_px: int, fps_hz: float, clock: Clock = time.monotonic):
+    def __init__(
+        self,
+        device: str,
+        width_px: int,
+        height_px: int,
+        fps_hz: float,
+        clock: Clock = time.monotonic,
+        *,
+        model: str = "zed",
+        fourcc: str = "YUYV",
+        capture_factory: CaptureFactory = _v4l2_capture,
+    ):
         self.name = f"uvc:{device}"
         self.device = device
         self.width_px = width_px
         self.height_px = height_px
         self.fps_hz = fps_hz
+        self.model = model
+        self.fourcc = fourcc
+        self._factory = capture_factory
         self._clock = clock
         self._cap = None
         self._seq = 0
@@ -98,33 +158,17 @@ class UvcCamera:
         return (self.width_px, self.height_px)
 
     def open(self) -> None:
-        import cv2
-
         self.close()
-        index: int | str = int(self.device) if self.device.isdigit() else self.device
-        cap = cv2.VideoCapture(index, cv2.CAP_V4L2)
-        if not cap.isOpened():
-            cap.release()
-            raise CameraError(f"{self.name}: cannot open the camera (unplugged, or no permission: group 'video')")
-        cap.set(cv2.CAP_PROP_FOURCC, cv2.VideoWriter_fourcc(*"YUYV"))
-        cap.set(cv2.CAP_PROP_FRAME_WIDTH, 2 * self.width_px)
-        cap.set(cv2.CAP_PROP_FRAME_HEIGHT, self.height_px)
-        cap.set(cv2.CAP_PROP_FPS, self.fps_hz)
-        # One buffered frame: the newest frame matters, not a queue of old ones.
-        cap.set(cv2.CAP_PROP_BUFFERSIZE, 1)
-        got_w = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH))
-        got_h = int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
-        if (got_w, got_h) != (2 * self.width_px, self.height_px):
-            cap.release()
-            raise CameraError(
-                f"{self.name}: asked for {2 * self.width_px}x{self.height_px} (side by side) but the "
-                f"driver gives {got_w}x{got_h}; is it a ZED, and is the mode one it supports?"
-            )
-        got_fps = cap.get(cv2.CAP_PROP_FPS)
-        if got_fps and abs(got_fps - self.fps_hz) > 0.5:
-            log.warning("%s: asked for %.0f fps, the driver reports %.1f", self.name, self.fps_hz, got_fps)
-        self._cap = cap
-        log.info("%s: open at %dx%d@%g (YUYV)", self.name, 2 * self.width_px, self.height_px, self.fps_hz)
+        if self.model == "zed":
+            hint = "is it a ZED, and is the mode one it supports?"
+        else:
+            hint = (f"is it a side-by-side camera with {self.width_px}x{self.height_px} eyes? "
+                    "`v4l2-ctl -d DEVICE --list-formats-ext` lists its modes (the width there is both eyes')")
+        self._cap = _open_v4l2(
+            self._factory, self.device, self.name, 2 * self.width_px, self.height_px, self.fps_hz, self.fourcc, hint
+        )
+        log.info("%s: open at %dx%d@%g (%s, side by side)", self.name, 2 * self.width_px, self.height_px,
+                 self.fps_hz, self.fourcc)
 
     def read(self) -> Frame:
         cap = self._cap
@@ -142,6 +186,143 @@ class UvcCamera:
         cap, self._cap = self._cap, None
         if cap is not None:
             cap.release()
+
+
+# ---------------------------------------------------------------------------------------------- pair
+
+
+class PairCamera:
+    """Two V4L2 cameras, one per eye, joined into one side-by-side frame.
+
+    Each read grabs both cameras back to back (``grab`` only dequeues a buffer; the slower decoding,
+    ``retrieve``, comes after both), so the two frames are as close in time as the drivers allow. The
+    skew between them is measured from the drivers' buffer timestamps (``CAP_PROP_POS_MSEC``, the
+    kernel's capture time) when both give one, else from when each grab returned; when it exceeds
+    ``max_skew_ms`` the earlier camera is grabbed once more (its next frame is nearer the other's).
+    :meth:`skew_status` reports it (health: ``camera.skew_ms``).
+
+    Args:
+        left_device, right_device: the two V4L2 devices (nodes or indices).
+        width_px, height_px: one eye's (one camera's) frame size, pixels.
+        fps_hz: requested rate of both, Hz.
+        fourcc: pixel format asked of both drivers.
+        max_skew_ms: see above, milliseconds.
+        capture_factory: makes the OpenCV captures (tests pass fakes).
+    """
+
+    def __init__(
+        self,
+        left_device: str,
+        right_device: str,
+        width_px: int,
+        height_px: int,
+        fps_hz: float,
+        clock: Clock = time.monotonic,
+        *,
+        fourcc: str = "YUYV",
+        max_skew_ms: float = 8.0,
+        capture_factory: CaptureFactory = _v4l2_capture,
+    ) -> None:
+        self.name = f"pair:{left_device}+{right_device}"
+        self.devices = (left_device, right_device)
+        self.width_px = width_px
+        self.height_px = height_px
+        self.fps_hz = fps_hz
+        self.fourcc = fourcc
+        self.max_skew_ms = max_skew_ms
+        self._factory = capture_factory
+        self._clock = clock
+        self._caps: tuple[object, object] | None = None
+        self._seq = 0
+        self._lock = threading.Lock()
+        self._skews_ms: collections.deque[float] = collections.deque(maxlen=300)
+        self._skew_source = "host"
+        self._regrabs = 0
+
+    @property
+    def eye_size_px(self) -> tuple[int, int]:
+        return (self.width_px, self.height_px)
+
+    def open(self) -> None:
+        self.close()
+        hint = "`v4l2-ctl -d DEVICE --list-formats-ext` lists its modes; both cameras need the same one"
+        left = _open_v4l2(self._factory, self.devices[0], self.name, self.width_px, self.height_px, self.fps_hz,
+                          self.fourcc, hint)
+        try:
+            right = _open_v4l2(self._factory, self.devices[1], self.name, self.width_px, self.height_px, self.fps_hz,
+                               self.fourcc, hint)
+        except BaseException:
+            left.release()
+            raise
+        self._caps = (left, right)
+        log.info("%s: open at %dx%d@%g (%s) each", self.name, self.width_px, self.height_px, self.fps_hz, self.fourcc)
+
+    def _grab(self, cap: object, which: str) -> tuple[float, float]:
+        """Grab one camera: (when the grab returned on our clock, the driver's timestamp in ms or 0)."""
+        import cv2
+
+        if not cap.grab():
+            raise CameraError(f"{self.name}: no frame from the {which} camera (unplugged or stalled)")
+        return self._clock(), float(cap.get(cv2.CAP_PROP_POS_MSEC) or 0.0)
+
+    def read(self) -> Frame:
+        caps = self._caps
+        if caps is None:
+            raise CameraError(f"{self.name}: not open")
+        (t_l, d_l), (t_r, d_r) = self._grab(caps[0], "left"), self._grab(caps[1], "right")
+        driver = d_l > 0 and d_r > 0
+        skew = (d_r - d_l) if driver else (t_r - t_l) * 1e3
+        if driver and abs(skew) > self.max_skew_ms:
+            # The earlier frame's successor is nearer the later one: take it instead (once).
+            if skew > 0:
+                t_l, d_l = self._grab(caps[0], "left")
+            else:
+                t_r, d_r = self._grab(caps[1], "right")
+            skew = d_r - d_l
+            with self._lock:
+                self._regrabs += 1
+        images = []
+        for cap, which in zip(caps, ("left", "right")):
+            ok, image = cap.retrieve()
+            if not ok or image is None:
+                raise CameraError(f"{self.name}: the {which} camera's frame could not be decoded")
+            if not isinstance(image, np.ndarray) or image.shape != (self.height_px, self.width_px, 3) or image.dtype != np.uint8:
+                raise CameraError(
+                    f"{self.name}: the {which} camera's frame is {getattr(image, 'dtype', '?')} "
+                    f"{getattr(image, 'shape', '?')}, expected uint8 ({self.height_px}, {self.width_px}, 3)"
+                )
+            images.append(image)
+        frame = np.empty((self.height_px, 2 * self.width_px, 3), np.uint8)
+        frame[:, : self.width_px] = images[0]
+        frame[:, self.width_px :] = images[1]
+        with self._lock:
+            self._skews_ms.append(float(skew))
+            self._skew_source = "driver" if driver else "host"
+        self._seq += 1
+        return Frame(image=frame, timestamp_s=0.5 * (t_l + t_r), seq=self._seq)
+
+    def skew_status(self) -> dict[str, float | int | str | None]:
+        """The skew between the eyes over the last 300 frames: ``last``, ``median`` and ``max`` (of
+        the absolute value), milliseconds, right minus left for ``last``; ``source`` (``driver``: the
+        drivers' capture timestamps; ``host``: when each grab returned, an upper bound); ``regrabs``:
+        frames where the earlier camera was grabbed again."""
+        with self._lock:
+            skews = np.asarray(self._skews_ms, dtype=np.float64)
+            if skews.size == 0:
+                return {"last": None, "median": None, "max": None, "source": self._skew_source, "regrabs": self._regrabs}
+            return {
+                "last": float(skews[-1]),
+                "median": float(np.median(np.abs(skews))),
+                "max": float(np.abs(skews).max()),
+                "source": self._skew_source,
+                "regrabs": self._regrabs,
+            }
+
+    def close(self) -> None:
+        caps, self._caps = self._caps, None
+        if caps is not None:
+            for cap in caps:
+                cap.release()
 
 
 # ---------------------------------------------------------------------------------------------- replay
@@ -210,13 +391,14 @@ class ReplayCamera:
         self._stop.clear()
         p = self.path
         if not p.exists():
-            raise CameraError(f"{self.name}: no such recording")
+            # Permanent: retrying will not make it appear (the capture thread stops on ended=True).
+            raise CameraError(f"{self.name}: no such recording", ended=True)
         ts = read_timestamps(p)
         self._times = ts.timestamp_s if ts is not None else None
         if p.is_dir():
             self._files = sorted(p.glob("frame_*.png"))
             if not self._files:
-                raise CameraError(f"{self.name}: no frame_*.png in the folder")
+                raise CameraError(f"{self.name}: no frame_*.png in the folder", ended=True)
             if self._times is not None and len(self._times) != len(self._files):
                 raise CameraError(
                     f"{self.name}: {len(self._files)} frames but {len(self._times)} timestamps"
@@ -224,7 +406,9 @@ class ReplayCamera:
         elif p.suffix.lower() in VIDEO_SUFFIXES:
             self._open_video()
         else:
-            raise CameraError(f"{self.name}: not a recording (a folder, or a {'/'.join(VIDEO_SUFFIXES)} file)")
+            raise CameraError(
+                f"{self.name}: not a recording (a folder, or a {'/'.join(VIDEO_SUFFIXES)} file)", ended=True
+            )
         if self.preload:
             frames = []
             while True:
@@ -534,14 +718,52 @@ def sim_camera_from_config(
 
 
 def make_camera(
-    cfg: CompanionConfig, pose_provider: PoseProvider | None = None, clock: Clock = time.monotonic
+    cfg: CompanionConfig,
+    pose_provider: PoseProvider | None = None,
+    clock: Clock = time.monotonic,
+    *,
+    require_calibration: bool = True,
 ) -> CameraSource:
-    """The camera source ``cfg.camera.source`` names (not yet opened)."""
+    """The camera source ``cfg.camera.source`` names (not yet opened).
+
+    Args:
+        cfg: the whole config (the camera section, and the calibration for the check below).
+        pose_provider: the sim camera's pose source (else its fixed pose).
+        clock: the frames' clock.
+        require_calibration: refuse a non-ZED UVC camera (``camera.model`` sbs or pair) without a
+            calibration file, as the service must (its depths would be wrong); tools that capture the
+            views to make one (``companion record``, ``companion calibrate``) pass False.
+
+    Raises:
+        CameraError: a non-ZED camera without a calibration (see above), or a replay recording that
+            does not exist (a startup error at once: it will not appear by waiting).
+    """
     cam = cfg.camera
     if cam.source == "uvc":
-        return UvcCamera(cam.device, cam.width_px, cam.height_px, cam.fps_hz, clock=clock)
+        if cam.model != "zed" and cfg.calibration.file is None and require_calibration:
+            raise CameraError(
+                f"camera.model = {cam.model!r} needs a stereo calibration (calibration.file): without one every "
+                "depth would be wrong. Make one with `companion calibrate stereo --live --config FILE --board "
+                "chessboard:9x6:0.025 --out calib.yaml` (see docs/calibration.md)"
+            )
+        if cam.model == "pair":
+            assert cam.device_right is not None  # the config validator guarantees it
+            return PairCamera(
+                cam.device, cam.device_right, cam.width_px, cam.height_px, cam.fps_hz, clock=clock,
+                fourcc=cam.fourcc, max_skew_ms=cam.pair_max_skew_ms,
+            )
+        if cam.model == "zed" and cfg.calibration.file is None:
+            log.warning(
+                "camera: a ZED with no calibration file: the frames are taken as already rectified by an ideal "
+                "%.2f m, %.0f deg rig; set calibration.file to the ZED's factory SN<serial>.conf for true depths",
+                cfg.calibration.ideal_baseline_m, cfg.calibration.ideal_hfov_deg,
+            )
+        return UvcCamera(cam.device, cam.width_px, cam.height_px, cam.fps_hz, clock=clock, model=cam.model,
+                         fourcc=cam.fourcc)
     if cam.source == "replay":
         assert cam.replay_path is not None  # the config validator guarantees it
+        if not Path(cam.replay_path).exists():
+            raise CameraError(f"replay:{cam.replay_path}: no such recording (camera.replay_path)")
         return ReplayCamera(
             cam.replay_path,
             cam.width_px,

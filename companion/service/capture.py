@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 from companion.errors import CameraError
 from companion.interfaces import CameraSource, Frame
+from companion.service.backoff import LogBackoff
 
 log = logging.getLogger(__name__)
 
@@ -107,6 +108,7 @@ class CaptureStatus:
         reconnects: successful reopenings after a loss.
         last_error: the last camera error's message, or None.
         fps: frames read per second over the last second.
+        skew_ms: a two-camera source's skew between the eyes (``PairCamera.skew_status``), else None.
     """
 
     source: str
@@ -117,6 +119,7 @@ class CaptureStatus:
     reconnects: int
     last_error: str | None
     fps: float
+    skew_ms: dict | None = None
 
     @property
     def ok(self) -> bool:
@@ -199,6 +202,8 @@ class CaptureThread:
 
     def status(self) -> CaptureStatus:
         now = self._clock()
+        skew = getattr(self.source, "skew_status", None)
+        skew_ms = skew() if callable(skew) else None
         with self._lock:
             recent = [t for t in self._recent if now - t <= 1.0]
             return CaptureStatus(
@@ -210,6 +215,7 @@ class CaptureThread:
                 reconnects=self._reconnects,
                 last_error=self._last_error,
                 fps=float(len(recent)),
+                skew_ms=skew_ms,
             )
 
     # ------------------------------------------------------------------ the thread
@@ -227,7 +233,11 @@ class CaptureThread:
                 log.exception("capture status callback failed")
 
     def _open_with_backoff(self, reconnecting: bool) -> bool:
+        """Open the source, retrying with a doubling delay; False when stopped, or when the source
+        says retrying is pointless (a CameraError with ``ended=True``: a recording that is not there).
+        The failures are logged at once, then less and less often (:class:`LogBackoff`)."""
         delay = self._initial
+        reports = LogBackoff(first_interval_s=max(self._max, 1.0), max_interval_s=max(self._max, 600.0))
         while not self._stop.is_set():
             try:
                 self.source.open()
@@ -239,8 +249,17 @@ class CaptureThread:
                 self._set_state("streaming")
                 return True
             except CameraError as err:
+                if err.context.get("ended"):
+                    log.error("%s; not retrying", err)
+                    self._set_state("ended", str(err))
+                    return False
                 self._set_state("reconnecting" if reconnecting else "opening", str(err))
-                log.warning("%s; retrying in %.1f s", err, delay)
+                if reports.due(self._clock()):
+                    more = f"; {reports.suppressed} more failures since the last report" if reports.suppressed else ""
+                    log.warning("%s; retrying in %.1f s (reported again in %.0f s if it goes on%s)",
+                                err, delay, reports.interval_s, more)
+                else:
+                    log.debug("%s; retrying in %.1f s", err, delay)
             except Exception as err:  # a bug or an OpenCV surprise: keep flying safely, keep trying
                 log.exception("%s: unexpected error while opening", self.source.name)
                 self._set_state("reconnecting" if reconnecting else "opening", f"{type(err).__name__}: {err}")

@@ -155,7 +155,9 @@ def _fmt(value: Any, unit: str = "", digits: int = 2) -> str:
 def render_health(h: dict[str, Any]) -> str:
     """A health message as a small terminal screen."""
     r = h.get("regions_m") or {}
-    cell = lambda name: f"{_fmt(r.get(name), ' m'):>9}"  # noqa: E731
+    filtered = h.get("regions_filtered") or {}
+    # "~": the value came out of the release filter: a blend, no frame's measurement.
+    cell = lambda name: f"{('~' if filtered.get(name) else '') + _fmt(r.get(name), ' m'):>9}"  # noqa: E731
     lat = h.get("frame_to_setpoint_ms") or {}
     sp = h.get("setpoint") or {}
     cam = h.get("camera") or {}
@@ -168,7 +170,7 @@ def render_health(h: dict[str, Any]) -> str:
         f"frame->setpoint last {_fmt(lat.get('last'), ' ms', 1)} median {_fmt(lat.get('median'), ' ms', 1)} "
         f"p99 {_fmt(lat.get('p99'), ' ms', 1)}",
         "stages " + "  ".join(f"{k.removesuffix('_ms')} {v:.1f}" for k, v in stages.items()),
-        "regions (m):",
+        "regions (m):  -- unknown, ~ filtered (the release filter's, not measured)",
         f"  {cell('up_left')} {cell('up')} {cell('up_right')}",
         f"  {cell('left')} {cell('center')} {cell('right')}",
         f"  {cell('down_left')} {cell('down')} {cell('down_right')}",
@@ -177,7 +179,9 @@ def render_health(h: dict[str, Any]) -> str:
         f"setpoint fwd {_fmt(sp.get('forward_m_s'), ' m/s')}  down {_fmt(sp.get('down_m_s'), ' m/s')}  "
         f"yaw rate {_fmt(sp.get('yaw_rate_deg_s'), ' deg/s', 1)}",
         f"camera {cam.get('source')} {cam.get('status')} {_fmt(cam.get('fps'), ' fps', 1)}  "
-        f"dropped {h.get('dropped_frames')}  reconnects {cam.get('reconnects')}",
+        f"dropped {h.get('dropped_frames')}  reconnects {cam.get('reconnects')}"
+        + (f"  skew {_fmt((cam.get('skew_ms') or {}).get('median'), ' ms', 1)} median, "
+           f"{_fmt((cam.get('skew_ms') or {}).get('max'), ' ms', 1)} max" if cam.get("skew_ms") else ""),
         f"vehicle {veh.get('link')}  mode {veh.get('flight_mode')}  armed {veh.get('armed')}",
     ]
     if h.get("override"):

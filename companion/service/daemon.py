@@ -58,6 +58,7 @@ from companion.errors import (
 )
 from companion.interfaces import CameraSource, Frame, VehicleLink
 from companion.service.aio import wait_event
+from companion.service.backoff import LogBackoff
 from companion.service.capture import CaptureThread, FrameMailbox, ProcessingThread
 from companion.service.control import (  # noqa: F401 (re-exported: the daemon's public names)
     ControlPlane,
@@ -694,6 +695,8 @@ class Service(ControlPlane, HealthReporter):
     async def _vehicle_connector(self) -> None:
         assert self.link is not None
         timeout_s = self.config.vehicle.connect_timeout_s
+        # "still waiting": the first at once, then less and less often (up to every 10 min).
+        backoff = LogBackoff(first_interval_s=timeout_s, max_interval_s=max(timeout_s, 600.0))
         while True:
             try:
                 await self.link.connect(timeout_s)
@@ -703,7 +706,12 @@ class Service(ControlPlane, HealthReporter):
                     self.request_shutdown(str(err), exit_code=exitcodes.STARTUP_FAILURE)
                     return
                 self._vehicle_status = "waiting"
-                log.warning("%s; still waiting", err)
+                now = self._clock()
+                if backoff.due(now):
+                    log.warning("%s; still waiting (%.0f s so far; next report in %.0f s)",
+                                err, backoff.elapsed_s(now) + timeout_s, backoff.interval_s)
+                else:
+                    log.debug("%s; still waiting", err)
                 continue
             self._vehicle_status = "connected"
             self._kick_health()

@@ -40,6 +40,30 @@ def _setpoint_dict(sp: VelocitySetpoint | None) -> dict[str, float] | None:
     }
 
 
+def _region_map(depth_m: Any) -> dict[str, float | None]:
+    return {name: (None if not np.isfinite(v) else float(v)) for name, v in zip(REGION_NAMES, depth_m)}
+
+
+def _regions(result: Any) -> dict[str, Any]:
+    """``regions_m`` (what the controller used; null = unknown, including the median filter's 0 m
+    stand-in for a recent unknown), ``regions_measured_m`` (this frame's measurement after the LUT;
+    null = unknown) and ``regions_filtered`` (true where ``regions_m`` came out of the release filter: a
+    blend, no frame's measurement)."""
+    if result is None:
+        return {
+            "regions_m": {n: None for n in REGION_NAMES},
+            "regions_measured_m": {n: None for n in REGION_NAMES},
+            "regions_filtered": {n: False for n in REGION_NAMES},
+        }
+    measured = result.measured.depth_m if result.measured is not None else result.refined.depth_m
+    filtered = result.filtered if result.filtered is not None else np.zeros(len(REGION_NAMES), bool)
+    return {
+        "regions_m": _region_map(result.shown_depths_m()),
+        "regions_measured_m": _region_map(measured),
+        "regions_filtered": {n: bool(f) for n, f in zip(REGION_NAMES, filtered)},
+    }
+
+
 class HealthReporter:
     """The health part of the service (mixed into :class:`~companion.service.daemon.Service`)."""
 
@@ -74,7 +98,7 @@ class HealthReporter:
                 "p99": _percentile_ms(self._latency_s, 99),
                 "samples": len(self._latency_s),
             },
-            "regions_m": result.refined.as_dict() if result is not None else {n: None for n in REGION_NAMES},
+            **_regions(result),
             "yaw": decision.yaw if decision is not None else None,
             "pitch": decision.pitch if decision is not None else None,
             "decision": (
@@ -99,6 +123,7 @@ class HealthReporter:
                     "frames": capture.frames,
                     "reconnects": capture.reconnects,
                     "last_error": capture.last_error,
+                    "skew_ms": capture.skew_ms,
                 }
                 if capture is not None
                 else None

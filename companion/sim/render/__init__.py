@@ -1,5 +1,6 @@
 """Synthetic stereo renderer: textured boxes, pillars, ground and backdrop; exact rectified stereo
-pairs with the left eye's ground-truth depth. Pure core (NumPy/OpenCV only).
+pairs with the left eye's ground-truth depth. Pure core (NumPy/OpenCV only). ``target``: flat boards
+(chessboard, ChArUco, any texture) seen by raw, distorted cameras, for calibration.
 
 Public API::
 
@@ -17,6 +18,7 @@ from companion.sim.render.renderer import (
     bench_scene,
 )
 from companion.sim.render.scene import Box, Obstacle, Pillar, Scene, corridor_scene
+from companion.sim.render.target import PlanarTarget, TargetCamera, chessboard_target
 from companion.sim.render.texture import Material, TextureBank
 
 __all__ = [
@@ -26,12 +28,15 @@ __all__ = [
     "Obstacle",
     "Photometry",
     "Pillar",
+    "PlanarTarget",
     "Pose",
     "RenderResult",
     "Scene",
     "StereoRenderer",
+    "TargetCamera",
     "TextureBank",
     "bench_render",
     "bench_scene",
+    "chessboard_target",
     "corridor_scene",
 ]

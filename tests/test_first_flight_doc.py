@@ -1,0 +1,121 @@
+"""docs/first-flight.md: every command in it is run here or by CI, or needs hardware/PX4 and parses.
+
+Fenced blocks are tagged: ``bash run`` blocks run, in order, in one scratch folder that first gets what
+a camera would have captured (board views in ``calib_views/``, target captures in ``lut_captures/``,
+rendered from a known rig); ``bash sitl`` and ``bash hardware`` blocks need PX4 SITL or the vehicle, and
+each ``companion`` command line in them must parse; ``bash ci`` is CI's own line; ``nsh`` is PX4's shell.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shlex
+import stat
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from calib_data import generic_rig, write_rig_lut_captures, write_stereo_views
+from companion.cli import build_parser
+from companion.config import load_config
+from companion.core.calibration import load_calibration
+
+ROOT = Path(__file__).resolve().parent.parent
+DOC = ROOT / "docs" / "first-flight.md"
+TAGS = {("bash", "run"), ("bash", "sitl"), ("bash", "hardware"), ("bash", "ci"), ("nsh", "")}
+
+
+def _blocks() -> list[tuple[str, str, str]]:
+    """(language, tag, body) of every fenced block, in order."""
+    out = []
+    for m in re.finditer(r"^```(\w*)[ \t]*(\w*)[ \t]*\n(.*?)^```[ \t]*$", DOC.read_text(encoding="utf-8"), re.M | re.S):
+        out.append((m.group(1), m.group(2), m.group(3)))
+    return out
+
+
+def _commands(body: str) -> list[str]:
+    """The shell commands of a block: continuation lines joined, here-documents and comments dropped,
+    ``&&`` chains split."""
+    lines, skip_until = [], None
+    joined = body.replace("\\\n", " ")
+    for line in joined.splitlines():
+        if skip_until is not None:
+            if line.strip() == skip_until:
+                skip_until = None
+            continue
+        here = re.search(r"<<\s*'?(\w+)'?", line)
+        if here:
+            skip_until = here.group(1)
+        lines.append(line.split(" #")[0].strip())
+    out = []
+    for line in lines:
+        out += [part.strip() for part in line.split("&&") if part.strip()]
+    return out
+
+
+def _companion_argv(command: str) -> list[str] | None:
+    """The argument list of a ``companion`` command (``sudo`` and a venv path allowed), else None."""
+    argv = shlex.split(command)
+    if argv and argv[0] == "sudo":
+        argv = argv[1:]
+    if not argv or Path(argv[0]).name != "companion":
+        return None
+    return argv[1:]
+
+
+def test_every_block_is_tagged_and_every_companion_command_parses() -> None:
+    blocks = _blocks()
+    assert len(blocks) >= 12
+    untagged = [(lang, tag, body[:40]) for lang, tag, body in blocks if (lang, tag) not in TAGS]
+    assert not untagged, f"blocks without a known tag (bash run|sitl|hardware|ci, nsh): {untagged}"
+    parser = build_parser()
+    parsed = 0
+    for lang, tag, body in blocks:
+        if lang != "bash":
+            continue
+        for command in _commands(body):
+            argv = _companion_argv(command)
+            if argv is None:
+                continue
+            try:
+                parser.parse_args(argv)
+            except SystemExit:
+                pytest.fail(f"docs/first-flight.md ({tag}): `{command}` does not parse")
+            parsed += 1
+    assert parsed >= 15
+    ci = (ROOT / ".ci" / "run").read_text(encoding="utf-8")
+    for _, _, body in (b for b in blocks if b[1] == "ci"):
+        for command in _commands(body):
+            assert command.split(" install")[0] in ci, command
+
+
+def test_the_run_blocks_run_in_order(tmp_path: Path) -> None:
+    rig = generic_rig()
+    write_stereo_views(tmp_path / "calib_views", rig)
+    write_rig_lut_captures(tmp_path / "lut_captures", rig)
+    # `companion` as this interpreter runs it, however the package was installed.
+    bin_dir = tmp_path / ".bin"
+    bin_dir.mkdir()
+    shim = bin_dir / "companion"
+    shim.write_text(f"#!/bin/sh\nexec {shlex.quote(sys.executable)} -m companion \"$@\"\n")
+    shim.chmod(shim.stat().st_mode | stat.S_IXUSR)
+    env = dict(os.environ, PATH=f"{bin_dir}{os.pathsep}{os.environ.get('PATH', '')}")
+    ran = 0
+    for _lang, tag, body in _blocks():
+        if tag != "run":
+            continue
+        proc = subprocess.run(["bash", "-euo", "pipefail", "-c", body], cwd=tmp_path, env=env,
+                              capture_output=True, text=True, timeout=300)
+        assert proc.returncode == 0, f"```bash run\n{body}```\nexit {proc.returncode}\n{proc.stdout[-2000:]}\n{proc.stderr[-2000:]}"
+        ran += 1
+    assert ran >= 5
+    assert (tmp_path / "demo" / "flight.png").is_file()
+    cfg = load_config(tmp_path / "companion.toml")
+    assert cfg.camera.model == "sbs" and cfg.calibration.file == (tmp_path / "calib.yaml").resolve()
+    assert load_calibration(cfg.calibration.file, (640, 400)).baseline_m == pytest.approx(0.06, rel=0.005)
+    assert len(cfg.lut.points_m) >= 4 and cfg.lut.points_m != [(0.2, 0.2), (40.0, 40.0)]
+    for name in ("rectified.png", "check.png", "lut.png"):
+        assert (tmp_path / name).stat().st_size > 1000, name
