@@ -272,3 +272,147 @@ def kernel_defines(plan: DisparityPlan, row_edges: Sequence[int], col_edges: Seq
             LWW=10, RWW=10, NR=b + 1, LDPT=1,
         )
     return "".join(f"#define {k} {v}\n" for k, v in values.items())
+
+
+# --------------------------------------------------------------------------------------------------
+# Semi-global matcher (kernels/sgm.cu)
+
+#: Threads per block of the SGM path kernels (4 warps) and of the post-processing kernel.
+SGM_PATH_THREADS = 128
+SGM_POST_THREADS = 256
+
+
+@dataclass(frozen=True)
+class SgmPlan:
+    """Shape of the SGM kernels for one (size, D, paths) and the #defines that fix it.
+
+    Attributes:
+        width_px, height_px: eye image size, px.
+        num_disparities: ``D``.
+        paths: 4 or 8.
+        lanes_per_line: lanes of a warp that own one line (``LPL``); a warp walks ``32 / LPL`` lines.
+        words_per_lane: groups of 4 disparities per lane (``WPL``); ``4·LPL·WPL = DPAD >= D``.
+        prefetch: pixels ahead whose first-pass costs the last pass loads (``PF``).
+        nbins: bins of the region histograms, one per sub-pixel disparity value (``16·(D - 1) + 1``).
+        slab_rows: rows of one post-processing block (``<= 65535 / W``: 16-bit shared counters).
+        slabs: post-processing blocks in each of the three region row bands.
+    """
+
+    width_px: int
+    height_px: int
+    num_disparities: int
+    paths: int
+    lanes_per_line: int
+    words_per_lane: int
+    prefetch: int
+    nbins: int
+    slab_rows: int
+    slabs: tuple[int, int, int]
+
+    @property
+    def dpad(self) -> int:
+        return 4 * self.lanes_per_line * self.words_per_lane
+
+    @property
+    def lines_per_warp(self) -> int:
+        return 32 // self.lanes_per_line
+
+    @property
+    def volume_bytes(self) -> int:
+        """Bytes of one first-pass direction's cost volume (``H·W·DPAD`` uint8)."""
+        return self.height_px * self.width_px * self.dpad
+
+    @property
+    def first_pass_tasks(self) -> int:
+        """Warp tasks of ``sgm_paths_first`` (rows, 2 × columns, 4 × diagonals with 8 paths)."""
+        lpw = self.lines_per_warp
+        th = -(-self.height_px // lpw)
+        tv = -(-self.width_px // lpw)
+        td = -(-(self.width_px + self.height_px - 1) // lpw)
+        return th + 2 * tv + (4 * td if self.paths == 8 else 0)
+
+    @property
+    def final_tasks(self) -> int:
+        return -(-self.height_px // self.lines_per_warp)
+
+    @property
+    def post_blocks(self) -> int:
+        return sum(self.slabs)
+
+    def device_bytes(self) -> dict[str, int]:
+        """Device memory of the matcher's buffers, bytes, by buffer (what ``CupyRegionEstimator`` allocates)."""
+        hw = self.height_px * self.width_px
+        return {
+            "first_pass_volumes": (self.paths - 1) * self.volume_bytes,
+            "census_left_right": 2 * 8 * hw,
+            "left_winner_int32": 4 * hw,
+            "right_disparity_uint8": hw,
+            "checked_and_final_disparity_int16": 2 * 2 * hw,
+            "region_histogram": 9 * self.nbins * 4,
+        }
+
+    def shared_bytes(self) -> int:
+        """Static shared memory of the largest SGM block (``sgm_post``), bytes."""
+        return 4 * ((3 * self.nbins + 1) // 2) + 4 * (SGM_POST_THREADS // 32) + 8
+
+
+def plan_sgm(width_px: int, height_px: int, num_disparities: int, paths: int, row_edges: Sequence[int],
+             lanes_per_line: int = 0) -> SgmPlan:
+    """The SGM kernels' shape for one eye size, disparity count and path count.
+
+    ``lanes_per_line`` 0 picks ``min(32, DPAD/4)`` with one group of 4 disparities per lane up to 128
+    disparities, two above.
+
+    Raises:
+        ValueError: a parameter the reference would also reject, or a shape that does not fit.
+    """
+    D = int(num_disparities)
+    w, h = int(width_px), int(height_px)
+    if not 2 <= D <= 256 or paths not in (4, 8) or w < 1 or h < 3:
+        raise ValueError(f"bad SGM shape: {w}x{h}, D={D}, paths={paths}")
+    if lanes_per_line:
+        lpl = int(lanes_per_line)
+        if lpl not in (4, 8, 16, 32):
+            raise ValueError(f"lanes_per_line must be 4, 8, 16 or 32, got {lpl}")
+        wpl = max(1, -(-D // (4 * lpl)))
+    else:
+        dpad = 16
+        while dpad < D:
+            dpad *= 2
+        lpl = min(32, dpad // 4)
+        wpl = max(1, dpad // 128)
+    nvol = paths - 1
+    prefetch = 4 if nvol * wpl <= 4 else 2
+    nbins = 16 * (D - 1) + 1
+    slab = max(1, min(65535 // w, -(-h // 192)))
+    bands = [int(row_edges[1]) - int(row_edges[0]), int(row_edges[2]) - int(row_edges[1]),
+             int(row_edges[3]) - int(row_edges[2])]
+    slabs = tuple(-(-b // slab) for b in bands)
+    plan = SgmPlan(w, h, D, int(paths), lpl, wpl, prefetch, nbins, slab, slabs)  # type: ignore[arg-type]
+    if plan.shared_bytes() > SMEM_BUDGET_BYTES:
+        raise ValueError(f"SGM post block needs {plan.shared_bytes()} bytes of shared memory (> {SMEM_BUDGET_BYTES})")
+    return plan
+
+
+def sgm_defines(plan: SgmPlan, pitch_bytes: int, row_edges: Sequence[int], col_edges: Sequence[int]) -> str:
+    """The ``#define`` block that specialises ``sgm.cu`` for this plan (prepended to the source)."""
+    values = {
+        "IMG_W": plan.width_px,
+        "IMG_H": plan.height_px,
+        "PITCH": int(pitch_bytes),
+        "NDISP": plan.num_disparities,
+        "LPL": plan.lanes_per_line,
+        "WPL": plan.words_per_lane,
+        "NPATHS": plan.paths,
+        "PF": plan.prefetch,
+        "NBINS": plan.nbins,
+        "SLAB_ROWS": plan.slab_rows,
+        "NSLAB0": plan.slabs[0],
+        "NSLAB1": plan.slabs[1],
+        "NSLAB2": plan.slabs[2],
+        "RE1": int(row_edges[1]),
+        "RE2": int(row_edges[2]),
+        "CE1": int(col_edges[1]),
+        "CE2": int(col_edges[2]),
+    }
+    return "".join(f"#define {k} {v}\n" for k, v in values.items())
