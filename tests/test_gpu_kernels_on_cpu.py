@@ -53,3 +53,43 @@ def test_kernel_source_equals_the_reference(w: int, h: int, d: int, b: int, u: i
     )
     np.testing.assert_array_equal(regions[:9], expected.depth_m)
     np.testing.assert_array_equal(regions[9:], expected.valid_fraction)
+
+
+@pytest.mark.parametrize(
+    ("w", "h", "d", "paths", "p1", "p2", "u", "lr", "median", "lanes"),
+    [
+        (61, 29, 32, 8, 10, 120, 10, 1, True, 0),  # 8 lanes per line, 4 lines per warp, diagonals
+        (70, 31, 48, 4, 8, 80, 0, 0, False, 0),  # padded disparities (48 of 64), u = 0, strict LR
+        (40, 10, 256, 8, 192, 193, 10, -1, True, 0),  # two groups per lane, path costs up to 255, no LR
+        (90, 20, 64, 4, 10, 120, 5, 2, True, 8),  # 8 lanes x 2 groups for 64 disparities
+    ],
+)
+def test_sgm_kernel_source_equals_the_reference(
+    w: int, h: int, d: int, paths: int, p1: int, p2: int, u: int, lr: int, median: bool, lanes: int
+) -> None:
+    from companion.core.disparity import sgm as S
+    from companion.gpu.hostemu import HostSgmKernels
+
+    rng = np.random.default_rng([w, d, paths])
+    left = rng.integers(0, 256, (h, w), dtype=np.uint8)
+    right = np.roll(left, -int(rng.integers(3, 12)), axis=1)
+    right = np.clip(right.astype(int) + rng.integers(-3, 4, right.shape), 0, 255).astype(np.uint8)
+    left[h // 4 : h // 2, w // 3 : w // 2] = 90  # a flat patch: equal sums everywhere
+    right[h // 4 : h // 2, w // 3 : w // 2] = 90
+    rows_e, cols_e = [0, h // 3, 2 * h // 3, h], [0, w // 3, 2 * w // 3, w]
+    kernels = HostSgmKernels(w, h, d, paths, rows_e, cols_e, lanes_per_line=lanes)
+    out = kernels.run(left, right, p1, p2, u, lr, median)
+
+    np.testing.assert_array_equal(out["census_left"], S.census_9x7(left))
+    cost = S.census_costs(left, right, d)
+    first = [(1, 0), (0, 1), (0, -1), (1, 1), (-1, 1), (1, -1), (-1, -1)][: paths - 1]
+    for k, (dx, dy) in enumerate(first):
+        np.testing.assert_array_equal(out["volumes"][k][:, :, :d], S.aggregate_path(cost, dx, dy, p1, p2))
+    reference = S.sgm_match(left, right, d, p1=p1, p2=p2, paths=paths, uniqueness_ratio_pct=u,
+                            lr_max_diff_px=lr, median=median)
+    np.testing.assert_array_equal(out["disparity"], reference)
+    expected = reduce_regions_from_disparity(
+        S.fixed_to_float(reference), RegionLayout(np.array(rows_e), np.array(cols_e)), RegionsConfig(), 50.0
+    )
+    np.testing.assert_array_equal(out["regions"][:9], expected.depth_m)
+    np.testing.assert_array_equal(out["regions"][9:], expected.valid_fraction)

@@ -17,7 +17,7 @@ from companion import __version__, exitcodes
 from companion.errors import CompanionError
 
 #: Modules under ``companion.cli`` that contribute sub-commands, in help order.
-_COMMAND_MODULES = ("demo", "process", "sim", "sitl", "bench", "service")
+_COMMAND_MODULES = ("demo", "process", "eval", "sim", "sitl", "bench", "service")
 
 log = logging.getLogger("companion")
 

@@ -66,6 +66,7 @@ class CalibrationConfig(StrictModel):
 # Stereo matching
 
 StereoBackend = Literal["auto", "opencv-bm", "opencv-sgbm", "reference", "cupy"]
+StereoMatcher = Literal["sgm", "sad"]
 
 
 class StereoConfig(StrictModel):
@@ -76,8 +77,19 @@ class StereoConfig(StrictModel):
         description=(
             "Disparity backend. auto: cupy when a CUDA device and CuPy are present, else opencv-bm. "
             "opencv-bm: OpenCV StereoBM on the CPU (fast). opencv-sgbm: OpenCV StereoSGBM (better, "
-            "slower). reference: exact NumPy SAD block matching, the oracle the GPU must equal (slow). "
-            "cupy: the CUDA kernels, same rules as reference."
+            "slower). reference: the exact NumPy matcher that `matcher` names, the oracle the GPU must "
+            "equal bit for bit (slow: seconds per frame). cupy: the CUDA kernels, same rules as reference."
+        ),
+    )
+    matcher: StereoMatcher = Field(
+        default="sgm",
+        description=(
+            "reference and cupy: the matching algorithm. sgm: census (9x7) costs, semi-global "
+            "aggregation along sgm_paths paths, winner with the sgm_uniqueness_ratio_pct test, "
+            "sub-pixel, a left-right check and a 3x3 median (every column matched, with the "
+            "disparities it allows). sad: SAD block matching (block_size_px, uniqueness_ratio_pct, "
+            "texture_threshold_grey; the leftmost num_disparities + block_size_px/2 columns are never "
+            "matched). The OpenCV backends ignore it."
         ),
     )
     num_disparities: int = Field(
@@ -156,6 +168,56 @@ class StereoConfig(StrictModel):
         le=256,
         description="OpenCV worker threads for the CPU backends; 0 = all cores.",
     )
+    sgm_paths: Literal[4, 8] = Field(
+        default=4,
+        description=(
+            "matcher sgm: aggregation paths: 4 (left, right, up, down) or 8 (and the diagonals). On "
+            "Aloe (docs/benchmarks.md) 8 paths cut bad-2 from 3.3 to 3.1 % at the same density; on an "
+            "H100 they cost about twice the aggregation time."
+        ),
+    )
+    sgm_p1: int = Field(
+        default=10,
+        ge=0,
+        le=192,
+        description=(
+            "matcher sgm: penalty for a disparity change of 1 px between neighbours along a path, in "
+            "census-cost units (bits of the 62-bit census); below sgm_p2."
+        ),
+    )
+    sgm_p2: int = Field(
+        default=120,
+        ge=1,
+        le=193,
+        description=(
+            "matcher sgm: penalty for a larger disparity change (a depth edge), census-cost units; at "
+            "most 193 so that every path cost fits one byte (62 + P2 <= 255). 10/120 measured best of "
+            "the settings tried on Aloe (docs/benchmarks.md)."
+        ),
+    )
+    sgm_uniqueness_ratio_pct: int = Field(
+        default=10,
+        ge=0,
+        le=100,
+        description=(
+            "matcher sgm: reject a pixel unless its summed cost beats every disparity 2 px or more "
+            "away by this margin, percent."
+        ),
+    )
+    sgm_lr_max_diff_px: int = Field(
+        default=1,
+        ge=-1,
+        le=16,
+        description=(
+            "matcher sgm: left-right check: reject a pixel whose disparity d differs by more than this "
+            "from the right view's disparity at x - d (computed from the same summed costs), pixels; "
+            "-1 = no check. Off, Aloe's bad-2 triples (3.5 % -> 11.7 %, docs/benchmarks.md)."
+        ),
+    )
+    sgm_median: bool = Field(
+        default=True,
+        description="matcher sgm: replace each valid disparity by the median of the valid ones in its 3x3 neighbourhood.",
+    )
 
     @field_validator("block_size_px")
     @classmethod
@@ -175,6 +237,8 @@ class StereoConfig(StrictModel):
     def _sgbm_penalties(self) -> StereoConfig:
         if self.sgbm_p1 and self.sgbm_p2 and self.sgbm_p2 <= self.sgbm_p1:
             raise ValueError(f"sgbm_p2 ({self.sgbm_p2}) must be greater than sgbm_p1 ({self.sgbm_p1})")
+        if self.sgm_p2 <= self.sgm_p1:
+            raise ValueError(f"sgm_p2 ({self.sgm_p2}) must be greater than sgm_p1 ({self.sgm_p1})")
         return self
 
 

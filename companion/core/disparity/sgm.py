@@ -296,7 +296,7 @@ def sgm_match(
     p1: int,
     p2: int,
     paths: int = 4,
-    uniqueness_ratio_pct: int = 5,
+    uniqueness_ratio_pct: int = 10,
     lr_max_diff_px: int = 1,
     median: bool = True,
 ) -> np.ndarray:
@@ -351,7 +351,7 @@ class SgmReferenceMatcher:
         p1: int,
         p2: int,
         paths: int = 4,
-        uniqueness_ratio_pct: int = 5,
+        uniqueness_ratio_pct: int = 10,
         lr_max_diff_px: int = 1,
         median: bool = True,
     ) -> None:
