@@ -1,9 +1,10 @@
 """The CUDA kernels' exact source, run on the CPU (companion.gpu.hostemu), must equal the NumPy reference.
 
-CI has no GPU; this keeps the kernel source itself under test there: stereo.cu is compiled as C++
-against a small CUDA emulation (random fiber scheduling, so a missing barrier gives a wrong answer)
-and compared pixel for pixel with ``sad_block_match`` and the region reduction. The same comparison on
-a real GPU is tests/test_gpu.py (marker ``gpu``).
+CI has no GPU; this keeps the kernel source itself under test there: stereo.cu (SAD) and sgm.cu (SGM) are
+compiled as C++ against a small CUDA emulation (random fiber scheduling, so a missing barrier gives a
+wrong answer) and compared pixel for pixel with ``sad_block_match`` / ``sgm_match`` (every path volume
+too) and the region reduction. Images are small: the emulation switches fibers at every shuffle. The
+same comparison on a real GPU is tests/test_gpu.py (marker ``gpu``).
 """
 
 from __future__ import annotations
@@ -58,10 +59,9 @@ def test_kernel_source_equals_the_reference(w: int, h: int, d: int, b: int, u: i
 @pytest.mark.parametrize(
     ("w", "h", "d", "paths", "p1", "p2", "u", "lr", "median", "lanes"),
     [
-        (61, 29, 32, 8, 10, 120, 10, 1, True, 0),  # 8 lanes per line, 4 lines per warp, diagonals
-        (70, 31, 48, 4, 8, 80, 0, 0, False, 0),  # padded disparities (48 of 64), u = 0, strict LR
-        (40, 10, 256, 8, 192, 193, 10, -1, True, 0),  # two groups per lane, path costs up to 255, no LR
-        (90, 20, 64, 4, 10, 120, 5, 2, True, 8),  # 8 lanes x 2 groups for 64 disparities
+        (40, 18, 32, 8, 10, 120, 10, 1, True, 0),  # 8 lanes per line, 4 lines per warp, diagonals
+        (48, 12, 128, 4, 8, 80, 0, 0, False, 0),  # a whole warp per line (the HD shape), u = 0, strict LR
+        (56, 16, 48, 4, 192, 193, 5, -1, True, 8),  # padded (48 of 64), 2 groups per lane, costs up to 255, no LR
     ],
 )
 def test_sgm_kernel_source_equals_the_reference(
@@ -82,8 +82,7 @@ def test_sgm_kernel_source_equals_the_reference(
 
     np.testing.assert_array_equal(out["census_left"], S.census_9x7(left))
     cost = S.census_costs(left, right, d)
-    first = [(1, 0), (0, 1), (0, -1), (1, 1), (-1, 1), (1, -1), (-1, -1)][: paths - 1]
-    for k, (dx, dy) in enumerate(first):
+    for k, (dx, dy) in enumerate(S.PATH_DIRECTIONS[:paths]):
         np.testing.assert_array_equal(out["volumes"][k][:, :, :d], S.aggregate_path(cost, dx, dy, p1, p2))
     reference = S.sgm_match(left, right, d, p1=p1, p2=p2, paths=paths, uniqueness_ratio_pct=u,
                             lr_max_diff_px=lr, median=median)

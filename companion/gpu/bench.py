@@ -108,31 +108,33 @@ def _cfg(size: BenchSize, calib: Path | None, matcher: str = "sad", sgm_paths: i
 
 def _sgm_kernel_times(est: Any, cp: Any, n: int) -> dict[str, dict[str, float]]:
     """CUDA-event times of each SGM kernel, and of the four together, on the estimator's last rectified pair."""
+    from companion.gpu.plan import SGM_CENSUS_TILE
+
     s = est._stream
     events = [cp.cuda.Event() for _ in range(5)]
-    names = ("census", "paths_first", "final_wta_lr", "median_regions")
+    names = ("census", "paths", "wta_right", "lr_median_regions")
     samples: dict[str, list[float]] = {k: [] for k in (*names, "sgm_total")}
+    k = est._k_sgm
+    sp = est.sgm_plan
+    w, h = est.width_px, est.height_px
+    p1, p2, uniq, lr_max, median = est._sgm_args
+    fb, pct, min_valid, max_depth = est._region_args
+    cen_l, cen_r = est._census[0], est._census[1]
+    tw, th = SGM_CENSUS_TILE
     with est._device:
         for i in range(n + 10):
             events[0].record(s)
-            k = est._k_sgm
-            sp = est.sgm_plan
-            w, h = est.width_px, est.height_px
-            p1, p2, uniq, lr_max, median = est._sgm_args
-            fb, pct, min_valid, max_depth = est._region_args
-            cen_l, cen_r = est._census[0], est._census[1]
-            k["sgm_census"]((-(-w // 128), h, 2), (128,), (est._rect_l, est._rect_r, cen_l, cen_r), stream=s)
+            k["sgm_census"]((-(-w // tw), -(-h // th), 2), (tw, th),
+                            (est._rect_l, est._rect_r, cen_l, cen_r, est._right_keys), stream=s)
             events[1].record(s)
-            k["sgm_paths_first"]((-(-sp.first_pass_tasks // 4),), (128,), (cen_l, cen_r, est._volumes, p1, p2),
-                                 stream=s)
+            k["sgm_paths"]((-(-sp.path_tasks // 4),), (128,), (cen_l, cen_r, est._volumes, p1, p2), stream=s)
             events[2].record(s)
-            k["sgm_final"]((-(-sp.final_tasks // 4),), (128,),
-                           (cen_l, cen_r, est._volumes, est._winner, est._right, est._checked, p1, p2, uniq, lr_max),
-                           stream=s)
+            k["sgm_wta"]((-(-sp.wta_tasks // 4),), (128,), (est._volumes, est._winner, est._right_keys, uniq),
+                         stream=s)
             events[3].record(s)
             k["sgm_post"]((sp.post_blocks,), (256,),
-                          (est._checked, est._disp, est._hist, est._counter, est._result_dev, median, fb, pct,
-                           min_valid, max_depth),
+                          (est._winner, est._right_keys, est._disp, est._hist, est._counter, est._result_dev,
+                           lr_max, median, fb, pct, min_valid, max_depth),
                           stream=s)
             events[4].record(s)
             events[4].synchronize()
@@ -140,7 +142,7 @@ def _sgm_kernel_times(est: Any, cp: Any, n: int) -> dict[str, dict[str, float]]:
                 for j, name in enumerate(names):
                     samples[name].append(cp.cuda.get_elapsed_time(events[j], events[j + 1]))
                 samples["sgm_total"].append(cp.cuda.get_elapsed_time(events[0], events[4]))
-    return {k: stats_ms(v) for k, v in samples.items()}
+    return {key: stats_ms(v) for key, v in samples.items()}
 
 
 def _max_sm_clock_mhz(dev: Any) -> float:
@@ -406,17 +408,25 @@ def run_gpu_bench(args: argparse.Namespace, sizes: list[BenchSize]) -> dict[str,
         _, frames = rendered_frames(size, n=min(16, max(2, n + warmup)))
         entry: dict[str, Any] = {}
         # stages (CUDA events)
+        import gc
+
         pool = cp.get_default_memory_pool()
-        used_before = pool.used_bytes()
-        est = CupyRegionEstimator(_cfg(size, calib, stage_timing=True, **opts), size.width_px, size.height_px)
-        entry["device_memory_bytes"] = pool.used_bytes() - used_before
+        est = None
+        gc.collect()  # the previous size's estimators go first: the difference below is this one's alone
+        gc.disable()
+        try:
+            used_before = pool.used_bytes()
+            est = CupyRegionEstimator(_cfg(size, calib, stage_timing=True, **opts), size.width_px, size.height_px)
+            entry["device_memory_bytes"] = pool.used_bytes() - used_before
+        finally:
+            gc.enable()
         _, stages = _time_estimator(est, frames, warmup, n)
         entry["stages"] = stages
         if est.sgm_plan is not None:
             sp = est.sgm_plan
             entry["plan"] = {
                 "matcher": "sgm", "paths": sp.paths, "lanes_per_line": sp.lanes_per_line,
-                "words_per_lane": sp.words_per_lane, "prefetch": sp.prefetch, "dpad": sp.dpad,
+                "words_per_lane": sp.words_per_lane, "run_px": sp.run_px, "slab_rows": sp.slab_rows, "dpad": sp.dpad,
                 "buffers_bytes": sp.device_bytes(),
                 "kernel_regs_smem": {
                     name: [int(k.attributes["num_regs"]), int(k.attributes["shared_size_bytes"])]
@@ -424,6 +434,15 @@ def run_gpu_bench(args: argparse.Namespace, sizes: list[BenchSize]) -> dict[str,
                 },
             }
             entry["kernels"] = _sgm_kernel_times(est, cp, n)
+            # the other lane layouts (same results; which is fastest here?)
+            for lanes in (8, 16, 32):
+                if lanes == sp.lanes_per_line or 4 * lanes > 4 * sp.dpad // 4 or lanes * 4 > max(16, sp.dpad):
+                    continue
+                alt = CupyRegionEstimator(_cfg(size, calib, stage_timing=True, sgm_lanes_per_line=lanes, **opts),
+                                          size.width_px, size.height_px)
+                _time_estimator(alt, frames, 2, 3)
+                entry[f"kernels_lanes_{lanes}"] = _sgm_kernel_times(alt, cp, min(n, 100))
+                alt.close()
         else:
             entry["plan"] = {
                 "fast": est.plan.fast, "tile_cols": est.plan.tx, "threads": est.plan.nt,
@@ -485,6 +504,10 @@ def run_gpu_bench(args: argparse.Namespace, sizes: list[BenchSize]) -> dict[str,
             rows.append([size.label, f"stage {k.removesuffix('_ms')}", f"{v['median_ms']:.3f}", f"{v['p99_ms']:.3f}"])
         for k, v in entry["kernels"].items():
             rows.append([size.label, f"kernel {k}", f"{v['median_ms']:.3f}", f"{v['p99_ms']:.3f}"])
+        for key in [key for key in entry if key.startswith("kernels_lanes_")]:
+            for k, v in entry[key].items():
+                rows.append([size.label, f"{key.removeprefix('kernels_')} {k}", f"{v['median_ms']:.3f}",
+                             f"{v['p99_ms']:.3f}"])
         for k, v in whole.items():
             if k == "default":
                 continue

@@ -18,9 +18,9 @@ event per band):
 
 With ``stereo.matcher = "sgm"`` (the default) the bands carry the upload, grey and rectification only;
 after the last band the semi-global matcher of ``kernels/sgm.cu`` runs on the whole rectified pair:
-``sgm_census``, ``sgm_paths_first`` (every path but right-to-left, one byte per (pixel, disparity) and
-path), ``sgm_final`` (the last path, the winner, uniqueness, sub-pixel, the right view's disparity and the
-left-right check) and ``sgm_post`` (median, the disparity image and the 9 region depths), exactly
+``sgm_census``, ``sgm_paths`` (every path in one launch, one byte per (pixel, disparity) and path),
+``sgm_wta`` (the winner, uniqueness, sub-pixel and the right view's disparity, per run of pixels) and
+``sgm_post`` (left-right check, median, the disparity image and the 9 region depths), exactly
 :mod:`companion.core.disparity.sgm`'s rules.
 
 Each band's GPU work is captured once as a CUDA graph and replayed. The results equal
@@ -50,6 +50,7 @@ from companion.core.stereo import split_frame
 from companion.core.types import N_REGIONS, RegionDepths
 from companion.errors import BackendError, ConfigError
 from companion.gpu.plan import (
+    SGM_CENSUS_TILE,
     SGM_PATH_THREADS,
     SGM_POST_THREADS,
     DisparityPlan,
@@ -136,7 +137,7 @@ class CupyRegionEstimator:
         self.sgm_plan: SgmPlan | None = None
         if self.matcher == "sgm":
             self.sgm_plan = plan_sgm(self.width_px, self.height_px, st.num_disparities, st.sgm_paths,
-                                     self.layout.row_edges)
+                                     self.layout.row_edges, cfg.gpu.sgm_lanes_per_line)
         self.disparity_scale = 16 if self.matcher == "sgm" else 1
         self._identity = bool(rectifier.is_identity)
         try:
@@ -195,7 +196,7 @@ class CupyRegionEstimator:
                 options=("--std=c++17", "--fmad=false"),
             )
             sget = self._sgm_module.get_function
-            self._k_sgm = {name: sget(name) for name in ("sgm_census", "sgm_paths_first", "sgm_final", "sgm_post")}
+            self._k_sgm = {name: sget(name) for name in ("sgm_census", "sgm_paths", "sgm_wta", "sgm_post")}
             self._sgm_args = (
                 np.uint32(st.sgm_p1),
                 np.uint32(st.sgm_p2),
@@ -259,10 +260,9 @@ class CupyRegionEstimator:
         else:
             sp = self.sgm_plan
             self._census = cp.zeros((2, h, w), dtype=cp.uint64)
-            self._volumes = cp.zeros((sp.paths - 1, h, w, sp.dpad), dtype=cp.uint8)
+            self._volumes = cp.zeros((sp.paths, h, w, sp.dpad), dtype=cp.uint8)
             self._winner = cp.zeros((h, w), dtype=cp.int32)
-            self._right = cp.zeros((h, w), dtype=cp.uint8)
-            self._checked = cp.zeros((h, w), dtype=cp.int16)
+            self._right_keys = cp.zeros((h, w), dtype=cp.uint32)
             self._hist = cp.zeros(N_REGIONS * sp.nbins, dtype=cp.uint32)
         self._counter = cp.zeros(1, dtype=cp.uint32)
         self._result_dev = cp.zeros(2 * N_REGIONS, dtype=cp.float64)
@@ -668,17 +668,17 @@ class CupyRegionEstimator:
         p1, p2, uniq, lr_max, median = self._sgm_args
         fb, pct, min_valid, max_depth = self._region_args
         cen_l, cen_r = self._census[0], self._census[1]
-        k["sgm_census"]((-(-w // _EW_THREADS), h, 2), (_EW_THREADS,), (self._rect_l, self._rect_r, cen_l, cen_r),
-                        stream=s)
+        tw, th = SGM_CENSUS_TILE
+        k["sgm_census"]((-(-w // tw), -(-h // th), 2), (tw, th),
+                        (self._rect_l, self._rect_r, cen_l, cen_r, self._right_keys), stream=s)
         warps = SGM_PATH_THREADS // 32
-        k["sgm_paths_first"]((-(-sp.first_pass_tasks // warps),), (SGM_PATH_THREADS,),
-                             (cen_l, cen_r, self._volumes, p1, p2), stream=s)
-        k["sgm_final"]((-(-sp.final_tasks // warps),), (SGM_PATH_THREADS,),
-                       (cen_l, cen_r, self._volumes, self._winner, self._right, self._checked, p1, p2, uniq, lr_max),
+        k["sgm_paths"]((-(-sp.path_tasks // warps),), (SGM_PATH_THREADS,), (cen_l, cen_r, self._volumes, p1, p2),
                        stream=s)
+        k["sgm_wta"]((-(-sp.wta_tasks // warps),), (SGM_PATH_THREADS,),
+                     (self._volumes, self._winner, self._right_keys, uniq), stream=s)
         k["sgm_post"]((sp.post_blocks,), (SGM_POST_THREADS,),
-                      (self._checked, self._disp, self._hist, self._counter, self._result_dev, median, fb, pct,
-                       min_valid, max_depth),
+                      (self._winner, self._right_keys, self._disp, self._hist, self._counter, self._result_dev,
+                       lr_max, median, fb, pct, min_valid, max_depth),
                       stream=s)
 
     def _near_blocks(self, block_px: int) -> np.ndarray:

@@ -277,9 +277,11 @@ def kernel_defines(plan: DisparityPlan, row_edges: Sequence[int], col_edges: Seq
 # --------------------------------------------------------------------------------------------------
 # Semi-global matcher (kernels/sgm.cu)
 
-#: Threads per block of the SGM path kernels (4 warps) and of the post-processing kernel.
+#: Threads per block of the SGM path and winner kernels (4 warps) and of the post-processing kernel.
 SGM_PATH_THREADS = 128
 SGM_POST_THREADS = 256
+#: Census tile (threads per block: 32 × 8 pixels).
+SGM_CENSUS_TILE = (32, 8)
 
 
 @dataclass(frozen=True)
@@ -292,9 +294,10 @@ class SgmPlan:
         paths: 4 or 8.
         lanes_per_line: lanes of a warp that own one line (``LPL``); a warp walks ``32 / LPL`` lines.
         words_per_lane: groups of 4 disparities per lane (``WPL``); ``4·LPL·WPL = DPAD >= D``.
-        prefetch: pixels ahead whose first-pass costs the last pass loads (``PF``).
+        run_px: pixels of a row that one line of ``sgm_wta`` takes (``RUN``).
         nbins: bins of the region histograms, one per sub-pixel disparity value (``16·(D - 1) + 1``).
-        slab_rows: rows of one post-processing block (``<= 65535 / W``: 16-bit shared counters).
+        slab_rows: rows of one post-processing block (``<= 65535 / W``: 16-bit shared counters; its
+            shared memory, the checked rows and the histogram, within 48 KB).
         slabs: post-processing blocks in each of the three region row bands.
     """
 
@@ -304,7 +307,7 @@ class SgmPlan:
     paths: int
     lanes_per_line: int
     words_per_lane: int
-    prefetch: int
+    run_px: int
     nbins: int
     slab_rows: int
     slabs: tuple[int, int, int]
@@ -319,21 +322,23 @@ class SgmPlan:
 
     @property
     def volume_bytes(self) -> int:
-        """Bytes of one first-pass direction's cost volume (``H·W·DPAD`` uint8)."""
+        """Bytes of one path's cost volume (``H·W·DPAD`` uint8)."""
         return self.height_px * self.width_px * self.dpad
 
     @property
-    def first_pass_tasks(self) -> int:
-        """Warp tasks of ``sgm_paths_first`` (rows, 2 × columns, 4 × diagonals with 8 paths)."""
+    def path_tasks(self) -> int:
+        """Warp tasks of ``sgm_paths`` (2 × rows, 2 × columns, 4 × diagonals with 8 paths)."""
         lpw = self.lines_per_warp
         th = -(-self.height_px // lpw)
         tv = -(-self.width_px // lpw)
         td = -(-(self.width_px + self.height_px - 1) // lpw)
-        return th + 2 * tv + (4 * td if self.paths == 8 else 0)
+        return 2 * th + 2 * tv + (4 * td if self.paths == 8 else 0)
 
     @property
-    def final_tasks(self) -> int:
-        return -(-self.height_px // self.lines_per_warp)
+    def wta_tasks(self) -> int:
+        """Warp tasks of ``sgm_wta`` (runs of ``run_px`` pixels, ``32 / LPL`` per warp)."""
+        runs = -(-self.width_px // self.run_px) * self.height_px
+        return -(-runs // self.lines_per_warp)
 
     @property
     def post_blocks(self) -> int:
@@ -343,17 +348,22 @@ class SgmPlan:
         """Device memory of the matcher's buffers, bytes, by buffer (what ``CupyRegionEstimator`` allocates)."""
         hw = self.height_px * self.width_px
         return {
-            "first_pass_volumes": (self.paths - 1) * self.volume_bytes,
+            "path_volumes": self.paths * self.volume_bytes,
             "census_left_right": 2 * 8 * hw,
             "left_winner_int32": 4 * hw,
-            "right_disparity_uint8": hw,
-            "checked_and_final_disparity_int16": 2 * 2 * hw,
+            "right_keys_uint32": 4 * hw,
+            "disparity_int16": 2 * hw,
             "region_histogram": 9 * self.nbins * 4,
         }
 
     def shared_bytes(self) -> int:
         """Static shared memory of the largest SGM block (``sgm_post``), bytes."""
-        return 4 * ((3 * self.nbins + 1) // 2) + 4 * (SGM_POST_THREADS // 32) + 8
+        return _sgm_post_smem(self.nbins, self.slab_rows, self.width_px)
+
+
+def _sgm_post_smem(nbins: int, slab_rows: int, width_px: int) -> int:
+    words = (3 * nbins + 1) // 2
+    return 4 * words + 2 * (slab_rows + 2) * width_px + 4 * (SGM_POST_THREADS // 32) + 8
 
 
 def plan_sgm(width_px: int, height_px: int, num_disparities: int, paths: int, row_edges: Sequence[int],
@@ -381,17 +391,19 @@ def plan_sgm(width_px: int, height_px: int, num_disparities: int, paths: int, ro
             dpad *= 2
         lpl = min(32, dpad // 4)
         wpl = max(1, dpad // 128)
-    nvol = paths - 1
-    prefetch = 4 if nvol * wpl <= 4 else 2
     nbins = 16 * (D - 1) + 1
-    slab = max(1, min(65535 // w, -(-h // 192)))
+    slab = max(1, min(65535 // w, 8, -(-h // 192)))
+    while slab > 1 and _sgm_post_smem(nbins, slab, w) > SMEM_BUDGET_BYTES:
+        slab -= 1
+    if _sgm_post_smem(nbins, slab, w) > SMEM_BUDGET_BYTES:
+        raise ValueError(
+            f"SGM post block needs {_sgm_post_smem(nbins, slab, w)} bytes of shared memory (> {SMEM_BUDGET_BYTES}) "
+            f"at {w} px and {D} disparities"
+        )
     bands = [int(row_edges[1]) - int(row_edges[0]), int(row_edges[2]) - int(row_edges[1]),
              int(row_edges[3]) - int(row_edges[2])]
     slabs = tuple(-(-b // slab) for b in bands)
-    plan = SgmPlan(w, h, D, int(paths), lpl, wpl, prefetch, nbins, slab, slabs)  # type: ignore[arg-type]
-    if plan.shared_bytes() > SMEM_BUDGET_BYTES:
-        raise ValueError(f"SGM post block needs {plan.shared_bytes()} bytes of shared memory (> {SMEM_BUDGET_BYTES})")
-    return plan
+    return SgmPlan(w, h, D, int(paths), lpl, wpl, 64, nbins, slab, slabs)  # type: ignore[arg-type]
 
 
 def sgm_defines(plan: SgmPlan, pitch_bytes: int, row_edges: Sequence[int], col_edges: Sequence[int]) -> str:
@@ -404,7 +416,7 @@ def sgm_defines(plan: SgmPlan, pitch_bytes: int, row_edges: Sequence[int], col_e
         "LPL": plan.lanes_per_line,
         "WPL": plan.words_per_lane,
         "NPATHS": plan.paths,
-        "PF": plan.prefetch,
+        "RUN": plan.run_px,
         "NBINS": plan.nbins,
         "SLAB_ROWS": plan.slab_rows,
         "NSLAB0": plan.slabs[0],

@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from companion.gpu.plan import SGM_PATH_THREADS, kernel_defines, plan_disparity, plan_sgm, sgm_defines
+from companion.gpu.plan import SGM_CENSUS_TILE, SGM_PATH_THREADS, kernel_defines, plan_disparity, plan_sgm, sgm_defines
 
 _HERE = Path(__file__).resolve().parent
 _KERNEL = _HERE.parent / "kernels" / "stereo.cu"
@@ -208,8 +208,8 @@ class HostSgmKernels:
         max_depth: float = 20.0,
     ) -> dict[str, np.ndarray]:
         """Every stage's output: ``census_left``/``census_right`` (uint64), ``volumes`` (uint8
-        ``(paths-1, H, W, DPAD)``), ``winner`` (int32), ``right`` (uint8), ``checked`` and ``disparity``
-        (int16 × 16, -1 invalid) and ``regions`` (9 depths, 9 valid fractions)."""
+        ``(paths, H, W, DPAD)``), ``winner`` (int32), ``right_keys`` (uint32), ``disparity`` (int16 × 16,
+        -1 invalid) and ``regions`` (9 depths, 9 valid fractions)."""
         p, w, h = self.plan, self.w, self.h
         u32, f32, d = ctypes.c_uint32, ctypes.c_float, ctypes.c_double
         rl = np.zeros((h, self.pitch), np.uint8)
@@ -217,23 +217,24 @@ class HostSgmKernels:
         rl[:, :w], rr[:, :w] = left, right
         cl = np.zeros((h, w), np.uint64)
         cr = np.zeros((h, w), np.uint64)
-        vols = np.full((p.paths - 1, h, w, p.dpad), 0xEE, np.uint8)
+        vols = np.full((p.paths, h, w, p.dpad), 0xEE, np.uint8)
         dl = np.full((h, w), -7, np.int32)
-        dr = np.full((h, w), 0xEE, np.uint8)
-        dchk = np.full((h, w), -7, np.int16)
+        drkey = np.full((h, w), 7, np.uint32)  # sgm_census resets it
         disp = np.full((h, w), -7, np.int16)
         hist = np.zeros(9 * p.nbins, np.uint32)
         counter = np.zeros(1, np.uint32)
         result = np.full(18, -7.0)
-        self._lib.run_census(self._ptr(rl), self._ptr(rr), self._ptr(cl), self._ptr(cr), -(-w // 64), 64)
-        self._lib.run_paths_first(self._ptr(cl), self._ptr(cr), self._ptr(vols), u32(p1), u32(p2),
-                                  -(-p.first_pass_tasks // (SGM_PATH_THREADS // 32)))
-        self._lib.run_final(self._ptr(cl), self._ptr(cr), self._ptr(vols), self._ptr(dl), self._ptr(dr),
-                            self._ptr(dchk), u32(p1), u32(p2), u32(uniqueness_ratio_pct), int(lr_max_diff_px),
-                            -(-p.final_tasks // (SGM_PATH_THREADS // 32)))
-        self._lib.run_post(self._ptr(dchk), self._ptr(disp), self._ptr(hist), self._ptr(counter), self._ptr(result),
-                           int(bool(median)), f32(fb), d(pct), d(min_valid), d(max_depth), p.post_blocks)
+        tw, th = SGM_CENSUS_TILE
+        self._lib.run_census(self._ptr(rl), self._ptr(rr), self._ptr(cl), self._ptr(cr), self._ptr(drkey),
+                             -(-w // tw), -(-h // th))
+        warps = SGM_PATH_THREADS // 32
+        self._lib.run_paths(self._ptr(cl), self._ptr(cr), self._ptr(vols), u32(p1), u32(p2), -(-p.path_tasks // warps))
+        self._lib.run_wta(self._ptr(vols), self._ptr(dl), self._ptr(drkey), u32(uniqueness_ratio_pct),
+                          -(-p.wta_tasks // warps))
+        self._lib.run_post(self._ptr(dl), self._ptr(drkey), self._ptr(disp), self._ptr(hist), self._ptr(counter),
+                           self._ptr(result), int(lr_max_diff_px), int(bool(median)), f32(fb), d(pct), d(min_valid),
+                           d(max_depth), p.post_blocks)
         if counter[0] != 0 or hist.any():
             raise AssertionError("the last block did not reset the histogram state")
-        return {"census_left": cl, "census_right": cr, "volumes": vols, "winner": dl, "right": dr,
-                "checked": dchk, "disparity": disp, "regions": result}
+        return {"census_left": cl, "census_right": cr, "volumes": vols, "winner": dl, "right_keys": drkey,
+                "disparity": disp, "regions": result}
