@@ -363,15 +363,16 @@ class SgmPlan:
 
 def _sgm_post_smem(nbins: int, slab_rows: int, width_px: int) -> int:
     words = (3 * nbins + 1) // 2
-    return 4 * words + 2 * (slab_rows + 2) * width_px + 4 * (SGM_POST_THREADS // 32) + 8
+    return 4 * words + 2 * (slab_rows + 2) * width_px + 8
 
 
 def plan_sgm(width_px: int, height_px: int, num_disparities: int, paths: int, row_edges: Sequence[int],
              lanes_per_line: int = 0) -> SgmPlan:
     """The SGM kernels' shape for one eye size, disparity count and path count.
 
-    ``lanes_per_line`` 0 picks ``min(32, DPAD/4)`` with one group of 4 disparities per lane up to 128
-    disparities, two above.
+    ``lanes_per_line`` 0 picks ``min(16, DPAD/4)`` lanes, ``DPAD`` the power of two >= D (at least 16),
+    each with ``DPAD / (4·lanes)`` groups of 4 disparities (64 disparities: 16 lanes of 1 group; 128: 16
+    of 2; measured fastest of 8/16/32 on an H100, docs/gpu_notes.md).
 
     Raises:
         ValueError: a parameter the reference would also reject, or a shape that does not fit.
@@ -389,8 +390,8 @@ def plan_sgm(width_px: int, height_px: int, num_disparities: int, paths: int, ro
         dpad = 16
         while dpad < D:
             dpad *= 2
-        lpl = min(32, dpad // 4)
-        wpl = max(1, dpad // 128)
+        lpl = min(16, dpad // 4)
+        wpl = max(1, dpad // (4 * lpl))
     nbins = 16 * (D - 1) + 1
     slab = max(1, min(65535 // w, 8, -(-h // 192)))
     while slab > 1 and _sgm_post_smem(nbins, slab, w) > SMEM_BUDGET_BYTES:

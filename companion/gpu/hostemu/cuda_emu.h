@@ -71,6 +71,7 @@ inline unsigned atomicMin(unsigned* p, unsigned v) { unsigned o = *p; *p = o < v
 template <class T> inline T __ldcg(const T* p) { return *p; }
 template <class T> inline T __ldg(const T* p) { return *p; }
 template <class T> inline T __ldcs(const T* p) { return *p; }
+template <class T> inline void __stcs(T* p, T v) { *p = v; }
 inline int __popc(unsigned x) { return __builtin_popcount(x); }
 inline int __ffs(unsigned x) { return x ? __builtin_ctz(x) + 1 : 0; }
 inline float __int_as_float(int i) { float f; std::memcpy(&f, &i, 4); return f; }
