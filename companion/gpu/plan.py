@@ -363,7 +363,7 @@ class SgmPlan:
 
 def _sgm_post_smem(nbins: int, slab_rows: int, width_px: int) -> int:
     words = (3 * nbins + 1) // 2
-    return 4 * words + 2 * (slab_rows + 2) * width_px + 8
+    return 4 * words + 2 * (slab_rows + 2) * width_px + 4 * (SGM_POST_THREADS // 32) + 8
 
 
 def plan_sgm(width_px: int, height_px: int, num_disparities: int, paths: int, row_edges: Sequence[int],

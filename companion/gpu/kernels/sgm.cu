@@ -108,22 +108,20 @@ extern "C" __global__ void __launch_bounds__(CT_W * CT_H) sgm_census(const u8* _
   __syncthreads();
   const int x = (int)(blockIdx.x * CT_W + threadIdx.x), y = (int)(blockIdx.y * CT_H + threadIdx.y);
   if (x >= IMG_W || y >= IMG_H) return;
-  const u32 c = (u32)tile[threadIdx.y + CEN_HH][threadIdx.x + CEN_HW];
-  u32 lo = 0, hi = 0;
+  const int c = tile[threadIdx.y + CEN_HH][threadIdx.x + CEN_HW];
+  u64 bits = 0;
   int k = 0;
 #pragma unroll
   for (int i = 0; i <= 2 * CEN_HH; ++i) {
 #pragma unroll
     for (int j = 0; j <= 2 * CEN_HW; ++j) {
       if (i == CEN_HH && j == CEN_HW) continue;
-      // outside the image (-1) compares as 0xffffffff: never below the centre, bit 0
-      const u32 bit = (u32)tile[threadIdx.y + i][threadIdx.x + j] < c ? 1u : 0u;
-      if (k < 32) lo |= bit << k;
-      else hi |= bit << (k - 32);
+      const int q = tile[threadIdx.y + i][threadIdx.x + j];
+      if (q >= 0 && q < c) bits |= 1ull << k;  // outside the image (-1) gives 0
       ++k;
     }
   }
-  (blockIdx.z ? cr : cl)[(size_t)y * IMG_W + x] = ((u64)hi << 32) | lo;
+  (blockIdx.z ? cr : cl)[(size_t)y * IMG_W + x] = bits;
   if (blockIdx.z == 0) drkey[(size_t)y * IMG_W + x] = KEY_INF;
 }
 
@@ -245,17 +243,12 @@ __device__ __forceinline__ void load_step(const u64* __restrict__ cl, const u64*
 }
 
 // Walk one line of direction (DX, DY) from (x0, y0) for `len` pixels (`steps` >= len iterations so that all
-// lines of the warp keep stepping together; inactive steps store nothing), storing the path costs (streaming
-// stores: the volumes are read once, by sgm_wta, and must not evict the census images from L2).
-// The census loads of step t are issued at step t - 1 - PFD (a ring of PFD loads in registers, the loop
-// unrolled PFD times so that every ring index is a constant) and each step's costs are computed one step
-// ahead, so that the recurrence (the only loop-carried chain) does not wait for memory.
-#define PFD_OF(DY) ((DY) == 0 ? 8 : 4)
-
+// lines of the warp keep stepping together; inactive steps store nothing), storing the path costs.
+// The census loads run two steps ahead and the costs one step ahead of the recurrence, so that the
+// recurrence (the only loop-carried chain) does not wait for memory.
 template <int DX, int DY>
 __device__ void walk_line(const u64* __restrict__ cl, const u64* __restrict__ cr, u8* __restrict__ vol, int x0,
                           int y0, int len, int steps, u32 p1x2, u32 p2) {
-  constexpr int PFD = PFD_OF(DY);
   const int li = (int)(threadIdx.x & 31) % LPL;
   PathState L;
   u64 win[WPL][4];
@@ -273,47 +266,41 @@ __device__ void walk_line(const u64* __restrict__ cl, const u64* __restrict__ cr
   u32 cA[WPL], cB[WPL], xA[WPL], xB[WPL];
   pixel_costs(__ldg(cl + (size_t)(len > 0 ? y0 : 0) * IMG_W + (len > 0 ? x0 : 0)), win, len > 0 ? x0 : 0, cA, cB, xA,
               xB);
-  StepLoads<DX, DY> ring[PFD];  // ring[t % PFD]: the loads of step t, for t in (s, s + PFD]
+  StepLoads<DX, DY> next;
+  load_step<DX, DY>(cl, cr, x0, y0, len, 1, next);
+  for (int s = 0; s < steps; ++s) {
+    StepLoads<DX, DY> after;
+    load_step<DX, DY>(cl, cr, x0, y0, len, s + 2, after);
+    path_step(L, cA, cB, xA, xB, s == 0, p1x2, p2);
+    if (s < len) {
+      const int x = x0 + DX * s, y = y0 + DY * s;
+      u32* dst = (u32*)(vol + ((size_t)y * IMG_W + x) * DPAD);
 #pragma unroll
-  for (int q = 0; q < PFD; ++q) load_step<DX, DY>(cl, cr, x0, y0, len, q + 1, ring[(q + 1) % PFD]);
-  for (int s0 = 0; s0 < steps; s0 += PFD) {
+      for (int w = 0; w < WPL; ++w) dst[li + LPL * w] = __byte_perm(L.A[w], L.B[w], 0x6420);
+    }
+    // the costs of step s + 1
 #pragma unroll
-    for (int q = 0; q < PFD; ++q) {
-      const int s = s0 + q;
-      if (s < steps) {  // warp-uniform
-        path_step(L, cA, cB, xA, xB, s == 0, p1x2, p2);
-        if (s < len) {
-          const int x = x0 + DX * s, y = y0 + DY * s;
-          u32* dst = (u32*)(vol + ((size_t)y * IMG_W + x) * DPAD);
-#pragma unroll
-          for (int w = 0; w < WPL; ++w) __stcs(dst + li + LPL * w, __byte_perm(L.A[w], L.B[w], 0x6420));
+    for (int w = 0; w < WPL; ++w) {
+      if (DY == 0) {
+        if (DX > 0) {
+          win[w][3] = win[w][2];
+          win[w][2] = win[w][1];
+          win[w][1] = win[w][0];
+          win[w][0] = next.r[w][0];
+        } else {
+          win[w][0] = win[w][1];
+          win[w][1] = win[w][2];
+          win[w][2] = win[w][3];
+          win[w][3] = next.r[w][0];
         }
-        // the costs of step s + 1, then the ring slot refilled with step s + 1 + PFD
-        StepLoads<DX, DY>& next = ring[(q + 1) % PFD];
+      } else {
 #pragma unroll
-        for (int w = 0; w < WPL; ++w) {
-          if (DY == 0) {
-            if (DX > 0) {
-              win[w][3] = win[w][2];
-              win[w][2] = win[w][1];
-              win[w][1] = win[w][0];
-              win[w][0] = next.r[w][0];
-            } else {
-              win[w][0] = win[w][1];
-              win[w][1] = win[w][2];
-              win[w][2] = win[w][3];
-              win[w][3] = next.r[w][0];
-            }
-          } else {
-#pragma unroll
-            for (int j = 0; j < 4; ++j) win[w][j] = next.r[w][DY == 0 ? 0 : j];
-          }
-        }
-        const int xn = s + 1 < len ? x0 + DX * (s + 1) : 0;
-        pixel_costs(next.cl, win, xn, cA, cB, xA, xB);
-        load_step<DX, DY>(cl, cr, x0, y0, len, s + 1 + PFD, next);
+        for (int j = 0; j < 4; ++j) win[w][j] = next.r[w][DY == 0 ? 0 : j];
       }
     }
+    const int xn = s + 1 < len ? x0 + DX * (s + 1) : 0;
+    pixel_costs(next.cl, win, xn, cA, cB, xA, xB);
+    next = after;
   }
 }
 
@@ -556,13 +543,13 @@ extern "C" __global__ void __launch_bounds__(128) sgm_wta(const u8* __restrict__
 // regions). It first writes the left-right-checked v of its rows and the row above and below into shared
 // memory, then takes each pixel's median from there and counts the valid results in a shared histogram
 // of 3 * NBINS 16-bit counters (a slab has at most 65535 pixels), whose non-zero counts it adds to the
-// global histogram (9 * NBINS u32). The last block over all slabs (a ticket counter) finds, per region
-// (one warp each), n and the k-th largest v, z = fb / (v / 16) in float32, and zeroes the histogram and
-// the counter for the next frame. Block: 256 threads.
+// global histogram (9 * NBINS u32). The last block over all slabs (a ticket counter) finds, per region, n
+// and the k-th largest v, z = fb / (v / 16) in float32, and zeroes the histogram and the counter for the
+// next frame. Block: 256 threads.
 
 #define POST_THREADS 256
 #define HIST_WORDS ((3 * NBINS + 1) / 2)
-#define FIN_CHUNK ((NBINS + 31) / 32)
+#define FIN_CHUNK ((NBINS + POST_THREADS - 1) / POST_THREADS)
 #define CHK_ROWS (SLAB_ROWS + 2)
 
 __device__ __forceinline__ u32 sgm_region_area(int reg) {
@@ -575,6 +562,8 @@ __device__ __forceinline__ u32 sgm_region_area(int reg) {
 struct SmemPost {
   u32 hist[HIST_WORDS];
   short chk[CHK_ROWS * IMG_W];
+  u32 warp_sum[POST_THREADS / 32];
+  int found;
   int flag;
 };
 
@@ -675,14 +664,21 @@ extern "C" __global__ void __launch_bounds__(POST_THREADS) sgm_post(const int* _
   __syncthreads();
   if (!sm.flag) return;
   __threadfence();
-  // one warp per region: lane l sums bins NBINS-1-l*FIN_CHUNK down to NBINS-(l+1)*FIN_CHUNK (from the
-  // largest v), a warp prefix sum finds the lane holding the k-th largest, which walks its chunk
-  const int lane = tid & 31;
-  for (int reg = tid >> 5; reg < N_REG; reg += POST_THREADS / 32) {
+  const int lane = tid & 31, warp = tid >> 5;
+  for (int reg = 0; reg < N_REG; ++reg) {
+    // thread t holds bins NBINS-1-t*FIN_CHUNK down to NBINS-(t+1)*FIN_CHUNK (from the largest v)
+    u32 h[FIN_CHUNK];
     u32 part = 0;
+#pragma unroll
     for (int c = 0; c < FIN_CHUNK; ++c) {
-      const int bin = NBINS - 1 - lane * FIN_CHUNK - c;
-      if (bin >= 0) part += __ldcg(hist_g + reg * NBINS + bin);
+      const int bin = NBINS - 1 - tid * FIN_CHUNK - c;
+      h[c] = 0u;
+      if (bin >= 0) {
+        u32* p = hist_g + reg * NBINS + bin;
+        h[c] = __ldcg(p);
+        *p = 0u;
+      }
+      part += h[c];
     }
     u32 incl = part;
 #pragma unroll
@@ -690,43 +686,45 @@ extern "C" __global__ void __launch_bounds__(POST_THREADS) sgm_post(const int* _
       const u32 t = __shfl_up_sync(FULL_MASK, incl, off);
       if (lane >= off) incl += t;
     }
-    const u32 n = __shfl_sync(FULL_MASK, incl, 31);
+    if (lane == 31) sm.warp_sum[warp] = incl;
+    if (tid == 0) sm.found = -1;
+    __syncthreads();
+    u32 before = 0, n = 0;
+    for (int w = 0; w < POST_THREADS / 32; ++w) {
+      const u32 ws = sm.warp_sum[w];
+      if (w < warp) before += ws;
+      n += ws;
+    }
     const double frac = (double)n / (double)sgm_region_area(reg);
     const bool known = n > 0 && !(frac < min_valid);
-    int found = -1;
     if (known) {
       const double kd = ceil(pct * (double)n / 100.0);
       const u32 k = kd < 1.0 ? 1u : (u32)kd;
-      const u32 lo = incl - part;  // valid pixels in bins above this lane's
-      if (lo < k && k <= incl) {
+      const u32 lo = before + incl - part;  // valid pixels in bins above this thread's
+      if (lo < k && k <= lo + part) {
         u32 acc = lo;
+#pragma unroll
         for (int c = 0; c < FIN_CHUNK; ++c) {
-          const int bin = NBINS - 1 - lane * FIN_CHUNK - c;
-          acc += __ldcg(hist_g + reg * NBINS + bin);
+          acc += h[c];
           if (acc >= k) {
-            found = bin;
+            sm.found = NBINS - 1 - tid * FIN_CHUNK - c;
             break;
           }
         }
       }
     }
-    found = max(found, __shfl_xor_sync(FULL_MASK, found, 16));
-    found = max(found, __shfl_xor_sync(FULL_MASK, found, 8));
-    found = max(found, __shfl_xor_sync(FULL_MASK, found, 4));
-    found = max(found, __shfl_xor_sync(FULL_MASK, found, 2));
-    found = max(found, __shfl_xor_sync(FULL_MASK, found, 1));
-    // zero this region's bins for the next frame (after every lane has read them)
-    __syncwarp();
-    for (int bin = lane; bin < NBINS; bin += 32) hist_g[reg * NBINS + bin] = 0u;
-    if (lane == 0) {
+    __syncthreads();
+    if (tid == 0) {
       double depth = (double)sgm_nan();
       if (known) {
-        const float z = found == 0 ? __int_as_float(0x7f800000) : __fdiv_rn(fb, (float)found * 0.0625f);
+        const int v = sm.found;
+        const float z = v == 0 ? __int_as_float(0x7f800000) : __fdiv_rn(fb, (float)v * 0.0625f);
         depth = (double)z < max_depth ? (double)z : max_depth;
       }
       result[reg] = depth;
       result[N_REG + reg] = frac;
     }
+    __syncthreads();
   }
   if (tid == 0) *counter = 0u;
 }
