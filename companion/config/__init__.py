@@ -63,6 +63,7 @@ __all__ = [
     "StereoConfig",
     "VehicleConfig",
     "apply_patch",
+    "check_rig_config",
     "load_config",
     "parse_config",
 ]
@@ -107,15 +108,51 @@ def format_validation_error(err: ValidationError, source: str) -> str:
 
 
 def parse_config(data: Mapping[str, Any], source: str = "config") -> CompanionConfig:
-    """Validate a mapping (e.g. parsed TOML) into a :class:`CompanionConfig`.
+    """Validate a mapping (e.g. parsed TOML) into a :class:`CompanionConfig`, then check that the stereo
+    setting works with the rig (:func:`check_rig_config`: warnings are logged, errors raised).
 
     Raises:
-        ConfigError: naming each bad field's path and value.
+        ConfigError: naming each bad field's path and value, or what cannot work with the rig (with the
+            nearest depth the rig can measure).
     """
     try:
-        return CompanionConfig.model_validate(dict(data))
+        cfg = CompanionConfig.model_validate(dict(data))
     except ValidationError as err:
         raise ConfigError(format_validation_error(err, source), source=source) from None
+    check_rig_config(cfg, source)
+    return cfg
+
+
+def check_rig_config(cfg: CompanionConfig, source: str = "config") -> list[str]:
+    """Check the stereo setting against the rig at the camera's eye size (issue 15, item 6).
+
+    The rig is the calibration file's rectified geometry, or the ideal rig without one; a calibration
+    that cannot be loaded here is left to the estimator, which reports it. See
+    :mod:`companion.core.rig_check` for the rules.
+
+    Returns:
+        The warnings (each also logged on ``companion.config``).
+
+    Raises:
+        ConfigError: the setting cannot work (one line per problem, each naming the nearest depth).
+    """
+    import logging
+
+    from companion.core.calibration import make_rectifier
+    from companion.core.rig_check import check_rig
+    from companion.errors import CompanionError
+
+    try:
+        geometry = make_rectifier(cfg.calibration, cfg.camera.width_px, cfg.camera.height_px).geometry
+    except (CompanionError, OSError, ValueError) as err:
+        logging.getLogger(__name__).debug("%s: rig not checked (calibration not loadable here: %s)", source, err)
+        return []
+    result = check_rig(geometry, cfg.stereo, cfg.regions, cfg.controller)
+    if result.errors:
+        raise ConfigError(f"{source}: " + "; ".join(result.errors), source=source)
+    for w in result.warnings:
+        logging.getLogger(__name__).warning("%s: %s", source, w)
+    return list(result.warnings)
 
 
 def load_config(path: Path | str | None) -> CompanionConfig:

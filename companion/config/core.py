@@ -103,12 +103,15 @@ class StereoConfig(StrictModel):
         default=9, ge=5, le=31, description="Side of the square matching window in pixels; odd."
     )
     uniqueness_ratio_pct: int = Field(
-        default=10,
+        default=5,
         ge=0,
         le=100,
         description=(
             "Reject a match unless its cost beats every non-adjacent disparity's cost by this margin, "
-            "percent (OpenCV's uniquenessRatio; the reference and cupy backends use the same rule)."
+            "percent (OpenCV's uniquenessRatio; matcher sad of the reference and cupy backends uses the "
+            "same rule). 5 (10 before 2026-11-23): on a plain wall 3 m ahead StereoBM left 15 of 27 "
+            "regions unknown instead of 27, for 1.16 % bad-2 on Aloe instead of 1.00 % (with "
+            "disp12_max_diff_px 1; docs/benchmarks.md)."
         ),
     )
     texture_threshold_grey: int = Field(
@@ -146,6 +149,25 @@ class StereoConfig(StrictModel):
         ge=0,
         le=64,
         description="opencv-bm/sgbm: disparity variation within a blob still counted as one blob, pixels.",
+    )
+    disp12_max_diff_px: int = Field(
+        default=1,
+        ge=-1,
+        le=64,
+        description=(
+            "opencv-bm: OpenCV's left-right check (disp12MaxDiff): reject a pixel whose disparity differs "
+            "by more than this from the right view's, px; -1 = off. On Aloe (docs/benchmarks.md) 1 halves "
+            "StereoBM's bad-2 (2.1 -> 1.0 %) at the same density and speed. opencv-sgbm: the tolerance of "
+            "sgbm_lr_check (OpenCV 5's StereoSGBM itself ignores disp12MaxDiff: measured identical)."
+        ),
+    )
+    sgbm_lr_check: bool = Field(
+        default=False,
+        description=(
+            "opencv-sgbm: mirrored left-right check: a second StereoSGBM on the mirrored pair gives the "
+            "right view's disparity, and a pixel whose disparity differs from it by more than "
+            "disp12_max_diff_px (1 when that is -1) is rejected. About doubles the matcher's time."
+        ),
     )
     sgbm_mode: Literal["sgbm", "hh", "sgbm_3way", "hh4"] = Field(
         default="sgbm_3way", description="opencv-sgbm: path aggregation mode (sgbm_3way is the fastest)."
