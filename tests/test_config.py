@@ -159,7 +159,7 @@ def test_settings_that_work_badly_are_warnings(caplog: pytest.LogCaptureFixture)
 
     cfg = parse_config(_patched(stereo={"num_disparities": 128}))  # the corridor setting
     warnings = check_rig_config(cfg)
-    assert any("searches down to 0.27 m" in w and "96 would reach 0.38 m" in w for w in warnings)
+    assert any("searches down to 0.27 m" in w and "96 would reach 0.36 m" in w for w in warnings)
     assert any("CPU fallback" in w for w in warnings)  # auto on a machine without a GPU: opencv-bm
     # the SGM matcher matches every column: only the depth-range warning remains
     sgm = check_rig_config(parse_config(_patched(stereo={"num_disparities": 128, "backend": "cupy"})))

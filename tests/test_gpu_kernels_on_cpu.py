@@ -60,7 +60,7 @@ def test_kernel_source_equals_the_reference(w: int, h: int, d: int, b: int, u: i
     ("w", "h", "d", "paths", "p1", "p2", "u", "lr", "median", "lanes"),
     [
         (40, 18, 32, 8, 10, 120, 10, 1, True, 32),  # a whole warp per line (96 padded disparities), diagonals
-        (48, 12, 128, 4, 8, 80, 0, 0, False, 0),  # 16 lanes x 2 groups (the 1280x720 shape), u = 0, strict LR
+        (48, 12, 128, 4, 8, 80, 0, 0, False, 16),  # 16 lanes x 2 groups (the faster 128 layout), u = 0, strict LR
         (56, 16, 48, 4, 192, 193, 5, -1, True, 8),  # padded (48 of 64), 2 groups per lane, costs up to 255, no LR
     ],
 )

@@ -109,7 +109,11 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
             "camera": {"width_px": w, "height_px": h},
             "gpu": {"disparity_preview_downsample": 0},
         },
+        check_rig=False,  # scored whatever the rig; the check's findings are reported instead
     )
+    from companion.core.rig_check import check_rig
+
+    rig_check = check_rig(pair.geometry(), cfg.stereo, cfg.regions, cfg.controller)
     est = make_estimator(cfg, w, h)
     frame = np.ascontiguousarray(np.hstack([pair.left, pair.right]))
     t0 = time.perf_counter()
@@ -133,6 +137,8 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
         "rig": {"focal_px": pair.focal_px, "baseline_m": pair.baseline_m, "doffs_px": pair.doffs_px,
                 "assumed": pair.assumed},
         "backend": backend,
+        "rig_check": {"errors": list(rig_check.errors), "warnings": list(rig_check.warnings),
+                      "nearest_depth_m": rig_check.nearest_depth_m},
         "run_s": run_s,
         "disparity": disparity_metrics(disp, pair.disparity, D),
         **region_report(disp, pair, cfg),
@@ -155,6 +161,9 @@ def print_report(r: dict[str, Any]) -> None:
         f"rig: f = {rig['focal_px']:.1f} px, B = {rig['baseline_m']:.3f} m, doffs = {rig['doffs_px']:.1f} px"
         + (" (assumed: no calibration)" if rig["assumed"] else "")
     )
+    for kind in ("errors", "warnings"):
+        for msg in r["rig_check"][kind]:
+            print(f"config check ({kind[:-1]}, not applied here): {msg}")
     print(f"backend: {r['backend']}, {r['run_s'] * 1e3:.1f} ms for the frame")
     for label in ("known", "matchable"):
         print(

@@ -107,9 +107,11 @@ def format_validation_error(err: ValidationError, source: str) -> str:
     return f"{source}: invalid config: " + "; ".join(parts)
 
 
-def parse_config(data: Mapping[str, Any], source: str = "config") -> CompanionConfig:
+def parse_config(data: Mapping[str, Any], source: str = "config", *, check_rig: bool = True) -> CompanionConfig:
     """Validate a mapping (e.g. parsed TOML) into a :class:`CompanionConfig`, then check that the stereo
-    setting works with the rig (:func:`check_rig_config`: warnings are logged, errors raised).
+    setting works with the rig (:func:`check_rig_config`: warnings are logged, errors raised), unless
+    ``check_rig`` is False (``companion eval``, which scores pairs from any rig and reports the check's
+    findings itself).
 
     Raises:
         ConfigError: naming each bad field's path and value, or what cannot work with the rig (with the
@@ -119,7 +121,8 @@ def parse_config(data: Mapping[str, Any], source: str = "config") -> CompanionCo
         cfg = CompanionConfig.model_validate(dict(data))
     except ValidationError as err:
         raise ConfigError(format_validation_error(err, source), source=source) from None
-    check_rig_config(cfg, source)
+    if check_rig:
+        check_rig_config(cfg, source)
     return cfg
 
 
@@ -188,12 +191,13 @@ def _deep_merge(base: dict[str, Any], patch: Mapping[str, Any], path: str) -> di
     return out
 
 
-def apply_patch(config: CompanionConfig, patch: Mapping[str, Any]) -> CompanionConfig:
+def apply_patch(config: CompanionConfig, patch: Mapping[str, Any], *, check_rig: bool = True) -> CompanionConfig:
     """Return a new config: ``config`` with ``patch`` deep-merged in (tables merge, lists replace).
 
-    The whole result is validated; on error ``config`` is untouched and a ConfigError says which field.
+    The whole result is validated (and, unless ``check_rig`` is False, checked against the rig: see
+    :func:`parse_config`); on error ``config`` is untouched and a ConfigError says which field.
     """
     if not isinstance(patch, Mapping):
         raise ConfigError(f"patch: expected a table/object, got {type(patch).__name__}")
     merged = _deep_merge(config.model_dump(mode="python"), patch, "")
-    return parse_config(merged, source="patch")
+    return parse_config(merged, source="patch", check_rig=check_rig)

@@ -11,10 +11,11 @@ For the camera's eye size and the rig (the calibration file's rectified geometry
   rig measures nothing nearer than where the controller's ``near`` term reaches 0 (nothing could ever read
   near);
 * **warnings** (it works, badly): ``z_min`` beyond the ``near`` term's full-membership edge (obstacles
-  nearer than ``z_min`` cannot be measured); ``z_min`` below half of that edge (disparities for depths
-  the controller does not distinguish: they cost time and, with block matching, add false matches at the
-  largest disparities, read as phantom obstacles); a block matcher's band covering more than half of the
-  left regions' columns (they read unknown, i.e. near, most of the time).
+  nearer than ``z_min`` cannot be measured); more disparities than the smallest multiple of 16 that
+  reaches half of that edge (disparities for depths the controller does not distinguish: they cost time
+  and, with block matching, add false matches at the largest disparities, read as phantom obstacles); a
+  block matcher's band covering more than half of the left regions' columns (they read unknown, i.e.
+  near, most of the time).
 
 Pure: the geometry comes from :func:`~companion.core.calibration.make_rectifier`, which reads the
 calibration file when one is set.
@@ -127,15 +128,18 @@ def check_rig(
                 f"disparities ({rig})"
             )
         elif z_min > full:
+            n = _suggest_disparities(fb, full)
             warnings.append(
                 f"obstacles nearer than {z_min:.2f} m cannot be measured (the controller's 'near' is full from "
-                f"{full} m); {_suggest_disparities(fb, full)} disparities would reach {full} m ({rig})"
+                f"{full} m); {n} disparities would reach {fb / (n - 1):.2f} m ({rig})"
             )
-        elif z_min < full / 2:
+        elif _suggest_disparities(fb, full / 2) < D:
+            # more disparities than the smallest multiple of 16 that reaches half the full-near edge
+            n = _suggest_disparities(fb, full / 2)
             warnings.append(
                 f"stereo.num_disparities = {D} searches down to {z_min:.2f} m, less than half the {full} m "
                 f"where the controller's 'near' is full: the largest disparities cost time and, with block "
-                f"matching, add false matches read as phantom obstacles; "
-                f"{_suggest_disparities(fb, full / 2)} would reach {full / 2:.2f} m ({rig})"
+                f"matching, add false matches read as phantom obstacles; {n} would reach "
+                f"{fb / (n - 1):.2f} m ({rig})"
             )
     return RigCheck(nearest_depth_m=z_min, errors=tuple(errors), warnings=tuple(warnings))
