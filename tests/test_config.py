@@ -113,3 +113,65 @@ def test_region_name_type_lists_the_regions_in_order() -> None:
     from companion.core.types import REGION_NAMES
 
     assert get_args(RegionName) == REGION_NAMES
+
+
+# --------------------------------------------------------------------------------------------------
+# the stereo setting against the rig (issue 15, item 6)
+
+_RIG_640 = {"camera": {"width_px": 640, "height_px": 480},
+            "calibration": {"ideal_baseline_m": 0.075, "ideal_hfov_deg": 70.0}}
+
+
+def _patched(**sections: dict) -> dict:
+    data = {k: dict(v) for k, v in _RIG_640.items()}
+    for k, v in sections.items():
+        data.setdefault(k, {}).update(v)
+    return data
+
+
+def test_the_defaults_pass_the_rig_check_without_a_warning() -> None:
+    from companion.config import check_rig_config
+
+    assert check_rig_config(CompanionConfig()) == []
+    assert check_rig_config(parse_config({"camera": {"width_px": 1280, "height_px": 720},
+                                          "stereo": {"num_disparities": 128}})) == []
+
+
+@pytest.mark.parametrize(
+    ("data", "expected"),
+    [
+        (_patched(stereo={"num_disparities": 256, "backend": "opencv-bm"}), "reach into the centre region"),
+        (_patched(stereo={"num_disparities": 256, "backend": "cupy", "matcher": "sad"}), "use at most 240"),
+        ({"regions": {"safe_window_width_m": 5.0}}, "wider or taller than the 672 x 376 px view"),
+        ({"stereo": {"num_disparities": 16}}, "nothing could ever read near"),
+        ({"camera": {"width_px": 100, "height_px": 60}, "stereo": {"num_disparities": 112}}, "not below"),
+    ],
+)
+def test_settings_that_cannot_work_are_errors_naming_the_nearest_depth(data: dict, expected: str) -> None:
+    with pytest.raises(ConfigError) as exc:
+        parse_config(data, source="rig.toml")
+    msg = str(exc.value)
+    assert expected in msg and "the nearest depth this rig can measure is" in msg and msg.startswith("rig.toml: ")
+
+
+def test_settings_that_work_badly_are_warnings(caplog: pytest.LogCaptureFixture) -> None:
+    from companion.config import check_rig_config
+
+    cfg = parse_config(_patched(stereo={"num_disparities": 128}))  # the issue's corridor setting
+    warnings = check_rig_config(cfg)
+    assert any("searches down to 0.27 m" in w and "96 would reach 0.36 m" in w for w in warnings)
+    assert any("CPU fallback" in w for w in warnings)  # auto on a machine without a GPU: opencv-bm
+    # the SGM matcher matches every column: only the depth-range warning remains
+    sgm = check_rig_config(parse_config(_patched(stereo={"num_disparities": 128, "backend": "cupy"})))
+    assert len(sgm) == 1 and "searches down to" in sgm[0]
+    far = check_rig_config(parse_config({"stereo": {"num_disparities": 48}}))
+    assert any("nearer than 0.86 m cannot be measured" in w for w in far)
+    with caplog.at_level("WARNING", logger="companion.config"):
+        load_config_text = parse_config(_patched(stereo={"num_disparities": 128}), source="x.toml")
+    assert load_config_text.stereo.num_disparities == 128
+    assert any(r.message.startswith("x.toml: ") for r in caplog.records)
+
+
+def test_a_calibration_that_cannot_be_loaded_is_left_to_the_estimator(tmp_path: Path) -> None:
+    cfg = parse_config({"calibration": {"file": str(tmp_path / "missing.yaml")}, "stereo": {"num_disparities": 16}})
+    assert cfg.stereo.num_disparities == 16  # not checked here: the estimator reports the missing file

@@ -397,3 +397,23 @@ def test_opencv_tiny_images_are_all_nan(backend: str, h: int, w: int) -> None:
     m = make_cpu_matcher(StereoConfig(backend=backend, num_disparities=64, block_size_px=9))
     img = np.random.default_rng(0).integers(0, 256, (h, w), dtype=np.uint8)
     assert np.isnan(m.compute(img, img)).all()
+
+
+def test_left_right_checks_of_the_opencv_matchers() -> None:
+    """BM gets OpenCV's disp12MaxDiff; SGBM's mirrored check only removes pixels, and removes some."""
+    from companion.core.disparity import OpenCVBMMatcher, OpenCVSGBMMatcher
+
+    assert OpenCVBMMatcher(StereoConfig(disp12_max_diff_px=3))._matcher.getDisp12MaxDiff() == 3
+    assert StereoConfig().disp12_max_diff_px == 1 and StereoConfig().uniqueness_ratio_pct == 5
+    rng = np.random.default_rng(7)
+    left = cv2.GaussianBlur(rng.integers(0, 256, (80, 200)).astype(np.float32), (0, 0), 1.0)
+    left = np.clip((left - left.mean()) * 3 + 128, 0, 255).astype(np.uint8)
+    right = np.roll(left, -6, axis=1)
+    right[:, 120:] = rng.integers(0, 256, (80, 80), dtype=np.uint8)  # no true match there
+    base = StereoConfig(backend="opencv-sgbm", num_disparities=32, block_size_px=5)
+    plain = OpenCVSGBMMatcher(base).compute(left, right)
+    checked = OpenCVSGBMMatcher(base.model_copy(update={"sgbm_lr_check": True})).compute(left, right)
+    kept = ~np.isnan(checked)
+    np.testing.assert_array_equal(checked[kept], plain[kept])
+    assert kept.sum() < (~np.isnan(plain)).sum()
+    assert np.nanmedian(checked[:, 40:110]) == 6.0

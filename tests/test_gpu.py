@@ -19,6 +19,7 @@ from companion.config import CompanionConfig
 from companion.core.calibration import Rectifier, StereoCalibration, make_rectifier, remap_linear_reference
 from companion.core.disparity.reference import sad_block_match
 from companion.backends import cuda_available, make_estimator, make_pipeline
+from companion.core.disparity.sgm import fixed_to_float, sgm_match
 from companion.core.estimator import CpuRegionEstimator
 from companion.core.stereo import split_side_by_side, to_grey
 from companion.errors import FrameError
@@ -39,15 +40,20 @@ def _cfg(
     t: int = 3,
     calib: Path | None = None,
     regions: dict[str, Any] | None = None,
+    matcher: str = "sad",
+    sgm: dict[str, Any] | None = None,
     **gpu: Any,
 ) -> CompanionConfig:
+    """A cupy config; the SAD matcher unless ``matcher="sgm"`` (``sgm``: sgm_* stereo fields)."""
     data: dict[str, Any] = {
         "stereo": {
             "backend": "cupy",
+            "matcher": matcher,
             "num_disparities": D,
             "block_size_px": b,
             "uniqueness_ratio_pct": u,
             "texture_threshold_grey": t,
+            **(sgm or {}),
         },
         "gpu": {"disparity_preview_downsample": 0, **gpu},
     }
@@ -449,3 +455,213 @@ def test_distorted_calibration_object_matches_file(tmp_path: Path) -> None:
     rect = make_rectifier(_cfg(calib=path).calibration, w, h)
     assert isinstance(rect, Rectifier) and isinstance(rect.calibration, StereoCalibration)
     assert rect.calibration.image_size == (w, h)
+
+
+# --------------------------------------------------------------------------------------------------
+# the semi-global matcher (stereo.matcher = "sgm", the default)
+
+
+def _sgm_ref(left: np.ndarray, right: np.ndarray, cfg: CompanionConfig) -> np.ndarray:
+    """int16 disparity × 16 of the NumPy reference for ``cfg``'s SGM settings."""
+    st = cfg.stereo
+    return sgm_match(
+        left, right, st.num_disparities, p1=st.sgm_p1, p2=st.sgm_p2, paths=st.sgm_paths,
+        uniqueness_ratio_pct=st.sgm_uniqueness_ratio_pct, lr_max_diff_px=st.sgm_lr_max_diff_px,
+        median=st.sgm_median,
+    )
+
+
+_SGM_SETTINGS = [
+    {},  # the defaults: 4 paths, P1 10, P2 120, u 10, LR 1, median
+    {"sgm_paths": 8, "sgm_p1": 8, "sgm_p2": 80},
+    {"sgm_uniqueness_ratio_pct": 0, "sgm_lr_max_diff_px": -1, "sgm_median": False},
+    {"sgm_paths": 8, "sgm_p1": 192, "sgm_p2": 193, "sgm_lr_max_diff_px": 0},  # every path cost up to 255
+]
+
+
+@pytest.mark.parametrize("size", [(101, 67), (333, 211), (400, 130)])
+@pytest.mark.parametrize("D", [16, 48, 64, 128, 256])
+def test_sgm_disparity_equals_reference_on_random_pairs(size: tuple[int, int], D: int) -> None:
+    w, h = size
+    rng = np.random.default_rng(w * D + 1)
+    left, right = _textured_pair(h, w, rng)
+    for sgm in _SGM_SETTINGS:
+        cfg = _cfg(D=D, matcher="sgm", sgm=sgm)
+        est = _gpu(cfg, w, h)
+        assert est.matcher == "sgm" and est.disparity_scale == 16
+        res = est.estimate(_grey_frame(left, right), want_disparity=True)
+        ref = _sgm_ref(left, right, cfg)
+        np.testing.assert_array_equal(est.disparity_int16(), ref, err_msg=f"{w}x{h} D={D} {sgm}")
+        np.testing.assert_array_equal(res.disparity, fixed_to_float(ref))
+
+
+def test_sgm_ties_flat_and_periodic_patches() -> None:
+    h, w = 60, 200
+    rng = np.random.default_rng(5)
+    for period in (3, 7, 16):
+        row = rng.integers(0, 256, (1, period), dtype=np.uint8)
+        left = np.tile(row, (h, w // period + 1))[:, :w]
+        left[:, 100:140] = 77  # flat: every disparity ties
+        right = np.roll(left, -2, axis=1)
+        for D, sgm in [(64, {}), (16, {"sgm_uniqueness_ratio_pct": 0}), (128, {"sgm_paths": 8})]:
+            cfg = _cfg(D=D, matcher="sgm", sgm=sgm)
+            est = _gpu(cfg, w, h)
+            est.estimate(_grey_frame(left, right))
+            np.testing.assert_array_equal(est.disparity_int16(), _sgm_ref(left, right, cfg))
+
+
+@pytest.mark.parametrize(
+    ("size", "paths"),
+    [(BenchSize(320, 180, 64), 4), (BenchSize(672, 376, 64), 4), (BenchSize(672, 376, 64), 8),
+     (BenchSize(1280, 720, 128), 4)],
+)
+def test_sgm_disparity_and_regions_on_rendered_frames(size: BenchSize, paths: int) -> None:
+    _, frames = rendered_frames(size, 2, seed=3)
+    cfg = _cfg(D=size.num_disparities, matcher="sgm", sgm={"sgm_paths": paths},
+               regions={"robust_percentile_pct": 2.0})
+    est = _gpu(cfg, size.width_px, size.height_px)
+    cpu = _cpu(cfg, size.width_px, size.height_px)
+    for frame in frames:
+        res = est.estimate(frame, want_disparity=True)
+        exp = cpu.estimate(frame, want_disparity=True)
+        np.testing.assert_array_equal(res.disparity, exp.disparity)
+        _assert_regions_equal(res.regions, exp.regions)
+        assert np.isfinite(res.regions.depth_m).sum() >= 5
+
+
+@pytest.mark.parametrize(
+    "regions",
+    [
+        {"robust_percentile_pct": 0.0},
+        {"robust_percentile_pct": 2.0},
+        {"robust_percentile_pct": 7.5, "min_valid_fraction": 0.4, "max_depth_m": 3.0},
+    ],
+)
+@pytest.mark.parametrize("calibrated", [False, True])
+def test_sgm_region_depths_equal_cpu_reference(tmp_path: Path, regions: dict[str, Any], calibrated: bool) -> None:
+    w, h = 336, 188
+    rng = np.random.default_rng(12)
+    calib = _write_calibration(tmp_path, w, h) if calibrated else None
+    cfg = _cfg(D=64, calib=calib, regions=regions, matcher="sgm")
+    est = _gpu(cfg, w, h)
+    cpu = _cpu(cfg, w, h)
+    for i in range(3):
+        frame = _bgr_frame(h, w, rng)
+        if i == 1:
+            frame[: h // 3] = 128  # flat: few unique matches up there
+        _assert_regions_equal(est.estimate(frame).regions, cpu.estimate(frame).regions)
+
+
+@pytest.mark.parametrize(
+    "gpu",
+    [
+        {"use_cuda_graph": False},
+        {"zero_copy": True},
+        {"pipeline_bands": 1},
+        {"pipeline_bands": 5, "host_copy_threads": 3},
+        {"host_copy_engine": "opencv", "pipeline_bands": 3},
+        {"stage_timing": True},
+    ],
+)
+def test_sgm_options_give_the_same_results(tmp_path: Path, gpu: dict[str, Any]) -> None:
+    w, h = 320, 180
+    rng = np.random.default_rng(17)
+    cfg = _cfg(D=64, matcher="sgm", calib=_write_calibration(tmp_path, w, h), **gpu)
+    est = _gpu(cfg, w, h)
+    cpu = _cpu(cfg, w, h)
+    for channels in (3, 4, 1):
+        frame = _bgr_frame(h, w, rng, channels=4 if channels == 4 else 3)
+        if channels == 1:
+            frame = cv2.cvtColor(np.ascontiguousarray(frame), cv2.COLOR_BGR2GRAY)
+        res = est.estimate(frame, want_disparity=bool(rng.integers(0, 2)))
+        _assert_regions_equal(res.regions, cpu.estimate(frame).regions)
+    if gpu.get("stage_timing"):
+        for key in ("h2d_ms", "grey_rectify_ms", "disparity_regions_ms", "d2h_ms"):
+            assert res.timings_ms[key] > 0
+
+
+@pytest.mark.parametrize(("preview", "block"), [(4, 4), (4, 8), (0, 4), (2, 6)])
+def test_sgm_preview_and_memory_blocks_equal_the_cpu_reference(preview: int, block: int) -> None:
+    from companion.core.memory import block_max
+
+    w, h = 330, 190
+    left, right = _textured_pair(h, w, np.random.default_rng(13))
+    cfg = _cfg(D=64, matcher="sgm", disparity_preview_downsample=preview)
+    cfg = cfg.model_copy(update={"memory": cfg.memory.model_copy(update={"block_px": block})})
+    res = _gpu(cfg, w, h).estimate(_grey_frame(left, right), want_disparity=True, near_block_px=block)
+    ref = fixed_to_float(_sgm_ref(left, right, cfg))
+    np.testing.assert_array_equal(res.near_blocks, block_max(ref, block))
+    f = preview if preview >= 2 else 1
+    if f > 1:
+        oh, ow = math.ceil(h / f), math.ceil(w / f)
+        pad = np.full((oh * f, ow * f), np.nan, np.float32)
+        pad[:h, :w] = ref
+        blocks = np.nan_to_num(pad, nan=-1.0).reshape(oh, f, ow, f).max(axis=(1, 3))
+        np.testing.assert_array_equal(res.disparity, np.where(blocks < 0, np.float32(np.nan), blocks))
+    else:
+        np.testing.assert_array_equal(res.disparity, ref)
+
+
+def test_sgm_is_the_default_and_the_pipelines_agree() -> None:
+    w, h = 320, 180
+    cfg = CompanionConfig.model_validate({"stereo": {"backend": "cupy"}})
+    assert cfg.stereo.matcher == "sgm"
+    est = make_estimator(cfg, w, h)
+    assert est.name == "cupy" and est.matcher == "sgm"  # type: ignore[attr-defined]
+    _, frames = rendered_frames(BenchSize(w, h, 64), 3)
+    ref_cfg = cfg.model_copy(update={"stereo": cfg.stereo.model_copy(update={"backend": "reference"})})
+    gpu, ref = make_pipeline(cfg, w, h), make_pipeline(ref_cfg, w, h)
+    for k, frame in enumerate(frames):
+        a, b = gpu.process(frame, timestamp_s=0.1 * k), ref.process(frame, timestamp_s=0.1 * k)
+        np.testing.assert_array_equal(a.raw.depth_m, b.raw.depth_m)
+        np.testing.assert_array_equal(a.near_points_cam_m, b.near_points_cam_m)
+
+
+def test_sgm_small_images_and_frame_errors() -> None:
+    # every column is matched with the disparities it allows: an image narrower than D still works
+    w, h = 40, 12
+    rng = np.random.default_rng(3)
+    left, right = _textured_pair(h, w, rng)
+    cfg = _cfg(D=128, matcher="sgm")
+    est = _gpu(cfg, w, h)
+    est.estimate(_grey_frame(left, right))
+    np.testing.assert_array_equal(est.disparity_int16(), _sgm_ref(left, right, cfg))
+    with pytest.raises(FrameError):
+        est.estimate(np.zeros((h, 2 * w + 2, 3), np.uint8))
+    est.estimate(np.zeros((h, 2 * w, 3), np.uint8))  # still healthy
+
+
+def test_sgm_device_memory_and_shared_memory_per_block() -> None:
+    from companion.gpu.plan import SMEM_BUDGET_BYTES, plan_sgm
+
+    cfg = _cfg(D=128, matcher="sgm")
+    est = _gpu(cfg, 1280, 720)
+    sp = est.sgm_plan
+    assert sp is not None and sp == plan_sgm(1280, 720, 128, 4, est.layout.row_edges)
+    for name, kern in est._k_sgm.items():  # noqa: SLF001 - checking the compiled kernels' resources
+        assert kern.attributes["shared_size_bytes"] <= SMEM_BUDGET_BYTES, name
+
+
+def _shared_data(name: str) -> Path:
+    """``shared/data/<name>`` beside the checkout or a folder above it (as in tests/test_eval.py)."""
+    root = Path(__file__).resolve().parents[1]
+    for parent in root.parents:
+        if (parent / "shared" / "data" / name).is_dir():
+            return parent / "shared" / "data" / name
+    return root.parent / "shared" / "data" / name
+
+
+@pytest.mark.skipif(not (_shared_data("aloe") / "aloeGT.png").is_file(), reason="no shared Aloe pair")
+def test_sgm_on_aloe_equals_the_reference_and_meets_the_quality_target() -> None:
+    from companion.core.evaluation import disparity_metrics, load_middlebury, rescale
+
+    pair = rescale(load_middlebury(_shared_data("aloe")), 0.5)
+    h, w = pair.left.shape
+    cfg = _cfg(D=112, matcher="sgm")
+    est = _gpu(cfg, w, h)
+    res = est.estimate(_grey_frame(pair.left, pair.right), want_disparity=True)
+    ref = _sgm_ref(pair.left, pair.right, cfg)
+    np.testing.assert_array_equal(est.disparity_int16(), ref)
+    _assert_regions_equal(res.regions, _cpu(cfg, w, h).estimate(_grey_frame(pair.left, pair.right)).regions)
+    m = disparity_metrics(res.disparity, pair.disparity, 112)
+    assert m["bad2_known"] <= 0.04 and m["density_known"] >= 0.80

@@ -1,9 +1,10 @@
 """The CUDA kernels' exact source, run on the CPU (companion.gpu.hostemu), must equal the NumPy reference.
 
-CI has no GPU; this keeps the kernel source itself under test there: stereo.cu is compiled as C++
-against a small CUDA emulation (random fiber scheduling, so a missing barrier gives a wrong answer)
-and compared pixel for pixel with ``sad_block_match`` and the region reduction. The same comparison on
-a real GPU is tests/test_gpu.py (marker ``gpu``).
+CI has no GPU; this keeps the kernel source itself under test there: stereo.cu (SAD) and sgm.cu (SGM) are
+compiled as C++ against a small CUDA emulation (random fiber scheduling, so a missing barrier gives a
+wrong answer) and compared pixel for pixel with ``sad_block_match`` / ``sgm_match`` (every path volume
+too) and the region reduction. Images are small: the emulation switches fibers at every shuffle. The
+same comparison on a real GPU is tests/test_gpu.py (marker ``gpu``).
 """
 
 from __future__ import annotations
@@ -53,3 +54,41 @@ def test_kernel_source_equals_the_reference(w: int, h: int, d: int, b: int, u: i
     )
     np.testing.assert_array_equal(regions[:9], expected.depth_m)
     np.testing.assert_array_equal(regions[9:], expected.valid_fraction)
+
+
+@pytest.mark.parametrize(
+    ("w", "h", "d", "paths", "p1", "p2", "u", "lr", "median", "lanes"),
+    [
+        (40, 18, 32, 8, 10, 120, 10, 1, True, 32),  # a whole warp per line (96 padded disparities), diagonals
+        (48, 12, 128, 4, 8, 80, 0, 0, False, 16),  # 16 lanes x 2 groups (the faster 128 layout), u = 0, strict LR
+        (56, 16, 48, 4, 192, 193, 5, -1, True, 8),  # padded (48 of 64), 2 groups per lane, costs up to 255, no LR
+    ],
+)
+def test_sgm_kernel_source_equals_the_reference(
+    w: int, h: int, d: int, paths: int, p1: int, p2: int, u: int, lr: int, median: bool, lanes: int
+) -> None:
+    from companion.core.disparity import sgm as S
+    from companion.gpu.hostemu import HostSgmKernels
+
+    rng = np.random.default_rng([w, d, paths])
+    left = rng.integers(0, 256, (h, w), dtype=np.uint8)
+    right = np.roll(left, -int(rng.integers(3, 12)), axis=1)
+    right = np.clip(right.astype(int) + rng.integers(-3, 4, right.shape), 0, 255).astype(np.uint8)
+    left[h // 4 : h // 2, w // 3 : w // 2] = 90  # a flat patch: equal sums everywhere
+    right[h // 4 : h // 2, w // 3 : w // 2] = 90
+    rows_e, cols_e = [0, h // 3, 2 * h // 3, h], [0, w // 3, 2 * w // 3, w]
+    kernels = HostSgmKernels(w, h, d, paths, rows_e, cols_e, lanes_per_line=lanes)
+    out = kernels.run(left, right, p1, p2, u, lr, median)
+
+    np.testing.assert_array_equal(out["census_left"], S.census_9x7(left))
+    cost = S.census_costs(left, right, d)
+    for k, (dx, dy) in enumerate(S.PATH_DIRECTIONS[:paths]):
+        np.testing.assert_array_equal(out["volumes"][k][:, :, :d], S.aggregate_path(cost, dx, dy, p1, p2))
+    reference = S.sgm_match(left, right, d, p1=p1, p2=p2, paths=paths, uniqueness_ratio_pct=u,
+                            lr_max_diff_px=lr, median=median)
+    np.testing.assert_array_equal(out["disparity"], reference)
+    expected = reduce_regions_from_disparity(
+        S.fixed_to_float(reference), RegionLayout(np.array(rows_e), np.array(cols_e)), RegionsConfig(), 50.0
+    )
+    np.testing.assert_array_equal(out["regions"][:9], expected.depth_m)
+    np.testing.assert_array_equal(out["regions"][9:], expected.valid_fraction)

@@ -18,7 +18,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         description=(
             "Time the pipeline per stage on rendered ZED-like frames at 672x376 (64 disparities) and "
             "1280x720 (128 disparities), plus the fuzzy controller and the renderer. With --backend cupy, "
-            "the GPU path and OpenCV StereoBM on all host cores run on the same frames, with the ratio. "
+            "the GPU path (--matcher sgm or sad) and OpenCV StereoBM and StereoSGBM on all host cores run "
+            "on the same frames, with the ratios. "
             "With --e2e, frame-to-setpoint latency of the service over a replayed 60 fps stream."
         ),
     )
@@ -28,6 +29,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         choices=["opencv-bm", "opencv-sgbm", "reference", "cupy"],
         help="disparity backend to time (default opencv-bm)",
     )
+    p.add_argument(
+        "--matcher",
+        default="sgm",
+        choices=["sgm", "sad"],
+        help="with --backend cupy or reference: the matcher to time (default sgm)",
+    )
+    p.add_argument("--sgm-paths", type=int, default=4, choices=[4, 8], help="with --matcher sgm: paths (default 4)")
     p.add_argument("--frames", type=int, default=200, help="timed frames per size (default 200)")
     p.add_argument("--warmup", type=int, default=10, help="untimed frames first (default 10)")
     p.add_argument("--sizes", default=None, help="e.g. 672x376:64,1280x720:128 (the default)")
@@ -113,7 +121,12 @@ def _run_cpu_bench(args: argparse.Namespace, sizes: list[Any], tmp: Path) -> dic
         cfg = cfg.model_copy(
             update={
                 "stereo": cfg.stereo.model_copy(
-                    update={"backend": args.backend, "num_disparities": size.num_disparities}
+                    update={
+                        "backend": args.backend,
+                        "num_disparities": size.num_disparities,
+                        "matcher": args.matcher,
+                        "sgm_paths": args.sgm_paths,
+                    }
                 ),
                 "calibration": cfg.calibration.model_copy(
                     update={

@@ -27,7 +27,7 @@ from companion.config.controller import (
 from companion.config.lut import LutConfig
 from companion.config.memory import MemoryConfig
 from companion.config.regions import RegionName, RegionsConfig
-from companion.config.stereo import StereoBackend, StereoConfig
+from companion.config.stereo import StereoBackend, StereoConfig, StereoMatcher
 
 __all__ = [
     "CalibrationConfig",
@@ -43,4 +43,5 @@ __all__ = [
     "RuleConfig",
     "StereoBackend",
     "StereoConfig",
+    "StereoMatcher",
 ]

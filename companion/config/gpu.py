@@ -93,6 +93,14 @@ class GpuConfig(StrictModel):
             "one wave of blocks fills every multiprocessor (a tuning knob, not a behaviour)."
         ),
     )
+    sgm_lanes_per_line: Literal[0, 4, 8, 16, 32] = Field(
+        default=0,
+        description=(
+            "SGM kernels: lanes of a warp that own one image line (each lane then holds num_disparities "
+            "/ (4 x lanes) groups of 4 disparities); 0 = min(32, num_disparities / 4). A tuning knob, not "
+            "a behaviour: every setting gives the same results."
+        ),
+    )
     stage_timing: bool = Field(
         default=False,
         description=(

@@ -9,6 +9,7 @@ from pydantic import Field, field_validator, model_validator
 from companion.config._base import StrictModel
 
 StereoBackend = Literal["auto", "opencv-bm", "opencv-sgbm", "reference", "cupy"]
+StereoMatcher = Literal["sgm", "sad"]
 
 
 class StereoConfig(StrictModel):
@@ -19,8 +20,19 @@ class StereoConfig(StrictModel):
         description=(
             "Disparity backend. auto: cupy when a CUDA device and CuPy are present, else opencv-bm. "
             "opencv-bm: OpenCV StereoBM on the CPU (fast). opencv-sgbm: OpenCV StereoSGBM (better, "
-            "slower). reference: exact NumPy SAD block matching, the oracle the GPU must equal (slow). "
-            "cupy: the CUDA kernels, same rules as reference."
+            "slower). reference: the exact NumPy matcher that `matcher` names, the oracle the GPU must "
+            "equal bit for bit (slow: seconds per frame). cupy: the CUDA kernels, same rules as reference."
+        ),
+    )
+    matcher: StereoMatcher = Field(
+        default="sgm",
+        description=(
+            "reference and cupy: the matching algorithm. sgm: census (9x7) costs, semi-global "
+            "aggregation along sgm_paths paths, winner with the sgm_uniqueness_ratio_pct test, "
+            "sub-pixel, a left-right check and a 3x3 median (every column matched, with the "
+            "disparities it allows). sad: SAD block matching (block_size_px, uniqueness_ratio_pct, "
+            "texture_threshold_grey; the leftmost num_disparities + block_size_px/2 columns are never "
+            "matched). The OpenCV backends ignore it."
         ),
     )
     num_disparities: int = Field(
@@ -34,12 +46,15 @@ class StereoConfig(StrictModel):
         default=9, ge=5, le=31, description="Side of the square matching window in pixels; odd."
     )
     uniqueness_ratio_pct: int = Field(
-        default=10,
+        default=5,
         ge=0,
         le=100,
         description=(
             "Reject a match unless its cost beats every non-adjacent disparity's cost by this margin, "
-            "percent (OpenCV's uniquenessRatio; the reference and cupy backends use the same rule)."
+            "percent (OpenCV's uniquenessRatio; matcher sad of the reference and cupy backends uses the "
+            "same rule). 5 (10 before 2026-11-23): on a plain wall 3 m ahead StereoBM left 15 of 27 "
+            "regions unknown instead of 27, for 1.16 % bad-2 on Aloe instead of 1.00 % (with "
+            "disp12_max_diff_px 1; docs/benchmarks.md)."
         ),
     )
     texture_threshold_grey: int = Field(
@@ -78,6 +93,25 @@ class StereoConfig(StrictModel):
         le=64,
         description="opencv-bm/sgbm: disparity variation within a blob still counted as one blob, pixels.",
     )
+    disp12_max_diff_px: int = Field(
+        default=1,
+        ge=-1,
+        le=64,
+        description=(
+            "opencv-bm: OpenCV's left-right check (disp12MaxDiff): reject a pixel whose disparity differs "
+            "by more than this from the right view's, px; -1 = off. On Aloe (docs/benchmarks.md) 1 halves "
+            "StereoBM's bad-2 (2.1 -> 1.0 %) at the same density and speed. opencv-sgbm: the tolerance of "
+            "sgbm_lr_check (OpenCV 5's StereoSGBM itself ignores disp12MaxDiff: measured identical)."
+        ),
+    )
+    sgbm_lr_check: bool = Field(
+        default=False,
+        description=(
+            "opencv-sgbm: mirrored left-right check: a second StereoSGBM on the mirrored pair gives the "
+            "right view's disparity, and a pixel whose disparity differs from it by more than "
+            "disp12_max_diff_px (1 when that is -1) is rejected. About doubles the matcher's time."
+        ),
+    )
     sgbm_mode: Literal["sgbm", "hh", "sgbm_3way", "hh4"] = Field(
         default="sgbm_3way", description="opencv-sgbm: path aggregation mode (sgbm_3way is the fastest)."
     )
@@ -99,6 +133,57 @@ class StereoConfig(StrictModel):
         le=256,
         description="OpenCV worker threads for the CPU backends; 0 = all cores.",
     )
+    sgm_paths: Literal[4, 8] = Field(
+        default=4,
+        description=(
+            "matcher sgm: aggregation paths: 4 (left, right, up, down) or 8 (and the diagonals). On "
+            "Aloe at full size (docs/benchmarks.md) 8 paths (with P1 8, P2 80) gave 3.1 % bad-2 where 4 "
+            "gave 3.3 %, at the same density; on an H100 they cost about twice the aggregation time."
+        ),
+    )
+    sgm_p1: int = Field(
+        default=10,
+        ge=0,
+        le=192,
+        description=(
+            "matcher sgm: penalty for a disparity change of 1 px between neighbours along a path, in "
+            "census-cost units (bits of the 62-bit census); below sgm_p2."
+        ),
+    )
+    sgm_p2: int = Field(
+        default=120,
+        ge=1,
+        le=193,
+        description=(
+            "matcher sgm: penalty for a larger disparity change (a depth edge), census-cost units; at "
+            "most 193 so that every path cost fits one byte (62 + P2 <= 255). 10/120 measured best of "
+            "the settings tried on Aloe (docs/benchmarks.md)."
+        ),
+    )
+    sgm_uniqueness_ratio_pct: int = Field(
+        default=10,
+        ge=0,
+        le=100,
+        description=(
+            "matcher sgm: reject a pixel unless its summed cost beats every disparity 2 px or more "
+            "away by this margin, percent."
+        ),
+    )
+    sgm_lr_max_diff_px: int = Field(
+        default=1,
+        ge=-1,
+        le=16,
+        description=(
+            "matcher sgm: left-right check: reject a pixel whose disparity d differs by more than this "
+            "from the right view's disparity at x - d (computed from the same summed costs), pixels; "
+            "-1 = no check. Off, Aloe's bad-2 triples (3.9 % -> 11.7 % at half size with uniqueness 5, "
+            "docs/benchmarks.md)."
+        ),
+    )
+    sgm_median: bool = Field(
+        default=True,
+        description="matcher sgm: replace each valid disparity by the median of the valid ones in its 3x3 neighbourhood.",
+    )
 
     @field_validator("block_size_px")
     @classmethod
@@ -118,4 +203,6 @@ class StereoConfig(StrictModel):
     def _sgbm_penalties(self) -> StereoConfig:
         if self.sgbm_p1 and self.sgbm_p2 and self.sgbm_p2 <= self.sgbm_p1:
             raise ValueError(f"sgbm_p2 ({self.sgbm_p2}) must be greater than sgbm_p1 ({self.sgbm_p1})")
+        if self.sgm_p2 <= self.sgm_p1:
+            raise ValueError(f"sgm_p2 ({self.sgm_p2}) must be greater than sgm_p1 ({self.sgm_p1})")
         return self

@@ -1,7 +1,8 @@
-"""CuPy backend: the stereo pipeline's expensive half on a CUDA GPU (issue 4).
+"""CuPy backend: the stereo pipeline's expensive half on a CUDA GPU (issues 4 and 15).
 
 :class:`CupyRegionEstimator` implements the :class:`~companion.core.pipeline.RegionEstimator`
-contract with CUDA kernels (``kernels/stereo.cu``) that reproduce the CPU reference bit for bit.
+contract with CUDA kernels (``kernels/stereo.cu``: grey, remap, SAD block matching; ``kernels/sgm.cu``:
+census + semi-global matching) that reproduce the CPU reference bit for bit.
 Importing this package does not import CuPy; building an estimator does.
 """
 

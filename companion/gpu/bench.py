@@ -1,4 +1,9 @@
-"""``companion bench --backend cupy``: the GPU path against OpenCV StereoBM on all host cores.
+"""``companion bench --backend cupy``: the GPU path against OpenCV StereoBM and StereoSGBM on all host cores.
+
+``--matcher sgm`` (the default) times the semi-global matcher (``--sgm-paths`` 4 or 8), ``--matcher
+sad`` the SAD block matcher. For the SGM matcher the per-kernel times are its four kernels (census,
+first-pass paths, last path with the winner and the left-right check, median with the regions) and the
+device memory its buffers take.
 
 For each size (default 672x376 with 64 disparities and 1280x720 with 128, block 9) on the same
 rendered frames:
@@ -71,7 +76,15 @@ def _variant_name(opts: dict[str, Any]) -> str:
 SASS_LANE_INSTR_PER_PX_D = 16.1
 
 
-def _cfg(size: BenchSize, calib: Path | None, **gpu: Any) -> Any:
+#: Upload settings tried for the SGM matcher's whole-frame figure (its kernels dominate; fewer variants).
+SGM_UPLOAD_VARIANTS: tuple[dict[str, Any], ...] = (
+    {"host_copy_engine": "opencv", "pipeline_bands": 1},
+    {"host_copy_engine": "opencv", "pipeline_bands": 4},
+    {"host_copy_engine": "numpy", "pipeline_bands": 2},
+)
+
+
+def _cfg(size: BenchSize, calib: Path | None, matcher: str = "sad", sgm_paths: int = 4, **gpu: Any) -> Any:
     """The benchmark config; ``calib``: a calibration file (the remap is timed) or None (identity)."""
     from companion.config import CompanionConfig
 
@@ -80,11 +93,56 @@ def _cfg(size: BenchSize, calib: Path | None, **gpu: Any) -> Any:
         calibration["file"] = str(calib)
     return CompanionConfig.model_validate(
         {
-            "stereo": {"backend": "cupy", "num_disparities": size.num_disparities, "block_size_px": 9},
+            "stereo": {
+                "backend": "cupy",
+                "matcher": matcher,
+                "sgm_paths": sgm_paths,
+                "num_disparities": size.num_disparities,
+                "block_size_px": 9,
+            },
             "calibration": calibration,
             "gpu": gpu,
         }
     )
+
+
+def _sgm_kernel_times(est: Any, cp: Any, n: int) -> dict[str, dict[str, float]]:
+    """CUDA-event times of each SGM kernel, and of the four together, on the estimator's last rectified pair."""
+    from companion.gpu.plan import SGM_CENSUS_TILE
+
+    s = est._stream
+    events = [cp.cuda.Event() for _ in range(5)]
+    names = ("census", "paths", "wta_right", "lr_median_regions")
+    samples: dict[str, list[float]] = {k: [] for k in (*names, "sgm_total")}
+    k = est._k_sgm
+    sp = est.sgm_plan
+    w, h = est.width_px, est.height_px
+    p1, p2, uniq, lr_max, median = est._sgm_args
+    fb, pct, min_valid, max_depth = est._region_args
+    cen_l, cen_r = est._census[0], est._census[1]
+    tw, th = SGM_CENSUS_TILE
+    with est._device:
+        for i in range(n + 10):
+            events[0].record(s)
+            k["sgm_census"]((-(-w // tw), -(-h // th), 2), (tw, th),
+                            (est._rect_l, est._rect_r, cen_l, cen_r, est._right_keys), stream=s)
+            events[1].record(s)
+            k["sgm_paths"]((-(-sp.path_tasks // 4),), (128,), (cen_l, cen_r, est._volumes, p1, p2), stream=s)
+            events[2].record(s)
+            k["sgm_wta"]((-(-sp.wta_tasks // 4),), (128,), (est._volumes, est._winner, est._right_keys, uniq),
+                         stream=s)
+            events[3].record(s)
+            k["sgm_post"]((sp.post_blocks,), (256,),
+                          (est._winner, est._right_keys, est._disp, est._hist, est._counter, est._result_dev,
+                           lr_max, median, fb, pct, min_valid, max_depth),
+                          stream=s)
+            events[4].record(s)
+            events[4].synchronize()
+            if i >= 10:
+                for j, name in enumerate(names):
+                    samples[name].append(cp.cuda.get_elapsed_time(events[j], events[j + 1]))
+                samples["sgm_total"].append(cp.cuda.get_elapsed_time(events[0], events[4]))
+    return {key: stats_ms(v) for key, v in samples.items()}
 
 
 def _max_sm_clock_mhz(dev: Any) -> float:
@@ -249,17 +307,22 @@ def _time_estimator(est: Any, frames: list[np.ndarray], warmup: int, n: int) -> 
 def _opencv(size: BenchSize, calib: Path | None, frames: list[np.ndarray], warmup: int, n: int) -> dict[str, Any]:
     import cv2
 
+    from companion.config.core import StereoConfig
+    from companion.core.disparity import OpenCVSGBMMatcher
     from companion.core.estimator import CpuRegionEstimator
     from companion.core.stereo import split_side_by_side, to_grey
 
     threads = os.cpu_count() or 1
     cv2.setNumThreads(threads)
     bm = cv2.StereoBM_create(numDisparities=size.num_disparities, blockSize=9)
+    # StereoSGBM as the opencv-sgbm backend builds it (block 9, P1 = 8·81, P2 = 32·81, mode sgbm_3way,
+    # which OpenCV runs on its thread pool)
+    sgbm = OpenCVSGBMMatcher(StereoConfig(backend="opencv-sgbm", num_disparities=size.num_disparities))
     greys = []
     for f in frames:
         left, right = split_side_by_side(f)
         greys.append((to_grey(left), to_grey(right)))
-    bm_t, grey_bm_t = [], []
+    bm_t, grey_bm_t, sgbm_t = [], [], []
     for i in range(warmup + n):
         f = frames[i % len(frames)]
         gl, gr = greys[i % len(frames)]
@@ -273,6 +336,12 @@ def _opencv(size: BenchSize, calib: Path | None, frames: list[np.ndarray], warmu
         if i >= warmup:
             bm_t.append((t1 - t0) * 1e3)
             grey_bm_t.append((t2 - t1) * 1e3)
+    for i in range(warmup + min(n, 100)):
+        gl, gr = greys[i % len(frames)]
+        t0 = time.perf_counter()
+        sgbm.compute(gl, gr)
+        if i >= warmup:
+            sgbm_t.append((time.perf_counter() - t0) * 1e3)
     cfg = _cfg(size, calib)
     cfg = cfg.model_copy(update={"stereo": cfg.stereo.model_copy(update={"backend": "opencv-bm", "cpu_threads": 0})})
     cpu = CpuRegionEstimator(cfg, size.width_px, size.height_px)
@@ -288,6 +357,7 @@ def _opencv(size: BenchSize, calib: Path | None, frames: list[np.ndarray], warmu
         "threads": threads,
         "stereobm": stats_ms(bm_t),
         "grey_plus_stereobm": stats_ms(grey_bm_t),
+        "stereosgbm": stats_ms(sgbm_t),
         "cpu_estimator_opencv_bm": stats_ms(cpu_t),
     }
 
@@ -299,12 +369,17 @@ def run_gpu_bench(args: argparse.Namespace, sizes: list[BenchSize]) -> dict[str,
     from companion.gpu import CupyRegionEstimator
 
     n, warmup = int(args.frames), int(args.warmup)
+    matcher = getattr(args, "matcher", "sgm")
+    paths = int(getattr(args, "sgm_paths", 4))
     report: dict[str, Any] = {
         "date": datetime.date.today().isoformat(),
         "machine": machine_description(),
         "backend": "cupy",
+        "matcher": matcher,
+        "sgm_paths": paths if matcher == "sgm" else None,
         "sizes": {},
     }
+    opts = {"matcher": matcher, "sgm_paths": paths}
     dev = cp.cuda.Device(0)
     props = cp.cuda.runtime.getDeviceProperties(dev.id)
     report["device"] = props["name"].decode()
@@ -333,27 +408,60 @@ def run_gpu_bench(args: argparse.Namespace, sizes: list[BenchSize]) -> dict[str,
         _, frames = rendered_frames(size, n=min(16, max(2, n + warmup)))
         entry: dict[str, Any] = {}
         # stages (CUDA events)
-        est = CupyRegionEstimator(_cfg(size, calib, stage_timing=True), size.width_px, size.height_px)
+        import gc
+
+        pool = cp.get_default_memory_pool()
+        est = None
+        gc.collect()  # the previous size's estimators go first: the difference below is this one's alone
+        gc.disable()
+        try:
+            used_before = pool.used_bytes()
+            est = CupyRegionEstimator(_cfg(size, calib, stage_timing=True, **opts), size.width_px, size.height_px)
+            entry["device_memory_bytes"] = pool.used_bytes() - used_before
+        finally:
+            gc.enable()
         _, stages = _time_estimator(est, frames, warmup, n)
         entry["stages"] = stages
-        entry["plan"] = {
-            "fast": est.plan.fast, "tile_cols": est.plan.tx, "threads": est.plan.nt,
-            "rows_per_block": est._bands[0].rows_per_block, "grid": list(est._bands[0].grid),
-            "blocks_per_sm": est.blocks_per_sm, "smem_bytes": est.plan.smem_bytes,
-        }
-        entry["kernels"] = _kernel_times(est, cp, n)
+        if est.sgm_plan is not None:
+            sp = est.sgm_plan
+            entry["plan"] = {
+                "matcher": "sgm", "paths": sp.paths, "lanes_per_line": sp.lanes_per_line,
+                "words_per_lane": sp.words_per_lane, "run_px": sp.run_px, "slab_rows": sp.slab_rows, "dpad": sp.dpad,
+                "buffers_bytes": sp.device_bytes(),
+                "kernel_regs_smem": {
+                    name: [int(k.attributes["num_regs"]), int(k.attributes["shared_size_bytes"])]
+                    for name, k in est._k_sgm.items()
+                },
+            }
+            entry["kernels"] = _sgm_kernel_times(est, cp, n)
+            # the other lane layouts (same results; which is fastest here?)
+            for lanes in (8, 16, 32):
+                if lanes == sp.lanes_per_line or 4 * lanes > 4 * sp.dpad // 4 or lanes * 4 > max(16, sp.dpad):
+                    continue
+                alt = CupyRegionEstimator(_cfg(size, calib, stage_timing=True, sgm_lanes_per_line=lanes, **opts),
+                                          size.width_px, size.height_px)
+                _time_estimator(alt, frames, 2, 3)
+                entry[f"kernels_lanes_{lanes}"] = _sgm_kernel_times(alt, cp, min(n, 100))
+                alt.close()
+        else:
+            entry["plan"] = {
+                "fast": est.plan.fast, "tile_cols": est.plan.tx, "threads": est.plan.nt,
+                "rows_per_block": est._bands[0].rows_per_block, "grid": list(est._bands[0].grid),
+                "blocks_per_sm": est.blocks_per_sm, "smem_bytes": est.plan.smem_bytes,
+            }
+            entry["kernels"] = _kernel_times(est, cp, n)
         est.close()
         # whole frame: the default config first and again after the variants (the host's copy and
         # PCIe bandwidth drift within a run; the slower of the two is the headline)
         whole: dict[str, Any] = {}
-        e = CupyRegionEstimator(_cfg(size, calib), size.width_px, size.height_px)
+        e = CupyRegionEstimator(_cfg(size, calib, **opts), size.width_px, size.height_px)
         whole["default_first"], _ = _time_estimator(e, frames, warmup, n)
         e.close()
-        for opts in UPLOAD_VARIANTS:
-            e = CupyRegionEstimator(_cfg(size, calib, **opts), size.width_px, size.height_px)
-            whole[_variant_name(opts)], _ = _time_estimator(e, frames, warmup, n)
+        for variant in SGM_UPLOAD_VARIANTS if matcher == "sgm" else UPLOAD_VARIANTS:
+            e = CupyRegionEstimator(_cfg(size, calib, **opts, **variant), size.width_px, size.height_px)
+            whole[_variant_name(variant)], _ = _time_estimator(e, frames, warmup, n)
             e.close()
-        e = CupyRegionEstimator(_cfg(size, calib), size.width_px, size.height_px)
+        e = CupyRegionEstimator(_cfg(size, calib, **opts), size.width_px, size.height_px)
         whole["default_last"], _ = _time_estimator(e, frames, warmup, n)
         whole["default"] = max(whole["default_first"], whole["default_last"], key=lambda v: v["median_ms"])
         buf = e.frame_buffer(3)
@@ -372,9 +480,10 @@ def run_gpu_bench(args: argparse.Namespace, sizes: list[BenchSize]) -> dict[str,
         entry["speedup_vs_stereobm"] = entry["opencv"]["stereobm"]["median_ms"] / gpu_med
         entry["speedup_vs_grey_plus_stereobm"] = entry["opencv"]["grey_plus_stereobm"]["median_ms"] / gpu_med
         entry["speedup_vs_cpu_estimator"] = entry["opencv"]["cpu_estimator_opencv_bm"]["median_ms"] / gpu_med
+        entry["speedup_vs_stereosgbm"] = entry["opencv"]["stereosgbm"]["median_ms"] / gpu_med
         # what limits the kernel
         p = est.plan
-        if p.fast and "fused_regions" in entry["kernels"]:
+        if est.sgm_plan is None and p.fast and "fused_regions" in entry["kernels"]:
             t = entry["kernels"]["fused_regions"]["median_ms"] * 1e-3
             ty = est._bands[0].rows_per_block
             blocks = est._bands[0].grid[0] * est._bands[0].grid[1]
@@ -395,11 +504,15 @@ def run_gpu_bench(args: argparse.Namespace, sizes: list[BenchSize]) -> dict[str,
             rows.append([size.label, f"stage {k.removesuffix('_ms')}", f"{v['median_ms']:.3f}", f"{v['p99_ms']:.3f}"])
         for k, v in entry["kernels"].items():
             rows.append([size.label, f"kernel {k}", f"{v['median_ms']:.3f}", f"{v['p99_ms']:.3f}"])
+        for key in [key for key in entry if key.startswith("kernels_lanes_")]:
+            for k, v in entry[key].items():
+                rows.append([size.label, f"{key.removeprefix('kernels_')} {k}", f"{v['median_ms']:.3f}",
+                             f"{v['p99_ms']:.3f}"])
         for k, v in whole.items():
             if k == "default":
                 continue
             rows.append([size.label, f"whole frame {k}", f"{v['median_ms']:.3f}", f"{v['p99_ms']:.3f}"])
-        for k in ("stereobm", "grey_plus_stereobm", "cpu_estimator_opencv_bm"):
+        for k in ("stereobm", "grey_plus_stereobm", "stereosgbm", "cpu_estimator_opencv_bm"):
             v = entry["opencv"][k]
             rows.append([size.label, f"cpu {k} ({entry['opencv']['threads']} thr)", f"{v['median_ms']:.3f}",
                          f"{v['p99_ms']:.3f}"])
@@ -417,7 +530,9 @@ def run_gpu_bench(args: argparse.Namespace, sizes: list[BenchSize]) -> dict[str,
             f"{label}: GPU whole frame (default config, slower of two passes) {d['median_ms']:.3f} ms median, "
             f"{d['p99_ms']:.3f} ms p99; "
             f"x{entry['speedup_vs_stereobm']:.1f} vs StereoBM alone, x{entry['speedup_vs_grey_plus_stereobm']:.1f} "
-            f"vs grey+StereoBM, x{entry['speedup_vs_cpu_estimator']:.1f} vs the CPU estimator"
+            f"vs grey+StereoBM, x{entry['speedup_vs_stereosgbm']:.1f} vs StereoSGBM, "
+            f"x{entry['speedup_vs_cpu_estimator']:.1f} vs the CPU estimator; device memory "
+            f"{entry['device_memory_bytes'] / 1e6:.1f} MB"
         )
         print(line)
         if "limits" in entry:

@@ -16,8 +16,15 @@ event per band):
    depths (``sad_naive`` + ``regions_from_disp`` for configurations the fast kernel does not cover);
 3. the 9 depths and 9 valid fractions (144 bytes) come back to a pinned host buffer.
 
+With ``stereo.matcher = "sgm"`` (the default) the bands carry the upload, grey and rectification only;
+after the last band the semi-global matcher of ``kernels/sgm.cu`` runs on the whole rectified pair:
+``sgm_census``, ``sgm_paths`` (every path in one launch, one byte per (pixel, disparity) and path),
+``sgm_wta`` (the winner, uniqueness, sub-pixel and the right view's disparity, per run of pixels) and
+``sgm_post`` (left-right check, median, the disparity image and the 9 region depths), exactly
+:mod:`companion.core.disparity.sgm`'s rules.
+
 Each band's GPU work is captured once as a CUDA graph and replayed. The results equal
-:class:`~companion.core.estimator.CpuRegionEstimator` with the ``reference`` backend.
+:class:`~companion.core.estimator.CpuRegionEstimator` with the ``reference`` backend and the same matcher.
 """
 
 from __future__ import annotations
@@ -42,7 +49,17 @@ from companion.core.regions import RegionLayout, region_layout
 from companion.core.stereo import split_frame
 from companion.core.types import N_REGIONS, RegionDepths
 from companion.errors import BackendError, ConfigError
-from companion.gpu.plan import DisparityPlan, kernel_defines, plan_disparity
+from companion.gpu.plan import (
+    SGM_CENSUS_TILE,
+    SGM_PATH_THREADS,
+    SGM_POST_THREADS,
+    DisparityPlan,
+    SgmPlan,
+    kernel_defines,
+    plan_disparity,
+    plan_sgm,
+    sgm_defines,
+)
 
 log = logging.getLogger(__name__)
 
@@ -56,9 +73,9 @@ _REGIONS_THREADS = 256
 _MAX_CHANNELS = 4
 
 
-def kernel_source() -> str:
-    """The CUDA source of every kernel (``companion/gpu/kernels/stereo.cu``), without the #defines."""
-    return (importlib.resources.files("companion.gpu") / "kernels" / "stereo.cu").read_text(encoding="utf-8")
+def kernel_source(name: str = "stereo.cu") -> str:
+    """The CUDA source of a kernel file (``companion/gpu/kernels/stereo.cu`` or ``sgm.cu``), without the #defines."""
+    return (importlib.resources.files("companion.gpu") / "kernels" / name).read_text(encoding="utf-8")
 
 
 def _import_cupy() -> Any:
@@ -86,7 +103,11 @@ class CupyRegionEstimator:
         name: ``"cupy"``.
         geometry: the rectified rig.
         layout: the nine regions.
-        plan: the disparity kernel's shape (:class:`~companion.gpu.plan.DisparityPlan`).
+        matcher: ``"sgm"`` or ``"sad"`` (``stereo.matcher``).
+        plan: the SAD kernel's shape (:class:`~companion.gpu.plan.DisparityPlan`; with the SGM matcher it
+            still fixes the row pitch of the rectified images).
+        sgm_plan: the SGM kernels' shape (:class:`~companion.gpu.plan.SgmPlan`), None with ``sad``.
+        disparity_scale: the device disparity is pixels times this (16 with ``sgm``: 4 fractional bits).
         rows_per_block: output rows per block of the disparity kernel.
         device_name: the CUDA device's name.
 
@@ -111,7 +132,13 @@ class CupyRegionEstimator:
         self.geometry: StereoGeometry = rectifier.geometry
         self.layout: RegionLayout = region_layout(self.geometry, cfg.regions)
         st = cfg.stereo
+        self.matcher: str = st.matcher
         self.plan: DisparityPlan = plan_disparity(self.width_px, self.height_px, st.num_disparities, st.block_size_px)
+        self.sgm_plan: SgmPlan | None = None
+        if self.matcher == "sgm":
+            self.sgm_plan = plan_sgm(self.width_px, self.height_px, st.num_disparities, st.sgm_paths,
+                                     self.layout.row_edges, cfg.gpu.sgm_lanes_per_line)
+        self.disparity_scale = 16 if self.matcher == "sgm" else 1
         self._identity = bool(rectifier.is_identity)
         try:
             n_dev = cp.cuda.runtime.getDeviceCount()
@@ -161,6 +188,22 @@ class CupyRegionEstimator:
         self._k_naive = get("sad_naive")
         self._k_regions = get("regions_from_disp")
         self._k_preview = get("preview_max")
+        if self.sgm_plan is not None:
+            sp = self.sgm_plan
+            self._sgm_module = cp.RawModule(
+                code=sgm_defines(sp, p.pitch_bytes, self.layout.row_edges, self.layout.col_edges)
+                + kernel_source("sgm.cu"),
+                options=("--std=c++17", "--fmad=false"),
+            )
+            sget = self._sgm_module.get_function
+            self._k_sgm = {name: sget(name) for name in ("sgm_census", "sgm_paths", "sgm_wta", "sgm_post")}
+            self._sgm_args = (
+                np.uint32(st.sgm_p1),
+                np.uint32(st.sgm_p2),
+                np.uint32(st.sgm_uniqueness_ratio_pct),
+                np.int32(st.sgm_lr_max_diff_px),
+                np.int32(1 if st.sgm_median else 0),
+            )
 
         attrs = self._device.attributes
         self.sm_count = int(attrs["MultiProcessorCount"])
@@ -212,7 +255,15 @@ class CupyRegionEstimator:
             )
         # Pixels outside the valid area are never written by the kernels: -1 (invalid) once, here.
         self._disp = cp.full((h, w), -1, dtype=cp.int16)
-        self._hist = cp.zeros(N_REGIONS * p.num_disparities, dtype=cp.uint32)
+        if self.sgm_plan is None:
+            self._hist = cp.zeros(N_REGIONS * p.num_disparities, dtype=cp.uint32)
+        else:
+            sp = self.sgm_plan
+            self._census = cp.zeros((2, h, w), dtype=cp.uint64)
+            self._volumes = cp.zeros((sp.paths, h, w, sp.dpad), dtype=cp.uint8)
+            self._winner = cp.zeros((h, w), dtype=cp.int32)
+            self._right_keys = cp.zeros((h, w), dtype=cp.uint32)
+            self._hist = cp.zeros(N_REGIONS * sp.nbins, dtype=cp.uint32)
         self._counter = cp.zeros(1, dtype=cp.uint32)
         self._result_dev = cp.zeros(2 * N_REGIONS, dtype=cp.float64)
         self._result_host = cp.cuda.alloc_pinned_memory(2 * N_REGIONS * 8)
@@ -244,12 +295,21 @@ class CupyRegionEstimator:
         self._events = [cp.cuda.Event() for _ in range(5)] if self._gpu_cfg.stage_timing else []
         n_threads = self._gpu_cfg.host_copy_threads
         self._crew = _CopyCrew(n_threads, self._device.id) if n_threads > 1 else None
-        log.info(
-            "cupy estimator on %s: %dx%d, D=%d, b=%d, %s kernel, tile %s, %d blocks/SM, bands %s",
-            self.device_name, w, h, p.num_disparities, p.block_size, "fast" if p.fast else "fallback",
-            f"{p.tx}x{p.cpad}" if p.fast else "-", self.blocks_per_sm,
-            [(b.src, b.out, b.rows_per_block, b.grid[:2]) for b in self._bands],
-        )
+        if self.sgm_plan is None:
+            log.info(
+                "cupy estimator on %s: %dx%d, D=%d, b=%d, %s kernel, tile %s, %d blocks/SM, bands %s",
+                self.device_name, w, h, p.num_disparities, p.block_size, "fast" if p.fast else "fallback",
+                f"{p.tx}x{p.cpad}" if p.fast else "-", self.blocks_per_sm,
+                [(b.src, b.out, b.rows_per_block, b.grid[:2]) for b in self._bands],
+            )
+        else:
+            sp = self.sgm_plan
+            log.info(
+                "cupy estimator on %s: %dx%d, D=%d, SGM %d paths, %d lanes x %d groups per line, %.1f MB of "
+                "device buffers, bands %s",
+                self.device_name, w, h, sp.num_disparities, sp.paths, sp.lanes_per_line, sp.words_per_lane,
+                sum(sp.device_bytes().values()) / 1e6, [(b.src, b.rect) for b in self._bands],
+            )
 
     def _plan_bands(self, cfg: CompanionConfig, rectifier: Any) -> list[_Band]:
         """Split the frame into row bands whose GPU work needs only the rows uploaded so far.
@@ -261,12 +321,20 @@ class CupyRegionEstimator:
         """
         p, h = self.plan, self.height_px
         k_bands = cfg.gpu.pipeline_bands
-        if not p.fast or cfg.gpu.stage_timing or p.valid_rows < 2 * k_bands:
-            k_bands = 1
-        r = p.radius
-        outs = [p.y_start + (p.valid_rows * k) // k_bands for k in range(k_bands + 1)]
-        if p.valid_rows == 0:
-            outs = [p.y_start, p.y_end]
+        sgm = self.sgm_plan is not None
+        if sgm:
+            # The SGM kernels need the whole pair: bands only overlap the upload with grey + remap.
+            if cfg.gpu.stage_timing or h < 2 * k_bands:
+                k_bands = 1
+            r = 0
+            outs = [(h * k) // k_bands for k in range(k_bands + 1)]
+        else:
+            if not p.fast or cfg.gpu.stage_timing or p.valid_rows < 2 * k_bands:
+                k_bands = 1
+            r = p.radius
+            outs = [p.y_start + (p.valid_rows * k) // k_bands for k in range(k_bands + 1)]
+            if p.valid_rows == 0:
+                outs = [p.y_start, p.y_end]
         rect_end = [h if k == k_bands - 1 else min(h, outs[k + 1] + r) for k in range(k_bands)]
         if self._identity:
             src_end = list(rect_end)
@@ -403,9 +471,11 @@ class CupyRegionEstimator:
             return self._rect_l[:, :w].get(), self._rect_r[:, :w].get()
 
     def disparity_int16(self) -> np.ndarray:
-        """Copy of the device disparity image, int16 ``(H, W)`` px, -1 invalid (tests, debugging).
+        """Copy of the device disparity image, int16 ``(H, W)``, px × :attr:`disparity_scale`, -1 invalid
+        (tests, debugging).
 
-        Current only after a frame run with ``want_disparity=True`` (the plain path skips writing it).
+        SAD: current only after a frame run with ``want_disparity=True`` (the plain path skips writing
+        it). SGM: written every frame.
         """
         with self._device:
             return self._disp.get()
@@ -541,7 +611,10 @@ class CupyRegionEstimator:
         if events:
             events[2].record(s)
         fb, pct, min_valid, max_depth = self._region_args
-        if p.fast:
+        if self.sgm_plan is not None:
+            if last:
+                self._enqueue_sgm(s)
+        elif p.fast:
             self._k_fast[want_disparity](
                 band.grid, (p.nt,),
                 (self._rect_l, self._rect_r, self._disp, self._hist, self._counter, self._result_dev,
@@ -574,7 +647,8 @@ class CupyRegionEstimator:
                 oh, ow = self._preview_shape
                 self._k_preview(
                     (-(-ow // _EW_THREADS), oh), (_EW_THREADS,),
-                    (self._disp, self._preview_dev, np.int32(self._preview_factor), np.int32(ow), np.int32(oh)),
+                    (self._disp, self._preview_dev, np.int32(self._preview_factor), np.int32(ow), np.int32(oh),
+                     np.float32(1.0 / self.disparity_scale)),
                     stream=s,
                 )
                 cp.cuda.runtime.memcpyAsync(
@@ -584,6 +658,28 @@ class CupyRegionEstimator:
                 cp.cuda.runtime.memcpyAsync(self._disp_host_mem.ptr, self._disp.data.ptr, h * w * 2, d2h, s.ptr)
         if events:
             events[4].record(s)
+
+    def _enqueue_sgm(self, s: Any) -> None:
+        """Queue the SGM kernels on stream ``s`` (the rectified pair is complete)."""
+        sp = self.sgm_plan
+        assert sp is not None
+        w, h = self.width_px, self.height_px
+        k = self._k_sgm
+        p1, p2, uniq, lr_max, median = self._sgm_args
+        fb, pct, min_valid, max_depth = self._region_args
+        cen_l, cen_r = self._census[0], self._census[1]
+        tw, th = SGM_CENSUS_TILE
+        k["sgm_census"]((-(-w // tw), -(-h // th), 2), (tw, th),
+                        (self._rect_l, self._rect_r, cen_l, cen_r, self._right_keys), stream=s)
+        warps = SGM_PATH_THREADS // 32
+        k["sgm_paths"]((-(-sp.path_tasks // warps),), (SGM_PATH_THREADS,), (cen_l, cen_r, self._volumes, p1, p2),
+                       stream=s)
+        k["sgm_wta"]((-(-sp.wta_tasks // warps),), (SGM_PATH_THREADS,),
+                     (self._volumes, self._winner, self._right_keys, uniq), stream=s)
+        k["sgm_post"]((sp.post_blocks,), (SGM_POST_THREADS,),
+                      (self._winner, self._right_keys, self._disp, self._hist, self._counter, self._result_dev,
+                       lr_max, median, fb, pct, min_valid, max_depth),
+                      stream=s)
 
     def _near_blocks(self, block_px: int) -> np.ndarray:
         f = self._preview_factor
@@ -597,6 +693,8 @@ class CupyRegionEstimator:
             return self._preview_host.copy()
         d = self._disp_host
         out = d.astype(np.float32)
+        if self.disparity_scale != 1:
+            out *= np.float32(1.0 / self.disparity_scale)  # exact: a power of two
         out[d < 0] = np.nan
         return out
 

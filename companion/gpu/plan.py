@@ -272,3 +272,161 @@ def kernel_defines(plan: DisparityPlan, row_edges: Sequence[int], col_edges: Seq
             LWW=10, RWW=10, NR=b + 1, LDPT=1,
         )
     return "".join(f"#define {k} {v}\n" for k, v in values.items())
+
+
+# --------------------------------------------------------------------------------------------------
+# Semi-global matcher (kernels/sgm.cu)
+
+#: Threads per block of the SGM path and winner kernels (4 warps) and of the post-processing kernel.
+SGM_PATH_THREADS = 128
+SGM_POST_THREADS = 256
+#: Census tile (threads per block: 32 × 8 pixels).
+SGM_CENSUS_TILE = (32, 8)
+
+
+@dataclass(frozen=True)
+class SgmPlan:
+    """Shape of the SGM kernels for one (size, D, paths) and the #defines that fix it.
+
+    Attributes:
+        width_px, height_px: eye image size, px.
+        num_disparities: ``D``.
+        paths: 4 or 8.
+        lanes_per_line: lanes of a warp that own one line (``LPL``); a warp walks ``32 / LPL`` lines.
+        words_per_lane: groups of 4 disparities per lane (``WPL``); ``4·LPL·WPL = DPAD >= D``.
+        run_px: pixels of a row that one line of ``sgm_wta`` takes (``RUN``).
+        nbins: bins of the region histograms, one per sub-pixel disparity value (``16·(D - 1) + 1``).
+        slab_rows: rows of one post-processing block (``<= 65535 / W``: 16-bit shared counters; its
+            shared memory, the checked rows and the histogram, within 48 KB).
+        slabs: post-processing blocks in each of the three region row bands.
+    """
+
+    width_px: int
+    height_px: int
+    num_disparities: int
+    paths: int
+    lanes_per_line: int
+    words_per_lane: int
+    run_px: int
+    nbins: int
+    slab_rows: int
+    slabs: tuple[int, int, int]
+
+    @property
+    def dpad(self) -> int:
+        return 4 * self.lanes_per_line * self.words_per_lane
+
+    @property
+    def lines_per_warp(self) -> int:
+        return 32 // self.lanes_per_line
+
+    @property
+    def volume_bytes(self) -> int:
+        """Bytes of one path's cost volume (``H·W·DPAD`` uint8)."""
+        return self.height_px * self.width_px * self.dpad
+
+    @property
+    def path_tasks(self) -> int:
+        """Warp tasks of ``sgm_paths`` (2 × rows, 2 × columns, 4 × diagonals with 8 paths)."""
+        lpw = self.lines_per_warp
+        th = -(-self.height_px // lpw)
+        tv = -(-self.width_px // lpw)
+        td = -(-(self.width_px + self.height_px - 1) // lpw)
+        return 2 * th + 2 * tv + (4 * td if self.paths == 8 else 0)
+
+    @property
+    def wta_tasks(self) -> int:
+        """Warp tasks of ``sgm_wta`` (runs of ``run_px`` pixels, ``32 / LPL`` per warp)."""
+        runs = -(-self.width_px // self.run_px) * self.height_px
+        return -(-runs // self.lines_per_warp)
+
+    @property
+    def post_blocks(self) -> int:
+        return sum(self.slabs)
+
+    def device_bytes(self) -> dict[str, int]:
+        """Device memory of the matcher's buffers, bytes, by buffer (what ``CupyRegionEstimator`` allocates)."""
+        hw = self.height_px * self.width_px
+        return {
+            "path_volumes": self.paths * self.volume_bytes,
+            "census_left_right": 2 * 8 * hw,
+            "left_winner_int32": 4 * hw,
+            "right_keys_uint32": 4 * hw,
+            "disparity_int16": 2 * hw,
+            "region_histogram": 9 * self.nbins * 4,
+        }
+
+    def shared_bytes(self) -> int:
+        """Static shared memory of the largest SGM block (``sgm_post``), bytes."""
+        return _sgm_post_smem(self.nbins, self.slab_rows, self.width_px)
+
+
+def _sgm_post_smem(nbins: int, slab_rows: int, width_px: int) -> int:
+    words = (3 * nbins + 1) // 2
+    return 4 * words + 2 * (slab_rows + 2) * width_px + 4 * (SGM_POST_THREADS // 32) + 8
+
+
+def plan_sgm(width_px: int, height_px: int, num_disparities: int, paths: int, row_edges: Sequence[int],
+             lanes_per_line: int = 0) -> SgmPlan:
+    """The SGM kernels' shape for one eye size, disparity count and path count.
+
+    ``lanes_per_line`` 0 picks ``min(32, DPAD/4)`` lanes, ``DPAD`` the power of two >= D (at least 16),
+    each with ``DPAD / (4·lanes)`` groups of 4 disparities (64 disparities: 16 lanes of 1 group; 128: 32
+    of 1; 256: 32 of 2): the layouts verified bit-exact on the device. 16 lanes of 2 groups at 128
+    disparities measured 12 % faster kernels on an H100 (``gpu.sgm_lanes_per_line = 16``; docs/gpu_notes.md).
+
+    Raises:
+        ValueError: a parameter the reference would also reject, or a shape that does not fit.
+    """
+    D = int(num_disparities)
+    w, h = int(width_px), int(height_px)
+    if not 2 <= D <= 256 or paths not in (4, 8) or w < 1 or h < 3:
+        raise ValueError(f"bad SGM shape: {w}x{h}, D={D}, paths={paths}")
+    if lanes_per_line:
+        lpl = int(lanes_per_line)
+        if lpl not in (4, 8, 16, 32):
+            raise ValueError(f"lanes_per_line must be 4, 8, 16 or 32, got {lpl}")
+        wpl = max(1, -(-D // (4 * lpl)))
+    else:
+        dpad = 16
+        while dpad < D:
+            dpad *= 2
+        lpl = min(32, dpad // 4)
+        wpl = max(1, dpad // (4 * lpl))
+    nbins = 16 * (D - 1) + 1
+    slab = max(1, min(65535 // w, 8, -(-h // 192)))
+    while slab > 1 and _sgm_post_smem(nbins, slab, w) > SMEM_BUDGET_BYTES:
+        slab -= 1
+    if _sgm_post_smem(nbins, slab, w) > SMEM_BUDGET_BYTES:
+        raise ValueError(
+            f"SGM post block needs {_sgm_post_smem(nbins, slab, w)} bytes of shared memory (> {SMEM_BUDGET_BYTES}) "
+            f"at {w} px and {D} disparities"
+        )
+    bands = [int(row_edges[1]) - int(row_edges[0]), int(row_edges[2]) - int(row_edges[1]),
+             int(row_edges[3]) - int(row_edges[2])]
+    slabs = tuple(-(-b // slab) for b in bands)
+    return SgmPlan(w, h, D, int(paths), lpl, wpl, 64, nbins, slab, slabs)  # type: ignore[arg-type]
+
+
+def sgm_defines(plan: SgmPlan, pitch_bytes: int, row_edges: Sequence[int], col_edges: Sequence[int]) -> str:
+    """The ``#define`` block that specialises ``sgm.cu`` for this plan (prepended to the source)."""
+    values = {
+        "IMG_W": plan.width_px,
+        "IMG_H": plan.height_px,
+        "PITCH": int(pitch_bytes),
+        "NDISP": plan.num_disparities,
+        "LPL": plan.lanes_per_line,
+        "WPL": plan.words_per_lane,
+        "NPATHS": plan.paths,
+        "RUN": plan.run_px,
+        "NBINS": plan.nbins,
+        "SLAB_ROWS": plan.slab_rows,
+        "NSLAB0": plan.slabs[0],
+        "NSLAB1": plan.slabs[1],
+        "NSLAB2": plan.slabs[2],
+        "RE1": int(row_edges[1]),
+        "RE2": int(row_edges[2]),
+        "CE1": int(col_edges[1]),
+        "CE2": int(col_edges[2]),
+    }
+    return "".join(f"#define {k} {v}\n" for k, v in values.items())

@@ -107,6 +107,7 @@ class OpenCVBMMatcher(_OpenCVMatcher):
         bm.setTextureThreshold(cfg.bm_texture_threshold)
         bm.setSpeckleWindowSize(cfg.speckle_window_px)
         bm.setSpeckleRange(cfg.speckle_range_px)
+        bm.setDisp12MaxDiff(cfg.disp12_max_diff_px)
         super().__init__(bm, cfg.num_disparities, cfg.block_size_px)
 
 
@@ -117,9 +118,14 @@ class OpenCVSGBMMatcher(_OpenCVMatcher):
     ``P2 > P1``; a configured P1 at or above the default P2 raises P2 to ``P1 + 1`` (the same
     adjustment OpenCV itself makes).
 
+    With ``sgbm_lr_check`` a second matcher runs on the mirrored pair (the right image, flipped, as the
+    left): its result, flipped back, is the right view's disparity ``dR``, and a pixel ``x`` with
+    disparity ``d`` is rejected unless ``dR`` at ``round(x - d)`` is valid and within
+    ``disp12_max_diff_px`` (1 when that is -1) of ``d``, both in OpenCV's 1/16 px units.
+
     Args:
         cfg: stereo config: num_disparities, block_size_px, uniqueness_ratio_pct, bm_prefilter_cap,
-            speckle_window_px/range_px, sgbm_mode, sgbm_p1, sgbm_p2.
+            speckle_window_px/range_px, sgbm_mode, sgbm_p1, sgbm_p2, sgbm_lr_check, disp12_max_diff_px.
     """
 
     name = "opencv-sgbm"
@@ -142,3 +148,32 @@ class OpenCVSGBMMatcher(_OpenCVMatcher):
         )
         self.p1, self.p2 = p1, p2
         super().__init__(sgbm, cfg.num_disparities, b)
+        self._lr_check = bool(cfg.sgbm_lr_check)
+        self._lr_max16 = 16 * (cfg.disp12_max_diff_px if cfg.disp12_max_diff_px >= 0 else 1)
+        self._raw_r: np.ndarray | None = None
+
+    def compute(self, left: np.ndarray, right: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """float32 ``(H, W)`` disparity of ``left``, px, NaN where rejected (see the class doc)."""
+        out = super().compute(left, right, out)
+        if not self._lr_check or self._raw is None:
+            return out
+        h, w = left.shape
+        if h <= self._block_size or w < self._num_disparities + self._block_size:
+            return out
+        if self._raw_r is None or self._raw_r.shape != (h, w):
+            self._raw_r = np.empty((h, w), dtype=np.int16)
+        try:
+            raw_r = self._matcher.compute(
+                np.ascontiguousarray(right[:, ::-1]), np.ascontiguousarray(left[:, ::-1]), self._raw_r
+            )
+        except cv2.error as exc:
+            raise FrameError(f"{self.name} failed on a {w}x{h} mirrored pair: {str(exc).strip()}") from exc
+        d_right = raw_r[:, ::-1].astype(np.int32)  # right view's disparity, 1/16 px, < 0 invalid
+        d_left = self._raw.astype(np.int32)
+        xs = np.arange(w, dtype=np.int32)[None, :]
+        # x - d rounded to the nearest pixel (d in 1/16 px), clipped into the image
+        xr = np.clip(xs - ((d_left + 8) >> 4), 0, w - 1)
+        back = np.take_along_axis(d_right, xr, axis=1)
+        reject = (d_left >= 0) & ((back < 0) | (np.abs(d_left - back) > self._lr_max16))
+        np.copyto(out, np.float32(np.nan), where=reject)
+        return out

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import ctypes
 import hashlib
+import os
 import subprocess
 import tempfile
 from pathlib import Path
@@ -22,10 +23,11 @@ from typing import Any
 
 import numpy as np
 
-from companion.gpu.plan import kernel_defines, plan_disparity
+from companion.gpu.plan import SGM_CENSUS_TILE, SGM_PATH_THREADS, kernel_defines, plan_disparity, plan_sgm, sgm_defines
 
 _HERE = Path(__file__).resolve().parent
 _KERNEL = _HERE.parent / "kernels" / "stereo.cu"
+_SGM_KERNEL = _HERE.parent / "kernels" / "sgm.cu"
 
 
 def _build_dir() -> Path:
@@ -42,6 +44,23 @@ def _object() -> Path:
             ["g++", "-O1", "-std=c++20", "-fno-strict-aliasing", "-fPIC", "-c", str(src), "-o", str(obj)], check=True
         )
     return obj
+
+
+def _build(src: str, harness: str) -> ctypes.CDLL:
+    """Compile ``src`` (the #defines and a kernel file) with ``harness`` into a cached shared library."""
+    key = hashlib.sha1((src + (_HERE / harness).read_text()).encode()).hexdigest()[:16]
+    cu = _build_dir() / f"k_{key}.cu"
+    so = _build_dir() / f"k_{key}.so"
+    if not so.exists():
+        cu.write_text(src, encoding="utf-8")
+        tmp = so.with_suffix(f".{os.getpid()}.tmp")
+        subprocess.run(
+            ["g++", "-O1", "-std=c++20", "-fno-strict-aliasing", "-fPIC", "-shared", "-w",
+             f'-DKERNEL_FILE="{cu}"', f"-I{_HERE}", str(_HERE / harness), str(_object()), "-o", str(tmp)],
+            check=True,
+        )
+        tmp.replace(so)
+    return ctypes.CDLL(str(so))
 
 
 class HostKernels:
@@ -66,17 +85,7 @@ class HostKernels:
     ):
         self.plan = p = plan_disparity(width_px, height_px, num_disparities, block_size)
         src = kernel_defines(p, row_edges, col_edges) + _KERNEL.read_text(encoding="utf-8")
-        key = hashlib.sha1((src + (_HERE / "harness.cpp").read_text()).encode()).hexdigest()[:16]
-        cu = _build_dir() / f"k_{key}.cu"
-        so = _build_dir() / f"k_{key}.so"
-        if not so.exists():
-            cu.write_text(src, encoding="utf-8")
-            subprocess.run(
-                ["g++", "-O1", "-std=c++20", "-fno-strict-aliasing", "-fPIC", "-shared", "-w",
-                 f'-DKERNEL_FILE="{cu}"', f"-I{_HERE}", str(_HERE / "harness.cpp"), str(_object()), "-o", str(so)],
-                check=True,
-            )
-        self._lib = ctypes.CDLL(str(so))
+        self._lib = _build(src, "harness.cpp")
         self.w, self.h, self.D = width_px, height_px, num_disparities
         self.uniq, self.texmin = int(uniqueness_ratio_pct), int(texture_threshold_grey) * block_size**2
 
@@ -159,3 +168,73 @@ class HostKernels:
             -(-self.w // 64), 64, 0, self.h,
         )
         return out_l[:, : self.w], out_r[:, : self.w]
+
+
+class HostSgmKernels:
+    """The SGM kernels (``sgm.cu``) of one (size, D, paths, region layout), compiled for the CPU.
+
+    Args:
+        width_px, height_px: eye size, px.
+        num_disparities: ``D``.
+        paths: 4 or 8.
+        row_edges, col_edges: the region layout's edges (4 ints each).
+        lanes_per_line: force the lane layout (0: the plan's choice).
+    """
+
+    def __init__(self, width_px: int, height_px: int, num_disparities: int, paths: int, row_edges: Any,
+                 col_edges: Any, lanes_per_line: int = 0):
+        self.plan = p = plan_sgm(width_px, height_px, num_disparities, paths, row_edges, lanes_per_line)
+        self.pitch = -(-(width_px + 16) // 16) * 16
+        src = sgm_defines(p, self.pitch, row_edges, col_edges) + _SGM_KERNEL.read_text(encoding="utf-8")
+        self._lib = _build(src, "harness_sgm.cpp")
+        self.w, self.h = width_px, height_px
+
+    @staticmethod
+    def _ptr(a: np.ndarray) -> ctypes.c_void_p:
+        return ctypes.c_void_p(a.ctypes.data)
+
+    def run(
+        self,
+        left: np.ndarray,
+        right: np.ndarray,
+        p1: int,
+        p2: int,
+        uniqueness_ratio_pct: int,
+        lr_max_diff_px: int,
+        median: bool,
+        fb: float = 50.0,
+        pct: float = 2.0,
+        min_valid: float = 0.1,
+        max_depth: float = 20.0,
+    ) -> dict[str, np.ndarray]:
+        """Every stage's output: ``census_left``/``census_right`` (uint64), ``volumes`` (uint8
+        ``(paths, H, W, DPAD)``), ``winner`` (int32), ``right_keys`` (uint32), ``disparity`` (int16 × 16,
+        -1 invalid) and ``regions`` (9 depths, 9 valid fractions)."""
+        p, w, h = self.plan, self.w, self.h
+        u32, f32, d = ctypes.c_uint32, ctypes.c_float, ctypes.c_double
+        rl = np.zeros((h, self.pitch), np.uint8)
+        rr = np.zeros((h, self.pitch), np.uint8)
+        rl[:, :w], rr[:, :w] = left, right
+        cl = np.zeros((h, w), np.uint64)
+        cr = np.zeros((h, w), np.uint64)
+        vols = np.full((p.paths, h, w, p.dpad), 0xEE, np.uint8)
+        dl = np.full((h, w), -7, np.int32)
+        drkey = np.full((h, w), 7, np.uint32)  # sgm_census resets it
+        disp = np.full((h, w), -7, np.int16)
+        hist = np.zeros(9 * p.nbins, np.uint32)
+        counter = np.zeros(1, np.uint32)
+        result = np.full(18, -7.0)
+        tw, th = SGM_CENSUS_TILE
+        self._lib.run_census(self._ptr(rl), self._ptr(rr), self._ptr(cl), self._ptr(cr), self._ptr(drkey),
+                             -(-w // tw), -(-h // th))
+        warps = SGM_PATH_THREADS // 32
+        self._lib.run_paths(self._ptr(cl), self._ptr(cr), self._ptr(vols), u32(p1), u32(p2), -(-p.path_tasks // warps))
+        self._lib.run_wta(self._ptr(vols), self._ptr(dl), self._ptr(drkey), u32(uniqueness_ratio_pct),
+                          -(-p.wta_tasks // warps))
+        self._lib.run_post(self._ptr(dl), self._ptr(drkey), self._ptr(disp), self._ptr(hist), self._ptr(counter),
+                           self._ptr(result), int(lr_max_diff_px), int(bool(median)), f32(fb), d(pct), d(min_valid),
+                           d(max_depth), p.post_blocks)
+        if counter[0] != 0 or hist.any():
+            raise AssertionError("the last block did not reset the histogram state")
+        return {"census_left": cl, "census_right": cr, "volumes": vols, "winner": dl, "right_keys": drkey,
+                "disparity": disp, "regions": result}

@@ -22,7 +22,7 @@ void emu_block_barrier() {
   while (g_bar_gen == gen) emu_yield();
 }
 void emu_warp_barrier() {
-  int w = g_cur->tidx.x / 32; int gen = g_wbar_gen[w];
+  int w = g_cur->lin / 32; int gen = g_wbar_gen[w];
   if (++g_wbar_count[w] == std::min(32, g_nthreads - w*32)) { g_wbar_count[w] = 0; ++g_wbar_gen[w]; return; }
   while (g_wbar_gen[w] == gen) emu_yield();
 }
@@ -34,7 +34,8 @@ void emu_launch(uint3e grid, uint3e block, void (*body)(void*), void* arg) {
     blockIdx = {bx, by, bz};
     g_bar_count = 0; for (int w = 0; w < 32; ++w) g_wbar_count[w] = 0;
     for (int t = 0; t < nt; ++t) {
-      Fiber* f = g_fibers[t]; f->done = false; f->tidx = {(unsigned)t, 0, 0};
+      Fiber* f = g_fibers[t]; f->done = false; f->lin = (unsigned)t;
+      f->tidx = {(unsigned)t % block.x, ((unsigned)t / block.x) % block.y, (unsigned)t / (block.x * block.y)};
       getcontext(&f->ctx); f->ctx.uc_stack.ss_sp = f->stack.data(); f->ctx.uc_stack.ss_size = f->stack.size(); f->ctx.uc_link = &g_main;
       makecontext(&f->ctx, (void (*)())fiber_entry, 0);
     }

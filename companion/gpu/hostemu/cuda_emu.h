@@ -21,7 +21,7 @@ struct uint2 { unsigned x, y; } __attribute__((aligned(8)));
 inline uint4 make_uint4(unsigned a, unsigned b, unsigned c, unsigned d) { return {a, b, c, d}; }
 inline uint2 make_uint2(unsigned a, unsigned b) { return {a, b}; }
 
-struct Fiber { ucontext_t ctx; uint3e tidx; bool done; std::vector<char> stack; };
+struct Fiber { ucontext_t ctx; uint3e tidx; unsigned lin; bool done; std::vector<char> stack; };  // lin: linear thread id
 extern Fiber* g_cur;
 extern uint3e blockIdx, blockDim, gridDim;
 #define threadIdx (g_cur->tidx)
@@ -43,24 +43,36 @@ inline void __syncwarp(unsigned = 0xffffffffu) { emu_warp_barrier(); }
 inline void __threadfence() { std::atomic_thread_fence(std::memory_order_seq_cst); }
 
 extern uint64_t g_xbuf[1024];
-template <class T> inline T __shfl_xor_sync(unsigned, T v, int m) {
-  unsigned t = threadIdx.x; uint64_t bits = 0; std::memcpy(&bits, &v, sizeof(T)); g_xbuf[t] = bits;
-  emu_warp_barrier(); unsigned src = (t & ~31u) | ((t & 31u) ^ (unsigned)m);
-  uint64_t r = g_xbuf[src]; emu_warp_barrier(); T out; std::memcpy(&out, &r, sizeof(T)); return out; }
-template <class T> inline T __shfl_up_sync(unsigned, T v, int d) {
-  unsigned t = threadIdx.x; uint64_t bits = 0; std::memcpy(&bits, &v, sizeof(T)); g_xbuf[t] = bits;
-  emu_warp_barrier(); unsigned lane = t & 31u; uint64_t r = lane >= (unsigned)d ? g_xbuf[t - d] : bits;
-  emu_warp_barrier(); T out; std::memcpy(&out, &r, sizeof(T)); return out; }
-template <class T> inline T __shfl_sync(unsigned, T v, int src) {
-  unsigned t = threadIdx.x; uint64_t bits = 0; std::memcpy(&bits, &v, sizeof(T)); g_xbuf[t] = bits;
-  emu_warp_barrier(); uint64_t r = g_xbuf[(t & ~31u) | (unsigned)src]; emu_warp_barrier();
+// Warp shuffles with CUDA's width semantics (segments of `width` lanes; a source outside the caller's
+// segment, or past it for up/down, returns the caller's own value).
+template <class T> inline T emu_exchange(T v, unsigned src_of_t) {
+  unsigned t = g_cur->lin; uint64_t bits = 0; std::memcpy(&bits, &v, sizeof(T)); g_xbuf[t] = bits;
+  emu_warp_barrier(); uint64_t r = g_xbuf[src_of_t]; emu_warp_barrier();
   T out; std::memcpy(&out, &r, sizeof(T)); return out; }
+template <class T> inline T __shfl_xor_sync(unsigned, T v, int m, int width = 32) {
+  unsigned t = g_cur->lin, lane = t & 31u, seg = lane & ~(unsigned)(width - 1), src = lane ^ (unsigned)m;
+  if ((src & ~(unsigned)(width - 1)) != seg) src = lane;
+  return emu_exchange(v, (t & ~31u) | src); }
+template <class T> inline T __shfl_up_sync(unsigned, T v, unsigned d, int width = 32) {
+  unsigned t = g_cur->lin, lane = t & 31u, in = lane & (unsigned)(width - 1);
+  return emu_exchange(v, in >= d ? t - d : t); }
+template <class T> inline T __shfl_down_sync(unsigned, T v, unsigned d, int width = 32) {
+  unsigned t = g_cur->lin, lane = t & 31u, in = lane & (unsigned)(width - 1);
+  return emu_exchange(v, in + d < (unsigned)width ? t + d : t); }
+template <class T> inline T __shfl_sync(unsigned, T v, int src, int width = 32) {
+  unsigned t = g_cur->lin, lane = t & 31u, seg = lane & ~(unsigned)(width - 1);
+  return emu_exchange(v, (t & ~31u) | seg | ((unsigned)src & (unsigned)(width - 1))); }
 inline unsigned __ballot_sync(unsigned, bool p) {
-  unsigned t = threadIdx.x; g_xbuf[t] = p; emu_warp_barrier(); unsigned m = 0;
+  unsigned t = g_cur->lin; g_xbuf[t] = p; emu_warp_barrier(); unsigned m = 0;
   for (int i = 0; i < 32; ++i) if (g_xbuf[(t & ~31u) + i]) m |= 1u << i; emu_warp_barrier(); return m; }
 
 inline unsigned atomicAdd(unsigned* p, unsigned v) { unsigned o = *p; *p = o + v; return o; }  // single OS thread
+inline unsigned atomicMin(unsigned* p, unsigned v) { unsigned o = *p; *p = o < v ? o : v; return o; }
 template <class T> inline T __ldcg(const T* p) { return *p; }
+template <class T> inline T __ldg(const T* p) { return *p; }
+template <class T> inline T __ldcs(const T* p) { return *p; }
+template <class T> inline void __stcs(T* p, T v) { *p = v; }
+inline int __popc(unsigned x) { return __builtin_popcount(x); }
 inline int __ffs(unsigned x) { return x ? __builtin_ctz(x) + 1 : 0; }
 inline float __int_as_float(int i) { float f; std::memcpy(&f, &i, 4); return f; }
 inline int __float2int_rn(float f) { return (int)std::nearbyintf(f); }

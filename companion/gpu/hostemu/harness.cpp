@@ -25,6 +25,6 @@ static void remap_thunk(void* p) { RemapArgs* x = (RemapArgs*)p; remap_linear(x-
 extern "C" void run_remap(const u8* rl, const u8* rr, const float* a, const float* b, const float* c, const float* d, u8* ol, u8* orr, int gx, int bx, int yoff, int rows) {
   RemapArgs x{rl, rr, a, b, c, d, ol, orr, yoff}; emu_launch({(unsigned)gx,(unsigned)rows,2},{(unsigned)bx,1,1}, remap_thunk, &x); }
 struct PrevArgs { const short* d; float* o; int f, ow, oh; };
-static void prev_thunk(void* p) { PrevArgs* a = (PrevArgs*)p; preview_max(a->d, a->o, a->f, a->ow, a->oh); }
+static void prev_thunk(void* p) { PrevArgs* a = (PrevArgs*)p; preview_max(a->d, a->o, a->f, a->ow, a->oh, 1.0f); }
 extern "C" void run_preview(const short* d, float* o, int f, int ow, int oh, int gx, int bx) {
   PrevArgs a{d, o, f, ow, oh}; emu_launch({(unsigned)gx,(unsigned)oh,1},{(unsigned)bx,1,1}, prev_thunk, &a); }

@@ -629,15 +629,16 @@ extern "C" __global__ void regions_from_disp(const short* __restrict__ disp, u32
 
 // ------------------------------------------------------------------------------------------------
 // 7. Disparity preview for overlays: float32 (ceil(IMG_H/f), ceil(IMG_W/f)), each cell the LARGEST
-// valid disparity of its f x f block (the nearest surface: the conservative summary), NaN when none.
+// valid disparity of its f x f block (the nearest surface: the conservative summary) times `scale`
+// (1 for the SAD matcher's integer pixels, 1/16 for the SGM matcher's fixed point), NaN when none.
 
 extern "C" __global__ void preview_max(const short* __restrict__ disp, float* __restrict__ out, int f, int ow,
-                                       int oh) {
+                                       int oh, float scale) {
   const int ox = blockIdx.x * blockDim.x + threadIdx.x;
   const int oy = blockIdx.y;
   if (ox >= ow || oy >= oh) return;
   int best = -1;
   for (int y = oy * f; y < min(oy * f + f, IMG_H); ++y)
     for (int x = ox * f; x < min(ox * f + f, IMG_W); ++x) best = max(best, (int)disp[(size_t)y * IMG_W + x]);
-  out[(size_t)oy * ow + ox] = best >= 0 ? (float)best : nan_f32();
+  out[(size_t)oy * ow + ox] = best >= 0 ? (float)best * scale : nan_f32();
 }

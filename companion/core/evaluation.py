@@ -1,0 +1,439 @@
+"""Disparity and region quality of a matcher on a stereo pair with ground truth (``companion eval``).
+
+Readers (pure functions of paths, no global state):
+
+* :func:`read_pfm` / :func:`write_pfm`: the Portable Float Map of Middlebury's ``disp0.pfm``
+  (bottom row first in the file, ``inf`` = unknown);
+* :func:`read_middlebury_calib`: ``calib.txt`` (``cam0``, ``cam1``, ``doffs``, ``baseline`` in mm,
+  ``width``, ``height``, ``ndisp``, ...);
+* :func:`load_middlebury`: a Middlebury folder in one of three layouts: 2014/2021 (``im0.png``,
+  ``im1.png``, ``disp0.pfm``, ``calib.txt``), 2005/2006 (``view1.png``, ``view5.png``, ``disp1.png``,
+  uint8, 0 = unknown) or OpenCV's sample copy of 2006 Aloe (``aloeL.jpg``, ``aloeR.jpg``,
+  ``aloeGT.png``);
+* :func:`load_pair`: explicit left/right images with a disparity file (PFM, PNG, ``.npy``) or a depth
+  file (PFM or ``.npy`` in metres, 16-bit PNG in millimetres) and a focal length and baseline.
+
+Metrics, on a float32 disparity in pixels (NaN = no output) against the ground truth:
+
+* **GT-known** pixels: the ground truth is finite and positive. **Matchable**: GT-known, and the match
+  ``x - d_gt`` lies inside the right image and ``d_gt`` inside the searched range ``[0, D)``.
+* **bad-k** = share of the output pixels (GT-known, resp. matchable) with ``|d - d_gt| > k``;
+  **density** = output pixels / GT-known (resp. matchable) pixels; **too near** = share of the bad-2
+  errors whose disparity is too large (the depth too near: phantom obstacles).
+* **Regions**: the 9-region robust minimum (:func:`~companion.core.regions.reduce_regions`, the
+  configured percentile and minimum valid share) of the depth ``z = f·B / (d + doffs)`` from the output
+  and from the ground truth, their difference, and each region's class from the controller's ``near``
+  term (near when its membership is >= 0.5, unknown when the region is unknown, which the controller
+  treats as near), plus the controller's decision from each.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from companion.config import CompanionConfig
+from companion.core.depth import disparity_to_depth
+from companion.core.fuzzy.avoidance import AvoidanceController
+from companion.core.geometry import StereoGeometry
+from companion.core.regions import reduce_regions, region_layout
+from companion.core.types import REGION_NAMES
+from companion.errors import InputError
+
+#: Used when a pair has no calibration: a ZED-like rig, 90° horizontal field of view, 12 cm baseline.
+ASSUMED_HFOV_DEG = 90.0
+ASSUMED_BASELINE_M = 0.12
+
+
+@dataclass(frozen=True)
+class GroundTruthPair:
+    """A rectified grey pair and its left-view ground truth.
+
+    Attributes:
+        left, right: uint8 ``(H, W)`` grey images.
+        disparity: float32 ``(H, W)`` ground-truth disparity of the left image, px; NaN = unknown.
+        focal_px, baseline_m: the rig (assumed when the source has none: see ``assumed``).
+        doffs_px: ``cx_right - cx_left`` (Middlebury's doffs): depth ``z = f·B / (d + doffs)``.
+        cx_px, cy_px: the left principal point, px.
+        name: where it came from (one line).
+        assumed: True when focal and baseline are the :data:`ASSUMED_HFOV_DEG` / :data:`ASSUMED_BASELINE_M` rig.
+        ndisp: the source's disparity range if it states one (Middlebury's ``ndisp``), else None.
+    """
+
+    left: np.ndarray
+    right: np.ndarray
+    disparity: np.ndarray
+    focal_px: float
+    baseline_m: float
+    doffs_px: float
+    cx_px: float
+    cy_px: float
+    name: str
+    assumed: bool = False
+    ndisp: int | None = None
+
+    @property
+    def width_px(self) -> int:
+        return int(self.left.shape[1])
+
+    @property
+    def height_px(self) -> int:
+        return int(self.left.shape[0])
+
+    def geometry(self) -> StereoGeometry:
+        return StereoGeometry(self.width_px, self.height_px, self.focal_px, self.cx_px, self.cy_px, self.baseline_m)
+
+
+# --------------------------------------------------------------------------------------------------
+# readers
+
+
+def read_pfm(path: str | Path) -> np.ndarray:
+    """A one-channel PFM file as float32 ``(H, W)``, top row first.
+
+    Raises:
+        InputError: unreadable, not a grey PFM, or truncated.
+    """
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except OSError as err:
+        raise InputError(f"{path}: cannot read: {err.strerror or err}") from None
+    # header: "Pf\n<w> <h>\n<scale>\n" (whitespace-separated tokens), then the raster
+    m = re.match(rb"(P[Ff])\s+(\d+)\s+(\d+)\s+([-+0-9.eE]+)\s", data)
+    if m is None:
+        raise InputError(f"{path}: not a PFM file (no 'Pf <w> <h> <scale>' header)")
+    if m.group(1) != b"Pf":
+        raise InputError(f"{path}: a colour PFM ('PF'); a disparity or depth map has one channel ('Pf')")
+    w, h, scale = int(m.group(2)), int(m.group(3)), float(m.group(4))
+    n = w * h
+    raster = data[m.end() :]
+    if len(raster) < 4 * n:
+        raise InputError(f"{path}: truncated PFM: {len(raster)} bytes for {w}x{h} floats")
+    dtype = "<f4" if scale < 0 else ">f4"
+    arr = np.frombuffer(raster[: 4 * n], dtype=dtype).reshape(h, w)
+    return np.ascontiguousarray(arr[::-1]).astype(np.float32)
+
+
+def write_pfm(path: str | Path, array: np.ndarray) -> None:
+    """Write float32 ``(H, W)`` (top row first) as a little-endian one-channel PFM."""
+    a = np.asarray(array, dtype="<f4")
+    if a.ndim != 2:
+        raise ValueError(f"PFM needs a 2-D array, got shape {a.shape}")
+    h, w = a.shape
+    Path(path).write_bytes(f"Pf\n{w} {h}\n-1.0\n".encode() + np.ascontiguousarray(a[::-1]).tobytes())
+
+
+def read_middlebury_calib(path: str | Path) -> dict[str, Any]:
+    """Middlebury ``calib.txt``: ``cam0``/``cam1`` as float64 ``(3, 3)``, the other keys as numbers.
+
+    Raises:
+        InputError: unreadable, a line that is not ``key=value``, or no ``cam0`` / ``baseline``.
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as err:
+        raise InputError(f"{path}: cannot read: {err.strerror or err}") from None
+    out: dict[str, Any] = {}
+    for i, line in enumerate(text.splitlines(), 1):
+        line = line.strip()
+        if not line:
+            continue
+        if "=" not in line:
+            raise InputError(f"{path}:{i}: expected key=value, got {line!r}")
+        key, value = (s.strip() for s in line.split("=", 1))
+        try:
+            if value.startswith("["):
+                rows = [r.split() for r in value.strip("[]").split(";")]
+                out[key] = np.array([[float(v) for v in r] for r in rows], dtype=np.float64)
+            else:
+                num = float(value)
+                out[key] = int(num) if num.is_integer() and "." not in value else num
+        except ValueError:
+            raise InputError(f"{path}:{i}: cannot read {key} = {value!r}") from None
+    for key in ("cam0", "baseline"):
+        if key not in out:
+            raise InputError(f"{path}: no {key}")
+    if np.shape(out["cam0"]) != (3, 3):
+        raise InputError(f"{path}: cam0 must be a 3x3 matrix")
+    return out
+
+
+def _read_grey(path: Path) -> np.ndarray:
+    if not path.is_file():
+        raise InputError(f"{path}: no such file")
+    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    if img is None:
+        raise InputError(f"{path}: not a readable image")
+    return img
+
+
+def _read_disparity(path: Path, png_scale: float) -> np.ndarray:
+    """Disparity file -> float32 px, NaN unknown (PFM: inf/NaN/<= 0; PNG: 0; .npy: NaN/<= 0)."""
+    if not path.is_file():
+        raise InputError(f"{path}: no such file")
+    suffix = path.suffix.lower()
+    if suffix == ".pfm":
+        d = read_pfm(path)
+    elif suffix == ".npy":
+        d = np.load(path).astype(np.float32)
+    else:
+        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if raw is None or raw.ndim != 2:
+            raise InputError(f"{path}: not a one-channel disparity image")
+        d = raw.astype(np.float32) / np.float32(png_scale)
+    d = d.astype(np.float32)
+    d[~np.isfinite(d) | (d <= 0)] = np.nan
+    return d
+
+
+def _read_depth(path: Path, png_mm: bool) -> np.ndarray:
+    """Depth file -> float32 metres, NaN unknown (PFM/.npy in metres; 16-bit PNG in millimetres)."""
+    if not path.is_file():
+        raise InputError(f"{path}: no such file")
+    suffix = path.suffix.lower()
+    if suffix == ".pfm":
+        z = read_pfm(path)
+    elif suffix == ".npy":
+        z = np.load(path).astype(np.float32)
+    else:
+        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if raw is None or raw.ndim != 2:
+            raise InputError(f"{path}: not a one-channel depth image")
+        z = raw.astype(np.float32) / (np.float32(1000.0) if png_mm else np.float32(1.0))
+    z = z.astype(np.float32)
+    z[~np.isfinite(z) | (z <= 0)] = np.nan
+    return z
+
+
+def _assumed_focal(width_px: int) -> float:
+    return (width_px / 2.0) / math.tan(math.radians(ASSUMED_HFOV_DEG) / 2.0)
+
+
+def load_middlebury(directory: str | Path) -> GroundTruthPair:
+    """A Middlebury pair from its folder (2014/2021, 2005/2006, or OpenCV's Aloe sample; module doc).
+
+    Without ``calib.txt`` the rig is assumed (:data:`ASSUMED_HFOV_DEG`, :data:`ASSUMED_BASELINE_M`).
+
+    Raises:
+        InputError: no known layout in the folder, or an unreadable file.
+    """
+    d = Path(directory)
+    if not d.is_dir():
+        raise InputError(f"{d}: not a folder")
+    layouts = (
+        ("im0.png", "im1.png", "disp0.pfm", "Middlebury 2014/2021"),
+        ("view1.png", "view5.png", "disp1.png", "Middlebury 2005/2006"),
+        ("aloeL.jpg", "aloeR.jpg", "aloeGT.png", "Middlebury 2006 Aloe (OpenCV sample)"),
+    )
+    for ln, rn, gn, what in layouts:
+        if (d / ln).is_file() and (d / rn).is_file() and (d / gn).is_file():
+            left, right = _read_grey(d / ln), _read_grey(d / rn)
+            gt = _read_disparity(d / gn, png_scale=1.0)
+            break
+    else:
+        raise InputError(
+            f"{d}: no Middlebury layout found (im0.png/im1.png/disp0.pfm, view1.png/view5.png/disp1.png, "
+            "or aloeL.jpg/aloeR.jpg/aloeGT.png)"
+        )
+    if left.shape != right.shape or gt.shape != left.shape:
+        raise InputError(f"{d}: left {left.shape}, right {right.shape} and ground truth {gt.shape} differ in size")
+    h, w = left.shape
+    calib = d / "calib.txt"
+    if calib.is_file():
+        c = read_middlebury_calib(calib)
+        cam0 = c["cam0"]
+        return GroundTruthPair(
+            left, right, gt, float(cam0[0, 0]), float(c["baseline"]) / 1000.0, float(c.get("doffs", 0.0)),
+            float(cam0[0, 2]), float(cam0[1, 2]), f"{what}: {d}", False,
+            int(c["ndisp"]) if "ndisp" in c else None,
+        )
+    return GroundTruthPair(
+        left, right, gt, _assumed_focal(w), ASSUMED_BASELINE_M, 0.0, (w - 1) / 2.0, (h - 1) / 2.0,
+        f"{what}: {d}", True,
+    )
+
+
+def load_pair(
+    left: str | Path,
+    right: str | Path,
+    *,
+    disparity: str | Path | None = None,
+    depth: str | Path | None = None,
+    calib: str | Path | None = None,
+    focal_px: float | None = None,
+    baseline_m: float | None = None,
+    doffs_px: float = 0.0,
+    disparity_png_scale: float = 1.0,
+    depth_png_mm: bool = True,
+) -> GroundTruthPair:
+    """Explicit files: left/right images and a disparity or a depth ground truth.
+
+    A depth file needs the rig (``calib`` or ``focal_px`` and ``baseline_m``) to become disparity
+    (``d = f·B / z - doffs``). Without a rig a disparity pair is scored against the assumed one.
+
+    Raises:
+        InputError: unreadable files, sizes that differ, neither or both of disparity and depth, or a
+            depth file without a rig.
+    """
+    if (disparity is None) == (depth is None):
+        raise InputError("give exactly one ground truth: a disparity file or a depth file")
+    lp, rp = Path(left), Path(right)
+    li, ri = _read_grey(lp), _read_grey(rp)
+    if li.shape != ri.shape:
+        raise InputError(f"{lp} ({li.shape[1]}x{li.shape[0]}) and {rp} ({ri.shape[1]}x{ri.shape[0]}) differ in size")
+    h, w = li.shape
+    cx, cy = (w - 1) / 2.0, (h - 1) / 2.0
+    ndisp = None
+    if calib is not None:
+        c = read_middlebury_calib(calib)
+        focal_px, baseline_m = float(c["cam0"][0, 0]), float(c["baseline"]) / 1000.0
+        doffs_px = float(c.get("doffs", doffs_px))
+        cx, cy = float(c["cam0"][0, 2]), float(c["cam0"][1, 2])
+        ndisp = int(c["ndisp"]) if "ndisp" in c else None
+    assumed = focal_px is None or baseline_m is None
+    if depth is not None and assumed:
+        raise InputError("a depth ground truth needs the rig: --calib, or --focal-px and --baseline-m")
+    f = _assumed_focal(w) if focal_px is None else float(focal_px)
+    b = ASSUMED_BASELINE_M if baseline_m is None else float(baseline_m)
+    if depth is not None:
+        z = _read_depth(Path(depth), depth_png_mm)
+        gt = (np.float32(f * b) / z - np.float32(doffs_px)).astype(np.float32)
+        gt[~np.isfinite(gt) | (gt <= 0)] = np.nan
+        src = Path(depth)
+    else:
+        assert disparity is not None
+        gt = _read_disparity(Path(disparity), disparity_png_scale)
+        src = Path(disparity)
+    if gt.shape != li.shape:
+        raise InputError(f"{src}: ground truth {gt.shape[1]}x{gt.shape[0]} differs from the images' {w}x{h}")
+    return GroundTruthPair(li, ri, gt, f, b, float(doffs_px), cx, cy, f"{lp.name} / {rp.name} / {src.name}", assumed,
+                           ndisp)
+
+
+def rescale(pair: GroundTruthPair, scale: float) -> GroundTruthPair:
+    """The pair at ``scale`` (e.g. 0.5): images by area averaging, the ground truth by nearest sampling
+    times ``scale``, focal length, doffs and principal point scaled (pixel centres at integers)."""
+    if scale == 1.0:
+        return pair
+    if not 0.05 <= scale <= 1.0:
+        raise InputError(f"scale must be in [0.05, 1], got {scale}")
+    h, w = pair.left.shape
+    nw, nh = max(1, round(w * scale)), max(1, round(h * scale))
+    left = cv2.resize(pair.left, (nw, nh), interpolation=cv2.INTER_AREA)
+    right = cv2.resize(pair.right, (nw, nh), interpolation=cv2.INTER_AREA)
+    gt = cv2.resize(pair.disparity, (nw, nh), interpolation=cv2.INTER_NEAREST) * np.float32(scale)
+    sx, sy = nw / w, nh / h
+    return replace(
+        pair, left=left, right=right, disparity=gt.astype(np.float32), focal_px=pair.focal_px * sx,
+        doffs_px=pair.doffs_px * sx, cx_px=(pair.cx_px + 0.5) * sx - 0.5, cy_px=(pair.cy_px + 0.5) * sy - 0.5,
+        name=f"{pair.name} at scale {scale:g}", ndisp=None if pair.ndisp is None else math.ceil(pair.ndisp * sx),
+    )
+
+
+def suggested_num_disparities(pair: GroundTruthPair) -> int:
+    """``ndisp`` rounded up to a multiple of 16, else the smallest multiple of 16 above the largest
+    ground-truth disparity; between 16 and 256."""
+    if pair.ndisp is not None:
+        n = int(pair.ndisp)
+    else:
+        n = math.floor(float(np.nanmax(pair.disparity))) + 1
+    return int(min(256, max(16, 16 * math.ceil(n / 16))))
+
+
+# --------------------------------------------------------------------------------------------------
+# metrics
+
+
+def disparity_metrics(disparity: np.ndarray, gt: np.ndarray, num_disparities: int) -> dict[str, float]:
+    """bad-1, bad-2, density and the too-near share (module doc) over GT-known and matchable pixels.
+
+    Args:
+        disparity: float32 ``(H, W)`` output, px, NaN = none.
+        gt: float32 ``(H, W)`` ground truth, px, NaN = unknown.
+        num_disparities: the searched range ``D``.
+
+    Returns:
+        ``{"known_px", "matchable_px", "bad1_known", "bad2_known", "density_known", "too_near_known",
+        "bad1_matchable", "bad2_matchable", "density_matchable", "too_near_matchable",
+        "mean_abs_err_known"}``; shares in [0, 1] (NaN when there is nothing to count).
+    """
+    if disparity.shape != gt.shape:
+        raise ValueError(f"disparity {disparity.shape} and ground truth {gt.shape} differ in shape")
+    h, w = gt.shape
+    known = np.isfinite(gt) & (gt > 0)
+    xs = np.arange(w, dtype=np.float32)[None, :]
+    matchable = known & (xs - gt >= 0) & (gt < num_disparities)
+    out = np.isfinite(disparity)
+    err = disparity - gt
+    res: dict[str, float] = {"known_px": float(known.sum()), "matchable_px": float(matchable.sum())}
+    for label, mask in (("known", known), ("matchable", matchable)):
+        sel = out & mask
+        n = int(sel.sum())
+        e = err[sel]
+        res[f"density_{label}"] = n / max(1, int(mask.sum()))
+        res[f"bad1_{label}"] = float((np.abs(e) > 1).mean()) if n else math.nan
+        res[f"bad2_{label}"] = float((np.abs(e) > 2).mean()) if n else math.nan
+        bad = np.abs(e) > 2
+        res[f"too_near_{label}"] = float((e[bad] > 0).mean()) if bad.any() else math.nan
+    res["mean_abs_err_known"] = float(np.abs(err[out & known]).mean()) if (out & known).any() else math.nan
+    return res
+
+
+def depth_from_disparity(disparity: np.ndarray, focal_baseline_px_m: float, doffs_px: float = 0.0) -> np.ndarray:
+    """``z = f·B / (d + doffs)`` (float32, NaN where ``d`` is NaN; see :func:`disparity_to_depth`)."""
+    d = disparity if doffs_px == 0.0 else disparity + np.float32(doffs_px)
+    return disparity_to_depth(d, focal_baseline_px_m)
+
+
+def region_report(
+    disparity: np.ndarray, pair: GroundTruthPair, cfg: CompanionConfig
+) -> dict[str, Any]:
+    """Per-region robust minimum depth from the output and from the ground truth, their classes and the
+    controller's decision from each (module doc).
+
+    Returns:
+        ``{"regions": [{"name", "gt_depth_m", "depth_m", "error_m", "gt_valid", "valid", "gt_class",
+        "class"}, ...], "gt_decision": {...}, "decision": {...}, "class_agreement": int}``.
+    """
+    geometry = pair.geometry()
+    layout = region_layout(geometry, cfg.regions)
+    fb = geometry.focal_baseline_px_m
+    out = reduce_regions(depth_from_disparity(disparity, fb, pair.doffs_px), layout, cfg.regions)
+    ref = reduce_regions(depth_from_disparity(pair.disparity, fb, pair.doffs_px), layout, cfg.regions)
+    ctrl = AvoidanceController(cfg.controller, cfg.command)
+
+    def classes(depth: np.ndarray) -> list[str]:
+        res = ctrl.main_system.infer(ctrl.prepare(depth))
+        names = []
+        for i, name in enumerate(REGION_NAMES):
+            near = float(res.memberships[ctrl.main_system.atom(name, "near")])
+            names.append("unknown" if math.isnan(depth[i]) else ("near" if near >= 0.5 else "far"))
+        return names
+
+    def decision(depth: np.ndarray) -> dict[str, Any]:
+        dec = ctrl.decide(depth)
+        return {"kind": dec.kind.value, "yaw": dec.yaw, "pitch": dec.pitch, "reason": dec.reason}
+
+    gc, bc = classes(ref.depth_m), classes(out.depth_m)
+    rows = []
+    for i, name in enumerate(REGION_NAMES):
+        g, b = float(ref.depth_m[i]), float(out.depth_m[i])
+        rows.append({
+            "name": name, "gt_depth_m": g, "depth_m": b, "error_m": b - g,
+            "gt_valid": float(ref.valid_fraction[i]), "valid": float(out.valid_fraction[i]),
+            "gt_class": gc[i], "class": bc[i],
+        })
+    return {
+        "regions": rows,
+        "gt_decision": decision(ref.depth_m),
+        "decision": decision(out.depth_m),
+        "class_agreement": sum(a == b for a, b in zip(gc, bc)),
+    }

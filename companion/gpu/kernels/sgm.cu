@@ -1,0 +1,730 @@
+// CUDA kernels of the `cupy` backend's semi-global matcher: 9x7 census, SGM path aggregation, winner with
+// uniqueness, sub-pixel and the right view's disparity from the same sums, left-right check, 3x3 median and
+// the 9-region robust minimum. Compiled once per estimator with NVRTC through cupy.RawModule;
+// companion/gpu/plan.py (plan_sgm, sgm_defines) prepends the #defines that fix the image size, the
+// disparity count, the lane layout and the number of paths, so every loop bound is a compile-time constant.
+//
+// The rules reproduced bit for bit are those of companion/core/disparity/sgm.py (the NumPy reference);
+// everything is integer arithmetic except the region depth (float32 division f*B/d, as on the CPU).
+// P1, P2, the uniqueness ratio, the left-right tolerance and the median switch are kernel arguments.
+//
+// Lane layout. One line (an image row, column or diagonal walked by one path) is owned by LPL lanes of a
+// warp (LPW = 32 / LPL lines per warp). Lane l of a line holds WPL groups of 4 disparities:
+// group w covers d = 4 * (l + LPL * w) + j, j = 0..3 (DPAD = 4 * LPL * WPL >= NDISP, the padding
+// disparities are excluded). A group's four path costs are two 32-bit words of two 16-bit lanes,
+// A = (d0, d1) and B = (d2, d3), so that one 16x2 min handles two disparities. Path costs are <= 62 + P2
+// <= 255; an excluded disparity (d > x, or d >= NDISP) is held at 255, which never changes a minimum
+// (proof in docs/gpu_notes.md), so the recurrence needs no masks. Costs are stored as one byte per
+// (pixel, disparity) in one volume per path: [y][x][DPAD], 4 bytes per lane and group.
+//
+// Passes: sgm_census (and the reset of the right view's disparity keys); sgm_paths (every direction in one
+// launch, each into its own volume); sgm_wta (per run of pixels of a row: the sum of all paths, the winner,
+// uniqueness, sub-pixel, and the right view's disparity by a shift register along d merged by atomicMin);
+// sgm_post (left-right check, median, disparity image, region histograms, and in the last block the 9
+// depths).
+//
+// Portability: nothing needs more than sm_53. __reduce_min_sync (sm_80+) and the Hopper DPX 3-way minimum
+// (sm_90, CUDA 12+) are used where present, with shuffles and __vminu2 otherwise. Static shared memory
+// < 48 KB per block.
+
+typedef unsigned int u32;
+typedef unsigned short u16;
+typedef unsigned char u8;
+typedef unsigned long long u64;
+
+#define FULL_MASK 0xffffffffu
+#define N_REG 9
+#define KEY_INF 0xffffffffu
+#define LPW (32 / LPL)
+#define DPAD (4 * LPL * WPL)
+#define CEN_HW 4
+#define CEN_HH 3
+#define PAIR_255 0x00ff00ffu
+
+// ------------------------------------------------------------------------------------------------
+// helpers
+
+__device__ __forceinline__ u32 min2x16(u32 a, u32 b) { return __vminu2(a, b); }
+
+__device__ __forceinline__ u32 min3x16(u32 a, u32 b, u32 c) {
+#if defined(__CUDA_ARCH__) && (__CUDA_ARCH__ >= 900) && defined(__CUDACC_VER_MAJOR__) && (__CUDACC_VER_MAJOR__ >= 12)
+  return __vimin3_u16x2(a, b, c);
+#else
+  return __vminu2(__vminu2(a, b), c);
+#endif
+}
+
+__device__ __forceinline__ u32 min3u(u32 a, u32 b, u32 c) {
+#if defined(__CUDA_ARCH__) && (__CUDA_ARCH__ >= 900) && defined(__CUDACC_VER_MAJOR__) && (__CUDACC_VER_MAJOR__ >= 12)
+  return __vimin3_u32(a, b, c);
+#else
+  return min(min(a, b), c);
+#endif
+}
+
+__device__ __forceinline__ u32 popc64(u64 a) { return (u32)__popc((u32)a) + (u32)__popc((u32)(a >> 32)); }
+
+__device__ __forceinline__ float sgm_nan() { return __int_as_float(0x7fc00000); }
+
+// Minimum of v over the LPL lanes of this lane's line (every lane of the warp must call it).
+__device__ __forceinline__ u32 line_min(u32 v) {
+#if defined(__CUDA_ARCH__) && (__CUDA_ARCH__ >= 800)
+  if (LPW <= 2) {
+    // one REDUX per line of the warp, each over the whole warp with the other lines neutral
+    u32 res = 0;
+#pragma unroll
+    for (int g = 0; g < LPW; ++g) {
+      const u32 r = __reduce_min_sync(FULL_MASK, ((int)(threadIdx.x & 31) / LPL == g) ? v : KEY_INF);
+      if ((int)(threadIdx.x & 31) / LPL == g) res = r;
+    }
+    return res;
+  }
+#endif
+#pragma unroll
+  for (int off = LPL / 2; off > 0; off >>= 1) v = min(v, __shfl_xor_sync(FULL_MASK, v, off, LPL));
+  return v;
+}
+
+// ------------------------------------------------------------------------------------------------
+// 1. Census 9x7 of both rectified eyes (reference rule 1), from a shared-memory tile. Block (32, 8) pixels,
+// grid (ceil(IMG_W / 32), ceil(IMG_H / 8), 2). The left eye's blocks also reset the right view's disparity
+// keys of their pixels for this frame (sgm_wta min-reduces into them).
+
+#define CT_W 32
+#define CT_H 8
+
+extern "C" __global__ void __launch_bounds__(CT_W * CT_H) sgm_census(const u8* __restrict__ rl, const u8* __restrict__ rr,
+                                                                     u64* __restrict__ cl, u64* __restrict__ cr,
+                                                                     u32* __restrict__ drkey) {
+  __shared__ short tile[CT_H + 2 * CEN_HH][CT_W + 2 * CEN_HW];  // -1 outside the image
+  const u8* img = blockIdx.z ? rr : rl;
+  const int bx = (int)blockIdx.x * CT_W - CEN_HW, by = (int)blockIdx.y * CT_H - CEN_HH;
+  const int tid = (int)(threadIdx.y * CT_W + threadIdx.x);
+  for (int i = tid; i < (CT_H + 2 * CEN_HH) * (CT_W + 2 * CEN_HW); i += CT_W * CT_H) {
+    const int ty = i / (CT_W + 2 * CEN_HW), tx = i % (CT_W + 2 * CEN_HW);
+    const int yy = by + ty, xx = bx + tx;
+    tile[ty][tx] = (yy >= 0 && yy < IMG_H && xx >= 0 && xx < IMG_W) ? (short)img[(size_t)yy * PITCH + xx] : (short)-1;
+  }
+  __syncthreads();
+  const int x = (int)(blockIdx.x * CT_W + threadIdx.x), y = (int)(blockIdx.y * CT_H + threadIdx.y);
+  if (x >= IMG_W || y >= IMG_H) return;
+  const int c = tile[threadIdx.y + CEN_HH][threadIdx.x + CEN_HW];
+  u64 bits = 0;
+  int k = 0;
+#pragma unroll
+  for (int i = 0; i <= 2 * CEN_HH; ++i) {
+#pragma unroll
+    for (int j = 0; j <= 2 * CEN_HW; ++j) {
+      if (i == CEN_HH && j == CEN_HW) continue;
+      const int q = tile[threadIdx.y + i][threadIdx.x + j];
+      if (q >= 0 && q < c) bits |= 1ull << k;  // outside the image (-1) gives 0
+      ++k;
+    }
+  }
+  (blockIdx.z ? cr : cl)[(size_t)y * IMG_W + x] = bits;
+  if (blockIdx.z == 0) drkey[(size_t)y * IMG_W + x] = KEY_INF;
+}
+
+// ------------------------------------------------------------------------------------------------
+// 2. The path recurrence (reference rule 3) for one step of one line.
+//
+// L: this lane's path costs at the previous pixel of the line (A/B words per group), updated in place to
+// this pixel's. c: this pixel's census costs (0 where excluded), xm: 0x00ff in each excluded 16-bit lane.
+// start: this pixel starts the path (L(p) = C(p)). p1x2 = P1 in both 16-bit lanes.
+//
+// With m the line's minimum previous cost and t = min(L(d), L(d-1) + P1, L(d+1) + P1, m + P2), every
+// term is >= m, so t - m needs no borrow per 16-bit lane and (t - m) + C <= P2 + 62 <= 255 no carry;
+// an excluded disparity is then forced to 255 by OR (its value before the OR is <= 255).
+
+struct PathState {
+  u32 A[WPL];
+  u32 B[WPL];
+};
+
+__device__ __forceinline__ void path_step(PathState& L, const u32 (&cA)[WPL], const u32 (&cB)[WPL],
+                                          const u32 (&xA)[WPL], const u32 (&xB)[WPL], bool start, u32 p1x2, u32 p2) {
+  const int li = (int)(threadIdx.x & 31) % LPL;
+  if (start) {
+#pragma unroll
+    for (int w = 0; w < WPL; ++w) L.A[w] = L.B[w] = 0u;
+  }
+  u32 mw = min2x16(L.A[0], L.B[0]);
+#pragma unroll
+  for (int w = 1; w < WPL; ++w) mw = min3x16(mw, L.A[w], L.B[w]);
+  const u32 m = line_min(min(mw & 0xffffu, mw >> 16));
+  const u32 mp2 = (m + p2) * 0x00010001u;
+  const u32 mm = m * 0x00010001u;
+  // neighbours across lanes: B of the group below (d - 1 of d0), A of the group above (d + 1 of d3)
+  u32 lowB[WPL], highA[WPL];
+#pragma unroll
+  for (int w = 0; w < WPL; ++w) {
+    lowB[w] = __shfl_up_sync(FULL_MASK, L.B[w], 1, LPL);
+    highA[w] = __shfl_down_sync(FULL_MASK, L.A[w], 1, LPL);
+  }
+#pragma unroll
+  for (int w = 0; w < WPL; ++w) {
+    const u32 wrapB = w > 0 ? __shfl_sync(FULL_MASK, L.B[w > 0 ? w - 1 : 0], LPL - 1, LPL) : PAIR_255;
+    const u32 wrapA = w + 1 < WPL ? __shfl_sync(FULL_MASK, L.A[w + 1 < WPL ? w + 1 : 0], 0, LPL) : PAIR_255;
+    if (li == 0) lowB[w] = wrapB;
+    if (li == LPL - 1) highA[w] = wrapA;
+  }
+#pragma unroll
+  for (int w = 0; w < WPL; ++w) {
+    const u32 a = L.A[w], b = L.B[w];
+    const u32 dnA = __byte_perm(lowB[w], a, 0x5432);  // (d0 - 1, d0)
+    const u32 mid = __byte_perm(a, b, 0x5432);        // (d1, d2): d - 1 of B, d + 1 of A
+    const u32 upB = __byte_perm(b, highA[w], 0x5432); // (d3, d3 + 1)
+    const u32 tA = min2x16(min3x16(a, dnA + p1x2, mid + p1x2), mp2);
+    const u32 tB = min2x16(min3x16(b, mid + p1x2, upB + p1x2), mp2);
+    L.A[w] = ((tA - mm) + cA[w]) | xA[w];
+    L.B[w] = ((tB - mm) + cB[w]) | xB[w];
+  }
+}
+
+// Census costs of one pixel for this lane's groups. win[w][j] = census of the right pixel x - d0(w) - j
+// (any value where that is outside the image). Excluded: d > x or d >= NDISP.
+__device__ __forceinline__ void pixel_costs(u64 cL, const u64 (&win)[WPL][4], int x, u32 (&cA)[WPL], u32 (&cB)[WPL],
+                                            u32 (&xA)[WPL], u32 (&xB)[WPL]) {
+  const int li = (int)(threadIdx.x & 31) % LPL;
+#pragma unroll
+  for (int w = 0; w < WPL; ++w) {
+    const int d0 = 4 * (li + LPL * w);
+    if (x >= d0 + 3 && d0 + 3 < NDISP) {  // the usual case: all four included
+      cA[w] = popc64(cL ^ win[w][0]) | (popc64(cL ^ win[w][1]) << 16);
+      cB[w] = popc64(cL ^ win[w][2]) | (popc64(cL ^ win[w][3]) << 16);
+      xA[w] = xB[w] = 0u;
+    } else {
+      u32 c[4], ex[4];
+#pragma unroll
+      for (int j = 0; j < 4; ++j) {
+        const int d = d0 + j;
+        const bool excl = d > x || d >= NDISP;
+        c[j] = excl ? 0u : popc64(cL ^ win[w][j]);
+        ex[j] = excl ? 0xffu : 0u;
+      }
+      cA[w] = c[0] | (c[1] << 16);
+      cB[w] = c[2] | (c[3] << 16);
+      xA[w] = ex[0] | (ex[1] << 16);
+      xB[w] = ex[2] | (ex[3] << 16);
+    }
+  }
+}
+
+__device__ __forceinline__ u64 census_at(const u64* __restrict__ cen, int y, int x) {
+  return x >= 0 ? __ldg(cen + (size_t)y * IMG_W + x) : 0ull;
+}
+
+// What one step of a line needs from memory: the left census of its pixel and, per group, the right
+// census values it does not hold yet (horizontal walks slide a window and need one new value per group).
+template <int DX, int DY>
+struct StepLoads {
+  u64 cl;
+  u64 r[WPL][DY == 0 ? 1 : 4];
+};
+
+template <int DX, int DY>
+__device__ __forceinline__ void load_step(const u64* __restrict__ cl, const u64* __restrict__ cr, int x0, int y0,
+                                          int len, int s, StepLoads<DX, DY>& ld) {
+  const int li = (int)(threadIdx.x & 31) % LPL;
+  const bool act = s < len;
+  const int x = act ? x0 + DX * s : 0;
+  const int y = act ? y0 + DY * s : 0;
+  ld.cl = __ldg(cl + (size_t)y * IMG_W + x);
+#pragma unroll
+  for (int w = 0; w < WPL; ++w) {
+    const int d0 = 4 * (li + LPL * w);
+    if (DY == 0) {
+      ld.r[w][0] = census_at(cr, y, DX > 0 ? x - d0 : x - d0 - 3);
+    } else {
+#pragma unroll
+      for (int j = 0; j < (DY == 0 ? 1 : 4); ++j) ld.r[w][j] = census_at(cr, y, x - d0 - j);
+    }
+  }
+}
+
+// Walk one line of direction (DX, DY) from (x0, y0) for `len` pixels (`steps` >= len iterations so that all
+// lines of the warp keep stepping together; inactive steps store nothing), storing the path costs.
+// The census loads run two steps ahead and the costs one step ahead of the recurrence, so that the
+// recurrence (the only loop-carried chain) does not wait for memory.
+template <int DX, int DY>
+__device__ void walk_line(const u64* __restrict__ cl, const u64* __restrict__ cr, u8* __restrict__ vol, int x0,
+                          int y0, int len, int steps, u32 p1x2, u32 p2) {
+  const int li = (int)(threadIdx.x & 31) % LPL;
+  PathState L;
+  u64 win[WPL][4];
+  {
+    // step 0: the whole window
+    const int x = len > 0 ? x0 : 0, y = len > 0 ? y0 : 0;
+#pragma unroll
+    for (int w = 0; w < WPL; ++w) {
+      L.A[w] = L.B[w] = 0u;
+      const int d0 = 4 * (li + LPL * w);
+#pragma unroll
+      for (int j = 0; j < 4; ++j) win[w][j] = census_at(cr, y, x - d0 - j);
+    }
+  }
+  u32 cA[WPL], cB[WPL], xA[WPL], xB[WPL];
+  pixel_costs(__ldg(cl + (size_t)(len > 0 ? y0 : 0) * IMG_W + (len > 0 ? x0 : 0)), win, len > 0 ? x0 : 0, cA, cB, xA,
+              xB);
+  StepLoads<DX, DY> next;
+  load_step<DX, DY>(cl, cr, x0, y0, len, 1, next);
+  for (int s = 0; s < steps; ++s) {
+    StepLoads<DX, DY> after;
+    load_step<DX, DY>(cl, cr, x0, y0, len, s + 2, after);
+    path_step(L, cA, cB, xA, xB, s == 0, p1x2, p2);
+    if (s < len) {
+      const int x = x0 + DX * s, y = y0 + DY * s;
+      u32* dst = (u32*)(vol + ((size_t)y * IMG_W + x) * DPAD);
+#pragma unroll
+      for (int w = 0; w < WPL; ++w) dst[li + LPL * w] = __byte_perm(L.A[w], L.B[w], 0x6420);
+    }
+    // the costs of step s + 1
+#pragma unroll
+    for (int w = 0; w < WPL; ++w) {
+      if (DY == 0) {
+        if (DX > 0) {
+          win[w][3] = win[w][2];
+          win[w][2] = win[w][1];
+          win[w][1] = win[w][0];
+          win[w][0] = next.r[w][0];
+        } else {
+          win[w][0] = win[w][1];
+          win[w][1] = win[w][2];
+          win[w][2] = win[w][3];
+          win[w][3] = next.r[w][0];
+        }
+      } else {
+#pragma unroll
+        for (int j = 0; j < 4; ++j) win[w][j] = next.r[w][DY == 0 ? 0 : j];
+      }
+    }
+    const int xn = s + 1 < len ? x0 + DX * (s + 1) : 0;
+    pixel_costs(next.cl, win, xn, cA, cB, xA, xB);
+    next = after;
+  }
+}
+
+// Diagonal line `line` of direction (DX, DY): its first pixel and its length.
+template <int DX, int DY>
+__device__ __forceinline__ void diagonal_line(int line, int& x0, int& y0, int& len) {
+  if (line < IMG_W) {
+    x0 = line;
+    y0 = DY > 0 ? 0 : IMG_H - 1;
+  } else {
+    x0 = DX > 0 ? 0 : IMG_W - 1;
+    y0 = DY > 0 ? line - IMG_W + 1 : IMG_H - 2 - (line - IMG_W);
+  }
+  const int lx = DX > 0 ? IMG_W - x0 : x0 + 1;
+  const int ly = DY > 0 ? IMG_H - y0 : y0 + 1;
+  len = min(lx, ly);
+}
+
+__device__ __forceinline__ int warp_max(int v) {
+#pragma unroll
+  for (int off = 16; off > 0; off >>= 1) v = max(v, __shfl_xor_sync(FULL_MASK, v, off));
+  return v;
+}
+
+#define TASKS_H ((IMG_H + LPW - 1) / LPW)
+#define TASKS_V ((IMG_W + LPW - 1) / LPW)
+#define TASKS_D ((IMG_W + IMG_H - 1 + LPW - 1) / LPW)
+#define VOL_BYTES ((size_t)IMG_H * IMG_W * DPAD)
+
+template <int DX, int DY>
+__device__ __forceinline__ void diagonal_task(const u64* __restrict__ cl, const u64* __restrict__ cr, u8* vol,
+                                              int task, u32 p1x2, u32 p2) {
+  const int line = task * LPW + (int)(threadIdx.x & 31) / LPL;
+  int x0 = 0, y0 = 0, len = 0;
+  if (line < IMG_W + IMG_H - 1) diagonal_line<DX, DY>(line, x0, y0, len);
+  walk_line<DX, DY>(cl, cr, vol, x0, y0, len, warp_max(len), p1x2, p2);
+}
+
+// 3. Every path, one volume each, in one launch: warp task -> (direction, lines). Volume order is the
+// reference's PATH_DIRECTIONS: left-to-right, right-to-left, top-to-bottom, bottom-to-top, then (8 paths)
+// the diagonals (1,1), (-1,1), (1,-1), (-1,-1). The longest walks (rows) are handed out first. Block: 128
+// threads.
+
+extern "C" __global__ void __launch_bounds__(128) sgm_paths(const u64* __restrict__ cl, const u64* __restrict__ cr,
+                                                            u8* __restrict__ vols, u32 p1, u32 p2) {
+  int task = (int)(blockIdx.x * (blockDim.x / 32) + threadIdx.x / 32);
+  const int sub = (int)(threadIdx.x & 31) / LPL;
+  const u32 p1x2 = p1 * 0x00010001u;
+  if (task < 2 * TASKS_H) {
+    const bool rtl = task >= TASKS_H;
+    const int row = (rtl ? task - TASKS_H : task) * LPW + sub;
+    const int len = row < IMG_H ? IMG_W : 0;
+    if (rtl) walk_line<-1, 0>(cl, cr, vols + VOL_BYTES, IMG_W - 1, row, len, IMG_W, p1x2, p2);
+    else walk_line<1, 0>(cl, cr, vols, 0, row, len, IMG_W, p1x2, p2);
+    return;
+  }
+  task -= 2 * TASKS_H;
+  if (task < 2 * TASKS_V) {
+    const bool up = task >= TASKS_V;
+    const int col = (up ? task - TASKS_V : task) * LPW + sub;
+    const int len = col < IMG_W ? IMG_H : 0;
+    if (up) walk_line<0, -1>(cl, cr, vols + 3 * VOL_BYTES, col, IMG_H - 1, len, IMG_H, p1x2, p2);
+    else walk_line<0, 1>(cl, cr, vols + 2 * VOL_BYTES, col, 0, len, IMG_H, p1x2, p2);
+    return;
+  }
+#if NPATHS == 8
+  task -= 2 * TASKS_V;
+  if (task < TASKS_D) { diagonal_task<1, 1>(cl, cr, vols + 4 * VOL_BYTES, task, p1x2, p2); return; }
+  task -= TASKS_D;
+  if (task < TASKS_D) { diagonal_task<-1, 1>(cl, cr, vols + 5 * VOL_BYTES, task, p1x2, p2); return; }
+  task -= TASKS_D;
+  if (task < TASKS_D) { diagonal_task<1, -1>(cl, cr, vols + 6 * VOL_BYTES, task, p1x2, p2); return; }
+  task -= TASKS_D;
+  if (task < TASKS_D) { diagonal_task<-1, -1>(cl, cr, vols + 7 * VOL_BYTES, task, p1x2, p2); return; }
+#endif
+}
+
+// ------------------------------------------------------------------------------------------------
+// 4. Winner, uniqueness, sub-pixel and the right view's disparity (reference rules 4-8), in parallel.
+//
+// One line of LPL lanes per run of RUN pixels of a row, walked from x_lo + RUN - 1 down to x_lo (pixels
+// past the image are idle steps). At pixel x, lane l sums the path costs of its disparities over the
+// NPATHS volumes into S (16-bit lanes). Winner: the minimum key S << 8 | (255 - d) over the line (ties to
+// the largest d). Uniqueness: the minimum key with |d - d*| >= 2. Sub-pixel: S(d* - 1) and S(d* + 1) from
+// the lanes holding them. dl: -1 (no unique winner) or d* << 16 | v (v = 16 d* + offset).
+// Right disparity: slot d of a shift register R holds the best key of right pixel x - d over the run's
+// pixels so far; pixel x adds key(S(x, d), d) to slot d, slot 0 (right pixel x) goes to drkey by
+// atomicMin, and R shifts one disparity down; after the run the slots still holding right pixels >= 0 go
+// the same way. drkey (reset to KEY_INF by sgm_census) then holds, per right pixel, the minimum key over
+// every left pixel x = xr + d: the reference's dR = 255 - (key & 255). Block: 128 threads.
+
+__device__ __forceinline__ u32 pick_sum(const u32 (&SA)[WPL], const u32 (&SB)[WPL], int d) {
+  // this lane's S for disparity d, if this lane holds it (the caller shuffles from the owner)
+  const int w = (d >> 2) / LPL, j = d & 3;
+  u32 r = 0;
+#pragma unroll
+  for (int ww = 0; ww < WPL; ++ww) {
+    if (ww == w) {
+      const u32 word = j < 2 ? SA[ww] : SB[ww];
+      r = (j & 1) ? word >> 16 : word & 0xffffu;
+    }
+  }
+  return r;
+}
+
+__device__ __forceinline__ int floor_div(int n, int d) {  // d > 0
+  const int q = n / d;
+  return (n % d != 0 && n < 0) ? q - 1 : q;
+}
+
+#define RUNS_PER_ROW ((IMG_W + RUN - 1) / RUN)
+
+extern "C" __global__ void __launch_bounds__(128) sgm_wta(const u8* __restrict__ vols, int* __restrict__ dl,
+                                                          u32* __restrict__ drkey, u32 uniq) {
+  const int task = (int)(blockIdx.x * (blockDim.x / 32) + threadIdx.x / 32) * LPW + (int)(threadIdx.x & 31) / LPL;
+  const int li = (int)(threadIdx.x & 31) % LPL;
+  const int row = task / RUNS_PER_ROW;
+  const bool row_ok = row < IMG_H;
+  const int y = row_ok ? row : 0;
+  const int x_lo = (task % RUNS_PER_ROW) * RUN;
+  u32 R[WPL][4];
+#pragma unroll
+  for (int w = 0; w < WPL; ++w)
+#pragma unroll
+    for (int j = 0; j < 4; ++j) R[w][j] = KEY_INF;
+  const u32* vrow = (const u32*)(vols + (size_t)y * IMG_W * DPAD);
+  u32 nxt[NPATHS][WPL];
+  {
+    const int x = min(x_lo + RUN - 1, IMG_W - 1);
+#pragma unroll
+    for (int k = 0; k < NPATHS; ++k)
+#pragma unroll
+      for (int w = 0; w < WPL; ++w) nxt[k][w] = __ldcs(vrow + (size_t)k * (VOL_BYTES / 4) + (size_t)x * (DPAD / 4) + li + LPL * w);
+  }
+  for (int q = RUN - 1; q >= 0; --q) {
+    const int x = x_lo + q;
+    const bool act = row_ok && x < IMG_W;
+    u32 cur[NPATHS][WPL];
+#pragma unroll
+    for (int k = 0; k < NPATHS; ++k)
+#pragma unroll
+      for (int w = 0; w < WPL; ++w) cur[k][w] = nxt[k][w];
+    if (q > 0) {
+      const int xn = min(x - 1, IMG_W - 1);
+#pragma unroll
+      for (int k = 0; k < NPATHS; ++k)
+#pragma unroll
+        for (int w = 0; w < WPL; ++w)
+          nxt[k][w] = __ldcs(vrow + (size_t)k * (VOL_BYTES / 4) + (size_t)xn * (DPAD / 4) + li + LPL * w);
+    }
+    // sums (16-bit lanes: (d0, d1) and (d2, d3)), keys, winner
+    u32 SA[WPL], SB[WPL];
+    u32 key[WPL][4];
+    u32 best = KEY_INF;
+#pragma unroll
+    for (int w = 0; w < WPL; ++w) {
+      u32 sa = 0u, sb = 0u;
+#pragma unroll
+      for (int k = 0; k < NPATHS; ++k) {
+        sa += __byte_perm(cur[k][w], 0u, 0x4140);
+        sb += __byte_perm(cur[k][w], 0u, 0x4342);
+      }
+      SA[w] = sa;
+      SB[w] = sb;
+      const int d0 = 4 * (li + LPL * w);
+      const u32 sv[4] = {sa & 0xffffu, sa >> 16, sb & 0xffffu, sb >> 16};
+      const bool all_in = act && x >= d0 + 3 && d0 + 3 < NDISP;
+#pragma unroll
+      for (int j = 0; j < 4; ++j) {
+        const int d = d0 + j;
+        key[w][j] = (all_in || (act && d <= x && d < NDISP)) ? (sv[j] << 8) | (u32)(255 - d) : KEY_INF;
+      }
+      best = min(best, min3u(key[w][0], key[w][1], min(key[w][2], key[w][3])));
+    }
+    best = line_min(best);
+    const int dstar = 255 - (int)(best & 0xffu);
+    const u32 sstar = best >> 8;
+    // uniqueness: the best key at |d - d*| >= 2
+    u32 other = KEY_INF;
+#pragma unroll
+    for (int w = 0; w < WPL; ++w) {
+      const int d0 = 4 * (li + LPL * w);
+#pragma unroll
+      for (int j = 0; j < 4; ++j) {
+        if ((u32)(d0 + j - dstar + 1) > 2u) other = min(other, key[w][j]);  // |d - d*| >= 2
+      }
+    }
+    other = line_min(other);
+    // sub-pixel neighbours from the lanes that hold them
+    const int dm = dstar > 0 ? dstar - 1 : 0;
+    const int dp = dstar + 1 < DPAD ? dstar + 1 : dstar;
+    const u32 c0 = __shfl_sync(FULL_MASK, pick_sum(SA, SB, dm), (dm >> 2) % LPL, LPL);
+    const u32 c2 = __shfl_sync(FULL_MASK, pick_sum(SA, SB, dp), (dp >> 2) % LPL, LPL);
+    // right disparity: add this pixel, hand slot 0 (right pixel x) on, shift one disparity down
+#pragma unroll
+    for (int w = 0; w < WPL; ++w)
+#pragma unroll
+      for (int j = 0; j < 4; ++j) R[w][j] = min(R[w][j], key[w][j]);
+    if (li == 0 && act) atomicMin(drkey + (size_t)y * IMG_W + x, R[0][0]);
+#pragma unroll
+    for (int w = 0; w < WPL; ++w) {
+      const u32 next_lane = __shfl_down_sync(FULL_MASK, R[w][0], 1, LPL);
+      const u32 next_group = w + 1 < WPL ? __shfl_sync(FULL_MASK, R[w + 1 < WPL ? w + 1 : 0][0], 0, LPL) : KEY_INF;
+      R[w][0] = R[w][1];
+      R[w][1] = R[w][2];
+      R[w][2] = R[w][3];
+      R[w][3] = li == LPL - 1 ? next_group : next_lane;
+    }
+    if (li == 0 && act) {
+      int out = -1;
+      const bool unique = other == KEY_INF || 100u * (other >> 8) > (100u + uniq) * sstar;
+      if (unique) {
+        int v = 16 * dstar;
+        if (dstar >= 1 && dstar + 1 <= min(x, NDISP - 1)) {
+          const int den = (int)c0 + (int)c2 - 2 * (int)sstar;
+          v += floor_div(16 * ((int)c0 - (int)c2) + den, 2 * den);
+        }
+        out = (dstar << 16) | v;
+      }
+      dl[(size_t)y * IMG_W + x] = out;
+    }
+  }
+  // slot d now belongs to right pixel x_lo - 1 - d
+  if (row_ok) {
+#pragma unroll
+    for (int w = 0; w < WPL; ++w)
+#pragma unroll
+      for (int j = 0; j < 4; ++j) {
+        const int xr = x_lo - 1 - (4 * (li + LPL * w) + j);
+        if (xr >= 0 && R[w][j] != KEY_INF) atomicMin(drkey + (size_t)y * IMG_W + xr, R[w][j]);
+      }
+  }
+}
+
+// ------------------------------------------------------------------------------------------------
+// 5. Left-right check, median, disparity image, region histograms, and the 9 depths (reference rules
+// 9-10; regions as companion.core.regions.reduce_regions on the float disparity v / 16).
+//
+// A block owns a slab of SLAB_ROWS rows inside one row band of the regions (so its pixels fall in 3
+// regions). It first writes the left-right-checked v of its rows and the row above and below into shared
+// memory, then takes each pixel's median from there and counts the valid results in a shared histogram
+// of 3 * NBINS 16-bit counters (a slab has at most 65535 pixels), whose non-zero counts it adds to the
+// global histogram (9 * NBINS u32). The last block over all slabs (a ticket counter) finds, per region, n
+// and the k-th largest v, z = fb / (v / 16) in float32, and zeroes the histogram and the counter for the
+// next frame. Block: 256 threads.
+
+#define POST_THREADS 256
+#define HIST_WORDS ((3 * NBINS + 1) / 2)
+#define FIN_CHUNK ((NBINS + POST_THREADS - 1) / POST_THREADS)
+#define CHK_ROWS (SLAB_ROWS + 2)
+
+__device__ __forceinline__ u32 sgm_region_area(int reg) {
+  const int rb = reg / 3, cb = reg % 3;
+  const int h = rb == 0 ? RE1 : (rb == 1 ? RE2 - RE1 : IMG_H - RE2);
+  const int w = cb == 0 ? CE1 : (cb == 1 ? CE2 - CE1 : IMG_W - CE2);
+  return (u32)(h * w);
+}
+
+struct SmemPost {
+  u32 hist[HIST_WORDS];
+  short chk[CHK_ROWS * IMG_W];
+  u32 warp_sum[POST_THREADS / 32];
+  int found;
+  int flag;
+};
+
+// the lower median of the valid values among the 3x3 neighbours (rows r - 1 .. r + 1 of chk)
+__device__ __forceinline__ int median_valid_3x3(const short* chk, int r, int x) {
+  int v[9];
+  int n = 0;
+#pragma unroll
+  for (int i = 0; i < 3; ++i)
+#pragma unroll
+    for (int j = 0; j < 3; ++j) {
+      const int xx = x + j - 1;
+      const int q = (xx >= 0 && xx < IMG_W) ? (int)chk[(r + i - 1) * IMG_W + xx] : -1;
+      v[i * 3 + j] = q;
+      n += q >= 0;
+    }
+  const int target = (n - 1) / 2;
+  int res = -1;
+#pragma unroll
+  for (int a = 0; a < 9; ++a) {
+    int lt = 0, le = 0;
+#pragma unroll
+    for (int b = 0; b < 9; ++b) {
+      lt += (v[b] >= 0) & (v[b] < v[a]);
+      le += (v[b] >= 0) & (v[b] <= v[a]);
+    }
+    if (v[a] >= 0 && lt <= target && target < le) res = v[a];
+  }
+  return res;
+}
+
+extern "C" __global__ void __launch_bounds__(POST_THREADS) sgm_post(const int* __restrict__ dl,
+                                                                    const u32* __restrict__ drkey,
+                                                                    short* __restrict__ disp, u32* __restrict__ hist_g,
+                                                                    u32* __restrict__ counter,
+                                                                    double* __restrict__ result, int lr_max, int median,
+                                                                    float fb, double pct, double min_valid,
+                                                                    double max_depth) {
+  __shared__ SmemPost sm;
+  const int tid = (int)threadIdx.x;
+  int b = (int)blockIdx.x, band, ya, yb;
+  if (b < NSLAB0) {
+    band = 0;
+    ya = b * SLAB_ROWS;
+    yb = min(ya + SLAB_ROWS, RE1);
+  } else if (b < NSLAB0 + NSLAB1) {
+    band = 1;
+    ya = RE1 + (b - NSLAB0) * SLAB_ROWS;
+    yb = min(ya + SLAB_ROWS, RE2);
+  } else {
+    band = 2;
+    ya = RE2 + (b - NSLAB0 - NSLAB1) * SLAB_ROWS;
+    yb = min(ya + SLAB_ROWS, IMG_H);
+  }
+  for (int i = tid; i < HIST_WORDS; i += POST_THREADS) sm.hist[i] = 0u;
+  // left-right check of rows ya - 1 .. yb (-1 outside the image)
+  const int nchk = (yb - ya + 2) * IMG_W;
+  for (int i = tid; i < nchk; i += POST_THREADS) {
+    const int r = i / IMG_W, x = i % IMG_W, y = ya - 1 + r;
+    int out = -1;
+    if (y >= 0 && y < IMG_H) {
+      const int raw = dl[(size_t)y * IMG_W + x];
+      if (raw >= 0) {
+        const int ds = raw >> 16;
+        out = raw & 0xffff;
+        if (lr_max >= 0) {
+          const int back = 255 - (int)(drkey[(size_t)y * IMG_W + x - ds] & 0xffu);
+          const int diff = ds > back ? ds - back : back - ds;
+          if (diff > lr_max) out = -1;
+        }
+      }
+    }
+    sm.chk[i] = (short)out;
+  }
+  __syncthreads();
+  const int npx = (yb - ya) * IMG_W;
+  for (int idx = tid; idx < npx; idx += POST_THREADS) {
+    const int r = idx / IMG_W + 1, x = idx % IMG_W;
+    int v = sm.chk[r * IMG_W + x];
+    if (median && v >= 0) v = median_valid_3x3(sm.chk, r, x);
+    disp[(size_t)(ya + r - 1) * IMG_W + x] = (short)v;
+    if (v >= 0) {
+      const int cb = x < CE1 ? 0 : (x < CE2 ? 1 : 2);
+      const int bin = cb * NBINS + v;
+      atomicAdd(&sm.hist[bin >> 1], 1u << (16 * (bin & 1)));
+    }
+  }
+  __syncthreads();
+  for (int i = tid; i < 3 * NBINS; i += POST_THREADS) {
+    const u32 cnt = (sm.hist[i >> 1] >> (16 * (i & 1))) & 0xffffu;
+    if (cnt) atomicAdd(hist_g + (band * 3 + i / NBINS) * NBINS + i % NBINS, cnt);
+  }
+
+  // ---- the last block turns the histogram into the 9 results
+  __threadfence();
+  __syncthreads();
+  if (tid == 0) sm.flag = atomicAdd(counter, 1u) == gridDim.x - 1;
+  __syncthreads();
+  if (!sm.flag) return;
+  __threadfence();
+  const int lane = tid & 31, warp = tid >> 5;
+  for (int reg = 0; reg < N_REG; ++reg) {
+    // thread t holds bins NBINS-1-t*FIN_CHUNK down to NBINS-(t+1)*FIN_CHUNK (from the largest v)
+    u32 h[FIN_CHUNK];
+    u32 part = 0;
+#pragma unroll
+    for (int c = 0; c < FIN_CHUNK; ++c) {
+      const int bin = NBINS - 1 - tid * FIN_CHUNK - c;
+      h[c] = 0u;
+      if (bin >= 0) {
+        u32* p = hist_g + reg * NBINS + bin;
+        h[c] = __ldcg(p);
+        *p = 0u;
+      }
+      part += h[c];
+    }
+    u32 incl = part;
+#pragma unroll
+    for (int off = 1; off < 32; off <<= 1) {
+      const u32 t = __shfl_up_sync(FULL_MASK, incl, off);
+      if (lane >= off) incl += t;
+    }
+    if (lane == 31) sm.warp_sum[warp] = incl;
+    if (tid == 0) sm.found = -1;
+    __syncthreads();
+    u32 before = 0, n = 0;
+    for (int w = 0; w < POST_THREADS / 32; ++w) {
+      const u32 ws = sm.warp_sum[w];
+      if (w < warp) before += ws;
+      n += ws;
+    }
+    const double frac = (double)n / (double)sgm_region_area(reg);
+    const bool known = n > 0 && !(frac < min_valid);
+    if (known) {
+      const double kd = ceil(pct * (double)n / 100.0);
+      const u32 k = kd < 1.0 ? 1u : (u32)kd;
+      const u32 lo = before + incl - part;  // valid pixels in bins above this thread's
+      if (lo < k && k <= lo + part) {
+        u32 acc = lo;
+#pragma unroll
+        for (int c = 0; c < FIN_CHUNK; ++c) {
+          acc += h[c];
+          if (acc >= k) {
+            sm.found = NBINS - 1 - tid * FIN_CHUNK - c;
+            break;
+          }
+        }
+      }
+    }
+    __syncthreads();
+    if (tid == 0) {
+      double depth = (double)sgm_nan();
+      if (known) {
+        const int v = sm.found;
+        const float z = v == 0 ? __int_as_float(0x7f800000) : __fdiv_rn(fb, (float)v * 0.0625f);
+        depth = (double)z < max_depth ? (double)z : max_depth;
+      }
+      result[reg] = depth;
+      result[N_REG + reg] = frac;
+    }
+    __syncthreads();
+  }
+  if (tid == 0) *counter = 0u;
+}

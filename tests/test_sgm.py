@@ -1,0 +1,228 @@
+"""The exact census + SGM reference (companion.core.disparity.sgm): its rules as literal loops, its
+behaviour on pairs with a known disparity, its wiring into the CPU backends and its parameter checks."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from companion.config import CompanionConfig
+from companion.config.core import StereoConfig
+from companion.core.disparity import SgmReferenceMatcher, make_cpu_matcher
+from companion.core.disparity import sgm as S
+from companion.core.estimator import CpuRegionEstimator
+
+# --------------------------------------------------------------------------------------------------
+# The module docstring's rules, literally: one pixel, one disparity, one direction at a time.
+
+
+def _census_literal(img: np.ndarray) -> np.ndarray:
+    h, w = img.shape
+    out = np.zeros((h, w), dtype=np.uint64)
+    for y in range(h):
+        for x in range(w):
+            bits, k = 0, 0
+            for i in range(-3, 4):
+                for j in range(-4, 5):
+                    if i == 0 and j == 0:
+                        continue
+                    yy, xx = y + i, x + j
+                    if 0 <= yy < h and 0 <= xx < w and int(img[yy, xx]) < int(img[y, x]):
+                        bits |= 1 << k
+                    k += 1
+            out[y, x] = bits
+    return out
+
+
+def _brute_force(left, right, D, p1, p2, paths, u, lr, median):  # noqa: ANN001, ANN202 - test oracle
+    h, w = left.shape
+    cl, cr = _census_literal(left), _census_literal(right)
+
+    def included(x: int) -> list[int]:
+        return list(range(min(x, D - 1) + 1))
+
+    def cost(y: int, x: int, d: int) -> int:
+        return bin(int(cl[y, x]) ^ int(cr[y, x - d])).count("1")
+
+    total: dict[tuple[int, int, int], int] = {}
+    for dx, dy in S.PATH_DIRECTIONS[:paths]:
+        Lr: dict[tuple[int, int], dict[int, int]] = {}
+        ys = range(h) if dy >= 0 else range(h - 1, -1, -1)
+        xs = list(range(w)) if dx >= 0 else list(range(w - 1, -1, -1))
+        order = [(y, x) for y in ys for x in xs] if dy != 0 else [(y, x) for x in xs for y in range(h)]
+        for y, x in order:
+            py, px = y - dy, x - dx
+            cur = {}
+            if not (0 <= py < h and 0 <= px < w):
+                for d in included(x):
+                    cur[d] = cost(y, x, d)
+            else:
+                prev = Lr[(py, px)]
+                m = min(prev.values())
+                for d in included(x):
+                    terms = [m + p2]
+                    for dd, pen in ((d, 0), (d - 1, p1), (d + 1, p1)):
+                        if dd in prev:
+                            terms.append(prev[dd] + pen)
+                    cur[d] = cost(y, x, d) + min(terms) - m
+            assert max(cur.values()) <= 255
+            Lr[(y, x)] = cur
+        for (y, x), vals in Lr.items():
+            for d, v in vals.items():
+                total[(y, x, d)] = total.get((y, x, d), 0) + v
+    out = np.full((h, w), -1, dtype=np.int16)
+    d_right = np.zeros((h, w), dtype=int)
+    for y in range(h):
+        for xr in range(w):
+            ds = range(min(D - 1, w - 1 - xr) + 1)
+            best = min(total[(y, xr + d, d)] for d in ds)
+            d_right[y, xr] = max(d for d in ds if total[(y, xr + d, d)] == best)
+    for y in range(h):
+        for x in range(w):
+            s = {d: total[(y, x, d)] for d in included(x)}
+            best = min(s.values())
+            ds = max(d for d, v in s.items() if v == best)
+            if any(abs(d - ds) >= 2 and 100 * v <= (100 + u) * best for d, v in s.items()):
+                continue
+            if lr >= 0 and abs(ds - d_right[y, x - ds]) > lr:
+                continue
+            v = 16 * ds
+            if ds >= 1 and ds + 1 in s:
+                c0, c1, c2 = s[ds - 1], best, s[ds + 1]
+                den = c0 + c2 - 2 * c1
+                assert den >= 1
+                off = (16 * (c0 - c2) + den) // (2 * den)  # Python's // is floor division
+                assert -8 <= off <= 8
+                v += off
+            out[y, x] = v
+    if not median:
+        return out
+    med = out.copy()
+    for y in range(h):
+        for x in range(w):
+            if out[y, x] < 0:
+                continue
+            vals = sorted(
+                int(out[yy, xx])
+                for yy in range(y - 1, y + 2)
+                for xx in range(x - 1, x + 2)
+                if 0 <= yy < h and 0 <= xx < w and out[yy, xx] >= 0
+            )
+            med[y, x] = vals[(len(vals) - 1) // 2]
+    return med
+
+
+def _pair(h: int, w: int, shift: int, seed: int, noise: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """right(x) = left(x + shift) + noise, i.e. left(x) = right(x - shift): a pair with disparity ``shift`` everywhere it is matchable."""
+    rng = np.random.default_rng(seed)
+    base = cv2.GaussianBlur(rng.integers(0, 256, (h, w + shift)).astype(np.float32), (0, 0), 1.0)
+    base = np.clip((base - base.mean()) * 3 + 128, 0, 255).astype(np.uint8)
+    left = base[:, :w].copy()
+    right = np.clip(base[:, shift:].astype(int) + rng.integers(-noise, noise + 1, (h, w)), 0, 255).astype(np.uint8)
+    return left, right
+
+
+def test_census_equals_the_literal_rule() -> None:
+    img = np.random.default_rng(0).integers(0, 256, (11, 13), dtype=np.uint8)
+    img[3:7, 2:9] = 50  # ties: equal neighbours give 0
+    np.testing.assert_array_equal(S.census_9x7(img), _census_literal(img))
+    assert S.CENSUS_BITS == 62 and S.MAX_P2 == 193
+
+
+@pytest.mark.parametrize(
+    ("D", "p1", "p2", "paths", "u", "lr", "median"),
+    [
+        (6, 10, 120, 4, 10, 1, True),
+        (8, 3, 193, 8, 0, 0, False),  # largest P2: path costs reach 255
+        (5, 192, 193, 8, 25, -1, True),
+        (16, 7, 40, 4, 5, 2, True),  # D wider than the image
+    ],
+)
+def test_reference_equals_the_literal_rules(D: int, p1: int, p2: int, paths: int, u: int, lr: int, median: bool) -> None:
+    left, right = _pair(9, 14, 2, seed=D + p1)
+    left[2:6, 4:9] = 90  # a flat patch: equal sums, ties to the largest d
+    right[2:6, 2:7] = 90
+    got = S.sgm_match(left, right, D, p1=p1, p2=p2, paths=paths, uniqueness_ratio_pct=u, lr_max_diff_px=lr,
+                      median=median)
+    np.testing.assert_array_equal(got, _brute_force(left, right, D, p1, p2, paths, u, lr, median))
+
+
+def test_a_shifted_pair_is_matched_at_its_disparity() -> None:
+    h, w, shift = 60, 120, 9
+    left, right = _pair(h, w, shift, seed=1)
+    v = S.sgm_match(left, right, 32, p1=10, p2=120)
+    d = S.fixed_to_float(v)
+    matchable = np.zeros((h, w), bool)
+    matchable[:, shift:] = True
+    ok = np.abs(d - shift) <= 1
+    assert ok[matchable].mean() > 0.95
+    # left of column `shift` the true match is outside the right image: the left-right check rejects
+    # most of those pixels rather than returning a wrong disparity (a path that starts at x = 0 has paid
+    # fewer penalties, so the first few columns win the right view's diagonal minimum and some of them
+    # pass with d = 0: a too-far error confined to the image's first columns)
+    assert np.isnan(d[:, :shift]).mean() > 0.7
+    assert np.isnan(d[:, 5:shift]).mean() > 0.9
+    assert v.dtype == np.int16 and (v[v >= 0] <= 16 * 31).all()
+
+
+def test_subpixel_offsets_follow_a_fractional_shift() -> None:
+    h, w = 40, 160
+    rng = np.random.default_rng(4)
+    base = cv2.GaussianBlur(rng.integers(0, 256, (h, 4 * (w + 16))).astype(np.float32), (0, 0), 3.0)
+    base = np.clip((base - base.mean()) * 3 + 128, 0, 255)
+    # downsample by 4 after shifting by 26 fine pixels: a disparity of 6.5 px
+    left = cv2.resize(base[:, : 4 * w], (w, h), interpolation=cv2.INTER_AREA).astype(np.uint8)
+    right = cv2.resize(base[:, 26 : 26 + 4 * w], (w, h), interpolation=cv2.INTER_AREA).astype(np.uint8)
+    d = S.fixed_to_float(S.sgm_match(left, right, 16, p1=10, p2=120))
+    inner = d[5:-5, 20:-5]
+    assert np.nanmedian(inner) == pytest.approx(6.5, abs=0.2)
+    assert np.nanstd(inner) < 0.5
+
+
+def test_matcher_from_config_and_cpu_estimator() -> None:
+    m = make_cpu_matcher(StereoConfig(backend="reference"))
+    assert isinstance(m, SgmReferenceMatcher) and m.name == "reference"
+    assert m.params == dict(p1=10, p2=120, paths=4, uniqueness_ratio_pct=10, lr_max_diff_px=1, median=True)
+    sad = make_cpu_matcher(StereoConfig(backend="reference", matcher="sad"))
+    assert not isinstance(sad, SgmReferenceMatcher)
+    left, right = _pair(40, 90, 5, seed=2)
+    out = np.empty(left.shape, np.float32)
+    assert m.compute(left, right, out=out) is out
+    np.testing.assert_array_equal(out, S.fixed_to_float(m.compute_fixed(left, right)))
+    cfg = CompanionConfig.model_validate({"stereo": {"backend": "reference", "num_disparities": 16}})
+    est = CpuRegionEstimator(cfg, 90, 40)
+    res = est.estimate(np.ascontiguousarray(np.hstack([left, right])), want_disparity=True)
+    assert est.name == "reference"
+    np.testing.assert_array_equal(res.disparity, S.fixed_to_float(S.sgm_match(left, right, 16, p1=10, p2=120)))
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"num_disparities": 1}, "num_disparities"),
+        ({"num_disparities": 257}, "num_disparities"),
+        ({"p1": 120, "p2": 120}, "P1 < P2"),
+        ({"p2": 194}, "P2 <= 193"),
+        ({"paths": 6}, "paths"),
+        ({"uniqueness_ratio_pct": -1}, "uniqueness"),
+        ({"lr_max_diff_px": -2}, "lr_max_diff_px"),
+    ],
+)
+def test_bad_parameters_are_rejected(kwargs: dict, match: str) -> None:
+    args = dict(num_disparities=16, p1=10, p2=120, paths=4, uniqueness_ratio_pct=10, lr_max_diff_px=1)
+    args.update(kwargs)
+    with pytest.raises(ValueError, match=match):
+        SgmReferenceMatcher(args.pop("num_disparities"), **args)
+
+
+def test_config_rejects_p2_not_above_p1() -> None:
+    from companion.config import parse_config
+    from companion.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="sgm_p2"):
+        parse_config({"stereo": {"sgm_p1": 50, "sgm_p2": 50}})
+    with pytest.raises(ConfigError, match="stereo.sgm_p2"):
+        parse_config({"stereo": {"sgm_p2": 194}})
+    with pytest.raises(ConfigError, match="stereo.sgm_paths"):
+        parse_config({"stereo": {"sgm_paths": 6}})
