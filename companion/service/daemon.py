@@ -137,7 +137,8 @@ def restart_required(current: CompanionConfig, new: CompanionConfig) -> list[str
 
 def keep_restart_fields(current: CompanionConfig, new: CompanionConfig) -> CompanionConfig:
     """``new`` with the restart-only fields of ``current`` (they are not applied until a restart)."""
-    vehicle = new.vehicle.model_copy(update={"connection": current.vehicle.connection})
+    kept = [path.partition(".")[2] for path in RESTART_FIELDS if path.startswith("vehicle.")]
+    vehicle = new.vehicle.model_copy(update={name: getattr(current.vehicle, name) for name in kept})
     camera = current.camera.model_copy(update={f: getattr(new.camera, f) for f in LIVE_CAMERA_FIELDS})
     return new.model_copy(update={"camera": camera, "bus": current.bus, "vehicle": vehicle})
 
@@ -316,9 +317,9 @@ class Service:
         self._processor.processing_enabled.set()
         # The link before the camera: a simulated camera may render from the vehicle's telemetry.
         if self.link is None:
-            from companion.service.vehicle import MavsdkVehicleLink
+            from companion.service.vehicle import make_vehicle_link
 
-            self.link = MavsdkVehicleLink(cfg.vehicle.connection, clock=self._clock)
+            self.link = make_vehicle_link(cfg.vehicle, clock=self._clock)
         opener = getattr(self.link, "open", None)  # MAVSDK: add the connection now, fail fast on a bad URL
         if opener is not None:
             try:
@@ -804,6 +805,7 @@ class Service:
             ),
             "vehicle": {
                 "link": vehicle_link,
+                "autopilot": v.autopilot if v is not None else "unknown",
                 "flight_mode": v.flight_mode if v is not None else "UNKNOWN",
                 "armed": v.armed if v is not None else False,
                 "in_offboard": v.in_offboard if v is not None else False,

@@ -1,0 +1,300 @@
+"""The vehicle link for ArduCopter (ArduPilot) over MAVSDK: GUIDED with body velocity targets.
+
+What differs from PX4, and what this link does about it (measured with MAVSDK 4.1 against ArduCopter
+SITL, upstream master of 2025-07; the README's ArduPilot section has the parameters):
+
+* **Telemetry.** ArduCopter streams almost nothing on a link until asked (its ``SRn_*`` rates are 0
+  on most ports). The link asks for position/velocity (LOCAL_POSITION_NED) and attitude (ATTITUDE)
+  at ``vehicle.telemetry_rate_hz`` through MAVSDK's ``telemetry.set_rate_*`` (MAV_CMD_SET_MESSAGE_
+  INTERVAL, per link), and asks again whenever position telemetry stops for a while (ArduPilot
+  forgets the rates when it reboots).
+* **Modes.** MAVSDK reports ArduPilot's modes under PX4's names: GUIDED reads OFFBOARD, LOITER and
+  BRAKE both read HOLD, so a pilot's switch from GUIDED to BRAKE or LOITER would be invisible. The
+  link reads the heartbeat itself (MAVSDK's ``mavlink_direct``) and names the mode by ArduCopter's
+  own number (``ArduCopter/mode.h``). "In offboard" means GUIDED, and any other mode means the
+  pilot (or ArduPilot's failsafe) took over.
+* **Engaging** is a DO_SET_MODE to GUIDED by its number; **Hold** is LOITER (position hold, and the
+  pilot's sticks still work), or BRAKE when the link has no position estimate from ArduPilot (no
+  LOCAL_POSITION_NED within :data:`POSITION_FRESH_S`); when ArduPilot refuses one, the other is
+  tried. Both need a position estimate in ArduCopter (``requires_GPS``), like GUIDED itself.
+* **Never BRAKE behind a pilot.** MAVSDK's ``offboard.stop()`` and ``action.hold()`` select BRAKE on
+  ArduCopter; this link calls neither, and stops the setpoint stream by releasing MAVSDK's Offboard
+  plugin (no mode change), as the PX4 link does. Hold is only requested by the supervisor while the
+  vehicle is in GUIDED because the service put it there.
+* **No companion-loss failsafe.** When setpoints stop, ArduCopter flies the last velocity for
+  ``GUID_TIMEOUT`` (3 s by default), then brakes and hovers in GUIDED indefinitely. MAVSDK re-sends
+  the last setpoint at 20 Hz while the process lives, so the service's own watch (stale frames ->
+  zero velocity -> LOITER) and the systemd watchdog are what stop a stalled service.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import math
+import time
+from collections.abc import Callable, Mapping
+from types import MappingProxyType
+from typing import Any
+
+from companion.errors import VehicleError
+from companion.service.vehicle import MavsdkLinkBase, MavsdkSession
+
+log = logging.getLogger(__name__)
+
+#: ArduCopter's flight modes by number (``ArduCopter/mode.h``, ``Mode::Number``).
+COPTER_MODES: Mapping[int, str] = MappingProxyType(
+    {
+        0: "STABILIZE",
+        1: "ACRO",
+        2: "ALT_HOLD",
+        3: "AUTO",
+        4: "GUIDED",
+        5: "LOITER",
+        6: "RTL",
+        7: "CIRCLE",
+        9: "LAND",
+        11: "DRIFT",
+        13: "SPORT",
+        14: "FLIP",
+        15: "AUTOTUNE",
+        16: "POSHOLD",
+        17: "BRAKE",
+        18: "THROW",
+        19: "AVOID_ADSB",
+        20: "GUIDED_NOGPS",
+        21: "SMART_RTL",
+        22: "FLOWHOLD",
+        23: "FOLLOW",
+        24: "ZIGZAG",
+        25: "SYSTEMID",
+        26: "AUTOROTATE",
+        27: "AUTO_RTL",
+        28: "TURTLE",
+    }
+)
+GUIDED = 4
+LOITER = 5
+BRAKE = 17
+
+#: A position report older than this means "no position estimate" when choosing LOITER or BRAKE, s.
+POSITION_FRESH_S = 1.0
+#: Position telemetry missing this long (while the heartbeat is heard) -> the rates are asked again, s.
+TELEMETRY_STALE_S = 3.0
+#: Shortest time between two rate requests, s.
+RATE_RETRY_S = 5.0
+
+_MAV_AUTOPILOT_ARDUPILOTMEGA = 3
+_MAV_MODE_FLAG_CUSTOM_MODE_ENABLED = 1
+_MAV_MODE_FLAG_SAFETY_ARMED = 128
+_MAV_CMD_DO_SET_MODE = 176
+_MAV_COMP_ID_AUTOPILOT1 = 1
+_MAV_RESULTS = {0: "ACCEPTED", 1: "TEMPORARILY_REJECTED", 2: "DENIED", 3: "UNSUPPORTED", 4: "FAILED", 5: "IN_PROGRESS", 6: "CANCELLED"}
+
+
+def copter_mode_name(number: int) -> str:
+    """ArduCopter's name for mode ``number`` (``MODE_<n>`` for one it does not have)."""
+    return COPTER_MODES.get(int(number), f"MODE_{int(number)}")
+
+
+class ArduPilotVehicleLink(MavsdkLinkBase):
+    """:class:`~companion.interfaces.VehicleLink` for ArduCopter: GUIDED, body velocity and yaw rate.
+
+    Args:
+        connection: a MAVSDK connection URL (SITL: ``tcpout://127.0.0.1:5762``, its SERIAL1), or an
+            open :class:`~companion.service.vehicle.MavsdkSession`.
+        clock: the consumer's monotonic clock, seconds.
+        telemetry_rate_hz: the rate asked for LOCAL_POSITION_NED and ATTITUDE, Hz.
+    """
+
+    AUTOPILOT = "ardupilot"
+
+    def __init__(
+        self,
+        connection: str | MavsdkSession,
+        clock: Callable[[], float] = time.monotonic,
+        telemetry_rate_hz: float = 30.0,
+    ) -> None:
+        super().__init__(connection, clock)
+        if not (math.isfinite(telemetry_rate_hz) and telemetry_rate_hz > 0.0):
+            raise VehicleError(f"telemetry_rate_hz must be a positive number, got {telemetry_rate_hz}")
+        self.telemetry_rate_hz = telemetry_rate_hz
+        self._direct: Any = None
+        self._system_id: int | None = None
+        self._rates_asked_s: float | None = None  # when the rates were last asked for
+        self._rates_ok = False  # ArduPilot accepted the last request
+        self.mode_requests: list[tuple[float, str, bool]] = []  # (time s, mode, accepted): what this link asked
+
+    async def attach(self, system: Any) -> None:
+        from mavsdk.asyncio.plugins.mavlink_direct import MavlinkDirectAsync
+        from mavsdk.vehicle import Vehicle
+
+        vehicle = await system.vehicle_type()
+        if vehicle not in (Vehicle.MULTICOPTER, Vehicle.UNKNOWN):
+            raise VehicleError(
+                f"the ArduPilot vehicle on {self.connection} is a {getattr(vehicle, 'name', vehicle)}: the service "
+                "knows ArduCopter's modes only",
+                kind="connection",
+            )
+        self._system_id = int(await system.get_system_id())
+        self._direct = MavlinkDirectAsync(system)
+        await super().attach(system)
+
+    def _watchers(self) -> list[tuple[Any, str]]:
+        return [
+            (self._watch_heartbeat(), "ArduPilot heartbeat subscription"),
+            (self._keep_telemetry_rates(), "ArduPilot telemetry rates"),
+        ]
+
+    def _plugins(self) -> list[Any]:
+        plugins = [*super()._plugins(), self._direct]
+        self._direct = None
+        return plugins
+
+    # ------------------------------------------------------------------ telemetry
+
+    async def _watch_heartbeat(self) -> None:
+        """Mode and armed state from the autopilot's own HEARTBEAT (not MAVSDK's PX4-named mode)."""
+        assert self._direct is not None
+        async for msg in self._direct.subscribe_message("HEARTBEAT"):
+            if msg.system_id != self._system_id or msg.component_id != _MAV_COMP_ID_AUTOPILOT1:
+                continue  # a ground station's or another component's heartbeat, routed by ArduPilot
+            try:
+                fields = json.loads(msg.fields_json)
+                if int(fields["autopilot"]) != _MAV_AUTOPILOT_ARDUPILOTMEGA:
+                    continue
+                base_mode, custom_mode = int(fields["base_mode"]), int(fields["custom_mode"])
+            except (ValueError, KeyError, TypeError):
+                log.warning("ArduPilot heartbeat not understood: %.200s", msg.fields_json)
+                continue
+            name = copter_mode_name(custom_mode) if base_mode & _MAV_MODE_FLAG_CUSTOM_MODE_ENABLED else "UNKNOWN"
+            if name != self._state.flight_mode:
+                log.info("flight mode: %s", name)
+            self._update(
+                flight_mode=name,
+                in_offboard=name == "GUIDED",
+                armed=bool(base_mode & _MAV_MODE_FLAG_SAFETY_ARMED),
+            )
+
+    def rates_due(self, now_s: float) -> bool:
+        """Whether to ask ArduPilot for the telemetry rates now: never asked, the last request not
+        accepted, or position telemetry stopped for :data:`TELEMETRY_STALE_S` while the link is up
+        (ArduPilot rebooted); never more often than every :data:`RATE_RETRY_S`.
+
+        Args:
+            now_s: the link's clock, seconds.
+        """
+        if not self._state.connected:
+            return False
+        if self._rates_asked_s is None:
+            return True
+        if now_s - self._rates_asked_s < RATE_RETRY_S:
+            return False
+        if not self._rates_ok:
+            return True
+        last = self._state.position_timestamp_s
+        since = now_s - (last if last is not None else self._rates_asked_s)
+        return since > TELEMETRY_STALE_S
+
+    async def _keep_telemetry_rates(self) -> None:
+        while True:
+            if self.rates_due(self._clock()):
+                await self.request_telemetry_rates()
+            await asyncio.sleep(0.5)
+
+    async def request_telemetry_rates(self) -> bool:
+        """Ask for LOCAL_POSITION_NED and ATTITUDE at :attr:`telemetry_rate_hz`; True when accepted."""
+        from mavsdk.asyncio.plugins.telemetry import TelemetryError
+
+        assert self._telemetry is not None
+        self._rates_asked_s = self._clock()
+        try:
+            await self._telemetry.set_rate_position_velocity_ned(self.telemetry_rate_hz)
+            await self._telemetry.set_rate_attitude_euler(self.telemetry_rate_hz)
+        except TelemetryError as err:
+            self._rates_ok = False
+            log.warning("ArduPilot refused the telemetry rates (%g Hz): %s; asking again later", self.telemetry_rate_hz, err)
+            return False
+        self._rates_ok = True
+        log.info("ArduPilot streams position, velocity and attitude at %g Hz on this link", self.telemetry_rate_hz)
+        return True
+
+    # ------------------------------------------------------------------ modes
+
+    async def set_mode(self, number: int) -> None:
+        """Ask ArduCopter for mode ``number`` (MAV_CMD_DO_SET_MODE with the custom mode) and wait for
+        its acknowledgement.
+
+        Raises:
+            VehicleError: refused (the MAV_RESULT named), or no acknowledgement.
+        """
+        from mavsdk.plugins.mavlink_direct import MavlinkDirectError, MavlinkMessage
+
+        self._require_system(f"set mode {copter_mode_name(number)}")
+        assert self._direct is not None and self._system_id is not None
+        name = copter_mode_name(number)
+        fields = {
+            "target_system": self._system_id,
+            "target_component": _MAV_COMP_ID_AUTOPILOT1,
+            "command": _MAV_CMD_DO_SET_MODE,
+            "confirmation": 0,
+            "param1": float(_MAV_MODE_FLAG_CUSTOM_MODE_ENABLED),
+            "param2": float(number),
+            **{f"param{i}": 0.0 for i in range(3, 8)},
+        }
+        message = MavlinkMessage(
+            message_name="COMMAND_LONG",
+            target_system_id=self._system_id,
+            target_component_id=_MAV_COMP_ID_AUTOPILOT1,
+            fields_json=json.dumps(fields),
+        )
+        try:
+            ack = await self._direct.send_command(message)
+        except MavlinkDirectError as err:
+            self.mode_requests.append((self._clock(), name, False))
+            raise VehicleError(f"ArduPilot mode {name}: no acknowledgement ({err})", mode=name) from None
+        try:
+            result = int(json.loads(ack.fields_json)["result"])
+        except (ValueError, KeyError, TypeError):
+            result = -1
+        accepted = result == 0
+        self.mode_requests.append((self._clock(), name, accepted))
+        if not accepted:
+            raise VehicleError(
+                f"ArduPilot refused mode {name} ({_MAV_RESULTS.get(result, result)}; vehicle in {self._state.flight_mode})",
+                mode=name,
+                result=result,
+            )
+        log.info("ArduPilot mode %s accepted", name)
+
+    async def start_offboard(self) -> None:
+        """Engage: GUIDED by its mode number (ArduCopter needs no setpoint stream before it, but the
+        supervisor's contract is kept: a setpoint first, so MAVSDK re-sends it)."""
+        self._require_system("start_offboard")
+        if self._offboard is None:
+            raise VehicleError("start_offboard: no setpoint streamed yet")
+        await self.set_mode(GUIDED)
+
+    def hold_mode(self, now_s: float) -> int:
+        """LOITER with a position estimate (a LOCAL_POSITION_NED within :data:`POSITION_FRESH_S` of
+        ``now_s``, seconds), else BRAKE."""
+        last = self._state.position_timestamp_s
+        return LOITER if last is not None and now_s - last <= POSITION_FRESH_S else BRAKE
+
+    async def hold(self) -> None:
+        """Leave GUIDED to LOITER (or BRAKE, :meth:`hold_mode`); the other one if ArduPilot refuses.
+
+        Raises:
+            VehicleError: both refused (the service retries, then stops the stream: GUIDED then
+                brakes after ``GUID_TIMEOUT`` and hovers).
+        """
+        self._require_system("hold")
+        first = self.hold_mode(self._clock())
+        try:
+            await self.set_mode(first)
+            return
+        except VehicleError as err:
+            second = BRAKE if first == LOITER else LOITER
+            log.warning("%s; trying %s", err, copter_mode_name(second))
+        await self.set_mode(second)
