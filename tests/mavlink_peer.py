@@ -23,6 +23,7 @@ The service's real MAVSDK link talks to them on localhost, and tests assert on w
 * HEARTBEAT (``MAV_AUTOPILOT_ARDUPILOTMEGA``, quadrotor), the custom mode is ArduCopter's mode number
   (``ArduCopter/mode.h``: GUIDED 4, LOITER 5, BRAKE 17, ...).
 * No telemetry but the HEARTBEAT until asked: ``MAV_CMD_SET_MESSAGE_INTERVAL`` (param1 message id,
+  LOCAL_POSITION_NED, ATTITUDE, GLOBAL_POSITION_INT, SYS_STATUS, EXTENDED_SYS_STATE, EKF_STATUS_REPORT;
   param2 interval in µs, -1 off) starts each message at its own rate, as ArduPilot does per link. Every
   request is kept in :attr:`ArduCopterPeer.interval_requests`.
 * ``MAV_CMD_DO_SET_MODE`` (param1 base mode with the custom-mode flag, param2 mode number) acked
@@ -45,6 +46,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 
 from peers.fakes import wait_until
+from pymavlink.dialects.v20 import ardupilotmega
 from pymavlink.dialects.v20 import common as mavlink
 
 # PX4 custom main modes (px4_custom_mode.h) and AUTO sub modes.
@@ -99,6 +101,7 @@ _COPTER_STREAMABLE = frozenset(
         mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT,
         mavlink.MAVLINK_MSG_ID_SYS_STATUS,
         mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE,
+        ardupilotmega.MAVLINK_MSG_ID_EKF_STATUS_REPORT,
     }
 )
 
@@ -158,6 +161,7 @@ class _AutopilotPeer:
     #: The autopilot's offboard mode (velocity targets are flown only there).
     OFFBOARD_MODE = "OFFBOARD"
     THREAD_NAME = "autopilot-peer"
+    DIALECT = mavlink
 
     def __init__(
         self,
@@ -173,7 +177,7 @@ class _AutopilotPeer:
         self.port = port
         self.heartbeat_hz = heartbeat_hz
         self.system_id = system_id
-        self._mav = mavlink.MAVLink(None, srcSystem=system_id, srcComponent=mavlink.MAV_COMP_ID_AUTOPILOT1)
+        self._mav = self.DIALECT.MAVLink(None, srcSystem=system_id, srcComponent=mavlink.MAV_COMP_ID_AUTOPILOT1)
         self._mav.robust_parsing = True
         self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self._sock.bind(("127.0.0.1", 0))
@@ -334,6 +338,9 @@ class _AutopilotPeer:
         if msg_id == mavlink.MAVLINK_MSG_ID_SYS_STATUS:
             sensors = 0xFFFFFF
             return self._mav.sys_status_encode(sensors, sensors, sensors, 200, 16000, 1000, 80, 0, 0, 0, 0, 0, 0)
+        if msg_id == ardupilotmega.MAVLINK_MSG_ID_EKF_STATUS_REPORT:
+            flags = 1 | 2 | 4 | 32 | (16 | 8 if self.position_ok else 0)  # attitude, velocity, vertical; horizontal position
+            return self._mav.ekf_status_report_encode(flags, 0.1, 0.1, 0.1, 0.1, 0.0)
         raise ValueError(f"the peer cannot encode message id {msg_id}")
 
     def _ack(self, command: int, result: int) -> None:
@@ -531,12 +538,13 @@ class ArduCopterPeer(_AutopilotPeer):
         guid_timeout_s: ArduCopter's ``GUID_TIMEOUT``: a GUIDED velocity target is flown this long
             after it arrived, then the vehicle brakes and hovers in GUIDED, seconds.
         position_ok: whether the vehicle has a position estimate (LOITER, BRAKE and GUIDED need one:
-            ArduCopter's ``requires_GPS``); without it those modes are refused and LOCAL_POSITION_NED
-            is not sent.
+            ArduCopter's ``requires_GPS``); without it those modes are refused, LOCAL_POSITION_NED is
+            not sent, and EKF_STATUS_REPORT has no horizontal position flag. May be changed at any time.
     """
 
     OFFBOARD_MODE = "GUIDED"
     THREAD_NAME = "arducopter-peer"
+    DIALECT = ardupilotmega  # EKF_STATUS_REPORT
     REFUSED = mavlink.MAV_RESULT_FAILED  # ArduPilot's answer to a mode change it refuses
 
     def __init__(

@@ -74,9 +74,11 @@ def _mode_names(peer: ArduCopterPeer) -> list[str | None]:
 def test_the_link_asks_for_telemetry_and_names_arducopters_modes(flying) -> None:
     peer, service, camera, client = flying
     # ArduCopter streams nothing unasked: position/velocity and attitude at vehicle.telemetry_rate_hz.
+    assert peer.wait_for(lambda: 193 in {m for _, m, _ in peer.interval_requests}, 3.0)
     asked = {msg_id: interval_us for _, msg_id, interval_us in peer.interval_requests}
     assert asked[mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED] == pytest.approx(1e6 / 30.0, rel=1e-3)
     assert asked[mavlink.MAVLINK_MSG_ID_ATTITUDE] == pytest.approx(1e6 / 30.0, rel=1e-3)
+    assert asked[193] == pytest.approx(5e5)  # EKF_STATUS_REPORT at 2 Hz: is there a position estimate?
     v = _status(client)["vehicle"]
     assert v["autopilot"] == "ardupilot" and v["flight_mode"] == "LOITER" and not v["in_offboard"]
     # By ArduCopter's own numbers, where MAVSDK would say HOLD for both LOITER and BRAKE.
@@ -198,6 +200,39 @@ def test_hold_falls_back_to_brake_when_arducopter_refuses_loiter(tmp_path: Path)
             runner.stop()
 
 
+def test_without_a_position_estimate_hold_asks_for_brake_and_keeps_zero_when_both_are_refused(tmp_path: Path) -> None:
+    """ArduCopter refuses LOITER and BRAKE without a position estimate (both ``requires_GPS``): the
+    service asks for BRAKE first (its EKF status says no position), then LOITER, keeps zero velocity
+    in GUIDED, and stops the stream after leave_timeout_s, so that GUID_TIMEOUT brakes the vehicle."""
+    with ArduCopterPeer(mode="LOITER") as peer:
+        camera = GatedCamera(avoid_scene_camera(15.0))
+        service, runner, client = _start(
+            tmp_path, peer, camera, command={"failsafe_timeout_s": 1.0}, vehicle={"hold_retry_s": 1.0, "leave_timeout_s": 3.0}
+        )
+        try:
+            assert wait_until(lambda: _vehicle_ready(client), 10.0)
+            _engage(peer, client)
+            peer.position_ok = False  # the EKF loses its position (GPS gone) while in GUIDED
+            time.sleep(1.5)  # a few EKF reports at 2 Hz
+            camera.freeze()
+            t_freeze = time.monotonic()
+            assert wait_until(lambda: _status(client)["state"] == "failsafe", 3.0)
+            assert peer.wait_for(lambda: len([c for c in peer.mode_commands() if c.t_s > t_freeze]) >= 2, 3.0)
+            first, second = [c for c in peer.mode_commands() if c.t_s > t_freeze][:2]
+            assert (first.mode, second.mode) == ("BRAKE", "LOITER")
+            assert first.result == second.result == mavlink.MAV_RESULT_FAILED and peer.mode == "GUIDED"
+            assert all(s.is_zero for s in peer.setpoints_since(first.t_s))
+            # Hold never confirmed: after leave_timeout_s the stream stops (no mode change of ours took).
+            assert wait_until(lambda: "setpoints stopped" in _status(client)["reason"], 5.0), _status(client)["reason"]
+            time.sleep(0.5)
+            t_quiet = time.monotonic()
+            time.sleep(0.5)
+            assert peer.setpoints_since(t_quiet) == [] and peer.mode == "GUIDED"
+        finally:
+            client.close()
+            runner.stop()
+
+
 def test_a_configured_autopilot_that_does_not_answer_is_a_startup_failure(tmp_path: Path) -> None:
     with ArduCopterPeer() as peer:
         cfg = service_config(
@@ -245,6 +280,12 @@ def test_hold_is_loiter_with_a_position_estimate_and_brake_without() -> None:
     link._update(position_timestamp_s=99.5)
     assert link.hold_mode(100.0) == LOITER
     assert link.hold_mode(101.2) == BRAKE  # the last one older than POSITION_FRESH_S
+    # ArduPilot's EKF status decides while its reports arrive, whatever the position telemetry does.
+    link.note_ekf_status(True, 101.0)
+    assert link.hold_mode(101.2) == LOITER  # the position telemetry stopped on this link only
+    link.note_ekf_status(False, 101.5)
+    assert link.hold_mode(101.6) == BRAKE
+    assert link.hold_mode(104.6) == BRAKE  # the report is stale: back to the position telemetry (stale too)
     assert copter_mode_name(4) == "GUIDED" and copter_mode_name(99) == "MODE_99"
     assert {copter_mode_name(n) for n in COPTER_MODES.values()} == set(COPTER_MODES)  # the peer's numbers agree
 

@@ -14,9 +14,12 @@ SITL, upstream master of 2025-07; the README's ArduPilot section has the paramet
   own number (``ArduCopter/mode.h``). "In offboard" means GUIDED, and any other mode means the
   pilot (or ArduPilot's failsafe) took over.
 * **Engaging** is a DO_SET_MODE to GUIDED by its number; **Hold** is LOITER (position hold, and the
-  pilot's sticks still work), or BRAKE when the link has no position estimate from ArduPilot (no
+  pilot's sticks still work), or BRAKE where no position estimate exists (ArduPilot's
+  EKF_STATUS_REPORT, asked for at 2 Hz, says no horizontal position; without those reports: no
   LOCAL_POSITION_NED within :data:`POSITION_FRESH_S`); when ArduPilot refuses one, the other is
-  tried. Both need a position estimate in ArduCopter (``requires_GPS``), like GUIDED itself.
+  tried. Both need a position estimate in ArduCopter (``requires_GPS``), like GUIDED itself, so
+  without one both are refused: the service keeps zero velocity in GUIDED, and after
+  ``vehicle.leave_timeout_s`` stops the stream, and GUIDED brakes after ``GUID_TIMEOUT``.
 * **Never BRAKE behind a pilot.** MAVSDK's ``offboard.stop()`` and ``action.hold()`` select BRAKE on
   ArduCopter; this link calls neither, and stops the setpoint stream by releasing MAVSDK's Offboard
   plugin (no mode change), as the PX4 link does. Hold is only requested by the supervisor while the
@@ -78,8 +81,13 @@ GUIDED = 4
 LOITER = 5
 BRAKE = 17
 
-#: A position report older than this means "no position estimate" when choosing LOITER or BRAKE, s.
+#: A position report older than this means "no position estimate" when choosing LOITER or BRAKE
+#: (used only without EKF status reports), s.
 POSITION_FRESH_S = 1.0
+#: An EKF_STATUS_REPORT older than this is not used, s.
+EKF_REPORT_FRESH_S = 3.0
+#: The rate asked for EKF_STATUS_REPORT, Hz.
+EKF_REPORT_RATE_HZ = 2.0
 #: Position telemetry missing this long (while the heartbeat is heard) -> the rates are asked again, s.
 TELEMETRY_STALE_S = 3.0
 #: Shortest time between two rate requests, s.
@@ -89,6 +97,11 @@ _MAV_AUTOPILOT_ARDUPILOTMEGA = 3
 _MAV_MODE_FLAG_CUSTOM_MODE_ENABLED = 1
 _MAV_MODE_FLAG_SAFETY_ARMED = 128
 _MAV_CMD_DO_SET_MODE = 176
+_MAV_CMD_SET_MESSAGE_INTERVAL = 511
+_MAVLINK_MSG_ID_EKF_STATUS_REPORT = 193
+_EKF_POS_HORIZ_REL = 8
+_EKF_POS_HORIZ_ABS = 16
+_EKF_CONST_POS_MODE = 128
 _MAV_COMP_ID_AUTOPILOT1 = 1
 _MAV_RESULTS = {0: "ACCEPTED", 1: "TEMPORARILY_REJECTED", 2: "DENIED", 3: "UNSUPPORTED", 4: "FAILED", 5: "IN_PROGRESS", 6: "CANCELLED"}
 
@@ -124,6 +137,8 @@ class ArduPilotVehicleLink(MavsdkLinkBase):
         self._system_id: int | None = None
         self._rates_asked_s: float | None = None  # when the rates were last asked for
         self._rates_ok = False  # ArduPilot accepted the last request
+        self._ekf_position_ok = False  # the newest EKF_STATUS_REPORT has a horizontal position
+        self._ekf_at_s: float | None = None  # when it arrived
         self.mode_requests: list[tuple[float, str, bool]] = []  # (time s, mode, accepted): what this link asked
 
     async def attach(self, system: Any) -> None:
@@ -144,6 +159,7 @@ class ArduPilotVehicleLink(MavsdkLinkBase):
     def _watchers(self) -> list[tuple[Any, str]]:
         return [
             (self._watch_heartbeat(), "ArduPilot heartbeat subscription"),
+            (self._watch_ekf_status(), "ArduPilot EKF status subscription"),
             (self._keep_telemetry_rates(), "ArduPilot telemetry rates"),
         ]
 
@@ -177,6 +193,26 @@ class ArduPilotVehicleLink(MavsdkLinkBase):
                 armed=bool(base_mode & _MAV_MODE_FLAG_SAFETY_ARMED),
             )
 
+    async def _watch_ekf_status(self) -> None:
+        """Whether ArduPilot's EKF has a horizontal position (LOITER and BRAKE need one)."""
+        assert self._direct is not None
+        async for msg in self._direct.subscribe_message("EKF_STATUS_REPORT"):
+            if msg.system_id != self._system_id or msg.component_id != _MAV_COMP_ID_AUTOPILOT1:
+                continue
+            try:
+                flags = int(json.loads(msg.fields_json)["flags"])
+            except (ValueError, KeyError, TypeError):
+                log.warning("ArduPilot EKF status not understood: %.200s", msg.fields_json)
+                continue
+            ok = bool(flags & (_EKF_POS_HORIZ_ABS | _EKF_POS_HORIZ_REL)) and not flags & _EKF_CONST_POS_MODE
+            if ok != self._ekf_position_ok:
+                log.info("ArduPilot EKF: %s", "horizontal position estimate" if ok else "NO horizontal position estimate")
+            self._ekf_position_ok, self._ekf_at_s = ok, self._clock()
+
+    def note_ekf_status(self, position_ok: bool, now_s: float) -> None:
+        """Record an EKF status (what :meth:`_watch_ekf_status` does; tests call it directly)."""
+        self._ekf_position_ok, self._ekf_at_s = position_ok, now_s
+
     def rates_due(self, now_s: float) -> bool:
         """Whether to ask ArduPilot for the telemetry rates now: never asked, the last request not
         accepted, or position telemetry stopped for :data:`TELEMETRY_STALE_S` while the link is up
@@ -204,7 +240,8 @@ class ArduPilotVehicleLink(MavsdkLinkBase):
             await asyncio.sleep(0.5)
 
     async def request_telemetry_rates(self) -> bool:
-        """Ask for LOCAL_POSITION_NED and ATTITUDE at :attr:`telemetry_rate_hz`; True when accepted."""
+        """Ask for LOCAL_POSITION_NED and ATTITUDE at :attr:`telemetry_rate_hz`, and EKF_STATUS_REPORT
+        at :data:`EKF_REPORT_RATE_HZ`; True when the first two were accepted."""
         from mavsdk.asyncio.plugins.telemetry import TelemetryError
 
         assert self._telemetry is not None
@@ -217,31 +254,28 @@ class ArduPilotVehicleLink(MavsdkLinkBase):
             log.warning("ArduPilot refused the telemetry rates (%g Hz): %s; asking again later", self.telemetry_rate_hz, err)
             return False
         self._rates_ok = True
+        result = await self._command(_MAV_CMD_SET_MESSAGE_INTERVAL, _MAVLINK_MSG_ID_EKF_STATUS_REPORT, 1e6 / EKF_REPORT_RATE_HZ)
+        if result != 0:
+            # Not fatal: without EKF reports, LOITER or BRAKE is chosen from the position telemetry.
+            log.warning("ArduPilot: EKF_STATUS_REPORT not streamed (%s)", _MAV_RESULTS.get(result, result))
         log.info("ArduPilot streams position, velocity and attitude at %g Hz on this link", self.telemetry_rate_hz)
         return True
 
     # ------------------------------------------------------------------ modes
 
-    async def set_mode(self, number: int) -> None:
-        """Ask ArduCopter for mode ``number`` (MAV_CMD_DO_SET_MODE with the custom mode) and wait for
-        its acknowledgement.
-
-        Raises:
-            VehicleError: refused (the MAV_RESULT named), or no acknowledgement.
-        """
+    async def _command(self, command: int, *params: float) -> int:
+        """Send COMMAND_LONG ``command`` (params from param1) to the autopilot and wait for its
+        acknowledgement; returns the MAV_RESULT (-1: no acknowledgement, or not understood)."""
         from mavsdk.plugins.mavlink_direct import MavlinkDirectError, MavlinkMessage
 
-        self._require_system(f"set mode {copter_mode_name(number)}")
         assert self._direct is not None and self._system_id is not None
-        name = copter_mode_name(number)
+        values = [float(p) for p in params] + [0.0] * (7 - len(params))
         fields = {
             "target_system": self._system_id,
             "target_component": _MAV_COMP_ID_AUTOPILOT1,
-            "command": _MAV_CMD_DO_SET_MODE,
+            "command": command,
             "confirmation": 0,
-            "param1": float(_MAV_MODE_FLAG_CUSTOM_MODE_ENABLED),
-            "param2": float(number),
-            **{f"param{i}": 0.0 for i in range(3, 8)},
+            **{f"param{i + 1}": v for i, v in enumerate(values)},
         }
         message = MavlinkMessage(
             message_name="COMMAND_LONG",
@@ -252,15 +286,28 @@ class ArduPilotVehicleLink(MavsdkLinkBase):
         try:
             ack = await self._direct.send_command(message)
         except MavlinkDirectError as err:
-            self.mode_requests.append((self._clock(), name, False))
-            raise VehicleError(f"ArduPilot mode {name}: no acknowledgement ({err})", mode=name) from None
+            log.warning("ArduPilot: no acknowledgement of command %d (%s)", command, err)
+            return -1
         try:
-            result = int(json.loads(ack.fields_json)["result"])
+            return int(json.loads(ack.fields_json)["result"])
         except (ValueError, KeyError, TypeError):
-            result = -1
+            return -1
+
+    async def set_mode(self, number: int) -> None:
+        """Ask ArduCopter for mode ``number`` (MAV_CMD_DO_SET_MODE with the custom mode) and wait for
+        its acknowledgement.
+
+        Raises:
+            VehicleError: refused (the MAV_RESULT named), or no acknowledgement.
+        """
+        name = copter_mode_name(number)
+        self._require_system(f"set mode {name}")
+        result = await self._command(_MAV_CMD_DO_SET_MODE, _MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, number)
         accepted = result == 0
         self.mode_requests.append((self._clock(), name, accepted))
         if not accepted:
+            if result == -1:
+                raise VehicleError(f"ArduPilot mode {name}: no acknowledgement", mode=name)
             raise VehicleError(
                 f"ArduPilot refused mode {name} ({_MAV_RESULTS.get(result, result)}; vehicle in {self._state.flight_mode})",
                 mode=name,
@@ -276,11 +323,18 @@ class ArduPilotVehicleLink(MavsdkLinkBase):
             raise VehicleError("start_offboard: no setpoint streamed yet")
         await self.set_mode(GUIDED)
 
-    def hold_mode(self, now_s: float) -> int:
-        """LOITER with a position estimate (a LOCAL_POSITION_NED within :data:`POSITION_FRESH_S` of
-        ``now_s``, seconds), else BRAKE."""
+    def has_position_estimate(self, now_s: float) -> bool:
+        """Whether ArduPilot has a horizontal position estimate at ``now_s`` (seconds): its newest
+        EKF_STATUS_REPORT (if one within :data:`EKF_REPORT_FRESH_S`) says so, or, without those
+        reports, a LOCAL_POSITION_NED arrived within :data:`POSITION_FRESH_S`."""
+        if self._ekf_at_s is not None and now_s - self._ekf_at_s <= EKF_REPORT_FRESH_S:
+            return self._ekf_position_ok
         last = self._state.position_timestamp_s
-        return LOITER if last is not None and now_s - last <= POSITION_FRESH_S else BRAKE
+        return last is not None and now_s - last <= POSITION_FRESH_S
+
+    def hold_mode(self, now_s: float) -> int:
+        """LOITER with a position estimate (:meth:`has_position_estimate` at ``now_s``, seconds), else BRAKE."""
+        return LOITER if self.has_position_estimate(now_s) else BRAKE
 
     async def hold(self) -> None:
         """Leave GUIDED to LOITER (or BRAKE, :meth:`hold_mode`); the other one if ArduPilot refuses.
