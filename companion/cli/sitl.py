@@ -72,7 +72,7 @@ def describe_sitl(flight: Any) -> list[str]:
         f"time:          {r.time_s:.1f} s from offboard (OFFBOARD, GUIDED) to the verdict (real time, the autopilot in the loop)",
         f"frames:        {r.frames} processed; the setpoint came from clear {100 * d.get('clear', 0) / total:.0f} %, "
         f"avoid {100 * d.get('avoid', 0) / total:.0f} %, brake {100 * d.get('brake', 0) / total:.0f} % of the time",
-        f"engage:        OFFBOARD {flight.engage_s:.2f} s after the request; max speed {flight.max_speed_m_s:.2f} m/s",
+        f"engage:        offboard (OFFBOARD, GUIDED) {flight.engage_s:.2f} s after the request; max speed {flight.max_speed_m_s:.2f} m/s",
         f"modes:         {modes}",
         f"service exit:  {flight.service_exit_code}",
     ]

@@ -9,8 +9,9 @@ companion computer's UART), and reads its RC receiver on UDP ``5501 + 10 N``. It
 
 The pilot (:class:`ArduPilotPilot`) speaks to ArduCopter by its own mode numbers, as the service does
 (MAVSDK names ArduPilot's modes with PX4's names: GUIDED reads OFFBOARD, LOITER and BRAKE both read
-HOLD), and centres the RC sticks: SITL's simulated receiver starts with the throttle at its lowest,
-and LOITER then descends and lands.
+HOLD), and moves SITL's RC sticks as a pilot would: the throttle down to arm (ArduCopter refuses to
+arm otherwise), centred once flying (SITL's receiver starts with the throttle at its lowest, and
+LOITER then descends and lands).
 """
 
 from __future__ import annotations
@@ -62,6 +63,8 @@ _MODE_NUMBERS = {name: number for number, name in COPTER_MODES.items()}
 #: SITL's RC receiver with the sticks centred (throttle too: LOITER holds its altitude) and the
 #: mode switch (channel 5) where SITL puts it; PWM, microseconds, channels 1-8.
 CENTRED_STICKS_US = (1500, 1500, 1500, 1500, 1800, 1000, 1000, 1800)
+#: The throttle stick down (arming needs it), microseconds.
+THROTTLE_DOWN_US = 1000
 
 
 @dataclass(frozen=True)
@@ -228,10 +231,13 @@ class ArduPilotSitl:
         self.stop()
 
 
-def centre_sticks(rc_port: int, host: str = "127.0.0.1") -> None:
+def centre_sticks(rc_port: int, throttle_us: int = CENTRED_STICKS_US[2], host: str = "127.0.0.1") -> None:
     """Put SITL's RC receiver at :data:`CENTRED_STICKS_US` (it keeps the last values it received),
-    as a pilot's transmitter with the sticks centred."""
-    packet = struct.pack("<8H", *CENTRED_STICKS_US)
+    as a pilot's transmitter with the sticks centred, the throttle at ``throttle_us`` (microseconds:
+    :data:`THROTTLE_DOWN_US` to arm)."""
+    values = list(CENTRED_STICKS_US)
+    values[2] = int(throttle_us)
+    packet = struct.pack("<8H", *values)
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.sendto(packet, (host, rc_port))
 
@@ -269,8 +275,6 @@ class ArduPilotPilot(Pilot):
         from mavsdk.asyncio.plugins.mavlink_direct import MavlinkDirectAsync
 
         self.direct = MavlinkDirectAsync(system)
-        if self.rc_port is not None:
-            centre_sticks(self.rc_port)
 
     def _watchers(self) -> list[tuple[Any, str]]:
         return [
@@ -354,14 +358,20 @@ class ArduPilotPilot(Pilot):
         await self._until_accepted(f"mode {name}", _MAV_CMD_DO_SET_MODE, _MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, number, timeout_s=timeout_s)
         await self.wait_for(f"mode {name}", lambda: self.flight_mode == name, 5.0)
 
-    async def make_ready(self, timeout_s: float = 90.0) -> None:
-        """Position telemetry arriving (ArduPilot has booted and its EKF has an origin), the sticks
-        centred, and the vehicle on the ground and disarmed (landed if it was flying)."""
-        await self.wait_for("position telemetry (ArduPilot booted, EKF origin set)", lambda: bool(self.samples), timeout_s)
+    def sticks(self, throttle_us: int) -> None:
+        """SITL's RC sticks centred, the throttle at ``throttle_us`` (no RC port: nothing)."""
         if self.rc_port is not None:
-            centre_sticks(self.rc_port)
+            centre_sticks(self.rc_port, throttle_us)
+
+    async def make_ready(self, timeout_s: float = 90.0) -> None:
+        """Position telemetry arriving (ArduPilot has booted and its EKF has an origin), and the
+        vehicle on the ground and disarmed (landed if it was flying), the throttle down."""
+        await self.wait_for("position telemetry (ArduPilot booted, EKF origin set)", lambda: bool(self.samples), timeout_s)
         if self.armed:
+            if self.flight_mode in ("LOITER", "GUIDED", "BRAKE", "POSHOLD", "ALT_HOLD"):
+                self.sticks(CENTRED_STICKS_US[2])  # flying in a mode that reads the throttle: keep altitude
             await self.land(timeout_s)
+        self.sticks(THROTTLE_DOWN_US)
 
     async def take_off(self, altitude_m: float, timeout_s: float = 90.0) -> None:
         """GUIDED, arm, take off to ``altitude_m`` above the ground (MAV_CMD_NAV_TAKEOFF), wait for the
@@ -371,6 +381,7 @@ class ArduPilotPilot(Pilot):
         # seconds after SITL boots, so they are asked again until accepted.
         await self._until_accepted("GUIDED", _MAV_CMD_DO_SET_MODE, _MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, _MODE_NUMBERS["GUIDED"], timeout_s=timeout_s)
         await self.wait_for("GUIDED", lambda: self.flight_mode == "GUIDED", 5.0)
+        self.sticks(THROTTLE_DOWN_US)
         ground_down = float(self.latest().position_ned_m[2])
         await self._until_accepted("arming", _MAV_CMD_COMPONENT_ARM_DISARM, 1.0, timeout_s=timeout_s, retry_s=2.0)
         await self.wait_for("armed", lambda: self.armed, 5.0)
@@ -381,6 +392,7 @@ class ArduPilotPilot(Pilot):
             30.0,
         )
         await self.wait_steady(1.0, timeout_s)
+        self.sticks(CENTRED_STICKS_US[2])  # LOITER reads the throttle stick as a climb rate: centred holds
         await self.set_mode("LOITER")
         await self.wait_steady(1.0, timeout_s)
 
