@@ -619,6 +619,8 @@ class ArduCopterPeer(_AutopilotPeer):
             return mavlink.MAV_RESULT_UNSUPPORTED
         msg_id, interval_us = int(msg.param1), float(msg.param2)
         self.interval_requests.append((now, msg_id, interval_us))
+        if not abs(msg.param3) < 1e-6:
+            return mavlink.MAV_RESULT_DENIED  # ArduPilot: param3 (response target) must be 0, NaN is not
         if msg_id not in _COPTER_STREAMABLE:
             return mavlink.MAV_RESULT_FAILED
         if interval_us <= 0.0:

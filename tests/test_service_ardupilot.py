@@ -310,3 +310,26 @@ def test_the_ardupilot_link_refuses_to_engage_before_a_setpoint() -> None:
         asyncio.run(link.start_offboard())
     with pytest.raises(VehicleError, match="telemetry_rate_hz"):
         ArduPilotVehicleLink("udpin://127.0.0.1:9", telemetry_rate_hz=0.0)
+
+
+def test_mavsdks_own_set_rate_is_refused_by_arducopter_so_the_link_sends_its_own() -> None:
+    """MAVSDK's telemetry.set_rate_* leaves params 3-7 NaN; ArduPilot wants param3 0 (and ArduCopter
+    SITL died of SIGFPE on it). The link's own SET_MESSAGE_INTERVAL, with zeros, is accepted."""
+    from mavsdk.asyncio.plugins.telemetry import TelemetryError
+
+    async def scenario(peer: ArduCopterPeer) -> None:
+        link = MavsdkVehicleLink(f"udpin://127.0.0.1:{peer.port}")
+        try:
+            await link.connect(5.0)
+            ardupilot = link.link
+            assert isinstance(ardupilot, ArduPilotVehicleLink)
+            with pytest.raises(TelemetryError):
+                await ardupilot._telemetry.set_rate_battery(1.0)
+            assert await ardupilot.request_telemetry_rates()
+        finally:
+            await link.close()
+
+    with ArduCopterPeer() as peer:
+        asyncio.run(scenario(peer))
+        assert peer.intervals_s.get(mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED) == pytest.approx(1 / 30.0)
+        assert mavlink.MAVLINK_MSG_ID_BATTERY_STATUS not in peer.intervals_s

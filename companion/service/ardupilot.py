@@ -5,9 +5,11 @@ SITL, upstream master of 2025-07; the README's ArduPilot section has the paramet
 
 * **Telemetry.** ArduCopter streams almost nothing on a link until asked (its ``SRn_*`` rates are 0
   on most ports). The link asks for position/velocity (LOCAL_POSITION_NED) and attitude (ATTITUDE)
-  at ``vehicle.telemetry_rate_hz`` through MAVSDK's ``telemetry.set_rate_*`` (MAV_CMD_SET_MESSAGE_
-  INTERVAL, per link), and asks again whenever position telemetry stops for a while (ArduPilot
-  forgets the rates when it reboots).
+  at ``vehicle.telemetry_rate_hz`` with MAV_CMD_SET_MESSAGE_INTERVAL (per link), and asks again
+  whenever position telemetry stops for a while (ArduPilot forgets the rates when it reboots). It
+  sends that command itself, with every unused parameter 0: MAVSDK's ``telemetry.set_rate_*`` sends
+  params 3-7 as NaN, which ArduPilot refuses (``param3`` must be 0, and NaN is not) and which crashed
+  ArduCopter SITL (its floating-point traps: SIGFPE in ``handle_command_set_message_interval``).
 * **Modes.** MAVSDK reports ArduPilot's modes under PX4's names: GUIDED reads OFFBOARD, LOITER and
   BRAKE both read HOLD, so a pilot's switch from GUIDED to BRAKE or LOITER would be invisible. The
   link reads the heartbeat itself (MAVSDK's ``mavlink_direct``) and names the mode by ArduCopter's
@@ -99,6 +101,8 @@ _MAV_MODE_FLAG_SAFETY_ARMED = 128
 _MAV_CMD_DO_SET_MODE = 176
 _MAV_CMD_SET_MESSAGE_INTERVAL = 511
 _MAVLINK_MSG_ID_EKF_STATUS_REPORT = 193
+_MAVLINK_MSG_ID_LOCAL_POSITION_NED = 32
+_MAVLINK_MSG_ID_ATTITUDE = 30
 _EKF_POS_HORIZ_REL = 8
 _EKF_POS_HORIZ_ABS = 16
 _EKF_CONST_POS_MODE = 128
@@ -242,16 +246,19 @@ class ArduPilotVehicleLink(MavsdkLinkBase):
     async def request_telemetry_rates(self) -> bool:
         """Ask for LOCAL_POSITION_NED and ATTITUDE at :attr:`telemetry_rate_hz`, and EKF_STATUS_REPORT
         at :data:`EKF_REPORT_RATE_HZ`; True when the first two were accepted."""
-        from mavsdk.asyncio.plugins.telemetry import TelemetryError
-
-        assert self._telemetry is not None
         self._rates_asked_s = self._clock()
-        try:
-            await self._telemetry.set_rate_position_velocity_ned(self.telemetry_rate_hz)
-            await self._telemetry.set_rate_attitude_euler(self.telemetry_rate_hz)
-        except TelemetryError as err:
+        interval_us = 1e6 / self.telemetry_rate_hz
+        results = [
+            await self._command(_MAV_CMD_SET_MESSAGE_INTERVAL, msg_id, interval_us)
+            for msg_id in (_MAVLINK_MSG_ID_LOCAL_POSITION_NED, _MAVLINK_MSG_ID_ATTITUDE)
+        ]
+        if any(r != 0 for r in results):
             self._rates_ok = False
-            log.warning("ArduPilot refused the telemetry rates (%g Hz): %s; asking again later", self.telemetry_rate_hz, err)
+            log.warning(
+                "ArduPilot refused the telemetry rates (%g Hz): %s; asking again later",
+                self.telemetry_rate_hz,
+                ", ".join(_MAV_RESULTS.get(r, "no answer") for r in results),
+            )
             return False
         self._rates_ok = True
         result = await self._command(_MAV_CMD_SET_MESSAGE_INTERVAL, _MAVLINK_MSG_ID_EKF_STATUS_REPORT, 1e6 / EKF_REPORT_RATE_HZ)

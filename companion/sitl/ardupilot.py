@@ -55,6 +55,9 @@ DEFAULT_HOME = "47.397742,8.545594,488.0,0"
 _MAV_CMD_DO_SET_MODE = 176
 _MAV_CMD_COMPONENT_ARM_DISARM = 400
 _MAV_CMD_NAV_TAKEOFF = 22
+_MAV_CMD_SET_MESSAGE_INTERVAL = 511
+_MSG_LOCAL_POSITION_NED = 32
+_MSG_ATTITUDE = 30
 _MAV_MODE_FLAG_CUSTOM_MODE_ENABLED = 1
 _MAV_MODE_FLAG_SAFETY_ARMED = 128
 _MAV_AUTOPILOT_ARDUPILOTMEGA = 3
@@ -299,16 +302,17 @@ class ArduPilotPilot(Pilot):
     async def _keep_rates(self) -> None:
         """Ask for position, velocity and attitude on this link (ArduCopter streams almost nothing
         unasked), and again while none arrives (the first requests can land before SITL has booted)."""
-        from mavsdk.asyncio.plugins.telemetry import TelemetryError
-
         while True:
             last = self.samples[-1].time_s if self.samples else None
             if last is None or self._clock() - last > 2.0:
-                try:
-                    await self.telemetry.set_rate_position_velocity_ned(self.telemetry_rate_hz)
-                    await self.telemetry.set_rate_attitude_euler(self.telemetry_rate_hz)
-                except TelemetryError as err:
-                    log.info("ArduPilot: telemetry rates not set yet (%s)", err)
+                # By hand, every unused parameter 0 (MAVSDK's set_rate_* sends NaN: refused, and SIGFPE in SITL).
+                for msg_id in (_MSG_LOCAL_POSITION_NED, _MSG_ATTITUDE):
+                    try:
+                        result = await self.command("a telemetry rate", _MAV_CMD_SET_MESSAGE_INTERVAL, msg_id, 1e6 / self.telemetry_rate_hz)
+                    except SitlError as err:
+                        result = str(err)
+                    if result != 0:
+                        log.info("ArduPilot: telemetry rate of message %d not set yet (%s)", msg_id, _MAV_RESULTS.get(result, result))
             await asyncio.sleep(2.0)
 
     # ------------------------------------------------------------------ commands, by the numbers
