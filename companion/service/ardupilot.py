@@ -143,7 +143,6 @@ class ArduPilotVehicleLink(MavsdkLinkBase):
         self._rates_ok = False  # ArduPilot accepted the last request
         self._ekf_position_ok = False  # the newest EKF_STATUS_REPORT has a horizontal position
         self._ekf_at_s: float | None = None  # when it arrived
-        self.mode_requests: list[tuple[float, str, bool]] = []  # (time s, mode, accepted): what this link asked
 
     async def attach(self, system: Any) -> None:
         from mavsdk.asyncio.plugins.mavlink_direct import MavlinkDirectAsync
@@ -310,9 +309,7 @@ class ArduPilotVehicleLink(MavsdkLinkBase):
         name = copter_mode_name(number)
         self._require_system(f"set mode {name}")
         result = await self._command(_MAV_CMD_DO_SET_MODE, _MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, number)
-        accepted = result == 0
-        self.mode_requests.append((self._clock(), name, accepted))
-        if not accepted:
+        if result != 0:
             if result == -1:
                 raise VehicleError(f"ArduPilot mode {name}: no acknowledgement", mode=name)
             raise VehicleError(
