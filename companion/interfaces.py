@@ -64,8 +64,10 @@ class VehicleState:
     Attributes:
         connected: the autopilot's heartbeat is being received.
         armed: motors armed.
-        flight_mode: PX4 flight mode name as MAVSDK reports it (e.g. "OFFBOARD", "HOLD", "POSCTL").
-        in_offboard: the autopilot is in offboard mode (flight_mode == "OFFBOARD").
+        flight_mode: the autopilot's flight mode name: PX4's as MAVSDK reports it (e.g. "OFFBOARD",
+            "HOLD", "POSCTL"), ArduPilot's by its own mode number (e.g. "GUIDED", "LOITER", "BRAKE").
+        in_offboard: the autopilot is in the mode the service commands it in: PX4's OFFBOARD,
+            ArduCopter's GUIDED.
         position_ned_m: float (3,) local position north, east, down in metres, or None if unknown.
         attitude_rad: float (3,) roll, pitch, yaw in radians (yaw from north, positive clockwise), or None.
         timestamp_s: when this state was last updated, on the consumer's clock, seconds.
@@ -73,6 +75,8 @@ class VehicleState:
             seconds (None before the first).
         velocity_ned_m_s: float (3,) velocity north, east, down in m/s, from the same report as
             ``position_ned_m``, or None if unknown.
+        autopilot: which autopilot the link flies: "px4", "ardupilot", or "unknown" before its
+            heartbeat.
     """
 
     connected: bool = False
@@ -84,6 +88,7 @@ class VehicleState:
     timestamp_s: float = 0.0
     position_timestamp_s: float | None = None
     velocity_ned_m_s: np.ndarray | None = None
+    autopilot: str = "unknown"
 
 
 @runtime_checkable
@@ -103,7 +108,7 @@ class VehicleLink(Protocol):
         ...
 
     async def hold(self) -> None:
-        """Leave offboard for Hold (PX4 AUTO.LOITER). Raises VehicleError if refused."""
+        """Leave offboard for Hold (PX4 AUTO.LOITER, ArduCopter LOITER). Raises VehicleError if refused."""
         ...
 
     async def stop_setpoints(self) -> None:

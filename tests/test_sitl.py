@@ -33,7 +33,7 @@ PILOT_URL = Px4Ports(INSTANCE).pilot_url
 def px4(tmp_path_factory: pytest.TempPathFactory):
     build = find_px4_build()
     if build is None:
-        pytest.skip(f"no PX4 SITL: set {PX4_BUILD_ENV} to a PX4 SITL build folder (see the README's PX4 SITL section)")
+        pytest.skip(f"no PX4 SITL: set {PX4_BUILD_ENV} to a PX4 SITL build folder (see docs/sitl.md)")
     sitl = Px4Sitl(build, tmp_path_factory.mktemp("px4"), instance=INSTANCE)
     sitl.start()
     yield sitl

@@ -332,7 +332,7 @@ def test_hold_never_confirmed_stops_the_stream_for_px4s_failsafe() -> None:
     h.run(5.1, fresh_frame=False)
     outs = h.run(h.cfg.leave_timeout_s + 0.2, fresh_frame=False)
     assert Action.STOP_SETPOINTS in h.actions()
-    assert outs[-1].setpoint is None and "PX4's offboard-loss failsafe" in outs[-1].reason
+    assert outs[-1].setpoint is None and "the autopilot's own failsafe" in outs[-1].reason
 
 
 def test_vehicle_link_lost_stops_the_stream_without_a_mode_change() -> None:

@@ -1,4 +1,5 @@
-"""``companion sitl``: fly the service against PX4 SITL (SIH) through the simulator's courses."""
+"""``companion sitl``: fly the service against PX4 SITL (SIH) or ArduPilot SITL (ArduCopter) through the
+simulator's courses."""
 
 from __future__ import annotations
 
@@ -15,15 +16,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     """Add ``sitl``."""
     p = sub.add_parser(
         "sitl",
-        help="fly the service against PX4 SITL (SIH quadrotor) through simulated obstacle courses",
+        help="fly the service against PX4 SITL (SIH quadrotor) or ArduPilot SITL through simulated obstacle courses",
         description=(
-            "PX4 in the loop: PX4's SIH quadrotor flies, the service (`companion run`, in its own process) "
+            "The autopilot in the loop: PX4's SIH quadrotor (or ArduCopter SITL's built-in quad with "
+            "--autopilot ardupilot) flies, the service (`companion run`, in its own process) "
             "commands it over MAVSDK exactly as on the vehicle, and its camera renders each frame from the "
-            "pose PX4 reports, inside a course whose geometry is known. The ground station here arms, takes "
-            "off to the course height, sends the same `engage` a user would, judges PX4's own position "
+            "pose the autopilot reports, inside a course whose geometry is known. The ground station here arms, takes "
+            "off to the course height, sends the same `engage` a user would, judges the autopilot's own position "
             "against the true geometry (goal, collision, held, timeout; minimum clearance), and lands. "
-            "PX4 must be running (`make px4_sitl sihsim_quadx` in PX4-Autopilot), or name its build "
-            "folder with --px4-build / $COMPANION_PX4_BUILD to have it started fresh for every course."
+            "The autopilot must be running (`make px4_sitl sihsim_quadx` in PX4-Autopilot; ArduPilot: see "
+            "docs/sitl-ardupilot.md), or name its build with --px4-build / $COMPANION_PX4_BUILD "
+            "(--ardupilot-build / $COMPANION_ARDUPILOT_BUILD) to have it started fresh for every course."
         ),
     )
     what = p.add_mutually_exclusive_group(required=True)
@@ -31,10 +34,24 @@ def register(sub: argparse._SubParsersAction) -> None:
     what.add_argument("--suite", metavar="NAME", help="a suite of courses: quick (12 flights) or standard (54)")
     p.add_argument("--seed", type=int, default=0, help="--course: the course seed (default 0)")
     p.add_argument("--config", type=Path, help="TOML config of the service (default: built-in defaults)")
-    p.add_argument("--instance", type=int, default=0, help="PX4 SITL instance number (ports 14540+N, system id N+1; default 0)")
-    p.add_argument("--connect", metavar="URL", help="the service's vehicle link (default udpin://127.0.0.1:14540+N, PX4's API link)")
-    p.add_argument("--pilot", metavar="URL", default="udpin://127.0.0.1:14550", help="the ground station's link (default PX4's GCS link, udpin://127.0.0.1:14550)")
+    p.add_argument("--autopilot", choices=["px4", "ardupilot"], default="px4", help="which SITL flies (default px4)")
+    p.add_argument(
+        "--instance", type=int, default=0,
+        help="SITL instance number (PX4: ports 14540+N, system id N+1; ArduPilot: TCP 5760+10N and 5762+10N; default 0)",
+    )  # fmt: skip
+    p.add_argument(
+        "--connect", metavar="URL",
+        help="the service's vehicle link (default PX4's API link udpin://127.0.0.1:14540+N; ArduPilot's SERIAL1 tcpout://127.0.0.1:5762+10N)",
+    )  # fmt: skip
+    p.add_argument(
+        "--pilot", metavar="URL",
+        help="the ground station's link (default PX4's GCS link udpin://127.0.0.1:14550; ArduPilot's SERIAL0 tcpout://127.0.0.1:5760+10N)",
+    )  # fmt: skip
     p.add_argument("--px4-build", type=Path, metavar="DIR", help="PX4 build folder (build/px4_sitl_default): start PX4 fresh for every course")
+    p.add_argument(
+        "--ardupilot-build", type=Path, metavar="DIR",
+        help="ArduPilot checkout with build/sitl/bin/arducopter: start ArduCopter SITL fresh for every course",
+    )  # fmt: skip
     p.add_argument("--plot", type=Path, metavar="OUT.png", help="--course: draw the flight")
     p.add_argument("--plot-dir", type=Path, metavar="DIR", help="--suite: draw every flight into this folder")
     p.add_argument("--workdir", type=Path, metavar="DIR", help="keep PX4's and the service's files and logs here (default: a temporary folder)")
@@ -52,11 +69,11 @@ def describe_sitl(flight: Any) -> list[str]:
     total = max(1, sum(d.values()))
     modes = ", ".join(f"{m} at {t:.1f} s" for t, m in flight.px4_modes) or "none"
     lines += [
-        f"time:          {r.time_s:.1f} s from OFFBOARD to the verdict (real time, PX4 in the loop)",
+        f"time:          {r.time_s:.1f} s from offboard (OFFBOARD, GUIDED) to the verdict (real time, the autopilot in the loop)",
         f"frames:        {r.frames} processed; the setpoint came from clear {100 * d.get('clear', 0) / total:.0f} %, "
         f"avoid {100 * d.get('avoid', 0) / total:.0f} %, brake {100 * d.get('brake', 0) / total:.0f} % of the time",
-        f"engage:        OFFBOARD {flight.engage_s:.2f} s after the request; max speed {flight.max_speed_m_s:.2f} m/s",
-        f"PX4 modes:     {modes}",
+        f"engage:        offboard (OFFBOARD, GUIDED) {flight.engage_s:.2f} s after the request; max speed {flight.max_speed_m_s:.2f} m/s",
+        f"modes:         {modes}",
         f"service exit:  {flight.service_exit_code}",
     ]
     return lines
@@ -67,11 +84,15 @@ def run(args: argparse.Namespace) -> int:
     from companion.config import load_config
     from companion.sim.courses import make_course
     from companion.sim.suite import suite_courses, suite_table
+    from companion.sitl.ardupilot import ArduPilotPorts, find_ardupilot_build
     from companion.sitl.flight import fly_courses
     from companion.sitl.px4 import Px4Ports, find_px4_build
 
     if not 0 <= args.instance <= 9:
         raise InputError(f"--instance must be 0..9, got {args.instance}")
+    ardupilot = args.autopilot == "ardupilot"
+    if (args.px4_build is not None and ardupilot) or (args.ardupilot_build is not None and not ardupilot):
+        raise InputError("--px4-build goes with --autopilot px4, --ardupilot-build with --autopilot ardupilot")
     cfg = load_config(args.config)
     if args.course is not None:
         if args.plot_dir is not None:
@@ -84,11 +105,19 @@ def run(args: argparse.Namespace) -> int:
     plot_path = _check_plot_path(args.plot) if args.plot is not None else None
     if args.plot_dir is not None:
         args.plot_dir.mkdir(parents=True, exist_ok=True)
-    build = find_px4_build(args.px4_build)
-    ports = Px4Ports(args.instance)
+    px4_build = ardupilot_build = None
+    if ardupilot:
+        ardupilot_build = find_ardupilot_build(args.ardupilot_build)
+        ports: Any = ArduPilotPorts(args.instance)
+        where = f"started from {ardupilot_build.root}" if ardupilot_build else "already running"
+    else:
+        px4_build = find_px4_build(args.px4_build)
+        ports = Px4Ports(args.instance)
+        where = f"started from {px4_build}" if px4_build else "already running"
+    pilot_url = args.pilot or ports.pilot_url
     workdir = args.workdir.expanduser().resolve() if args.workdir is not None else None
-    print(f"PX4 SITL: {'started from ' + str(build) if build else 'already running'}, instance {args.instance}; "
-          f"service link {args.connect or ports.service_url}, pilot link {args.pilot}", flush=True)
+    print(f"{'ArduPilot' if ardupilot else 'PX4'} SITL: {where}, instance {args.instance}; "
+          f"service link {args.connect or ports.service_url}, pilot link {pilot_url}", flush=True)
 
     def progress(done: int, total: int, flight: Any) -> None:
         if total > 1:
@@ -99,7 +128,7 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     flights = asyncio.run(
         fly_courses(
-            courses, cfg, ports=ports, pilot_url=args.pilot, workdir=workdir, px4_build=build,
+            courses, cfg, ports=ports, pilot_url=pilot_url, workdir=workdir, px4_build=px4_build, ardupilot_build=ardupilot_build,
             progress=progress, service_log_level=args.service_log_level, service_url=args.connect,
         )
     )
@@ -113,5 +142,5 @@ def run(args: argparse.Namespace) -> int:
     results = [f.result for f in flights]
     print()
     print(suite_table(results))
-    print(f"\n{len(results)} flights with PX4 in the loop in {time.perf_counter() - t0:.0f} s")
+    print(f"\n{len(results)} flights with {'ArduPilot' if ardupilot else 'PX4'} in the loop in {time.perf_counter() - t0:.0f} s")
     return 0 if all(r.success for r in results) else 1

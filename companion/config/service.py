@@ -31,7 +31,13 @@ ZED_MODES: Mapping[tuple[int, int], tuple[float, ...]] = MappingProxyType(
 )
 
 #: Dotted paths (a section, or section.field) that take effect only at the next start.
-RESTART_FIELDS: tuple[str, ...] = ("camera", "bus", "vehicle.connection") + tuple(f"view.{f}" for f in VIEW_RESTART_FIELDS)
+RESTART_FIELDS: tuple[str, ...] = (
+    "camera",
+    "bus",
+    "vehicle.connection",
+    "vehicle.autopilot",
+    "vehicle.telemetry_rate_hz",
+) + tuple(f"view.{f}" for f in VIEW_RESTART_FIELDS)
 #: Fields inside a restart-only section that apply live anyway: where the simulated scene lies in the
 #: autopilot's frame (the PX4 SITL harness places the course at the hovering vehicle just before
 #: ``engage``).
@@ -240,7 +246,28 @@ class VehicleConfig(StrictModel):
         default="udpin://0.0.0.0:14540",
         min_length=1,
         max_length=200,
-        description="MAVSDK connection URL: udpin://0.0.0.0:14540 for SITL, serial:///dev/ttyTHS1:921600 on a Jetson (restart to change).",
+        description=(
+            "MAVSDK connection URL: udpin://0.0.0.0:14540 for PX4 SITL, tcpout://127.0.0.1:5762 for ArduPilot "
+            "SITL (its SERIAL1), serial:///dev/ttyTHS1:921600 on a Jetson (restart to change)."
+        ),
+    )
+    autopilot: Literal["auto", "px4", "ardupilot"] = Field(
+        default="auto",
+        description=(
+            "Which autopilot flies: 'px4' (OFFBOARD), 'ardupilot' (ArduCopter, GUIDED), or 'auto': the one the "
+            "heartbeat names. A heartbeat from another autopilot than the one set is a startup failure "
+            "(restart to change)."
+        ),
+    )
+    telemetry_rate_hz: float = Field(
+        default=30.0,
+        ge=1.0,
+        le=100.0,
+        description=(
+            "ArduPilot: the rate asked for position, velocity and attitude on the service's link "
+            "(MAV_CMD_SET_MESSAGE_INTERVAL; ArduCopter streams almost nothing unasked). PX4's own stream "
+            "rates are left as they are (restart to change), Hz."
+        ),
     )
     setpoint_rate_hz: float = Field(
         default=20.0, ge=2.0, le=100.0, description="Rate at which setpoints are streamed, whatever the vision rate, Hz."

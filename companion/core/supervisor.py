@@ -41,6 +41,10 @@ Whenever the supervisor stops commanding it returns a zero setpoint together wit
 that the last value MAVSDK holds (and re-sends on its own at 20 Hz until told to stop) is zero; the
 link then stops the re-sending without a mode change.
 
+The supervisor knows no autopilot: "offboard" is whatever mode the vehicle link reports as
+``in_offboard`` (PX4's OFFBOARD, ArduCopter's GUIDED), "Hold" whatever its ``hold`` selects (PX4's
+AUTO.LOITER, ArduCopter's LOITER), and any other mode is the pilot's (or the autopilot's failsafe).
+
 Hold is requested only while the vehicle reports OFFBOARD and the service put it there. While the
 vehicle still reports OFFBOARD, Hold is requested again every ``hold_retry_s`` (longer than a heartbeat
 period, so a pilot's switch has been seen by then); after ``leave_timeout_s`` the stream is stopped so
@@ -455,7 +459,7 @@ class Supervisor:
                 self._stop_stream()
                 self._set(
                     State.FAILSAFE,
-                    "vehicle link lost while commanding: setpoints stopped so that PX4's offboard-loss failsafe acts",
+                    "vehicle link lost while commanding: setpoints stopped so that the autopilot's own failsafe acts",
                 )
             return
         if m.owns_offboard and not v.in_offboard:
@@ -468,14 +472,15 @@ class Supervisor:
             self._stop_stream()
             self._set(
                 State.DISENGAGED,
-                f"vehicle left OFFBOARD for {v.flight_mode} while {was} (pilot or PX4 failsafe); "
+                f"vehicle left OFFBOARD for {v.flight_mode} while {was} (pilot or autopilot failsafe); "
                 "not commanding, not re-engaging",
             )
             return
         e = m.engaging
         if e is not None:
-            if v.flight_mode not in (e.mode_at_request, "OFFBOARD"):
-                # The pilot moved the switch while we were engaging: never fight it.
+            if not v.in_offboard and v.flight_mode != e.mode_at_request:
+                # The pilot moved the switch while we were engaging: never fight it. (The link names
+                # the offboard mode: PX4's OFFBOARD, ArduCopter's GUIDED.)
                 self._stop_stream()
                 self._set(State.DISENGAGED, f"pilot changed the mode to {v.flight_mode} during engage; not engaging")
             elif v.in_offboard and e.start_sent_s is not None:
@@ -694,7 +699,7 @@ class Supervisor:
             self._set(
                 m.state,
                 f"{lv.what}: Hold not confirmed within {cfg.leave_timeout_s:g} s: setpoints stopped so "
-                "that PX4's offboard-loss failsafe acts",
+                "that the autopilot's own failsafe acts",
             )
 
     def _output(

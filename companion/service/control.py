@@ -118,7 +118,8 @@ def restart_required(current: CompanionConfig, new: CompanionConfig) -> list[str
 
 def keep_restart_fields(current: CompanionConfig, new: CompanionConfig) -> CompanionConfig:
     """``new`` with the restart-only fields of ``current`` (they are not applied until a restart)."""
-    vehicle = new.vehicle.model_copy(update={"connection": current.vehicle.connection})
+    kept = [path.partition(".")[2] for path in RESTART_FIELDS if path.startswith("vehicle.")]
+    vehicle = new.vehicle.model_copy(update={name: getattr(current.vehicle, name) for name in kept})
     camera = current.camera.model_copy(update={f: getattr(new.camera, f) for f in LIVE_CAMERA_FIELDS})
     view = new.view.model_copy(update={f: getattr(current.view, f) for f in VIEW_RESTART_FIELDS})
     return new.model_copy(update={"camera": camera, "bus": current.bus, "vehicle": vehicle, "view": view})

@@ -246,9 +246,9 @@ class Service(ControlPlane, HealthReporter):
         self._processor.processing_enabled.set()
         # The link before the camera: a simulated camera may render from the vehicle's telemetry.
         if self.link is None:
-            from companion.service.vehicle import MavsdkVehicleLink
+            from companion.service.vehicle import make_vehicle_link
 
-            self.link = MavsdkVehicleLink(cfg.vehicle.connection, clock=self._clock)
+            self.link = make_vehicle_link(cfg.vehicle, clock=self._clock)
         opener = getattr(self.link, "open", None)  # MAVSDK: add the connection now, fail fast on a bad URL
         if opener is not None:
             try:

@@ -130,6 +130,7 @@ class HealthReporter:
             ),
             "vehicle": {
                 "link": vehicle_link,
+                "autopilot": v.autopilot if v is not None else "unknown",
                 "flight_mode": v.flight_mode if v is not None else "UNKNOWN",
                 "armed": v.armed if v is not None else False,
                 "in_offboard": v.in_offboard if v is not None else False,

@@ -1,24 +1,33 @@
-"""The vehicle link over MAVSDK (``mavsdk`` >= 4.1, the native binding's ``mavsdk.asyncio`` API).
+"""The vehicle link over MAVSDK (``mavsdk`` >= 4.1, the native binding's ``mavsdk.asyncio`` API), for
+PX4 and ArduPilot.
+
+:class:`MavsdkVehicleLink` is what the service builds (:func:`make_vehicle_link`): it opens MAVSDK on
+``vehicle.connection``, waits for the autopilot's heartbeat, and hands the rest to one link per
+autopilot (``vehicle.autopilot``: ``px4``, ``ardupilot``, or ``auto``: whichever the heartbeat's
+``autopilot`` field names): :class:`Px4VehicleLink` here, and
+:class:`~companion.service.ardupilot.ArduPilotVehicleLink`. Both implement the same
+:class:`~companion.interfaces.VehicleLink`; the supervisor above them never sees which one it drives.
 
 What MAVSDK does that matters here (read in MAVSDK's ``cpp/src/mavsdk/plugins/offboard/offboard_impl.cpp``):
 
 * ``set_velocity_body`` stores the setpoint, sends it at once, and registers a ``call_every`` that
   **re-sends the last setpoint every 50 ms (20 Hz) by itself**, whether or not we call again. So a
-  stalled service would keep PX4's offboard-loss failsafe from ever firing: the supervisor watches
-  frame age itself, and the systemd watchdog kills the whole process (MAVSDK with it) if the control
-  loop stalls.
-* The re-sending stops by itself only when a HEARTBEAT says the vehicle is not in OFFBOARD **and** more
-  than 3 s have passed since offboard was started or setpoints began (a grace period). Until then it
-  keeps re-sending the last value after a pilot's mode change.
-* ``offboard.stop()`` stops the re-sending **and commands Hold** (``set_flight_mode(FlightMode::Hold)``,
-  MAV_CMD_DO_SET_MODE AUTO.LOITER). Called after a pilot switched to Position mode it would take the
-  vehicle away from the pilot. This link never calls it.
+  stalled service would keep PX4's offboard-loss failsafe (and ArduCopter's ``GUID_TIMEOUT``) from
+  ever firing: the supervisor watches frame age itself, and the systemd watchdog kills the whole
+  process (MAVSDK with it) if the control loop stalls.
+* The re-sending stops by itself only when a HEARTBEAT says the vehicle is not in OFFBOARD (MAVSDK
+  reads ArduCopter's GUIDED as OFFBOARD) **and** more than 3 s have passed since offboard was started
+  or setpoints began (a grace period). Until then it keeps re-sending the last value after a pilot's
+  mode change.
+* ``offboard.stop()`` stops the re-sending **and commands Hold** (``set_flight_mode(FlightMode::Hold)``:
+  PX4's AUTO.LOITER, ArduCopter's BRAKE). Called after a pilot switched to Position mode (or LOITER) it
+  would take the vehicle away from the pilot. No link here calls it.
 * Destroying the Offboard plugin (its destructor -> ``deinit`` -> ``stop_sending_setpoints``) stops the
-  re-sending **without** any mode change. :meth:`MavsdkVehicleLink.stop_setpoints` does that (after the
-  supervisor has sent a final zero, so nothing non-zero is ever left to re-send) and the next
-  :meth:`send_setpoint` creates a fresh plugin.
-* Leaving offboard to Hold is ``action.hold()`` (the same DO_SET_MODE), only ever called while we own
-  offboard.
+  re-sending **without** any mode change. ``stop_setpoints`` does that (after the supervisor has sent a
+  final zero, so nothing non-zero is ever left to re-send) and the next ``send_setpoint`` creates a
+  fresh plugin.
+* Leaving offboard to Hold is only ever requested while we own offboard: on PX4 ``action.hold()``
+  (the same DO_SET_MODE), on ArduPilot LOITER by its own mode number.
 """
 
 from __future__ import annotations
@@ -29,7 +38,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import replace
-from typing import Any
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
@@ -38,8 +47,14 @@ from companion.errors import VehicleError
 from companion.interfaces import VehicleState
 from companion.service.aio import cancel_and_wait, logged
 
+if TYPE_CHECKING:
+    from companion.config.service import VehicleConfig
+
 log = logging.getLogger(__name__)
 _mavsdk_log = logging.getLogger("companion.service.vehicle.mavsdk")
+
+#: The autopilots a link exists for (``vehicle.autopilot`` adds ``auto``).
+AUTOPILOTS: tuple[str, ...] = ("px4", "ardupilot")
 
 
 def _forward_mavsdk_log(level: Any, message: str, file: str | None, line: int) -> bool:
@@ -49,28 +64,18 @@ def _forward_mavsdk_log(level: Any, message: str, file: str | None, line: int) -
     return True
 
 
-class MavsdkVehicleLink:
-    """:class:`~companion.interfaces.VehicleLink` over MAVSDK.
+class MavsdkSession:
+    """One MAVSDK instance with one connection, shared by the link that flies through it.
 
     Args:
-        connection: MAVSDK connection URL (``udpin://0.0.0.0:14540``, ``serial:///dev/ttyTHS1:921600``).
-        clock: the consumer's monotonic clock (stamps :class:`VehicleState`), seconds.
+        connection: MAVSDK connection URL (``udpin://0.0.0.0:14540``, ``tcpout://127.0.0.1:5762``,
+            ``serial:///dev/ttyTHS1:921600``).
     """
 
-    def __init__(self, connection: str, clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(self, connection: str) -> None:
         self.connection = connection
-        self._clock = clock
-        self._mavsdk = None
-        self._system = None
-        self._offboard = None
-        self._action = None
-        self._telemetry = None
-        self._tasks: list[asyncio.Task] = []
-        self._state = VehicleState()
+        self.mavsdk: Any = None
         self._connection_added = False
-        self._closed = False
-
-    # ------------------------------------------------------------------ connection
 
     async def open(self) -> None:
         """Create MAVSDK and add the connection (fails fast on a bad URL or a missing serial port).
@@ -84,11 +89,11 @@ class MavsdkVehicleLink:
         from mavsdk.logging import log_subscribe
 
         log_subscribe(_forward_mavsdk_log)
-        if self._mavsdk is None:
+        if self.mavsdk is None:
             config = Configuration.create_with_component_type(ComponentType.COMPANION_COMPUTER)
-            self._mavsdk = Mavsdk(config)
+            self.mavsdk = Mavsdk(config)
         try:
-            await self._mavsdk.add_any_connection(self.connection)
+            await self.mavsdk.add_any_connection(self.connection)
         except MavsdkConnectionError as err:
             raise VehicleError(
                 f"vehicle.connection {self.connection!r}: MAVSDK cannot open it: {err}", kind="connection"
@@ -96,38 +101,125 @@ class MavsdkVehicleLink:
         self._connection_added = True
         log.info("MAVSDK listening on %s", self.connection)
 
-    async def connect(self, timeout_s: float) -> None:
-        """Open the connection if needed and wait for the autopilot's heartbeat.
+    async def first_autopilot(self, timeout_s: float) -> Any:
+        """Open if needed and wait for an autopilot's heartbeat; returns MAVSDK's system.
 
         Raises:
-            VehicleError: ``kind="connection"`` (bad URL, port busy, no such serial device) or
-                ``kind="timeout"`` (no autopilot heard within ``timeout_s``).
+            VehicleError: ``kind="connection"`` (see :meth:`open`) or ``kind="timeout"`` (no autopilot
+                heard within ``timeout_s`` seconds).
         """
         await self.open()
-        assert self._mavsdk is not None
-        system = await self._mavsdk.first_autopilot(timeout_s)
+        system = await self.mavsdk.first_autopilot(timeout_s)
         if system is None:
-            raise VehicleError(
-                f"no autopilot heard on {self.connection} within {timeout_s:g} s", kind="timeout"
-            )
+            raise VehicleError(f"no autopilot heard on {self.connection} within {timeout_s:g} s", kind="timeout")
+        return system
+
+    def destroy(self) -> None:
+        """Release MAVSDK (safe to call twice)."""
+        if self.mavsdk is not None:
+            self.mavsdk.destroy()
+            self.mavsdk = None
+        self._connection_added = False
+
+
+async def autopilot_of(system: Any) -> str | None:
+    """``"px4"`` or ``"ardupilot"`` as the system's heartbeat names it (MAV_AUTOPILOT_PX4,
+    MAV_AUTOPILOT_ARDUPILOTMEGA), None for anything else."""
+    from mavsdk.autopilot import Autopilot
+
+    kind = await system.autopilot_type()
+    return {Autopilot.PX4: "px4", Autopilot.ARDUPILOT: "ardupilot"}.get(kind)
+
+
+def _check_autopilot(wanted: str, found: str | None, connection: str) -> None:
+    """Raise when the heartbeat names another autopilot than the configured one (an unknown one is
+    let through: the link's own checks decide).
+
+    Raises:
+        VehicleError: ``kind="connection"`` (a config error: the service must not guess modes).
+    """
+    if found is not None and found != wanted:
+        raise VehicleError(
+            f"vehicle.autopilot is {wanted!r} but the autopilot on {connection} is {found}; "
+            "set vehicle.autopilot to 'auto' or to the one flying",
+            kind="connection",
+        )
+
+
+class MavsdkLinkBase:
+    """What the PX4 and the ArduPilot link share: the session, the autopilot's system, position and
+    attitude telemetry, the setpoint stream and its release. Subclasses add how modes are read and
+    changed (:meth:`_watchers`, :meth:`start_offboard`, :meth:`hold`).
+
+    Args:
+        connection: a MAVSDK connection URL, or a :class:`MavsdkSession` already open (the
+            :class:`MavsdkVehicleLink` that found the autopilot hands its own over).
+        clock: the consumer's monotonic clock (stamps :class:`VehicleState`), seconds.
+    """
+
+    #: The autopilot this link flies (``"px4"``, ``"ardupilot"``).
+    AUTOPILOT: ClassVar[str] = ""
+
+    def __init__(self, connection: str | MavsdkSession, clock: Callable[[], float] = time.monotonic) -> None:
+        self._session = connection if isinstance(connection, MavsdkSession) else MavsdkSession(connection)
+        self.connection = self._session.connection
+        self._clock = clock
+        self._system: Any = None
+        self._offboard: Any = None
+        self._action: Any = None
+        self._telemetry: Any = None
+        self._tasks: list[asyncio.Task] = []
+        self._state = VehicleState()
+        self._closed = False
+
+    # ------------------------------------------------------------------ connection
+
+    async def open(self) -> None:
+        """Add the connection now (fails fast on a bad URL). Raises VehicleError ``kind="connection"``."""
+        await self._session.open()
+
+    async def connect(self, timeout_s: float) -> None:
+        """Open the connection if needed, wait for the autopilot's heartbeat and attach to it.
+
+        Raises:
+            VehicleError: ``kind="connection"`` (bad URL, port busy, no such serial device, or the
+                heartbeat names another autopilot than this link's) or ``kind="timeout"`` (no
+                autopilot heard within ``timeout_s`` seconds).
+        """
+        system = await self._session.first_autopilot(timeout_s)
+        _check_autopilot(self.AUTOPILOT, await autopilot_of(system), self.connection)
+        await self.attach(system)
+
+    async def attach(self, system: Any) -> None:
+        """Start using ``system`` (an autopilot MAVSDK has heard): plugins and telemetry subscriptions.
+
+        Raises:
+            VehicleError: ``kind="connection"`` when this link cannot fly that vehicle.
+        """
         from mavsdk.asyncio.plugins.action import ActionAsync
         from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
 
         self._system = system
         self._telemetry = TelemetryAsync(system)
         self._action = ActionAsync(system)
-        self._state = replace(self._state, connected=True, timestamp_s=self._clock())
+        self._state = replace(self._state, connected=True, autopilot=self.AUTOPILOT, timestamp_s=self._clock())
         loop = asyncio.get_running_loop()
         # A telemetry stream failing must not take the service down (logged, not raised): the state
         # keeps its last values and `connected` tells the truth through the connection stream.
-        self._tasks = [
-            loop.create_task(logged(self._watch_connection(system), "MAVSDK connection subscription", log)),
-            loop.create_task(logged(self._watch_flight_mode(), "MAVSDK flight mode subscription", log)),
-            loop.create_task(logged(self._watch_armed(), "MAVSDK armed subscription", log)),
-            loop.create_task(logged(self._watch_position(), "MAVSDK position subscription", log)),
-            loop.create_task(logged(self._watch_attitude(), "MAVSDK attitude subscription", log)),
+        watchers = [
+            (self._watch_connection(system), "MAVSDK connection subscription"),
+            (self._watch_position(), "MAVSDK position subscription"),
+            (self._watch_attitude(), "MAVSDK attitude subscription"),
+            *self._watchers(),
         ]
-        log.info("autopilot found on %s (system id %d)", self.connection, await system.get_system_id())
+        self._tasks = [loop.create_task(logged(coro, what, log)) for coro, what in watchers]
+        log.info(
+            "%s autopilot found on %s (system id %d)", self.AUTOPILOT, self.connection, await system.get_system_id()
+        )
+
+    def _watchers(self) -> list[tuple[Any, str]]:
+        """The subclass's own subscriptions: (coroutine, what it is, for the log)."""
+        return []
 
     def _update(self, **changes: Any) -> None:
         self._state = replace(self._state, timestamp_s=self._clock(), **changes)
@@ -137,19 +229,6 @@ class MavsdkVehicleLink:
             if connected != self._state.connected:
                 log.warning("vehicle link %s", "back" if connected else "LOST (no heartbeat)")
             self._update(connected=bool(connected))
-
-    async def _watch_flight_mode(self) -> None:
-        assert self._telemetry is not None
-        async for mode in self._telemetry.subscribe_flight_mode():
-            name = getattr(mode, "name", str(mode))
-            if name != self._state.flight_mode:
-                log.info("flight mode: %s", name)
-            self._update(flight_mode=name, in_offboard=name == "OFFBOARD")
-
-    async def _watch_armed(self) -> None:
-        assert self._telemetry is not None
-        async for armed in self._telemetry.subscribe_armed():
-            self._update(armed=bool(armed))
 
     async def _watch_position(self) -> None:
         assert self._telemetry is not None
@@ -198,6 +277,65 @@ class MavsdkVehicleLink:
             raise VehicleError(f"offboard setpoint rejected: {err}") from None
 
     async def start_offboard(self) -> None:
+        raise NotImplementedError
+
+    async def hold(self) -> None:
+        raise NotImplementedError
+
+    async def stop_setpoints(self) -> None:
+        """Stop MAVSDK's re-sending without a mode change: destroy the Offboard plugin (never
+        ``offboard.stop()``, which commands Hold, or BRAKE on ArduCopter)."""
+        offboard, self._offboard = self._offboard, None
+        if offboard is not None:
+            offboard.destroy()
+            log.info("setpoint stream stopped (no mode change)")
+
+    def _plugins(self) -> list[Any]:
+        """Every plugin to destroy on close (subclasses add theirs)."""
+        return [self._telemetry, self._action]
+
+    async def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        await cancel_and_wait(self._tasks)
+        self._tasks = []
+        await self.stop_setpoints()
+        for plugin in self._plugins():
+            if plugin is not None:
+                plugin.destroy()
+        self._telemetry = self._action = None
+        self._system = None
+        self._session.destroy()
+        log.info("vehicle link closed")
+
+
+class Px4VehicleLink(MavsdkLinkBase):
+    """:class:`~companion.interfaces.VehicleLink` for PX4: its flight modes as MAVSDK names them,
+    offboard by ``offboard.start()``, Hold by ``action.hold()`` (AUTO.LOITER)."""
+
+    AUTOPILOT = "px4"
+
+    def _watchers(self) -> list[tuple[Any, str]]:
+        return [
+            (self._watch_flight_mode(), "MAVSDK flight mode subscription"),
+            (self._watch_armed(), "MAVSDK armed subscription"),
+        ]
+
+    async def _watch_flight_mode(self) -> None:
+        assert self._telemetry is not None
+        async for mode in self._telemetry.subscribe_flight_mode():
+            name = getattr(mode, "name", str(mode))
+            if name != self._state.flight_mode:
+                log.info("flight mode: %s", name)
+            self._update(flight_mode=name, in_offboard=name == "OFFBOARD")
+
+    async def _watch_armed(self) -> None:
+        assert self._telemetry is not None
+        async for armed in self._telemetry.subscribe_armed():
+            self._update(armed=bool(armed))
+
+    async def start_offboard(self) -> None:
         from mavsdk.asyncio.plugins.offboard import OffboardError
 
         self._require_system("start_offboard")
@@ -218,27 +356,112 @@ class MavsdkVehicleLink:
         except ActionError as err:
             raise VehicleError(f"Hold refused: {err}") from None
 
+
+class MavsdkVehicleLink:
+    """:class:`~companion.interfaces.VehicleLink` over MAVSDK for the autopilot that answers.
+
+    It opens MAVSDK, waits for the autopilot's heartbeat, picks :class:`Px4VehicleLink` or
+    :class:`~companion.service.ardupilot.ArduPilotVehicleLink` (``autopilot``, or the heartbeat's
+    ``autopilot`` field for ``"auto"``), and passes every call to it.
+
+    Args:
+        connection: MAVSDK connection URL.
+        clock: the consumer's monotonic clock (stamps :class:`VehicleState`), seconds.
+        autopilot: ``"auto"``, ``"px4"`` or ``"ardupilot"`` (``vehicle.autopilot``).
+        telemetry_rate_hz: ArduPilot: the rate asked for position, velocity and attitude, Hz
+            (``vehicle.telemetry_rate_hz``).
+    """
+
+    def __init__(
+        self,
+        connection: str,
+        clock: Callable[[], float] = time.monotonic,
+        autopilot: str = "auto",
+        telemetry_rate_hz: float = 30.0,
+    ) -> None:
+        if autopilot not in ("auto", *AUTOPILOTS):
+            raise VehicleError(f"vehicle.autopilot {autopilot!r}: must be auto, {', '.join(AUTOPILOTS)}", kind="connection")
+        self.connection = connection
+        self.autopilot = autopilot
+        self.telemetry_rate_hz = telemetry_rate_hz
+        self._clock = clock
+        self._session = MavsdkSession(connection)
+        self._link: MavsdkLinkBase | None = None
+        self._closed = False
+
+    @property
+    def link(self) -> MavsdkLinkBase | None:
+        """The autopilot's own link once connected, else None."""
+        return self._link
+
+    async def open(self) -> None:
+        """Add the connection now (fails fast on a bad URL). Raises VehicleError ``kind="connection"``."""
+        await self._session.open()
+
+    async def connect(self, timeout_s: float) -> None:
+        """Wait for the autopilot's heartbeat and attach the link for it.
+
+        Raises:
+            VehicleError: ``kind="connection"`` (bad URL, no such serial device, an autopilot other
+                than ``vehicle.autopilot``, or one the service has no link for) or ``kind="timeout"``.
+        """
+        if self._link is not None:
+            return
+        system = await self._session.first_autopilot(timeout_s)
+        found = await autopilot_of(system)
+        kind = self.autopilot
+        if kind == "auto":
+            if found is None:
+                raise VehicleError(
+                    f"the autopilot on {self.connection} is neither PX4 nor ArduPilot (its heartbeat's "
+                    "MAV_AUTOPILOT); the service flies only those two",
+                    kind="connection",
+                )
+            kind = found
+        else:
+            _check_autopilot(kind, found, self.connection)
+        link: MavsdkLinkBase
+        if kind == "ardupilot":
+            from companion.service.ardupilot import ArduPilotVehicleLink
+
+            link = ArduPilotVehicleLink(self._session, clock=self._clock, telemetry_rate_hz=self.telemetry_rate_hz)
+        else:
+            link = Px4VehicleLink(self._session, clock=self._clock)
+        await link.attach(system)
+        self._link = link
+
+    def state(self) -> VehicleState:
+        return self._link.state() if self._link is not None else VehicleState()
+
+    def _require_link(self, what: str) -> MavsdkLinkBase:
+        if self._link is None:
+            raise VehicleError(f"{what}: no autopilot connected")
+        return self._link
+
+    async def send_setpoint(self, setpoint: VelocitySetpoint) -> None:
+        await self._require_link("send_setpoint").send_setpoint(setpoint)
+
+    async def start_offboard(self) -> None:
+        await self._require_link("start_offboard").start_offboard()
+
+    async def hold(self) -> None:
+        await self._require_link("hold").hold()
+
     async def stop_setpoints(self) -> None:
-        """Stop MAVSDK's re-sending without a mode change: destroy the Offboard plugin (never
-        ``offboard.stop()``, which commands Hold)."""
-        offboard, self._offboard = self._offboard, None
-        if offboard is not None:
-            offboard.destroy()
-            log.info("setpoint stream stopped (no mode change)")
+        if self._link is not None:
+            await self._link.stop_setpoints()
 
     async def close(self) -> None:
         if self._closed:
             return
         self._closed = True
-        await cancel_and_wait(self._tasks)
-        self._tasks = []
-        await self.stop_setpoints()
-        for plugin in (self._telemetry, self._action):
-            if plugin is not None:
-                plugin.destroy()
-        self._telemetry = self._action = None
-        self._system = None
-        if self._mavsdk is not None:
-            self._mavsdk.destroy()
-            self._mavsdk = None
-        log.info("vehicle link closed")
+        if self._link is not None:
+            await self._link.close()  # destroys the session too
+        else:
+            self._session.destroy()
+            log.info("vehicle link closed")
+
+
+def make_vehicle_link(cfg: VehicleConfig, clock: Callable[[], float] = time.monotonic) -> MavsdkVehicleLink:
+    """The service's vehicle link for the ``[vehicle]`` config (connection, autopilot, telemetry rate)."""
+    return MavsdkVehicleLink(cfg.connection, clock=clock, autopilot=cfg.autopilot, telemetry_rate_hz=cfg.telemetry_rate_hz)

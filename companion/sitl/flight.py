@@ -1,16 +1,18 @@
-"""One course with PX4 SITL in the loop, and a suite of them.
+"""One course with PX4 or ArduPilot SITL in the loop, and a suite of them.
 
 A flight, as a user would fly it:
 
 1. the pilot (ground station) brings the vehicle to the ground, disarmed, ready to arm;
-2. the pilot takes off to the course's start altitude; PX4 ends the take-off in Hold;
+2. the pilot takes off to the course's start altitude; PX4 ends the take-off in Hold (ArduCopter's
+   pilot switches to LOITER);
 3. the service starts (``companion run``, camera ``sim`` rendering from the pose PX4 reports);
 4. once the hover is steady, the course is placed at the vehicle: its start at the vehicle's position,
    its north axis along the vehicle's heading, its ground the start altitude below it
    (:class:`~companion.sim.placement.CoursePlacement`; a live ``set_config``), so the flight starts
    at the course's start pose;
-5. ``engage`` on the service's control socket; the service streams setpoints and enters offboard;
-6. PX4's own position telemetry, in the course frame, is judged against the true geometry by the
+5. ``engage`` on the service's control socket; the service streams setpoints and enters offboard
+   (ArduCopter: GUIDED);
+6. the autopilot's own position telemetry, in the course frame, is judged against the true geometry by the
    same :class:`~companion.sim.scoring.Judge` as the kinematic simulator (goal, collision, held,
    out of bounds, timeout; minimum clearance). On a collision or leaving the bounds the pilot takes
    over with Hold at once, as a safety pilot would;
@@ -46,13 +48,15 @@ from companion.sim.loop import (
 )
 from companion.sim.placement import CoursePlacement
 from companion.sim.scoring import HELD_RADIUS_M, Judge, Outcome
+from companion.sitl.ardupilot import SITL_PARAMS as ARDUPILOT_SITL_PARAMS
+from companion.sitl.ardupilot import ArduPilotBuild, ArduPilotPilot, ArduPilotPorts, ArduPilotSitl
 from companion.sitl.pilot import Pilot, Sample
 from companion.sitl.px4 import Px4Ports, Px4Sitl, SitlError
 from companion.sitl.service import ServiceProcess
 
 log = logging.getLogger(__name__)
 
-#: PX4 parameters the harness sets before every flight (what they do: the README's SITL section).
+#: PX4 parameters the harness sets before every flight (what they do: docs/sitl.md).
 SITL_PARAMS: dict[str, float | int] = {
     "COM_OF_LOSS_T": 0.5,  # offboard setpoints missing this long = offboard loss, seconds
     "COM_OBL_RC_ACT": 5,  # offboard loss -> Hold
@@ -68,6 +72,9 @@ SITL_PARAMS: dict[str, float | int] = {
 
 _KIND = {"clear": LogKind.CLEAR, "avoid": LogKind.AVOID, "brake": LogKind.BRAKE}
 
+#: The parameters the harness sets before every flight, per autopilot.
+PARAMS_BY_AUTOPILOT: dict[str, dict[str, float | int]] = {"px4": SITL_PARAMS, "ardupilot": ARDUPILOT_SITL_PARAMS}
+
 
 @dataclass(frozen=True)
 class SitlFlight:
@@ -76,9 +83,10 @@ class SitlFlight:
     Attributes:
         result: the verdict, shaped like the kinematic simulator's (times from engagement, positions
             in the course frame).
-        placement: where the course lay in PX4's local frame.
-        engage_s: from the ``engage`` request to PX4 reporting OFFBOARD, seconds.
-        px4_modes: PX4's mode changes during the judged flight, ``(seconds since engagement, mode)``.
+        placement: where the course lay in the autopilot's local frame.
+        engage_s: from the ``engage`` request to the autopilot reporting OFFBOARD (GUIDED), seconds.
+        px4_modes: the autopilot's mode changes during the judged flight, ``(seconds since engagement,
+            mode)`` (PX4's or ArduCopter's names).
         service_exit_code: the service's exit code after SIGTERM (0 = clean).
         max_speed_m_s: highest ground speed PX4 reported while judged, m/s.
     """
@@ -124,10 +132,18 @@ def sitl_config(cfg: CompanionConfig, course: Course, placement: CoursePlacement
 
 
 class _Recorder:
-    """Judges PX4's telemetry and keeps the rows of the flight log."""
+    """Judges the autopilot's telemetry and keeps the rows of the flight log.
 
-    def __init__(self, course: Course, cfg: CompanionConfig, placement: CoursePlacement, first: Sample) -> None:
+    Args:
+        offboard_mode: the autopilot's mode the service commands in (``OFFBOARD``, ``GUIDED``);
+            rows in any other mode are logged as the pilot's hold.
+    """
+
+    def __init__(
+        self, course: Course, cfg: CompanionConfig, placement: CoursePlacement, first: Sample, offboard_mode: str = "OFFBOARD"
+    ) -> None:
         self.placement = placement
+        self.offboard_mode = offboard_mode
         self.t0 = first.time_s
         self.judge = Judge(
             course,
@@ -153,7 +169,7 @@ class _Recorder:
         h = health or {}
         state = h.get("state")
         decision = h.get("decision") or {}
-        if s.flight_mode != "OFFBOARD":
+        if s.flight_mode != self.offboard_mode:
             kind = LogKind.HOLD
         elif state == "degraded":
             kind = LogKind.STALE
@@ -203,7 +219,7 @@ async def prepare_flight(
     course: Course,
     cfg: CompanionConfig,
     pilot: Pilot,
-    ports: Px4Ports,
+    ports: Px4Ports | ArduPilotPorts,
     workdir: Path,
     service_log_level: str = "INFO",
     service_url: str | None = None,
@@ -211,7 +227,7 @@ async def prepare_flight(
     """Steps 1 and 2 (ready, parameters, take-off); returns the service of step 4, not yet started
     (its config has the course placed where the vehicle hovers now; :func:`start_and_place` moves it)."""
     await pilot.make_ready()
-    await pilot.set_params(SITL_PARAMS)
+    await pilot.set_params(PARAMS_BY_AUTOPILOT[pilot.AUTOPILOT])
     await pilot.take_off(-float(course.start.position_ned_m[2]))
     service_cfg = sitl_config(cfg, course, placement_at(pilot, course), service_url or ports.service_url, workdir)
     return ServiceProcess(service_cfg, workdir, service_log_level)
@@ -232,16 +248,18 @@ async def fly_course(
     course: Course,
     cfg: CompanionConfig,
     pilot: Pilot,
-    ports: Px4Ports,
+    ports: Px4Ports | ArduPilotPorts,
     workdir: Path,
     *,
     service_log_level: str = "INFO",
     service_url: str | None = None,
 ) -> SitlFlight:
-    """Fly ``course`` with PX4 SITL (already running, ``pilot`` connected to it) and the service.
+    """Fly ``course`` with PX4 or ArduPilot SITL (already running, ``pilot`` connected to it: a
+    :class:`~companion.sitl.pilot.Pilot` or an :class:`~companion.sitl.ardupilot.ArduPilotPilot`) and
+    the service.
 
     Raises:
-        SitlError: PX4 or the service did not do what a step needed (the step is named).
+        SitlError: the autopilot or the service did not do what a step needed (the step is named).
     """
     wall0 = time.monotonic()
     service = await prepare_flight(course, cfg, pilot, ports, workdir, service_log_level, service_url)
@@ -250,8 +268,8 @@ async def fly_course(
         placement = await start_and_place(service, pilot, course)
         t_req = time.monotonic()
         await service.request({"cmd": "engage"})
-        t_offboard = await pilot.wait_for("OFFBOARD after engage", lambda: pilot.flight_mode == "OFFBOARD", 10.0)
-        recorder = _Recorder(course, cfg, placement, pilot.latest())
+        t_offboard = await pilot.wait_for(f"{pilot.OFFBOARD_MODE} after engage", lambda: pilot.in_offboard, 10.0)
+        recorder = _Recorder(course, cfg, placement, pilot.latest(), pilot.OFFBOARD_MODE)
         seen = len(pilot.samples)
         modes_from = len(pilot.mode_changes)
         outcome: Outcome | None = None
@@ -264,13 +282,15 @@ async def fly_course(
                 if outcome is not None:
                     break
             if not fresh and time.monotonic() - pilot.latest().time_s > 2.0:
-                raise SitlError("PX4 position telemetry stopped for 2 s during the flight")
+                raise SitlError(f"{pilot.NAME} position telemetry stopped for 2 s during the flight")
         if outcome in (Outcome.COLLISION, Outcome.OUT_OF_BOUNDS):
             await pilot.hold()  # the safety pilot takes over
         elif service.state in ("engaged", "engaging", "degraded", "paused", "override", "failsafe"):
             await service.request({"cmd": "disengage"})
             # Let the service finish leaving offboard (its Hold) before the pilot commands Land.
-            await pilot.wait_for("PX4 out of OFFBOARD after disengage", lambda: pilot.flight_mode != "OFFBOARD", 10.0)
+            await pilot.wait_for(
+                f"{pilot.NAME} out of {pilot.OFFBOARD_MODE} after disengage", lambda: not pilot.in_offboard, 10.0
+            )
             await service.wait_state(("disengaged", "passive"), 5.0)
         modes = tuple((t - recorder.t0, m) for t, m in pilot.mode_changes[modes_from:])
         await pilot.land()
@@ -313,47 +333,59 @@ async def fly_courses(
     courses: Sequence[Course],
     cfg: CompanionConfig,
     *,
-    ports: Px4Ports,
+    ports: Px4Ports | ArduPilotPorts,
     pilot_url: str,
     workdir: Path | None = None,
     px4_build: Path | None = None,
+    ardupilot_build: ArduPilotBuild | None = None,
     progress: Callable[[int, int, SitlFlight], None] | None = None,
     service_log_level: str = "INFO",
     service_url: str | None = None,
 ) -> list[SitlFlight]:
-    """Fly ``courses`` one after another.
+    """Fly ``courses`` one after another, with PX4 (``ports`` a :class:`Px4Ports`) or ArduPilot
+    (an :class:`~companion.sitl.ardupilot.ArduPilotPorts`).
 
-    With ``px4_build``, PX4 is started fresh (new parameters and storage) for every course and stopped
-    after it: every flight starts from the same vehicle. A course whose PX4 or service step fails is
-    then flown once more with another fresh PX4 (SIH sometimes starts without baro or compass data,
-    fails its preflight checks and lands: a fault of the simulator's start, not a verdict on the
-    service); its files are under ``retry/``. Without it, PX4 must already be running on
-    ``ports``; between courses the vehicle lands where it is, and the next course is placed under it.
-    ``service_url`` overrides the service's vehicle link (default: PX4's API link of ``ports``).
+    With ``px4_build`` (or ``ardupilot_build``), the autopilot is started fresh (new parameters and
+    storage) for every course and stopped after it: every flight starts from the same vehicle. A course
+    whose autopilot or service step fails is then flown once more with another fresh one (SIH sometimes
+    starts without baro or compass data, fails its preflight checks and lands: a fault of the
+    simulator's start, not a verdict on the service); its files are under ``retry/``. Without it, the
+    autopilot must already be running on ``ports``; between courses the vehicle lands where it is, and
+    the next course is placed under it. ``service_url`` overrides the service's vehicle link (default:
+    the autopilot's API link of ``ports``).
 
     Raises:
-        SitlError: PX4 or the service failed a step (the course is named), twice with ``px4_build``.
+        SitlError: the autopilot or the service failed a step (the course is named), twice with a build.
     """
+    ardupilot = isinstance(ports, ArduPilotPorts)
+    build: Any = ardupilot_build if ardupilot else px4_build
+    name = "ArduPilot" if ardupilot else "PX4"
     own_tmp = None
     if workdir is None:
         own_tmp = tempfile.TemporaryDirectory(prefix="companion-sitl-")
         workdir = Path(own_tmp.name)
     flights: list[SitlFlight] = []
     pilot: Pilot | None = None
-    px4: Px4Sitl | None = None
+    sitl: Px4Sitl | ArduPilotSitl | None = None
     try:
         for i, course in enumerate(courses):
-            attempts = 2 if px4_build is not None else 1
+            attempts = 2 if build is not None else 1
             for attempt in range(attempts):
                 run_dir = workdir / f"{i:02d}-{course.name}"
                 if attempt:
                     run_dir = run_dir / "retry"
                 try:
-                    if px4_build is not None and px4 is None:
-                        px4 = Px4Sitl(px4_build, run_dir / "px4", ports.instance)
-                        await asyncio.to_thread(px4.start)
+                    if build is not None and sitl is None:
+                        if ardupilot:
+                            sitl = ArduPilotSitl(build, run_dir / "ardupilot", ports.instance)
+                        else:
+                            sitl = Px4Sitl(build, run_dir / "px4", ports.instance)
+                        await asyncio.to_thread(sitl.start)
                     if pilot is None:
-                        pilot = Pilot(pilot_url, ports.system_id)
+                        if ardupilot:
+                            pilot = ArduPilotPilot(pilot_url, ports.system_id, rc_port=ports.rc_port)
+                        else:
+                            pilot = Pilot(pilot_url, ports.system_id)
                         await pilot.connect()
                     flight = await fly_course(
                         course, cfg, pilot, ports, run_dir / "service", service_log_level=service_log_level, service_url=service_url
@@ -361,15 +393,15 @@ async def fly_courses(
                 except SitlError as err:
                     if attempt + 1 == attempts:
                         raise SitlError(f"{course.name}: {err}") from None
-                    log.warning("%s: %s; flying it again with a fresh PX4", course.name, err)
+                    log.warning("%s: %s; flying it again with a fresh %s", course.name, err, name)
                     continue
                 finally:
-                    if px4 is not None:  # a fresh PX4 (and a fresh link to it) for the next course or attempt
+                    if sitl is not None:  # a fresh autopilot (and a fresh link to it) for the next course or attempt
                         if pilot is not None:
                             await pilot.close()
                             pilot = None
-                        await asyncio.to_thread(px4.stop)
-                        px4 = None
+                        await asyncio.to_thread(sitl.stop)
+                        sitl = None
                 flights.append(flight)
                 if progress is not None:
                     progress(i + 1, len(courses), flight)
@@ -377,8 +409,8 @@ async def fly_courses(
     finally:
         if pilot is not None:
             await pilot.close()
-        if px4 is not None:
-            await asyncio.to_thread(px4.stop)
+        if sitl is not None:
+            await asyncio.to_thread(sitl.stop)
         if own_tmp is not None:
             own_tmp.cleanup()
     return flights

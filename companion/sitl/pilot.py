@@ -34,7 +34,8 @@ class Sample:
         velocity_ned_m_s: float64 ``(3,)`` m/s.
         attitude_rad: float64 ``(3,)`` roll, pitch, yaw, radians (yaw clockwise from north).
         yaw_rate_rad_s: body yaw rate, rad/s.
-        flight_mode: PX4's mode as MAVSDK names it (``OFFBOARD``, ``HOLD``, ``TAKEOFF``, ...).
+        flight_mode: the autopilot's mode: PX4's as MAVSDK names it (``OFFBOARD``, ``HOLD``, ``TAKEOFF``,
+            ...), ArduCopter's by its own number (``GUIDED``, ``LOITER``, ``BRAKE``, ...).
     """
 
     time_s: float
@@ -46,13 +47,19 @@ class Sample:
 
 
 class Pilot:
-    """A ground station on PX4's GCS link.
+    """A ground station on PX4's GCS link (:class:`~companion.sitl.ardupilot.ArduPilotPilot` is the one
+    for ArduCopter).
 
     Args:
         connection: MAVSDK URL where PX4's GCS link sends (``udpin://127.0.0.1:14550``).
         system_id: the PX4 instance's MAVLink system id (instance + 1).
         clock: monotonic clock, seconds.
     """
+
+    #: The autopilot this pilot flies, and its mode the service commands in (as :attr:`flight_mode` names it).
+    AUTOPILOT = "px4"
+    NAME = "PX4"
+    OFFBOARD_MODE = "OFFBOARD"
 
     def __init__(self, connection: str, system_id: int = 1, clock: Callable[[], float] = time.monotonic) -> None:
         self.connection = connection
@@ -94,29 +101,44 @@ class Pilot:
                     self._system = system
             if self._system is None:
                 if self._clock() > deadline:
-                    raise SitlError(f"no PX4 with system id {self.system_id} heard on {self.connection} within {timeout_s:g} s")
+                    raise SitlError(f"no {self.NAME} with system id {self.system_id} heard on {self.connection} within {timeout_s:g} s")
                 await asyncio.sleep(0.1)
         self.action = ActionAsync(self._system)
         self.telemetry = TelemetryAsync(self._system)
         self.param = ParamAsync(self._system)
+        await self._attached(self._system)
         loop = asyncio.get_running_loop()
-        self._tasks = [
-            loop.create_task(logged(self._watch_mode(), "pilot: the mode subscription", log)),
-            loop.create_task(logged(self._watch_armed(), "pilot: the armed subscription", log)),
-            loop.create_task(logged(self._watch_in_air(), "pilot: the in air subscription", log)),
-            loop.create_task(logged(self._watch_health(), "pilot: the health subscription", log)),
-            loop.create_task(logged(self._watch_attitude(), "pilot: the attitude subscription", log)),
-            loop.create_task(logged(self._watch_rates(), "pilot: the rates subscription", log)),
-            loop.create_task(logged(self._watch_position(), "pilot: the position subscription", log)),
+        self._tasks = [loop.create_task(logged(coro, f"pilot: the {what} subscription", log)) for coro, what in self._watchers()]
+
+    async def _attached(self, system: Any) -> None:
+        """Called once the autopilot is found, before the subscriptions start (subclasses add plugins)."""
+
+    def _watchers(self) -> list[tuple[Any, str]]:
+        """The telemetry subscriptions: (coroutine, what it is)."""
+        return [
+            (self._watch_mode(), "mode"),
+            (self._watch_armed(), "armed"),
+            (self._watch_in_air(), "in air"),
+            (self._watch_health(), "health"),
+            (self._watch_attitude(), "attitude"),
+            (self._watch_rates(), "rates"),
+            (self._watch_position(), "position"),
         ]
+
+    @property
+    def in_offboard(self) -> bool:
+        """The vehicle is in the mode the service commands it in (PX4's OFFBOARD, ArduCopter's GUIDED)."""
+        return self.flight_mode == self.OFFBOARD_MODE
+
+    def _mode_seen(self, name: str) -> None:
+        if name != self.flight_mode:
+            self.mode_changes.append((self._clock(), name))
+            log.info("%s flight mode: %s", self.AUTOPILOT, name)
+        self.flight_mode = name
 
     async def _watch_mode(self) -> None:
         async for mode in self.telemetry.subscribe_flight_mode():
-            name = getattr(mode, "name", str(mode))
-            if name != self.flight_mode:
-                self.mode_changes.append((self._clock(), name))
-                log.info("PX4 flight mode: %s", name)
-            self.flight_mode = name
+            self._mode_seen(getattr(mode, "name", str(mode)))
 
     async def _watch_armed(self) -> None:
         async for armed in self.telemetry.subscribe_armed():
@@ -159,7 +181,7 @@ class Pilot:
     def latest(self) -> Sample:
         """The newest sample. Raises SitlError before the first."""
         if not self.samples:
-            raise SitlError("pilot: no position telemetry from PX4 yet")
+            raise SitlError(f"pilot: no position telemetry from {self.NAME} yet")
         return self.samples[-1]
 
     def samples_since(self, time_s: float) -> list[Sample]:
@@ -174,7 +196,7 @@ class Pilot:
         deadline = self._clock() + timeout_s
         while not predicate():
             if self._clock() > deadline:
-                raise SitlError(f"PX4: {what} not seen within {timeout_s:g} s (mode {self.flight_mode}, armed {self.armed})")
+                raise SitlError(f"{self.NAME}: {what} not seen within {timeout_s:g} s (mode {self.flight_mode}, armed {self.armed})")
             await asyncio.sleep(poll_s)
         return self._clock()
 
@@ -188,7 +210,7 @@ class Pilot:
         try:
             return await call()
         except (ActionError, ParamError) as err:
-            raise SitlError(f"PX4 refused {what}: {err} (mode {self.flight_mode}, armed {self.armed})") from None
+            raise SitlError(f"{self.NAME} refused {what}: {err} (mode {self.flight_mode}, armed {self.armed})") from None
 
     async def set_params(self, params: dict[str, float | int]) -> None:
         """Set PX4 parameters (ints as INT32, floats as FLOAT) and read each back."""
@@ -200,8 +222,8 @@ class Pilot:
                 await self._do(f"setting {name}", lambda: self.param.set_param_float(name, float(value)))
                 got = await self._do(f"reading {name}", lambda: self.param.get_param_float(name))
             if not math.isclose(float(got), float(value), rel_tol=1e-6, abs_tol=1e-6):
-                raise SitlError(f"PX4 parameter {name}: set {value}, reads back {got}")
-            log.info("PX4 parameter %s = %s", name, value)
+                raise SitlError(f"{self.NAME} parameter {name}: set {value}, reads back {got}")
+            log.info("%s parameter %s = %s", self.NAME, name, value)
 
     async def make_ready(self, timeout_s: float = 60.0) -> None:
         """Bring the vehicle to the ground, disarmed, armable: land it if flying, and leave a mode
@@ -260,10 +282,14 @@ class Pilot:
             await self._do("disarming", self.action.disarm)
             await self.wait_for("disarmed", lambda: not self.armed, 10.0)
 
+    def _plugins(self) -> list[Any]:
+        """Every plugin to destroy on close (subclasses add theirs)."""
+        return [self.action, self.telemetry, self.param]
+
     async def close(self) -> None:
         await cancel_and_wait(self._tasks)
         self._tasks = []
-        for plugin in (self.action, self.telemetry, self.param):
+        for plugin in self._plugins():
             if plugin is not None:
                 plugin.destroy()
         self.action = self.telemetry = self.param = None
