@@ -68,7 +68,7 @@ class HealthReporter:
     """The health part of the service (mixed into :class:`~companion.service.daemon.Service`)."""
 
     def health_message(self) -> dict[str, Any]:
-        """The health message (see the README's field list)."""
+        """The health message (the field list: docs/service.md)."""
         now = self._clock()
         latest = self._latest
         capture = self._capture.status() if self._capture is not None else None
