@@ -31,6 +31,7 @@ def test_one_course_prints_the_verdict_and_draws_the_plot(tmp_path: Path, capsys
         (["sim", "--course", "doorway", "--seed", "-4"], "bad seed -4"),
         (["sim", "--suite", "huge"], "unknown suite 'huge'"),
         (["sim", "--suite", "quick", "--plot", "x.png"], "go with --course"),
+        (["sim", "--suite", "quick", "--kinds", "maze"], "unknown course kind 'maze'"),
         (["sim", "--course", "doorway", "--plot", "/no/such/dir/x.png"], "no such directory"),
         (["sim", "--course", "doorway", "--plot", "plot.txt"], "must be an image"),
         (["sim", "--course", "doorway", "--config", "/no/such.toml"], "cannot read config"),
