@@ -176,3 +176,36 @@ def test_surface_validation() -> None:
     with pytest.raises(ValueError, match="Surface"):
         Box((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), surface="plain")  # type: ignore[arg-type]
     assert not math.isnan(Scene(light_ned_m=(1, 2, -3)).light_ned_m[0])  # type: ignore[index]
+
+
+#: SHA-256 (first 16 hex digits) of the left image, right image and depth of each old course kind
+#: (seed 1, seen from 2 m north, 0.3 m east, 1.5 m up, yawed 0.2 rad), rendered by the code before the
+#: hard surfaces existed (main at 0bfa935) with these OpenCV and NumPy versions: the hard surfaces
+#: must leave every old scene bit for bit as it was (the suite's old figures stay comparable).
+_OLD_SCENE_DIGESTS = {
+    "corridor": "7a330a9ca9a3571f",
+    "doorway": "b1d04c09c2cde18b",
+    "forest": "2941116c0b3ad4ff",
+    "pitch": "7fc2a0535cdb1470",
+    "side": "aeaa9ff657d1a9e8",
+    "deadend": "c060b4f8c5b307d1",
+}
+_DIGEST_VERSIONS = ("5.0.0", "2.4.6")  # cv2.__version__, numpy.__version__
+
+
+@pytest.mark.parametrize("kind", sorted(_OLD_SCENE_DIGESTS))
+def test_old_courses_render_bit_identically(kind: str) -> None:
+    import hashlib
+
+    import cv2
+
+    from companion.sim.courses import make_course
+
+    if (cv2.__version__, np.__version__) != _DIGEST_VERSIONS:
+        pytest.skip(f"digests recorded with OpenCV {_DIGEST_VERSIONS[0]}, NumPy {_DIGEST_VERSIONS[1]}")
+    course = make_course(kind, 1)
+    res = StereoRenderer(GEO, course.scene, seed=1).render(Pose.at(2.0, 0.3, 1.5, yaw_rad=0.2))
+    digest = hashlib.sha256()
+    for a in (res.left_bgr, res.right_bgr, res.depth_m):
+        digest.update(np.ascontiguousarray(a).tobytes())
+    assert digest.hexdigest()[:16] == _OLD_SCENE_DIGESTS[kind]
