@@ -98,6 +98,7 @@ def test_office_is_hard_surfaces_with_a_fence_across_the_line_and_a_door() -> No
         lintel = obstacles[4]
         door_n, door_e = lintel.centre_ned_m[0], lintel.centre_ned_m[1]
         assert field.distance_m(np.array([door_n, door_e, -1.2])) > 0.45
+        assert abs(door_e) <= 0.25  # on the line, as in doorway: the way on is through it
         assert field.distance_m(np.array([door_n, door_e + 2.0, -1.2])) < 0.0 or abs(door_e) > 0.5
         assert office.goal_north_m > door_n + 2.0
 
