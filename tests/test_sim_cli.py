@@ -31,6 +31,7 @@ def test_one_course_prints_the_verdict_and_draws_the_plot(tmp_path: Path, capsys
         (["sim", "--course", "doorway", "--seed", "-4"], "bad seed -4"),
         (["sim", "--suite", "huge"], "unknown suite 'huge'"),
         (["sim", "--suite", "quick", "--plot", "x.png"], "go with --course"),
+        (["sim", "--suite", "quick", "--kinds", "maze"], "unknown course kind 'maze'"),
         (["sim", "--course", "doorway", "--plot", "/no/such/dir/x.png"], "no such directory"),
         (["sim", "--course", "doorway", "--plot", "plot.txt"], "must be an image"),
         (["sim", "--course", "doorway", "--config", "/no/such.toml"], "cannot read config"),
@@ -83,4 +84,4 @@ def test_suite_runner_and_table_in_process() -> None:
 def test_quick_suite_over_two_workers(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["sim", "--suite", "quick", "--workers", "2"]) == 0
     out = capsys.readouterr().out
-    assert "[ 12/12]" in out and "collisions" in out
+    assert "[ 14/14]" in out and "collisions" in out

@@ -8,7 +8,7 @@ import pytest
 from companion.errors import InputError
 from companion.sim.courses import COURSE_KINDS, START_ALTITUDE_M, head_on_course, make_course
 from companion.sim.scoring import ClearanceField, Outcome, is_success
-from companion.sim.suite import SUITES, suite_courses
+from companion.sim.suite import SUITES, select_kinds, suite_courses
 
 
 @pytest.mark.parametrize("kind", COURSE_KINDS)
@@ -74,3 +74,42 @@ def test_success_rule() -> None:
     assert is_success(Outcome.GOAL, False)
     assert is_success(Outcome.HELD, True) and not is_success(Outcome.HELD, False)
     assert not any(is_success(o, True) for o in (Outcome.COLLISION, Outcome.TIMEOUT, Outcome.OUT_OF_BOUNDS))
+
+
+def test_office_is_hard_surfaces_with_a_fence_across_the_line_and_a_door() -> None:
+    for seed in range(9):
+        office = make_course("office", seed)
+        obstacles = office.scene.obstacles
+        assert {"plain", "bars"} <= {ob.surface.kind for ob in obstacles if hasattr(ob, "surface")}
+        assert any(ob.surface.kind == "bars" and ob.surface.see_through for ob in obstacles)  # the fence
+        assert any(ob.surface.kind == "bars" and not ob.surface.see_through for ob in obstacles)  # radiator
+        assert office.scene.light_ned_m is not None
+        field = ClearanceField(office.scene)
+        # Straight ahead at flight altitude the body hits something before the goal (fence, cabinet
+        # or the far wall)...
+        line = [field.distance_m(np.array([n, 0.0, -START_ALTITUDE_M])) for n in np.linspace(0, office.goal_north_m, 400)]
+        assert min(line) < 0.25
+        # ...the fence leaves a gap of at least 1.5 m on one side...
+        fence = next(ob for ob in obstacles if ob.surface.kind == "bars" and ob.surface.see_through)
+        across = np.linspace(-3.0, 3.0, 601)
+        fits = [field.distance_m(np.array([fence.centre_ned_m[0], e, -START_ALTITUDE_M])) > 0.25 for e in across]
+        assert sum(fits) * 0.01 >= 1.5 - 2 * 0.25 - 0.02  # where the body fits: the gap less its width
+        # ...and the door in the far wall is open at flight altitude, 0.5 m either side of its middle.
+        lintel = obstacles[4]
+        door_n, door_e = lintel.centre_ned_m[0], lintel.centre_ned_m[1]
+        assert field.distance_m(np.array([door_n, door_e, -1.2])) > 0.45
+        assert abs(door_e) <= 0.25  # on the line, as in doorway: the way on is through it
+        assert field.distance_m(np.array([door_n, door_e + 2.0, -1.2])) < 0.0 or abs(door_e) > 0.5
+        assert office.goal_north_m > door_n + 2.0
+
+
+def test_suites_fly_nine_and_two_seeds_of_every_kind_and_can_select_kinds() -> None:
+    for name, seeds in (("standard", 9), ("quick", 2)):
+        suite = SUITES[name]
+        for kind in COURSE_KINDS:
+            assert sorted(s for k, s in suite if k == kind) == list(range(seeds))
+    offices = select_kinds(SUITES["standard"], "office")
+    assert offices == tuple(("office", s) for s in range(9))
+    assert {k for k, _ in select_kinds(SUITES["quick"], "office, doorway")} == {"office", "doorway"}
+    with pytest.raises(InputError, match="unknown course kind 'maze'"):
+        select_kinds(SUITES["quick"], "maze")

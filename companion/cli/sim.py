@@ -28,9 +28,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     what.add_argument(
         "--course",
         metavar="KIND",
-        help="course kind: corridor, doorway, forest, pitch, side, deadend",
+        help="course kind: corridor, doorway, forest, pitch, side, deadend, office",
     )
-    what.add_argument("--suite", metavar="NAME", help="a suite of courses: standard (54 flights) or quick (12)")
+    what.add_argument("--suite", metavar="NAME", help="a suite of courses: standard (63 flights) or quick (14)")
+    p.add_argument(
+        "--kinds",
+        metavar="K1,K2",
+        help="--suite: fly only these course kinds of the suite (e.g. office: its 9 standard seeds)",
+    )
     p.add_argument("--seed", type=int, default=0, help="course seed, 0..2147483647 (default 0)")
     p.add_argument("--config", type=Path, help="TOML config (default: built-in defaults)")
     p.add_argument("--plot", type=Path, metavar="OUT.png", help="--course: write a top-down plot of the flight")
@@ -49,6 +54,8 @@ def run(args: argparse.Namespace) -> int:
         return _run_course(args, cfg)
     if args.plot is not None or args.side_view or args.realtime or args.view:
         raise InputError("--plot, --side-view, --realtime and --view go with --course, not --suite")
+    if args.kinds is not None and not args.kinds.strip():
+        raise InputError("--kinds needs at least one course kind")
     return _run_suite(args, cfg)
 
 
@@ -141,11 +148,13 @@ def write_plot(result: Any, path: Path, side_view: bool = False) -> None:
 
 def _run_suite(args: argparse.Namespace, cfg: Any) -> int:
     from companion.bench import machine_description
-    from companion.sim.suite import run_suite, suite_courses, suite_table
+    from companion.sim.suite import run_suite, select_kinds, suite_courses, suite_table
 
     if args.workers < 1:
         raise InputError(f"--workers must be >= 1, got {args.workers}")
     courses = suite_courses(args.suite)
+    if args.kinds is not None:
+        courses = select_kinds(courses, args.kinds)
     print(f"suite {args.suite}: {len(courses)} flights on {args.workers} worker(s); {machine_description()}")
 
     def progress(done: int, total: int, result: Any) -> None:

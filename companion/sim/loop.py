@@ -104,6 +104,8 @@ class FrameLog:
     Attributes:
         t_s: float64 ``(M,)`` capture time, seconds.
         position_ned_m: float64 ``(M, 3)`` vehicle centre at capture, NED metres.
+        attitude_rad: float64 ``(M, 3)`` roll, pitch, yaw at capture, radians (with the position: the
+            pose the frame was seen from).
         region_depths_m: float64 ``(M, 9)`` refined region depths, metres, NaN unknown.
         kind: int8 ``(M,)`` :class:`LogKind` (CLEAR, AVOID, BRAKE) of the frame's decision.
         yaw, pitch: float64 ``(M,)`` the decision's outputs.
@@ -112,6 +114,7 @@ class FrameLog:
 
     t_s: np.ndarray
     position_ned_m: np.ndarray
+    attitude_rad: np.ndarray
     region_depths_m: np.ndarray
     kind: np.ndarray
     yaw: np.ndarray
@@ -300,6 +303,7 @@ def fly(
     rows = _Rows()
     f_t: list[float] = []
     f_pos: list[np.ndarray] = []
+    f_att: list[tuple[float, float, float]] = []
     f_depth: list[np.ndarray] = []
     f_kind: list[int] = []
     f_yaw: list[float] = []
@@ -360,6 +364,7 @@ def fly(
                 pending.append((frame.timestamp_s + sim.processing_latency_s, res, vehicle.pose()))
                 f_t.append(frame.timestamp_s)
                 f_pos.append(vehicle.model.position_ned_m.copy())
+                f_att.append((vehicle.model.roll_rad, vehicle.model.pitch_rad, vehicle.model.yaw_rad))
                 f_depth.append(np.asarray(res.refined.depth_m, dtype=np.float64).copy())
                 f_kind.append(int(_KIND_OF[res.decision.kind]))
                 f_yaw.append(res.decision.yaw)
@@ -459,6 +464,7 @@ def fly(
     frame_log = FrameLog(
         t_s=np.asarray(f_t, dtype=np.float64),
         position_ned_m=np.asarray(f_pos, dtype=np.float64).reshape(-1, 3),
+        attitude_rad=np.asarray(f_att, dtype=np.float64).reshape(-1, 3),
         region_depths_m=np.asarray(f_depth, dtype=np.float64).reshape(-1, 9),
         kind=np.asarray(f_kind, dtype=np.int8),
         yaw=np.asarray(f_yaw, dtype=np.float64),

@@ -23,7 +23,8 @@ from companion.sim.courses import COURSE_KINDS
 from companion.sim.loop import FlightResult
 from companion.sim.scoring import Outcome
 
-#: Named suites: ``standard`` = 9 seeds of each of the 6 kinds (54 flights); ``quick`` = 2 of each.
+#: Named suites: ``standard`` = 9 seeds of each kind of :data:`COURSE_KINDS` (63 flights with
+#: ``office``); ``quick`` = 2 of each.
 SUITES: dict[str, tuple[tuple[str, int], ...]] = {
     "standard": tuple((kind, seed) for seed in range(9) for kind in COURSE_KINDS),
     "quick": tuple((kind, seed) for seed in range(2) for kind in COURSE_KINDS),
@@ -35,6 +36,22 @@ def suite_courses(name: str) -> tuple[tuple[str, int], ...]:
     if name not in SUITES:
         raise InputError(f"unknown suite {name!r}; suites are {', '.join(SUITES)}")
     return SUITES[name]
+
+
+def select_kinds(courses: Sequence[tuple[str, int]], kinds: str) -> tuple[tuple[str, int], ...]:
+    """The courses of ``courses`` whose kind is one of ``kinds`` (comma-separated names).
+
+    Raises:
+        InputError: a name that is not a course kind, or no course left.
+    """
+    wanted = [k.strip() for k in kinds.split(",") if k.strip()]
+    unknown = [k for k in wanted if k not in COURSE_KINDS]
+    if unknown:
+        raise InputError(f"unknown course kind {unknown[0]!r}; kinds are {', '.join(COURSE_KINDS)}")
+    picked = tuple(c for c in courses if c[0] in wanted)
+    if not picked:
+        raise InputError(f"the suite has no course of kind {', '.join(wanted)}")
+    return picked
 
 
 def single_thread_config(cfg: CompanionConfig) -> CompanionConfig:

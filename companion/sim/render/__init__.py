@@ -1,5 +1,6 @@
-"""Synthetic stereo renderer: textured boxes, pillars, ground and backdrop; exact rectified stereo
-pairs with the left eye's ground-truth depth. Pure core (NumPy/OpenCV only). ``target``: flat boards
+"""Synthetic stereo renderer: textured boxes, pillars, ground and backdrop, and the hard surfaces
+(plain walls, bars, glare: :class:`Surface`); exact rectified stereo pairs with the left eye's
+ground-truth depth. Pure core (NumPy/OpenCV only). ``target``: flat boards
 (chessboard, ChArUco, any texture) seen by raw, distorted cameras, for calibration.
 
 Public API::
@@ -17,12 +18,14 @@ from companion.sim.render.renderer import (
     bench_render,
     bench_scene,
 )
-from companion.sim.render.scene import Box, Obstacle, Pillar, Scene, corridor_scene
+from companion.sim.render.scene import TEXTURED, Box, Obstacle, Pillar, Scene, Surface, corridor_scene
 from companion.sim.render.target import PlanarTarget, TargetCamera, chessboard_target
-from companion.sim.render.texture import Material, TextureBank
+from companion.sim.render.texture import BarPattern, Material, TextureBank
 
 __all__ = [
     "CAMERA_TO_BODY",
+    "TEXTURED",
+    "BarPattern",
     "Box",
     "Material",
     "Obstacle",
@@ -33,6 +36,7 @@ __all__ = [
     "RenderResult",
     "Scene",
     "StereoRenderer",
+    "Surface",
     "TargetCamera",
     "TextureBank",
     "bench_render",

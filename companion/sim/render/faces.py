@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from companion.sim.render.scene import Box, Pillar, Scene
+from companion.sim.render.scene import TEXTURED, Box, Pillar, Scene, Surface
 from companion.sim.render.texture import Material
 
 
@@ -24,6 +24,9 @@ class FaceArrays:
         origin, axis_s, axis_t: float64 ``(Nf, 3)``: texture frame; texture coordinates (metres) of a
             point ``p`` on the face are ``axis_s . (p - origin)`` and ``axis_t . (p - origin)``.
         material: int64 ``(Nf,)``, :class:`Material` values.
+        surface: int64 ``(Nf,)``, index into ``surfaces`` of the face's :class:`Surface` (its bar
+            pattern, see-through, gloss).
+        surfaces: the distinct surfaces, ``surfaces[0]`` the default :data:`TEXTURED`.
     """
 
     verts: np.ndarray
@@ -35,6 +38,8 @@ class FaceArrays:
     axis_s: np.ndarray
     axis_t: np.ndarray
     material: np.ndarray
+    surface: np.ndarray
+    surfaces: tuple[Surface, ...]
 
     @property
     def n_faces(self) -> int:
@@ -50,6 +55,10 @@ class _Builder:
         self.axis_s: list[np.ndarray] = []
         self.axis_t: list[np.ndarray] = []
         self.material: list[int] = []
+        self.surface: list[int] = []
+        self.surfaces: list[Surface] = [TEXTURED]
+        self._surface_index: dict[Surface, int] = {TEXTURED: 0}
+        self._current_surface = 0
 
     def polygon(self, verts: np.ndarray, normal: np.ndarray, axis_s: np.ndarray, material: int) -> None:
         verts = np.asarray(verts, dtype=np.float64)
@@ -62,6 +71,7 @@ class _Builder:
         self.axis_s.append(axis_s)
         self.axis_t.append(np.cross(normal, axis_s))
         self.material.append(int(material))
+        self.surface.append(self._current_surface)
 
     def quad(
         self, centre: np.ndarray, normal: np.ndarray, axis_s: np.ndarray, axis_t: np.ndarray,
@@ -75,13 +85,21 @@ class _Builder:
         c = np.asarray(box.centre_ned_m)
         ax = box.axes()
         half = 0.5 * np.asarray(box.size_m)
+        surface = box.surface
+        index = self._surface_index.setdefault(surface, len(self.surfaces))
+        if index == len(self.surfaces):
+            self.surfaces.append(surface)
+        self._current_surface = index
+        # Side faces have a horizontal s axis (bars vary along s: vertical bars); top and bottom of
+        # a bar box are plain (a rail's top).
+        side = {"textured": Material.OBSTACLE, "plain": Material.PLAIN, "bars": Material.BARS}[surface.kind]
         for k in range(3):
             s_axis, t_axis = (1, 2) if k == 0 else ((0, 2) if k == 1 else (0, 1))
+            material = side if k < 2 or surface.kind != "bars" else Material.PLAIN
             for sign in (1.0, -1.0):
                 n = sign * ax[k]
-                self.quad(
-                    c + half[k] * n, n, ax[s_axis], ax[t_axis], half[s_axis], half[t_axis], Material.OBSTACLE
-                )
+                self.quad(c + half[k] * n, n, ax[s_axis], ax[t_axis], half[s_axis], half[t_axis], material)
+        self._current_surface = 0
 
     def pillar(self, p: Pillar) -> None:
         c = np.asarray(p.centre_ned_m)
@@ -132,9 +150,11 @@ class _Builder:
             axis_s=np.asarray(self.axis_s),
             axis_t=np.asarray(self.axis_t),
             material=np.asarray(self.material, dtype=np.int64),
+            surface=np.asarray(self.surface, dtype=np.int64),
+            surfaces=tuple(self.surfaces),
         )
         for a in (arrays.verts, arrays.starts, arrays.counts, arrays.normal, arrays.offset,
-                  arrays.origin, arrays.axis_s, arrays.axis_t, arrays.material):
+                  arrays.origin, arrays.axis_s, arrays.axis_t, arrays.material, arrays.surface):
             a.setflags(write=False)
         return arrays
 

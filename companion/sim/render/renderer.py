@@ -15,6 +15,12 @@ How a frame is drawn (both eyes share one clipping pass; each eye has its own z-
    sample the texture through the exact pixel -> texel homography (``cv2.warpPerspective``,
    bilinear, wrap) only inside the visible part.
 
+Hard surfaces (:class:`~companion.sim.render.scene.Surface`): a see-through bar face samples its
+texture before the z-test and leaves its holes (texels under ``BARS_ALPHA_THRESHOLD``) to whatever is
+behind; a glossy face adds the scene light's specular highlight, a Gaussian blob centred, in each
+eye, on the projection of the light's mirror image in the face's plane (so the highlight moves with
+the eye and has the disparity of that virtual image, not the surface's).
+
 Pixel centres are at integer coordinates (:class:`~companion.core.geometry.StereoGeometry`), both
 for the depth buffer and for the texture lookup, so a point seen by both eyes is sampled at the
 same texture coordinate: the images are exact projections of one continuous textured surface, and
@@ -37,7 +43,7 @@ from companion.core.geometry import StereoGeometry
 from companion.sim.render.faces import FaceArrays, scene_faces
 from companion.core.pose import CAMERA_TO_BODY, Pose, _finite3
 from companion.sim.render.scene import Scene, corridor_scene
-from companion.sim.render.texture import Material, TextureBank
+from companion.sim.render.texture import BARS_ALPHA_THRESHOLD, BarPattern, Material, TextureBank
 
 #: Extra pixels around the image inside the clip frustum: keeps clipped edges off the image.
 _GUARD_PX = 4.0
@@ -168,6 +174,28 @@ class StereoRenderer:
         rng = np.random.default_rng([self.seed, 0xFACE])
         # Random per-face texture offsets decorrelate faces that share a texture image.
         self._tex_offset = rng.uniform(0.0, self._textures.size, (self._faces.n_faces, 2))
+        fc = self._faces
+        bars = fc.material == int(Material.BARS)
+        # Bars start at each face's s origin, so a panel's front and back bars line up.
+        self._tex_offset[bars, 0] = 0.0
+        size = self._textures.size
+        # Per face: its texture's pattern key (bars: the bar pattern; plain: the grain), whether its
+        # texture has holes (see-through bars).
+        bar_keys = [
+            BarPattern.from_metres(sf.bar_period_m, sf.bar_width_m, sf.see_through, size, self.texels_per_m)
+            if sf.kind == "bars" else None
+            for sf in fc.surfaces
+        ]
+        plain_keys = [(round(10.0 * sf.grain_grey),) for sf in fc.surfaces]
+        self._face_pattern: list[tuple[int, ...] | None] = []
+        self._face_alpha: list[bool] = []
+        for i, mat in zip(fc.surface.tolist(), fc.material.tolist()):
+            key = bar_keys[i] if mat == Material.BARS else (plain_keys[i] if mat == Material.PLAIN else None)
+            self._face_pattern.append(key)
+            self._face_alpha.append(mat == Material.BARS and bool(key[2]))
+        light = scene.light_ned_m
+        gloss = np.array([sf.gloss for sf in fc.surfaces])[fc.surface]
+        self._glossy = (gloss > 0.0) if light is not None else np.zeros(fc.n_faces, bool)
 
         g = geometry
         w, h, f = g.width_px, g.height_px, g.focal_px
@@ -264,9 +292,10 @@ class StereoRenderer:
             span = 2.0 * sc.backdrop_half_size_m
             max_depth_m = math.sqrt(2.0 * span * span + (sc.floor_z_m - sc.top_z_m) ** 2)
         top = self._level(float(max_depth_m))
-        for material in Material:
+        used = sorted(set(zip(self._faces.material.tolist(), self._face_pattern)), key=repr)
+        for material, pattern in used:
             for level in range(top + 1):
-                self._textures.get(material, level)
+                self._textures.get(material, level, pattern)
 
     def eye_positions_ned_m(self, pose: Pose) -> tuple[np.ndarray, np.ndarray]:
         """Optical centres of the left and right eye, float64 ``(3,)`` each, NED metres."""
@@ -387,6 +416,9 @@ class StereoRenderer:
         starts = fc.starts[idx].tolist()
         counts = fc.counts[idx].tolist()
         materials = fc.material[idx].tolist()
+        patterns = [self._face_pattern[i] for i in idx.tolist()]
+        alphas = [self._face_alpha[i] for i in idx.tolist()]
+        glares = self._glares(idx, c_l, c_r, r_cn)
 
         # --- per face: clip, split by LOD, draw in each eye
         cx, cy, base = g.cx_px, g.cy_px, g.baseline_m
@@ -403,24 +435,62 @@ class StereoRenderer:
                     continue
             zs = [q[2] for q in poly]
             s_off, t_off = tex_offset[j]
+            glare = glares.get(j)
             for piece, level in self._lod_pieces(poly, min(zs), max(zs)):
                 tpm = self.texels_per_m / (1 << level)
-                tex = self._textures.get(materials[j], level)
+                tex = self._textures.get(materials[j], level, patterns[j])
                 # Project: v is the same in both eyes; the right eye's u is f*B/z smaller.
                 fz = [f / q[2] for q in piece]
                 us = [q[0] * k + cx for q, k in zip(piece, fz)]
                 vs = [q[1] * k + cy for q, k in zip(piece, fz)]
                 if vis_l[j]:
-                    self._draw(us, vs, 0, eye_params[0][j], tex, tpm, s_off, t_off)
+                    self._draw(us, vs, 0, eye_params[0][j], tex, tpm, s_off, t_off, alphas[j],
+                               None if glare is None else glare[0])
                 if vis_r[j]:
                     us_r = [uu - fb / q[2] for uu, q in zip(us, piece)]
-                    self._draw(us_r, vs, 1, eye_params[1][j], tex, tpm, s_off, t_off)
+                    self._draw(us_r, vs, 1, eye_params[1][j], tex, tpm, s_off, t_off, alphas[j],
+                               None if glare is None else glare[1])
+
+    def _glares(
+        self, idx: np.ndarray, c_l: np.ndarray, c_r: np.ndarray, r_cn: np.ndarray
+    ) -> dict[int, tuple[tuple[float, float, float, float] | None, tuple[float, float, float, float] | None]]:
+        """The specular highlight of each glossy face among the drawn ``idx``: by position in
+        ``idx``, per eye ``(u_px, v_px, sigma_px, peak_grey)`` or None where the light's mirror
+        image lies behind that eye (or the light behind the face)."""
+        out: dict[int, tuple] = {}
+        light = self.scene.light_ned_m
+        if light is None or not self._glossy.any():
+            return out
+        fc = self._faces
+        g = self.geometry
+        lp = np.asarray(light)
+        for j in np.flatnonzero(self._glossy[idx]).tolist():
+            i = int(idx[j])
+            n, off = fc.normal[i], float(fc.offset[i])
+            h = float(n @ lp) - off
+            if h <= 0.0:  # the light is behind the face: no highlight
+                continue
+            sf = fc.surfaces[int(fc.surface[i])]
+            mirror = lp - 2.0 * h * n
+            sigma_px = g.focal_px * math.tan(math.radians(sf.gloss_spread_deg))
+            per_eye = []
+            for c_eye in (c_l, c_r):
+                x, y, z = ((mirror - c_eye) @ r_cn.T).tolist()
+                per_eye.append(
+                    (g.focal_px * x / z + g.cx_px, g.focal_px * y / z + g.cy_px, sigma_px, sf.gloss) if z > 1e-6 else None
+                )
+            out[j] = (per_eye[0], per_eye[1])
+        return out
 
     def _draw(
         self, us: list[float], vs: list[float], eye: int, p: list[float],
         tex: np.ndarray, tpm: float, s0: float, t0: float,
+        alpha: bool = False, glare: tuple[float, float, float, float] | None = None,
     ) -> None:
-        """Draw one clipped convex piece, given by its vertices' pixel coordinates, into one eye."""
+        """Draw one clipped convex piece, given by its vertices' pixel coordinates, into one eye.
+
+        ``alpha``: texels under ``BARS_ALPHA_THRESHOLD`` are holes (drawn neither into the image nor
+        the depth buffer); ``glare``: ``(u_px, v_px, sigma_px, peak_grey)`` of a highlight to add."""
         u0 = max(0, math.floor(min(us)))
         u1 = min(self.geometry.width_px, math.ceil(max(us)) + 1)
         if u0 >= u1:
@@ -450,7 +520,6 @@ class StereoRenderer:
         rx, ry, rw, rh = cv2.boundingRect(vis)
         if rw == 0:
             return
-        cv2.copyTo(iz, vis, dst=zbuf)
 
         # Pixel (x, y) of the visible sub-box -> texel: rows of M are (s, t, w) homogeneous.
         ox, oy = u0 + rx, v0 + ry
@@ -527,7 +596,29 @@ class StereoRenderer:
             )
             dst = sub[ty : ty + th, tx : tx + tw]
             cv2.warpPerspective(src, m, (tw, th), dst=dst, flags=_WARP_FLAGS, borderMode=cv2.BORDER_WRAP)
-        cv2.copyTo(sub, vis[ry : ry + rh, rx : rx + rw], dst=self._grey[eye][oy : oy + rh, ox : ox + rw])
+        vis_sub = vis[ry : ry + rh, rx : rx + rw]
+        if alpha:  # holes of a see-through face: leave them to what lies behind
+            vis_sub[sub < BARS_ALPHA_THRESHOLD] = 0
+        if glare is not None:
+            self._add_glare(sub, ox, oy, glare)
+        cv2.copyTo(iz, vis, dst=zbuf)
+        cv2.copyTo(sub, vis_sub, dst=self._grey[eye][oy : oy + rh, ox : ox + rw])
+
+    @staticmethod
+    def _add_glare(sub: np.ndarray, ox: int, oy: int, glare: tuple[float, float, float, float]) -> None:
+        """Add a Gaussian highlight (saturating) to ``sub``, the uint8 block at image ``(ox, oy)``."""
+        u, v, sigma, peak = glare
+        rh, rw = sub.shape
+        reach = 3.0 * sigma
+        x0, x1 = max(0, math.floor(u - reach) - ox), min(rw, math.ceil(u + reach) + 1 - ox)
+        y0, y1 = max(0, math.floor(v - reach) - oy), min(rh, math.ceil(v + reach) + 1 - oy)
+        if x0 >= x1 or y0 >= y1:
+            return
+        gx = np.exp(-0.5 * ((np.arange(x0, x1, dtype=np.float32) + (ox - u)) / sigma) ** 2)
+        gy = np.exp(-0.5 * ((np.arange(y0, y1, dtype=np.float32) + (oy - v)) / sigma) ** 2) * np.float32(peak)
+        blob = np.rint(gy[:, None] * gx[None, :]).astype(np.uint8)
+        region = sub[y0:y1, x0:x1]
+        cv2.add(region, blob, dst=region)
 
 
 def bench_scene() -> tuple[StereoGeometry, Scene]:

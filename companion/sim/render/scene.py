@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import Union
+from typing import Literal, Union
 
 import numpy as np
 
@@ -27,6 +27,72 @@ def _as_points(points_ned_m: np.ndarray | Iterable[float]) -> tuple[np.ndarray, 
     return pts, single
 
 
+SurfaceKind = Literal["textured", "plain", "bars"]
+
+
+@dataclass(frozen=True)
+class Surface:
+    """How a box's faces look (the hard surfaces real stereo fails on, and the rich default).
+
+    * ``textured``: the rich multi-scale texture every surface had before (the default);
+    * ``plain``: a painted wall: smooth low-contrast shading (5 grey levels RMS over tens of
+      centimetres) and a faint grain of ``grain_grey`` RMS at the texel scale; against the camera's
+      sensor noise (2 grey levels per eye) a block matcher finds little to lock onto at 1.5 to 2, much
+      more at 3, but it is never a constant that no matcher could match;
+    * ``bars``: vertical bars of a regular period: a fence, a crib, a radiator's fins. See-through
+      (``see_through``): the gaps show what is behind (a fence; the bars have the box's thickness and
+      no sides of their own); opaque: the gaps are a darker recess (a radiator). A period shorter than
+      the disparity search range lets a block matcher lock onto the wrong repeat.
+
+    ``gloss`` > 0 adds a specular highlight of the scene's light (:attr:`Scene.light_ned_m`) where
+    its mirror image is seen in the face: a Gaussian blob of peak ``gloss`` grey levels and standard
+    deviation ``gloss_spread_deg`` (saturating), placed per eye at the light's mirror image, so it has
+    the disparity of that virtual image behind the surface, not the surface's (glare reads far).
+
+    Attributes:
+        kind: ``textured``, ``plain`` or ``bars``.
+        grain_grey: plain (and a bar box's top and bottom): RMS of the fine grain, grey levels
+            (rounded to 0.1; 0 to 20).
+        bar_period_m: bars: centre-to-centre spacing, metres (the renderer snaps it so that a whole
+            number of periods fills its texture tile; within 2 % for periods of 4 to 20 cm).
+        bar_width_m: bars: width of one bar, metres (0 < width < period).
+        see_through: bars: the gaps are holes (a fence) rather than a dark recess (a radiator).
+        gloss: peak grey levels of the specular highlight (0 = matte).
+        gloss_spread_deg: angular standard deviation of the highlight, degrees (> 0).
+    """
+
+    kind: SurfaceKind = "textured"
+    grain_grey: float = 2.0
+    bar_period_m: float = 0.1
+    bar_width_m: float = 0.025
+    see_through: bool = True
+    gloss: float = 0.0
+    gloss_spread_deg: float = 4.0
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("textured", "plain", "bars"):
+            raise ValueError(f"Surface.kind must be textured, plain or bars, got {self.kind!r}")
+        period, width = float(self.bar_period_m), float(self.bar_width_m)
+        if not (0.0 < width < period <= 2.0 and math.isfinite(period)):
+            raise ValueError(f"Surface bars need 0 < bar_width_m < bar_period_m <= 2, got {width}, {period}")
+        if not (0.0 <= self.gloss <= 255.0 and 0.0 < self.gloss_spread_deg <= 45.0):
+            raise ValueError(
+                f"Surface.gloss must be in [0, 255] and gloss_spread_deg in (0, 45], got {self.gloss}, "
+                f"{self.gloss_spread_deg}"
+            )
+        if not 0.0 <= self.grain_grey <= 20.0:
+            raise ValueError(f"Surface.grain_grey must be in [0, 20], got {self.grain_grey}")
+        object.__setattr__(self, "grain_grey", float(self.grain_grey))
+        object.__setattr__(self, "bar_period_m", period)
+        object.__setattr__(self, "bar_width_m", width)
+        object.__setattr__(self, "gloss", float(self.gloss))
+        object.__setattr__(self, "gloss_spread_deg", float(self.gloss_spread_deg))
+
+
+#: The default surface: rich texture, matte.
+TEXTURED = Surface()
+
+
 @dataclass(frozen=True)
 class Box:
     """An oriented box: yawed about the vertical axis only.
@@ -36,11 +102,16 @@ class Box:
         size_m: (length, width, height) metres: extent along the box's own x (north when yaw 0),
             its own y (east when yaw 0), and z (vertical). All > 0.
         yaw_rad: rotation about +z (down), positive clockwise seen from above, like vehicle yaw.
+        surface: how its faces look (:class:`Surface`; rendering only: the geometry, and so
+            collisions and clearance, is the solid box whatever it shows). Bars run vertically on
+            the four side faces, spaced along the box's own y on the x faces: a fence panel is a
+            thin box (x thin, y long).
     """
 
     centre_ned_m: tuple[float, float, float]
     size_m: tuple[float, float, float]
     yaw_rad: float = 0.0
+    surface: Surface = TEXTURED
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "centre_ned_m", _finite3("Box.centre_ned_m", self.centre_ned_m))
@@ -49,13 +120,20 @@ class Box:
             raise ValueError(f"Box.size_m must be > 0, got {size}")
         object.__setattr__(self, "size_m", size)
         object.__setattr__(self, "yaw_rad", float(self.yaw_rad))
+        if not isinstance(self.surface, Surface):
+            raise ValueError(f"Box.surface must be a Surface, got {type(self.surface).__name__}")
 
     @classmethod
     def on_ground(
-        cls, north_m: float, east_m: float, size_m: tuple[float, float, float], yaw_rad: float = 0.0
+        cls,
+        north_m: float,
+        east_m: float,
+        size_m: tuple[float, float, float],
+        yaw_rad: float = 0.0,
+        surface: Surface = TEXTURED,
     ) -> Box:
         """A box standing on the ground (its bottom face at altitude 0)."""
-        return cls((north_m, east_m, -0.5 * float(size_m[2])), size_m, yaw_rad)
+        return cls((north_m, east_m, -0.5 * float(size_m[2])), size_m, yaw_rad, surface)
 
     def axes(self) -> np.ndarray:
         """Box axes as rows, float64 ``(3, 3)``: its x, y, z unit vectors in NED."""
@@ -151,6 +229,8 @@ class Scene:
         backdrop_centre_ne_m: (north, east) of the world box centre, metres.
         backdrop_half_size_m: half the horizontal side of the world box, metres.
         sky_altitude_m: altitude of the world box's top when there is no ceiling, metres.
+        light_ned_m: a small bright light (a lamp, a window's sun patch), NED metres, whose
+            specular highlight glossy surfaces show (:class:`Surface`), or None.
     """
 
     obstacles: tuple[Obstacle, ...] = ()
@@ -159,6 +239,7 @@ class Scene:
     backdrop_centre_ne_m: tuple[float, float] = (0.0, 0.0)
     backdrop_half_size_m: float = 100.0
     sky_altitude_m: float = 60.0
+    light_ned_m: tuple[float, float, float] | None = None
 
     def __post_init__(self) -> None:
         obstacles = tuple(self.obstacles)
@@ -177,6 +258,8 @@ class Scene:
         if len(ne) != 2:
             raise ValueError(f"Scene.backdrop_centre_ne_m must be (north, east), got {ne}")
         object.__setattr__(self, "backdrop_centre_ne_m", ne)
+        if self.light_ned_m is not None:
+            object.__setattr__(self, "light_ned_m", _finite3("Scene.light_ned_m", self.light_ned_m))
 
     @property
     def top_z_m(self) -> float:
@@ -251,4 +334,4 @@ def corridor_scene(
     )
 
 
-__all__ = ["Box", "Obstacle", "Pillar", "Scene", "corridor_scene"]
+__all__ = ["TEXTURED", "Box", "Obstacle", "Pillar", "Scene", "Surface", "SurfaceKind", "corridor_scene"]

@@ -1,0 +1,212 @@
+#!/usr/bin/env python3
+"""Issue 15 item 5: what the hard surfaces do to the obstacle memory, per backend.
+
+Flies courses of a suite closed-loop (as ``companion sim --suite`` does: same configs, same verdicts)
+and checks every near point the memory is given (``FrameResult.near_points_cam_m``, placed in NED
+from the pose the frame was seen from) against the ground truth: a point is **false** when no
+surface (obstacle or ground) lies within ``0.1 m + 10 %`` of its range (about one pixel of disparity
+error at 2.5 m, the memory's farthest point). Prints the suite table and, per course kind: points
+per frame, false points per frame, the false share, and the share of frames with a false point.
+
+With ``--frames``, instead: single frames of each kind's courses seen from fixed poses on the
+course line (the simulated camera's noise and eye gain mismatch, no flight), scored like ``companion
+eval`` against the renderer's depth: density and bad-2 over the pixels, and per region the classes
+(near / far / unknown) from the output and from the ground truth: a **phantom** is a region the output
+calls near that the ground truth calls far; **unknown** one the output leaves unknown (which the
+controller treats as near) that the ground truth knows.
+
+Usage::
+
+    python tools/hard_surface_study.py --config C.toml [--suite standard] [--kinds office] [--workers 2]
+    python tools/hard_surface_study.py --frames [--backends opencv-bm,reference] [--kinds office,doorway]
+
+Figures of 2026-11-23 are in docs/history.md ("Hard surfaces").
+"""
+
+from __future__ import annotations
+
+import argparse
+import multiprocessing as mp
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from companion.config import load_config  # noqa: E402
+from companion.sim.suite import select_kinds, single_thread_config, suite_courses, suite_table  # noqa: E402
+
+#: A point farther than this plus ``_TOL_FRACTION`` of its range from every surface is false, metres.
+_TOL_M = 0.1
+_TOL_FRACTION = 0.1
+
+
+def _fly(args: tuple[str, int, dict]) -> tuple[object, dict[str, float]]:
+    kind, seed, cfg_data = args
+    import dataclasses
+
+    from companion.config import parse_config
+    from companion.core.memory import camera_points_to_ned
+    from companion.sim.courses import make_course
+    from companion.sim.loop import fly
+    from companion.sim.render import Pose
+
+    cfg = parse_config(cfg_data, source="study")
+    course = make_course(kind, seed)
+    points: list[np.ndarray] = []
+
+    def on_frame(frame: object, res: object) -> None:
+        pts = getattr(res, "near_points_cam_m", None)
+        points.append(np.zeros((0, 3)) if pts is None else np.asarray(pts, dtype=np.float64).reshape(-1, 3))
+
+    result = fly(course, cfg, on_frame=on_frame)
+    log = result.frame_log
+    assert log is not None and len(points) == log.t_s.size
+    n_pts = n_false = frames_false = 0
+    for i, pts in enumerate(points):
+        if pts.shape[0] == 0:
+            continue
+        roll, pitch, yaw = log.attitude_rad[i]
+        pose = Pose(tuple(log.position_ned_m[i]), float(yaw), float(pitch), float(roll))
+        ned = camera_points_to_ned(pts, pose)
+        rng_m = np.linalg.norm(pts, axis=1)
+        dist = np.asarray(course.scene.distance_to_obstacles_m(ned, include_ground=True)).reshape(-1)
+        false = dist > _TOL_M + _TOL_FRACTION * rng_m
+        n_pts += pts.shape[0]
+        n_false += int(false.sum())
+        frames_false += bool(false.any())
+    stats = {"frames": float(log.t_s.size), "points": float(n_pts), "false": float(n_false),
+             "frames_false": float(frames_false)}
+    return dataclasses.replace(result, log=None, frame_log=None), stats
+
+
+def _frame_poses(kind: str, seed: int) -> list[tuple[float, float]]:
+    """(north, east) metres of the study's viewpoints on a course: on the line, 1.5 m up, facing north.
+    The office: the start, 2.5 and 1.2 m before the fence, in the fence's gap 1 m past it, and 3 m
+    and 1.5 m before the far wall; other kinds: every 1.5 m from the start to 4.5 m."""
+    from companion.sim.courses import make_course
+
+    course = make_course(kind, seed)
+    if kind != "office":
+        return [(n, 0.0) for n in (0.0, 1.5, 3.0, 4.5)]
+    obs = course.scene.obstacles
+    fence = next(ob for ob in obs if getattr(ob, "surface", None) is not None and ob.surface.kind == "bars"
+                 and ob.surface.see_through)
+    fence_n, fence_e, span = fence.centre_ned_m[0], fence.centre_ned_m[1], fence.size_m[1]
+    wall_n = obs[2].centre_ned_m[0] - 0.5 * obs[2].size_m[0]
+    # The fence's free end is the edge nearer the line; its gap is on the other side of the line.
+    free_e = fence_e - np.sign(fence_e) * 0.5 * span
+    gap_e = free_e - np.sign(fence_e) * 0.7
+    return [(0.0, 0.0), (fence_n - 2.5, 0.0), (fence_n - 1.2, 0.0), (fence_n + 1.0, gap_e),
+            (wall_n - 3.0, gap_e), (wall_n - 1.5, gap_e)]
+
+
+def _frames(args: tuple[str, int, dict, list[str]]) -> list[dict[str, object]]:
+    kind, seed, cfg_data, backends = args
+    from companion.backends import make_estimator
+    from companion.config import apply_patch, parse_config
+    from companion.core.evaluation import GroundTruthPair, disparity_metrics, region_report
+    from companion.sim.camera import make_texture_bank
+    from companion.sim.courses import make_course
+    from companion.sim.loop import simulator_config
+    from companion.sim.render import Photometry, Pose, StereoRenderer
+
+    cfg = simulator_config(parse_config(cfg_data, source="study"))
+    sim = cfg.sim
+    w, h = sim.eye_width_px, sim.eye_height_px
+    course = make_course(kind, seed)
+    estimators = {b: make_estimator(apply_patch(cfg, {"stereo": {"backend": b}}), w, h) for b in backends}
+    geo = next(iter(estimators.values())).geometry
+    renderer = StereoRenderer(geo, course.scene, seed=seed, textures=make_texture_bank())
+    rng = np.random.default_rng([seed, 0x57D])
+    rows = []
+    for i, (north, east) in enumerate(_frame_poses(kind, seed)):
+        m = sim.eye_gain_mismatch * float(rng.uniform(-1.0, 1.0))
+        res = renderer.render(Pose.at(north, east, 1.5), left=Photometry(1.0 + 0.5 * m, sim.noise_std_grey),
+                              right=Photometry(1.0 - 0.5 * m, sim.noise_std_grey), rng=rng)
+        gt = (geo.focal_baseline_px_m / res.depth_m).astype(np.float32)
+        pair = GroundTruthPair(res.left_bgr[:, :, 0], res.right_bgr[:, :, 0], gt, geo.focal_px, geo.baseline_m,
+                               0.0, geo.cx_px, geo.cy_px, f"{kind}-{seed} view {i}")
+        frame = np.ascontiguousarray(np.hstack([res.left_bgr, res.right_bgr]))
+        for b, est in estimators.items():
+            disp = est.estimate(frame, want_disparity=True).disparity
+            met = disparity_metrics(disp, gt, cfg.stereo.num_disparities)
+            reg = region_report(disp, pair, cfg)
+            rows.append({
+                "kind": kind, "backend": b, "density": met["density_matchable"], "bad2": met["bad2_matchable"],
+                "phantom": sum(r["class"] == "near" and r["gt_class"] == "far" for r in reg["regions"]),
+                "unknown": sum(r["class"] == "unknown" and r["gt_class"] != "unknown" for r in reg["regions"]),
+                "missed": sum(r["class"] == "far" and r["gt_class"] == "near" for r in reg["regions"]),
+                "decision_differs": reg["decision"]["kind"] != reg["gt_decision"]["kind"],
+            })
+    return rows
+
+
+def frames_main(args: argparse.Namespace) -> int:
+    """The ``--frames`` study (module doc)."""
+    cfg = single_thread_config(load_config(args.config))
+    kinds = [k.strip() for k in (args.kinds or "office").split(",") if k.strip()]
+    backends = [b.strip() for b in args.backends.split(",") if b.strip()]
+    seeds = range(args.seeds)
+    data = cfg.model_dump(mode="json")
+    with mp.get_context("spawn").Pool(args.workers) as pool:
+        out = pool.map(_frames, [(k, s, data, backends) for k in kinds for s in seeds], chunksize=1)
+    rows = [r for part in out for r in part]
+    print(f"seeds 0..{args.seeds - 1}; density and bad-2 over matchable pixels (mean of frames); regions of 9 per frame")
+    print("kind      backend       frames  density  bad-2   phantom near  unknown  missed near  decision differs")
+    for kind in kinds:
+        for b in backends:
+            sel = [r for r in rows if r["kind"] == kind and r["backend"] == b]
+            n = len(sel)
+            print(f"{kind:9s} {b:12s} {n:7d}  {100 * np.mean([r['density'] for r in sel]):5.1f} %"
+                  f"  {100 * np.nanmean([r['bad2'] for r in sel]):4.1f} %"
+                  f"  {sum(r['phantom'] for r in sel):12d}  {sum(r['unknown'] for r in sel):7d}"
+                  f"  {sum(r['missed'] for r in sel):11d}  {sum(r['decision_differs'] for r in sel):6d}")
+    return 0
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--config", type=Path)
+    ap.add_argument("--suite", default="standard")
+    ap.add_argument("--kinds")
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--frames", action="store_true", help="single frames from fixed poses (module doc)")
+    ap.add_argument("--backends", default="opencv-bm,reference", help="--frames: backends to score")
+    ap.add_argument("--seeds", type=int, default=9, help="--frames: seeds 0..N-1 of each kind")
+    args = ap.parse_args()
+    if args.frames:
+        return frames_main(args)
+    cfg = single_thread_config(load_config(args.config))
+    courses = suite_courses(args.suite)
+    if args.kinds:
+        courses = select_kinds(courses, args.kinds)
+    data = cfg.model_dump(mode="json")
+    t0 = time.perf_counter()
+    with mp.get_context("spawn").Pool(args.workers) as pool:
+        out = pool.map(_fly, [(k, s, data) for k, s in courses], chunksize=1)
+    results = [r for r, _ in out]
+    for r, st in out:
+        print(f"{r.summary()}  points {st['points']:.0f}, false {st['false']:.0f} in {st['frames']:.0f} frames")
+    print()
+    print(suite_table(results))
+    print(f"\nwall time {time.perf_counter() - t0:.0f} s; false point: > {_TOL_M} m + {_TOL_FRACTION:.0%} of its range "
+          "from every surface")
+    print("kind      frames  points/frame  false/frame  false share  frames with a false point")
+    kinds = sorted({r.course.kind for r in results}, key=[k for k, _ in courses].index)
+    for kind in kinds + ["all"]:
+        sts = [st for r, st in out if kind in ("all", r.course.kind)]
+        fr = sum(s["frames"] for s in sts)
+        pts = sum(s["points"] for s in sts)
+        fa = sum(s["false"] for s in sts)
+        ff = sum(s["frames_false"] for s in sts)
+        print(f"{kind:9s} {fr:6.0f}  {pts / fr:12.2f}  {fa / fr:11.3f}  {100 * fa / max(pts, 1):10.1f} %  "
+              f"{100 * ff / fr:6.1f} %")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
