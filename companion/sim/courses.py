@@ -22,12 +22,18 @@ coordinate within the course's east bounds. Kinds (:data:`COURSE_KINDS`):
   failure case, Fig. 11).
 * ``deadend``: a closed channel 1.6 to 3 m wide; the goal lies beyond its end wall, so the right
   answer is to brake and hold (holding counts as success).
+* ``detour``: a wall 20 m wide (wider than the view) and 3 m high across the course, 2.5 to 3 m
+  ahead, with one opening 1.5 to 1.9 m wide whose middle lies 3 m to one side of the start line:
+  at the start its middle is beyond the camera's ±45° (on the left, beyond the 26° that block
+  matching measures at all). The reactive controller only brakes in front of it; the way is round
+  (the detour layer, :mod:`companion.core.detour`). Holding is a failure here.
 
 Pure: no clocks, no files; geometry in NED metres (x north, y east, z down; altitude = -z).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -37,10 +43,13 @@ from companion.sim.render import Box, Obstacle, Pillar, Pose, Scene
 from companion.errors import InputError
 
 #: Course kinds, in the order the suite and the tables list them.
-COURSE_KINDS: tuple[str, ...] = ("corridor", "doorway", "forest", "pitch", "side", "deadend")
+COURSE_KINDS: tuple[str, ...] = ("corridor", "doorway", "forest", "pitch", "side", "deadend", "detour")
 #: Altitude every course starts at, metres.
 START_ALTITUDE_M = 1.5
+#: The goal point the vehicle is sent to lies this far past the goal line, metres.
+GOAL_POINT_BEYOND_M = 1.0
 _KIND_ID = {name: i + 1 for i, name in enumerate(COURSE_KINDS)}
+_KIND_ID["detour"] = 21  # fixed (issue 21), whatever its place in COURSE_KINDS: its courses stay the same
 
 
 @dataclass(frozen=True)
@@ -78,6 +87,12 @@ class Course:
     def name(self) -> str:
         """``kind-seed``, e.g. ``doorway-3``."""
         return f"{self.kind}-{self.seed}"
+
+    @property
+    def goal_point_ned_m(self) -> tuple[float, float, float]:
+        """The goal as a point for the service (``engage`` with a goal): 1 m past the goal line, on
+        the start line, at the start altitude, NED metres in the course frame."""
+        return (self.goal_north_m + GOAL_POINT_BEYOND_M, 0.0, self.start.position_ned_m[2])
 
     def in_goal(self, position_ned_m: np.ndarray) -> bool:
         """Whether a position (float ``(3,)`` NED metres) is in the goal region."""
@@ -266,6 +281,30 @@ def deadend_course(seed: int) -> Course:
     )
 
 
+def detour_course(seed: int) -> Course:
+    """A wall wider than the view with one opening 3 m to one side, out of the camera's sight at the
+    start: the way to the goal is round, through the opening."""
+    rng = _rng("detour", seed)
+    side = 1.0 if rng.uniform() < 0.5 else -1.0
+    wall_north = float(rng.uniform(2.5, 3.0))
+    open_w = float(rng.uniform(1.5, 1.9))
+    open_e = side * 3.0
+    thick, height, span = 0.2, 3.0, 10.0
+    lo, hi = open_e - 0.5 * open_w, open_e + 0.5 * open_w  # the opening, east metres
+    obstacles: list[Obstacle] = [
+        Box.on_ground(wall_north, 0.5 * (-span + lo), (thick, lo + span, height)),
+        Box.on_ground(wall_north, 0.5 * (hi + span), (thick, span - hi, height)),
+    ]
+    goal = wall_north + 3.0
+    course = _course(
+        "detour", seed, obstacles, goal, span - 2.0,
+        f"wall at {wall_north:.1f} m, opening {open_w:.2f} m wide centred {open_e:+.1f} m east",
+        hold_is_success=False,
+    )
+    # Time for the way round at the detour's speed, with a look round.
+    return dataclasses.replace(course, time_limit_s=60.0)
+
+
 _BUILDERS = {
     "corridor": corridor_course,
     "doorway": doorway_course,
@@ -273,6 +312,7 @@ _BUILDERS = {
     "pitch": pitch_course,
     "side": side_course,
     "deadend": deadend_course,
+    "detour": detour_course,
 }
 
 #: Largest seed accepted (seeds feed NumPy's SeedSequence; a bound keeps names short).
