@@ -133,6 +133,7 @@ def run_soak(args: argparse.Namespace, sizes: list[Any]) -> dict[str, Any]:
                 "calibration": {"ideal_hfov_deg": 87.0},
                 "stereo": {"backend": args.backend, "num_disparities": size.num_disparities},
                 "bus": {"health_endpoint": f"ipc://{workdir}/health.sock", "control_endpoint": f"ipc://{workdir}/control.sock"},
+                "view": {"preview_endpoint": f"ipc://{workdir}/preview.sock"},
                 "service": {"autostart": True},
                 "vehicle": {"offboard_prestream_s": 0.1},
             },
