@@ -28,9 +28,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     what.add_argument(
         "--course",
         metavar="KIND",
-        help="course kind: corridor, doorway, forest, pitch, side, deadend",
+        help="course kind: corridor, doorway, forest, pitch, side, deadend, detour",
     )
-    what.add_argument("--suite", metavar="NAME", help="a suite of courses: standard (54 flights) or quick (12)")
+    what.add_argument("--suite", metavar="NAME", help="a suite of courses: standard (63 flights) or quick (14)")
     p.add_argument("--seed", type=int, default=0, help="course seed, 0..2147483647 (default 0)")
     p.add_argument("--config", type=Path, help="TOML config (default: built-in defaults)")
     p.add_argument("--plot", type=Path, metavar="OUT.png", help="--course: write a top-down plot of the flight")

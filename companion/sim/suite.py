@@ -23,7 +23,7 @@ from companion.sim.courses import COURSE_KINDS
 from companion.sim.loop import FlightResult
 from companion.sim.scoring import Outcome
 
-#: Named suites: ``standard`` = 9 seeds of each of the 6 kinds (54 flights); ``quick`` = 2 of each.
+#: Named suites: ``standard`` = 9 seeds of each of the 7 kinds (63 flights); ``quick`` = 2 of each (14).
 SUITES: dict[str, tuple[tuple[str, int], ...]] = {
     "standard": tuple((kind, seed) for seed in range(9) for kind in COURSE_KINDS),
     "quick": tuple((kind, seed) for seed in range(2) for kind in COURSE_KINDS),

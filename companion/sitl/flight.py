@@ -249,7 +249,10 @@ async def fly_course(
     try:
         placement = await start_and_place(service, pilot, course)
         t_req = time.monotonic()
-        await service.request({"cmd": "engage"})
+        # The goal the simulator's flights have (sim.goal = "point"): the course's goal point, in PX4's frame.
+        goal_local = placement.position_in_local(np.asarray(course.goal_point_ned_m, dtype=np.float64))
+        goal = {"kind": "point", "north_m": float(goal_local[0]), "east_m": float(goal_local[1])}
+        await service.request({"cmd": "engage", "goal": goal} if cfg.sim.goal == "point" else {"cmd": "engage"})
         t_offboard = await pilot.wait_for("OFFBOARD after engage", lambda: pilot.flight_mode == "OFFBOARD", 10.0)
         recorder = _Recorder(course, cfg, placement, pilot.latest())
         seen = len(pilot.samples)
