@@ -27,8 +27,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         ),
     )
     what = p.add_mutually_exclusive_group(required=True)
-    what.add_argument("--course", metavar="KIND", help="course kind: corridor, doorway, forest, pitch, side, deadend, head-on")
-    what.add_argument("--suite", metavar="NAME", help="a suite of courses: quick (12 flights) or standard (54)")
+    what.add_argument("--course", metavar="KIND", help="course kind: corridor, doorway, forest, pitch, side, deadend, detour, head-on")
+    what.add_argument("--suite", metavar="NAME", help="a suite of courses: quick (14 flights) or standard (63)")
     p.add_argument("--seed", type=int, default=0, help="--course: the course seed (default 0)")
     p.add_argument("--config", type=Path, help="TOML config of the service (default: built-in defaults)")
     p.add_argument("--instance", type=int, default=0, help="PX4 SITL instance number (ports 14540+N, system id N+1; default 0)")
