@@ -20,7 +20,9 @@ from companion.core.types import Decision, DecisionKind
 from companion.errors import ProtocolError
 from companion.service.protocol import parse_request, request_adapter
 
-CFG = CompanionConfig()
+# The detour layer is off by default (detour.trigger_after_s = 0) until it flies the drift suite with no
+# collision; these tests turn it on as `[detour] trigger_after_s = 0.8` does.
+CFG = parse_config({"detour": {"trigger_after_s": 0.8}})
 DET = CFG.detour
 MEM = CFG.memory
 CMD = CFG.command
@@ -98,7 +100,8 @@ def test_a_brake_long_enough_starts_a_detour_and_a_short_one_does_not() -> None:
 
 def test_the_detour_layer_is_off_with_trigger_zero() -> None:
     mem = _trusted_memory(_wall(2.5, -8.0, 8.0))
-    off = DET.model_copy(update={"trigger_after_s": 0.0})
+    off = CompanionConfig().detour  # the default
+    assert off.trigger_after_s == 0.0
     p = DetourPlanner()
     for k in range(60):
         assert p.update(0.05 * k, BRAKE, np.array([0.0, 0.0, -1.5]), 0.0, 0.0, 0.0, mem, MEM, off) is None
@@ -356,5 +359,4 @@ def test_the_detour_course_reaches_the_goal_and_the_reactive_controller_alone_do
     course = make_course("detour", 0)
     result = fly(course, CFG)
     assert result.outcome.value == "goal" and result.detours >= 1, result.reason
-    off = parse_config({"detour": {"trigger_after_s": 0.0}})
-    assert fly(course, off).outcome.value != "goal"
+    assert fly(course, CompanionConfig()).outcome.value != "goal"  # the default: the layer off

@@ -18,14 +18,15 @@ class DetourConfig(StrictModel):
     flies it where the controller would not. Not in the paper."""
 
     trigger_after_s: float = Field(
-        default=0.8,
+        default=0.0,
         ge=0.0,
         le=30.0,
         description=(
             "Start a detour once the controller has braked (the way ahead blocked, no escape) this "
             "long without a break, seconds; 0 = the detour layer is off (the reactive controller and "
-            "course hold alone, as before it). Short: the simulator's judge, and a pilot, call a vehicle "
-            "stopped for 3 s held."
+            "course hold alone, as before it; the default until it flies the drift suite with no "
+            "collision: issue 21). 0.8 turns it on: short, since the simulator's judge, and a pilot, "
+            "call a vehicle stopped for 3 s held."
         ),
     )
     trigger_no_progress_s: float = Field(
