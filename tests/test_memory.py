@@ -91,10 +91,15 @@ def test_a_false_match_lasting_one_frame_is_not_remembered() -> None:
 
 
 def test_only_cells_nearer_than_max_depth_and_valid_enough_give_points() -> None:
-    cells = NearCells(CFG.model_copy(update={"max_depth_m": 0.5}), GEOM, (16, 32))
+    cells = NearCells(CFG.model_copy(update={"max_depth_m": 0.5, "map_depth_m": 0.5}), GEOM, (16, 32))
     for _ in range(3):
         pts = cells.points(blocks_with(12.0))  # 1.0 m: beyond 0.5 m
     assert pts.shape == (0, 3)
+    # The map's depth (for the detour layer) reaches farther than the guard's.
+    mapping = NearCells(CFG.model_copy(update={"max_depth_m": 0.5, "map_depth_m": 2.0}), GEOM, (16, 32))
+    for _ in range(3):
+        pts = mapping.points(blocks_with(12.0))
+    assert pts.shape[0] > 0 and np.all(pts[:, 2] > 0.5)
     sparse = NearCells(CFG.model_copy(update={"min_valid_fraction": 0.5}), GEOM, (16, 32))
     b = np.full((16, 32), np.nan, np.float32)
     b[7, 27] = 40.0  # one valid block of 64 in its cell
@@ -307,8 +312,11 @@ def test_hold_inputs_find_a_doorway_from_the_memory() -> None:
     mem = ObstacleMemory()
     cfg = MemoryConfig(gap_centering_gain_per_s=1.0)  # off by default
     wall = np.array([[1.0, e, -1.5] for e in np.arange(-2.0, 2.51, 0.05) if not -0.3 < e < 0.9])
-    mem.add(wall, 0.0, 30.0)
     here = np.array([0.0, 0.0, -1.5])
+    mem.add(wall, 0.0, 30.0, viewpoint_ned_m=here + [-0.5, 0.0, 0.0], cfg=cfg)
+    # Seen from one place once: not trusted, so no gap (a false point made a false gap, run 22).
+    assert mem.hold_inputs(here, 0.0, 0.1, cfg, VIEW).gap_offset_m is None
+    mem.add(wall, 0.1, 30.0, viewpoint_ned_m=here, cfg=cfg)  # seen again from 0.5 m on: trusted
     got = mem.hold_inputs(here, 0.0, 0.5, cfg, VIEW)
     assert got.guard_m is None and got.sides == (False, False)  # beyond the guard and hold_clear_m
     assert got.gap_offset_m == pytest.approx(0.3, abs=0.03)

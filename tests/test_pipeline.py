@@ -144,7 +144,8 @@ def test_memory_points_land_on_the_obstacle_seen() -> None:
 
     box = Box.on_ground(1.0 + 0.5, -1.0, (1.0, 1.6, 6.0))  # near face 1.0 m north, east -1.8 .. -0.2
     cfg, pipeline, frame, _ = _render(Scene(obstacles=(box,)))
-    cfg = apply_patch(cfg, {"memory": {"max_depth_m": 1.2}})  # the box, not the ground 1.5 m below
+    # The box, not the ground 1.5 m below (nor, with the detour map's depth, anything beyond 1.2 m).
+    cfg = apply_patch(cfg, {"memory": {"max_depth_m": 1.2, "map_depth_m": 1.2}})
     pipeline.reconfigure(cfg)
     results = [pipeline.process(frame, timestamp_s=0.1 * k) for k in range(cfg.memory.confirm_frames)]
     assert all(r.near_points_cam_m is not None and r.view_limits is not None for r in results)

@@ -84,4 +84,4 @@ def test_suite_runner_and_table_in_process() -> None:
 def test_quick_suite_over_two_workers(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["sim", "--suite", "quick", "--workers", "2"]) == 0
     out = capsys.readouterr().out
-    assert "[ 14/14]" in out and "collisions" in out
+    assert "[ 16/16]" in out and "collisions" in out

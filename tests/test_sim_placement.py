@@ -88,3 +88,19 @@ def test_judge_with_a_held_radius_calls_a_wandering_hover_held_but_not_a_creep()
     creep = Judge(course, 0.25, 0.05, 2.0, start, 0.0, held_radius_m=0.15)
     for k in range(1, 60):  # 0.1 m/s towards the box: never held
         assert creep.update(0.05 * k, start + np.array([0.005 * k, 0.0, 0.0]), 0.1, 0.0) is None
+
+
+def test_judge_with_a_held_radius_does_not_call_a_turn_in_place_held() -> None:
+    # A detour's look round: in place, turning at 50 deg/s for 4 s; held only 2 s after the turn ends.
+    course = head_on_course(0)
+    start = np.array([3.0, 0.0, -1.5])
+    j = Judge(course, 0.25, 0.05, 2.0, start, 0.0, held_radius_m=0.15)
+    turn = np.radians(50.0)
+    for k in range(1, 81):
+        assert j.update(0.05 * k, start, 0.0, turn) is None
+    out = None
+    for k in range(81, 200):
+        out = j.update(0.05 * k, start, 0.0, 0.0)
+        if out is not None:
+            break
+    assert out is Outcome.HELD and 0.05 * k >= 4.0 + 2.0 - 0.06

@@ -43,12 +43,22 @@ def register(sub: argparse._SubParsersAction) -> None:
         ("status", "the current health message"),
         ("ping", "is it alive?"),
         ("reload", "re-read the config file (as SIGHUP)"),
-        ("engage", "enter offboard and start avoiding"),
         ("disengage", "leave offboard to Hold and stop commanding"),
         ("pause", "hover in offboard until resume"),
         ("resume", "back to automatic (ends a pause or an override)"),
     ):
         csub.add_parser(name, help=text)
+    for name, text in (
+        ("engage", "enter offboard and start avoiding (toward a goal, if given)"),
+        ("goto", "while engaged: a new goal from where the vehicle is now"),
+    ):
+        e = csub.add_parser(name, help=text)
+        e.add_argument("--north", type=float, metavar="M", help="goal point: north, local NED metres (with --east)")
+        e.add_argument("--east", type=float, metavar="M", help="goal point: east, local NED metres (with --north)")
+        e.add_argument("--bearing", type=float, metavar="DEG", help="goal: degrees clockwise from north (with --distance)")
+        e.add_argument("--distance", type=float, metavar="M", help="goal: metres along --bearing")
+        e.add_argument("--from-heading", action="store_true", help="--bearing is from the vehicle's heading")
+        e.add_argument("--course", action="store_true", help="goal: the heading and line at engagement (the default)")
     g = csub.add_parser("get", help="the config in force (or one section)")
     g.add_argument("section", nargs="?", help="e.g. controller, command")
     s = csub.add_parser("set", help="change config fields live: KEY=VALUE ...")
@@ -163,6 +173,14 @@ def _ctl(args: argparse.Namespace) -> int:
         request = {"cmd": "set_config", "patch": parse_assignments(args.assignments)}
     elif c == "override":
         request = {"cmd": "override", "yaw": args.yaw, "pitch": args.pitch, "speed": args.speed, "duration_s": args.duration}
+    elif c in ("engage", "goto"):
+        request = {"cmd": c}
+        goal = _goal_of(args)
+        if isinstance(goal, str):
+            print(f"companion ctl {c}: {goal}", file=sys.stderr)
+            return exitcodes.BAD_INPUT
+        if goal is not None:
+            request["goal"] = goal
     else:
         request = {"cmd": c}
     curve = curve_client_options(args.server_key, args.client_key)
@@ -174,6 +192,27 @@ def _ctl(args: argparse.Namespace) -> int:
     err = reply.get("error") or {}
     print(f"companion ctl {c}: {err.get('type', 'error')}: {err.get('message', reply)}", file=sys.stderr)
     return exitcodes.INTERNAL_ERROR if err.get("type") == "InternalError" else exitcodes.BAD_INPUT
+
+
+def _goal_of(args: argparse.Namespace) -> dict[str, Any] | str | None:
+    """The ``goal`` of ``ctl engage``/``goto`` from its options (None: none given; a str: what is wrong)."""
+    point = args.north is not None or args.east is not None
+    bearing = args.bearing is not None or args.distance is not None
+    if sum((point, bearing, args.course)) > 1:
+        return "give one goal: --north/--east, --bearing/--distance, or --course"
+    if point:
+        if args.north is None or args.east is None:
+            return "a goal point needs both --north and --east"
+        return {"kind": "point", "north_m": args.north, "east_m": args.east}
+    if bearing:
+        if args.bearing is None or args.distance is None:
+            return "a goal bearing needs both --bearing and --distance"
+        return {"kind": "bearing", "bearing_deg": args.bearing, "distance_m": args.distance, "from_heading": args.from_heading}
+    if args.course:
+        return {"kind": "course"}
+    if args.ctl_command == "goto":
+        return "goto needs a goal: --north/--east, --bearing/--distance, or --course"
+    return None
 
 
 def _watch(args: argparse.Namespace) -> int:

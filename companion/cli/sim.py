@@ -28,9 +28,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     what.add_argument(
         "--course",
         metavar="KIND",
-        help="course kind: corridor, doorway, forest, pitch, side, deadend, office",
+        help="course kind: corridor, doorway, forest, pitch, side, deadend, office, detour",
     )
-    what.add_argument("--suite", metavar="NAME", help="a suite of courses: standard (63 flights) or quick (14)")
+    what.add_argument("--suite", metavar="NAME", help="a suite of courses: standard (72 flights) or quick (16)")
     p.add_argument(
         "--kinds",
         metavar="K1,K2",

@@ -30,8 +30,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         ),
     )
     what = p.add_mutually_exclusive_group(required=True)
-    what.add_argument("--course", metavar="KIND", help="course kind: corridor, doorway, forest, pitch, side, deadend, head-on")
-    what.add_argument("--suite", metavar="NAME", help="a suite of courses: quick (14 flights) or standard (63)")
+    what.add_argument("--course", metavar="KIND", help="course kind: corridor, doorway, forest, pitch, side, deadend, office, detour, head-on")
+    what.add_argument("--suite", metavar="NAME", help="a suite of courses: quick (16 flights) or standard (72)")
     p.add_argument("--seed", type=int, default=0, help="--course: the course seed (default 0)")
     p.add_argument("--config", type=Path, help="TOML config of the service (default: built-in defaults)")
     p.add_argument("--autopilot", choices=["px4", "ardupilot"], default="px4", help="which SITL flies (default px4)")

@@ -30,6 +30,7 @@ from companion.config.core import (
     RuleConfig,
     StereoConfig,
 )
+from companion.config.detour import DetourConfig
 from companion.config.envelope import EnvelopeConfig, envelope_violations
 from companion.config.gpu import GpuConfig
 from companion.config.service import (
@@ -54,6 +55,7 @@ __all__ = [
     "CommandConfig",
     "CompanionConfig",
     "ControllerConfig",
+    "DetourConfig",
     "EnvelopeConfig",
     "GpuConfig",
     "InputTerm",
@@ -86,6 +88,7 @@ class CompanionConfig(StrictModel):
     controller: ControllerConfig = Field(default_factory=ControllerConfig)
     command: CommandConfig = Field(default_factory=CommandConfig)
     memory: MemoryConfig = Field(default_factory=MemoryConfig)
+    detour: DetourConfig = Field(default_factory=DetourConfig)
     camera: CameraConfig = Field(default_factory=CameraConfig)
     vehicle: VehicleConfig = Field(default_factory=VehicleConfig)
     bus: BusConfig = Field(default_factory=BusConfig)

@@ -208,6 +208,33 @@ class CommandConfig(StrictModel):
             "restarts no_progress_timeout_s."
         ),
     )
+    regress_distance_m: float = Field(
+        default=1.5,
+        ge=0.0,
+        le=50.0,
+        description=(
+            "Progress watchdog, regress: a vehicle this much farther from its goal (along the course, "
+            "for the course at engagement) than the nearest it has been is flying back; after "
+            "regress_timeout_s of that it holds as for no progress, metres (0 = off). A vehicle that "
+            "turned round at a dead end's closed end flew back out of the channel until the 20 s "
+            "watchdog stopped it (PX4 SITL, run 21)."
+        ),
+    )
+    regress_timeout_s: float = Field(
+        default=3.0,
+        ge=0.0,
+        le=600.0,
+        description="Progress watchdog, regress: how long flying back may last before the hold, seconds.",
+    )
+    goal_radius_m: float = Field(
+        default=0.5,
+        gt=0.0,
+        le=50.0,
+        description=(
+            "A goal point counts as reached within this horizontal distance, metres: the run ends "
+            "with a position hold there and the state paused ('goal reached')."
+        ),
+    )
     hold_clear_depth_m: float = Field(
         default=2.25,
         ge=0.0,

@@ -32,7 +32,7 @@ class EnvelopeConfig(StrictModel):
         description=(
             "Upper bound of every horizontal speed the service may command, m/s: command.cruise_speed_m_s, "
             "brake_hold_max_speed_m_s, max_line_hold_lateral_speed_m_s, memory.max_guard_speed_m_s, "
-            "memory.max_gap_centering_speed_m_s."
+            "memory.max_gap_centering_speed_m_s, detour.speed_m_s."
         ),
     )
     max_vertical_speed_m_s: float = Field(
@@ -45,7 +45,9 @@ class EnvelopeConfig(StrictModel):
         default=120.0,
         gt=0.0,
         le=720.0,
-        description="Upper bound of command.max_yaw_rate_deg_s and max_heading_hold_rate_deg_s, deg/s.",
+        description=(
+            "Upper bound of command.max_yaw_rate_deg_s, max_heading_hold_rate_deg_s and detour.turn_rate_deg_s, deg/s."
+        ),
     )
     max_stale_frame_timeout_s: float = Field(
         default=0.5,
@@ -127,6 +129,7 @@ def envelope_violations(cfg: CompanionConfig) -> list[str]:
         ("command.max_line_hold_lateral_speed_m_s", c.max_line_hold_lateral_speed_m_s),
         ("memory.max_guard_speed_m_s", m.max_guard_speed_m_s),
         ("memory.max_gap_centering_speed_m_s", m.max_gap_centering_speed_m_s),
+        ("detour.speed_m_s", cfg.detour.speed_m_s),
     ):
         above(field, value, "max_horizontal_speed_m_s", e.max_horizontal_speed_m_s)
     for field, value in (
@@ -137,6 +140,7 @@ def envelope_violations(cfg: CompanionConfig) -> list[str]:
     for field, value in (
         ("command.max_yaw_rate_deg_s", c.max_yaw_rate_deg_s),
         ("command.max_heading_hold_rate_deg_s", c.max_heading_hold_rate_deg_s),
+        ("detour.turn_rate_deg_s", cfg.detour.turn_rate_deg_s),
     ):
         above(field, value, "max_yaw_rate_deg_s", e.max_yaw_rate_deg_s)
     above("command.stale_frame_timeout_s", c.stale_frame_timeout_s, "max_stale_frame_timeout_s", e.max_stale_frame_timeout_s)

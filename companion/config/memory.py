@@ -35,6 +35,16 @@ class MemoryConfig(StrictModel):
             "wall first shows at ~32° off the heading, 1.6 times its lateral distance ahead."
         ),
     )
+    map_depth_m: float = Field(
+        default=5.0,
+        gt=0.0,
+        le=20.0,
+        description=(
+            "Cells out to this depth are remembered too, metres, for the detour layer's map only "
+            "([detour]: which way round is shorter); only points seen nearer than max_depth_m guard "
+            "the vehicle or keep course hold from a side. At most max_depth_m means no map beyond it."
+        ),
+    )
     grid_rows: int = Field(default=6, ge=1, le=64, description="Rows of the image's memory cells.")
     grid_cols: int = Field(
         default=24,
@@ -188,6 +198,43 @@ class MemoryConfig(StrictModel):
             "Only points within this much of the vehicle's altitude guard it, metres (the ground and "
             "what is overhead are the regions' business)."
         ),
+    )
+
+    trust_cell_m: float = Field(
+        default=0.3,
+        gt=0.0,
+        le=2.0,
+        description=(
+            "Trust is kept per cube of this side, metres: a point is trusted when its cube has been "
+            "seen as trust_baseline_m or trust_persist_s say."
+        ),
+    )
+    trust_baseline_m: float = Field(
+        default=0.3,
+        ge=0.0,
+        le=10.0,
+        description=(
+            "A remembered point is trusted once its cube has been seen from two camera positions at "
+            "least this far apart, metres (0 = from any two frames). Only trusted points open or close "
+            "a detour's direction or bound a gap to centre in: a false point the vehicle flew through "
+            "made a false gap and a collision (PX4 SITL, run 22), and a false match moves with the "
+            "view where a surface does not."
+        ),
+    )
+    trust_persist_s: float = Field(
+        default=0.6,
+        ge=0.0,
+        le=60.0,
+        description=(
+            "...or once it has been seen in trust_min_frames frames spanning at least this long, "
+            "seconds (a vehicle turning in place sees from one position)."
+        ),
+    )
+    trust_min_frames: int = Field(
+        default=4,
+        ge=1,
+        le=100,
+        description="Frames its cube must be seen in to be trusted by persistence (trust_persist_s).",
     )
 
     @field_validator("confirm_frames")

@@ -6,6 +6,8 @@ service) through procedural courses; only what has no counterpart on a real vehi
 
 from __future__ import annotations
 
+from typing import Literal
+
 from pydantic import Field, model_validator
 
 from companion.config._base import StrictModel
@@ -126,6 +128,15 @@ class SimConfig(StrictModel):
         gt=0.0,
         le=60.0,
         description="Correlation time of that drift (a first-order Gauss-Markov process), seconds.",
+    )
+    # -- the goal --------------------------------------------------------------------------------
+    goal: Literal["point", "course"] = Field(
+        default="point",
+        description=(
+            "What the simulated flight is engaged with (as companion sitl sends it with engage): "
+            "'point', the course's goal point (1 m past its goal line, on the start line); 'course', "
+            "no goal but the heading and line at the start (course hold as before goals existed)."
+        ),
     )
     # -- scoring ---------------------------------------------------------------------------------
     held_after_s: float = Field(

@@ -26,6 +26,8 @@ from companion.core.types import (
 
 if TYPE_CHECKING:
     from companion.config.core import CommandConfig, MemoryConfig
+    from companion.config.detour import DetourConfig
+    from companion.core.detour import DetourCommand
 
 #: A CLEAR decision whose |yaw| and |pitch| are below this counts as flying straight (course hold may
 #: act); anything larger is the controller steering, and course hold waits.
@@ -100,25 +102,36 @@ NO_PROGRESS_HOLD = Decision(
 
 class ProgressWatch:
     """The progress watchdog's clock (``command.no_progress_timeout_s``): the time since the vehicle
-    last got ``command.progress_step_m`` farther along the course (:func:`along_course_m`).
+    last got ``command.progress_step_m`` nearer its goal (farther along the course, :func:`along_course_m`,
+    for the course at engagement; nearer the point, for a goal point), and whether it is flying back.
 
-    The caller passes the distance along the course and the time; :meth:`update` says whether the
-    limit has passed. A position that is unknown or not finite restarts the clock (nothing is judged
-    without it)."""
+    The caller passes the progress (metres, growing toward the goal) and the time; :meth:`update`
+    says whether the limit has passed: no progress for ``no_progress_timeout_s``, or (**regress**) a
+    progress ``regress_distance_m`` below the best reached for ``regress_timeout_s`` (:attr:`why`
+    says which). A position that is unknown or not finite restarts the clock (nothing is judged
+    without it). ``pause``: the clock stands still (the detour layer turning in place to look round
+    is not a vehicle getting nowhere; it is bounded by its own limits), and regress is not judged."""
 
     def __init__(self) -> None:
-        self._mark_m: float | None = None
-        self._since_s: float | None = None
+        self.reset()
 
     def reset(self) -> None:
-        """Start again (engage, resume, anything that was not the automatic flight)."""
-        self._mark_m = None
-        self._since_s = None
+        """Start again (engage, resume, a new goal: anything that was not the automatic flight)."""
+        self._mark_m: float | None = None
+        self._since_s: float | None = None
+        self._best_m: float | None = None
+        self._regress_since_s: float | None = None
+        self._last_s: float | None = None
+        self.why: str | None = None  #: ``no_progress`` or ``regress`` once :meth:`update` said True
 
-    def update(self, along_m: float | None, now_s: float, cmd: CommandConfig) -> bool:
-        """Feed the distance along the course now (metres; None = unknown) at ``now_s`` seconds;
-        True once it has not grown by ``cmd.progress_step_m`` for more than
-        ``cmd.no_progress_timeout_s`` (always False when that is 0 or course hold is off)."""
+    def update(
+        self, along_m: float | None, now_s: float, cmd: CommandConfig, *, pause: bool = False, regress: bool = True
+    ) -> bool:
+        """Feed the progress now (metres; None = unknown) at ``now_s`` seconds; True once it has not
+        grown by ``cmd.progress_step_m`` for more than ``cmd.no_progress_timeout_s``, or has stayed
+        more than ``cmd.regress_distance_m`` below the best for ``cmd.regress_timeout_s`` (always
+        False when ``no_progress_timeout_s`` is 0 or course hold is off). ``pause``: the clock stands
+        still; ``regress`` False: regress is not judged now (a detour, bounded by its own limits)."""
         if (
             cmd.no_progress_timeout_s <= 0.0
             or cmd.heading_hold_gain_per_s == 0.0
@@ -128,14 +141,38 @@ class ProgressWatch:
         ):
             self.reset()
             return False
+        if pause and self._since_s is not None and self._last_s is not None:
+            self._since_s += max(0.0, now_s - self._last_s)
+        self._last_s = float(now_s)
         if self._mark_m is None or self._since_s is None or along_m >= self._mark_m + cmd.progress_step_m:
             self._mark_m, self._since_s = float(along_m), float(now_s)
-        return now_s - self._since_s > cmd.no_progress_timeout_s
+        if self._best_m is None or along_m > self._best_m:
+            self._best_m = float(along_m)
+        if pause or not regress or cmd.regress_distance_m <= 0.0 or along_m >= self._best_m - cmd.regress_distance_m:
+            self._regress_since_s = None
+        elif self._regress_since_s is None:
+            self._regress_since_s = float(now_s)
+        if self._regress_since_s is not None and now_s - self._regress_since_s >= cmd.regress_timeout_s:
+            self.why = "regress"
+            return True
+        if now_s - self._since_s > cmd.no_progress_timeout_s:
+            self.why = "no_progress"
+            return True
+        return False
+
+    def stalled_for_s(self, now_s: float) -> float | None:
+        """Seconds since the progress last grew by ``progress_step_m`` (the clock), or None."""
+        return None if self._since_s is None else max(0.0, now_s - self._since_s)
 
     @property
     def mark_m(self) -> float | None:
-        """The distance along the course (metres) the clock last restarted at, or None."""
+        """The progress (metres) the clock last restarted at, or None."""
         return self._mark_m
+
+    @property
+    def best_m(self) -> float | None:
+        """The most progress reached (metres), or None."""
+        return self._best_m
 
 
 def _aim_error_rad(heading_error_rad: float | None, line_offset: float | None, cmd: CommandConfig) -> float | None:
@@ -458,3 +495,75 @@ def _guarded(
         return sp
     forward, right = apply_guard(sp.forward_m_s, sp.right_m_s, guard_m, cfg, velocity_body_m_s)
     return VelocitySetpoint(forward_m_s=forward, right_m_s=right, down_m_s=sp.down_m_s, yaw_rate_deg_s=sp.yaw_rate_deg_s)
+
+
+def detour_setpoint(
+    command: DetourCommand,
+    decision: Decision | None,
+    since_last_frame_s: float,
+    cmd: CommandConfig,
+    detour_cfg: DetourConfig,
+    *,
+    position_ned_m: np.ndarray | None,
+    yaw_rad: float | None,
+    brake_offset_body_m: np.ndarray | None = None,
+    brake_heading_error_rad: float | None = None,
+    guard_m: np.ndarray | None = None,
+    guard_cfg: MemoryConfig | None = None,
+    velocity_body_m_s: tuple[float, float] | None = None,
+) -> VelocitySetpoint:
+    """The setpoint while the detour layer acts (:class:`~companion.core.detour.DetourCommand`).
+
+    The reactive layer stays absolute: the detour only turns the vehicle, and holds or slows it.
+
+    * No decision, or a frame older than ``cmd.stale_frame_timeout_s``: zero velocity, as always.
+    * Turning in place (the command has an anchor: looking round, turning toward a detour's direction
+      or back to the goal): the brake's position hold toward the anchor (where the vehicle was when
+      the turn began; ``clip(-brake_hold_gain_per_s · offset, ±brake_hold_max_speed_m_s)``) and a yaw
+      rate toward the target, ``turn_rate_deg_s``, proportionally less within 15° of it. A turn in
+      place moves the vehicle toward nothing, so it goes on whatever the decision is, a brake
+      included; the guard still acts.
+    * Flying a direction: a BRAKE decision is the reactive setpoint itself (the brake's holds);
+      otherwise the reactive setpoint (:func:`setpoint_for` of the decision alone: the controller's
+      yaw, pitch and slowing) with its forward speed scaled by ``min(1, speed_m_s / cruise_speed_m_s)
+      · max(0, cos(heading error))`` (never faster, never sideways or up or down beyond it), and a yaw
+      rate toward the direction of ``clip(heading_hold_gain_per_s · error, ±turn_rate_deg_s)``,
+      scaled by ``1 - |yaw|`` (the controller's own turn comes first).
+    """
+    if decision is None or not math.isfinite(since_last_frame_s) or since_last_frame_s > cmd.stale_frame_timeout_s:
+        return ZERO_SETPOINT
+    yaw = None if yaw_rad is None or not math.isfinite(yaw_rad) else float(yaw_rad)
+    err = None
+    if command.target_yaw_rad is not None and yaw is not None:
+        err = (command.target_yaw_rad - yaw + math.pi) % (2.0 * math.pi) - math.pi
+    limit = detour_cfg.turn_rate_deg_s
+    if command.anchor_ned_m is not None:
+        offset = None
+        if position_ned_m is not None and yaw is not None:
+            offset = brake_offset_body(np.asarray(position_ned_m, dtype=np.float64), command.anchor_ned_m, yaw)
+        hold = _brake_hold(offset, None, cmd)
+        rate = 0.0 if err is None else limit * max(-1.0, min(1.0, err / math.radians(15.0)))
+        sp = VelocitySetpoint(hold.forward_m_s, hold.right_m_s, hold.down_m_s, rate)
+        return _guarded(sp, guard_m, guard_cfg, velocity_body_m_s)
+    if decision.kind is DecisionKind.BRAKE:
+        return setpoint_for(
+            decision,
+            since_last_frame_s,
+            cmd,
+            brake_offset_body_m=brake_offset_body_m,
+            brake_heading_error_rad=brake_heading_error_rad,
+            guard_m=guard_m,
+            guard_cfg=guard_cfg,
+            velocity_body_m_s=velocity_body_m_s,
+        )
+    reactive = setpoint_for(decision, since_last_frame_s, cmd)
+    if not (math.isfinite(decision.yaw) and math.isfinite(decision.pitch) and math.isfinite(decision.speed_fraction)):
+        return _guarded(reactive, guard_m, guard_cfg, velocity_body_m_s)
+    scale = 0.0 if cmd.cruise_speed_m_s <= 0.0 else min(1.0, detour_cfg.speed_m_s / cmd.cruise_speed_m_s)
+    rate = reactive.yaw_rate_deg_s
+    if err is not None:
+        scale *= max(0.0, math.cos(err))
+        turn = min(limit, max(-limit, math.degrees(cmd.heading_hold_gain_per_s * err)))
+        rate += (1.0 - min(1.0, abs(decision.yaw))) * turn
+    sp = VelocitySetpoint(reactive.forward_m_s * scale, reactive.right_m_s, reactive.down_m_s, rate)
+    return _guarded(sp, guard_m, guard_cfg, velocity_body_m_s)

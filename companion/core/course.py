@@ -10,7 +10,14 @@ needs between setpoints lives here, once:
   (:func:`~companion.core.command.is_heading_clear`);
 * where the current brake began (:class:`~companion.core.command.BrakeLatch`), where something was
   last overhead (:class:`~companion.core.command.OverheadMemory`) and the progress watchdog's clock
-  (:class:`~companion.core.command.ProgressWatch`).
+  (:class:`~companion.core.command.ProgressWatch`);
+* the goal (:mod:`companion.core.goal`): the course at engagement, or a point. For a point, the
+  course is the line from where the goal was set to the point (and, after a detour, from where the
+  detour handed back), and progress is getting nearer the point; reaching it (within
+  ``command.goal_radius_m``) ends the run in a hold (:attr:`CourseHold.holding_reason`);
+* the detour layer (:class:`~companion.core.detour.DetourPlanner`): when the way is blocked it owns
+  the setpoint (:func:`~companion.core.command.detour_setpoint`) until it hands back; a dead end is
+  a hold too.
 
 One clock: a decision's timers run from the capture time of the first frame that made it (the
 ``timestamp_s`` of a frame result), and every elapsed time is measured to the time of the setpoint
@@ -27,10 +34,13 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from companion.core.command import (
+    NO_PROGRESS_HOLD,
     BrakeLatch,
     OverheadMemory,
     ProgressWatch,
+    _aim_error_rad,
     along_course_m,
+    detour_setpoint,
     horizontal_distance_m,
     horizontal_velocity_body_m_s,
     is_heading_clear,
@@ -38,10 +48,14 @@ from companion.core.command import (
     line_offset_m,
     setpoint_for,
 )
+from companion.core.detour import DetourPlanner, Phase
+from companion.core.goal import COURSE, Goal, GoalSpec, resolve_goal
 from companion.core.types import Decision, VelocitySetpoint
 
 if TYPE_CHECKING:
     from companion.config.core import CommandConfig, MemoryConfig
+    from companion.config.detour import DetourConfig
+    from companion.core.memory import ObstacleMemory
 
 
 def _finite_position(position_ned_m: object) -> np.ndarray | None:
@@ -77,18 +91,53 @@ class CourseHold:
         self.brake = BrakeLatch()
         self.overhead = OverheadMemory()
         self.progress = ProgressWatch()
+        self.goal = Goal(COURSE, None)
+        self.detour = DetourPlanner()
+        self._engaged_at: tuple[np.ndarray | None, float | None] = (None, None)
+        #: Why the flight holds now (the goal reached, a dead end), or None: the caller holds (as for
+        #: the progress watchdog) until :meth:`resume` or a new goal.
+        self.holding_reason: str | None = None
 
-    def engage(self, position_ned_m: object, heading_rad: float | None) -> None:
+    def engage(self, position_ned_m: object, heading_rad: float | None, goal: GoalSpec = COURSE) -> None:
         """The course starts here: float ``(3,)`` NED metres (the line's origin and, as ``-down``, the
         altitude) and the heading (radians); an unknown or non-finite part stays unknown, and the
-        hold that needs it stays off. Forgets any brake, overhead sighting and progress."""
+        hold that needs it stays off. ``goal``: where to (:mod:`companion.core.goal`; default the
+        heading and line now). Forgets any brake, overhead sighting, progress and detour."""
         origin = _finite_position(position_ned_m)
         self.origin_ned_m = origin
         self.heading_rad = _finite(heading_rad)
         self.altitude_m = None if origin is None else -float(origin[2])
+        self._engaged_at = (origin, self.heading_rad)
         self.brake.reset()
         self.overhead.reset()
+        self.set_goal(goal, position_ned_m, heading_rad)
+
+    def set_goal(self, goal: GoalSpec, position_ned_m: object, heading_rad: float | None) -> None:
+        """A new goal, from the vehicle's position and heading now (``goto``). A point's course is the
+        line from here to it; ``course`` goes back to the heading and line at engagement. The altitude
+        held stays the engagement's. Forgets the progress and any detour or hold."""
+        self.goal = resolve_goal(goal, position_ned_m, heading_rad)
+        if self.goal.is_point:
+            self._anchor_to_goal(position_ned_m)
+        else:
+            self.origin_ned_m, self.heading_rad = self._engaged_at
         self.progress.reset()
+        self.detour.reset()
+        self.holding_reason = None
+
+    def resume(self) -> None:
+        """Try again after a hold (the operator's ``resume``): forget the hold, the progress and any
+        detour (its trail is kept)."""
+        self.progress.reset()
+        self.detour.reset()
+        self.holding_reason = None
+
+    def _anchor_to_goal(self, position_ned_m: object) -> None:
+        """For a goal point: the course becomes the line from ``position_ned_m`` to the point."""
+        here = _finite_position(position_ned_m)
+        bearing = self.goal.bearing_rad(here)
+        if here is not None and bearing is not None:
+            self.origin_ned_m, self.heading_rad = here, bearing
 
     def observe(self, decision: Decision | None, decision_time_s: float | None, position_ned_m: object) -> None:
         """The decision in force, made from the frame captured at ``decision_time_s`` (seconds), with
@@ -109,14 +158,56 @@ class CourseHold:
         """Whether the course (origin and heading) and the vehicle's position are known."""
         return self.origin_ned_m is not None and self.heading_rad is not None and position_ned_m is not None
 
-    def no_progress(self, position_ned_m: object, now_s: float, cmd: CommandConfig) -> bool:
-        """The progress watchdog fed the distance along the course now: True once the vehicle has got
-        no ``cmd.progress_step_m`` farther for ``cmd.no_progress_timeout_s``
-        (:class:`~companion.core.command.ProgressWatch`)."""
-        along = None
+    def progress_m(self, position_ned_m: object) -> float | None:
+        """How far along toward the goal the vehicle is, metres (growing toward it): minus the
+        distance to a goal point, or the distance along the course at engagement; None unknown."""
+        if self.goal.is_point:
+            d = self.goal.distance_m(_finite_position(position_ned_m))
+            return None if d is None else -d
         if self.ready(position_ned_m):
-            along = along_course_m(position_ned_m, self.origin_ned_m, self.heading_rad)
-        return self.progress.update(along, now_s, cmd)
+            return along_course_m(position_ned_m, self.origin_ned_m, self.heading_rad)
+        return None
+
+    def no_progress(self, position_ned_m: object, now_s: float, cmd: CommandConfig) -> bool:
+        """The progress watchdog fed the progress now (:meth:`progress_m`): True once the vehicle has
+        got no ``cmd.progress_step_m`` nearer its goal for ``cmd.no_progress_timeout_s``, or has been
+        flying back (regress) for ``cmd.regress_timeout_s`` (:class:`~companion.core.command.ProgressWatch`,
+        its ``why``). While a detour is under way the clock stands still and regress is not judged:
+        a detour is bounded by its own limits (``detour.max_time_s``, ``max_distance_m``, and
+        ``max_detours_without_progress`` of them)."""
+        return self.progress.update(self.progress_m(position_ned_m), now_s, cmd, pause=self.detour.active)
+
+    def goal_bearing_rad(self, position_ned_m: object, yaw_rad: float | None, cmd: CommandConfig) -> float | None:
+        """The direction toward the goal from here, radians from north: the bearing to a goal point,
+        or, for the course at engagement, the heading course hold aims at (the course heading turned
+        toward the line); None when unknown."""
+        pos = _finite_position(position_ned_m)
+        if self.goal.is_point:
+            return self.goal.bearing_rad(pos)
+        if self.heading_rad is None or pos is None or self.origin_ned_m is None:
+            return None
+        offset = line_offset_m(pos, self.origin_ned_m, self.heading_rad)
+        aim = _aim_error_rad(0.0, offset, cmd)
+        return self.heading_rad + (0.0 if aim is None else aim)
+
+    def goal_status(self, position_ned_m: object) -> dict[str, object]:
+        """For health: the goal (``kind``, ``description``, ``north_m``/``east_m`` of a point), the
+        horizontal ``distance_m`` and ``bearing_deg`` (from north) to it from ``position_ned_m`` (for
+        the course: null, and the course's heading), whether it was ``reached``, and the detour
+        layer's ``detour`` status."""
+        pos = _finite_position(position_ned_m)
+        point = self.goal.point_ned_m
+        bearing = self.goal.bearing_rad(pos) if point is not None else self.heading_rad
+        return {
+            "kind": self.goal.spec.kind,
+            "description": self.goal.spec.describe(),
+            "north_m": None if point is None else float(point[0]),
+            "east_m": None if point is None else float(point[1]),
+            "distance_m": self.goal.distance_m(pos),
+            "bearing_deg": None if bearing is None else math.degrees(bearing),
+            "reached": self.holding_reason is not None and self.holding_reason.startswith("goal reached"),
+            "detour": self.detour.status(),
+        }
 
     def setpoint(
         self,
@@ -133,6 +224,10 @@ class CourseHold:
         remembered_sides: tuple[bool, bool] | None = None,
         gap_offset_m: float | None = None,
         memory_cfg: MemoryConfig | None = None,
+        obstacles: ObstacleMemory | None = None,
+        detour_cfg: DetourConfig | None = None,
+        prefer_right: bool = True,
+        planning: bool = True,
     ) -> VelocitySetpoint:
         """The setpoint for ``decision`` at ``now_s`` (seconds, the clock of :meth:`observe`'s times),
         its frame ``since_last_frame_s`` old, with the course hold's inputs from this flight's
@@ -146,8 +241,38 @@ class CourseHold:
             guard_m, remembered_sides, gap_offset_m: the obstacle memory's inputs
                 (:meth:`~companion.core.memory.ObstacleMemory.hold_inputs`), or None (memory off).
             memory_cfg: the ``[memory]`` config that goes with them.
+            obstacles: the obstacle memory itself, for the detour layer (None: no detour).
+            detour_cfg: the ``[detour]`` config (None: no detour).
+            prefer_right: a detour's tie goes right (``controller.preferred_yaw_side``).
+            planning: False while the caller holds (the watchdog, the goal reached, a dead end): no
+                goal check, no detour.
         """
         yaw = _finite(yaw_rad)
+        fresh = (
+            decision is not None
+            and math.isfinite(since_last_frame_s)
+            and since_last_frame_s <= cmd.stale_frame_timeout_s
+        )
+        command = None
+        if planning and fresh and self.holding_reason is None:
+            command = self._plan(decision, now_s, cmd, position_ned_m, yaw, obstacles, memory_cfg, detour_cfg, prefer_right)
+        if self.holding_reason is not None and decision is not None:
+            decision = NO_PROGRESS_HOLD  # the goal reached, or a dead end: the brake's holds
+        if command is not None and detour_cfg is not None:
+            return detour_setpoint(
+                command,
+                decision,
+                since_last_frame_s,
+                cmd,
+                detour_cfg,
+                position_ned_m=position_ned_m,
+                yaw_rad=yaw,
+                brake_offset_body_m=self.brake.offset_body(decision, position_ned_m, yaw),
+                brake_heading_error_rad=self.brake.heading_error_rad(yaw),
+                guard_m=guard_m,
+                guard_cfg=memory_cfg,
+                velocity_body_m_s=horizontal_velocity_body_m_s(velocity_ned_m_s, yaw),
+            )
         heading_error = altitude_error = line_offset = None
         if self.heading_rad is not None and yaw is not None:
             heading_error = self.heading_rad - yaw  # positive: the course lies to the right
@@ -182,3 +307,53 @@ class CourseHold:
             velocity_body_m_s=horizontal_velocity_body_m_s(velocity_ned_m_s, yaw),
             gap_offset_m=gap_offset_m,
         )
+
+    def _plan(
+        self,
+        decision: Decision,
+        now_s: float,
+        cmd: CommandConfig,
+        position_ned_m: object,
+        yaw: float | None,
+        obstacles: ObstacleMemory | None,
+        memory_cfg: MemoryConfig | None,
+        detour_cfg: DetourConfig | None,
+        prefer_right: bool,
+    ):
+        """The goal check and the detour layer for one setpoint: sets :attr:`holding_reason` when the
+        goal is reached or the detour finds a dead end; returns the detour's command, or None."""
+        pos = _finite_position(position_ned_m)
+        d = self.goal.distance_m(pos)
+        if d is not None and d <= cmd.goal_radius_m:
+            p = self.goal.point_ned_m
+            self.holding_reason = (
+                f"goal reached ({self.goal.spec.describe()}, within {cmd.goal_radius_m:g} m at N {p[0]:.1f} m, "
+                f"E {p[1]:+.1f} m): holding there; goto a new goal, or take over"
+            )
+            self.detour.reset()
+            return None
+        if detour_cfg is None or memory_cfg is None:
+            return None
+        was_active = self.detour.active
+        command = self.detour.update(
+            now_s,
+            decision,
+            pos,
+            yaw,
+            self.goal_bearing_rad(pos, yaw, cmd),
+            self.progress.stalled_for_s(now_s),
+            obstacles,
+            memory_cfg,
+            detour_cfg,
+            prefer_right,
+            goal_distance_m=d,
+            stall_mark_m=self.progress.mark_m,
+        )
+        if command is not None and command.phase is Phase.DEAD_END:
+            self.holding_reason = (
+                f"{command.reason}: holding position; goto another goal, resume to look again, or take over"
+            )
+            return None
+        if was_active and command is None and self.goal.is_point:
+            self._anchor_to_goal(pos)  # handed back: the course is now the line from here to the goal
+        return command

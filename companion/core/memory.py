@@ -190,8 +190,10 @@ class NearCells:
         return depth, self._block_rays[self._index[self._rows, pick]]
 
     def points(self, blocks: np.ndarray) -> np.ndarray:
-        """This frame's confirmed near points, float64 ``(K, 3)`` camera frame (x right, y down,
-        z forward) metres, ``K <= cells``; call once per frame, in order (it keeps the history)."""
+        """This frame's confirmed points out to ``max(max_depth_m, map_depth_m)``, float64 ``(K, 3)``
+        camera frame (x right, y down, z forward) metres, ``K <= cells``; call once per frame, in
+        order (it keeps the history). Those beyond ``max_depth_m`` are for the detour layer's map
+        only (:class:`ObstacleMemory` keeps each point's depth)."""
         depth, rays = self.cell_depths(blocks)
         self._depths.append(depth)
         self._rays.append(rays)
@@ -202,7 +204,7 @@ class NearCells:
         stack = np.stack(self._depths)
         which = np.argsort(stack, axis=0, kind="stable")[n // 2]
         z = stack[which, self._rows]
-        near = z <= self.cfg.max_depth_m
+        near = z <= max(self.cfg.max_depth_m, self.cfg.map_depth_m)
         ray = np.stack(self._rays)[which, self._rows][near]
         z = z[near]
         return np.stack([ray[:, 0] * z, ray[:, 1] * z, z], axis=1)
@@ -238,9 +240,19 @@ def camera_points_to_ned(points_cam_m: np.ndarray, pose: Pose) -> np.ndarray:
 
 
 class ObstacleMemory:
-    """Remembered near points, NED metres, one per ``voxel_m`` cube, with the time each cube was
-    last seen occupied (re-seeing a cube refreshes it instead of adding a copy, so a vehicle that
-    hovers in front of a wall does not fill the memory with it).
+    """Remembered points, NED metres, one per ``voxel_m`` cube, with the time each cube was last seen
+    occupied and the nearest depth it was seen at (re-seeing a cube refreshes it instead of adding a
+    copy, so a vehicle that hovers in front of a wall does not fill the memory with it).
+
+    Only points seen nearer than ``memory.max_depth_m`` guard the vehicle and keep course hold from a
+    side (:meth:`guard`, :meth:`sides_near`, :meth:`hold_inputs`); the farther ones (out to
+    ``memory.map_depth_m``) are for the detour layer's map (:meth:`map_points`).
+
+    **Trust.** A false stereo match moves with the view where a surface does not, so a point is
+    *trusted* (:meth:`map_points`, gap centering) only once the ``memory.trust_cell_m`` cube it lies in
+    has been seen from two camera positions at least ``memory.trust_baseline_m`` apart, or in
+    ``memory.trust_min_frames`` frames spanning at least ``memory.trust_persist_s``. Untrusted points
+    still guard (the guard errs on the side of caution).
 
     Args:
         max_points: most cubes kept; beyond it the least recently seen are dropped.
@@ -250,9 +262,7 @@ class ObstacleMemory:
     def __init__(self, max_points: int = 20000, voxel_m: float = 0.05) -> None:
         self.max_points = int(max_points)
         self.voxel_m = float(voxel_m)
-        self._keys = np.empty(0, dtype=np.int64)
-        self._pts = np.empty((0, 3))
-        self._t = np.empty(0)
+        self.reset()
 
     def __len__(self) -> int:
         return int(self._keys.size)
@@ -261,62 +271,224 @@ class ObstacleMemory:
         self._keys = np.empty(0, dtype=np.int64)
         self._pts = np.empty((0, 3))
         self._t = np.empty(0)
+        self._range = np.empty(0)
+        # Trust cubes, sorted by key: first and last time seen, frames seen in, the first viewpoint
+        # (north, east) and the largest horizontal distance of a later viewpoint from it.
+        self._tkeys = np.empty(0, dtype=np.int64)
+        self._tfirst = np.empty(0)
+        self._tlast = np.empty(0)
+        self._tcount = np.empty(0, dtype=np.int64)
+        self._tvp = np.empty((0, 2))
+        self._tspread = np.empty(0)
+        self._trust_cell_m: float | None = None
 
-    def _key(self, p: np.ndarray) -> np.ndarray:
-        q = np.floor(p / self.voxel_m).astype(np.int64) + (1 << 20)  # ±52 km at 5 cm: never wraps
+    @staticmethod
+    def _pack(q: np.ndarray) -> np.ndarray:
+        q = q + (1 << 20)  # ±52 km at 5 cm: never wraps
         return (q[:, 0] << 42) | (q[:, 1] << 21) | q[:, 2]
 
-    def add(self, points_ned_m: np.ndarray, t_s: float, duration_s: float) -> None:
+    def _key(self, p: np.ndarray) -> np.ndarray:
+        return self._pack(np.floor(p / self.voxel_m).astype(np.int64))
+
+    def add_frame(
+        self,
+        points_cam_m: np.ndarray,
+        seen_from: Pose,
+        t_s: float,
+        cfg: MemoryConfig,
+    ) -> None:
+        """One frame's points (float ``(K, 3)`` camera frame metres, :meth:`NearCells.points`) seen from
+        ``seen_from`` at ``t_s`` seconds: :meth:`add` with their depths and the viewpoint."""
+        p = np.asarray(points_cam_m, dtype=np.float64).reshape(-1, 3)
+        self.add(
+            camera_points_to_ned(p, seen_from),
+            t_s,
+            cfg.duration_s,
+            ranges_m=p[:, 2],
+            viewpoint_ned_m=np.asarray(seen_from.position_ned_m, dtype=np.float64),
+            cfg=cfg,
+        )
+
+    def add(
+        self,
+        points_ned_m: np.ndarray,
+        t_s: float,
+        duration_s: float,
+        *,
+        ranges_m: np.ndarray | None = None,
+        viewpoint_ned_m: np.ndarray | None = None,
+        cfg: MemoryConfig | None = None,
+    ) -> None:
         """Remember ``points_ned_m`` (float ``(K, 3)`` metres; non-finite rows are dropped) as seen at
-        ``t_s`` seconds, and forget what was last seen more than ``duration_s`` before it."""
+        ``t_s`` seconds, and forget what was last seen more than ``duration_s`` before it.
+
+        ``ranges_m``: float ``(K,)`` the depth each was seen at, metres (None: 0, i.e. near);
+        ``viewpoint_ned_m``: float ``(3,)`` where the camera was (None: unknown, trust by persistence
+        only); ``cfg``: the memory section, for the trust cubes (None: trust is not kept)."""
         p = np.asarray(points_ned_m, dtype=np.float64).reshape(-1, 3)
-        p = p[np.all(np.isfinite(p) & (np.abs(p) < 1e6), axis=1)]
+        r = np.zeros(len(p)) if ranges_m is None else np.asarray(ranges_m, dtype=np.float64).reshape(-1)
+        ok = np.all(np.isfinite(p) & (np.abs(p) < 1e6), axis=1) & np.isfinite(r)
+        p, r = p[ok], r[ok]
         if not math.isfinite(t_s):
             return
         keep = (t_s - self._t) <= duration_s
-        keys, pts, ts = self._keys[keep], self._pts[keep], self._t[keep]
+        keys, pts, ts, rs = self._keys[keep], self._pts[keep], self._t[keep], self._range[keep]
         if len(p):
-            new_keys, first = np.unique(self._key(p), return_index=True)
-            # Refresh the cubes seen again, add the rest.
+            new_keys, inverse = np.unique(self._key(p), return_inverse=True)
+            first = np.zeros(new_keys.size, dtype=np.int64)
+            first[inverse[::-1]] = np.arange(len(p))[::-1]
+            # The nearest depth this frame saw each cube at, and the nearest it was seen at before.
+            new_r = np.full(new_keys.size, np.inf)
+            np.minimum.at(new_r, inverse, r)
             old = np.isin(keys, new_keys)
+            if np.any(old):
+                at = np.searchsorted(new_keys, keys[old])
+                np.minimum.at(new_r, at, rs[old])
             keys = np.concatenate([keys[~old], new_keys])
             pts = np.concatenate([pts[~old], p[first]])
             ts = np.concatenate([ts[~old], np.full(new_keys.size, float(t_s))])
+            rs = np.concatenate([rs[~old], new_r])
         if keys.size > self.max_points:
             newest = np.argsort(ts, kind="stable")[-self.max_points :]
-            keys, pts, ts = keys[newest], pts[newest], ts[newest]
-        self._keys, self._pts, self._t = keys, pts, ts
+            keys, pts, ts, rs = keys[newest], pts[newest], ts[newest], rs[newest]
+        self._keys, self._pts, self._t, self._range = keys, pts, ts, rs
+        if cfg is not None:
+            self._update_trust(p, t_s, duration_s, viewpoint_ned_m, cfg)
+
+    def _trust_keys(self, p: np.ndarray, cell_m: float) -> np.ndarray:
+        return self._pack(np.floor(p / cell_m).astype(np.int64))
+
+    def _update_trust(
+        self, p: np.ndarray, t_s: float, duration_s: float, viewpoint_ned_m: np.ndarray | None, cfg: MemoryConfig
+    ) -> None:
+        if self._trust_cell_m != cfg.trust_cell_m:
+            self._tkeys = np.empty(0, dtype=np.int64)  # a new cube size: start again
+            self._tfirst, self._tlast, self._tspread = np.empty(0), np.empty(0), np.empty(0)
+            self._tcount, self._tvp = np.empty(0, dtype=np.int64), np.empty((0, 2))
+            self._trust_cell_m = cfg.trust_cell_m
+        keep = (t_s - self._tlast) <= duration_s
+        if not np.all(keep):
+            self._tkeys, self._tfirst, self._tlast = self._tkeys[keep], self._tfirst[keep], self._tlast[keep]
+            self._tcount, self._tvp, self._tspread = self._tcount[keep], self._tvp[keep], self._tspread[keep]
+        if not len(p):
+            return
+        vp = np.full(2, np.nan)
+        if viewpoint_ned_m is not None:
+            v = np.asarray(viewpoint_ned_m, dtype=np.float64).reshape(-1)
+            if v.size >= 2 and np.all(np.isfinite(v[:2])):
+                vp = v[:2].copy()
+        seen = np.unique(self._trust_keys(p, cfg.trust_cell_m))
+        at = np.searchsorted(self._tkeys, seen)
+        known = at < self._tkeys.size
+        known[known] = self._tkeys[at[known]] == seen[known]
+        i = at[known]
+        self._tlast[i] = t_s
+        self._tcount[i] += 1
+        vp0 = self._tvp[i]
+        missing = ~np.all(np.isfinite(vp0), axis=1)
+        if np.all(np.isfinite(vp)):
+            vp0[missing] = vp  # the first viewpoint known
+            self._tvp[i] = vp0
+            self._tspread[i] = np.maximum(self._tspread[i], np.hypot(vp0[:, 0] - vp[0], vp0[:, 1] - vp[1]))
+        fresh = seen[~known]
+        if fresh.size:
+            keys = np.concatenate([self._tkeys, fresh])
+            order = np.argsort(keys, kind="stable")
+            n = fresh.size
+            self._tkeys = keys[order]
+            self._tfirst = np.concatenate([self._tfirst, np.full(n, float(t_s))])[order]
+            self._tlast = np.concatenate([self._tlast, np.full(n, float(t_s))])[order]
+            self._tcount = np.concatenate([self._tcount, np.ones(n, dtype=np.int64)])[order]
+            self._tvp = np.concatenate([self._tvp, np.tile(vp, (n, 1))])[order]
+            self._tspread = np.concatenate([self._tspread, np.zeros(n)])[order]
+
+    def trusted(self, points_ned_m: np.ndarray, cfg: MemoryConfig) -> np.ndarray:
+        """bool ``(K,)``: whether each point (float ``(K, 3)`` NED metres) lies in a trusted cube (see
+        the class doc); all False when trust has not been kept with this ``cfg.trust_cell_m``."""
+        p = np.asarray(points_ned_m, dtype=np.float64).reshape(-1, 3)
+        if not len(p) or self._trust_cell_m != cfg.trust_cell_m or not self._tkeys.size:
+            return np.zeros(len(p), dtype=bool)
+        keys = self._trust_keys(p, cfg.trust_cell_m)
+        at = np.minimum(np.searchsorted(self._tkeys, keys), self._tkeys.size - 1)
+        found = self._tkeys[at] == keys
+        by_place = (self._tspread[at] >= cfg.trust_baseline_m) & (self._tcount[at] >= 2)
+        by_time = (self._tcount[at] >= cfg.trust_min_frames) & (self._tlast[at] - self._tfirst[at] >= cfg.trust_persist_s)
+        return found & (by_place | by_time)
+
+    def points(self, now_s: float, cfg: MemoryConfig) -> tuple[np.ndarray, np.ndarray]:
+        """Every point seen within ``cfg.duration_s`` of ``now_s``: float64 ``(K, 3)`` NED metres, and
+        bool ``(K,)`` trusted (the audit of false points uses both)."""
+        keep = (now_s - self._t) <= cfg.duration_s
+        pts = self._pts[keep]
+        return pts, self.trusted(pts, cfg)
+
+    def near_mask(self, now_s: float, cfg: MemoryConfig) -> np.ndarray:
+        """bool, aligned with :meth:`points`: seen nearer than ``cfg.max_depth_m`` (the points that
+        guard)."""
+        keep = (now_s - self._t) <= cfg.duration_s
+        return self._range[keep] <= cfg.max_depth_m
+
+    def map_points(
+        self, position_ned_m: np.ndarray, now_s: float, cfg: MemoryConfig, radius_m: float
+    ) -> np.ndarray | None:
+        """The trusted points the detour layer maps with: seen within ``cfg.duration_s`` of ``now_s``
+        (at any depth out to ``cfg.map_depth_m``), within ``cfg.height_band_m`` of the vehicle's
+        altitude and within ``radius_m`` of it horizontally, as float64 ``(N, 2)`` north and east
+        offsets from the vehicle, metres; None without a finite position."""
+        pos = np.asarray(position_ned_m, dtype=np.float64).reshape(-1)
+        if pos.shape != (3,) or not np.all(np.isfinite(pos)):
+            return None
+        keep = (now_s - self._t) <= cfg.duration_s
+        rel = self._pts[keep] - pos
+        near = (np.abs(rel[:, 2]) <= cfg.height_band_m) & (np.hypot(rel[:, 0], rel[:, 1]) < radius_m)
+        rel = rel[near]
+        trusted = self.trusted(rel + pos, cfg)
+        return rel[trusted, :2]
 
     def _nearby(
-        self, position_ned_m: np.ndarray, yaw_rad: float, now_s: float, cfg: MemoryConfig, radius_m: float
+        self,
+        position_ned_m: np.ndarray,
+        yaw_rad: float,
+        now_s: float,
+        cfg: MemoryConfig,
+        radius_m: float,
+        trusted_only: bool = False,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-        """The points seen within ``cfg.duration_s`` of ``now_s``, within ``cfg.height_band_m`` of the
-        vehicle's altitude and within ``radius_m`` of it horizontally, in the body frame: forward,
-        right and horizontal distance, float64 ``(N,)`` metres each; None without a finite position
-        and heading."""
+        """The points seen within ``cfg.duration_s`` of ``now_s`` nearer than ``cfg.max_depth_m``
+        (the map's farther points do not guard), within ``cfg.height_band_m`` of the vehicle's
+        altitude and within ``radius_m`` of it horizontally (``trusted_only``: trusted ones only), in
+        the body frame: forward, right and horizontal distance, float64 ``(N,)`` metres each; None
+        without a finite position and heading."""
         pos = np.asarray(position_ned_m, dtype=np.float64).reshape(-1)
         if pos.shape != (3,) or not np.all(np.isfinite(pos)) or not math.isfinite(yaw_rad):
             return None
-        rel = self._pts[(now_s - self._t) <= cfg.duration_s] - pos
+        sel = ((now_s - self._t) <= cfg.duration_s) & (self._range <= cfg.max_depth_m)
+        pts = self._pts[sel]
+        rel = pts - pos
         fwd, right = ned_to_body_horizontal(rel[:, 0], rel[:, 1], yaw_rad)
         dist = np.hypot(fwd, right)
         keep = (np.abs(rel[:, 2]) <= cfg.height_band_m) & (dist < radius_m)
+        if trusted_only:
+            keep &= self.trusted(pts, cfg)
         return fwd[keep], right[keep], dist[keep]
 
     def hold_inputs(
         self, position_ned_m: np.ndarray, yaw_rad: float, now_s: float, cfg: MemoryConfig, view: ViewLimits | None
     ) -> HoldInputs:
-        """:meth:`guard` (None without ``view``), :meth:`sides_near` and :func:`gap_offset_m`, from one
-        pass over the memory: what :func:`~companion.core.command.setpoint_for` takes as ``guard_m``,
-        ``remembered_sides`` and ``gap_offset_m``."""
+        """:meth:`guard` (None without ``view``), :meth:`sides_near` and :func:`gap_offset_m` (from
+        trusted points only), from the memory: what :func:`~companion.core.command.setpoint_for` takes
+        as ``guard_m``, ``remembered_sides`` and ``gap_offset_m``."""
         radius = max(cfg.guard_distance_m, cfg.hold_clear_m)
-        if cfg.gap_centering_gain_per_s > 0.0:
-            radius = max(radius, math.hypot(cfg.gap_lookahead_m, cfg.gap_max_width_m))
         near = self._nearby(position_ned_m, yaw_rad, now_s, cfg, radius)
         if near is None:
             return HoldInputs(None, None, None)
         guard = None if view is None else _guard_rows(*near, cfg, view)  # each filters by its own distance
-        return HoldInputs(guard, _sides(*near, cfg), gap_offset_m(near[0], near[1], cfg))
+        gap = None
+        if cfg.gap_centering_gain_per_s > 0.0:
+            radius = max(radius, math.hypot(cfg.gap_lookahead_m, cfg.gap_max_width_m))
+            trusted = self._nearby(position_ned_m, yaw_rad, now_s, cfg, radius, trusted_only=True)
+            gap = None if trusted is None else gap_offset_m(trusted[0], trusted[1], cfg)
+        return HoldInputs(guard, _sides(*near, cfg), gap)
 
     def sides_near(
         self, position_ned_m: np.ndarray, yaw_rad: float, now_s: float, cfg: MemoryConfig
@@ -338,10 +510,11 @@ class ObstacleMemory:
     ) -> np.ndarray | None:
         """The points that guard the vehicle now, nearest per sector, or None for none.
 
-        A point guards when it was seen within ``cfg.duration_s`` of ``now_s``, lies within
-        ``cfg.height_band_m`` of the vehicle's altitude and within ``cfg.guard_distance_m`` of it
-        horizontally, and the camera cannot see it now: its bearing from the heading lies beyond
-        the side of ``view`` it is on, or it is nearer than ``view.min_range_m``.
+        A point guards when it was seen within ``cfg.duration_s`` of ``now_s`` nearer than
+        ``cfg.max_depth_m``, lies within ``cfg.height_band_m`` of the vehicle's altitude and within
+        ``cfg.guard_distance_m`` of it horizontally, and the camera cannot see it now: its bearing
+        from the heading lies beyond the side of ``view`` it is on, or it is nearer than
+        ``view.min_range_m``.
 
         Returns:
             float64 ``(S, 3)``, ``S <= GUARD_SECTORS``: horizontal distance (metres) and the unit

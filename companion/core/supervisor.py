@@ -63,9 +63,11 @@ from typing import TYPE_CHECKING, Protocol, Union
 import numpy as np
 
 from companion.config.core import MemoryConfig
+from companion.config.detour import DetourConfig
 from companion.core.command import NO_PROGRESS_HOLD
 from companion.core.course import CourseHold
-from companion.core.memory import ObstacleMemory, ViewLimits, camera_points_to_ned
+from companion.core.goal import COURSE, GoalSpec
+from companion.core.memory import ObstacleMemory, ViewLimits
 from companion.core.pose import Pose
 from companion.core.types import ZERO_SETPOINT, Decision, DecisionKind, VelocitySetpoint
 
@@ -107,7 +109,19 @@ class Action(str, enum.Enum):
 
 @dataclass(frozen=True)
 class Engage:
-    """Operator: take control (enter offboard)."""
+    """Operator: take control (enter offboard), flying toward ``goal`` (:mod:`companion.core.goal`;
+    default: the heading and line at engagement)."""
+
+    goal: GoalSpec = COURSE
+
+
+@dataclass(frozen=True)
+class Goto:
+    """Operator, while engaged: a new goal (:class:`~companion.core.goal.GoalSpec`), from where the
+    vehicle is now. Ends a hold of the progress watchdog, a dead end or a goal reached (automatic
+    again); refused while not engaged (engage with a goal instead)."""
+
+    goal: GoalSpec
 
 
 @dataclass(frozen=True)
@@ -156,7 +170,7 @@ class ActionResult:
     message: str = ""
 
 
-Request = Union[Engage, Disengage, Pause, Resume, Override, Shutdown, ActionResult]
+Request = Union[Engage, Goto, Disengage, Pause, Resume, Override, Shutdown, ActionResult]
 
 
 @dataclass(frozen=True)
@@ -212,6 +226,8 @@ class SupervisorConfig:
     override_respects_brake: bool = True
     autostart: bool = False
     memory: MemoryConfig = field(default_factory=MemoryConfig)
+    detour: DetourConfig = field(default_factory=DetourConfig)
+    prefer_right: bool = True  # a detour's tie goes right (controller.preferred_yaw_side)
 
     @classmethod
     def from_config(cls, cfg: CompanionConfig) -> SupervisorConfig:
@@ -227,6 +243,8 @@ class SupervisorConfig:
             override_respects_brake=s.override_respects_brake,
             autostart=s.autostart,
             memory=cfg.memory,
+            detour=cfg.detour,
+            prefer_right=cfg.controller.preferred_yaw_side == "right",
         )
 
 
@@ -265,7 +283,8 @@ class _Memory:
     shutting_down: bool = False
     course: CourseHold = field(default_factory=CourseHold)  # course hold's timers, latches and progress clock
     obstacles: ObstacleMemory = field(default_factory=ObstacleMemory)  # near points seen (the guard)
-    stalled: bool = False  # paused by the progress watchdog (not by the operator)
+    stalled: bool = False  # paused by the progress watchdog, a dead end or the goal reached (not by the operator)
+    goal: GoalSpec = COURSE  # the goal of the engage under way (applied when offboard is confirmed)
     poses: deque[tuple[float, Pose]] = field(default_factory=lambda: deque(maxlen=_POSE_HISTORY))  # (time s, pose)
     last_frame_s: float | None = None  # capture time of the newest frame put in the memory
     view_limits: ViewLimits | None = None  # what the rig measures, from the frames
@@ -330,6 +349,11 @@ class Supervisor:
         }
 
     # ------------------------------------------------------------------------------------ update
+
+    def goal_status(self, position_ned_m: object) -> dict[str, object]:
+        """The goal for the health message (:meth:`~companion.core.course.CourseHold.goal_status`:
+        kind, distance and bearing from ``position_ned_m``, reached, the detour layer's phase)."""
+        return self._m.course.goal_status(position_ned_m)
 
     def memory_status(self) -> dict[str, float | int]:
         """The obstacle memory for the health message: ``points`` remembered (5 cm cubes),
@@ -415,7 +439,8 @@ class Supervisor:
             return
         t_seen, seen_from = min(m.poses, key=lambda tp: abs(tp[0] - latest.timestamp_s))
         if abs(t_seen - latest.timestamp_s) <= _POSE_MATCH_S:
-            m.obstacles.add(camera_points_to_ned(points, seen_from), latest.timestamp_s, self._cfg.memory.duration_s)
+            # With the viewpoint, so that the memory can trust points seen from two places (detours).
+            m.obstacles.add_frame(points, seen_from, latest.timestamp_s, self._cfg.memory)
 
     def _commanding(self) -> bool:
         m = self._m
@@ -489,7 +514,7 @@ class Supervisor:
                 m.activity = State.ENGAGED
                 m.stalled = False
                 # Course hold (when its gains are set) steers back to the heading, line and altitude of now.
-                m.course.engage(v.position_ned_m, _finite_or_none(v.attitude_rad, 2))
+                m.course.engage(v.position_ned_m, _finite_or_none(v.attitude_rad, 2), m.goal)
                 self._set(State.ENGAGED, "engaged: avoiding obstacles")
         elif m.leaving is not None and v.in_offboard and m.leaving.start_sent_s is not None:
             m.owns_offboard = True  # the start we asked for took effect after all: ours to leave
@@ -557,8 +582,18 @@ class Supervisor:
             if refusal is not None:
                 return Reply(r, False, f"engage refused: {refusal}")
             m.autostart_pending = False
+            m.goal = r.goal
             self._begin_engage(now_s, v, "engage requested")
-            return Reply(r, True, "engaging")
+            return Reply(r, True, f"engaging, goal: {r.goal.describe()}")
+        if isinstance(r, Goto):
+            if not self._commanding():
+                return Reply(r, False, f"goto refused: not engaged ({m.state.value}); engage with a goal instead")
+            m.goal = r.goal
+            m.course.set_goal(r.goal, v.position_ned_m, _finite_or_none(v.attitude_rad, 2))
+            if m.stalled:
+                m.activity = State.ENGAGED  # a hold of the watchdog, a dead end or the goal: automatic again
+                m.stalled = False
+            return Reply(r, True, f"goal: {r.goal.describe()}")
         if isinstance(r, Disengage):
             if m.engaging is not None or self._commanding():
                 self._begin_leave(now_s, State.DISENGAGED, "operator disengage")
@@ -582,6 +617,7 @@ class Supervisor:
             m.activity = State.ENGAGED
             m.stalled = False
             m.override = None
+            m.course.resume()  # forget a hold of the watchdog, a dead end or the goal reached: look again
             return Reply(r, True, "automatic" if was is not State.ENGAGED else "already automatic")
         if isinstance(r, Override):
             if not self._commanding():
@@ -662,8 +698,8 @@ class Supervisor:
             )
             self._set(State.DEGRADED, f"{why}: zero velocity")
             return
-        if m.activity is State.ENGAGED and self._no_progress(now_s, v):
-            m.activity = State.PAUSED
+        if m.activity is State.ENGAGED and (m.course.holding_reason is not None or self._no_progress(now_s, v)):
+            m.activity = State.PAUSED  # the goal reached, a dead end, or the progress watchdog
             m.stalled = True
         if m.activity is not State.ENGAGED:
             m.course.progress.reset()  # the watchdog times the automatic flight only
@@ -726,6 +762,14 @@ class Supervisor:
 
     def _stalled_reason(self) -> str:
         cmd = self._cfg.command
+        if self._m.course.holding_reason is not None:
+            return self._m.course.holding_reason  # the goal reached, or a dead end
+        if self._m.course.progress.why == "regress":
+            return (
+                f"flying back: {cmd.regress_distance_m:g} m farther from the goal than the nearest it has been "
+                f"for {cmd.regress_timeout_s:g} s (command.regress_distance_m, regress_timeout_s): "
+                "holding position; resume to try again, or take over"
+            )
         return (
             f"no progress along the course for {cmd.no_progress_timeout_s:g} s "
             f"(less than {cmd.progress_step_m:g} m: command.no_progress_timeout_s, progress_step_m): "
@@ -759,6 +803,10 @@ class Supervisor:
             remembered_sides=sides,
             gap_offset_m=gap,
             memory_cfg=self._cfg.memory,
+            obstacles=m.obstacles if self._cfg.memory.duration_s > 0.0 else None,
+            detour_cfg=self._cfg.detour,
+            prefer_right=self._cfg.prefer_right,
+            planning=not hold,
         )
 
     def _override_setpoint(self, o: Override, latest: FrameOutcome | None) -> VelocitySetpoint:

@@ -184,6 +184,13 @@ def render_health(h: dict[str, Any]) -> str:
            f"{_fmt((cam.get('skew_ms') or {}).get('max'), ' ms', 1)} max" if cam.get("skew_ms") else ""),
         f"vehicle {veh.get('link')}  mode {veh.get('flight_mode')}  armed {veh.get('armed')}",
     ]
+    goal = h.get("goal") or {}
+    if goal:
+        det = goal.get("detour") or {}
+        lines.append(
+            f"goal {goal.get('description')}  distance {_fmt(goal.get('distance_m'), ' m', 1)}  "
+            f"bearing {_fmt(goal.get('bearing_deg'), ' deg', 0)}  detour {det.get('phase')} ({det.get('reason')})"
+        )
     if h.get("override"):
         o = h["override"]
         lines.append(f"override yaw {o['yaw']:.2f} pitch {o['pitch']:.2f} speed {o['speed_fraction']:.2f} "

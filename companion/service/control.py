@@ -38,7 +38,7 @@ from companion.config import BusConfig, CompanionConfig, apply_patch, load_confi
 from companion.config.service import LIVE_CAMERA_FIELDS, RESTART_FIELDS
 from companion.config.view import VIEW_RESTART_FIELDS
 from companion.core.safety import near_blindness
-from companion.core.supervisor import Disengage, Engage, Override, Pause, Reply, Resume, SupervisorConfig
+from companion.core.supervisor import Disengage, Engage, Goto, Override, Pause, Reply, Resume, SupervisorConfig
 from companion.errors import CompanionError, ConfigError, ProtocolError
 from companion.service import protocol
 
@@ -207,6 +207,12 @@ class ControlPlane:
             return await self.apply_config(new, "set_config")
         if cmd == "reload":
             return await self.reload()
+        if cmd in ("engage", "goto") and request.goal is not None:
+            try:
+                spec = request.goal.spec()
+            except ValueError as err:
+                raise ProtocolError(f"{cmd}: goal: {err}") from None
+            return await self._supervise(Engage(goal=spec) if cmd == "engage" else Goto(goal=spec))
         supervisor_request = {
             "engage": Engage,
             "disengage": Disengage,

@@ -115,6 +115,7 @@ class HealthReporter:
             "setpoints_sent": self._setpoints_sent,
             "override": self.supervisor.override_status(now),
             "memory": self.supervisor.memory_status(),
+            "goal": self.supervisor.goal_status(v.position_ned_m if v is not None else None),
             "camera": (
                 {
                     "source": capture.source,

@@ -7,9 +7,13 @@ A request is one JSON object with a ``cmd`` (the discriminator) and that command
     {"ok": false, "cmd": "override", "id": 7, "error": {"type": "ProtocolError", "message": "..."}}
 
 Commands: ``ping``, ``status``, ``get_config`` (optional ``section``), ``set_config`` (``patch``: a
-partial config), ``reload``, ``engage``, ``disengage``, ``pause``, ``resume``, ``override``
-(``yaw`` and ``pitch`` in [-1, 1], ``speed`` in [0, 1] as a share of the cruise speed,
-``duration_s`` > 0 and at most ``service.override_max_duration_s``).
+partial config), ``reload``, ``engage`` (optional ``goal``), ``goto`` (``goal``), ``disengage``,
+``pause``, ``resume``, ``override`` (``yaw`` and ``pitch`` in [-1, 1], ``speed`` in [0, 1] as a share
+of the cruise speed, ``duration_s`` > 0 and at most ``service.override_max_duration_s``).
+
+A ``goal`` (:class:`Goal`) is one of ``{"kind": "course"}`` (the heading and line at engagement),
+``{"kind": "point", "north_m": 12.0, "east_m": -3.0}`` (local NED frame) or
+``{"kind": "bearing", "bearing_deg": 30.0, "distance_m": 10.0, "from_heading": true}``.
 """
 
 from __future__ import annotations
@@ -63,10 +67,44 @@ class ReloadRequest(_Request):
     cmd: Literal["reload"]
 
 
+class Goal(BaseModel):
+    """Where to fly (:class:`~companion.core.goal.GoalSpec`; see the module doc)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False, strict=True)
+
+    kind: Literal["course", "point", "bearing"] = Field(description="course, point or bearing.")
+    north_m: float = Field(default=0.0, ge=-1e5, le=1e5, description="point: north, local NED metres.")
+    east_m: float = Field(default=0.0, ge=-1e5, le=1e5, description="point: east, local NED metres.")
+    bearing_deg: float = Field(default=0.0, ge=-360.0, le=360.0, description="bearing: degrees clockwise.")
+    distance_m: float = Field(default=0.0, ge=0.0, le=1e5, description="bearing: how far, metres (> 0).")
+    from_heading: bool = Field(default=False, description="bearing: from the vehicle's heading, not north.")
+
+    def spec(self) -> Any:
+        """The core's :class:`~companion.core.goal.GoalSpec` (raises ValueError for a bearing of 0 m)."""
+        from companion.core.goal import GoalSpec
+
+        return GoalSpec(
+            kind=self.kind,
+            north_m=self.north_m,
+            east_m=self.east_m,
+            bearing_deg=self.bearing_deg,
+            distance_m=self.distance_m,
+            from_heading=self.from_heading,
+        )
+
+
 class EngageRequest(_Request):
-    """Enter offboard and start avoiding."""
+    """Enter offboard and start avoiding, toward ``goal`` (default: the heading and line at engagement)."""
 
     cmd: Literal["engage"]
+    goal: Goal | None = Field(default=None, description="Where to fly; none: the course at engagement.")
+
+
+class GotoRequest(_Request):
+    """While engaged: a new goal, from where the vehicle is now (ends a hold at a goal or a dead end)."""
+
+    cmd: Literal["goto"]
+    goal: Goal
 
 
 class DisengageRequest(_Request):
@@ -105,6 +143,7 @@ Request = Annotated[
         SetConfigRequest,
         ReloadRequest,
         EngageRequest,
+        GotoRequest,
         DisengageRequest,
         PauseRequest,
         ResumeRequest,
@@ -120,6 +159,7 @@ COMMANDS: tuple[str, ...] = (
     "set_config",
     "reload",
     "engage",
+    "goto",
     "disengage",
     "pause",
     "resume",

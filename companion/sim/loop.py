@@ -35,7 +35,8 @@ from companion.backends import make_pipeline
 from companion.config import CompanionConfig
 from companion.core.command import NO_PROGRESS_HOLD
 from companion.core.course import CourseHold
-from companion.core.memory import ObstacleMemory, camera_points_to_ned
+from companion.core.goal import GoalSpec
+from companion.core.memory import ObstacleMemory
 from companion.core.pipeline import FrameResult, Pipeline
 from companion.core.types import ZERO_SETPOINT, DecisionKind, VelocitySetpoint
 from companion.errors import CameraError
@@ -59,6 +60,7 @@ class LogKind(enum.IntEnum):
     BRAKE = 3
     STALE = 4  #: the newest decision is older than the stale timeout (zero velocity)
     HOLD = 5  #: the vehicle is in HOLD (failsafe)
+    DETOUR = 6  #: the detour layer drove the setpoint (looking round, turning, flying a detour)
 
 
 _KIND_OF = {DecisionKind.CLEAR: LogKind.CLEAR, DecisionKind.AVOID: LogKind.AVOID, DecisionKind.BRAKE: LogKind.BRAKE}
@@ -154,6 +156,10 @@ class FlightResult:
         frames: frames processed.
         decisions: frames per decision kind ("clear", "avoid", "brake").
         reason: one line saying why the flight ended.
+        hold_reason: why the flight held, when it did (the progress watchdog, a dead end), else "".
+        detours: detours the detour layer began.
+        memory_audit: with ``audit_memory``: the remembered points against the ground truth
+            (:func:`audit_points`), summed over the audited frames; else None.
         log: the setpoint-rate log.
         frame_log: the per-frame log.
         timing: wall-clock instrumentation (not compared).
@@ -171,6 +177,9 @@ class FlightResult:
     frames: int = 0
     decisions: dict[str, int] = field(default_factory=dict)
     reason: str = ""
+    hold_reason: str = ""
+    detours: int = 0
+    memory_audit: dict[str, int] | None = field(default=None, compare=False)
     log: FlightLog | None = field(default=None, compare=False)
     frame_log: FrameLog | None = field(default=None, compare=False)
     timing: FlightTiming | None = field(default=None, compare=False)
@@ -268,6 +277,7 @@ def fly(
     on_step: Callable[[SimStep], None] | None = None,
     clock: Callable[[], float] = time.perf_counter,
     sleep: Callable[[float], None] = time.sleep,
+    audit_memory: bool = False,
 ) -> FlightResult:
     """Fly ``course`` closed-loop with the configuration ``cfg`` and score it.
 
@@ -281,6 +291,8 @@ def fly(
         want_disparity: ask the pipeline for the disparity image (for ``on_frame`` overlays).
         on_step: called at every setpoint tick with what was commanded (a live view).
         clock, sleep: wall clock and sleep, for ``realtime`` and the timing instrumentation.
+        audit_memory: judge the obstacle memory's points against the ground truth every 5th frame
+            (:func:`audit_points`; slow: a measurement, not for suites).
     """
     wall0 = clock()
     cfg = simulator_config(cfg)
@@ -317,9 +329,17 @@ def fly(
     camera_ok = True
     n_cam = n_sp = 0
     hold = CourseHold()  # course hold's bookkeeping, the service's own (core/course.py)
-    hold.engage(course.start.position_ned_m, course.start.yaw_rad)  # the course: the start pose
-    stalled = False  # the progress watchdog fired (the service pauses; here the flight holds to the end)
+    goal = GoalSpec()  # the course: the start pose
+    if sim.goal == "point":
+        north, east, _ = course.goal_point_ned_m
+        goal = GoalSpec(kind="point", north_m=north, east_m=east)
+    hold.engage(course.start.position_ned_m, course.start.yaw_rad, goal)
+    stalled = False  # the progress watchdog (or a dead end) fired: the service pauses; here the flight holds
+    hold_reason = ""
+    detours = 0
+    audit: dict[str, int] | None = {} if audit_memory else None
     memory = ObstacleMemory() if cfg.memory.duration_s > 0.0 else None
+    prefer_right = cfg.controller.preferred_yaw_side == "right"
     judge = Judge(
         course,
         radius,
@@ -331,6 +351,7 @@ def fly(
     )
     sp = ZERO_SETPOINT
     kind = LogKind.NONE
+    detouring = False
 
     def log_row(t: float) -> None:
         m = vehicle.model
@@ -375,9 +396,9 @@ def fly(
         while pending and pending[0][0] <= t + _EPS_S:
             _, latest, seen_from = pending.popleft()
             if memory is not None and latest.near_points_cam_m is not None:
-                memory.add(
-                    camera_points_to_ned(latest.near_points_cam_m, seen_from), latest.timestamp_s, cfg.memory.duration_s
-                )
+                memory.add_frame(latest.near_points_cam_m, seen_from, latest.timestamp_s, cfg.memory)
+                if audit is not None and len(f_t) % 5 == 0:
+                    _add_counts(audit, audit_points(memory, course, latest.timestamp_s, seen_from, cfg))
 
         # -- setpoint, at the service's rate and by the service's rule
         if t >= n_sp * sp_period - _EPS_S:
@@ -388,7 +409,12 @@ def fly(
             decision = latest.decision if latest is not None else None
             m = vehicle.model
             hold.observe(decision, latest.timestamp_s if latest is not None else None, m.position_ned_m)
-            stalled = stalled or hold.no_progress(m.position_ned_m, t, cmd)
+            if not stalled and hold.no_progress(m.position_ned_m, t, cmd):
+                stalled = True
+                hold_reason = f"progress watchdog ({hold.progress.why})"
+            if not stalled and hold.holding_reason is not None:
+                stalled = True
+                hold_reason = hold.holding_reason
             if stalled and decision is not None:
                 decision = NO_PROGRESS_HOLD
             guard = sides = gap = None
@@ -408,13 +434,22 @@ def fly(
                 remembered_sides=sides,
                 gap_offset_m=gap,
                 memory_cfg=cfg.memory,
+                obstacles=memory,
+                detour_cfg=cfg.detour,
+                prefer_right=prefer_right,
+                planning=not stalled,
             )
+            if hold.detour.active and not detouring:
+                detours += 1
+            detouring = hold.detour.active
             if vehicle.in_offboard:
                 vehicle.set_setpoint(sp)
                 if decision is None:
                     kind = LogKind.NONE
                 elif age > cmd.stale_frame_timeout_s:
                     kind = LogKind.STALE
+                elif detouring:
+                    kind = LogKind.DETOUR
                 else:
                     kind = _KIND_OF[decision.kind]
             else:
@@ -491,7 +526,48 @@ def fly(
         frames=len(f_t),
         decisions=counts,
         reason=judge.reason,
+        hold_reason=hold_reason,
+        detours=detours,
+        memory_audit=audit,
         log=log,
         frame_log=frame_log,
         timing=timing,
     )
+
+
+#: A remembered point farther than this from every true surface is false, metres.
+FALSE_POINT_TOLERANCE_M = 0.3
+
+
+def audit_points(memory: ObstacleMemory, course: Course, now_s: float, seen_from: Pose, cfg: CompanionConfig) -> dict[str, int]:
+    """The memory's points at ``now_s`` judged against the course's true geometry: ``points`` (all
+    remembered), ``false`` (farther than :data:`FALSE_POINT_TOLERANCE_M` from every surface, ground
+    included), ``trusted`` and ``trusted_false``; and the same for the points the detour layer maps
+    with (``map_*``: trusted, within ``memory.height_band_m`` of the vehicle and within the detour's
+    reach of it) and those that guard (``near_*``: seen nearer than ``memory.max_depth_m``)."""
+    from companion.sim.scoring import ClearanceField
+
+    field_ = ClearanceField(course.scene)
+    pts, trusted = memory.points(now_s, cfg.memory)
+    near = memory.near_mask(now_s, cfg.memory)
+    dist = np.array([field_.distance_m(p) for p in pts])
+    false = dist > FALSE_POINT_TOLERANCE_M
+    pos = np.asarray(seen_from.position_ned_m, dtype=np.float64)
+    reach = max(cfg.detour.radius_m, cfg.memory.map_depth_m) + cfg.detour.clearance_m
+    rel = pts - pos
+    mapped = trusted & (np.abs(rel[:, 2]) <= cfg.memory.height_band_m) & (np.hypot(rel[:, 0], rel[:, 1]) < reach)
+    return {
+        "points": int(len(pts)),
+        "false": int(np.count_nonzero(false)),
+        "trusted": int(np.count_nonzero(trusted)),
+        "trusted_false": int(np.count_nonzero(trusted & false)),
+        "map_points": int(np.count_nonzero(mapped)),
+        "map_false": int(np.count_nonzero(mapped & false)),
+        "near_points": int(np.count_nonzero(near)),
+        "near_false": int(np.count_nonzero(near & false)),
+    }
+
+
+def _add_counts(total: dict[str, int], counts: dict[str, int]) -> None:
+    for k, v in counts.items():
+        total[k] = total.get(k, 0) + v

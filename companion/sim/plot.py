@@ -29,6 +29,7 @@ KIND_COLOUR: dict[int, tuple[int, int, int]] = {
     LogKind.BRAKE: (40, 40, 220),
     LogKind.STALE: (120, 120, 120),
     LogKind.HOLD: (170, 60, 170),
+    LogKind.DETOUR: (200, 170, 0),
 }
 _OBSTACLE = (95, 95, 95)
 _LOW = (70, 110, 150)  # entirely below the start altitude: brownish
@@ -213,7 +214,7 @@ def plot_flight(result: FlightResult, side_view: bool = False, px_per_m: float |
     x = 8
     for label, colour in (("clear", KIND_COLOUR[LogKind.CLEAR]), ("avoid", KIND_COLOUR[LogKind.AVOID]),
                           ("brake", KIND_COLOUR[LogKind.BRAKE]), ("stale/none", KIND_COLOUR[LogKind.NONE]),
-                          ("hold", KIND_COLOUR[LogKind.HOLD])):
+                          ("hold", KIND_COLOUR[LogKind.HOLD]), ("detour", KIND_COLOUR[LogKind.DETOUR])):
         cv2.line(img, (x, 64), (x + 22, 64), colour, 3, cv2.LINE_AA)
         _text(img, label, (x + 26, 69), 0.45)
         x += 34 + 10 * len(label)

@@ -172,7 +172,13 @@ class Judge:
             self.min_clearance_m, self.min_clearance_at_ned_m = clearance, pos.copy()
         t = float(time_s)
         if self.held_radius_m is not None:
-            self._stopped_since = self._stopped_in_place_since(t, pos)
+            if abs(math.degrees(yaw_rate_rad_s)) >= HELD_YAW_RATE_DEG_S:
+                # Turning in place (a detour's look round) is not holding, drift or not: the window
+                # of samples starts again after the turn.
+                self._recent.clear()
+                self._stopped_since = None
+            else:
+                self._stopped_since = self._stopped_in_place_since(t, pos)
         elif speed_m_s < self.held_speed_m_s and abs(math.degrees(yaw_rate_rad_s)) < HELD_YAW_RATE_DEG_S:
             self._stopped_since = t if self._stopped_since is None else self._stopped_since
         else:

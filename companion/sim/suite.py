@@ -23,8 +23,8 @@ from companion.sim.courses import COURSE_KINDS
 from companion.sim.loop import FlightResult
 from companion.sim.scoring import Outcome
 
-#: Named suites: ``standard`` = 9 seeds of each kind of :data:`COURSE_KINDS` (63 flights with
-#: ``office``); ``quick`` = 2 of each.
+#: Named suites: ``standard`` = 9 seeds of each kind of :data:`COURSE_KINDS` (72 flights with
+#: ``office`` and ``detour``); ``quick`` = 2 of each (16).
 SUITES: dict[str, tuple[tuple[str, int], ...]] = {
     "standard": tuple((kind, seed) for seed in range(9) for kind in COURSE_KINDS),
     "quick": tuple((kind, seed) for seed in range(2) for kind in COURSE_KINDS),

@@ -267,7 +267,10 @@ async def fly_course(
     try:
         placement = await start_and_place(service, pilot, course)
         t_req = time.monotonic()
-        await service.request({"cmd": "engage"})
+        # The goal the simulator's flights have (sim.goal = "point"): the course's goal point, in the autopilot's frame.
+        goal_local = placement.position_in_local(np.asarray(course.goal_point_ned_m, dtype=np.float64))
+        goal = {"kind": "point", "north_m": float(goal_local[0]), "east_m": float(goal_local[1])}
+        await service.request({"cmd": "engage", "goal": goal} if cfg.sim.goal == "point" else {"cmd": "engage"})
         t_offboard = await pilot.wait_for(f"{pilot.OFFBOARD_MODE} after engage", lambda: pilot.in_offboard, 10.0)
         recorder = _Recorder(course, cfg, placement, pilot.latest(), pilot.OFFBOARD_MODE)
         seen = len(pilot.samples)

@@ -1,0 +1,252 @@
+"""Config of the detour layer (``[detour]``): a way round an obstacle the reactive controller cannot pass."""
+
+from __future__ import annotations
+
+from pydantic import Field, model_validator
+
+from companion.config._base import StrictModel
+
+
+class DetourConfig(StrictModel):
+    """The detour layer, above the fuzzy controller (:mod:`companion.core.detour`). When the way ahead
+    stays blocked (the controller brakes), or the vehicle gets no nearer its goal, it turns in place to
+    look around (filling the obstacle memory), picks from the memory's trusted points the free
+    direction that best leads toward the goal (a polar histogram of the vehicle's surroundings, as
+    VFH+ and PX4-Avoidance's local planner do), flies that way and hands back to course hold once the
+    goal direction is free. No free direction toward the goal: a hold, reported as a dead end. The
+    fuzzy controller stays the reactive layer: a detour only turns the vehicle and slows it, never
+    flies it where the controller would not. Not in the paper."""
+
+    trigger_after_s: float = Field(
+        default=0.0,
+        ge=0.0,
+        le=30.0,
+        description=(
+            "Start a detour once the controller has braked (the way ahead blocked, no escape) this "
+            "long without a break, seconds; 0 = the detour layer is off (the reactive controller and "
+            "course hold alone, as before it; the default until it flies the drift suite with no "
+            "collision: issue 21). 0.8 turns it on: short, since the simulator's judge, and a pilot, "
+            "call a vehicle stopped for 3 s held."
+        ),
+    )
+    trigger_no_progress_s: float = Field(
+        default=10.0,
+        ge=0.0,
+        le=600.0,
+        description=(
+            "Also start a detour when the vehicle has got no command.progress_step_m nearer its goal "
+            "for this long (circling in front of a box: the avoidance steers round it, course hold "
+            "back into it), seconds; 0 = only on a brake. Once per stall: the progress watchdog "
+            "(command.no_progress_timeout_s) still ends a detour that gets nowhere."
+        ),
+    )
+    trigger_away_deg: float = Field(
+        default=110.0,
+        ge=0.0,
+        le=180.0,
+        description=(
+            "Also start a detour when the controller, steering round something, has turned the vehicle "
+            "this many degrees away from the goal direction (it circles in front of a box), degrees; "
+            "0 = off."
+        ),
+    )
+    scan_half_angle_deg: float = Field(
+        default=90.0,
+        ge=0.0,
+        le=180.0,
+        description=(
+            "The look round: turn in place to this many degrees either side of the goal direction, so "
+            "that the camera (about ±45°) fills the memory out to scan_half_angle_deg + 45° round the "
+            "goal, degrees. It first turns to the side the memory does not favour and ends facing the "
+            "one it does. No look round when the way round is already in view."
+        ),
+    )
+    turn_rate_deg_s: float = Field(
+        default=50.0,
+        gt=0.0,
+        le=360.0,
+        description=(
+            "Yaw rate of the look round and of a detour's turns in place, deg/s (within "
+            "envelope.max_yaw_rate_deg_s): slow enough that each direction stays in view for the "
+            "memory to trust what it saw there (memory.trust_persist_s)."
+        ),
+    )
+    scan_timeout_s: float = Field(
+        default=15.0,
+        gt=0.0,
+        le=120.0,
+        description="A look round ends after this long, wherever it has got to, seconds.",
+    )
+    max_angle_deg: float = Field(
+        default=100.0,
+        ge=10.0,
+        le=180.0,
+        description=(
+            "Only directions within this many degrees of the goal direction count as leading toward "
+            "it; none free: a dead end. Above 90 allows a little back-tracking round a corner."
+        ),
+    )
+    sector_deg: float = Field(
+        default=5.0,
+        ge=1.0,
+        le=30.0,
+        description="Angular resolution of the polar histogram of directions, degrees.",
+    )
+    radius_m: float = Field(
+        default=2.5,
+        gt=0.5,
+        le=20.0,
+        description=(
+            "The goal direction counts as free, and a detour hands back to course hold, when its path "
+            "keeps clearance_m from every trusted remembered point this far (or all the way to a "
+            "nearer goal point), metres."
+        ),
+    )
+    min_free_m: float = Field(
+        default=1.5,
+        gt=0.0,
+        le=20.0,
+        description=(
+            "A detour's direction must keep clearance_m from every trusted point for at least this "
+            "far, metres; no such direction within max_angle_deg of the goal: a dead end (a hold, "
+            "reported). A corridor leaves no straight 2.5 m path round a box, but a bend of them."
+        ),
+    )
+    clearance_m: float = Field(
+        default=0.55,
+        gt=0.0,
+        le=5.0,
+        description=(
+            "A free direction's path keeps at least this far from every trusted point, metres: the "
+            "0.25 m vehicle plus 0.3 m. A gap must be twice this wide to be chosen."
+        ),
+    )
+    squeeze_clearance_m: float = Field(
+        default=0.4,
+        gt=0.0,
+        le=5.0,
+        description=(
+            "Along a detour, on the side chosen, when no direction keeps clearance_m (an opening just "
+            "wide enough, seen with its jambs' depth noise), one keeping this much still goes on, "
+            "metres: the 0.25 m vehicle plus 0.15 m (the controller and the guard still act)."
+        ),
+    )
+    preferred_clearance_m: float = Field(
+        default=0.8,
+        gt=0.0,
+        le=5.0,
+        description=(
+            "Directions that pass nearer than this to a trusted point cost extra (prefer_clear_cost_deg), "
+            "metres, so that a detour along a wall keeps off it."
+        ),
+    )
+    prefer_clear_cost_deg: float = Field(
+        default=20.0,
+        ge=0.0,
+        le=180.0,
+        description="What a direction nearer than preferred_clearance_m costs, in degrees off the goal.",
+    )
+    lookahead_m: float = Field(
+        default=4.0,
+        ge=0.0,
+        le=20.0,
+        description=(
+            "Choosing a side (left or right of the goal): the side where a step square to the goal "
+            "direction, on the map's free space, opens the way to the goal soonest is the shorter way "
+            "round (an opening, or the end of the wall); steps up to this long are tried (at most 0.8 "
+            "memory.map_depth_m), metres; 0 = choose by the free direction nearest the goal only."
+        ),
+    )
+    speed_m_s: float = Field(
+        default=0.5,
+        ge=0.0,
+        le=15.0,
+        description=(
+            "Forward speed along a detour, m/s (at most command.cruise_speed_m_s and "
+            "envelope.max_horizontal_speed_m_s; the controller's own slowing still applies)."
+        ),
+    )
+    turn_in_place_deg: float = Field(
+        default=25.0,
+        ge=1.0,
+        le=180.0,
+        description=(
+            "Facing more than this many degrees away from the detour's direction, the vehicle stops "
+            "and turns in place (holding its position), so the camera looks where it is going first."
+        ),
+    )
+    max_detours_without_progress: int = Field(
+        default=3,
+        ge=1,
+        le=100,
+        description=(
+            "At most this many detours begin while the vehicle gets no command.progress_step_m nearer "
+            "its goal; then the progress watchdog (whose clock stands still during a detour) decides."
+        ),
+    )
+    max_distance_m: float = Field(
+        default=10.0,
+        gt=0.0,
+        le=200.0,
+        description=(
+            "A detour that has taken the vehicle this far (horizontally) from where it began without "
+            "the goal direction coming free ends in a dead-end hold, metres."
+        ),
+    )
+    max_time_s: float = Field(
+        default=45.0,
+        gt=0.0,
+        le=600.0,
+        description="A detour that has lasted this long without handing back ends in a dead-end hold, seconds.",
+    )
+    replan_interval_s: float = Field(
+        default=0.4,
+        gt=0.0,
+        le=10.0,
+        description="How often a detour looks again at the memory for its direction, seconds.",
+    )
+    visited_spacing_m: float = Field(
+        default=0.3,
+        gt=0.0,
+        le=5.0,
+        description="The flight's trail (where the vehicle has been) keeps one point per this many metres.",
+    )
+    visited_clearance_m: float = Field(
+        default=0.5,
+        gt=0.0,
+        le=5.0,
+        description=(
+            "A direction whose path passes this near a point of the trail older than visited_age_s "
+            "leads back where the vehicle has been, metres: it costs visited_cost_deg."
+        ),
+    )
+    visited_age_s: float = Field(
+        default=5.0, ge=0.0, le=600.0, description="Trail points younger than this do not count as visited, seconds."
+    )
+    visited_cost_deg: float = Field(
+        default=60.0,
+        ge=0.0,
+        le=360.0,
+        description="What a direction back where the vehicle has been costs, in degrees off the goal.",
+    )
+    side_memory_m: float = Field(
+        default=4.0,
+        ge=0.0,
+        le=100.0,
+        description=(
+            "A new detour that starts within this distance of where the last one ended goes round the "
+            "same side (it does not swing between two detours), metres; 0 = every detour chooses anew."
+        ),
+    )
+
+    @model_validator(mode="after")
+    def _order(self) -> DetourConfig:
+        if self.preferred_clearance_m < self.clearance_m:
+            raise ValueError(
+                f"preferred_clearance_m ({self.preferred_clearance_m}) must be at least clearance_m ({self.clearance_m})"
+            )
+        if self.squeeze_clearance_m > self.clearance_m:
+            raise ValueError(
+                f"squeeze_clearance_m ({self.squeeze_clearance_m}) must be at most clearance_m ({self.clearance_m})"
+            )
+        return self

@@ -1,0 +1,671 @@
+"""The detour layer: a way round what the reactive controller cannot pass (pure; time is passed in).
+
+The Mamdani controller (:mod:`companion.core.fuzzy.avoidance`) sees only its nine regions: in front of
+a box or a wall wider than the view it brakes and holds, or steers round and is steered back into it
+by course hold. The obstacle memory (:mod:`companion.core.memory`) holds what the camera saw round
+the vehicle. The detour layer uses it to choose a way round, as the polar histogram of VFH+ (Ulrich &
+Borenstein 1998) and PX4-Avoidance's local planner do, and stays above the controller: the
+controller's brake is absolute, and a detour only turns the vehicle and slows it
+(:func:`detour_setpoint`).
+
+Phases (:class:`Phase`)::
+
+    idle ──braked trigger_after_s, or no progress trigger_no_progress_s──▶ scan
+    scan ──turned to the goal ± scan_half_angle_deg (or scan_timeout_s)──▶ choose
+    choose ──the goal direction free──▶ handback ──facing it──▶ idle (course hold)
+           ──a free direction toward the goal──▶ fly (turning in place first) ──replan──▶ choose
+           ──none──▶ dead end (a hold, reported)
+
+* **scan**: turn in place (holding the position where it began) to the goal direction minus and plus
+  ``scan_half_angle_deg``, the nearer side first, at ``turn_rate_deg_s``: the camera fills the memory.
+* **choose**: the polar histogram of the memory's *trusted* points (:meth:`ObstacleMemory.map_points
+  <companion.core.memory.ObstacleMemory.map_points>`) round the vehicle, every ``sector_deg`` within
+  ``max_angle_deg`` of the goal direction. A direction is *free* when no trusted point lies within
+  ``clearance_m`` of the path along it out to ``radius_m`` (VFH+'s enlarged obstacles; a point already
+  nearer than that blocks only a path that would close on it). The goal direction free: hand back.
+  Else a side (left or right of the goal) is kept for the whole detour, chosen as the side where a
+  shorter step square to the goal direction, on the map's free space, opens the way to the goal
+  (within ``lookahead_m``: an opening, or the end of the wall: the shorter way round), then the
+  free direction on that side nearest the goal,
+  costing extra when it passes nearer than ``preferred_clearance_m`` to a point or back over the
+  vehicle's own trail (``visited_*``). No free direction on the side: the other side, once; on
+  neither: a **dead end**.
+* **fly**: face the direction (turning in place beyond ``turn_in_place_deg``), then fly it at
+  ``speed_m_s`` (the controller's yaw and slowing still act), choosing again every
+  ``replan_interval_s``; a brake for ``trigger_after_s`` along it closes that direction from here.
+  Farther than ``max_distance_m`` from where it began, or longer than ``max_time_s``: a dead end.
+* **handback**: turn in place to the goal direction, then course hold flies on.
+
+The layer remembers where it has been (a trail of positions) and which side it went round: a new
+detour that starts within ``side_memory_m`` of the last one's end goes round the same side, so the
+vehicle does not swing between two detours.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from collections import deque
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from companion.core.types import Decision, DecisionKind
+
+if TYPE_CHECKING:
+    from companion.config.detour import DetourConfig
+    from companion.config.memory import MemoryConfig
+    from companion.core.memory import ObstacleMemory
+
+#: An AVOID decision climbing or descending at least this much (and more than it turns) is the
+#: controller escaping vertically: the way over or under is free, so no detour (and a look round
+#: stops). The side rules' slight climb away from the ground (0.05-0.15) is not one.
+VERTICAL_ESCAPE = 0.2
+#: A scan target counts as reached within this, radians.
+_SCAN_TOLERANCE_RAD = math.radians(6.0)
+#: Nearer than the clearance to something, a path may come no nearer to anything than this less
+#: than the vehicle is now, metres.
+_NEAR_MARGIN_M = 0.05
+#: A direction closed by a brake stays closed from within this distance of where it braked, metres.
+_VETO_RADIUS_M = 1.0
+#: ... for directions within this of the one it braked on, radians.
+_VETO_HALF_ANGLE_RAD = math.radians(15.0)
+#: Trail points kept (at ``visited_spacing_m``: 150 m).
+_TRAIL_POINTS = 500
+#: Keep the direction flown unless another costs this much less, degrees (no dithering).
+_HYSTERESIS_DEG = 10.0
+#: A direction this near the heading has been seen (the camera's view is about ±45°, its left
+#: edge less): a detour toward it needs no look round first, degrees.
+_IN_VIEW_DEG = 30.0
+
+
+def wrap_pi(angle_rad: float) -> float:
+    """``angle_rad`` wrapped to [-pi, pi)."""
+    return (float(angle_rad) + math.pi) % (2.0 * math.pi) - math.pi
+
+
+class Phase(str, enum.Enum):
+    """What the detour layer is doing (health's ``detour.phase``)."""
+
+    IDLE = "idle"  #: course hold flies (no detour)
+    SCAN = "scan"  #: looking round, turning in place
+    FLY = "fly"  #: flying the chosen direction (turning in place toward it first)
+    HANDBACK = "handback"  #: the goal direction is free: turning to it, then course hold
+    DEAD_END = "dead_end"  #: no free direction toward the goal: hold
+
+
+@dataclass(frozen=True)
+class DetourCommand:
+    """What the detour layer asks of the setpoint (:func:`detour_setpoint`).
+
+    Attributes:
+        phase: the phase.
+        target_yaw_rad: the heading to face (scan, handback) or fly (fly), radians; None: keep it.
+        anchor_ned_m: float ``(3,)`` NED metres: hold this position while turning in place; None
+            while flying.
+        reason: one line for health.
+    """
+
+    phase: Phase
+    target_yaw_rad: float | None
+    anchor_ned_m: np.ndarray | None
+    reason: str
+
+
+@dataclass(frozen=True)
+class Histogram:
+    """The directions round the vehicle, from one look at the memory.
+
+    Attributes:
+        bearing_rad: float64 ``(K,)`` candidate headings, radians from north (the goal direction
+            at index ``goal_index``).
+        offset_rad: float64 ``(K,)`` each one's angle from the goal direction (+ right of it).
+        free_m: float64 ``(K,)`` how far the path along each keeps ``clearance_m`` from every trusted
+            point, metres (inf: as far as the map reaches).
+        roomy_m: float64 ``(K,)`` the same with ``preferred_clearance_m``.
+        tight_m: float64 ``(K,)`` the same with ``squeeze_clearance_m``.
+        visited: bool ``(K,)`` the path passes back over the vehicle's trail.
+        goal_index: where the goal direction is.
+        through_m: how far a step sideways (square to the goal direction, on the map's free space)
+            to the right and to the left opens the way to the goal, metres (inf: not within
+            ``lookahead_m``): the shorter way round.
+    """
+
+    bearing_rad: np.ndarray
+    offset_rad: np.ndarray
+    free_m: np.ndarray
+    roomy_m: np.ndarray
+    tight_m: np.ndarray
+    visited: np.ndarray
+    goal_index: int
+    through_m: dict[int, float]
+
+
+def _rays(dn: np.ndarray, de: np.ndarray, bearing: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Points (north, east offsets from the vehicle, float ``(N,)`` metres) along and across the path
+    along each bearing (float ``(K,)`` radians): float ``(K, N)`` metres each (across: + right)."""
+    c, s = np.cos(bearing)[:, None], np.sin(bearing)[:, None]
+    return c * dn[None, :] + s * de[None, :], -s * dn[None, :] + c * de[None, :]
+
+
+def free_length_m(along: np.ndarray, across: np.ndarray, clearance_m: float) -> np.ndarray:
+    """How far each path (rows of ``along``/``across``, float ``(K, N)`` metres, :func:`_rays`) goes
+    before it comes within ``clearance_m`` of a point: float ``(K,)`` metres, inf for none."""
+    inside = (along > 0.0) & (np.abs(across) < clearance_m)
+    hit = along - np.sqrt(np.maximum(clearance_m * clearance_m - across * across, 0.0))
+    hit = np.where(inside, np.maximum(hit, 0.0), np.inf)
+    return hit.min(axis=1) if hit.shape[1] else np.full(hit.shape[0], np.inf)
+
+
+def polar_histogram(
+    points_ne_m: np.ndarray,
+    goal_bearing_rad: float,
+    cfg: DetourConfig,
+    map_depth_m: float,
+    trail_ne_m: np.ndarray | None = None,
+    goal_distance_m: float | None = None,
+) -> Histogram:
+    """The candidate directions round the vehicle (:class:`Histogram`) from trusted map points
+    (float ``(N, 2)`` north, east offsets from the vehicle, metres), the direction to the goal (and
+    the distance to a goal point, None for the course) and, for ``visited``, the trail (float
+    ``(M, 2)`` offsets of where the vehicle has been, old enough to count)."""
+    step = math.radians(cfg.sector_deg)
+    n = int(math.floor(cfg.max_angle_deg / cfg.sector_deg + 1e-9))
+    offsets = np.arange(-n, n + 1, dtype=np.float64) * step
+    bearing = np.array([wrap_pi(goal_bearing_rad + o) for o in offsets])
+    k = offsets.size
+    pts = np.asarray(points_ne_m, dtype=np.float64).reshape(-1, 2)
+    free = np.full(k, np.inf)
+    roomy = np.full(k, np.inf)
+    tight = np.full(k, np.inf)
+    through = {1: math.inf, -1: math.inf}
+    if len(pts):
+        dn, de = pts[:, 0], pts[:, 1]
+        along, across = _rays(dn, de, bearing)
+        # A vehicle already nearer than the clearance to something may still fly a path that comes
+        # no nearer to anything than it is now (less 5 cm): away from it, or along it.
+        nearest = float(np.min(np.hypot(dn, de))) - _NEAR_MARGIN_M
+        free = free_length_m(along, across, max(0.0, min(cfg.clearance_m, nearest)))
+        roomy = free_length_m(along, across, max(0.0, min(cfg.preferred_clearance_m, nearest)))
+        tight = free_length_m(along, across, max(0.0, min(cfg.squeeze_clearance_m, nearest)))
+        through = _through(pts, goal_bearing_rad, goal_distance_m, cfg, max(0.0, min(cfg.clearance_m, nearest)), map_depth_m)
+    visited = np.zeros(k, dtype=bool)
+    if trail_ne_m is not None and len(trail_ne_m):
+        tr = np.asarray(trail_ne_m, dtype=np.float64).reshape(-1, 2)
+        along, across = _rays(tr[:, 0], tr[:, 1], bearing)
+        reach = cfg.min_free_m + cfg.visited_clearance_m
+        visited = np.any((along > 0.3) & (along < reach) & (np.abs(across) < cfg.visited_clearance_m), axis=1)
+    return Histogram(bearing, offsets, free, roomy, tight, visited, n, through)
+
+
+#: The side-step look-ahead (:func:`_through`) tries positions this far apart, metres.
+_THROUGH_STEP_M = 0.5
+
+
+def _through(
+    pts: np.ndarray,
+    goal_bearing_rad: float,
+    goal_distance_m: float | None,
+    cfg: DetourConfig,
+    clearance_m: float,
+    map_depth_m: float,
+) -> dict[int, float]:
+    """For each side (+1 right of the goal direction, -1 left): the shortest step square to the goal
+    direction, along free space (``clearance_m``), after which the way to the goal keeps
+    ``clearance_m`` from every point for ``radius_m`` (or to the goal point); inf when none within
+    ``lookahead_m`` (at most 0.8 of the map's depth: beyond it the map has not seen a wall go on)."""
+    out = {1: math.inf, -1: math.inf}
+    reach = min(cfg.lookahead_m, 0.8 * map_depth_m)
+    gn = gd = None
+    if goal_distance_m is not None:
+        gn, gd = goal_distance_m * math.cos(goal_bearing_rad), goal_distance_m * math.sin(goal_bearing_rad)
+    for side in (1, -1):
+        d = goal_bearing_rad + side * 0.5 * math.pi
+        along, across = _rays(pts[:, 0], pts[:, 1], np.array([d]))
+        room = float(free_length_m(along, across, clearance_m)[0])
+        for k in np.arange(_THROUGH_STEP_M, reach + 1e-9, _THROUGH_STEP_M):
+            if k > room:
+                break
+            sn, se = k * math.cos(d), k * math.sin(d)
+            q = pts - np.array([sn, se])
+            if gn is None:
+                b, need = goal_bearing_rad, cfg.radius_m
+            else:
+                b = math.atan2(gd - se, gn - sn)
+                need = min(cfg.radius_m, math.hypot(gn - sn, gd - se))
+            # From there, any way between the goal and the goal direction from where the vehicle is
+            # (an opening seen at a slant is flown square through), a sector either side: turning
+            # farther out would look where the map has not been.
+            lo, hi = sorted((0.0, wrap_pi(goal_bearing_rad - b)))
+            fan = b + np.arange(lo - math.radians(cfg.sector_deg), hi + math.radians(cfg.sector_deg) + 1e-9, math.radians(cfg.sector_deg))
+            al, ac = _rays(q[:, 0], q[:, 1], fan)
+            if float(np.max(free_length_m(al, ac, cfg.clearance_m))) >= need:
+                out[side] = float(k)
+                break
+    return out
+
+
+class DetourPlanner:
+    """The detour layer's state for one flight (see the module doc). Built idle; :meth:`reset` on
+    engage, a new goal, or resume."""
+
+    def __init__(self) -> None:
+        self.trail: deque[tuple[float, float, float]] = deque(maxlen=_TRAIL_POINTS)  # (north, east, time s)
+        self._last_end: tuple[float, float, int] | None = None  # where the last detour ended, its side
+        self._count_mark: float | None = None  # the progress mark the detours are counted at
+        self._count = 0  # detours begun since the vehicle last made progress
+        self.reset()
+
+    def reset(self) -> None:
+        """Back to idle, forgetting the current detour (the trail and the last side are kept)."""
+        self.phase = Phase.IDLE
+        self.reason = "no detour"
+        self._blocked_since_s: float | None = None
+        self._progress_mark_s: float | None = None  # the stall already answered by a detour
+        self._since_s = 0.0
+        self._start_ned_m: np.ndarray | None = None
+        self._anchor_ned_m: np.ndarray | None = None
+        self._targets: list[float] = []
+        self._target_rad: float | None = None
+        self._side = 0  # +1 right of the goal, -1 left, 0 not chosen
+        self._switched = False
+        self._last_plan_s = -math.inf
+        self._brake_since_s: float | None = None
+        self._vetoes: list[tuple[float, float, float]] = []  # (north, east, bearing) closed by a brake
+        self._scans = 0
+        self._goal_distance_m: float | None = None
+        self._stall_mark: float | None = None
+
+    @property
+    def active(self) -> bool:
+        """A detour is under way (scanning, flying or handing back)."""
+        return self.phase in (Phase.SCAN, Phase.FLY, Phase.HANDBACK)
+
+    def status(self) -> dict[str, object]:
+        """For health: ``phase``, ``reason``, ``heading_deg`` (the direction faced or flown, or None),
+        ``side`` (``left``, ``right`` or None)."""
+        return {
+            "phase": self.phase.value,
+            "reason": self.reason,
+            "heading_deg": None if self._target_rad is None or not self.active else math.degrees(self._target_rad),
+            "side": {1: "right", -1: "left"}.get(self._side),
+        }
+
+    # ------------------------------------------------------------------------------------ update
+
+    def update(
+        self,
+        now_s: float,
+        decision: Decision | None,
+        position_ned_m: np.ndarray | None,
+        yaw_rad: float | None,
+        goal_bearing_rad: float | None,
+        stalled_for_s: float | None,
+        memory: ObstacleMemory | None,
+        memory_cfg: MemoryConfig,
+        cfg: DetourConfig,
+        prefer_right: bool = True,
+        goal_distance_m: float | None = None,
+        stall_mark_m: float | None = None,
+    ) -> DetourCommand | None:
+        """Advance to ``now_s`` (seconds) with the decision in force (fresh), the vehicle's position
+        (float ``(3,)`` NED metres) and heading (radians), the direction to the goal from here
+        (radians from north), how long the vehicle has got no nearer its goal (seconds, None =
+        unknown), and the memory. Returns what the setpoint must do, or None: no detour (course hold).
+        ``prefer_right``: the side a tie goes to (``controller.preferred_yaw_side``);
+        ``goal_distance_m``: how far the goal point is (None: the course, no point);
+        ``stall_mark_m``: the progress the vehicle has stalled at (the watchdog's mark: a stall is
+        answered by one detour)."""
+        self._goal_distance_m = goal_distance_m
+        self._stall_mark = stall_mark_m
+        if cfg.trigger_after_s <= 0.0 or memory is None or memory_cfg.duration_s <= 0.0:
+            self.phase = Phase.IDLE
+            return None
+        pos = _position(position_ned_m)
+        if pos is None or yaw_rad is None or not math.isfinite(yaw_rad) or goal_bearing_rad is None:
+            self._blocked_since_s = None
+            if self.phase is Phase.DEAD_END:
+                return DetourCommand(Phase.DEAD_END, None, self._anchor_ned_m, self.reason)
+            if self.active:
+                self.reset()
+                self.reason = "detour abandoned: position or heading unknown"
+            return None
+        self._remember_trail(pos, now_s, cfg)
+        if self.phase is Phase.DEAD_END:
+            return DetourCommand(Phase.DEAD_END, None, self._anchor_ned_m, self.reason)
+        if self._stall_mark is None or self._count_mark is None or abs(self._stall_mark - self._count_mark) > 1e-6:
+            self._count_mark, self._count = self._stall_mark, 0  # progress since: count afresh
+        if self.phase is Phase.IDLE:
+            if not self._triggered(now_s, decision, yaw_rad, goal_bearing_rad, stalled_for_s, cfg):
+                return None
+            if self._count >= cfg.max_detours_without_progress:
+                self.reason = (
+                    f"{self.reason}, but {self._count} detours have brought no progress "
+                    "(detour.max_detours_without_progress): the progress watchdog decides"
+                )
+                return None
+            self._count += 1
+            return self._begin(now_s, pos, yaw_rad, goal_bearing_rad, memory, memory_cfg, cfg, prefer_right)
+        if _vertical_escape(decision):
+            self._end(pos, "the controller escapes over or under: no detour")
+            return None
+        elif now_s - self._since_s > cfg.max_time_s and self.phase is not Phase.HANDBACK:
+            return self._dead_end(pos, f"no way round within {cfg.max_time_s:g} s (detour.max_time_s)")
+        elif self._distance_from_start_m(pos) > cfg.max_distance_m and self.phase is not Phase.HANDBACK:
+            return self._dead_end(pos, f"no way round within {cfg.max_distance_m:g} m (detour.max_distance_m)")
+        if self.phase is Phase.SCAN:
+            return self._scan(now_s, pos, yaw_rad, goal_bearing_rad, memory, memory_cfg, cfg, prefer_right)
+        if self.phase is Phase.HANDBACK:
+            return self._handback(pos, yaw_rad, goal_bearing_rad, cfg)
+        return self._fly(now_s, decision, pos, yaw_rad, goal_bearing_rad, memory, memory_cfg, cfg, prefer_right)
+
+    # ------------------------------------------------------------------------------------ phases
+
+    def _triggered(
+        self,
+        now_s: float,
+        decision: Decision | None,
+        yaw: float,
+        goal: float,
+        stalled_for_s: float | None,
+        cfg: DetourConfig,
+    ) -> bool:
+        braking = decision is not None and decision.kind is DecisionKind.BRAKE
+        if not braking or _vertical_escape(decision):
+            self._blocked_since_s = None
+        elif self._blocked_since_s is None:
+            self._blocked_since_s = now_s
+        if self._blocked_since_s is not None and now_s - self._blocked_since_s >= cfg.trigger_after_s:
+            self.reason = f"braked for {cfg.trigger_after_s:g} s"
+            return True
+        away = abs(wrap_pi(yaw - goal))
+        steering = decision is not None and decision.kind is not DecisionKind.CLEAR
+        if cfg.trigger_away_deg > 0.0 and steering and away >= math.radians(cfg.trigger_away_deg):
+            self.reason = f"steered {math.degrees(away):.0f} deg away from the goal"
+            return True
+        if stalled_for_s is None or cfg.trigger_no_progress_s <= 0.0:
+            self._progress_mark_s = None
+            return False
+        mark = self._stall_mark  # the progress the vehicle stalled at: one detour per stall
+        if stalled_for_s >= cfg.trigger_no_progress_s and (
+            self._progress_mark_s is None or mark is None or abs(mark - self._progress_mark_s) > 1e-6
+        ):
+            self._progress_mark_s = mark
+            self.reason = f"no progress for {cfg.trigger_no_progress_s:g} s"
+            return True
+        return False
+
+    def _begin(
+        self,
+        now_s: float,
+        pos: np.ndarray,
+        yaw: float,
+        goal: float,
+        memory: ObstacleMemory,
+        memory_cfg: MemoryConfig,
+        cfg: DetourConfig,
+        prefer_right: bool,
+    ) -> DetourCommand | None:
+        """Start a detour: choose at once when the way round is in view, else look round first."""
+        self._since_s = now_s
+        self._start_ned_m = pos.copy()
+        self._switched = False
+        self._vetoes = []
+        self._scans = 0
+        self._side = 0
+        if self._last_end is not None and cfg.side_memory_m > 0.0:
+            n, e, side = self._last_end
+            if math.hypot(pos[0] - n, pos[1] - e) <= cfg.side_memory_m:
+                self._side = side  # round the same side as the last detour nearby
+        h = self._histogram(now_s, pos, goal, memory, memory_cfg, cfg)
+        lean = self._side or _pick_side(h, prefer_right, cfg)
+        k = _best(h, lean, cfg, None)
+        if k is not None and abs(wrap_pi(h.bearing_rad[k] - yaw)) <= math.radians(_IN_VIEW_DEG):
+            # The way round is in view (it has been seen): no need to look round.
+            self.phase = Phase.SCAN
+            return self._choose(now_s, pos, yaw, goal, memory, memory_cfg, cfg, prefer_right)
+        self._start_scan(now_s, pos, yaw, goal, cfg, lean)
+        return DetourCommand(Phase.SCAN, self._target_rad, self._anchor_ned_m, self.reason)
+
+    def _start_scan(self, now_s: float, pos: np.ndarray, yaw: float, goal: float, cfg: DetourConfig, lean: int) -> None:
+        """Look round: first to the side away from ``lean`` (the side the memory already favours),
+        then to ``lean``'s, so the look ends facing the likelier way."""
+        self.phase = Phase.SCAN
+        self._scans += 1
+        self._scan_since_s = now_s
+        self._anchor_ned_m = pos.copy()
+        half = math.radians(cfg.scan_half_angle_deg)
+        a, b = wrap_pi(goal - half), wrap_pi(goal + half)
+        # Through the goal direction: every turn under 180 degrees, so it goes the way meant.
+        self._targets = [a, goal, b] if lean > 0 else [b, goal, a]
+        if abs(wrap_pi(self._targets[0] - yaw)) > math.radians(150.0):
+            self._targets.insert(0, goal)
+        self._target_rad = self._targets[0]
+        self.reason = f"{self.reason}: looking round"
+
+    def _scan(
+        self,
+        now_s: float,
+        pos: np.ndarray,
+        yaw: float,
+        goal: float,
+        memory: ObstacleMemory,
+        memory_cfg: MemoryConfig,
+        cfg: DetourConfig,
+        prefer_right: bool,
+    ) -> DetourCommand | None:
+        while self._targets and abs(wrap_pi(self._targets[0] - yaw)) <= _SCAN_TOLERANCE_RAD:
+            self._targets.pop(0)
+            self._turn_sign = 0
+        if self._targets and now_s - self._scan_since_s <= cfg.scan_timeout_s:
+            self._target_rad = self._targets[0]
+            self.reason = f"looking round ({len(self._targets)} turn{'s' if len(self._targets) > 1 else ''} to go)"
+            return DetourCommand(Phase.SCAN, self._target_rad, self._anchor_ned_m, self.reason)
+        return self._choose(now_s, pos, yaw, goal, memory, memory_cfg, cfg, prefer_right)
+
+    def _choose(
+        self,
+        now_s: float,
+        pos: np.ndarray,
+        yaw: float,
+        goal: float,
+        memory: ObstacleMemory,
+        memory_cfg: MemoryConfig,
+        cfg: DetourConfig,
+        prefer_right: bool,
+    ) -> DetourCommand | None:
+        self._last_plan_s = now_s
+        h = self._histogram(now_s, pos, goal, memory, memory_cfg, cfg)
+        gd = self._goal_distance_m
+        need = cfg.radius_m if gd is None else min(cfg.radius_m, gd)
+        if h.free_m[h.goal_index] >= need:
+            self.phase = Phase.HANDBACK
+            self._target_rad = goal
+            self._anchor_ned_m = pos.copy()
+            self.reason = "the goal direction is free: turning to it"
+            return self._handback(pos, yaw, goal, cfg)
+        flying = self.phase is Phase.FLY
+        if self._side == 0:
+            self._side = _pick_side(h, prefer_right, cfg)
+        k = _best(h, self._side, cfg, self._target_rad if flying else None)
+        if k is None and flying:
+            # Along the way the room narrows as the obstacle's end comes near, or in an opening just
+            # wide enough: on the side chosen, a direction free for half min_free_m, then one free with
+            # squeeze_clearance_m, still goes on; a look round (and a switch) asks for all of it.
+            k = _best(h, self._side, cfg, self._target_rad, 0.5)
+            if k is None:
+                k = _best(h, self._side, cfg, self._target_rad, 0.5, tight=True)
+        if k is None and not self._switched:
+            self._switched = True
+            self._side = -self._side
+            k = _best(h, self._side, cfg, None)
+        if k is None:
+            return self._dead_end(
+                pos,
+                f"dead end: no direction within {cfg.max_angle_deg:g} deg of the goal free for "
+                f"{cfg.min_free_m:g} m (detour.min_free_m), either side",
+            )
+        if self.phase is not Phase.FLY or self._target_rad is None or abs(wrap_pi(h.bearing_rad[k] - self._target_rad)) > 1e-9:
+            self._anchor_ned_m = None
+        self.phase = Phase.FLY
+        self._target_rad = float(h.bearing_rad[k])
+        side = "right" if self._side > 0 else "left"
+        self.reason = f"round the {side}: {math.degrees(abs(h.offset_rad[k])):.0f} deg off the goal direction"
+        return self._fly_command(pos, yaw, cfg)
+
+    def _fly(
+        self,
+        now_s: float,
+        decision: Decision | None,
+        pos: np.ndarray,
+        yaw: float,
+        goal: float,
+        memory: ObstacleMemory,
+        memory_cfg: MemoryConfig,
+        cfg: DetourConfig,
+        prefer_right: bool,
+    ) -> DetourCommand | None:
+        braking = decision is not None and decision.kind is DecisionKind.BRAKE
+        if not braking:
+            self._brake_since_s = None
+        elif self._brake_since_s is None:
+            self._brake_since_s = now_s
+        facing = self._target_rad is not None and abs(wrap_pi(self._target_rad - yaw)) <= math.radians(cfg.turn_in_place_deg)
+        if self._brake_since_s is not None and facing and now_s - self._brake_since_s >= cfg.trigger_after_s:
+            # The controller brakes on this direction: close it from here, and choose again.
+            self._vetoes.append((float(pos[0]), float(pos[1]), float(self._target_rad)))
+            self._brake_since_s = None
+            self._last_plan_s = -math.inf
+        if now_s - self._last_plan_s >= cfg.replan_interval_s:
+            return self._choose(now_s, pos, yaw, goal, memory, memory_cfg, cfg, prefer_right)
+        return self._fly_command(pos, yaw, cfg)
+
+    def _fly_command(self, pos: np.ndarray, yaw: float, cfg: DetourConfig) -> DetourCommand:
+        assert self._target_rad is not None
+        if abs(wrap_pi(self._target_rad - yaw)) > math.radians(cfg.turn_in_place_deg):
+            if self._anchor_ned_m is None:
+                self._anchor_ned_m = pos.copy()  # turn in place here
+            return DetourCommand(Phase.FLY, self._target_rad, self._anchor_ned_m, self.reason)
+        self._anchor_ned_m = None
+        return DetourCommand(Phase.FLY, self._target_rad, None, self.reason)
+
+    def _handback(self, pos: np.ndarray, yaw: float, goal: float, cfg: DetourConfig) -> DetourCommand | None:
+        self._target_rad = goal
+        if abs(wrap_pi(goal - yaw)) <= math.radians(cfg.turn_in_place_deg):
+            self._end(pos, "handed back to course hold: the goal direction is free")
+            return None
+        if self._anchor_ned_m is None:
+            self._anchor_ned_m = pos.copy()
+        return DetourCommand(Phase.HANDBACK, goal, self._anchor_ned_m, self.reason)
+
+    def _end(self, pos: np.ndarray, reason: str) -> None:
+        if self._side != 0:
+            self._last_end = (float(pos[0]), float(pos[1]), self._side)
+        mark = self._progress_mark_s
+        self.reset()
+        self._progress_mark_s = mark  # a stall answered once is not answered again
+        self.reason = reason
+
+    def _dead_end(self, pos: np.ndarray, reason: str) -> DetourCommand:
+        self.phase = Phase.DEAD_END
+        self._anchor_ned_m = pos.copy()
+        self._target_rad = None
+        self.reason = reason
+        return DetourCommand(Phase.DEAD_END, None, self._anchor_ned_m, reason)
+
+    # ------------------------------------------------------------------------------------ helpers
+
+    def _histogram(
+        self, now_s: float, pos: np.ndarray, goal: float, memory: ObstacleMemory, memory_cfg: MemoryConfig, cfg: DetourConfig
+    ) -> Histogram:
+        reach_m = max(cfg.radius_m, memory_cfg.map_depth_m)
+        pts = memory.map_points(pos, now_s, memory_cfg, reach_m + cfg.clearance_m)
+        pts = np.empty((0, 2)) if pts is None else pts
+        trail = None
+        if self.trail:
+            tr = np.array(self.trail, dtype=np.float64)
+            old = tr[:, 2] <= now_s - cfg.visited_age_s
+            trail = tr[old, :2] - pos[:2]
+        h = polar_histogram(pts, goal, cfg, memory_cfg.map_depth_m, trail, self._goal_distance_m)
+        if self._vetoes:
+            free, roomy, tight = h.free_m.copy(), h.roomy_m.copy(), h.tight_m.copy()
+            for n, e, b in self._vetoes:
+                if math.hypot(pos[0] - n, pos[1] - e) <= _VETO_RADIUS_M:
+                    closed = np.abs(np.array([wrap_pi(x - b) for x in h.bearing_rad])) <= _VETO_HALF_ANGLE_RAD
+                    free[closed] = roomy[closed] = tight[closed] = 0.0
+            h = Histogram(h.bearing_rad, h.offset_rad, free, roomy, tight, h.visited, h.goal_index, h.through_m)
+        return h
+
+    def _remember_trail(self, pos: np.ndarray, now_s: float, cfg: DetourConfig) -> None:
+        if not self.trail or math.hypot(pos[0] - self.trail[-1][0], pos[1] - self.trail[-1][1]) >= cfg.visited_spacing_m:
+            self.trail.append((float(pos[0]), float(pos[1]), float(now_s)))
+
+    def _distance_from_start_m(self, pos: np.ndarray) -> float:
+        if self._start_ned_m is None:
+            return 0.0
+        return math.hypot(pos[0] - self._start_ned_m[0], pos[1] - self._start_ned_m[1])
+
+
+def _pick_side(h: Histogram, prefer_right: bool, cfg: DetourConfig) -> int:
+    """+1 (right of the goal) or -1: the side where a shorter step square to the goal direction opens
+    the way to it (:attr:`Histogram.through_m`: an opening, or the end of the wall); when neither
+    does within the look-ahead, the side with the free direction nearest the goal; a tie goes to the
+    preferred side."""
+    r, left = h.through_m[1], h.through_m[-1]
+    if not (math.isinf(r) and math.isinf(left)) and abs(r - left) > 0.5 * _THROUGH_STEP_M:
+        return 1 if r < left else -1
+    angle = np.abs(h.offset_rad)
+    usable = h.free_m >= cfg.min_free_m
+    best: dict[int, float] = {}
+    for side in (1, -1):
+        a = angle[(np.sign(h.offset_rad) == side) & usable]
+        best[side] = float(a.min()) if a.size else math.inf
+    if abs(best[1] - best[-1]) > 0.5 * math.radians(cfg.sector_deg):
+        return 1 if best[1] < best[-1] else -1
+    return 1 if prefer_right else -1
+
+
+def _best(
+    h: Histogram, side: int, cfg: DetourConfig, current_rad: float | None, share: float = 1.0, tight: bool = False
+) -> int | None:
+    """The index of the free direction (free for ``min_free_m``) on ``side`` of the goal costing least:
+    its angle off the goal, plus ``prefer_clear_cost_deg`` when it is not free for ``min_free_m`` with
+    ``preferred_clearance_m`` and ``visited_cost_deg`` back over the trail; the direction flown now
+    (``current_rad``) keeps its place unless another costs :data:`_HYSTERESIS_DEG` less. None: none
+    free on that side. ``share``: the part of ``min_free_m`` that counts as free; ``tight``: free with
+    ``squeeze_clearance_m`` instead of ``clearance_m``."""
+    free = h.tight_m if tight else h.free_m
+    on = (np.sign(h.offset_rad) == side) & (free >= share * cfg.min_free_m)
+    if not np.any(on):
+        return None
+    cost = np.degrees(np.abs(h.offset_rad))
+    cost = cost + np.where(h.roomy_m >= share * cfg.min_free_m, 0.0, cfg.prefer_clear_cost_deg)
+    cost = cost + np.where(h.visited, cfg.visited_cost_deg, 0.0)
+    cost = np.where(on, cost, np.inf)
+    k = int(np.argmin(cost))
+    if current_rad is not None:
+        near = np.abs(np.array([wrap_pi(b - current_rad) for b in h.bearing_rad]))
+        j = int(np.argmin(near))
+        if on[j] and near[j] < 1e-6 and cost[j] - cost[k] < _HYSTERESIS_DEG:
+            return j
+    return k
+
+
+def _vertical_escape(decision: Decision | None) -> bool:
+    return (
+        decision is not None
+        and decision.kind is DecisionKind.AVOID
+        and abs(decision.pitch) >= VERTICAL_ESCAPE
+        and abs(decision.pitch) > abs(decision.yaw)
+    )
+
+
+def _position(position_ned_m: object) -> np.ndarray | None:
+    if position_ned_m is None:
+        return None
+    try:
+        p = np.asarray(position_ned_m, dtype=np.float64).reshape(3)
+    except (TypeError, ValueError):
+        return None
+    return p.copy() if np.all(np.isfinite(p)) else None

@@ -1,0 +1,362 @@
+"""Issue 21: the goal, the detour layer (polar histogram, side choice, dead end, no oscillation), trust in
+the memory, the progress watchdog's regress, and their plumbing through the supervisor and protocol."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from companion.config import CompanionConfig, parse_config
+from companion.core.command import ProgressWatch
+from companion.core.course import CourseHold
+from companion.core.detour import DetourPlanner, Phase, free_length_m, polar_histogram, wrap_pi
+from companion.core.goal import GoalSpec, resolve_goal
+from companion.core.memory import ObstacleMemory
+from companion.core.supervisor import Goto, Resume, State
+from companion.core.types import Decision, DecisionKind
+from companion.errors import ProtocolError
+from companion.service.protocol import parse_request, request_adapter
+
+# The detour layer is off by default (detour.trigger_after_s = 0) until it flies the drift suite with no
+# collision; these tests turn it on as `[detour] trigger_after_s = 0.8` does.
+CFG = parse_config({"detour": {"trigger_after_s": 0.8}})
+DET = CFG.detour
+MEM = CFG.memory
+CMD = CFG.command
+CLEAR = Decision(DecisionKind.CLEAR, yaw=0.0, pitch=0.0, speed_fraction=1.0, reason="clear")
+BRAKE = Decision(DecisionKind.BRAKE, yaw=0.0, pitch=0.0, speed_fraction=0.0, reason="no escape")
+
+
+def _wall(north_m: float, east_from_m: float, east_to_m: float, step_m: float = 0.1) -> np.ndarray:
+    """Points (north, east offsets, metres) of a wall square to north."""
+    e = np.arange(east_from_m, east_to_m + 1e-9, step_m)
+    return np.stack([np.full_like(e, north_m), e], axis=1)
+
+
+def _trusted_memory(points_ne_m: np.ndarray, t_s: float = 0.0, altitude_m: float = 1.5) -> ObstacleMemory:
+    """A memory holding ``points_ne_m`` (N, 2) at the vehicle's altitude, seen from two places 1 m apart."""
+    mem = ObstacleMemory()
+    p = np.column_stack([points_ne_m, np.full(len(points_ne_m), -altitude_m)])
+    for k, vp in enumerate(([0.0, -0.5, -altitude_m], [0.0, 0.5, -altitude_m])):
+        mem.add(p, t_s + 0.1 * k, MEM.duration_s, ranges_m=np.full(len(p), 2.0), viewpoint_ned_m=np.array(vp), cfg=MEM)
+    return mem
+
+
+# ---------------------------------------------------------------------------------------------- histogram
+
+
+def test_free_length_stops_at_the_enlarged_obstacle() -> None:
+    # One point 3 m straight ahead: the path north stops clearance before it, one 1 m to the side is free.
+    along = np.array([[3.0], [3.0]])
+    across = np.array([[0.0], [1.0]])
+    free = free_length_m(along, across, 0.5)
+    assert free[0] == pytest.approx(2.5) and math.isinf(free[1])
+
+
+def test_a_wall_ahead_closes_the_goal_direction_and_leaves_the_sides_open() -> None:
+    h = polar_histogram(_wall(2.5, -4.0, 4.0), 0.0, DET, MEM.map_depth_m)
+    assert h.free_m[h.goal_index] < DET.radius_m  # straight on: the wall (so no hand-back)
+    assert h.offset_rad[h.goal_index] == 0.0
+    square = np.argmin(np.abs(np.abs(h.offset_rad) - math.pi / 2))
+    assert h.free_m[square] >= DET.radius_m  # along the wall: free
+
+
+def test_the_side_with_the_opening_is_the_shorter_way_round() -> None:
+    # A wall 2.5 m ahead from -8 to +8 m east, with an opening 1.6 m wide centred 3 m to the right.
+    pts = np.concatenate([_wall(2.5, -8.0, 2.2), _wall(2.5, 3.8, 8.0)])
+    h = polar_histogram(pts, 0.0, DET, MEM.map_depth_m, goal_distance_m=6.0)
+    assert h.through_m[1] < h.through_m[-1]
+    mirrored = polar_histogram(pts * np.array([1.0, -1.0]), 0.0, DET, MEM.map_depth_m, goal_distance_m=6.0)
+    assert mirrored.through_m[-1] < mirrored.through_m[1]
+
+
+# ---------------------------------------------------------------------------------------------- planner
+
+
+def _brake_until_detour(p: DetourPlanner, mem: ObstacleMemory, t0: float, yaw: float = 0.0, goal: float = 0.0):
+    pos = np.array([0.0, 0.0, -1.5])
+    t = t0
+    cmd = None
+    while cmd is None and t < t0 + 3.0:
+        cmd = p.update(t, BRAKE, pos, yaw, goal, 0.0, mem, MEM, DET, goal_distance_m=6.0)
+        t += 0.05
+    return cmd, t
+
+
+def test_a_brake_long_enough_starts_a_detour_and_a_short_one_does_not() -> None:
+    mem = _trusted_memory(_wall(2.5, -8.0, 8.0))
+    p = DetourPlanner()
+    pos = np.array([0.0, 0.0, -1.5])
+    assert p.update(0.0, BRAKE, pos, 0.0, 0.0, 0.0, mem, MEM, DET) is None
+    assert p.update(0.5 * DET.trigger_after_s, BRAKE, pos, 0.0, 0.0, 0.0, mem, MEM, DET) is None
+    assert p.update(0.5 * DET.trigger_after_s + 0.05, CLEAR, pos, 0.0, 0.0, 0.0, mem, MEM, DET) is None
+    cmd, _ = _brake_until_detour(p, mem, 1.0)
+    assert cmd is not None and cmd.phase in (Phase.SCAN, Phase.FLY) and p.active
+    assert p.status()["phase"] in ("scan", "fly") and "braked" in p.reason or "round the" in p.reason
+
+
+def test_the_detour_layer_is_off_with_trigger_zero() -> None:
+    mem = _trusted_memory(_wall(2.5, -8.0, 8.0))
+    off = CompanionConfig().detour  # the default
+    assert off.trigger_after_s == 0.0
+    p = DetourPlanner()
+    for k in range(60):
+        assert p.update(0.05 * k, BRAKE, np.array([0.0, 0.0, -1.5]), 0.0, 0.0, 0.0, mem, MEM, off) is None
+
+
+def test_a_dead_end_holds_and_says_so() -> None:
+    # Closed on three sides within the clearance-enlarged reach: ahead and both sides.
+    pts = np.concatenate([_wall(1.2, -1.5, 1.5), np.stack([np.linspace(-3, 1.2, 40), np.full(40, -0.7)], 1),
+                          np.stack([np.linspace(-3, 1.2, 40), np.full(40, 0.7)], 1)])
+    mem = _trusted_memory(pts)
+    p = DetourPlanner()
+    cmd, t = _brake_until_detour(p, mem, 0.0)
+    pos = np.array([0.0, 0.0, -1.5])
+    yaw = 0.0
+    for _ in range(400):  # turn as asked (the scan), until it decides
+        if cmd is None or cmd.phase is Phase.DEAD_END:
+            break
+        if cmd.target_yaw_rad is not None:
+            yaw += max(-0.05, min(0.05, wrap_pi(cmd.target_yaw_rad - yaw)))
+        cmd = p.update(t, BRAKE, pos, yaw, 0.0, 0.0, mem, MEM, DET, goal_distance_m=6.0)
+        t += 0.05
+    assert cmd is not None and cmd.phase is Phase.DEAD_END and "dead end" in cmd.reason
+    assert p.status()["phase"] == "dead_end"
+
+
+def test_a_free_goal_direction_hands_back() -> None:
+    mem = _trusted_memory(_wall(2.5, -8.0, 8.0))
+    p = DetourPlanner()
+    cmd, t = _brake_until_detour(p, mem, 0.0)
+    assert cmd is not None
+    # Somewhere past the wall's end (the goal direction free from there): it turns to the goal, then hands back.
+    pos = np.array([0.0, 10.0, -1.5])
+    p._last_plan_s = -math.inf
+    p.phase = Phase.FLY
+    p._target_rad = 0.0
+    out = p.update(t, CLEAR, pos, 0.0, 0.0, 0.0, mem, MEM, DET)
+    assert out is None and not p.active and "handed back" in p.reason
+
+
+def test_a_new_detour_near_the_last_one_goes_round_the_same_side() -> None:
+    # A symmetric wall: either side would do; the last detour's side is kept (no swinging between two).
+    mem = _trusted_memory(_wall(2.5, -8.0, 8.0))
+    for side in (1, -1):
+        p = DetourPlanner()
+        p._last_end = (0.0, 0.5, side)
+        cmd, _ = _brake_until_detour(p, mem, 0.0)
+        assert cmd is not None and p._side == side
+
+
+# ---------------------------------------------------------------------------------------------- trust
+
+
+def test_a_point_seen_once_from_one_place_is_not_trusted() -> None:
+    mem = ObstacleMemory()
+    p = np.array([[2.0, 0.0, -1.5]])
+    mem.add(p, 0.0, MEM.duration_s, ranges_m=np.array([2.0]), viewpoint_ned_m=np.zeros(3), cfg=MEM)
+    assert not mem.trusted(p, MEM)[0]
+    assert mem.map_points(np.array([0.0, 0.0, -1.5]), 0.0, MEM, 5.0).shape == (0, 2)
+
+
+def test_a_point_seen_from_two_places_is_trusted() -> None:
+    mem = ObstacleMemory()
+    p = np.array([[2.0, 0.0, -1.5]])
+    mem.add(p, 0.0, MEM.duration_s, ranges_m=np.array([2.0]), viewpoint_ned_m=np.zeros(3), cfg=MEM)
+    far = np.array([0.0, MEM.trust_baseline_m + 0.05, 0.0])
+    mem.add(p, 0.1, MEM.duration_s, ranges_m=np.array([2.0]), viewpoint_ned_m=far, cfg=MEM)
+    assert mem.trusted(p, MEM)[0]
+
+
+def test_a_point_that_persists_from_one_place_is_trusted() -> None:
+    mem = ObstacleMemory()
+    p = np.array([[2.0, 0.0, -1.5]])
+    dt = MEM.trust_persist_s / (MEM.trust_min_frames - 1)
+    for k in range(MEM.trust_min_frames - 1):
+        mem.add(p, k * dt * 0.9, MEM.duration_s, ranges_m=np.array([2.0]), viewpoint_ned_m=np.zeros(3), cfg=MEM)
+    assert not mem.trusted(p, MEM)[0]  # not long enough yet
+    mem.add(p, MEM.trust_persist_s + 0.01, MEM.duration_s, ranges_m=np.array([2.0]), viewpoint_ned_m=np.zeros(3), cfg=MEM)
+    assert mem.trusted(p, MEM)[0]
+
+
+def test_a_false_match_that_moves_with_the_view_is_never_trusted() -> None:
+    # A phantom that shows in a different place in every frame, seen from a vehicle moving 5 cm a frame.
+    mem = ObstacleMemory()
+    for k in range(30):
+        phantom = np.array([[2.0 + 0.1 * k, 0.5 * (-1) ** k * (1 + k % 4), -1.5]])
+        mem.add(phantom, 0.033 * k, MEM.duration_s, ranges_m=np.array([2.0]),
+                viewpoint_ned_m=np.array([0.05 * k, 0.0, -1.5]), cfg=MEM)
+    pts, trusted = mem.points(1.0, MEM)
+    assert len(pts) > 0 and not trusted.any()
+
+
+# ---------------------------------------------------------------------------------------------- watchdog
+
+
+def test_regress_holds_sooner_than_no_progress() -> None:
+    w = ProgressWatch()
+    t = 0.0
+    for k in range(40):  # 4 m forward at 1 m/s
+        assert not w.update(0.1 * k, t, CMD)
+        t += 0.1
+    fired_at = None
+    for k in range(100):  # then back at 1 m/s
+        if w.update(3.9 - 0.1 * k, t, CMD):
+            fired_at = t
+            break
+        t += 0.1
+    assert fired_at is not None and w.why == "regress"
+    # Back past regress_distance_m, then regress_timeout_s more: long before no_progress_timeout_s.
+    assert fired_at - 4.0 <= CMD.regress_distance_m + CMD.regress_timeout_s + 0.2 < CMD.no_progress_timeout_s
+
+
+def test_regress_is_not_judged_during_a_detour() -> None:
+    w = ProgressWatch()
+    w.update(5.0, 0.0, CMD)
+    for k in range(1, 200):
+        assert not w.update(0.0, 0.1 * k, CMD, pause=True, regress=False)
+
+
+def test_regress_off_with_zero_distance() -> None:
+    cmd = CMD.model_copy(update={"regress_distance_m": 0.0})
+    w = ProgressWatch()
+    w.update(5.0, 0.0, cmd)
+    assert not any(w.update(0.0, 0.1 * k, cmd) for k in range(1, 100))
+
+
+# ---------------------------------------------------------------------------------------------- goal
+
+
+def test_goals_resolve_in_the_local_frame() -> None:
+    here = np.array([1.0, 2.0, -1.5])
+    g = resolve_goal(GoalSpec(kind="point", north_m=5.0, east_m=-3.0), here, 0.3)
+    assert np.allclose(g.point_ned_m, [5.0, -3.0, -1.5]) and g.distance_m(here) == pytest.approx(math.hypot(4, -5))
+    b = resolve_goal(GoalSpec(kind="bearing", bearing_deg=90.0, distance_m=10.0, from_heading=True), here, -math.pi / 2)
+    assert np.allclose(b.point_ned_m[:2], [11.0, 2.0])  # 90 deg right of facing west: north
+    assert not resolve_goal(GoalSpec(), here, 0.0).is_point
+    with pytest.raises(ValueError):
+        GoalSpec(kind="bearing", distance_m=0.0)
+
+
+def test_reaching_a_goal_point_ends_in_a_hold_with_a_status() -> None:
+    hold = CourseHold()
+    start = np.array([0.0, 0.0, -1.5])
+    hold.engage(start, 0.0, GoalSpec(kind="point", north_m=4.0, east_m=0.0))
+    status = hold.goal_status(start)
+    assert status["distance_m"] == pytest.approx(4.0) and status["bearing_deg"] == pytest.approx(0.0)
+    there = np.array([3.8, 0.1, -1.5])
+    sp = hold.setpoint(CLEAR, 1.0, 0.05, CMD, position_ned_m=there, yaw_rad=0.0, obstacles=ObstacleMemory(),
+                       memory_cfg=MEM, detour_cfg=DET)
+    assert hold.holding_reason is not None and hold.holding_reason.startswith("goal reached")
+    assert hold.goal_status(there)["reached"] is True
+    assert abs(sp.forward_m_s) < 0.3  # the hold: no cruise onward
+
+
+def test_progress_toward_a_goal_point_is_getting_nearer() -> None:
+    hold = CourseHold()
+    hold.engage(np.array([0.0, 0.0, -1.5]), 0.0, GoalSpec(kind="point", north_m=0.0, east_m=10.0))
+    assert hold.progress_m(np.array([0.0, 0.0, -1.5])) == pytest.approx(-10.0)
+    assert hold.progress_m(np.array([0.0, 4.0, -1.5])) == pytest.approx(-6.0)
+
+
+# ---------------------------------------------------------------------------------------------- plumbing
+
+
+def test_the_protocol_carries_a_goal_with_engage_and_goto() -> None:
+    a = request_adapter()
+    r = parse_request(b'{"cmd": "engage", "goal": {"kind": "point", "north_m": 10, "east_m": -2.5}}', a)
+    assert r.goal.spec() == GoalSpec(kind="point", north_m=10.0, east_m=-2.5)
+    assert parse_request(b'{"cmd": "engage"}', a).goal is None
+    g = parse_request(b'{"cmd": "goto", "goal": {"kind": "bearing", "bearing_deg": 30, "distance_m": 5}}', a)
+    assert g.goal.spec().kind == "bearing"
+    with pytest.raises(ProtocolError, match="goal"):
+        parse_request(b'{"cmd": "goto"}', a)
+    with pytest.raises(ProtocolError):
+        parse_request(b'{"cmd": "goto", "goal": {"kind": "moon"}}', a)
+
+
+def test_the_supervisor_engages_with_a_goal_reports_it_and_takes_goto() -> None:
+    from test_supervisor import Harness, vehicle
+    from companion.core.supervisor import Engage
+
+    h = Harness()
+    h.vehicle = replace(vehicle(), position_ned_m=np.array([0.0, 0.0, -1.5]), attitude_rad=np.zeros(3))
+    h.step(Goto(GoalSpec(kind="point", north_m=1.0, east_m=0.0)))
+    assert not h.outputs[-1].replies[0].ok  # not engaged: refused
+    out = h.step(Engage(goal=GoalSpec(kind="point", north_m=8.0, east_m=0.0)))
+    assert out.replies[0].ok and "N 8.0" in out.replies[0].message
+    for _ in range(40):
+        out = h.step()
+        if any(a.value == "start_offboard" for a in out.actions):
+            break
+    from companion.core.supervisor import Action, ActionResult
+
+    h.vehicle = replace(vehicle("OFFBOARD"), position_ned_m=np.array([0.0, 0.0, -1.5]), attitude_rad=np.zeros(3))
+    out = h.step(ActionResult(Action.START_OFFBOARD, True))
+    assert out.state is State.ENGAGED
+    status = h.sup.goal_status(h.vehicle.position_ned_m)
+    assert status["kind"] == "point" and status["distance_m"] == pytest.approx(8.0)
+    # A goal within reach: the goal reached, a hold, and the reason says so.
+    out = h.step(Goto(GoalSpec(kind="point", north_m=0.2, east_m=0.0)))
+    assert out.replies[0].ok
+    outs = h.run(0.3)
+    assert outs[-1].state is State.PAUSED and "goal reached" in outs[-1].reason
+    # A new goal: automatic again.
+    out = h.step(Goto(GoalSpec(kind="point", north_m=8.0, east_m=0.0)))
+    assert out.replies[0].ok
+    assert h.step().state is State.ENGAGED
+    assert h.step(Resume()).replies[0].ok
+
+
+def test_the_detour_config_is_bounded_by_the_envelope() -> None:
+    from companion.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="detour.speed_m_s"):
+        parse_config({"detour": {"speed_m_s": 3.0}, "envelope": {"max_horizontal_speed_m_s": 2.0}})
+    with pytest.raises(ConfigError, match="detour.turn_rate_deg_s"):
+        parse_config({"detour": {"turn_rate_deg_s": 200.0}, "envelope": {"max_yaw_rate_deg_s": 100.0}})
+
+
+# ---------------------------------------------------------------------------------------------- course kind
+
+
+@pytest.mark.parametrize("seed", range(9))
+def test_the_detour_course_needs_a_real_detour(seed: int) -> None:
+    from companion.sim.courses import make_course
+    from companion.sim.render import Box
+
+    c = make_course("detour", seed)
+    boxes = [o for o in c.scene.obstacles if isinstance(o, Box)]
+    assert len(boxes) == 2 and not c.hold_is_success
+    wall_north = float(boxes[0].centre_ned_m[0])
+    # The opening: between the two boxes' inner edges, centred 3 m to one side.
+    edges = sorted(
+        (float(b.centre_ned_m[1]) - 0.5 * float(b.size_m[1]), float(b.centre_ned_m[1]) + 0.5 * float(b.size_m[1]))
+        for b in boxes
+    )
+    lo, hi = edges[0][1], edges[1][0]
+    assert abs(abs(0.5 * (lo + hi)) - 3.0) < 1e-9 and 1.5 <= hi - lo <= 1.9
+    # Wider than the view: the wall covers the straight line and +-45 deg at its distance.
+    assert edges[0][0] < -wall_north - 2.0 and edges[1][1] > wall_north + 2.0
+    # Out of sight at the start: the opening's middle lies at or beyond the camera's 45 deg half view.
+    assert math.degrees(math.atan2(3.0, wall_north)) >= 45.0 - 1e-9
+
+
+def test_the_detour_course_is_in_the_standard_suite() -> None:
+    from companion.sim.suite import SUITES
+
+    assert sum(1 for k, _ in SUITES["standard"] if k == "detour") == 9
+
+
+@pytest.mark.slow
+def test_the_detour_course_reaches_the_goal_and_the_reactive_controller_alone_does_not() -> None:
+    from companion.sim.courses import make_course
+    from companion.sim.loop import fly
+
+    course = make_course("detour", 0)
+    result = fly(course, CFG)
+    assert result.outcome.value == "goal" and result.detours >= 1, result.reason
+    assert fly(course, CompanionConfig()).outcome.value != "goal"  # the default: the layer off
