@@ -32,6 +32,7 @@ from companion.config.core import (
 )
 from companion.config.envelope import EnvelopeConfig, envelope_violations
 from companion.config.gpu import GpuConfig
+from companion.config.obstacle import ObstacleDistanceConfig
 from companion.config.service import (
     BusConfig,
     CameraConfig,
@@ -59,6 +60,7 @@ __all__ = [
     "InputTerm",
     "LutConfig",
     "MemoryConfig",
+    "ObstacleDistanceConfig",
     "OutputTerm",
     "RegionsConfig",
     "RuleConfig",
@@ -86,6 +88,7 @@ class CompanionConfig(StrictModel):
     controller: ControllerConfig = Field(default_factory=ControllerConfig)
     command: CommandConfig = Field(default_factory=CommandConfig)
     memory: MemoryConfig = Field(default_factory=MemoryConfig)
+    obstacle_distance: ObstacleDistanceConfig = Field(default_factory=ObstacleDistanceConfig)
     camera: CameraConfig = Field(default_factory=CameraConfig)
     vehicle: VehicleConfig = Field(default_factory=VehicleConfig)
     bus: BusConfig = Field(default_factory=BusConfig)

@@ -146,6 +146,7 @@ class HealthReporter:
             "frame_errors": self._frame_errors,
             "last_error": self._last_error,
             "control": self._control_status(),
+            "mavlink": self.presence_status(),
         }
 
     def _control_status(self) -> dict[str, int] | None:
