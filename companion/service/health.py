@@ -88,6 +88,7 @@ class HealthReporter:
             "state": self.supervisor.state.value,
             "reason": self.supervisor.reason,
             "engaged": self.supervisor.engaged,
+            "offboard_switch_ready": self.supervisor.ready,
             "config_version": self.config_version,
             "fps": float(len(recent)),
             "frame_age_ms": (now - result.timestamp_s) * 1e3 if result is not None else None,
