@@ -114,3 +114,15 @@ def test_announcer_says_state_changes_new_pauses_and_the_camera() -> None:
     assert ann.step(0.8, "degraded", "camera lost (reconnecting): zero velocity", None, None, False) == [
         (ERROR, "companion: camera lost, holding")
     ]
+
+
+def test_a_stalled_pipeline_is_said_and_makes_the_heartbeat_critical() -> None:
+    ann = Announcer(TextLimiter(min_interval_s=0.0, burst=10))
+    ann.step(0.0, "passive", "started passive", None, None, True)
+    assert ann.step(0.1, "passive", "started passive", None, None, True, frames_ok=False) == [
+        (ERROR, "companion: pipeline stalled")
+    ]
+    assert ann.step(0.2, "passive", "started passive", None, None, True, frames_ok=True) == [
+        (NOTICE, "companion: pipeline back")
+    ]
+    assert heartbeat_state("passive", True, frames_ok=False) == MAV_STATE_CRITICAL

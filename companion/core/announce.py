@@ -35,10 +35,10 @@ MAV_STATE_BOOT, MAV_STATE_STANDBY, MAV_STATE_ACTIVE, MAV_STATE_CRITICAL = 1, 3, 
 _COMMANDING = ("engaged", "paused", "override")
 
 
-def heartbeat_state(state: str, camera_ok: bool) -> int:
+def heartbeat_state(state: str, camera_ok: bool, frames_ok: bool = True) -> int:
     """The MAV_STATE of the service's heartbeat for supervisor state ``state`` (its value, e.g.
-    ``"engaged"``) and the camera's health."""
-    if state in ("failsafe", "degraded") or not camera_ok:
+    ``"engaged"``), the camera's health and whether the pipeline delivers frames."""
+    if state in ("failsafe", "degraded") or not camera_ok or not frames_ok:
         return MAV_STATE_CRITICAL
     if state in _COMMANDING:
         return MAV_STATE_ACTIVE
@@ -168,6 +168,7 @@ class Announcer:
     _state: str | None = None
     _braking: bool = False
     _camera_ok: bool = True
+    _frames_ok: bool = True
     _stalled: bool = False
 
     def step(
@@ -178,6 +179,7 @@ class Announcer:
         decision_kind: str | None,
         ahead_m: float | None,
         camera_ok: bool,
+        frames_ok: bool = True,
     ) -> list[tuple[int, str]]:
         """The lines to send now, as (MAV_SEVERITY, text).
 
@@ -187,12 +189,18 @@ class Announcer:
             decision_kind: the newest frame's decision (``"clear"``, ``"avoid"``, ``"brake"``) or None.
             ahead_m: the distance ahead the brake is about (the centre region's), metres, or None.
             camera_ok: whether the camera delivers frames.
+            frames_ok: whether the pipeline delivers results (the newest is not older than the
+                caller's limit): a stalled or failing pipeline with the camera still streaming.
         """
         lines: list[tuple[int, str]] = []
         if camera_ok != self._camera_ok:
             self._camera_ok = camera_ok
             if state not in ("degraded", "failsafe"):  # those say it themselves
                 lines += [(ERROR, fit(PREFIX + "camera lost")) if not camera_ok else (NOTICE, fit(PREFIX + "camera back"))]
+        if frames_ok != self._frames_ok:
+            self._frames_ok = frames_ok
+            if camera_ok and state not in ("degraded", "failsafe"):
+                lines += [(ERROR, fit(PREFIX + "pipeline stalled")) if not frames_ok else (NOTICE, fit(PREFIX + "pipeline back"))]
         if state != self._state:
             first = self._state is None
             self._state = state

@@ -44,6 +44,7 @@ class PresencePlane:
         self._obstacle_next: tuple[Any, int] | None = None  # (ObstacleDistance, time_usec) waiting
         self._presence_wake: asyncio.Event | None = None
         self._presence_camera_ok = True
+        self._presence_frames_ok = True
         self.presence_stats = {
             "heartbeats_sent": 0,
             "status_texts_sent": 0,
@@ -60,14 +61,26 @@ class PresencePlane:
         return link is not None and self._vehicle_status == "connected" and link.state().connected
 
     def _presence_step(self, now_s: float, out: Any, latest: Any, new_frame: bool, camera_ok: bool) -> None:
-        """After a supervisor step (on the loop): queue the lines to say and the frame's OBSTACLE_DISTANCE."""
-        self._presence_camera_ok = camera_ok
+        """After a supervisor step (on the loop): queue the lines to say and the frame's OBSTACLE_DISTANCE.
+        Never raises: what the ground station is told must not stop the flight loop."""
+        try:
+            self._presence_decide(now_s, out, latest, new_frame, camera_ok)
+        except Exception:
+            self.presence_stats["send_errors"] += 1
+            log.exception("presence step failed (the flight loop goes on)")
+
+    def _presence_decide(self, now_s: float, out: Any, latest: Any, new_frame: bool, camera_ok: bool) -> None:
         cfg = self.config
+        # A pipeline that stopped delivering (frames rejected, a stage failing) while the camera streams:
+        # reported once the newest result is older than the failsafe timeout (not on a hiccup).
+        frames_ok = out.frame_age_s <= cfg.command.failsafe_timeout_s
+        self._presence_camera_ok, self._presence_frames_ok = camera_ok, frames_ok
         result = latest.result if latest is not None else None
         decision = getattr(result, "decision", None)
         ahead = None
-        if result is not None:
-            ahead = float(result.shown_depths_m()[REGION_INDEX["center"]])
+        shown = getattr(result, "shown_depths_m", None)
+        if shown is not None:
+            ahead = float(shown()[REGION_INDEX["center"]])
             ahead = ahead if math.isfinite(ahead) else None
         if cfg.vehicle.status_text:
             limiter = self._announcer.limiter
@@ -80,6 +93,7 @@ class PresencePlane:
                 decision.kind.value if decision is not None else None,
                 ahead,
                 camera_ok,
+                frames_ok,
             )
             self.presence_stats["status_texts_suppressed"] = limiter.suppressed
             if lines:
@@ -134,7 +148,7 @@ class PresencePlane:
             now = self._clock()
             if now >= next_beat:
                 next_beat = now + 1.0 / self.config.vehicle.heartbeat_rate_hz
-                state = heartbeat_state(self.supervisor.state.value, self._presence_camera_ok)
+                state = heartbeat_state(self.supervisor.state.value, self._presence_camera_ok, self._presence_frames_ok)
                 if await self._presence_send("HEARTBEAT", "send_heartbeat", state):
                     self.presence_stats["heartbeats_sent"] += 1
             while self._texts:
