@@ -106,10 +106,14 @@ def test_obstacle_distance_on_the_wire(flight: Flight) -> None:
     peer, cfg = flight.peer, flight.cfg
     # Sent at the frame rate while passive (obstacle_distance.send = "always").
     assert wait_until(lambda: len(peer.obstacle_distances) >= 20, 5.0)
+    frames0 = _status(flight.client)["processed_frames"]
     t0 = time.monotonic()
     time.sleep(2.0)
+    frames = _status(flight.client)["processed_frames"] - frames0
     window = [m for m in peer.obstacle_distances if t0 <= m.t_s < t0 + 2.0]
-    assert 24 <= len(window) <= 31, len(window)  # 15 frames per second
+    # One per processed frame (15 fps here, fewer on a loaded machine); never more.
+    assert frames - 3 <= len(window) <= frames + 2, (len(window), frames)
+    assert len(window) >= 10
     m = window[-1]
     assert m.component_id == SERVICE
     assert len(m.distances) == 72 and m.increment == 5 and m.increment_f == 5.0 and m.angle_offset == 0.0
@@ -201,5 +205,16 @@ def test_engage_from_the_sticks(tmp_path: Path) -> None:
         time.sleep(1.5)
         assert peer.setpoints_since(time.monotonic() - 0.5) == []
         assert not peer.pilot_switch("OFFBOARD")
+    finally:
+        f.close()
+
+
+def test_the_service_is_a_component_of_the_vehicles_system(tmp_path: Path) -> None:
+    f = Flight(tmp_path, vehicle={"system_id": 7, "component_id": 197})
+    try:
+        assert wait_until(lambda: len(f.peer.heartbeats) >= 2, 5.0)
+        assert {(h.system_id, h.component_id) for h in f.peer.heartbeats} == {(7, 197)}
+        assert wait_until(lambda: len(f.peer.obstacle_distances) >= 1, 5.0)
+        assert f.peer.obstacle_distances[0].component_id == 197
     finally:
         f.close()

@@ -38,6 +38,7 @@ RESTART_FIELDS: tuple[str, ...] = (
     "vehicle.autopilot",
     "vehicle.telemetry_rate_hz",
     "vehicle.component_id",
+    "vehicle.system_id",
 ) + tuple(f"view.{f}" for f in VIEW_RESTART_FIELDS)
 #: Fields inside a restart-only section that apply live anyway: where the simulated scene lies in the
 #: autopilot's frame (the PX4 SITL harness places the course at the hovering vehicle just before
@@ -328,8 +329,17 @@ class VehicleConfig(StrictModel):
         le=254,
         description=(
             "The service's MAVLink component id on the companion computer (196: MAV_COMP_ID_OBSTACLE_AVOIDANCE; "
-            "its system id is the autopilot's, as MAVSDK's companion-computer configuration sets it; restart "
-            "to change)."
+            "restart to change)."
+        ),
+    )
+    system_id: int = Field(
+        default=1,
+        ge=1,
+        le=254,
+        description=(
+            "The service's MAVLink system id: the vehicle's (the autopilot's MAV_SYS_ID / SYSID_THISMAV), so that "
+            "the ground station lists the service as a component of the vehicle and PX4 watches its heartbeat "
+            "(COM_OBC_LOSS_T: 'Connection to mission computer lost'); restart to change."
         ),
     )
     heartbeat_rate_hz: float = Field(

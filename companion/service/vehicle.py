@@ -31,8 +31,9 @@ What MAVSDK does that matters here (read in MAVSDK's ``cpp/src/mavsdk/plugins/of
 
 The service's presence on the ground station (issue 18), through the same MAVSDK:
 
-* MAVSDK is configured as a companion computer with ``vehicle.component_id`` (196,
-  MAV_COMP_ID_OBSTACLE_AVOIDANCE), so everything the service sends comes from that component.
+* MAVSDK is configured as a companion computer with ``vehicle.system_id`` (the vehicle's) and
+  ``vehicle.component_id`` (196, MAV_COMP_ID_OBSTACLE_AVOIDANCE), so everything the service sends comes
+  from that component of the vehicle's system.
 * MAVSDK heartbeats that component by itself at 1 Hz with ``system_status`` 0 (MAV_STATE_UNINIT: MAVSDK
   4.1 offers no way to set it). The service's own HEARTBEAT (:meth:`MavsdkLinkBase.send_heartbeat`,
   ``mavlink_direct``) carries its state (standby / active / critical) at ``vehicle.heartbeat_rate_hz``.
@@ -88,11 +89,13 @@ class MavsdkSession:
             ``serial:///dev/ttyTHS1:921600``).
         component_id: the MAVLink component id the service sends from (``vehicle.component_id``;
             196 = MAV_COMP_ID_OBSTACLE_AVOIDANCE), 1..254.
+        system_id: its MAVLink system id, the vehicle's (``vehicle.system_id``), 1..254.
     """
 
-    def __init__(self, connection: str, component_id: int = MAV_COMP_ID_OBSTACLE_AVOIDANCE) -> None:
+    def __init__(self, connection: str, component_id: int = MAV_COMP_ID_OBSTACLE_AVOIDANCE, system_id: int = 1) -> None:
         self.connection = connection
         self.component_id = int(component_id)
+        self.system_id = int(system_id)
         self.mavsdk: Any = None
         self._connection_added = False
 
@@ -113,6 +116,7 @@ class MavsdkSession:
             # obstacle-avoidance component unless configured otherwise.
             config = Configuration.create_with_component_type(ComponentType.COMPANION_COMPUTER)
             config.component_id = self.component_id
+            config.system_id = self.system_id
             self.mavsdk = Mavsdk(config)
         try:
             await self.mavsdk.add_any_connection(self.connection)
@@ -481,6 +485,7 @@ class MavsdkVehicleLink:
         telemetry_rate_hz: ArduPilot: the rate asked for position, velocity and attitude, Hz
             (``vehicle.telemetry_rate_hz``).
         component_id: the MAVLink component id the service sends from (``vehicle.component_id``).
+        system_id: the MAVLink system id it sends as, the vehicle's (``vehicle.system_id``).
     """
 
     def __init__(
@@ -490,6 +495,7 @@ class MavsdkVehicleLink:
         autopilot: str = "auto",
         telemetry_rate_hz: float = 30.0,
         component_id: int = MAV_COMP_ID_OBSTACLE_AVOIDANCE,
+        system_id: int = 1,
     ) -> None:
         if autopilot not in ("auto", *AUTOPILOTS):
             raise VehicleError(f"vehicle.autopilot {autopilot!r}: must be auto, {', '.join(AUTOPILOTS)}", kind="connection")
@@ -497,7 +503,7 @@ class MavsdkVehicleLink:
         self.autopilot = autopilot
         self.telemetry_rate_hz = telemetry_rate_hz
         self._clock = clock
-        self._session = MavsdkSession(connection, component_id)
+        self._session = MavsdkSession(connection, component_id, system_id)
         self._link: MavsdkLinkBase | None = None
         self._closed = False
 
@@ -591,4 +597,5 @@ def make_vehicle_link(cfg: VehicleConfig, clock: Callable[[], float] = time.mono
         autopilot=cfg.autopilot,
         telemetry_rate_hz=cfg.telemetry_rate_hz,
         component_id=cfg.component_id,
+        system_id=cfg.system_id,
     )

@@ -159,7 +159,7 @@ class CollisionPreventionResult:
 
 async def _start_service(cfg: CompanionConfig, course: Course, pilot: Pilot, ports: Px4Ports, workdir: Path,
                          log_level: str) -> tuple[ServiceProcess, Any]:
-    service_cfg = sitl_config(cfg, course, placement_at(pilot, course), ports.service_url, workdir)
+    service_cfg = sitl_config(cfg, course, placement_at(pilot, course), ports.service_url, workdir, ports.system_id)
     service = ServiceProcess(service_cfg, workdir, log_level)
     placement = await start_and_place(service, pilot, course)
     return service, placement
