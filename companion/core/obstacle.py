@@ -175,22 +175,26 @@ def reduce_obstacle_distance(disparity: np.ndarray, layout: ObstacleLayout) -> O
         raise ValueError(f"disparity {disp.shape} does not match the obstacle layout ({h}, {w})")
     out = np.full(N_BINS, UNKNOWN_CM, dtype=np.uint16)
     with np.errstate(invalid="ignore", divide="ignore"):
-        valid = disp >= 0  # False for NaN
-        in_band = (disp > 0) & (disp >= layout.row_threshold_px[:, None])
-        dist = layout.column_fbk[None, :] / disp  # float32 / float32: one rounding
-    for j in range(N_BINS):
-        c0, c1 = (int(x) for x in layout.bin_columns[j])
-        if c1 <= c0:
-            continue
-        n_pixels = h * (c1 - c0)
-        n_valid = int(np.count_nonzero(valid[:, c0:c1]))
-        if n_valid == 0 or n_valid < layout.min_valid_fraction * n_pixels:
-            continue  # unknown
-        vals = dist[:, c0:c1][in_band[:, c0:c1]]
-        if vals.size < layout.min_points:
-            out[j] = layout.max_distance_cm + 1
-            continue
-        k = rank(layout.percentile_pct, int(vals.size))
-        vals.partition(k - 1)
-        out[j] = distance_cm(float(vals[k - 1]), layout)
+        valid_per_column = np.count_nonzero(disp >= 0, axis=0)  # NaN compares False: invalid
+        in_band = disp >= layout.row_threshold_px[:, None]
+        in_band &= disp > 0
+        for j in range(N_BINS):
+            c0, c1 = (int(x) for x in layout.bin_columns[j])
+            if c1 <= c0:
+                continue
+            n_valid = int(valid_per_column[c0:c1].sum())
+            if n_valid == 0 or n_valid < layout.min_valid_fraction * (h * (c1 - c0)):
+                continue  # unknown
+            mask = in_band[:, c0:c1]
+            n_band = int(np.count_nonzero(mask))
+            if n_band < layout.min_points:
+                out[j] = layout.max_distance_cm + 1
+                continue
+            rows, cols = np.nonzero(mask)
+            cols += c0
+            # float32 / float32: one rounding, as the GPU kernel divides.
+            vals = layout.column_fbk[cols] / disp[rows, cols]
+            k = rank(layout.percentile_pct, n_band)
+            vals.partition(k - 1)
+            out[j] = distance_cm(float(vals[k - 1]), layout)
     return ObstacleDistance(out, layout.min_distance_cm, layout.max_distance_cm)
