@@ -312,9 +312,9 @@ WALL_NORTH_M = 8.0
 
 
 def wall_course(seed: int = 0) -> Course:
-    """A wide wall straight across the course (10 m wide, 3 m high, 0.3 m thick), its front face
+    """A wide wall straight across the course (30 m wide, 3 m high, 0.3 m thick), its front face
     ``8 + seed mod 5`` m north, on open ground: the collision-prevention scenario's target (not in the
     suite). The goal lies beyond it: stopping in front of it is success."""
     front = WALL_NORTH_M + float(int(seed) % 5)
-    obstacles: list[Obstacle] = [Box.on_ground(front + 0.15, 0.0, (0.3, 10.0, 3.0))]
-    return _course("wall", seed, obstacles, front + 2.0, 5.0, f"a 10 m wall across the course, {front:.1f} m north")
+    obstacles: list[Obstacle] = [Box.on_ground(front + 0.15, 0.0, (0.3, 30.0, 3.0))]
+    return _course("wall", seed, obstacles, front + 2.0, 15.0, f"a 30 m wall across the course, {front:.1f} m north")
