@@ -33,7 +33,10 @@ The service's real MAVSDK link talks to them on localhost, and tests assert on w
   failsafe. LOITER and BRAKE hover.
 
 Everything received is recorded with the monotonic receive time: :attr:`setpoints` (every
-SET_POSITION_TARGET_LOCAL_NED), :attr:`commands` (every COMMAND_LONG) and :attr:`mode_log`.
+SET_POSITION_TARGET_LOCAL_NED), :attr:`commands` (every COMMAND_LONG) and :attr:`mode_log`; and what a
+ground station would see of the service (issue 18): :attr:`heartbeats` (every HEARTBEAT from another
+component), :attr:`status_texts` (STATUSTEXT) and :attr:`obstacle_distances` (OBSTACLE_DISTANCE, as
+the autopilot's collision prevention reads them).
 """
 
 from __future__ import annotations
@@ -133,6 +136,47 @@ class Setpoint:
 
 
 @dataclass(frozen=True)
+class Heard:
+    """A HEARTBEAT from another component: monotonic time (s), its sender, MAV_TYPE, MAV_AUTOPILOT and
+    MAV_STATE."""
+
+    t_s: float
+    system_id: int
+    component_id: int
+    type: int
+    autopilot: int
+    system_status: int
+
+
+@dataclass(frozen=True)
+class StatusText:
+    """A STATUSTEXT: monotonic time (s), sender component, MAV_SEVERITY and the text."""
+
+    t_s: float
+    component_id: int
+    severity: int
+    text: str
+
+
+@dataclass(frozen=True)
+class WireObstacle:
+    """An OBSTACLE_DISTANCE as received: monotonic time (s), sender component, and its fields
+    (``distances`` uint16 cm, 72 of them)."""
+
+    t_s: float
+    component_id: int
+    time_usec: int
+    sensor_type: int
+    distances: tuple[int, ...]
+    increment: int
+    min_distance: int
+    max_distance: int
+    increment_f: float
+    angle_offset: float
+    frame: int
+
+
+@dataclass(frozen=True)
 class Command:
     """One COMMAND_LONG as received: monotonic time (s), command id, params 1-7, result sent back, and
     for a DO_SET_MODE the mode it asked for, by the peer's own names (None for other commands)."""
@@ -198,6 +242,9 @@ class _AutopilotPeer:
         self.setpoints: list[Setpoint] = []
         self.commands: list[Command] = []
         self.mode_log: list[tuple[float, str, str]] = []  # (t_s, mode, why)
+        self.heartbeats: list[Heard] = []
+        self.status_texts: list[StatusText] = []
+        self.obstacle_distances: list[WireObstacle] = []
         self.silent = False  # True: stop sending anything (a link cut from the autopilot side)
 
     # ------------------------------------------------------------------ control from the test
@@ -240,6 +287,17 @@ class _AutopilotPeer:
         with self._lock:
             self._set_mode_locked(mode, why)
         self._send_heartbeat()
+
+    def pilot_switch(self, mode: str) -> bool:
+        """A pilot's RC switch (or QGC's mode menu) to ``mode``, refused as the autopilot would refuse
+        it (PX4: Offboard without a setpoint stream); True when the mode changed."""
+        now = time.monotonic()
+        with self._lock:
+            if mode in self.deny_modes or self._mode_refused_locked(mode, now):
+                return False
+            self._set_mode_locked(mode, "pilot switch")
+        self._send_heartbeat()
+        return True
 
     def setpoints_since(self, t_s: float) -> list[Setpoint]:
         with self._lock:
@@ -400,6 +458,24 @@ class _AutopilotPeer:
                 self._last_vel = (msg.vx, msg.vy, msg.vz, msg.yaw_rate)
         elif kind == "COMMAND_LONG":
             self._handle_command(msg, now)
+        elif kind == "HEARTBEAT":
+            with self._lock:
+                self.heartbeats.append(
+                    Heard(now, msg.get_srcSystem(), msg.get_srcComponent(), msg.type, msg.autopilot, msg.system_status)
+                )
+        elif kind == "STATUSTEXT":
+            text = msg.text if isinstance(msg.text, str) else msg.text.decode("ascii", "replace")
+            with self._lock:
+                self.status_texts.append(StatusText(now, msg.get_srcComponent(), msg.severity, text.rstrip("\x00")))
+        elif kind == "OBSTACLE_DISTANCE":
+            with self._lock:
+                self.obstacle_distances.append(
+                    WireObstacle(
+                        now, msg.get_srcComponent(), msg.time_usec, msg.sensor_type, tuple(msg.distances),
+                        msg.increment, msg.min_distance, msg.max_distance, msg.increment_f, msg.angle_offset,
+                        msg.frame,
+                    )
+                )
         elif kind == "PARAM_REQUEST_LIST":
             self._send_params()
 

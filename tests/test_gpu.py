@@ -665,3 +665,62 @@ def test_sgm_on_aloe_equals_the_reference_and_meets_the_quality_target() -> None
     _assert_regions_equal(res.regions, _cpu(cfg, w, h).estimate(_grey_frame(pair.left, pair.right)).regions)
     m = disparity_metrics(res.disparity, pair.disparity, 112)
     assert m["bad2_known"] <= 0.04 and m["density_known"] >= 0.80
+
+
+# --------------------------------------------------------------------------------------------------
+# OBSTACLE_DISTANCE (issue 18)
+
+
+@pytest.mark.parametrize("matcher", ["sgm", "sad"])
+def test_obstacle_distance_equals_the_cpu_reference(matcher: str) -> None:
+    from companion.core.obstacle import reduce_obstacle_distance
+
+    w, h = 672, 376
+    cfg = _cfg(matcher=matcher)
+    gpu, cpu = _gpu(cfg, w, h), _cpu(cfg, w, h)
+    _, frames = rendered_frames(BenchSize(w, h, 64), 3, seed=5)
+    for frame in frames:
+        a, b = gpu.estimate(frame), cpu.estimate(frame)
+        assert a.obstacle is not None and b.obstacle is not None
+        np.testing.assert_array_equal(a.obstacle.distances_cm, b.obstacle.distances_cm)
+        # ... and exactly the reduction of the device's own disparity.
+        q = gpu.disparity_int16()
+        host = q.astype(np.float32) * np.float32(1.0 / gpu.disparity_scale)
+        host[q < 0] = np.nan
+        np.testing.assert_array_equal(a.obstacle.distances_cm, reduce_obstacle_distance(host, gpu.obstacle_layout).distances_cm)
+        assert (a.obstacle.min_distance_cm, a.obstacle.max_distance_cm) == (b.obstacle.min_distance_cm, b.obstacle.max_distance_cm)
+
+
+def test_obstacle_distance_kernel_costs_under_0_1_ms_at_1280x720() -> None:
+    """The kernel alone, timed with CUDA events on the estimator's stream after a real frame (median of
+    200 launches). Prints the figure (pytest -s) for docs/benchmarks.md."""
+    import cupy as cp
+
+    w, h = 1280, 720
+    cfg = _cfg(D=128, matcher="sgm")
+    est = _gpu(cfg, w, h)
+    _, frames = rendered_frames(BenchSize(w, h, 128), 1, seed=3)
+    est.estimate(frames[0])
+    times = []
+    with est._device:
+        s = est._stream
+        a, b = cp.cuda.Event(), cp.cuda.Event()
+        for _ in range(200):
+            a.record(s)
+            est._enqueue_obstacle(s)
+            b.record(s)
+            b.synchronize()
+            times.append(cp.cuda.get_elapsed_time(a, b))
+    median_ms = float(np.median(times))
+    print(f"obstacle_bins at {w}x{h}: median {median_ms * 1e3:.1f} us, p99 {np.percentile(times, 99) * 1e3:.1f} us on {est.device_name}")
+    assert median_ms < 0.1
+    # The whole frame with and without it (the budget: +0.1 ms).
+    off = _gpu(cfg.model_copy(update={"obstacle_distance": cfg.obstacle_distance.model_copy(update={"send": "off"})}), w, h)
+    def gpu_ms(e: Any) -> float:
+        ts = []
+        for _ in range(60):
+            r = e.estimate(frames[0])
+            ts.append(r.timings_ms["upload_ms"] + r.timings_ms["gpu_ms"])
+        return float(np.median(ts[10:]))
+    on_ms, off_ms = gpu_ms(est), gpu_ms(off)
+    print(f"frame at {w}x{h}: {on_ms:.3f} ms with OBSTACLE_DISTANCE, {off_ms:.3f} ms without (+{on_ms - off_ms:.3f} ms)")

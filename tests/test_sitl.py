@@ -169,3 +169,46 @@ def test_a_pilot_mode_change_disengages_the_service_for_good(px4: Px4Sitl, tmp_p
             await _finish(pilot, service)
 
     _run(scenario())
+
+
+# ---------------------------------------------------------------------------------------------- issue 18
+
+
+def test_collision_prevention_stops_short_of_the_wall_and_at_zero_when_the_service_stops(px4: Px4Sitl, tmp_path: Path) -> None:
+    """Position mode, stick full forward at a wall, the service only sending OBSTACLE_DISTANCE: PX4's own
+    Collision Prevention (CP_DIST 2 m) stops the vehicle about 2 m short; stopping the service then
+    brings PX4 to zero velocity (`companion sitl --scenario collision-prevention`)."""
+    from companion.sitl.scenarios import StickPilot, fly_collision_prevention
+
+    async def scenario():
+        pilot = StickPilot(PILOT_URL, px4.ports.system_id)
+        await pilot.connect()
+        try:
+            return await fly_collision_prevention(load_config(None), pilot, px4.ports, tmp_path, cp_dist_m=2.0)
+        finally:
+            await pilot.make_ready()
+            await pilot.close()
+
+    result = _run(scenario())
+    print("\n".join(result.lines()))
+    assert result.obstacle_messages > 50
+    assert result.passed, result.lines()
+
+
+def test_the_pilots_offboard_switch_engages_and_position_mode_releases(px4: Px4Sitl, tmp_path: Path) -> None:
+    """The ground station switches PX4 to Offboard while the service is ready: it takes over and avoids;
+    Position mode hands the vehicle back at once (`companion sitl --scenario rc-engage`)."""
+    from companion.sitl.scenarios import StickPilot, fly_rc_engage
+
+    async def scenario():
+        pilot = StickPilot(PILOT_URL, px4.ports.system_id)
+        await pilot.connect()
+        try:
+            return await fly_rc_engage(load_config(None), pilot, px4.ports, tmp_path)
+        finally:
+            await pilot.make_ready()
+            await pilot.close()
+
+    result = _run(scenario())
+    print("\n".join(result.lines()))
+    assert result.passed, result.lines()

@@ -883,3 +883,85 @@ def test_a_clear_decision_that_only_climbs_lets_course_hold_turn_back() -> None:
     out = h.run(cmd.hold_resume_delay_s + 0.2)[-1]
     assert out.setpoint.forward_m_s == 0.0 and out.setpoint.yaw_rate_deg_s == cmd.max_heading_hold_rate_deg_s
     assert out.setpoint.down_m_s == pytest.approx(-0.2 * cmd.max_vertical_speed_m_s)  # its climb kept
+
+
+# ---------------------------------------------------------------------------------------------- engage from the sticks
+
+
+def _sticks() -> Harness:
+    return Harness(default_config(engage_on_offboard_switch=True))
+
+
+def test_offboard_switch_off_by_default_streams_nothing_while_passive() -> None:
+    h = Harness()
+    assert all(o.setpoint is None for o in h.run(1.0)) and not h.sup.ready
+
+
+def test_ready_streams_zero_and_a_pilots_switch_engages_with_no_mode_command() -> None:
+    h = _sticks()
+    outs = h.run(1.0)
+    assert all(o.setpoint == ZERO_SETPOINT and o.state is State.PASSIVE for o in outs)
+    assert h.sup.ready and h.sup.streaming and not h.actions()
+    h.vehicle = vehicle("OFFBOARD")  # the pilot's RC switch (or QGC) onto the zero stream
+    out = h.step()
+    assert out.state is State.ENGAGED and "offboard switch" in out.reason and h.sup.engaged
+    assert out.setpoint is not None and out.setpoint.forward_m_s > 0  # the decision's setpoint at once
+    assert not h.actions()  # no START_OFFBOARD: the pilot did it
+    # Switching away gives it back at once: zero, stream stopped, no mode command ...
+    h.vehicle = vehicle("POSCTL")
+    out = h.step()
+    assert out.state is State.DISENGAGED and out.setpoint == ZERO_SETPOINT
+    assert out.actions == (Action.STOP_SETPOINTS,)
+    # ... and ready again on the next step, so the switch works again.
+    out = h.step()
+    assert out.setpoint == ZERO_SETPOINT and h.sup.ready and not out.actions
+    h.vehicle = vehicle("OFFBOARD")
+    assert h.step().state is State.ENGAGED
+    assert Action.START_OFFBOARD not in h.actions() and Action.HOLD not in h.actions()
+
+
+@pytest.mark.parametrize(
+    "spoil",
+    [
+        lambda h: setattr(h, "vehicle", vehicle(armed=False)),
+        lambda h: setattr(h, "camera_ok", False),
+        lambda h: setattr(h, "vehicle", vehicle(connected=False)),
+    ],
+)
+def test_not_ready_stops_the_stream_so_the_autopilot_refuses_offboard(spoil) -> None:
+    h = _sticks()
+    h.run(0.5)
+    assert h.sup.ready
+    spoil(h)
+    out = h.step()
+    assert out.setpoint == ZERO_SETPOINT and out.actions == (Action.STOP_SETPOINTS,) and not h.sup.ready
+    assert all(o.setpoint is None for o in h.run(0.5))
+
+
+def test_stale_frames_stop_the_ready_stream_too() -> None:
+    h = _sticks()
+    h.run(0.5)
+    outs = h.run(1.0, fresh_frame=False)
+    assert Action.STOP_SETPOINTS in [a for o in outs for a in o.actions] and not h.sup.ready
+    assert outs[-1].setpoint is None
+
+
+def test_a_switch_that_finds_the_service_not_ready_is_refused_and_not_flown() -> None:
+    h = _sticks()
+    h.run(0.5)
+    h.camera_ok = False
+    h.vehicle = vehicle("OFFBOARD")  # the same step: the switch and the camera loss
+    out = h.step()
+    assert out.state is State.DISENGAGED and "offboard switch refused" in out.reason
+    assert out.setpoint == ZERO_SETPOINT and out.actions == (Action.STOP_SETPOINTS,)
+    assert not h.sup.engaged
+
+
+def test_no_ready_stream_after_a_failsafe_until_an_explicit_engage() -> None:
+    h = _sticks()
+    h.engage()
+    h.run(6.0, fresh_frame=False)  # failsafe: Hold
+    h.vehicle = vehicle("HOLD")
+    h.run(0.5)
+    assert h.sup.state is State.FAILSAFE and not h.sup.ready
+    assert all(o.setpoint is None for o in h.run(1.0))

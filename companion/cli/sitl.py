@@ -32,6 +32,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     what = p.add_mutually_exclusive_group(required=True)
     what.add_argument("--course", metavar="KIND", help="course kind: corridor, doorway, forest, pitch, side, deadend, office, detour, head-on")
     what.add_argument("--suite", metavar="NAME", help="a suite of courses: quick (16 flights) or standard (72)")
+    what.add_argument(
+        "--scenario", choices=["collision-prevention", "rc-engage"],
+        help=(
+            "PX4 only (docs/sitl.md): collision-prevention: the service only feeds OBSTACLE_DISTANCE while a pilot "
+            "flies Position mode at a wall (CP_DIST set); then the service stops. rc-engage: the ground station "
+            "switches PX4 to Offboard while the service is ready (vehicle.engage_on_offboard_switch), then back to "
+            "Position mode"
+        ),
+    )  # fmt: skip
+    p.add_argument("--cp-dist", type=float, default=2.0, metavar="M", help="--scenario collision-prevention: CP_DIST, metres (default 2)")
     p.add_argument("--seed", type=int, default=0, help="--course: the course seed (default 0)")
     p.add_argument("--config", type=Path, help="TOML config of the service (default: built-in defaults)")
     p.add_argument("--autopilot", choices=["px4", "ardupilot"], default="px4", help="which SITL flies (default px4)")
@@ -94,6 +104,8 @@ def run(args: argparse.Namespace) -> int:
     if (args.px4_build is not None and ardupilot) or (args.ardupilot_build is not None and not ardupilot):
         raise InputError("--px4-build goes with --autopilot px4, --ardupilot-build with --autopilot ardupilot")
     cfg = load_config(args.config)
+    if args.scenario is not None:
+        return _run_scenario(args, cfg)
     if args.course is not None:
         if args.plot_dir is not None:
             raise InputError("--plot-dir goes with --suite; use --plot with --course")
@@ -144,3 +156,32 @@ def run(args: argparse.Namespace) -> int:
     print(suite_table(results))
     print(f"\n{len(results)} flights with {'ArduPilot' if ardupilot else 'PX4'} in the loop in {time.perf_counter() - t0:.0f} s")
     return 0 if all(r.success for r in results) else 1
+
+
+def _run_scenario(args: argparse.Namespace, cfg: Any) -> int:
+    """``--scenario``: one of issue 18's proofs against PX4 SITL; prints what it measured."""
+    import tempfile
+
+    from companion.sitl.px4 import Px4Ports, find_px4_build
+    from companion.sitl.scenarios import run_scenario
+
+    if args.autopilot != "px4":
+        raise InputError("--scenario flies PX4 (its Collision Prevention, its Offboard switch)")
+    ports = Px4Ports(args.instance)
+    px4_build = find_px4_build(args.px4_build)
+    kw: dict[str, Any] = {}
+    if args.scenario == "collision-prevention":
+        kw["cp_dist_m"] = args.cp_dist
+        kw["seed"] = args.seed
+    with tempfile.TemporaryDirectory(prefix="companion-sitl-") as tmp:
+        workdir = args.workdir.expanduser().resolve() if args.workdir is not None else Path(tmp)
+        result = asyncio.run(
+            run_scenario(
+                args.scenario, cfg, ports=ports, pilot_url=args.pilot or ports.pilot_url, workdir=workdir,
+                px4_build=px4_build, service_log_level=args.service_log_level, **kw,
+            )
+        )
+    for line in result.lines():
+        print(line)
+    print("passed" if result.passed else "FAILED")
+    return 0 if result.passed else 1

@@ -33,6 +33,7 @@ from companion.config.core import (
 from companion.config.detour import DetourConfig
 from companion.config.envelope import EnvelopeConfig, envelope_violations
 from companion.config.gpu import GpuConfig
+from companion.config.obstacle import ObstacleDistanceConfig
 from companion.config.service import (
     BusConfig,
     CameraConfig,
@@ -61,6 +62,7 @@ __all__ = [
     "InputTerm",
     "LutConfig",
     "MemoryConfig",
+    "ObstacleDistanceConfig",
     "OutputTerm",
     "RegionsConfig",
     "RuleConfig",
@@ -89,6 +91,7 @@ class CompanionConfig(StrictModel):
     command: CommandConfig = Field(default_factory=CommandConfig)
     memory: MemoryConfig = Field(default_factory=MemoryConfig)
     detour: DetourConfig = Field(default_factory=DetourConfig)
+    obstacle_distance: ObstacleDistanceConfig = Field(default_factory=ObstacleDistanceConfig)
     camera: CameraConfig = Field(default_factory=CameraConfig)
     vehicle: VehicleConfig = Field(default_factory=VehicleConfig)
     bus: BusConfig = Field(default_factory=BusConfig)

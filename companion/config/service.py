@@ -37,6 +37,8 @@ RESTART_FIELDS: tuple[str, ...] = (
     "vehicle.connection",
     "vehicle.autopilot",
     "vehicle.telemetry_rate_hz",
+    "vehicle.component_id",
+    "vehicle.system_id",
 ) + tuple(f"view.{f}" for f in VIEW_RESTART_FIELDS)
 #: Fields inside a restart-only section that apply live anyway: where the simulated scene lies in the
 #: autopilot's frame (the PX4 SITL harness places the course at the hovering vehicle just before
@@ -169,7 +171,7 @@ class CameraConfig(StrictModel):
             "simulator's library (sim_course, sim_course_seed), as `companion sim` and `companion sitl` fly it."
         ),
     )
-    sim_course: Literal["corridor", "doorway", "forest", "pitch", "side", "deadend", "head-on"] = Field(
+    sim_course: Literal["corridor", "doorway", "forest", "pitch", "side", "deadend", "head-on", "wall"] = Field(
         default="doorway", description="sim, world 'course': the course kind."
     )
     sim_course_seed: int = Field(default=0, ge=0, le=2**31 - 1, description="sim, world 'course': the course seed.")
@@ -310,6 +312,60 @@ class VehicleConfig(StrictModel):
     )
     require_armed_to_engage: bool = Field(
         default=True, description="Refuse 'engage' while the vehicle is disarmed (the service never arms it)."
+    )
+    engage_on_offboard_switch: bool = Field(
+        default=False,
+        description=(
+            "Engage from the sticks: while the service is ready (vehicle connected and armed, frames fresh, "
+            "not in offboard) it streams zero-velocity setpoints, so that a pilot's switch to PX4's Offboard "
+            "(an RC switch or QGroundControl; ArduCopter: GUIDED) is accepted and hands the vehicle to the "
+            "service, with every check of 'engage'. Switching away gives it back. Zero velocity in any other "
+            "mode is ignored by the autopilot (docs/service.md)."
+        ),
+    )
+    component_id: int = Field(
+        default=196,
+        ge=1,
+        le=254,
+        description=(
+            "The service's MAVLink component id on the companion computer (196: MAV_COMP_ID_OBSTACLE_AVOIDANCE; "
+            "restart to change)."
+        ),
+    )
+    system_id: int = Field(
+        default=1,
+        ge=1,
+        le=254,
+        description=(
+            "The service's MAVLink system id: the vehicle's (the autopilot's MAV_SYS_ID / SYSID_THISMAV), so that "
+            "the ground station lists the service as a component of the vehicle and PX4 watches its heartbeat "
+            "(COM_OBC_LOSS_T: 'Connection to mission computer lost'); restart to change."
+        ),
+    )
+    heartbeat_rate_hz: float = Field(
+        default=1.0,
+        ge=0.2,
+        le=10.0,
+        description=(
+            "Rate of the service's own HEARTBEAT carrying its state (standby, active while engaged, critical "
+            "in failsafe, while degraded or without camera), Hz."
+        ),
+    )
+    status_text: bool = Field(
+        default=True,
+        description="Send STATUSTEXT to the ground station on every state change, new brake or pause, and camera loss.",
+    )
+    status_text_min_interval_s: float = Field(
+        default=1.0,
+        ge=0.05,
+        le=60.0,
+        description=(
+            "STATUSTEXT rate limit: one line per this long once the burst is spent (a newer line replaces a "
+            "waiting one, so the last word always arrives), seconds."
+        ),
+    )
+    status_text_burst: int = Field(
+        default=3, ge=1, le=20, description="STATUSTEXT lines that may go out back to back before the rate limit applies."
     )
 
     @field_validator("connection")

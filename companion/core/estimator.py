@@ -21,6 +21,7 @@ from companion.core.depth import disparity_to_depth
 from companion.core.disparity import make_cpu_matcher
 from companion.core.geometry import StereoGeometry
 from companion.core.memory import BlockMax
+from companion.core.obstacle import ObstacleDistance, obstacle_layout, reduce_obstacle_distance
 from companion.core.regions import RegionLayout, reduce_regions, region_layout
 from companion.core.stereo import split_frame, to_grey
 from companion.core.types import RegionDepths
@@ -40,12 +41,15 @@ class RegionEstimate:
         near_blocks: when asked for with ``near_block_px``: float32 ``(ceil(H/b), ceil(W/b))`` the
             largest valid disparity of each ``b``-pixel block, pixels, NaN none
             (:class:`~companion.core.memory.BlockMax`); a buffer valid until the next estimate.
+        obstacle: the frame's OBSTACLE_DISTANCE bins (:mod:`companion.core.obstacle`), or None when
+            ``obstacle_distance.send`` is off (or the backend does not compute them).
     """
 
     regions: RegionDepths
     timings_ms: dict[str, float]
     disparity: np.ndarray | None = None
     near_blocks: np.ndarray | None = None
+    obstacle: ObstacleDistance | None = None
 
 
 class RegionEstimator(Protocol):
@@ -86,6 +90,11 @@ class CpuRegionEstimator:
         self._disparity = np.empty(shape, np.float32)
         self._depth = np.empty(shape, np.float32)
         self._block_max: BlockMax | None = None
+        self._obstacle = (
+            obstacle_layout(self.geometry, cfg.stereo.num_disparities, cfg.obstacle_distance)
+            if cfg.obstacle_distance.send != "off"
+            else None
+        )
 
     def estimate(self, frame: np.ndarray, want_disparity: bool = False, near_block_px: int = 0) -> RegionEstimate:
         clock = self._clock
@@ -111,11 +120,16 @@ class CpuRegionEstimator:
             near = self._block_max(disp)
         t4 = clock()
         timings["regions_ms"] = (t4 - t3) * 1e3
+        obstacle = None
+        if self._obstacle is not None:
+            obstacle = reduce_obstacle_distance(disp, self._obstacle)
+            timings["obstacle_ms"] = (clock() - t4) * 1e3
         return RegionEstimate(
             regions=regions,
             timings_ms=timings,
             disparity=disp.copy() if want_disparity else None,
             near_blocks=near,
+            obstacle=obstacle,
         )
 
 

@@ -30,13 +30,14 @@ from companion.core.fuzzy.avoidance import AvoidanceController
 from companion.core.geometry import StereoGeometry
 from companion.core.lut import DepthLUT, median_filter, release_filter
 from companion.core.memory import NearCells, ViewLimits, view_limits
+from companion.core.obstacle import ObstacleDistance
 from companion.core.types import Decision, RegionDepths
 
 log = logging.getLogger(__name__)
 
 #: Config sections whose change requires a new estimator (new maps, matcher or kernels). A change
 #: elsewhere (LUT, controller, command) applies on the next frame with no rebuild.
-ESTIMATOR_SECTIONS = ("calibration", "stereo", "regions", "gpu")
+ESTIMATOR_SECTIONS = ("calibration", "stereo", "regions", "gpu", "obstacle_distance")
 
 
 @dataclass(frozen=True)
@@ -63,6 +64,8 @@ class FrameResult:
             frames' measurements, so it is not marked.)
         stand_in: bool ``(9,)``: True where ``refined`` is 0 m standing in for an unknown in the median
             window (unknown counts as near): not a depth at all, to be shown as unknown.
+        obstacle: the frame's OBSTACLE_DISTANCE bins (:class:`~companion.core.obstacle.ObstacleDistance`),
+            or None when ``obstacle_distance.send`` is off or the estimator computes none.
     """
 
     timestamp_s: float
@@ -76,6 +79,7 @@ class FrameResult:
     measured: RegionDepths | None = None
     filtered: np.ndarray | None = None
     stand_in: np.ndarray | None = None
+    obstacle: ObstacleDistance | None = None
 
     def shown_depths_m(self) -> np.ndarray:
         """float64 ``(9,)``: ``refined`` with the median's stand-ins for unknown made NaN (unknown): the
@@ -224,4 +228,5 @@ class Pipeline:
             measured=RegionDepths(depth_m=np.asarray(looked_up, dtype=np.float64), valid_fraction=est.regions.valid_fraction),
             filtered=filtered,
             stand_in=stand_in,
+            obstacle=getattr(est, "obstacle", None),
         )

@@ -33,6 +33,12 @@ States (:class:`State`)::
   offboard, so this fights no one). Also when the vehicle link is lost while commanding: then the
   setpoint stream is stopped without any mode change, so that PX4's own offboard-loss failsafe acts.
   Only an explicit ``engage`` leaves it.
+* **engage from the sticks** (``engage_on_offboard_switch``): while passive or disengaged and ready
+  (every check of ``engage`` passes), zero setpoints stream so that the autopilot accepts a pilot's
+  switch to offboard (PX4 refuses Offboard without a stream); when the vehicle then reports offboard
+  the supervisor takes it (*engaged*, no mode command of its own); not ready any more: zero, then the
+  stream stops (STOP_SETPOINTS), so the autopilot refuses the switch. Not after a failsafe (only an
+  explicit ``engage`` leaves it).
 * **disengaged(reason)**: passive, with the reason: an operator's ``disengage`` (we leave offboard to
   Hold first), a refused engage, or **the pilot or PX4 leaving offboard**: then the supervisor stops
   commanding at once, never sends a mode change and never re-engages by itself.
@@ -225,6 +231,7 @@ class SupervisorConfig:
     override_max_duration_s: float = 10.0
     override_respects_brake: bool = True
     autostart: bool = False
+    engage_on_offboard_switch: bool = False
     memory: MemoryConfig = field(default_factory=MemoryConfig)
     detour: DetourConfig = field(default_factory=DetourConfig)
     prefer_right: bool = True  # a detour's tie goes right (controller.preferred_yaw_side)
@@ -242,6 +249,7 @@ class SupervisorConfig:
             override_max_duration_s=s.override_max_duration_s,
             override_respects_brake=s.override_respects_brake,
             autostart=s.autostart,
+            engage_on_offboard_switch=v.engage_on_offboard_switch,
             memory=cfg.memory,
             detour=cfg.detour,
             prefer_right=cfg.controller.preferred_yaw_side == "right",
@@ -274,6 +282,8 @@ class _Memory:
     reason: str = "started passive: waiting for an engage request"
     activity: State = State.ENGAGED  # engaged / paused / override, while commanding
     streaming: bool = False  # we have handed setpoints and not stopped the stream since
+    ready: bool = False  # streaming zero while passive so that a pilot's offboard switch is accepted
+    by_switch: bool = False  # the current engagement came from the pilot's offboard switch
     owns_offboard: bool = False  # the vehicle is in offboard because we put it there
     engaging: _Engaging | None = None
     leaving: _Leaving | None = None
@@ -293,6 +303,7 @@ class _Memory:
 
 
 _COMMANDING = (State.ENGAGED, State.DEGRADED, State.PAUSED, State.OVERRIDE)
+_ENGAGED_BY_SWITCH = "engaged by the pilot's offboard switch: avoiding obstacles"
 
 
 class Supervisor:
@@ -407,6 +418,8 @@ class Supervisor:
             if self._engage_refusal(vehicle, fresh, age_s, camera_ok) is None:
                 m.autostart_pending = False
                 self._begin_engage(now_s, vehicle, "autostart")
+        if self._cfg.engage_on_offboard_switch or m.ready:
+            self._offboard_switch(now_s, vehicle, fresh, age_s, camera_ok)
         self._advance(now_s, vehicle, fresh, age_s, camera_ok)
         setpoint = self._output(now_s, latest, age_s, vehicle)
         return StepOutput(
@@ -456,6 +469,7 @@ class Supervisor:
         if m.streaming:
             m.actions.append(Action.STOP_SETPOINTS)
         m.streaming = False
+        m.ready = False
         m.owns_offboard = False
         m.engaging = None
         m.leaving = None
@@ -519,7 +533,51 @@ class Supervisor:
         elif m.leaving is not None and v.in_offboard and m.leaving.start_sent_s is not None:
             m.owns_offboard = True  # the start we asked for took effect after all: ours to leave
 
-    def _engage_refusal(self, v: VehicleState, fresh: bool, age_s: float, camera_ok: bool) -> str | None:
+    def _offboard_switch(self, now_s: float, v: VehicleState, fresh: bool, age_s: float, camera_ok: bool) -> None:
+        """Engage from the sticks (``engage_on_offboard_switch``): while ready, stream zero so that the
+        autopilot accepts a pilot's switch to offboard; when the vehicle then reports offboard, take it
+        (every check of ``engage`` again); when no longer ready, stop the stream (zero first)."""
+        m = self._m
+        if m.engaging is not None or m.leaving is not None or m.owns_offboard:
+            m.ready = False
+            return
+        idle = m.state in (State.PASSIVE, State.DISENGAGED) and not m.shutting_down
+        refusal = self._engage_refusal(v, fresh, age_s, camera_ok, offboard_ok=True) if idle else "not idle"
+        if not self._cfg.engage_on_offboard_switch:
+            refusal = "engage_on_offboard_switch is off"
+        if m.ready and v.in_offboard:
+            if refusal is None:
+                m.ready = False
+                m.owns_offboard = True
+                m.activity = State.ENGAGED
+                m.stalled = False
+                m.override = None
+                m.by_switch = True
+                m.course.engage(v.position_ned_m, _finite_or_none(v.attitude_rad, 2))
+                self._set(State.ENGAGED, _ENGAGED_BY_SWITCH)
+            else:
+                # Switched while the service cannot fly: stop streaming so that the autopilot's own
+                # offboard-loss failsafe gives the vehicle back.
+                self._stop_stream()
+                self._set(State.DISENGAGED, f"offboard switch refused: {refusal}; setpoints stopped")
+            return
+        if m.ready and refusal is not None:
+            self._stop_stream()  # no longer ready: PX4 must refuse a switch to offboard now
+            return
+        if not m.ready and refusal is None and not v.in_offboard and Action.STOP_SETPOINTS not in m.actions:
+            m.ready = True
+            m.streaming = True
+
+    @property
+    def ready(self) -> bool:
+        """True while zero setpoints stream so that a pilot's offboard switch engages (``engage_on_offboard_switch``)."""
+        return self._m.ready
+
+    def _engage_refusal(
+        self, v: VehicleState, fresh: bool, age_s: float, camera_ok: bool, offboard_ok: bool = False
+    ) -> str | None:
+        """Why an engage is refused now (None: it is not); ``offboard_ok``: the vehicle may already be in
+        offboard (a pilot's switch onto the stream the service offers while ready)."""
         m = self._m
         if m.shutting_down:
             return "the service is shutting down"
@@ -533,7 +591,7 @@ class Supervisor:
             return "the vehicle's flight mode is not known yet"
         if self._cfg.require_armed_to_engage and not v.armed:
             return "vehicle is disarmed (the service never arms it)"
-        if v.in_offboard:
+        if v.in_offboard and not offboard_ok:
             return "vehicle is already in OFFBOARD under another controller; switch to a manual mode first"
         if not fresh:
             if not camera_ok:
@@ -547,6 +605,8 @@ class Supervisor:
         m = self._m
         m.engaging = _Engaging(since_s=now_s, mode_at_request=v.flight_mode)
         m.streaming = True
+        m.ready = False
+        m.by_switch = False
         m.owns_offboard = False
         m.override = None
         self._set(State.ENGAGING, f"{why}: streaming zero setpoints before requesting offboard")
@@ -709,7 +769,7 @@ class Supervisor:
         elif m.activity is State.OVERRIDE:
             self._set(State.OVERRIDE, "manual override (automatic again when it expires)")
         else:
-            self._set(State.ENGAGED, "engaged: avoiding obstacles")
+            self._set(State.ENGAGED, _ENGAGED_BY_SWITCH if m.by_switch else "engaged: avoiding obstacles")
 
     def _advance_leaving(self, now_s: float, v: VehicleState) -> None:
         """Leaving offboard: ask for Hold until confirmed; stop the setpoints when it never is."""

@@ -14,7 +14,10 @@ event per band):
    ``sad_fast_regions`` matches the disparity rows whose windows are complete, with the region
    histograms fused in; the last block of the last band turns the histograms into the 9 robust
    depths (``sad_naive`` + ``regions_from_disp`` for configurations the fast kernel does not cover);
-3. the 9 depths and 9 valid fractions (144 bytes) come back to a pinned host buffer.
+3. the 9 depths and 9 valid fractions (144 bytes) come back to a pinned host buffer; with
+   ``obstacle_distance.send`` on, ``obstacle_bins`` (``kernels/obstacle.cu``, one block per 5° bin)
+   first reduces the device disparity to OBSTACLE_DISTANCE's 72 bins (144 more bytes back), exactly
+   :func:`companion.core.obstacle.reduce_obstacle_distance`.
 
 With ``stereo.matcher = "sgm"`` (the default) the bands carry the upload, grey and rectification only;
 after the last band the semi-global matcher of ``kernels/sgm.cu`` runs on the whole rectified pair:
@@ -45,6 +48,7 @@ from companion.core.calibration import make_rectifier
 from companion.core.geometry import StereoGeometry
 from companion.core.memory import block_max
 from companion.core.estimator import RegionEstimate
+from companion.core.obstacle import N_BINS, ObstacleDistance, ObstacleLayout, obstacle_layout
 from companion.core.regions import RegionLayout, region_layout
 from companion.core.stereo import split_frame
 from companion.core.types import N_REGIONS, RegionDepths
@@ -70,6 +74,8 @@ _EW_THREADS = 128
 #: Threads per block of the fallback kernels.
 _NAIVE_THREADS = 64
 _REGIONS_THREADS = 256
+#: Threads per block of the OBSTACLE_DISTANCE kernel (one block per bin).
+OBSTACLE_THREADS = 256
 _MAX_CHANNELS = 4
 
 
@@ -139,6 +145,11 @@ class CupyRegionEstimator:
             self.sgm_plan = plan_sgm(self.width_px, self.height_px, st.num_disparities, st.sgm_paths,
                                      self.layout.row_edges, cfg.gpu.sgm_lanes_per_line)
         self.disparity_scale = 16 if self.matcher == "sgm" else 1
+        self.obstacle_layout: ObstacleLayout | None = (
+            obstacle_layout(self.geometry, st.num_disparities, cfg.obstacle_distance)
+            if cfg.obstacle_distance.send != "off"
+            else None
+        )
         self._identity = bool(rectifier.is_identity)
         try:
             n_dev = cp.cuda.runtime.getDeviceCount()
@@ -204,6 +215,20 @@ class CupyRegionEstimator:
                 np.int32(st.sgm_lr_max_diff_px),
                 np.int32(1 if st.sgm_median else 0),
             )
+
+        if self.obstacle_layout is not None:
+            lay = self.obstacle_layout
+            self._od_module = cp.RawModule(
+                code=f"#define OD_THREADS {OBSTACLE_THREADS}\n" + kernel_source("obstacle.cu"),
+                options=("--std=c++17", "--fmad=false"),
+            )
+            self._k_obstacle = self._od_module.get_function("obstacle_bins")
+            self._od_row_thr = cp.asarray(lay.row_threshold_px, dtype=cp.float32)
+            self._od_col_fbk = cp.asarray(lay.column_fbk, dtype=cp.float32)
+            self._od_cols = cp.asarray(lay.bin_columns.astype(np.int32).reshape(-1))
+            self._od_out = cp.zeros(N_BINS, dtype=cp.uint16)
+            self._od_host_mem = cp.cuda.alloc_pinned_memory(N_BINS * 2)
+            self._od_host = np.frombuffer(self._od_host_mem, dtype=np.uint16, count=N_BINS)
 
         attrs = self._device.attributes
         self.sm_count = int(attrs["MultiProcessorCount"])
@@ -441,6 +466,8 @@ class CupyRegionEstimator:
                         self._graph(k, channels, src.swapped, want_device_disparity).launch(comp)
                     else:
                         self._enqueue_band(k, channels, src.swapped, want_device_disparity)
+                if self.obstacle_layout is not None:
+                    self._enqueue_obstacle(comp)
                 t1 = clock()
                 try:
                     comp.synchronize()
@@ -462,7 +489,30 @@ class CupyRegionEstimator:
         regions = RegionDepths(depth_m=res[:N_REGIONS].copy(), valid_fraction=res[N_REGIONS:].copy())
         disparity = self._host_disparity() if want_disparity else None
         near = self._near_blocks(near_block_px) if near_block_px > 0 else None
-        return RegionEstimate(regions=regions, timings_ms=timings, disparity=disparity, near_blocks=near)
+        obstacle = None
+        lay = self.obstacle_layout
+        if lay is not None:
+            obstacle = ObstacleDistance(self._od_host.copy(), lay.min_distance_cm, lay.max_distance_cm)
+        return RegionEstimate(
+            regions=regions, timings_ms=timings, disparity=disparity, near_blocks=near, obstacle=obstacle
+        )
+
+    def _enqueue_obstacle(self, stream: Any) -> None:
+        """Queue the OBSTACLE_DISTANCE kernel on the device disparity and its 144-byte copy back."""
+        cp = self._cp
+        lay = self.obstacle_layout
+        assert lay is not None
+        self._k_obstacle(
+            (N_BINS,), (OBSTACLE_THREADS,),
+            (self._disp, np.int32(self.width_px), np.int32(self.height_px), np.float32(1.0 / self.disparity_scale),
+             self._od_row_thr, self._od_col_fbk, self._od_cols, np.float64(lay.percentile_pct),
+             np.int32(lay.min_points), np.float64(lay.min_valid_fraction), np.float32(lay.max_distance_m),
+             np.int32(lay.min_distance_cm), np.int32(lay.max_distance_cm), self._od_out),
+            stream=stream,
+        )
+        cp.cuda.runtime.memcpyAsync(
+            self._od_host.ctypes.data, self._od_out.data.ptr, N_BINS * 2, cp.cuda.runtime.memcpyDeviceToHost, stream.ptr
+        )
 
     def rectified_pair(self) -> tuple[np.ndarray, np.ndarray]:
         """Copies of the last frame's rectified grey eyes, uint8 ``(H, W)`` each (tests, debugging)."""
@@ -615,7 +665,9 @@ class CupyRegionEstimator:
             if last:
                 self._enqueue_sgm(s)
         elif p.fast:
-            self._k_fast[want_disparity](
+            # The OBSTACLE_DISTANCE kernel reads the device disparity: the SAD kernel must write it
+            # (SGM's sgm_post always does).
+            self._k_fast[want_disparity or self.obstacle_layout is not None](
                 band.grid, (p.nt,),
                 (self._rect_l, self._rect_r, self._disp, self._hist, self._counter, self._result_dev,
                  np.int32(band.out[0]), np.int32(band.out[1]), np.int32(band.rows_per_block), self._total_blocks,

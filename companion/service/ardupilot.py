@@ -166,11 +166,6 @@ class ArduPilotVehicleLink(MavsdkLinkBase):
             (self._keep_telemetry_rates(), "ArduPilot telemetry rates"),
         ]
 
-    def _plugins(self) -> list[Any]:
-        plugins = [*super()._plugins(), self._direct]
-        self._direct = None
-        return plugins
-
     # ------------------------------------------------------------------ telemetry
 
     async def _watch_heartbeat(self) -> None:

@@ -70,6 +70,7 @@ from companion.service.control import (  # noqa: F401 (re-exported: the daemon's
 )
 from companion.service.health import HealthReporter
 from companion.service.notify import Notifier, watchdog_interval_s
+from companion.service.presence import PresencePlane
 from companion.service.runtime import raise_open_file_limit
 
 if TYPE_CHECKING:
@@ -93,7 +94,7 @@ class Processed:
     done_s: float
 
 
-class Service(ControlPlane, HealthReporter):
+class Service(ControlPlane, HealthReporter, PresencePlane):
     """The daemon. Build it, then ``await run()`` (or :func:`run_service` from the CLI).
 
     Args:
@@ -129,6 +130,7 @@ class Service(ControlPlane, HealthReporter):
         self._notifier = notifier if notifier is not None else Notifier.from_environment(self._environ)
         self._watchdog_s = watchdog_interval_s(self._environ)
         self.supervisor = Supervisor(SupervisorConfig.from_config(self.config))
+        self._presence_init()
         self.config_version = 1
         self.exit_code = exitcodes.OK
         self.ready = threading.Event()  # set once READY=1 was sent (for tests and embedding)
@@ -256,6 +258,7 @@ class Service(ControlPlane, HealthReporter):
             except VehicleError as err:
                 raise StartupError(str(err)) from None
         self._spawn(self._vehicle_connector(), "vehicle connector")
+        self._spawn(self._presence_loop(), "presence")
         if self._camera is None:
             from companion.service.camera import TelemetryPose, make_camera, placement_from_config
 
@@ -572,12 +575,13 @@ class Service(ControlPlane, HealthReporter):
             from companion.interfaces import VehicleState
 
             vehicle = VehicleState()
+        camera_ok = capture.ok if capture is not None else False
         out = self.supervisor.step(
             now,
             latest.result if latest is not None else None,
             vehicle,
             [r for r, _ in pending],
-            camera_ok=capture.ok if capture is not None else False,
+            camera_ok=camera_ok,
         )
         replies = iter(out.replies)
         for _, fut in pending:
@@ -599,6 +603,7 @@ class Service(ControlPlane, HealthReporter):
                     self._latency_s.append(latency)
                     if self.record_latencies:
                         self.latencies_s.append(latency)
+        self._presence_step(now, out, latest, new_frame, camera_ok)
         if new_frame and latest is not None:
             self._last_stepped_seq = latest.seq
         for action in out.actions:

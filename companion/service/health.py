@@ -88,6 +88,7 @@ class HealthReporter:
             "state": self.supervisor.state.value,
             "reason": self.supervisor.reason,
             "engaged": self.supervisor.engaged,
+            "offboard_switch_ready": self.supervisor.ready,
             "config_version": self.config_version,
             "fps": float(len(recent)),
             "frame_age_ms": (now - result.timestamp_s) * 1e3 if result is not None else None,
@@ -147,6 +148,7 @@ class HealthReporter:
             "frame_errors": self._frame_errors,
             "last_error": self._last_error,
             "control": self._control_status(),
+            "mavlink": self.presence_status(),
         }
 
     def _control_status(self) -> dict[str, int] | None:

@@ -28,11 +28,23 @@ What MAVSDK does that matters here (read in MAVSDK's ``cpp/src/mavsdk/plugins/of
   fresh plugin.
 * Leaving offboard to Hold is only ever requested while we own offboard: on PX4 ``action.hold()``
   (the same DO_SET_MODE), on ArduPilot LOITER by its own mode number.
+
+The service's presence on the ground station (issue 18), through the same MAVSDK:
+
+* MAVSDK is configured as a companion computer with ``vehicle.system_id`` (the vehicle's) and
+  ``vehicle.component_id`` (196, MAV_COMP_ID_OBSTACLE_AVOIDANCE), so everything the service sends comes
+  from that component of the vehicle's system.
+* MAVSDK heartbeats that component by itself at 1 Hz with ``system_status`` 0 (MAV_STATE_UNINIT: MAVSDK
+  4.1 offers no way to set it). The service's own HEARTBEAT (:meth:`MavsdkLinkBase.send_heartbeat`,
+  ``mavlink_direct``) carries its state (standby / active / critical) at ``vehicle.heartbeat_rate_hz``.
+* STATUSTEXT through ``server_utility`` (:meth:`MavsdkLinkBase.send_status_text`), OBSTACLE_DISTANCE
+  through ``mavlink_direct`` (:meth:`MavsdkLinkBase.send_obstacle_distance`).
 """
 
 from __future__ import annotations
 
 import asyncio
+import json
 import logging
 import math
 import time
@@ -42,6 +54,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
+from companion.core.obstacle import ObstacleDistance
 from companion.core.types import VelocitySetpoint
 from companion.errors import VehicleError
 from companion.interfaces import VehicleState
@@ -55,6 +68,10 @@ _mavsdk_log = logging.getLogger("companion.service.vehicle.mavsdk")
 
 #: The autopilots a link exists for (``vehicle.autopilot`` adds ``auto``).
 AUTOPILOTS: tuple[str, ...] = ("px4", "ardupilot")
+
+MAV_COMP_ID_OBSTACLE_AVOIDANCE = 196
+_MAV_TYPE_ONBOARD_CONTROLLER = 18
+_MAV_AUTOPILOT_INVALID = 8
 
 
 def _forward_mavsdk_log(level: Any, message: str, file: str | None, line: int) -> bool:
@@ -70,10 +87,15 @@ class MavsdkSession:
     Args:
         connection: MAVSDK connection URL (``udpin://0.0.0.0:14540``, ``tcpout://127.0.0.1:5762``,
             ``serial:///dev/ttyTHS1:921600``).
+        component_id: the MAVLink component id the service sends from (``vehicle.component_id``;
+            196 = MAV_COMP_ID_OBSTACLE_AVOIDANCE), 1..254.
+        system_id: its MAVLink system id, the vehicle's (``vehicle.system_id``), 1..254.
     """
 
-    def __init__(self, connection: str) -> None:
+    def __init__(self, connection: str, component_id: int = MAV_COMP_ID_OBSTACLE_AVOIDANCE, system_id: int = 1) -> None:
         self.connection = connection
+        self.component_id = int(component_id)
+        self.system_id = int(system_id)
         self.mavsdk: Any = None
         self._connection_added = False
 
@@ -90,7 +112,11 @@ class MavsdkSession:
 
         log_subscribe(_forward_mavsdk_log)
         if self.mavsdk is None:
+            # A companion computer (MAV_TYPE_ONBOARD_CONTROLLER in MAVSDK's heartbeat), as the
+            # obstacle-avoidance component unless configured otherwise.
             config = Configuration.create_with_component_type(ComponentType.COMPANION_COMPUTER)
+            config.component_id = self.component_id
+            config.system_id = self.system_id
             self.mavsdk = Mavsdk(config)
         try:
             await self.mavsdk.add_any_connection(self.connection)
@@ -168,6 +194,8 @@ class MavsdkLinkBase:
         self._offboard: Any = None
         self._action: Any = None
         self._telemetry: Any = None
+        self._direct: Any = None  # MAVSDK's mavlink_direct: any message to the autopilot
+        self._utility: Any = None  # MAVSDK's server_utility: STATUSTEXT
         self._tasks: list[asyncio.Task] = []
         self._state = VehicleState()
         self._closed = False
@@ -197,11 +225,16 @@ class MavsdkLinkBase:
             VehicleError: ``kind="connection"`` when this link cannot fly that vehicle.
         """
         from mavsdk.asyncio.plugins.action import ActionAsync
+        from mavsdk.asyncio.plugins.mavlink_direct import MavlinkDirectAsync
+        from mavsdk.asyncio.plugins.server_utility import ServerUtilityAsync
         from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
 
         self._system = system
         self._telemetry = TelemetryAsync(system)
         self._action = ActionAsync(system)
+        if self._direct is None:
+            self._direct = MavlinkDirectAsync(system)
+        self._utility = ServerUtilityAsync(system)
         self._state = replace(self._state, connected=True, autopilot=self.AUTOPILOT, timestamp_s=self._clock())
         loop = asyncio.get_running_loop()
         # A telemetry stream failing must not take the service down (logged, not raised): the state
@@ -292,7 +325,88 @@ class MavsdkLinkBase:
 
     def _plugins(self) -> list[Any]:
         """Every plugin to destroy on close (subclasses add theirs)."""
-        return [self._telemetry, self._action]
+        plugins = [self._telemetry, self._action, self._direct, self._utility]
+        self._direct = self._utility = None
+        return plugins
+
+    # ------------------------------------------------------------------ presence (issue 18)
+
+    async def _send_direct(self, name: str, fields: dict[str, Any]) -> None:
+        """Send MAVLink message ``name`` with ``fields`` (broadcast) through ``mavlink_direct``.
+
+        Raises:
+            VehicleError: no autopilot connected, or MAVSDK refused the message.
+        """
+        from mavsdk.plugins.mavlink_direct import MavlinkDirectError, MavlinkMessage
+
+        self._require_system(f"send {name}")
+        if self._direct is None:
+            raise VehicleError(f"send {name}: the link is closed")
+        message = MavlinkMessage(
+            message_name=name,
+            system_id=0,
+            component_id=0,
+            target_system_id=0,
+            target_component_id=0,
+            fields_json=json.dumps(fields),
+        )
+        try:
+            await self._direct.send_message(message)
+        except MavlinkDirectError as err:
+            raise VehicleError(f"send {name}: {err}") from None
+
+    async def send_heartbeat(self, mav_state: int) -> None:
+        """The service's HEARTBEAT: an onboard controller (MAV_TYPE 18, no autopilot) whose
+        ``system_status`` is ``mav_state`` (MAV_STATE: 3 standby, 4 active, 5 critical)."""
+        await self._send_direct(
+            "HEARTBEAT",
+            {
+                "type": _MAV_TYPE_ONBOARD_CONTROLLER,
+                "autopilot": _MAV_AUTOPILOT_INVALID,
+                "base_mode": 0,
+                "custom_mode": 0,
+                "system_status": int(mav_state),
+                "mavlink_version": 3,
+            },
+        )
+
+    async def send_status_text(self, severity: int, text: str) -> None:
+        """One STATUSTEXT (``severity``: MAV_SEVERITY, 0 emergency .. 7 debug; ``text`` <= 50 ASCII
+        characters) through MAVSDK's ``server_utility``.
+
+        Raises:
+            VehicleError: no autopilot connected, or MAVSDK refused it.
+        """
+        from mavsdk.plugins.server_utility import ServerUtilityError, StatusTextType
+
+        self._require_system("send STATUSTEXT")
+        if self._utility is None:
+            raise VehicleError("send STATUSTEXT: the link is closed")
+        # MAVSDK's StatusTextType counts the other way round: DEBUG 0 .. EMERGENCY 7.
+        kind = StatusTextType(7 - min(7, max(0, int(severity))))
+        try:
+            await self._utility.send_status_text(kind, text)
+        except ServerUtilityError as err:
+            raise VehicleError(f"send STATUSTEXT: {err}") from None
+
+    async def send_obstacle_distance(self, obstacle: ObstacleDistance, time_usec: int) -> None:
+        """One OBSTACLE_DISTANCE: 72 uint16 distances (cm), ``increment`` 5 (and ``increment_f`` 5.0),
+        ``angle_offset`` 0, MAV_FRAME_BODY_FRD; ``time_usec`` the frame's capture time on the
+        monotonic clock, microseconds."""
+        await self._send_direct(
+            "OBSTACLE_DISTANCE",
+            {
+                "time_usec": int(time_usec),
+                "sensor_type": int(obstacle.sensor_type),
+                "distances": [int(x) for x in obstacle.distances_cm],
+                "increment": int(obstacle.increment_deg),
+                "min_distance": int(obstacle.min_distance_cm),
+                "max_distance": int(obstacle.max_distance_cm),
+                "increment_f": float(obstacle.increment_deg),
+                "angle_offset": float(obstacle.angle_offset_deg),
+                "frame": int(obstacle.frame),
+            },
+        )
 
     async def close(self) -> None:
         if self._closed:
@@ -370,6 +484,8 @@ class MavsdkVehicleLink:
         autopilot: ``"auto"``, ``"px4"`` or ``"ardupilot"`` (``vehicle.autopilot``).
         telemetry_rate_hz: ArduPilot: the rate asked for position, velocity and attitude, Hz
             (``vehicle.telemetry_rate_hz``).
+        component_id: the MAVLink component id the service sends from (``vehicle.component_id``).
+        system_id: the MAVLink system id it sends as, the vehicle's (``vehicle.system_id``).
     """
 
     def __init__(
@@ -378,6 +494,8 @@ class MavsdkVehicleLink:
         clock: Callable[[], float] = time.monotonic,
         autopilot: str = "auto",
         telemetry_rate_hz: float = 30.0,
+        component_id: int = MAV_COMP_ID_OBSTACLE_AVOIDANCE,
+        system_id: int = 1,
     ) -> None:
         if autopilot not in ("auto", *AUTOPILOTS):
             raise VehicleError(f"vehicle.autopilot {autopilot!r}: must be auto, {', '.join(AUTOPILOTS)}", kind="connection")
@@ -385,7 +503,7 @@ class MavsdkVehicleLink:
         self.autopilot = autopilot
         self.telemetry_rate_hz = telemetry_rate_hz
         self._clock = clock
-        self._session = MavsdkSession(connection)
+        self._session = MavsdkSession(connection, component_id, system_id)
         self._link: MavsdkLinkBase | None = None
         self._closed = False
 
@@ -451,6 +569,15 @@ class MavsdkVehicleLink:
         if self._link is not None:
             await self._link.stop_setpoints()
 
+    async def send_heartbeat(self, mav_state: int) -> None:
+        await self._require_link("send HEARTBEAT").send_heartbeat(mav_state)
+
+    async def send_status_text(self, severity: int, text: str) -> None:
+        await self._require_link("send STATUSTEXT").send_status_text(severity, text)
+
+    async def send_obstacle_distance(self, obstacle: ObstacleDistance, time_usec: int) -> None:
+        await self._require_link("send OBSTACLE_DISTANCE").send_obstacle_distance(obstacle, time_usec)
+
     async def close(self) -> None:
         if self._closed:
             return
@@ -464,4 +591,11 @@ class MavsdkVehicleLink:
 
 def make_vehicle_link(cfg: VehicleConfig, clock: Callable[[], float] = time.monotonic) -> MavsdkVehicleLink:
     """The service's vehicle link for the ``[vehicle]`` config (connection, autopilot, telemetry rate)."""
-    return MavsdkVehicleLink(cfg.connection, clock=clock, autopilot=cfg.autopilot, telemetry_rate_hz=cfg.telemetry_rate_hz)
+    return MavsdkVehicleLink(
+        cfg.connection,
+        clock=clock,
+        autopilot=cfg.autopilot,
+        telemetry_rate_hz=cfg.telemetry_rate_hz,
+        component_id=cfg.component_id,
+        system_id=cfg.system_id,
+    )

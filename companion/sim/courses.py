@@ -306,18 +306,21 @@ MAX_SEED = 2**31 - 1
 
 
 def make_course(kind: str, seed: int) -> Course:
-    """The course of ``kind`` (one of :data:`COURSE_KINDS`, or ``head-on``: :func:`head_on_course`) for
+    """The course of ``kind`` (one of :data:`COURSE_KINDS`, ``head-on``: :func:`head_on_course`, or
+    ``wall``: :func:`wall_course`) for
     ``seed`` (0 .. 2**31 - 1).
 
     Raises:
         InputError: unknown kind or a seed out of range.
     """
-    if kind not in _BUILDERS and kind != "head-on":
-        raise InputError(f"unknown course {kind!r}; courses are {', '.join(COURSE_KINDS)}, head-on")
+    if kind not in _BUILDERS and kind not in ("head-on", "wall"):
+        raise InputError(f"unknown course {kind!r}; courses are {', '.join(COURSE_KINDS)}, head-on, wall")
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not 0 <= int(seed) <= MAX_SEED:
         raise InputError(f"bad seed {seed!r}: expected an integer in 0..{MAX_SEED}")
     if kind == "head-on":
         return head_on_course(int(seed))
+    if kind == "wall":
+        return wall_course(int(seed))
     return _BUILDERS[kind](int(seed))
 
 
@@ -328,3 +331,16 @@ def head_on_course(seed: int = 0, box_north_m: float = 5.0, box_width_m: float =
         "head-on", seed, obstacles, box_north_m + 3.0, 4.0,
         f"one {box_width_m:.1f} m box at {box_north_m:.1f} m north, dead ahead",
     )
+
+
+#: The wall course's wall: its front face this far north for seed 0, metres (seed s: 8 + s mod 5).
+WALL_NORTH_M = 8.0
+
+
+def wall_course(seed: int = 0) -> Course:
+    """A wide wall straight across the course (30 m wide, 3 m high, 0.3 m thick), its front face
+    ``8 + seed mod 5`` m north, on open ground: the collision-prevention scenario's target (not in the
+    suite). The goal lies beyond it: stopping in front of it is success."""
+    front = WALL_NORTH_M + float(int(seed) % 5)
+    obstacles: list[Obstacle] = [Box.on_ground(front + 0.15, 0.0, (0.3, 30.0, 3.0))]
+    return _course("wall", seed, obstacles, front + 2.0, 15.0, f"a 30 m wall across the course, {front:.1f} m north")

@@ -99,11 +99,13 @@ class SitlFlight:
     max_speed_m_s: float = 0.0
 
 
-def sitl_config(cfg: CompanionConfig, course: Course, placement: CoursePlacement, connection: str, workdir: Path) -> CompanionConfig:
+def sitl_config(
+    cfg: CompanionConfig, course: Course, placement: CoursePlacement, connection: str, workdir: Path, system_id: int | None = None
+) -> CompanionConfig:
     """The service's config for a SITL flight: ``cfg`` with the camera rendering ``course`` from the
     telemetry pose (the simulator's eye size, frame rate and noise), the vehicle link on
-    ``connection`` (PX4's API link), ZeroMQ on private ``ipc://`` endpoints in ``workdir``, and no calibration file (the
-    rendered rig is ideal)."""
+    ``connection`` (PX4's API link) as a component of the autopilot's ``system_id`` (when given), ZeroMQ on
+    private ``ipc://`` endpoints in ``workdir``, and no calibration file (the rendered rig is ideal)."""
     cfg = simulator_config(cfg)
     sim = cfg.sim
     camera = cfg.camera.model_copy(
@@ -123,6 +125,8 @@ def sitl_config(cfg: CompanionConfig, course: Course, placement: CoursePlacement
     data = cfg.model_dump(mode="python")
     data["camera"] = camera.model_dump(mode="python")
     data["vehicle"]["connection"] = connection
+    if system_id is not None:
+        data["vehicle"]["system_id"] = int(system_id)
     data["bus"].update(
         health_endpoint=f"ipc://{workdir}/health.sock", control_endpoint=f"ipc://{workdir}/control.sock"
     )
@@ -229,7 +233,9 @@ async def prepare_flight(
     await pilot.make_ready()
     await pilot.set_params(PARAMS_BY_AUTOPILOT[pilot.AUTOPILOT])
     await pilot.take_off(-float(course.start.position_ned_m[2]))
-    service_cfg = sitl_config(cfg, course, placement_at(pilot, course), service_url or ports.service_url, workdir)
+    service_cfg = sitl_config(
+        cfg, course, placement_at(pilot, course), service_url or ports.service_url, workdir, ports.system_id
+    )
     return ServiceProcess(service_cfg, workdir, service_log_level)
 
 

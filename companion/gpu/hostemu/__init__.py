@@ -238,3 +238,34 @@ class HostSgmKernels:
             raise AssertionError("the last block did not reset the histogram state")
         return {"census_left": cl, "census_right": cr, "volumes": vols, "winner": dl, "right_keys": drkey,
                 "disparity": disp, "regions": result}
+
+
+class HostObstacleKernel:
+    """The OBSTACLE_DISTANCE kernel (``obstacle.cu``) compiled for the CPU, for one block size.
+
+    Args:
+        threads: threads per block (``OD_THREADS``).
+    """
+
+    def __init__(self, threads: int = 256) -> None:
+        self.threads = int(threads)
+        src = f"#define OD_THREADS {self.threads}\n" + (_HERE.parent / "kernels" / "obstacle.cu").read_text(encoding="utf-8")
+        self._lib = _build(src, "harness_obstacle.cpp")
+
+    def run(self, disparity: np.ndarray, scale: int, layout: Any) -> np.ndarray:
+        """uint16 ``(72,)`` bins of an int16 disparity (px × ``scale``, -1 invalid) with an
+        :class:`~companion.core.obstacle.ObstacleLayout`."""
+        disp = np.ascontiguousarray(disparity, dtype=np.int16)
+        h, w = disp.shape
+        thr = np.ascontiguousarray(layout.row_threshold_px, dtype=np.float32)
+        fbk = np.ascontiguousarray(layout.column_fbk, dtype=np.float32)
+        cols = np.ascontiguousarray(layout.bin_columns, dtype=np.int32).reshape(-1)
+        out = np.full(72, 0xBEEF, np.uint16)
+        ptr = lambda a: ctypes.c_void_p(a.ctypes.data)  # noqa: E731
+        self._lib.run_obstacle(
+            ptr(disp), w, h, ctypes.c_float(1.0 / scale), ptr(thr), ptr(fbk), ptr(cols),
+            ctypes.c_double(layout.percentile_pct), int(layout.min_points), ctypes.c_double(layout.min_valid_fraction),
+            ctypes.c_float(float(layout.max_distance_m)), int(layout.min_distance_cm), int(layout.max_distance_cm),
+            ptr(out), self.threads,
+        )
+        return out

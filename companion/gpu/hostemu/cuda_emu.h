@@ -75,6 +75,8 @@ template <class T> inline void __stcs(T* p, T v) { *p = v; }
 inline int __popc(unsigned x) { return __builtin_popcount(x); }
 inline int __ffs(unsigned x) { return x ? __builtin_ctz(x) + 1 : 0; }
 inline float __int_as_float(int i) { float f; std::memcpy(&f, &i, 4); return f; }
+inline unsigned __float_as_uint(float f) { unsigned u; std::memcpy(&u, &f, 4); return u; }
+inline float __uint_as_float(unsigned u) { float f; std::memcpy(&f, &u, 4); return f; }
 inline int __float2int_rn(float f) { return (int)std::nearbyintf(f); }
 inline float __fdiv_rn(float a, float b) { return a / b; }
 #include <math.h>
