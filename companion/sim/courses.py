@@ -287,7 +287,111 @@ def deadend_course(seed: int) -> Course:
     )
 
 
-COURSE_KINDS: tuple[str, ...] = ("corridor", "doorway", "forest", "pitch", "side", "deadend", "office", "detour")
+def office_course(seed: int) -> Course:
+    """An office of hard surfaces: plain walls (grain 1.5 to 3 grey levels, the far one glossy under
+    a ceiling lamp), a see-through fence of bars (period 8 to 12.5 cm) from one side wall across the
+    line, a plain cabinet, a radiator's fins under a window, and a door in the far wall, within
+    0.25 m of the line (the goal lies beyond it)."""
+    # Its own stream, not _rng's: the kind's id there is its place in COURSE_KINDS, which a kind
+    # added beside it in parallel could change (and with it every office course).
+    rng = np.random.default_rng([seed, 0x0FF1CE, 0x5C0])
+    width = float(rng.uniform(4.0, 5.0))
+    half = 0.5 * width
+    height, thick = 3.0, 0.2
+    fence_n = float(rng.uniform(4.0, 5.5))
+    end_n = fence_n + float(rng.uniform(5.5, 6.5))
+    wall = [Surface("plain", grain_grey=float(rng.uniform(1.5, 3.0))) for _ in range(2)]
+    gloss = float(rng.choice([0.0, 60.0, 110.0]))
+    end_surface = Surface("plain", grain_grey=float(rng.uniform(1.5, 3.0)), gloss=gloss)
+    length = end_n + 1.0
+    obstacles: list[Obstacle] = [
+        Box.on_ground(0.5 * end_n - 0.5, -half - 0.5 * thick, (length, thick, height), surface=wall[0]),
+        Box.on_ground(0.5 * end_n - 0.5, half + 0.5 * thick, (length, thick, height), surface=wall[1]),
+    ]
+    # The far wall with its door (1.1 to 1.4 m wide, 2.1 m high, on the line as in doorway) and the
+    # door leaf open beyond it. On the line: the controller is reactive and flies back to the line
+    # after a detour, so a door well off it is a dead end whatever the stereo sees (the first office,
+    # doors up to 1.3 m off the line, held at the far wall in 7 of 9 flights).
+    door_w = float(rng.uniform(1.1, 1.4))
+    door_e = float(rng.uniform(-0.25, 0.25))
+    door_h = 2.1
+    wall_n = end_n + 0.5 * thick
+    left_w = door_e - 0.5 * door_w + half + 0.3
+    right_w = half + 0.3 - (door_e + 0.5 * door_w)
+    obstacles += [
+        Box.on_ground(wall_n, -half - 0.3 + 0.5 * left_w, (thick, left_w, height), surface=end_surface),
+        Box.on_ground(wall_n, half + 0.3 - 0.5 * right_w, (thick, right_w, height), surface=end_surface),
+        Box((wall_n, door_e, -0.5 * (door_h + height)), (thick, door_w, height - door_h), surface=end_surface),
+    ]
+    hinge = 1.0 if rng.uniform() < 0.5 else -1.0
+    leaf_e = door_e + hinge * (0.5 * door_w + 0.03)
+    obstacles.append(
+        Box.on_ground(end_n + thick + 0.45 * door_w, leaf_e, (0.9 * door_w, 0.04, 2.0), surface=Surface("plain"))
+    )
+    # The fence: thin bars from one side wall, its free end (a post) up to 0.5 m across the line.
+    side = 1.0 if rng.uniform() < 0.5 else -1.0
+    free_e = -side * float(rng.uniform(0.0, 0.5))
+    span = abs(side * half - free_e)
+    period = float(rng.choice([0.08, 0.1, 0.125]))
+    bars = Surface("bars", bar_period_m=period, bar_width_m=float(rng.uniform(0.02, 0.03)))
+    fence_h = 2.5
+    mid_e = 0.5 * (side * half + free_e)
+    obstacles += [
+        Box.on_ground(fence_n, mid_e, (0.02, span, fence_h), surface=bars),
+        Box((fence_n, mid_e, -fence_h - 0.025), (0.05, span, 0.05), surface=Surface("plain")),  # top rail
+        Box.on_ground(fence_n, free_e - side * 0.03, (0.06, 0.06, fence_h + 0.05), surface=Surface("plain")),
+    ]
+    # A plain cabinet, head-on for even seeds, against a wall for odd ones.
+    cab_w, cab_d, cab_h = float(rng.uniform(0.5, 0.9)), 0.5, float(rng.uniform(1.9, 2.2))
+    cab_n = float(rng.uniform(fence_n + 2.5, end_n - 2.5))
+    if seed % 2 == 0:
+        cab_e = float(rng.uniform(-0.3, 0.3))
+    else:
+        cab_e = float(rng.choice([-1.0, 1.0])) * (half - 0.5 * cab_w)
+    obstacles.append(
+        Box.on_ground(cab_n, cab_e, (cab_d, cab_w, cab_h), surface=Surface("plain", grain_grey=2.0, gloss=80.0))
+    )
+    # A radiator (fins 5 to 7 cm apart) under a window (the view outside: rich texture) on one wall.
+    rad_side = float(rng.choice([-1.0, 1.0]))
+    rad_n = float(rng.uniform(fence_n + 1.5, end_n - 1.5))
+    rad_l = float(rng.uniform(1.0, 1.6))
+    fins = Surface("bars", bar_period_m=float(rng.uniform(0.05, 0.07)), bar_width_m=0.02, see_through=False)
+    obstacles += [
+        Box((rad_n, rad_side * (half - 0.05), -0.45), (rad_l, 0.1, 0.6), surface=fins),
+        Box((rad_n, rad_side * (half - 0.005), -1.5), (rad_l + 0.2, 0.01, 1.2)),
+    ]
+    light = (float(rng.uniform(fence_n + 1.0, end_n - 1.0)), float(rng.uniform(-half + 0.5, half - 0.5)), -2.8)
+    return _course(
+        "office", seed, obstacles, end_n + 3.0, half - 0.3,
+        f"office {width:.1f} m wide: fence (bars every {100 * period:.1f} cm) at {fence_n:.1f} m from the "
+        f"{'right' if side > 0 else 'left'}, free end {free_e:+.2f} m east; cabinet at {cab_n:.1f}/{cab_e:+.2f} m; "
+        f"door {door_w:.2f} m wide at {door_e:+.2f} m east in the wall at {end_n:.1f} m (gloss {gloss:.0f})",
+        light_ned_m=light,
+    )
+
+
+def detour_course(seed: int) -> Course:
+    """A wall wider than the view with one opening 3 m to one side, out of the camera's sight at the
+    start: the way to the goal is round, through the opening."""
+    rng = _rng("detour", seed)
+    side = 1.0 if rng.uniform() < 0.5 else -1.0
+    wall_north = float(rng.uniform(2.5, 3.0))
+    open_w = float(rng.uniform(1.5, 1.9))
+    open_e = side * 3.0
+    thick, height, span = 0.2, 3.0, 10.0
+    lo, hi = open_e - 0.5 * open_w, open_e + 0.5 * open_w  # the opening, east metres
+    obstacles: list[Obstacle] = [
+        Box.on_ground(wall_north, 0.5 * (-span + lo), (thick, lo + span, height)),
+        Box.on_ground(wall_north, 0.5 * (hi + span), (thick, span - hi, height)),
+    ]
+    goal = wall_north + 3.0
+    course = _course(
+        "detour", seed, obstacles, goal, span - 2.0,
+        f"wall at {wall_north:.1f} m, opening {open_w:.2f} m wide centred {open_e:+.1f} m east",
+        hold_is_success=False,
+    )
+    # Time for the way round at the detour's speed, with a look round.
+    return dataclasses.replace(course, time_limit_s=60.0)
 
 
 _BUILDERS = {
