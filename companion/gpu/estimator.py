@@ -74,8 +74,9 @@ _EW_THREADS = 128
 #: Threads per block of the fallback kernels.
 _NAIVE_THREADS = 64
 _REGIONS_THREADS = 256
-#: Threads per block of the OBSTACLE_DISTANCE kernel (one block per bin).
-OBSTACLE_THREADS = 256
+#: Threads per block of the OBSTACLE_DISTANCE kernel (one block per bin; only the ~18 bins inside
+#: a 90° view do work, so wide blocks: 1024 took the kernel from 0.44 to 0.16 ms at 1280×720 on an H100).
+OBSTACLE_THREADS = 1024
 _MAX_CHANNELS = 4
 
 
