@@ -167,3 +167,15 @@ def test_a_suite_flies_a_course_again_with_a_fresh_px4_when_a_step_failed(tmp_pa
         "start 01-doorway-0/px4", "stop", "start 01-doorway-0/retry/px4", "flew doorway-0", "stop",
         "start 02-forest-0/px4", "stop", "start 02-forest-0/retry/px4", "stop",
     ]  # fmt: skip
+
+
+def test_the_service_config_accepts_every_course_the_harness_flies() -> None:
+    # camera.sim_course is a Literal of its own (the config does not import the simulator); every kind
+    # of the suites, and the harness's extra courses, must be in it, or `companion sitl` fails at that course.
+    import typing
+
+    from companion.config.service import CameraConfig
+    from companion.sim.courses import COURSE_KINDS
+
+    allowed = set(typing.get_args(CameraConfig.model_fields["sim_course"].annotation))
+    assert set(COURSE_KINDS) | {"head-on", "wall"} <= allowed

@@ -171,7 +171,7 @@ class CameraConfig(StrictModel):
             "simulator's library (sim_course, sim_course_seed), as `companion sim` and `companion sitl` fly it."
         ),
     )
-    sim_course: Literal["corridor", "doorway", "forest", "pitch", "side", "deadend", "head-on", "wall"] = Field(
+    sim_course: Literal["corridor", "doorway", "forest", "pitch", "side", "deadend", "office", "detour", "head-on", "wall"] = Field(
         default="doorway", description="sim, world 'course': the course kind."
     )
     sim_course_seed: int = Field(default=0, ge=0, le=2**31 - 1, description="sim, world 'course': the course seed.")
