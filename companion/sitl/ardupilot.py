@@ -20,7 +20,6 @@ import asyncio
 import json
 import logging
 import os
-import signal
 import socket
 import struct
 import subprocess
@@ -34,7 +33,7 @@ import numpy as np
 
 from companion.service.ardupilot import COPTER_MODES, copter_mode_name
 from companion.sitl.pilot import Pilot
-from companion.sitl.px4 import SitlError
+from companion.sitl.px4 import SitlError, SitlProcess
 
 log = logging.getLogger(__name__)
 
@@ -149,7 +148,7 @@ class ArduPilotPorts:
         return f"tcpout://127.0.0.1:{self.pilot_port}"
 
 
-class ArduPilotSitl:
+class ArduPilotSitl(SitlProcess):
     """One ArduCopter SITL process (``arducopter --model quad --home ... --defaults copter.parm -I N -w``,
     real time), in its own working folder (``eeprom.bin``, ``logs/``, and ``arducopter.log``, the
     console output).
@@ -161,12 +160,14 @@ class ArduPilotSitl:
         home: where the vehicle starts, ``LAT,LNG,ALT,HDG``.
     """
 
+    NAME = "ArduPilot SITL"
+
     def __init__(self, build: ArduPilotBuild, workdir: Path, instance: int = 0, home: str = DEFAULT_HOME) -> None:
         self.build = build
         self.workdir = workdir
         self.ports = ArduPilotPorts(instance)
         self.home = home
-        self._proc: subprocess.Popen[bytes] | None = None
+        super().__init__()
 
     @property
     def log_path(self) -> Path:
@@ -203,35 +204,6 @@ class ArduPilotSitl:
             time.sleep(0.1)
         self.stop()
         raise SitlError(f"ArduPilot SITL did not listen within {timeout_s:g} s:\n{self.log_tail()}")
-
-    def log_tail(self, lines: int = 15) -> str:
-        try:
-            return "\n".join(self.log_path.read_text(errors="replace").splitlines()[-lines:])
-        except OSError:
-            return "(no log)"
-
-    @property
-    def running(self) -> bool:
-        return self._proc is not None and self._proc.poll() is None
-
-    def stop(self, timeout_s: float = 5.0) -> None:
-        """Stop SITL (SIGTERM, then SIGKILL after ``timeout_s``). Safe to call twice."""
-        proc, self._proc = self._proc, None
-        if proc is None or proc.poll() is not None:
-            return
-        os.killpg(proc.pid, signal.SIGTERM)
-        try:
-            proc.wait(timeout_s)
-        except subprocess.TimeoutExpired:
-            log.warning("ArduPilot SITL did not stop within %g s; killing it", timeout_s)
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
-
-    def __enter__(self) -> ArduPilotSitl:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
 
 
 def centre_sticks(rc_port: int, throttle_us: int = CENTRED_STICKS_US[2], host: str = "127.0.0.1") -> None:

@@ -17,10 +17,13 @@ import subprocess
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TypeVar
 
 from companion.errors import CompanionError
 
 log = logging.getLogger(__name__)
+
+_S = TypeVar("_S", bound="SitlProcess")
 
 #: Environment variable naming a PX4 SITL build folder (``.../PX4-Autopilot/build/px4_sitl_default``).
 PX4_BUILD_ENV = "COMPANION_PX4_BUILD"
@@ -77,7 +80,51 @@ def find_px4_build(path: str | os.PathLike[str] | None = None, environ: dict[str
     return build
 
 
-class Px4Sitl:
+class SitlProcess:
+    """What both autopilots' SITL processes share: the process (started by a subclass's ``start`` in
+    its own process group), its console log (``log_path``, a subclass's), and stopping it.
+    ``NAME`` names the autopilot in messages."""
+
+    NAME = "SITL"
+
+    def __init__(self) -> None:
+        self._proc: subprocess.Popen[bytes] | None = None
+
+    @property
+    def log_path(self) -> Path:
+        raise NotImplementedError
+
+    def log_tail(self, lines: int = 15) -> str:
+        try:
+            return "\n".join(self.log_path.read_text(errors="replace").splitlines()[-lines:])
+        except OSError:
+            return "(no log)"
+
+    @property
+    def running(self) -> bool:
+        return self._proc is not None and self._proc.poll() is None
+
+    def stop(self, timeout_s: float = 5.0) -> None:
+        """Stop the process (SIGTERM, then SIGKILL after ``timeout_s``). Safe to call twice."""
+        proc, self._proc = self._proc, None
+        if proc is None or proc.poll() is not None:
+            return
+        os.killpg(proc.pid, signal.SIGTERM)
+        try:
+            proc.wait(timeout_s)
+        except subprocess.TimeoutExpired:
+            log.warning("%s did not stop within %g s; killing it", self.NAME, timeout_s)
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+
+    def __enter__(self: _S) -> _S:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+
+class Px4Sitl(SitlProcess):
     """One PX4 SITL process (``bin/px4 -d -i N -w WORKDIR BUILD/etc``, SIH quadrotor, real time).
 
     Args:
@@ -88,12 +135,14 @@ class Px4Sitl:
         model: ``PX4_SIM_MODEL`` (an SIH airframe).
     """
 
+    NAME = "PX4"
+
     def __init__(self, build: Path, workdir: Path, instance: int = 0, model: str = "sihsim_quadx") -> None:
         self.build = build
         self.workdir = workdir
         self.ports = Px4Ports(instance)
         self.model = model
-        self._proc: subprocess.Popen[bytes] | None = None
+        super().__init__()
 
     @property
     def log_path(self) -> Path:
@@ -145,32 +194,3 @@ class Px4Sitl:
         if done.returncode != 0:
             raise SitlError(f"PX4 command {' '.join(args)!r} failed ({done.returncode}): {done.stdout}{done.stderr}")
         return done.stdout
-
-    def log_tail(self, lines: int = 15) -> str:
-        try:
-            return "\n".join(self.log_path.read_text(errors="replace").splitlines()[-lines:])
-        except OSError:
-            return "(no log)"
-
-    @property
-    def running(self) -> bool:
-        return self._proc is not None and self._proc.poll() is None
-
-    def stop(self, timeout_s: float = 5.0) -> None:
-        """Stop PX4 (SIGTERM, then SIGKILL after ``timeout_s``). Safe to call twice."""
-        proc, self._proc = self._proc, None
-        if proc is None or proc.poll() is not None:
-            return
-        os.killpg(proc.pid, signal.SIGTERM)
-        try:
-            proc.wait(timeout_s)
-        except subprocess.TimeoutExpired:
-            log.warning("PX4 did not stop within %g s; killing it", timeout_s)
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
-
-    def __enter__(self) -> Px4Sitl:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
