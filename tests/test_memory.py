@@ -156,8 +156,44 @@ def test_guard_picks_out_of_view_points_near_the_vehicle(point, yaw, expect) -> 
     if expect is None:
         assert g is None
     else:
-        assert g is not None and g.shape == (1, 3)
-        assert g[0] == pytest.approx(expect, abs=1e-9)
+        assert g is not None and g.shape == (1, 4)
+        assert g[0, :3] == pytest.approx(expect, abs=1e-9)
+        assert g[0, 3] == 0.0  # added without trust kept: it stops motion toward it, never pushes
+
+
+def test_only_trusted_points_push_untrusted_ones_only_stop_the_motion_toward_them() -> None:
+    """A point seen for a moment from one place may be a false match in the air; its push would move
+    the vehicle sideways into what the camera does not see (kinematic forest-2 with StereoBM: a
+    false point beside the vehicle pushed it into a pillar out of view). A point seen from two places
+    0.3 m apart is trusted and pushes."""
+    cfg = guard_cfg()
+    vehicle = np.array([0.0, 0.0, -1.5])
+    left_point = np.array([[0.0, -0.4, -1.5]])
+    once = ObstacleMemory()
+    once.add(left_point, 0.0, 30.0, viewpoint_ned_m=np.array([-1.5, 0.0, -1.5]), cfg=cfg)
+    g = once.guard(vehicle, 0.0, 1.0, cfg, VIEW)
+    assert g is not None and g.shape == (1, 4) and g[0, 3] == 0.0
+    assert apply_guard(0.0, 0.0, g, cfg) == (0.0, 0.0)  # no push
+    assert apply_guard(0.0, -0.3, g, cfg) == pytest.approx((0.0, 0.0))  # but no sliding into it
+    twice = ObstacleMemory()
+    twice.add(left_point, 0.0, 30.0, viewpoint_ned_m=np.array([-1.5, 0.0, -1.5]), cfg=cfg)
+    twice.add(left_point, 0.5, 30.0, viewpoint_ned_m=np.array([-1.0, 0.0, -1.5]), cfg=cfg)
+    g = twice.guard(vehicle, 0.0, 1.0, cfg, VIEW)
+    assert g is not None and g.shape == (1, 4) and g[0, 3] == 1.0
+    f, r = apply_guard(0.0, 0.0, g, cfg)
+    assert (f, r) == pytest.approx((0.0, cfg.guard_gain_per_s * (cfg.guard_distance_m - 0.4)))
+
+
+def test_guard_keeps_the_nearest_trusted_point_of_a_sector_beside_a_nearer_untrusted_one() -> None:
+    cfg = guard_cfg()
+    mem = ObstacleMemory()
+    real = np.array([[0.0, -0.5, -1.5]])
+    for t, north in ((0.0, -1.5), (0.5, -1.0)):
+        mem.add(real, t, 30.0, viewpoint_ned_m=np.array([north, 0.0, -1.5]), cfg=cfg)
+    mem.add(np.array([[0.0, -0.2, -1.5]]), 0.9, 30.0, viewpoint_ned_m=np.array([-0.5, 0.0, -1.5]), cfg=cfg)
+    g = mem.guard(np.array([0.0, 0.0, -1.5]), 0.0, 1.0, cfg, VIEW)
+    assert g is not None
+    assert sorted((round(float(d), 6), float(push)) for d, _, _, push in g) == [(0.2, 0.0), (0.5, 1.0)]
 
 
 def test_guard_forgets_old_points_and_keeps_the_nearest_per_sector() -> None:

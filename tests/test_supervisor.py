@@ -738,12 +738,14 @@ def test_a_remembered_obstacle_beside_the_vehicle_pushes_it_away() -> None:
     leaning = base.model_copy(update={"memory": base.memory.model_copy(update={"counter_velocity_fraction": 1.0})})
     h = Harness(SupervisorConfig.from_config(leaning))
     h.engage()
-    at = np.array([0.0, 0.0, -1.5])
-    h.vehicle = replace(vehicle("OFFBOARD"), attitude_rad=np.zeros(3), position_ned_m=at, position_timestamp_s=h.now)
-    # A box corner 0.5 m ahead and 0.3 m left (in view: 31°), seen at the last pose.
-    h.frame = SeenResult(h.now, CLEAR, np.array([[-0.3, 0.0, 0.5]]), view)
-    sp = h.step(fresh_frame=False).setpoint
-    assert sp.right_m_s == 0.0  # in view: the live controller's business
+    # A box corner 0.3 m left of the line at north 0.5 m, seen from two places 0.3 m apart (in view:
+    # 21°, then 31°): trusted, so it may push once it is out of view.
+    for north, ahead in ((-0.3, 0.8), (0.0, 0.5)):
+        at = np.array([north, 0.0, -1.5])
+        h.vehicle = replace(vehicle("OFFBOARD"), attitude_rad=np.zeros(3), position_ned_m=at, position_timestamp_s=h.now)
+        h.frame = SeenResult(h.now, CLEAR, np.array([[-0.3, 0.0, ahead]]), view)
+        sp = h.step(fresh_frame=False).setpoint
+        assert sp.right_m_s == 0.0  # in view: the live controller's business
     # 0.5 m on, the corner is beside the vehicle, 0.3 m to its left and out of view.
     h.vehicle = replace(h.vehicle, position_ned_m=np.array([0.5, 0.0, -1.5]), position_timestamp_s=h.now + 0.05)
     h.frame = SeenResult(h.now + 0.03, CLEAR, np.empty((0, 3)), view)

@@ -252,7 +252,10 @@ class ObstacleMemory:
     *trusted* (:meth:`map_points`, gap centering) only once the ``memory.trust_cell_m`` cube it lies in
     has been seen from two camera positions at least ``memory.trust_baseline_m`` apart, or in
     ``memory.trust_min_frames`` frames spanning at least ``memory.trust_persist_s``. Untrusted points
-    still guard (the guard errs on the side of caution).
+    still guard, but only by stopping the motion toward them: the guard's push away moves the vehicle
+    sideways into what the camera does not see, so only trusted points push (a false point in the air,
+    seen for a moment from one place, pushed a simulated vehicle into a pillar out of view: forest-2
+    with StereoBM).
 
     Args:
         max_points: most cubes kept; beyond it the least recently seen are dropped.
@@ -453,12 +456,12 @@ class ObstacleMemory:
         cfg: MemoryConfig,
         radius_m: float,
         trusted_only: bool = False,
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
         """The points seen within ``cfg.duration_s`` of ``now_s`` nearer than ``cfg.max_depth_m``
         (the map's farther points do not guard), within ``cfg.height_band_m`` of the vehicle's
         altitude and within ``radius_m`` of it horizontally (``trusted_only``: trusted ones only), in
-        the body frame: forward, right and horizontal distance, float64 ``(N,)`` metres each; None
-        without a finite position and heading."""
+        the body frame: forward, right and horizontal distance, float64 ``(N,)`` metres each, and
+        whether each is trusted, bool ``(N,)``; None without a finite position and heading."""
         pos = np.asarray(position_ned_m, dtype=np.float64).reshape(-1)
         if pos.shape != (3,) or not np.all(np.isfinite(pos)) or not math.isfinite(yaw_rad):
             return None
@@ -468,9 +471,11 @@ class ObstacleMemory:
         fwd, right = ned_to_body_horizontal(rel[:, 0], rel[:, 1], yaw_rad)
         dist = np.hypot(fwd, right)
         keep = (np.abs(rel[:, 2]) <= cfg.height_band_m) & (dist < radius_m)
+        trusted = self.trusted(pts[keep], cfg)
+        fwd, right, dist = fwd[keep], right[keep], dist[keep]
         if trusted_only:
-            keep &= self.trusted(pts, cfg)
-        return fwd[keep], right[keep], dist[keep]
+            return fwd[trusted], right[trusted], dist[trusted], trusted[trusted]
+        return fwd, right, dist, trusted
 
     def hold_inputs(
         self, position_ned_m: np.ndarray, yaw_rad: float, now_s: float, cfg: MemoryConfig, view: ViewLimits | None
@@ -488,7 +493,7 @@ class ObstacleMemory:
             radius = max(radius, math.hypot(cfg.gap_lookahead_m, cfg.gap_max_width_m))
             trusted = self._nearby(position_ned_m, yaw_rad, now_s, cfg, radius, trusted_only=True)
             gap = None if trusted is None else gap_offset_m(trusted[0], trusted[1], cfg)
-        return HoldInputs(guard, _sides(*near, cfg), gap)
+        return HoldInputs(guard, _sides(*near[:3], cfg), gap)
 
     def sides_near(
         self, position_ned_m: np.ndarray, yaw_rad: float, now_s: float, cfg: MemoryConfig
@@ -498,7 +503,7 @@ class ObstacleMemory:
         behind it, on its left, on its right (the body's right component < 0, > 0); None without a
         finite position and heading."""
         near = self._nearby(position_ned_m, yaw_rad, now_s, cfg, cfg.hold_clear_m)
-        return None if near is None else _sides(*near, cfg)
+        return None if near is None else _sides(*near[:3], cfg)
 
     def guard(
         self,
@@ -517,8 +522,10 @@ class ObstacleMemory:
         ``view.min_range_m``.
 
         Returns:
-            float64 ``(S, 3)``, ``S <= GUARD_SECTORS``: horizontal distance (metres) and the unit
-            direction to the point in the body frame (forward, right), the nearest of each sector.
+            float64 ``(S, 4)``, ``S <= 2 · GUARD_SECTORS``: horizontal distance (metres), the unit
+            direction to the point in the body frame (forward, right), and 1.0 where the point may push
+            (it is trusted) else 0.0: per sector, the nearest point, and the nearest trusted one when
+            that is another.
         """
         near = self._nearby(position_ned_m, yaw_rad, now_s, cfg, cfg.guard_distance_m)
         return None if near is None else _guard_rows(*near, cfg, view)
@@ -558,21 +565,32 @@ def _sides(fwd: np.ndarray, right: np.ndarray, dist: np.ndarray, cfg: MemoryConf
 
 
 def _guard_rows(
-    fwd: np.ndarray, right: np.ndarray, dist: np.ndarray, cfg: MemoryConfig, view: ViewLimits
+    fwd: np.ndarray,
+    right: np.ndarray,
+    dist: np.ndarray,
+    trusted: np.ndarray,
+    cfg: MemoryConfig,
+    view: ViewLimits,
 ) -> np.ndarray | None:
-    """:meth:`ObstacleMemory.guard`'s rows from body-frame points (forward, right, distance, metres)."""
+    """:meth:`ObstacleMemory.guard`'s rows from body-frame points (forward, right, distance, metres;
+    trusted, bool)."""
     bearing = np.arctan2(right, fwd)
     unseen = (bearing < -view.left_rad) | (bearing > view.right_rad) | (dist < view.min_range_m)
     keep = unseen & (dist < cfg.guard_distance_m) & (dist > 1e-6)
     if not np.any(keep):
         return None
     dist, fwd, right, bearing = dist[keep], fwd[keep], right[keep], bearing[keep]
+    trusted = np.asarray(trusted, dtype=bool)[keep]
     sector = np.minimum(GUARD_SECTORS - 1, ((bearing + math.pi) / (2.0 * math.pi) * GUARD_SECTORS).astype(np.int64))
     out = []
     for k in np.unique(sector):
         i = np.flatnonzero(sector == k)
         j = i[np.argmin(dist[i])]
-        out.append((dist[j], fwd[j] / dist[j], right[j] / dist[j]))
+        out.append((dist[j], fwd[j] / dist[j], right[j] / dist[j], float(trusted[j])))
+        t = i[trusted[i]]
+        if not trusted[j] and t.size:
+            j = t[np.argmin(dist[t])]
+            out.append((dist[j], fwd[j] / dist[j], right[j] / dist[j], 1.0))
     return np.asarray(out, dtype=np.float64)
 
 
@@ -584,9 +602,9 @@ def apply_guard(
     velocity_body_m_s: tuple[float, float] | None = None,
 ) -> tuple[float, float]:
     """A horizontal body-frame velocity (m/s) with the guard applied. For each guarding point
-    (:meth:`ObstacleMemory.guard` rows: distance m, unit forward, unit right): a push away of
-    ``guard_gain_per_s · (guard_distance_m - distance)`` (the summed push capped at
-    ``max_guard_speed_m_s``), and when the point lies on the path (ahead along the velocity and within
+    (:meth:`ObstacleMemory.guard` rows: distance m, unit forward, unit right, and whether it may push;
+    a row of 3 columns may): a push away of ``guard_gain_per_s · (guard_distance_m - distance)`` from
+    a point that may push (the summed push capped at ``max_guard_speed_m_s``), and when the point lies on the path (ahead along the velocity and within
     ``keep_out_m`` of its line) the velocity's component toward it is removed, so that the vehicle
     slides past it instead of running into it; a point beside the path does not slow the vehicle.
 
@@ -600,14 +618,16 @@ def apply_guard(
     vehicle shoved sideways flies into what the camera does not see either (kinematic forest-4)."""
     if guard_m is None or len(guard_m) == 0:
         return forward_m_s, right_m_s
-    g = np.asarray(guard_m, dtype=np.float64).reshape(-1, 3)
+    g = np.asarray(guard_m, dtype=np.float64)
+    g = g.reshape(-1, g.shape[-1])
+    pushes = g[:, 3] > 0.0 if g.shape[1] > 3 else np.ones(len(g), dtype=bool)
     v = np.array([forward_m_s, right_m_s], dtype=np.float64)
     speed = float(np.hypot(v[0], v[1]))
     w = None
     if velocity_body_m_s is not None and all(math.isfinite(x) for x in velocity_body_m_s):
         w = np.array(velocity_body_m_s, dtype=np.float64)
     away = np.zeros(2)  # the push and the lean, capped together
-    for dist, uf, ur in g:
+    for (dist, uf, ur), push in zip(g[:, :3], pushes):
         u = np.array([uf, ur])
         toward = float(v @ u)
         if toward > 0.0 and _on_path(dist, u, v, speed, cfg.keep_out_m):
@@ -620,7 +640,8 @@ def apply_guard(
                     v -= toward * u
                     toward = 0.0
                 away -= max(0.0, cfg.counter_velocity_fraction * closing + toward) * u
-        away -= cfg.guard_gain_per_s * max(0.0, cfg.guard_distance_m - dist) * u
+        if push:
+            away -= cfg.guard_gain_per_s * max(0.0, cfg.guard_distance_m - dist) * u
     n = float(np.hypot(away[0], away[1]))
     if n > cfg.max_guard_speed_m_s > 0.0:
         away *= cfg.max_guard_speed_m_s / n
