@@ -298,3 +298,27 @@ def test_a_climb_alone_does_not_keep_the_heading_hold_waiting() -> None:
     assert sp.down_m_s == pytest.approx(-0.2 * HOLD.max_vertical_speed_m_s)  # the altitude hold waits
     # Without heading_clear_for_s, one timer as before.
     assert setpoint_for(climbing, 0.1, HOLD, heading_error_rad=0.1, clear_for_s=0.0).yaw_rate_deg_s == 0.0
+
+
+def test_standoff_is_off_by_default_and_pushes_away_from_a_near_middle_row_region_when_on() -> None:
+    """The stand-off closes the loop on the measured depth (a drifting velocity estimate carries the
+    vehicle on into a wall it sees): every decision, the brake included, gets the push; unknown and
+    the up/down rows push nothing; the push is capped."""
+    from companion.core.command import STANDOFF_SIDE_BEARING_RAD, standoff_push_m_s
+
+    near_left = _depths(left=0.5)
+    assert standoff_push_m_s(near_left, CommandConfig()) == (0.0, 0.0)  # off by default
+    on = CommandConfig(standoff_depth_m=0.8, standoff_gain_per_s=2.0, max_standoff_speed_m_s=0.7)
+    f, r = standoff_push_m_s(near_left, on)
+    push = 2.0 * (0.8 - 0.5)
+    assert (f, r) == pytest.approx(
+        (-push * math.cos(STANDOFF_SIDE_BEARING_RAD), push * math.sin(STANDOFF_SIDE_BEARING_RAD))
+    )  # back and to the right, away from the left
+    assert standoff_push_m_s(_depths(center=0.6), on) == pytest.approx((-0.4, 0.0))
+    assert standoff_push_m_s(_depths(center=math.nan, up=0.1, down=0.1), on) == (0.0, 0.0)
+    assert math.hypot(*standoff_push_m_s(_depths(center=0.0, left=0.0), on)) == pytest.approx(0.7)  # capped
+    sp = setpoint_for(BRAKE, 0.1, on, region_depths_m=_depths(center=0.6))
+    assert (sp.forward_m_s, sp.right_m_s) == pytest.approx((-0.4, 0.0))
+    sp = setpoint_for(CLEAR, 0.1, on, region_depths_m=near_left)
+    assert (sp.forward_m_s, sp.right_m_s) == pytest.approx((on.cruise_speed_m_s + f, r))
+    assert setpoint_for(CLEAR, 1.0, on, region_depths_m=near_left).is_zero  # stale: zero, no push

@@ -122,6 +122,35 @@ class CommandConfig(StrictModel):
     max_line_hold_lateral_speed_m_s: float = Field(
         default=0.3, ge=0.0, le=2.0, description="Course hold, line, sideways: the largest sideways speed it commands, m/s."
     )
+    standoff_depth_m: float = Field(
+        default=0.0,
+        ge=0.0,
+        le=5.0,
+        description=(
+            "Stand-off: a middle-row region (left, center, right) that reads nearer than this, metres, "
+            "pushes the vehicle away from it, whatever the decision and whatever the vehicle believes "
+            "its velocity is (0 = off, the default). The autopilot holds the velocity its estimate "
+            "reads, and an estimate off by a few tenths of a m/s carries the vehicle on into a wall it "
+            "sees; the measured depth is the one thing that knows (kinematic doorway-4 with 0.14 m/s "
+            "drift: slid 0.4 m/s into a jamb at 0.3 m while its estimate read 0.1 m/s). Unknown pushes "
+            "nothing. Off by default: at 0.8 m (gain 3, 0.7 m/s) it removed 3 of StereoBM's 4 drift "
+            "collisions in the kinematic suite, but a false near reading on a plain wall backed "
+            "the vehicle blind for metres (office timeouts: 4 of 9 with StereoBM); "
+            "docs/history.md has the table."
+        ),
+    )
+    standoff_gain_per_s: float = Field(
+        default=3.0,
+        ge=0.0,
+        le=10.0,
+        description=(
+            "Stand-off: the push away, m/s per metre nearer than standoff_depth_m, away from the "
+            "region's direction (straight back for the center, 30° off it for a side)."
+        ),
+    )
+    max_standoff_speed_m_s: float = Field(
+        default=0.7, ge=0.0, le=2.0, description="Stand-off: the largest push it commands, m/s."
+    )
     line_hold_lateral_clear_depth_m: float = Field(
         default=1.0,
         ge=0.0,

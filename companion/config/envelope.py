@@ -31,7 +31,8 @@ class EnvelopeConfig(StrictModel):
         le=20.0,
         description=(
             "Upper bound of every horizontal speed the service may command, m/s: command.cruise_speed_m_s, "
-            "brake_hold_max_speed_m_s, max_line_hold_lateral_speed_m_s, memory.max_guard_speed_m_s, "
+            "brake_hold_max_speed_m_s, max_line_hold_lateral_speed_m_s, max_standoff_speed_m_s, "
+            "memory.max_guard_speed_m_s, "
             "memory.max_gap_centering_speed_m_s, detour.speed_m_s."
         ),
     )
@@ -127,6 +128,7 @@ def envelope_violations(cfg: CompanionConfig) -> list[str]:
         ("command.cruise_speed_m_s", c.cruise_speed_m_s),
         ("command.brake_hold_max_speed_m_s", c.brake_hold_max_speed_m_s),
         ("command.max_line_hold_lateral_speed_m_s", c.max_line_hold_lateral_speed_m_s),
+        ("command.max_standoff_speed_m_s", c.max_standoff_speed_m_s),
         ("memory.max_guard_speed_m_s", m.max_guard_speed_m_s),
         ("memory.max_gap_centering_speed_m_s", m.max_gap_centering_speed_m_s),
         ("detour.speed_m_s", cfg.detour.speed_m_s),

@@ -29,6 +29,10 @@ if TYPE_CHECKING:
     from companion.config.detour import DetourConfig
     from companion.core.detour import DetourCommand
 
+#: The stand-off's push from a side region leans this far off straight back, radians (the middle of
+#: the outer third of a ±44° view).
+STANDOFF_SIDE_BEARING_RAD = math.radians(30.0)
+
 #: A CLEAR decision whose |yaw| and |pitch| are below this counts as flying straight (course hold may
 #: act); anything larger is the controller steering, and course hold waits.
 STRAIGHT_TOLERANCE = 0.01
@@ -424,6 +428,10 @@ def setpoint_for(
       True where a remembered point lies near on that side): the hold neither turns nor slides
       toward such a side (an obstacle just passed is beside or behind the vehicle, out of view).
 
+    Stand-off: with ``region_depths_m``, every setpoint but the stale one's zero gets
+    :func:`standoff_push_m_s` added (a middle-row region nearer than ``cmd.standoff_depth_m`` pushes
+    the vehicle away from it), before the guard.
+
     Gap centering: ``gap_offset_m`` (:func:`~companion.core.memory.gap_offset_m`: where the middle of
     a narrow gap between remembered points lies, sideways, metres, positive = right; None = no gap)
     with ``guard_cfg``: on a CLEAR decision (not turning back) the sideways speed is
@@ -436,10 +444,12 @@ def setpoint_for(
     if since_last_frame_s > cmd.stale_frame_timeout_s:
         return ZERO_SETPOINT
     if decision.kind is DecisionKind.BRAKE:
-        return _guarded(_brake_hold(brake_offset_body_m, brake_heading_error_rad, cmd), guard_m, guard_cfg, velocity_body_m_s)
+        return _guarded(
+            _brake_hold(brake_offset_body_m, brake_heading_error_rad, cmd), guard_m, guard_cfg, velocity_body_m_s, region_depths_m, cmd
+        )
     yaw, pitch, speed = decision.yaw, decision.pitch, decision.speed_fraction
     if not (math.isfinite(yaw) and math.isfinite(pitch) and math.isfinite(speed)):
-        return _guarded(ZERO_SETPOINT, guard_m, guard_cfg, velocity_body_m_s)
+        return _guarded(ZERO_SETPOINT, guard_m, guard_cfg, velocity_body_m_s, region_depths_m, cmd)
     yaw = min(1.0, max(-1.0, yaw))
     pitch = min(1.0, max(-1.0, pitch))
     speed = min(1.0, max(0.0, speed))
@@ -482,7 +492,35 @@ def setpoint_for(
         down_m_s=down_m_s,
         yaw_rate_deg_s=yaw_rate_deg_s,
     )
-    return _guarded(sp, guard_m, guard_cfg, velocity_body_m_s)
+    return _guarded(sp, guard_m, guard_cfg, velocity_body_m_s, region_depths_m, cmd)
+
+
+def standoff_push_m_s(region_depths_m: np.ndarray | None, cmd: CommandConfig) -> tuple[float, float]:
+    """The stand-off's push, body-frame (forward, right) m/s: for each middle-row region (left,
+    center, right; float ``(9,)`` refined depths, metres, NaN unknown) nearer than
+    ``cmd.standoff_depth_m``, ``standoff_gain_per_s · (standoff_depth_m - depth)`` away from it
+    (straight back for the center, :data:`STANDOFF_SIDE_BEARING_RAD` off straight back for a side,
+    toward the other side), summed and capped at ``max_standoff_speed_m_s``. (0, 0) when off, without
+    depths, or for unknown regions.
+
+    It closes the loop on what the camera measures, not on the velocity estimate, which is what a
+    drifting estimate needs (:class:`~companion.config.command.CommandConfig`, ``standoff_depth_m``)."""
+    if region_depths_m is None or cmd.standoff_depth_m <= 0.0 or cmd.standoff_gain_per_s <= 0.0:
+        return 0.0, 0.0
+    d = np.asarray(region_depths_m, dtype=np.float64)
+    c, s = math.cos(STANDOFF_SIDE_BEARING_RAD), math.sin(STANDOFF_SIDE_BEARING_RAD)
+    forward = right = 0.0
+    for name, (uf, ur) in (("left", (c, -s)), ("center", (1.0, 0.0)), ("right", (c, s))):
+        depth = float(d[REGION_INDEX[name]])
+        if math.isfinite(depth) and depth < cmd.standoff_depth_m:
+            push = cmd.standoff_gain_per_s * (cmd.standoff_depth_m - depth)
+            forward -= push * uf
+            right -= push * ur
+    n = math.hypot(forward, right)
+    if n > cmd.max_standoff_speed_m_s:
+        k = cmd.max_standoff_speed_m_s / n
+        forward, right = forward * k, right * k
+    return forward, right
 
 
 def _guarded(
@@ -490,7 +528,15 @@ def _guarded(
     guard_m: np.ndarray | None,
     cfg: MemoryConfig | None,
     velocity_body_m_s: tuple[float, float] | None,
+    region_depths_m: np.ndarray | None = None,
+    cmd: CommandConfig | None = None,
 ) -> VelocitySetpoint:
+    """``sp`` with the stand-off's push (:func:`standoff_push_m_s`, with ``region_depths_m`` and
+    ``cmd``) added, then the memory's guard applied (:func:`~companion.core.memory.apply_guard`)."""
+    if cmd is not None:
+        push_f, push_r = standoff_push_m_s(region_depths_m, cmd)
+        if push_f != 0.0 or push_r != 0.0:
+            sp = VelocitySetpoint(sp.forward_m_s + push_f, sp.right_m_s + push_r, sp.down_m_s, sp.yaw_rate_deg_s)
     if guard_m is None or cfg is None or len(guard_m) == 0:
         return sp
     forward, right = apply_guard(sp.forward_m_s, sp.right_m_s, guard_m, cfg, velocity_body_m_s)
@@ -511,6 +557,7 @@ def detour_setpoint(
     guard_m: np.ndarray | None = None,
     guard_cfg: MemoryConfig | None = None,
     velocity_body_m_s: tuple[float, float] | None = None,
+    region_depths_m: np.ndarray | None = None,
 ) -> VelocitySetpoint:
     """The setpoint while the detour layer acts (:class:`~companion.core.detour.DetourCommand`).
 
@@ -529,6 +576,9 @@ def detour_setpoint(
       · max(0, cos(heading error))`` (never faster, never sideways or up or down beyond it), and a yaw
       rate toward the direction of ``clip(heading_hold_gain_per_s · error, ±turn_rate_deg_s)``,
       scaled by ``1 - |yaw|`` (the controller's own turn comes first).
+
+    ``region_depths_m`` (float ``(9,)`` metres, NaN unknown): the stand-off's push acts here too
+    (:func:`standoff_push_m_s`).
     """
     if decision is None or not math.isfinite(since_last_frame_s) or since_last_frame_s > cmd.stale_frame_timeout_s:
         return ZERO_SETPOINT
@@ -544,7 +594,7 @@ def detour_setpoint(
         hold = _brake_hold(offset, None, cmd)
         rate = 0.0 if err is None else limit * max(-1.0, min(1.0, err / math.radians(15.0)))
         sp = VelocitySetpoint(hold.forward_m_s, hold.right_m_s, hold.down_m_s, rate)
-        return _guarded(sp, guard_m, guard_cfg, velocity_body_m_s)
+        return _guarded(sp, guard_m, guard_cfg, velocity_body_m_s, region_depths_m, cmd)
     if decision.kind is DecisionKind.BRAKE:
         return setpoint_for(
             decision,
@@ -555,10 +605,11 @@ def detour_setpoint(
             guard_m=guard_m,
             guard_cfg=guard_cfg,
             velocity_body_m_s=velocity_body_m_s,
+            region_depths_m=region_depths_m,
         )
     reactive = setpoint_for(decision, since_last_frame_s, cmd)
     if not (math.isfinite(decision.yaw) and math.isfinite(decision.pitch) and math.isfinite(decision.speed_fraction)):
-        return _guarded(reactive, guard_m, guard_cfg, velocity_body_m_s)
+        return _guarded(reactive, guard_m, guard_cfg, velocity_body_m_s, region_depths_m, cmd)
     scale = 0.0 if cmd.cruise_speed_m_s <= 0.0 else min(1.0, detour_cfg.speed_m_s / cmd.cruise_speed_m_s)
     rate = reactive.yaw_rate_deg_s
     if err is not None:
@@ -566,4 +617,4 @@ def detour_setpoint(
         turn = min(limit, max(-limit, math.degrees(cmd.heading_hold_gain_per_s * err)))
         rate += (1.0 - min(1.0, abs(decision.yaw))) * turn
     sp = VelocitySetpoint(reactive.forward_m_s * scale, reactive.right_m_s, reactive.down_m_s, rate)
-    return _guarded(sp, guard_m, guard_cfg, velocity_body_m_s)
+    return _guarded(sp, guard_m, guard_cfg, velocity_body_m_s, region_depths_m, cmd)

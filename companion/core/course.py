@@ -272,6 +272,7 @@ class CourseHold:
                 guard_m=guard_m,
                 guard_cfg=memory_cfg,
                 velocity_body_m_s=horizontal_velocity_body_m_s(velocity_ned_m_s, yaw),
+                region_depths_m=region_depths_m,
             )
         heading_error = altitude_error = line_offset = None
         if self.heading_rad is not None and yaw is not None:
