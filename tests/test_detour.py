@@ -360,3 +360,30 @@ def test_the_detour_course_reaches_the_goal_and_the_reactive_controller_alone_do
     result = fly(course, CFG)
     assert result.outcome.value == "goal" and result.detours >= 1, result.reason
     assert fly(course, CompanionConfig()).outcome.value != "goal"  # the default: the layer off
+
+
+@pytest.mark.parametrize("goal_deg", [0.0, 37.0, 179.0, -179.0, 120.0])
+def test_free_lengths_from_pairs_equal_the_full_computation_bit_for_bit(goal_deg: float) -> None:
+    """The histogram forms only the (direction, point) pairs that can matter; it must give exactly
+    what every pair gives (walls, clutter, points nearer than the clearance, bearings across ±180°)."""
+    from companion.core.detour import _rays, free_length_m, free_lengths_m, wrap_pi
+
+    rng = np.random.default_rng(int(goal_deg) + 500)
+    e = np.arange(-6.0, 6.0, 0.05)
+    wall = np.stack([np.full(e.size, 1.6), e], 1) + rng.normal(0.0, 0.02, (e.size, 2))
+    pts = np.concatenate([wall, rng.uniform(-4.0, 4.0, (600, 2)), rng.uniform(-0.3, 0.3, (5, 2))])
+    goal = math.radians(goal_deg)
+    step = math.radians(5.0)
+    bearing = np.array([wrap_pi(goal + i * step) for i in range(-20, 21)])
+    clearances = (0.55, 0.8, 0.4, 0.2)
+    along, across = _rays(pts[:, 0], pts[:, 1], bearing)
+    fast = free_lengths_m(pts[:, 0], pts[:, 1], bearing, goal, step, -20, clearances)
+    for got, c in zip(fast, clearances):
+        want = free_length_m(along, across, c)
+        assert np.array_equal(got, want)
+    assert all(np.array_equal(f, np.full(41, np.inf)) for f in free_lengths_m(np.empty(0), np.empty(0), bearing, goal, step, -20, clearances))
+    # An unwrapped fan as the side-step look-ahead makes it (first bearing below the base's).
+    fan = goal + 0.3 + np.arange(-step, 0.9 + step + 1e-9, step)
+    al, ac = _rays(pts[:, 0], pts[:, 1], fan)
+    (got,) = free_lengths_m(pts[:, 0], pts[:, 1], fan, goal + 0.3 - step, step, 0, (0.55,))
+    assert np.array_equal(got, free_length_m(al, ac, 0.55))

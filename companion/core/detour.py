@@ -158,6 +158,61 @@ def free_length_m(along: np.ndarray, across: np.ndarray, clearance_m: float) -> 
     return hit.min(axis=1) if hit.shape[1] else np.full(hit.shape[0], np.inf)
 
 
+def free_lengths_m(
+    dn: np.ndarray,
+    de: np.ndarray,
+    bearing: np.ndarray,
+    base_rad: float,
+    step_rad: float,
+    first_index: int,
+    clearances_m: tuple[float, ...],
+) -> list[np.ndarray]:
+    """:func:`free_length_m` of the paths along each bearing (float ``(K,)`` radians, evenly spaced:
+    ``bearing[i]`` is ``base_rad + (first_index + i) · step_rad``, up to whole turns) past points
+    (north, east offsets from the vehicle, float ``(N,)`` metres), for each clearance (metres): the
+    same numbers, bit for bit, without ``(K, N)`` arrays.
+
+    A point at distance ``r`` comes within ``c`` of a path only when the path's bearing lies within
+    ``asin(c / r)`` of the point's (any path ahead of it when ``r <= c``), so only those (path, point)
+    pairs are formed (for the largest clearance, one bearing wider either side) and each is judged by
+    :func:`free_length_m`'s arithmetic. A wall of thousands of points costs a few pairs per point
+    instead of one per direction.
+    """
+    k = bearing.size
+    outs = [np.full(k, np.inf) for _ in clearances_m]
+    if dn.size == 0 or k == 0:
+        return outs
+    c_max = max(clearances_m)
+    r = np.hypot(dn, de)
+    half = np.full(r.shape, 0.5 * math.pi)
+    far = r > c_max
+    half[far] = np.arcsin(c_max / r[far])
+    rel = (np.arctan2(de, dn) - base_rad + math.pi) % (2.0 * math.pi) - math.pi
+    points, rays = [], []
+    for turn in (-2.0 * math.pi, 0.0, 2.0 * math.pi):  # the bearings are compared on the circle
+        lo = np.maximum(np.ceil((rel + turn - half) / step_rad).astype(np.int64) - 1 - first_index, 0)
+        hi = np.minimum(np.floor((rel + turn + half) / step_rad).astype(np.int64) + 1 - first_index, k - 1)
+        count = np.maximum(hi - lo + 1, 0)
+        total = int(count.sum())
+        if total == 0:
+            continue
+        point = np.repeat(np.arange(r.size), count)
+        start = np.cumsum(count) - count
+        points.append(point)
+        rays.append(lo[point] + np.arange(total) - start[point])
+    if not points:
+        return outs
+    point, ray = np.concatenate(points), np.concatenate(rays)
+    cb, sb = np.cos(bearing)[ray], np.sin(bearing)[ray]
+    along = cb * dn[point] + sb * de[point]
+    across = -sb * dn[point] + cb * de[point]
+    for out, c in zip(outs, clearances_m):
+        inside = (along > 0.0) & (np.abs(across) < c)
+        a, x = along[inside], across[inside]
+        np.minimum.at(out, ray[inside], np.maximum(a - np.sqrt(np.maximum(c * c - x * x, 0.0)), 0.0))
+    return outs
+
+
 def polar_histogram(
     points_ne_m: np.ndarray,
     goal_bearing_rad: float,
@@ -182,13 +237,18 @@ def polar_histogram(
     through = {1: math.inf, -1: math.inf}
     if len(pts):
         dn, de = pts[:, 0], pts[:, 1]
-        along, across = _rays(dn, de, bearing)
         # A vehicle already nearer than the clearance to something may still fly a path that comes
         # no nearer to anything than it is now (less 5 cm): away from it, or along it.
         nearest = float(np.min(np.hypot(dn, de))) - _NEAR_MARGIN_M
-        free = free_length_m(along, across, max(0.0, min(cfg.clearance_m, nearest)))
-        roomy = free_length_m(along, across, max(0.0, min(cfg.preferred_clearance_m, nearest)))
-        tight = free_length_m(along, across, max(0.0, min(cfg.squeeze_clearance_m, nearest)))
+        free, roomy, tight = free_lengths_m(
+            dn,
+            de,
+            bearing,
+            goal_bearing_rad,
+            step,
+            -n,
+            tuple(max(0.0, min(c, nearest)) for c in (cfg.clearance_m, cfg.preferred_clearance_m, cfg.squeeze_clearance_m)),
+        )
         through = _through(pts, goal_bearing_rad, goal_distance_m, cfg, max(0.0, min(cfg.clearance_m, nearest)), map_depth_m)
     visited = np.zeros(k, dtype=bool)
     if trail_ne_m is not None and len(trail_ne_m):
@@ -234,6 +294,9 @@ def _through(
             else:
                 b = math.atan2(gd - se, gn - sn)
                 need = min(cfg.radius_m, math.hypot(gn - sn, gd - se))
+            # A point farther than need + 2 clearances cannot stop a path short of need (its nearest
+            # hit lies beyond r - 2c): leaving it out changes no answer and most of a long wall.
+            q = q[q[:, 0] * q[:, 0] + q[:, 1] * q[:, 1] <= (need + 2.0 * cfg.clearance_m) ** 2]
             # From there, any way between the goal and the goal direction from where the vehicle is
             # (an opening seen at a slant is flown square through), a sector either side: turning
             # farther out would look where the map has not been.
