@@ -122,7 +122,10 @@ class MemoryConfig(StrictModel):
         le=10.0,
         description=(
             "The push away: this gain times how far inside guard_distance_m the point is, per second "
-            "(m/s per metre); 0 = only stop the motion toward it."
+            "(m/s per metre); 0 = only stop the motion toward it. Only trusted points push (trust_*): "
+            "a push moves the vehicle where the camera does not see, and a false point seen once "
+            "pushed a simulated vehicle into a pillar out of view; every guarding point stops the "
+            "motion toward it."
         ),
     )
     max_guard_speed_m_s: float = Field(
