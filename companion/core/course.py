@@ -49,6 +49,7 @@ from companion.core.command import (
     setpoint_for,
 )
 from companion.core.detour import DetourPlanner, Phase
+from companion.core.frames import finite_position
 from companion.core.goal import COURSE, Goal, GoalSpec, resolve_goal
 from companion.core.types import Decision, VelocitySetpoint
 
@@ -56,17 +57,6 @@ if TYPE_CHECKING:
     from companion.config.core import CommandConfig, MemoryConfig
     from companion.config.detour import DetourConfig
     from companion.core.memory import ObstacleMemory
-
-
-def _finite_position(position_ned_m: object) -> np.ndarray | None:
-    """A float64 ``(3,)`` copy of a NED position in metres when it is one and finite, else None."""
-    if position_ned_m is None:
-        return None
-    try:
-        p = np.asarray(position_ned_m, dtype=np.float64).reshape(3)
-    except (TypeError, ValueError):
-        return None
-    return p.copy() if np.all(np.isfinite(p)) else None
 
 
 def _finite(x: float | None) -> float | None:
@@ -103,7 +93,7 @@ class CourseHold:
         altitude) and the heading (radians); an unknown or non-finite part stays unknown, and the
         hold that needs it stays off. ``goal``: where to (:mod:`companion.core.goal`; default the
         heading and line now). Forgets any brake, overhead sighting, progress and detour."""
-        origin = _finite_position(position_ned_m)
+        origin = finite_position(position_ned_m)
         self.origin_ned_m = origin
         self.heading_rad = _finite(heading_rad)
         self.altitude_m = None if origin is None else -float(origin[2])
@@ -134,7 +124,7 @@ class CourseHold:
 
     def _anchor_to_goal(self, position_ned_m: object) -> None:
         """For a goal point: the course becomes the line from ``position_ned_m`` to the point."""
-        here = _finite_position(position_ned_m)
+        here = finite_position(position_ned_m)
         bearing = self.goal.bearing_rad(here)
         if here is not None and bearing is not None:
             self.origin_ned_m, self.heading_rad = here, bearing
@@ -162,7 +152,7 @@ class CourseHold:
         """How far along toward the goal the vehicle is, metres (growing toward it): minus the
         distance to a goal point, or the distance along the course at engagement; None unknown."""
         if self.goal.is_point:
-            d = self.goal.distance_m(_finite_position(position_ned_m))
+            d = self.goal.distance_m(finite_position(position_ned_m))
             return None if d is None else -d
         if self.ready(position_ned_m):
             return along_course_m(position_ned_m, self.origin_ned_m, self.heading_rad)
@@ -181,7 +171,7 @@ class CourseHold:
         """The direction toward the goal from here, radians from north: the bearing to a goal point,
         or, for the course at engagement, the heading course hold aims at (the course heading turned
         toward the line); None when unknown."""
-        pos = _finite_position(position_ned_m)
+        pos = finite_position(position_ned_m)
         if self.goal.is_point:
             return self.goal.bearing_rad(pos)
         if self.heading_rad is None or pos is None or self.origin_ned_m is None:
@@ -195,7 +185,7 @@ class CourseHold:
         horizontal ``distance_m`` and ``bearing_deg`` (from north) to it from ``position_ned_m`` (for
         the course: null, and the course's heading), whether it was ``reached``, and the detour
         layer's ``detour`` status."""
-        pos = _finite_position(position_ned_m)
+        pos = finite_position(position_ned_m)
         point = self.goal.point_ned_m
         bearing = self.goal.bearing_rad(pos) if point is not None else self.heading_rad
         return {
@@ -323,7 +313,7 @@ class CourseHold:
     ):
         """The goal check and the detour layer for one setpoint: sets :attr:`holding_reason` when the
         goal is reached or the detour finds a dead end; returns the detour's command, or None."""
-        pos = _finite_position(position_ned_m)
+        pos = finite_position(position_ned_m)
         d = self.goal.distance_m(pos)
         if d is not None and d <= cmd.goal_radius_m:
             p = self.goal.point_ned_m

@@ -51,6 +51,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from companion.core.frames import finite_position
 from companion.core.types import Decision, DecisionKind
 
 if TYPE_CHECKING:
@@ -385,7 +386,7 @@ class DetourPlanner:
         if cfg.trigger_after_s <= 0.0 or memory is None or memory_cfg.duration_s <= 0.0:
             self.phase = Phase.IDLE
             return None
-        pos = _position(position_ned_m)
+        pos = finite_position(position_ned_m)
         if pos is None or yaw_rad is None or not math.isfinite(yaw_rad) or goal_bearing_rad is None:
             self._blocked_since_s = None
             if self.phase is Phase.DEAD_END:
@@ -722,13 +723,3 @@ def _vertical_escape(decision: Decision | None) -> bool:
         and abs(decision.pitch) >= VERTICAL_ESCAPE
         and abs(decision.pitch) > abs(decision.yaw)
     )
-
-
-def _position(position_ned_m: object) -> np.ndarray | None:
-    if position_ned_m is None:
-        return None
-    try:
-        p = np.asarray(position_ned_m, dtype=np.float64).reshape(3)
-    except (TypeError, ValueError):
-        return None
-    return p.copy() if np.all(np.isfinite(p)) else None

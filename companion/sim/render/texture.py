@@ -65,6 +65,12 @@ _BLUR_TEXELS = 0.5
 _COARSE_PX = 8
 
 
+def _check_size(size: int) -> None:
+    """Raise ValueError unless ``size`` (texels) is a power of two >= 64."""
+    if size < 64 or size & (size - 1):
+        raise ValueError(f"texture size must be a power of two >= 64, got {size}")
+
+
 def _periodic_pyr_up(a: np.ndarray) -> np.ndarray:
     """Double a periodic float32 ``(n, n)`` image to ``(2n, 2n)`` keeping it periodic (wrap padding)."""
     padded = cv2.copyMakeBorder(a, 2, 2, 2, 2, cv2.BORDER_WRAP)
@@ -83,8 +89,7 @@ def noise_field(rng: np.random.Generator, size: int) -> np.ndarray:
         rng: Source of randomness (the only one used).
         size: Side in texels, a power of two >= 64.
     """
-    if size < 64 or size & (size - 1):
-        raise ValueError(f"texture size must be a power of two >= 64, got {size}")
+    _check_size(size)
     n = _COARSE_PX
     acc = rng.standard_normal((n, n), dtype=np.float32)
     blob_src: np.ndarray | None = None
@@ -116,8 +121,7 @@ def plain_field(rng: np.random.Generator, size: int) -> tuple[np.ndarray, np.nda
         rng: Source of randomness (the only one used).
         size: Side in texels, a power of two >= 64.
     """
-    if size < 64 or size & (size - 1):
-        raise ValueError(f"texture size must be a power of two >= 64, got {size}")
+    _check_size(size)
     n = _COARSE_PX
     acc = rng.standard_normal((n, n), dtype=np.float32)
     while n < size:
@@ -204,8 +208,7 @@ class TextureBank:
     """
 
     def __init__(self, seed: int, size: int = 1024, pad: int = 256) -> None:
-        if size < 64 or size & (size - 1):
-            raise ValueError(f"texture size must be a power of two >= 64, got {size}")
+        _check_size(size)
         if not 0 <= pad <= size:
             raise ValueError(f"texture pad must be in [0, {size}], got {pad}")
         self.seed = int(seed)
