@@ -33,6 +33,7 @@ def _host_view(q: np.ndarray, scale: int) -> np.ndarray:
         (150, 80, 16, 1, {"min_points": 3, "robust_percentile_pct": 0.0}, 64),  # SAD's whole pixels, the raw minimum
         (128, 72, 64, 16, {"min_points": 1, "robust_percentile_pct": 10.0, "band_half_height_m": 2.0}, 96),
         (96, 60, 16, 16, {"min_valid_fraction": 0.6, "max_distance_m": 3.0}, 128),  # unknown and far bins
+        (120, 64, 32, 16, {"max_distance_m": 300.0, "robust_percentile_pct": 5.0}, 64),  # coarse bins + a second pass
     ],
 )
 def test_kernel_source_equals_the_reference(w: int, h: int, ndisp: int, scale: int, cfg: dict, threads: int) -> None:

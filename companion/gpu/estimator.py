@@ -75,7 +75,7 @@ _EW_THREADS = 128
 _NAIVE_THREADS = 64
 _REGIONS_THREADS = 256
 #: Threads per block of the OBSTACLE_DISTANCE kernel (one block per bin; only the ~18 bins inside
-#: a 90° view do work, so wide blocks: 1024 took the kernel from 0.44 to 0.16 ms at 1280×720 on an H100).
+#: a 90° view do work, so wide blocks; at 1280×720 on an H100 the one-pass histogram takes 0.045 ms).
 OBSTACLE_THREADS = 1024
 _MAX_CHANNELS = 4
 

@@ -3,19 +3,75 @@
 // Exactly companion/core/obstacle.py's reduce_obstacle_distance on the disparity as the host sees it
 // (int16 x scale, -1 invalid -> NaN): the same float32 compare for the height band (d >= row_thr[v]),
 // the same float32 division for the horizontal distance (col_fbk[u] / d), the same rank
-// k = max(1, ceil(pct * n / 100)) in double, and the k-th smallest distance found exactly by a
-// radix select on the float's bits (non-negative floats order like their bit patterns): four passes of
-// an 8-bit histogram in shared memory, each narrowing the prefix. The block's decisions (unknown, no
-// obstacle) are uniform, so an early return never strands a barrier.
+// k = max(1, ceil(pct * n / 100)) in double, and the same wire value (distance_cm: beyond max_m ->
+// max_cm + 1, else floor(100 v) clamped to [min_cm, max_cm]).
 //
-// Launch: grid (72), block (OD_THREADS). Compiled with --fmad=false like the other modules (nothing
-// here would fuse, but the rounding must be the reference's).
+// Why one pass suffices: the wire value is a non-decreasing function of the distance, and the k-th
+// smallest commutes with such a function. So the kernel never needs the k-th distance itself, only the
+// k-th wire value: a histogram of centimetres in shared memory, filled in the same pass that counts the
+// valid and in-band pixels, then a block-wide scan to find the bin holding rank k. Only when the
+// centimetre range is wider than OD_HIST bins (max_distance_m above ~40 m) does a second pass resolve
+// the coarse bin found first (bins of 2^shift cm). The block's decisions (unknown, no obstacle) are
+// uniform, so an early return never strands a barrier.
+//
+// Threads: a warp walks one row's columns of the bin (coalesced), the warps stride over rows.
+// Launch: grid (72), block (OD_THREADS, a multiple of 32, at most 1024). Compiled with --fmad=false like
+// the other modules (the rounding must be the reference's).
 
 #ifndef OD_THREADS
 #define OD_THREADS 256
 #endif
+#define OD_HIST 4096
+#define OD_WARPS (OD_THREADS / 32)
+
+static_assert(OD_THREADS % 32 == 0 && OD_THREADS <= 1024, "OD_THREADS: whole warps, at most 1024");
 
 typedef unsigned int od_u32;
+
+// The wire value of one distance (metres, float32), as distance_cm does it on the host.
+__device__ __forceinline__ int od_wire_cm(float v, float max_m, int min_cm, int max_cm)
+{
+    if (!(v <= max_m)) return max_cm + 1;
+    const int x = (int)floor((double)v * 100.0);
+    return x < min_cm ? min_cm : (x > max_cm ? max_cm : x);
+}
+
+// Over the block: which of hist[0, nb) holds rank k (1-based) of the counts, and the rank within it.
+// Every thread sums a contiguous chunk; a warp-shuffle scan of the chunk sums finds the chunk.
+__device__ void od_find_rank(const od_u32* hist, int nb, od_u32 k, od_u32* wsum, od_u32* s_bin, od_u32* s_k)
+{
+    const int t = threadIdx.x, lane = t & 31, warp = t >> 5;
+    const int per = (nb + OD_THREADS - 1) / OD_THREADS;
+    const int b0 = t * per, b1 = b0 + per < nb ? b0 + per : nb;
+    od_u32 s = 0;
+    for (int b = b0; b < b1; ++b) s += hist[b];
+    od_u32 x = s;  // inclusive scan within the warp
+    for (int o = 1; o < 32; o <<= 1) {
+        const od_u32 y = __shfl_up_sync(0xFFFFFFFFu, x, o);
+        if (lane >= o) x += y;
+    }
+    if (lane == 31) wsum[warp] = x;
+    if (t == 0) { *s_bin = (od_u32)(nb - 1); *s_k = 1u; }  // unreachable when k <= the total; defined anyway
+    __syncthreads();
+    if (warp == 0) {
+        od_u32 w = lane < OD_WARPS ? wsum[lane] : 0u;
+        for (int o = 1; o < 32; o <<= 1) {
+            const od_u32 y = __shfl_up_sync(0xFFFFFFFFu, w, o);
+            if (lane >= o) w += y;
+        }
+        if (lane < OD_WARPS) wsum[lane] = w;
+    }
+    __syncthreads();
+    const od_u32 incl = x + (warp > 0 ? wsum[warp - 1] : 0u);
+    od_u32 cum = incl - s;
+    if (cum < k && k <= incl) {  // exactly one thread's chunk holds rank k
+        for (int b = b0; b < b1; ++b) {
+            if (cum + hist[b] >= k) { *s_bin = (od_u32)b; *s_k = k - cum; break; }
+            cum += hist[b];
+        }
+    }
+    __syncthreads();
+}
 
 extern "C" __global__ void __launch_bounds__(OD_THREADS) obstacle_bins(
     const short* __restrict__ disp, int width, int height, float inv_scale,
@@ -23,33 +79,45 @@ extern "C" __global__ void __launch_bounds__(OD_THREADS) obstacle_bins(
     double pct, int min_points, double min_valid_fraction, float max_m, int min_cm, int max_cm,
     unsigned short* __restrict__ out)
 {
-    __shared__ od_u32 hist[256];
-    __shared__ od_u32 s_valid, s_band, s_prefix, s_k;
+    __shared__ od_u32 hist[OD_HIST];
+    __shared__ od_u32 wsum[32];
+    __shared__ od_u32 s_valid, s_band, s_bin, s_k;
     const int j = blockIdx.x;
     const int c0 = bin_cols[2 * j], c1 = bin_cols[2 * j + 1];
-    const int t = threadIdx.x;
+    const int t = threadIdx.x, lane = t & 31, warp = t >> 5;
     if (c1 <= c0) {  // outside the matched view: unknown
         if (t == 0) out[j] = 65535;
         return;
     }
-    const int nc = c1 - c0;
-    const int n = nc * height;
+    // Wire values min_cm .. max_cm + 1, as indices 0 .. nb - 1; coarse bins of 2^shift when too many.
+    const int nb = max_cm + 2 - min_cm;
+    int shift = 0;
+    while (((nb - 1) >> shift) >= OD_HIST) ++shift;
+    const int nb1 = ((nb - 1) >> shift) + 1;
     if (t == 0) { s_valid = 0; s_band = 0; }
+    for (int b = t; b < nb1; b += OD_THREADS) hist[b] = 0;
     __syncthreads();
-    od_u32 nv = 0, nb = 0;
-    for (int i = t; i < n; i += OD_THREADS) {
-        const int r = i / nc, c = c0 + (i - r * nc);
-        const short q = disp[r * width + c];
-        if (q >= 0) {
+    od_u32 nv = 0, nbd = 0;
+    for (int r = warp; r < height; r += OD_WARPS) {
+        const float thr = row_thr[r];
+        const short* row = disp + (size_t)r * width;
+        for (int c = c0 + lane; c < c1; c += 32) {
+            const short q = row[c];
+            if (q < 0) continue;
             ++nv;
             const float d = (float)q * inv_scale;
-            if (q > 0 && d >= row_thr[r]) ++nb;
+            if (q > 0 && d >= thr) {
+                ++nbd;
+                const int cm = od_wire_cm(col_fbk[c] / d, max_m, min_cm, max_cm);
+                atomicAdd(&hist[(cm - min_cm) >> shift], 1u);
+            }
         }
     }
     atomicAdd(&s_valid, nv);
-    atomicAdd(&s_band, nb);
+    atomicAdd(&s_band, nbd);
     __syncthreads();
     const od_u32 n_valid = s_valid, n_band = s_band;
+    const int n = (c1 - c0) * height;
     if (n_valid == 0 || (double)n_valid < min_valid_fraction * (double)n) {  // nothing matched: unknown
         if (t == 0) out[j] = 65535;
         return;
@@ -59,46 +127,31 @@ extern "C" __global__ void __launch_bounds__(OD_THREADS) obstacle_bins(
         return;
     }
     const double kk = ceil(pct * (double)n_band / 100.0);
-    od_u32 k = kk < 1.0 ? 1u : (od_u32)kk;
-    od_u32 prefix = 0;
-    for (int shift = 24; shift >= 0; shift -= 8) {
-        for (int b = t; b < 256; b += OD_THREADS) hist[b] = 0;
+    const od_u32 k = kk < 1.0 ? 1u : (od_u32)kk;
+    od_find_rank(hist, nb1, k, wsum, &s_bin, &s_k);
+    int idx = (int)s_bin;
+    if (shift > 0) {  // resolve the coarse bin: a second pass over its members only
+        const int coarse = idx;
+        const od_u32 k2 = s_k;
+        const int nb2 = 1 << shift;
+        __syncthreads();  // everyone has read s_bin and s_k
+        for (int b = t; b < nb2; b += OD_THREADS) hist[b] = 0;
         __syncthreads();
-        const od_u32 hi_mask = shift == 24 ? 0u : (0xFFFFFFFFu << (shift + 8));
-        for (int i = t; i < n; i += OD_THREADS) {
-            const int r = i / nc, c = c0 + (i - r * nc);
-            const short q = disp[r * width + c];
-            if (q <= 0) continue;
-            const float d = (float)q * inv_scale;
-            if (!(d >= row_thr[r])) continue;
-            const float dist = col_fbk[c] / d;
-            const od_u32 key = __float_as_uint(dist);
-            if ((key & hi_mask) == prefix) atomicAdd(&hist[(key >> shift) & 255u], 1u);
-        }
-        __syncthreads();
-        if (t == 0) {
-            od_u32 cum = 0, b = 0;
-            for (; b < 255u; ++b) {
-                if (cum + hist[b] >= k) break;
-                cum += hist[b];
+        for (int r = warp; r < height; r += OD_WARPS) {
+            const float thr = row_thr[r];
+            const short* row = disp + (size_t)r * width;
+            for (int c = c0 + lane; c < c1; c += 32) {
+                const short q = row[c];
+                if (q <= 0) continue;
+                const float d = (float)q * inv_scale;
+                if (!(d >= thr)) continue;
+                const int i = od_wire_cm(col_fbk[c] / d, max_m, min_cm, max_cm) - min_cm;
+                if ((i >> shift) == coarse) atomicAdd(&hist[i & (nb2 - 1)], 1u);
             }
-            s_k = k - cum;
-            s_prefix = prefix | (b << shift);
         }
         __syncthreads();
-        prefix = s_prefix;
-        k = s_k;
-        __syncthreads();  // everyone has read them before the next pass clears the histogram
+        od_find_rank(hist, nb2, k2, wsum, &s_bin, &s_k);
+        idx = (coarse << shift) + (int)s_bin;
     }
-    if (t == 0) {
-        const float v = __uint_as_float(prefix);
-        int cm;
-        if (!(v <= max_m)) {
-            cm = max_cm + 1;
-        } else {
-            const int x = (int)floor((double)v * 100.0);
-            cm = x < min_cm ? min_cm : (x > max_cm ? max_cm : x);
-        }
-        out[j] = (unsigned short)cm;
-    }
+    if (t == 0) out[j] = (unsigned short)(min_cm + idx);
 }
