@@ -27,6 +27,7 @@ from companion.sitl.ardupilot import (
     ARDUPILOT_BUILD_ENV,
     SITL_PARAMS,
     ArduPilotPilot,
+    ArduPilotPorts,
     ArduPilotSitl,
     find_ardupilot_build,
 )
@@ -214,3 +215,23 @@ def test_a_pilot_mode_change_disengages_the_service_for_good(ardupilot: ArduPilo
             await _finish(pilot, service, gate)
 
     _run(scenario())
+
+
+def test_the_services_obstacle_distance_stops_arducopter_at_its_avoid_margin(tmp_path: Path) -> None:
+    """``companion sitl --autopilot ardupilot --scenario proximity``: its own SITL (instance 5, booted with
+    ``PRX1_TYPE`` 2), LOITER, the pitch stick full forward at a wall, the service only feeding
+    OBSTACLE_DISTANCE: ArduCopter stops the vehicle about ``AVOID_MARGIN`` short, and its own forward
+    reading agrees with the true distance."""
+    from companion.sitl.scenarios import run_scenario
+
+    build = find_ardupilot_build()
+    if build is None:
+        pytest.skip(f"no ArduPilot SITL: set {ARDUPILOT_BUILD_ENV} (docs/sitl-ardupilot.md)")
+    ports = ArduPilotPorts(5)
+    result = _run(
+        run_scenario("proximity", load_config(None), ports=ports, pilot_url=ports.pilot_url, workdir=tmp_path, ardupilot_build=build),
+        400.0,
+    )
+    print("\n".join(result.lines()))
+    assert result.obstacle_messages > 50
+    assert result.passed, result.lines()

@@ -16,7 +16,9 @@ from companion.sim.courses import make_course
 from companion.sitl.ardupilot import (
     ARDUPILOT_BUILD_ENV,
     CENTRED_STICKS_US,
+    PITCH_FORWARD_US,
     ArduPilotPorts,
+    ArduPilotSitl,
     centre_sticks,
     find_ardupilot_build,
 )
@@ -57,6 +59,53 @@ def test_centred_sticks_go_to_sitls_rc_port() -> None:
         data = rx.recv(64)
     assert struct.unpack("<8H", data) == CENTRED_STICKS_US
     assert CENTRED_STICKS_US[2] == 1500  # throttle centred: LOITER holds its altitude
+
+
+def test_the_pitch_stick_goes_forward_on_channel_2_alone() -> None:
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as rx:
+        rx.bind(("127.0.0.1", 0))
+        rx.settimeout(2.0)
+        centre_sticks(rx.getsockname()[1], pitch_us=PITCH_FORWARD_US)
+        data = rx.recv(64)
+    want = list(CENTRED_STICKS_US)
+    want[1] = PITCH_FORWARD_US
+    assert struct.unpack("<8H", data) == tuple(want)
+
+
+def test_boot_parameters_go_to_a_defaults_file_after_copter_parm(tmp_path: Path, monkeypatch) -> None:
+    """PRX1_TYPE takes effect only at boot: the proximity scenario's parameters are a second defaults file."""
+    import subprocess
+
+    build = find_ardupilot_build(_fake_checkout(tmp_path / "ardupilot"), environ={})
+    seen: dict = {}
+
+    class FakeProc:
+        returncode = None
+
+        def __init__(self, cmd, **kw):
+            seen["cmd"] = cmd
+            (kw["cwd"] / "arducopter.log").write_bytes(b"Waiting for connection")
+
+        def poll(self):
+            return None
+
+    monkeypatch.setattr(subprocess, "Popen", FakeProc)
+    sitl = ArduPilotSitl(build, tmp_path / "sitl", 5, boot_params={"PRX1_TYPE": 2, "AVOID_MARGIN": 2.5})
+    sitl.start(timeout_s=2.0)
+    defaults = seen["cmd"][seen["cmd"].index("--defaults") + 1].split(",")
+    assert defaults == [str(build.defaults), str(tmp_path / "sitl/companion.parm")]
+    assert (tmp_path / "sitl/companion.parm").read_text() == "PRX1_TYPE 2\nAVOID_MARGIN 2.5\n"
+
+
+def test_sitl_cli_keeps_each_scenario_with_its_autopilot(capsys: pytest.CaptureFixture[str]) -> None:
+    from companion.cli import main
+
+    assert main(["sitl", "--scenario", "proximity"]) == 2
+    assert "--scenario proximity flies ArduPilot" in capsys.readouterr().err
+    assert main(["sitl", "--scenario", "collision-prevention", "--autopilot", "ardupilot"]) == 2
+    assert "collision-prevention and rc-engage fly PX4" in capsys.readouterr().err
 
 
 def test_sitl_cli_keeps_each_build_with_its_autopilot(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:

@@ -33,12 +33,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     what.add_argument("--course", metavar="KIND", help="course kind: corridor, doorway, forest, pitch, side, deadend, office, detour, head-on")
     what.add_argument("--suite", metavar="NAME", help="a suite of courses: quick (16 flights) or standard (72)")
     what.add_argument(
-        "--scenario", choices=["collision-prevention", "rc-engage"],
+        "--scenario", choices=["collision-prevention", "rc-engage", "proximity"],
         help=(
-            "PX4 only (docs/sitl.md): collision-prevention: the service only feeds OBSTACLE_DISTANCE while a pilot "
+            "PX4 (docs/sitl.md): collision-prevention: the service only feeds OBSTACLE_DISTANCE while a pilot "
             "flies Position mode at a wall (CP_DIST set); then the service stops. rc-engage: the ground station "
             "switches PX4 to Offboard while the service is ready (vehicle.engage_on_offboard_switch), then back to "
-            "Position mode"
+            "Position mode. ArduPilot (--autopilot ardupilot, docs/sitl-ardupilot.md): proximity: the service only "
+            "feeds OBSTACLE_DISTANCE to ArduCopter's proximity library (PRX1_TYPE 2) while a pilot flies LOITER at "
+            "the wall; then the service stops"
         ),
     )  # fmt: skip
     p.add_argument("--cp-dist", type=float, default=2.0, metavar="M", help="--scenario collision-prevention: CP_DIST, metres (default 2)")
@@ -159,17 +161,27 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run_scenario(args: argparse.Namespace, cfg: Any) -> int:
-    """``--scenario``: one of issue 18's proofs against PX4 SITL; prints what it measured."""
+    """``--scenario``: one of issue 18's proofs against PX4 or ArduPilot SITL; prints what it measured."""
     import tempfile
 
+    from companion.sitl.ardupilot import ArduPilotPorts, find_ardupilot_build
     from companion.sitl.px4 import Px4Ports, find_px4_build
     from companion.sitl.scenarios import run_scenario
 
-    if args.autopilot != "px4":
-        raise InputError("--scenario flies PX4 (its Collision Prevention, its Offboard switch)")
-    ports = Px4Ports(args.instance)
-    px4_build = find_px4_build(args.px4_build)
+    ardupilot = args.scenario == "proximity"
+    if ardupilot != (args.autopilot == "ardupilot"):
+        raise InputError(
+            "--scenario proximity flies ArduPilot (--autopilot ardupilot); collision-prevention and rc-engage fly PX4"
+        )
     kw: dict[str, Any] = {}
+    px4_build = None
+    if ardupilot:
+        ports: Any = ArduPilotPorts(args.instance)
+        kw["ardupilot_build"] = find_ardupilot_build(args.ardupilot_build)
+        kw["seed"] = args.seed
+    else:
+        ports = Px4Ports(args.instance)
+        px4_build = find_px4_build(args.px4_build)
     if args.scenario == "collision-prevention":
         kw["cp_dist_m"] = args.cp_dist
         kw["seed"] = args.seed

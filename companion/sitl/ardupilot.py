@@ -67,6 +67,8 @@ _MODE_NUMBERS = {name: number for number, name in COPTER_MODES.items()}
 CENTRED_STICKS_US = (1500, 1500, 1500, 1500, 1800, 1000, 1000, 1800)
 #: The throttle stick down (arming needs it), microseconds.
 THROTTLE_DOWN_US = 1000
+#: The pitch stick (channel 2) full forward: ArduCopter reads a low pulse as nose down, microseconds.
+PITCH_FORWARD_US = 1100
 
 
 @dataclass(frozen=True)
@@ -158,15 +160,25 @@ class ArduPilotSitl(SitlProcess):
         workdir: SITL's working folder (created).
         instance: the instance number (ports, :class:`ArduPilotPorts`).
         home: where the vehicle starts, ``LAT,LNG,ALT,HDG``.
+        boot_params: parameters loaded at boot after copter.parm (a defaults file in ``workdir``): those
+            that take effect only at boot, such as ``PRX1_TYPE``.
     """
 
     NAME = "ArduPilot SITL"
 
-    def __init__(self, build: ArduPilotBuild, workdir: Path, instance: int = 0, home: str = DEFAULT_HOME) -> None:
+    def __init__(
+        self,
+        build: ArduPilotBuild,
+        workdir: Path,
+        instance: int = 0,
+        home: str = DEFAULT_HOME,
+        boot_params: dict[str, float] | None = None,
+    ) -> None:
         self.build = build
         self.workdir = workdir
         self.ports = ArduPilotPorts(instance)
         self.home = home
+        self.boot_params = dict(boot_params or {})
         super().__init__()
 
     @property
@@ -184,8 +196,13 @@ class ArduPilotSitl(SitlProcess):
             SitlError: it exited or did not listen in time (the log's tail is in the message).
         """
         self.workdir.mkdir(parents=True, exist_ok=True)
+        defaults = str(self.build.defaults)
+        if self.boot_params:
+            extra = self.workdir / "companion.parm"
+            extra.write_text("".join(f"{name} {value:g}\n" for name, value in self.boot_params.items()))
+            defaults += f",{extra}"
         cmd = [
-            str(self.build.binary), "--model", "quad", "--home", self.home, "--defaults", str(self.build.defaults),
+            str(self.build.binary), "--model", "quad", "--home", self.home, "--defaults", defaults,
             "-I", str(self.ports.instance),
         ]  # fmt: skip
         if fresh:
@@ -206,12 +223,16 @@ class ArduPilotSitl(SitlProcess):
         raise SitlError(f"ArduPilot SITL did not listen within {timeout_s:g} s:\n{self.log_tail()}")
 
 
-def centre_sticks(rc_port: int, throttle_us: int = CENTRED_STICKS_US[2], host: str = "127.0.0.1") -> None:
+def centre_sticks(
+    rc_port: int, throttle_us: int = CENTRED_STICKS_US[2], host: str = "127.0.0.1", pitch_us: int = CENTRED_STICKS_US[1]
+) -> None:
     """Put SITL's RC receiver at :data:`CENTRED_STICKS_US` (it keeps the last values it received),
     as a pilot's transmitter with the sticks centred, the throttle at ``throttle_us`` (microseconds:
-    :data:`THROTTLE_DOWN_US` to arm)."""
+    :data:`THROTTLE_DOWN_US` to arm) and the pitch stick at ``pitch_us`` (:data:`PITCH_FORWARD_US`: full
+    forward)."""
     values = list(CENTRED_STICKS_US)
     values[2] = int(throttle_us)
+    values[1] = int(pitch_us)
     packet = struct.pack("<8H", *values)
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.sendto(packet, (host, rc_port))
@@ -289,6 +310,10 @@ class ArduPilotPilot(Pilot):
 
     # ------------------------------------------------------------------ commands, by the numbers
 
+    async def request_rate(self, msg_id: int, rate_hz: float) -> int:
+        """Ask ArduPilot to stream message ``msg_id`` on this link at ``rate_hz``; returns the MAV_RESULT."""
+        return await self.command(f"the rate of message {msg_id}", _MAV_CMD_SET_MESSAGE_INTERVAL, msg_id, 1e6 / rate_hz)
+
     async def command(self, what: str, command: int, *params: float, timeout_s: float | None = None) -> int:
         """Send COMMAND_LONG ``command`` with ``params`` (param1...) and return ArduPilot's MAV_RESULT.
 
@@ -334,10 +359,11 @@ class ArduPilotPilot(Pilot):
         await self._until_accepted(f"mode {name}", _MAV_CMD_DO_SET_MODE, _MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, number, timeout_s=timeout_s)
         await self.wait_for(f"mode {name}", lambda: self.flight_mode == name, 5.0)
 
-    def sticks(self, throttle_us: int) -> None:
-        """SITL's RC sticks centred, the throttle at ``throttle_us`` (no RC port: nothing)."""
+    def sticks(self, throttle_us: int, pitch_us: int = CENTRED_STICKS_US[1]) -> None:
+        """SITL's RC sticks centred, the throttle at ``throttle_us`` and the pitch stick at ``pitch_us``
+        (no RC port: nothing)."""
         if self.rc_port is not None:
-            centre_sticks(self.rc_port, throttle_us)
+            centre_sticks(self.rc_port, throttle_us, pitch_us=pitch_us)
 
     async def make_ready(self, timeout_s: float = 90.0) -> None:
         """Position telemetry arriving (ArduPilot has booted and its EKF has an origin), and the

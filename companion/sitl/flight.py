@@ -244,6 +244,11 @@ async def start_and_place(service: ServiceProcess, pilot: Pilot, course: Course)
     *now* with a live ``set_config`` of ``camera.sim_origin_*`` (the hover drifts while the service
     starts: a placement taken earlier would start the flight off the course's start pose)."""
     await service.start()
+    return await place_course(service, pilot, course)
+
+
+async def place_course(service: ServiceProcess, pilot: Pilot, course: Course) -> CoursePlacement:
+    """Step 3 alone: wait for a steady hover and move the running service's course under the vehicle."""
     await pilot.wait_steady(1.0)
     placement = placement_at(pilot, course)
     await service.request({"cmd": "set_config", "patch": {"camera": placement_fields(placement)}})
