@@ -6,13 +6,14 @@ import argparse
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 from peers.fakes import FakeLink, ServiceRunner, avoid_scene_camera, service_config, wait_until
 
 from companion.bench import BenchSize
 from companion.cli import main
 from companion.config import CompanionConfig
-from companion.errors import InputError
+from companion.errors import CompanionError, InputError
 from companion.service.client import parse_assignments, render_health
 from companion.service.daemon import Service
 
@@ -88,3 +89,28 @@ def test_e2e_bench_counts_frames_and_never_processes_one_twice(capsys) -> None:
     assert run["captured_frames"] >= run["processed_frames"] > 0
     assert run["dropped_frames"] >= 0 and run["latency_ms"]["p99_ms"] > 0
     assert "median ms" in capsys.readouterr().out
+
+
+def test_viewer_cost_splits_latencies_by_the_subscription_of_their_window() -> None:
+    from companion.service.bench import _SETTLE_SAMPLES, viewer_cost
+
+    # 3 windows of 40 frames: unwatched 10 ms, watched 12 ms (the first few after each change skipped).
+    lat_s = [0.010] * 40 + [0.012] * 40 + [0.010] * 40
+    toggles = [(0, False), (40, True), (80, False)]
+    cost = viewer_cost(lat_s, toggles, 0, 120)
+    assert cost["watched"]["n"] == 40 - _SETTLE_SAMPLES and cost["unwatched"]["n"] == 80 - 2 * _SETTLE_SAMPLES
+    assert cost["median_diff_ms"] == pytest.approx(2.0) and cost["p99_diff_ms"] == pytest.approx(2.0)
+    lo, hi = cost["p99_diff_ci95_ms"]
+    assert lo == pytest.approx(2.0) and hi == pytest.approx(2.0)
+    with pytest.raises(CompanionError, match="too few samples"):
+        viewer_cost(lat_s, [(0, True)], 0, 120)
+
+
+def test_e2e_bench_alternates_the_viewer_and_compares_both_kinds_of_window(tmp_path: Path) -> None:
+    from companion.service.bench import measure_e2e
+
+    fig = measure_e2e(BenchSize(320, 240, 32), "opencv-bm", 150, 5, tmp_path, viewer="alternate", window_s=0.5)
+    cost = fig["viewer_cost"]
+    assert cost["windows"] >= 3 and cost["watched"]["n"] >= 10 and cost["unwatched"]["n"] >= 10
+    assert fig["previews_received"] > 0
+    assert np.isfinite(cost["p99_diff_ms"])

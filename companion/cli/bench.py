@@ -51,8 +51,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--duration-s", type=float, default=3600.0, help="--soak: how long, seconds (default 3600)")
     p.add_argument("--sample-s", type=float, default=60.0, help="--soak: seconds between rows (default 60)")
     p.add_argument(
-        "--viewer", action="store_true",
-        help="with --e2e: a preview subscriber watches the run (what `companion view` costs the flight loop)",
+        "--viewer", nargs="?", const="on", default="off", choices=["on", "alternate"],
+        help=(
+            "with --e2e: a preview subscriber watches the run (what `companion view` costs the flight loop); "
+            "--viewer alternate: it subscribes in every other 2 s window, and the latencies of both kinds of "
+            "window are compared (the same machine state for both)"
+        ),
+    )
+    p.add_argument(
+        "--stream-fps", type=float, default=60.0, metavar="HZ",
+        help="with --e2e: the replayed stream's frame rate (default 60; the ZED offers 15, 30, 60 and 100 at 672x376)",
     )
     p.add_argument(
         "--no-rectify",
@@ -68,6 +76,8 @@ def run(args: argparse.Namespace) -> int:
 
     if args.frames < 1 or args.warmup < 0:
         raise InputError("--frames must be >= 1 and --warmup >= 0")
+    if not 1.0 <= args.stream_fps <= 240.0:
+        raise InputError(f"--stream-fps must be within 1..240 Hz, got {args.stream_fps:g}")
     try:
         sizes = parse_sizes(args.sizes) if args.sizes else list(DEFAULT_SIZES)
     except ValueError as err:

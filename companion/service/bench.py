@@ -63,12 +63,18 @@ class BenchVehicleLink:
         pass
 
 
-def _write_recording(folder: Path, frames: list[np.ndarray]) -> None:
+def _write_recording(folder: Path, frames: list[np.ndarray], fps_hz: float) -> None:
     from companion.service.recording import RecordingWriter
 
-    with RecordingWriter(folder, STREAM_FPS_HZ) as writer:
+    with RecordingWriter(folder, fps_hz) as writer:
         for i, image in enumerate(frames):
-            writer.write(image, i / STREAM_FPS_HZ, i + 1)
+            writer.write(image, i / fps_hz, i + 1)
+
+
+#: ``--viewer alternate``: seconds of each window with and without a subscriber.
+VIEWER_WINDOW_S = 2.0
+#: Latencies skipped after each change of subscription (the preview thread changing state).
+_SETTLE_SAMPLES = 6
 
 
 def measure_e2e(
@@ -79,28 +85,37 @@ def measure_e2e(
     workdir: Path,
     max_wall_s: float = 120.0,
     service_options: dict[str, Any] | None = None,
-    viewer: bool = False,
+    viewer: bool | str = False,
+    window_s: float = VIEWER_WINDOW_S,
+    stream_fps_hz: float = STREAM_FPS_HZ,
 ) -> dict[str, Any]:
-    """Run the service on a replayed 60 fps recording at ``size`` with ``backend``; return the figures.
+    """Run the service on a replayed recording (``stream_fps_hz``, 60 by default) at ``size`` with
+    ``backend``; return the figures.
 
     ``service_options`` override fields of the ``[service]`` section (e.g. skip_late_frames).
-    ``viewer``: a preview subscriber watches the whole run (what ``companion view`` costs the service).
+    ``viewer``: ``"on"`` (or True): a preview subscriber watches the whole run (what ``companion view``
+    costs the service); ``"alternate"``: it subscribes and unsubscribes every ``window_s`` seconds, and
+    each latency is counted with the state of its window (:func:`viewer_cost`), so that both states see
+    the same machine; ``"off"`` (or False): nobody watches.
     """
+    mode = {True: "on", False: "off"}.get(viewer, viewer) if isinstance(viewer, bool) else viewer
+    if mode not in ("off", "on", "alternate"):
+        raise ValueError(f"viewer must be off, on or alternate, not {viewer!r}")
     from companion.bench import rendered_frames, stats_ms
     from companion.config import parse_config
     from companion.service.daemon import Service
 
     _, images = rendered_frames(size, n=min(60, frames + warmup))
-    rec = workdir / f"rec_{size.width_px}x{size.height_px}"
+    rec = workdir / f"rec_{size.width_px}x{size.height_px}_{stream_fps_hz:g}fps"
     if not rec.exists():
-        _write_recording(rec, images)
+        _write_recording(rec, images, stream_fps_hz)
     cfg = parse_config(
         {
             "camera": {
                 "source": "replay",
                 "width_px": size.width_px,
                 "height_px": size.height_px,
-                "fps_hz": STREAM_FPS_HZ,
+                "fps_hz": stream_fps_hz,
                 "replay_path": str(rec),
                 "replay_loop": True,
                 "replay_preload": True,
@@ -143,6 +158,8 @@ def measure_e2e(
     thread.start()
     previews = [0]
     viewing = threading.Event()
+    # (index into service.latencies_s, subscribed) at every change of the viewer's subscription.
+    toggles: list[tuple[int, bool]] = []
 
     def watch() -> None:
         import zmq
@@ -150,17 +167,24 @@ def measure_e2e(
         ctx = zmq.Context()
         sub = ctx.socket(zmq.SUB)
         sub.setsockopt(zmq.LINGER, 0)
-        sub.setsockopt(zmq.SUBSCRIBE, b"preview")
         sub.connect(cfg.view.preview_endpoint)
+        subscribed = False
+        next_toggle = 0.0
         while viewing.is_set():
-            if sub.poll(100):
+            now = time.monotonic()
+            if now >= next_toggle and (mode == "alternate" or not subscribed):
+                subscribed = not subscribed
+                sub.setsockopt(zmq.SUBSCRIBE if subscribed else zmq.UNSUBSCRIBE, b"preview")
+                toggles.append((len(service.latencies_s), subscribed))
+                next_toggle = now + window_s
+            if sub.poll(20):
                 sub.recv_multipart()
                 previews[0] += 1
         sub.close(0)
         ctx.term()
 
     watcher = threading.Thread(target=watch, name="e2e-viewer", daemon=True)
-    if viewer:
+    if mode != "off":
         viewing.set()
         watcher.start()
     try:
@@ -203,9 +227,10 @@ def measure_e2e(
     dropped = int(health1["dropped_frames"] - health0["dropped_frames"])
     captured = int(health1["camera"]["frames"] - health0["camera"]["frames"])
     stats = stats_ms(np.asarray(latencies) * 1e3)
+    cost = viewer_cost(service.latencies_s, toggles, n0, n0 + len(latencies)) if mode == "alternate" else None
     return {
         "backend": service.config.stereo.backend,
-        "stream_fps": STREAM_FPS_HZ,
+        "stream_fps": stream_fps_hz,
         "latency_ms": stats,
         "samples": len(latencies),
         "captured_frames": captured,
@@ -218,8 +243,46 @@ def measure_e2e(
         "gc_collections": {f"gen{g}": n for g, n in collections.items()},
         "gc_pause_max_ms": max(gc_ms, default=0.0),
         "latencies_ms": [round(x * 1e3, 4) for x in latencies],
-        "viewer": viewer,
+        "viewer": mode,
         "previews_received": previews[0],
+        "viewer_cost": cost,
+    }
+
+
+def viewer_cost(
+    latencies_s: list[float], toggles: list[tuple[int, bool]], start: int, stop: int, resamples: int = 2000, seed: int = 0
+) -> dict[str, Any]:
+    """Split latencies ``[start, stop)`` by the viewer's subscription when each frame's setpoint was
+    handed over (``toggles``: (index, subscribed) at every change; the first few after each change are
+    skipped), and compare: medians, p99s, and the p99 difference with a 95 % bootstrap interval.
+
+    Returns:
+        ``{"watched": stats, "unwatched": stats, "p99_diff_ms", "p99_diff_ci95_ms": [lo, hi],
+        "median_diff_ms", "windows": n}`` (milliseconds; diff = watched - unwatched).
+    """
+    from companion.bench import stats_ms
+
+    lat = np.asarray(latencies_s, dtype=np.float64) * 1e3
+    state = np.zeros(len(lat), dtype=np.int8)  # 0 none yet, 1 watched, 2 unwatched, 3 settling
+    for k, (idx, sub) in enumerate(toggles):
+        end = toggles[k + 1][0] if k + 1 < len(toggles) else len(lat)
+        state[idx:end] = 1 if sub else 2
+        state[idx : min(end, idx + _SETTLE_SAMPLES)] = 3
+    sel = slice(start, stop)
+    on, off = lat[sel][state[sel] == 1], lat[sel][state[sel] == 2]
+    if on.size < 10 or off.size < 10:
+        raise CompanionError(f"e2e bench: too few samples to compare ({on.size} watched, {off.size} unwatched)")
+    rng = np.random.default_rng(seed)
+    diffs = np.percentile(rng.choice(on, (resamples, on.size)), 99, axis=1) - np.percentile(
+        rng.choice(off, (resamples, off.size)), 99, axis=1
+    )
+    return {
+        "watched": {"n": int(on.size), **stats_ms(on)},
+        "unwatched": {"n": int(off.size), **stats_ms(off)},
+        "median_diff_ms": float(np.median(on) - np.median(off)),
+        "p99_diff_ms": float(np.percentile(on, 99) - np.percentile(off, 99)),
+        "p99_diff_ci95_ms": [float(x) for x in np.percentile(diffs, [2.5, 97.5])],
+        "windows": len(toggles),
     }
 
 
@@ -231,15 +294,23 @@ def run_e2e_bench(args: argparse.Namespace, sizes: list[Any]) -> dict[str, Any]:
     backends = [args.backend]
     if args.backend != "cupy" and cuda_available():
         backends.append("cupy")
-    report: dict[str, Any] = {"machine": machine_description(), "stream_fps": STREAM_FPS_HZ, "runs": {}}
+    fps = float(getattr(args, "stream_fps", None) or STREAM_FPS_HZ)
+    report: dict[str, Any] = {"machine": machine_description(), "stream_fps": fps, "runs": {}}
     print(f"machine: {report['machine']}")
-    watched = " with a preview viewer subscribed" if getattr(args, "viewer", False) else ", nobody watching the preview"
-    print(f"e2e: frame-to-setpoint over a replayed {STREAM_FPS_HZ:g} fps stream ({args.frames} frames after {args.warmup} warm-up){watched}")
+    viewer = getattr(args, "viewer", "off")
+    watched = {
+        "on": " with a preview viewer subscribed",
+        "alternate": f", a preview viewer subscribed in every other {VIEWER_WINDOW_S:g} s window",
+    }.get(viewer, ", nobody watching the preview")
+    print(f"e2e: frame-to-setpoint over a replayed {fps:g} fps stream ({args.frames} frames after {args.warmup} warm-up){watched}")
     rows = []
     with tempfile.TemporaryDirectory(prefix="companion-e2e-") as tmp:
         for size in sizes:
             for backend in backends:
-                fig = measure_e2e(size, backend, args.frames, args.warmup, Path(tmp), viewer=getattr(args, "viewer", False))
+                fig = measure_e2e(
+                    size, backend, args.frames, args.warmup, Path(tmp), viewer=viewer,
+                    max_wall_s=max(120.0, 3.0 * args.frames / fps), stream_fps_hz=fps,
+                )  # fmt: skip
                 key = f"{size.label}/{backend}"
                 report["runs"][key] = fig
                 lat = fig["latency_ms"]
@@ -264,8 +335,17 @@ def run_e2e_bench(args: argparse.Namespace, sizes: list[Any]) -> dict[str, Any]:
         )
     )
     for key, fig in report["runs"].items():
-        if fig["viewer"]:
+        if fig["viewer"] != "off":
             print(f"{key}: {fig['previews_received']} preview frames received by the viewer")
+        cost = fig["viewer_cost"]
+        if cost is not None:
+            w, u = cost["watched"], cost["unwatched"]
+            lo, hi = cost["p99_diff_ci95_ms"]
+            print(
+                f"{key}: watched {w['n']} frames median {w['median_ms']:.2f} p99 {w['p99_ms']:.2f} ms; unwatched {u['n']} "
+                f"median {u['median_ms']:.2f} p99 {u['p99_ms']:.2f} ms; the viewer's cost: median "
+                f"{cost['median_diff_ms']:+.2f} ms, p99 {cost['p99_diff_ms']:+.2f} ms (95 % interval {lo:+.2f} .. {hi:+.2f})"
+            )
         gcs = fig["gc_collections"]
         print(
             f"{key}: garbage collections during the run gen0/1/2 = {gcs['gen0']}/{gcs['gen1']}/{gcs['gen2']}, "

@@ -3,8 +3,12 @@
 Threads (each with its own synchronous ZeroMQ context; none runs on the event loop)::
 
     pipeline thread ──offer(frame, result) only when wanted──▶ PreviewPublisher thread ──XPUB──▶ viewers
-      (wants_frame(): one bool read per frame)                 (draw + JPEG at most preview_rate_hz,
-                                                                only while a subscriber exists)
+      (wants_frame(): one bool read per frame)                 (at most preview_rate_hz, only while
+                                                                a subscriber exists)
+                                                                   │ pipe ▲ JPEG
+                                                                   ▼      │
+                                                               preview worker process (nice 19):
+                                                               draw + JPEG (preview_worker.py)
     health PUB ──▶ FlightRecorder thread ◀── preview XPUB     (health.jsonl + preview/*.jpg, bounded)
 
 The flight loop pays nothing for the preview while nobody watches: :meth:`PreviewPublisher.wants_frame`
@@ -12,8 +16,11 @@ is False, so the pipeline asks for no disparity image and hands nothing over. Wh
 the publisher raises the flag once per preview period; the pipeline then returns the disparity of
 that one frame (the CPU backend copies it, the GPU backend downloads it downsampled by
 ``gpu.disparity_preview_downsample``) and hands over references to the frame and its result. Drawing
-and encoding happen in the publisher's thread; a frame offered while it is busy replaces the waiting
-one (never a queue), and a send that would block is dropped (``dropped`` counts them).
+and encoding happen in a child process (:mod:`companion.service.preview_worker`: no GIL shared with
+the flight loop, the lowest CPU priority); the publisher's thread only writes the frame into its pipe
+and reads the JPEG back. A frame offered while it is busy replaces the waiting one (never a queue),
+and a send that would block is dropped (``dropped`` counts them). A worker that fails or hangs (2 s)
+is killed, reported in ``last_error``, and started again on a later preview.
 
 ZeroMQ's XPUB socket reports subscriptions: the publisher knows whether anyone listens without any
 request. A viewer that hangs or dies costs nothing: its queue is bounded (``SNDHWM``) and the send
@@ -33,6 +40,7 @@ from pathlib import Path
 from typing import Any
 
 from companion.errors import ConfigError
+from companion.service.preview_worker import PreviewWorker
 from companion.service.runtime import resolve_endpoint, restrict_socket
 
 log = logging.getLogger(__name__)
@@ -86,7 +94,9 @@ class PreviewPublisher:
         self.published = 0
         self.dropped = 0
         self.errors = 0
-        self.last_encode_ms: float | None = None
+        self.last_encode_ms: float | None = None  # the worker's drawing and encoding of the last preview
+        self.last_handover_ms: float | None = None  # the rest: through the pipe and back
+        self._worker = PreviewWorker()
 
     # ------------------------------------------------------------------ any thread
 
@@ -137,6 +147,7 @@ class PreviewPublisher:
             if self._thread.is_alive():
                 log.error("preview thread still busy after %.1f s", timeout_s)
             self._thread = None
+        self._worker.close()
         if self._sock is not None:
             self._sock.close(0)
             self._sock = None
@@ -170,7 +181,7 @@ class PreviewPublisher:
 
     def _run(self) -> None:
         # Below the pipeline and the control loop: when both cores are busy the scheduler runs them
-        # first (OpenCV's drawing, resizing and JPEG encoding run without the GIL). Linux only.
+        # first (this thread mostly waits on the worker's pipe, without the GIL). Linux only.
         try:
             os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 10)
         except (AttributeError, OSError):
@@ -206,19 +217,26 @@ class PreviewPublisher:
     def _publish(self, offer: _Offer, cfg: Any) -> None:
         import zmq
 
-        from companion.view.frame import encode_jpeg, near_far_m, pack
+        from companion.service.preview_worker import PreviewWorkerError
+        from companion.view.frame import near_far_m, pack
 
         t0 = time.perf_counter()
         try:
-            image = _render(offer, cfg.preview_width_px)
-            jpeg = encode_jpeg(image, cfg.preview_jpeg_quality)
-        except Exception as err:  # a bug in drawing must not stop the preview thread (nor anything else)
+            jpeg, encode_ms, height_px, width_px = self._worker.render(
+                _inputs(offer), cfg.preview_width_px, cfg.preview_jpeg_quality
+            )
+        except PreviewWorkerError as err:  # the worker is restarted later; the service flies on
             self.errors += 1
-            log.exception("preview: drawing frame %s failed", getattr(offer.frame, "seq", "?"))
-            self._report(f"preview: drawing failed: {type(err).__name__}: {err}")
+            log.error("preview: frame %s: %s", getattr(offer.frame, "seq", "?"), err)
+            self._report(f"preview: {err}")
             return
-        encode_ms = (time.perf_counter() - t0) * 1e3
+        except Exception as err:  # a bug here must not stop the preview thread (nor anything else)
+            self.errors += 1
+            log.exception("preview: frame %s failed", getattr(offer.frame, "seq", "?"))
+            self._report(f"preview: {type(err).__name__}: {err}")
+            return
         self.last_encode_ms = encode_ms
+        self.last_handover_ms = (time.perf_counter() - t0) * 1e3 - encode_ms
         result = offer.result
         near_m, far_m = near_far_m(offer.pipeline.config)
         header = {
@@ -227,8 +245,8 @@ class PreviewPublisher:
             "frame_seq": int(offer.frame.seq),
             "time_s": float(offer.frame.timestamp_s),
             "unix_time_s": time.time(),
-            "width_px": int(image.shape[1]),
-            "height_px": int(image.shape[0]),
+            "width_px": int(width_px),
+            "height_px": int(height_px),
             "encode_ms": encode_ms,
             "near_m": near_m,
             "far_m": far_m,
@@ -251,8 +269,9 @@ class PreviewPublisher:
             log.exception("preview: error callback failed")
 
 
-def _render(offer: _Offer, width_px: int) -> Any:
-    from companion.view.frame import PreviewInputs, near_far_m, render_preview
+def _inputs(offer: _Offer) -> Any:
+    """What the preview of ``offer`` is drawn from (references; the worker gets copies through its pipe)."""
+    from companion.view.frame import PreviewInputs, near_far_m
 
     pipeline = offer.pipeline
     cfg = pipeline.config
@@ -271,7 +290,7 @@ def _render(offer: _Offer, width_px: int) -> Any:
         far_m=far_m,
         max_disparity_px=float(cfg.stereo.num_disparities),
     )
-    return render_preview(inputs, width_px)
+    return inputs
 
 
 class FlightRecorder:
