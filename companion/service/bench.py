@@ -98,7 +98,7 @@ def measure_e2e(
     each latency is counted with the state of its window (:func:`viewer_cost`), so that both states see
     the same machine; ``"off"`` (or False): nobody watches.
     """
-    mode = {True: "on", False: "off"}.get(viewer, viewer) if isinstance(viewer, bool) else viewer
+    mode = ("on" if viewer else "off") if isinstance(viewer, bool) else viewer
     if mode not in ("off", "on", "alternate"):
         raise ValueError(f"viewer must be off, on or alternate, not {viewer!r}")
     from companion.bench import rendered_frames, stats_ms

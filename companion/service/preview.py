@@ -95,7 +95,6 @@ class PreviewPublisher:
         self.dropped = 0
         self.errors = 0
         self.last_encode_ms: float | None = None  # the worker's drawing and encoding of the last preview
-        self.last_handover_ms: float | None = None  # the rest: through the pipe and back
         self._worker = PreviewWorker()
 
     # ------------------------------------------------------------------ any thread
@@ -220,7 +219,6 @@ class PreviewPublisher:
         from companion.service.preview_worker import PreviewWorkerError
         from companion.view.frame import near_far_m, pack
 
-        t0 = time.perf_counter()
         try:
             jpeg, encode_ms, height_px, width_px = self._worker.render(
                 _inputs(offer), cfg.preview_width_px, cfg.preview_jpeg_quality
@@ -236,7 +234,6 @@ class PreviewPublisher:
             self._report(f"preview: {type(err).__name__}: {err}")
             return
         self.last_encode_ms = encode_ms
-        self.last_handover_ms = (time.perf_counter() - t0) * 1e3 - encode_ms
         result = offer.result
         near_m, far_m = near_far_m(offer.pipeline.config)
         header = {

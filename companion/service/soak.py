@@ -117,7 +117,7 @@ def run_soak(args: argparse.Namespace, sizes: list[Any]) -> dict[str, Any]:
         workdir = Path(tmp)
         _, images = rendered_frames(size, n=60)
         rec = workdir / "rec"
-        _write_recording(rec, images)
+        _write_recording(rec, images, SOAK_FPS_HZ)
         cfg = parse_config(
             {
                 "camera": {
