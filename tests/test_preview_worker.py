@@ -91,3 +91,17 @@ def test_a_worker_that_cannot_start_or_cannot_draw_says_why(inputs: PreviewInput
         assert worker.render(inputs, 160, 60)[0][:2] == b"\xff\xd8" and worker.pid == pid
     finally:
         worker.close()
+
+
+def test_ctrl_c_in_the_terminal_leaves_the_worker_to_the_service(inputs: PreviewInputs) -> None:
+    """SIGINT reaches the whole foreground process group; the service decides when its child ends."""
+    worker = PreviewWorker(timeout_s=30.0)
+    try:
+        worker.render(inputs, 160, 60)
+        pid = worker.pid
+        assert pid is not None
+        os.kill(pid, signal.SIGINT)
+        time.sleep(0.2)
+        assert worker.render(inputs, 160, 60)[0][:2] == b"\xff\xd8" and worker.pid == pid
+    finally:
+        worker.close()

@@ -19,6 +19,7 @@ import logging
 import os
 import pickle
 import select
+import signal
 import struct
 import subprocess
 import sys
@@ -268,6 +269,9 @@ def serve(stdin: Any, stdout: Any) -> None:
 def main() -> int:
     """``python -m companion.service.preview_worker``: the child. Lowest priority, one OpenCV thread."""
     logging.basicConfig(level=logging.WARNING, stream=sys.stderr, format="preview worker: %(levelname)s %(message)s")
+    # Ctrl+C in a terminal reaches the whole process group: the service decides, and the child ends
+    # when the service closes its input (no traceback of its own).
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
         os.nice(19)
     except OSError:
