@@ -80,6 +80,14 @@ def find_px4_build(path: str | os.PathLike[str] | None = None, environ: dict[str
     return build
 
 
+def log_tail(path: Path, lines: int = 15) -> str:
+    """The last ``lines`` lines of a process's log file, for an error message ("(no log)" if unreadable)."""
+    try:
+        return "\n".join(path.read_text(errors="replace").splitlines()[-lines:])
+    except OSError:
+        return "(no log)"
+
+
 class SitlProcess:
     """What both autopilots' SITL processes share: the process (started by a subclass's ``start`` in
     its own process group), its console log (``log_path``, a subclass's), and stopping it.
@@ -95,10 +103,7 @@ class SitlProcess:
         raise NotImplementedError
 
     def log_tail(self, lines: int = 15) -> str:
-        try:
-            return "\n".join(self.log_path.read_text(errors="replace").splitlines()[-lines:])
-        except OSError:
-            return "(no log)"
+        return log_tail(self.log_path, lines)
 
     @property
     def running(self) -> bool:

@@ -23,7 +23,7 @@ from typing import Any
 from companion.config import CompanionConfig
 from companion.config.document import render_config_toml
 from companion.service.aio import cancel_and_wait
-from companion.sitl.px4 import SitlError
+from companion.sitl.px4 import SitlError, log_tail
 
 log = logging.getLogger(__name__)
 
@@ -144,10 +144,7 @@ class ServiceProcess:
         return time.monotonic()
 
     def log_tail(self, lines: int = 15) -> str:
-        try:
-            return "\n".join(self.log_path.read_text(errors="replace").splitlines()[-lines:])
-        except OSError:
-            return "(no log)"
+        return log_tail(self.log_path, lines)
 
     @property
     def pid(self) -> int | None:
