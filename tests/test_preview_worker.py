@@ -12,27 +12,15 @@ import time
 from pathlib import Path
 
 import pytest
-from peers.fakes import avoid_scene_camera, service_config
+from peers.fakes import avoid_scene_preview_inputs, service_config
 
 from companion.service.preview_worker import PreviewWorker, PreviewWorkerError
-from companion.view.frame import PreviewInputs, encode_jpeg, near_far_m, render_preview
+from companion.view.frame import PreviewInputs, encode_jpeg, render_preview
 
 
 @pytest.fixture(scope="module")
 def inputs(tmp_path_factory: pytest.TempPathFactory) -> PreviewInputs:
-    from companion.backends import make_pipeline
-
-    cfg = service_config(tmp_path_factory.mktemp("cfg"))
-    camera = avoid_scene_camera()
-    camera.open()
-    frame = camera.read()
-    pipeline = make_pipeline(cfg, 672, 376)
-    result = pipeline.process(frame.image, 0.0, want_disparity=True)
-    near, far = near_far_m(cfg)
-    return PreviewInputs(
-        frame.image, 1.5, 7, result.refined.depth_m, result.decision, result.disparity, pipeline.estimator.layout,
-        pipeline.geometry.focal_baseline_px_m, near, far, 64.0,
-    )  # fmt: skip
+    return avoid_scene_preview_inputs(service_config(tmp_path_factory.mktemp("cfg")))
 
 
 def test_the_worker_draws_the_same_jpeg_as_the_service_would(inputs: PreviewInputs) -> None:

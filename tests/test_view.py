@@ -17,12 +17,20 @@ import numpy as np
 import pytest
 import zmq
 from peers.browser import ViewProcess
-from peers.fakes import Client, FakeLink, ServiceRunner, avoid_scene_camera, service_config, wait_until
+from peers.fakes import (
+    Client,
+    FakeLink,
+    ServiceRunner,
+    avoid_scene_camera,
+    avoid_scene_preview_inputs,
+    service_config,
+    wait_until,
+)
 
 from companion.config import parse_config
 from companion.errors import ConfigError, ProtocolError
 from companion.service.daemon import Service
-from companion.view.frame import PREVIEW_TOPIC, PreviewInputs, encode_jpeg, pack, render_preview, unpack
+from companion.view.frame import PREVIEW_TOPIC, encode_jpeg, pack, render_preview, unpack
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -42,21 +50,7 @@ def test_view_config_is_checked() -> None:
 
 
 def test_preview_image_and_message(tmp_path: Path) -> None:
-    from companion.backends import make_pipeline
-    from companion.view.frame import near_far_m
-
-    cfg = service_config(tmp_path)
-    camera = avoid_scene_camera()
-    camera.open()
-    frame = camera.read()
-    pipeline = make_pipeline(cfg, 672, 376)
-    result = pipeline.process(frame.image, 0.0, want_disparity=True)
-    near, far = near_far_m(cfg)
-    inputs = PreviewInputs(
-        frame.image, 1.5, 7, result.refined.depth_m, result.decision, result.disparity, pipeline.estimator.layout,
-        pipeline.geometry.focal_baseline_px_m, near, far, 64.0,
-    )
-    image = render_preview(inputs, 320)
+    image = render_preview(avoid_scene_preview_inputs(service_config(tmp_path)), 320)
     assert image.shape == (179, 320, 3) and image.dtype == np.uint8
     # The inset (lower right quarter) is the disparity's colours, not the camera's grey.
     inset = image[-40:, -70:].astype(int)

@@ -277,6 +277,24 @@ def expected_result(cfg: CompanionConfig, camera):
     return result, setpoint_for(result.decision, 0.0, cfg.command)
 
 
+def avoid_scene_preview_inputs(cfg: CompanionConfig):
+    """What the service's preview of :func:`avoid_scene_camera`'s frame is drawn from (with its
+    disparity): a :class:`companion.view.frame.PreviewInputs` at time 1.5 s, frame 7."""
+    from companion.backends import make_pipeline
+    from companion.view.frame import PreviewInputs, near_far_m
+
+    camera = avoid_scene_camera()
+    camera.open()
+    frame = camera.read()
+    pipeline = make_pipeline(cfg, 672, 376)
+    result = pipeline.process(frame.image, 0.0, want_disparity=True)
+    near, far = near_far_m(cfg)
+    return PreviewInputs(
+        frame.image, 1.5, 7, result.refined.depth_m, result.decision, result.disparity, pipeline.estimator.layout,
+        pipeline.geometry.focal_baseline_px_m, near, far, 64.0,
+    )  # fmt: skip
+
+
 def wait_until(predicate, timeout_s: float, poll_s: float = 0.01) -> bool:
     """Poll ``predicate()`` until it is true or ``timeout_s`` passes; returns the last value."""
     deadline = time.monotonic() + timeout_s
