@@ -36,6 +36,17 @@ __device__ __forceinline__ int od_wire_cm(float v, float max_m, int min_cm, int 
     return x < min_cm ? min_cm : (x > max_cm ? max_cm : x);
 }
 
+// The index (wire value - min_cm) of pixel (r, c)'s sample q, or -1 when it is not an in-band point
+// (invalid, zero, or below the row's height band): what both passes histogram.
+__device__ __forceinline__ int od_index(short q, float inv_scale, float thr, const float* __restrict__ col_fbk, int c,
+                                        float max_m, int min_cm, int max_cm)
+{
+    if (q <= 0) return -1;
+    const float d = (float)q * inv_scale;
+    if (!(d >= thr)) return -1;
+    return od_wire_cm(col_fbk[c] / d, max_m, min_cm, max_cm) - min_cm;
+}
+
 // Over the block: which of hist[0, nb) holds rank k (1-based) of the counts, and the rank within it.
 // Every thread sums a contiguous chunk; a warp-shuffle scan of the chunk sums finds the chunk.
 __device__ void od_find_rank(const od_u32* hist, int nb, od_u32 k, od_u32* wsum, od_u32* s_bin, od_u32* s_k)
@@ -105,11 +116,10 @@ extern "C" __global__ void __launch_bounds__(OD_THREADS) obstacle_bins(
             const short q = row[c];
             if (q < 0) continue;
             ++nv;
-            const float d = (float)q * inv_scale;
-            if (q > 0 && d >= thr) {
+            const int i = od_index(q, inv_scale, thr, col_fbk, c, max_m, min_cm, max_cm);
+            if (i >= 0) {
                 ++nbd;
-                const int cm = od_wire_cm(col_fbk[c] / d, max_m, min_cm, max_cm);
-                atomicAdd(&hist[(cm - min_cm) >> shift], 1u);
+                atomicAdd(&hist[i >> shift], 1u);
             }
         }
     }
@@ -141,12 +151,8 @@ extern "C" __global__ void __launch_bounds__(OD_THREADS) obstacle_bins(
             const float thr = row_thr[r];
             const short* row = disp + (size_t)r * width;
             for (int c = c0 + lane; c < c1; c += 32) {
-                const short q = row[c];
-                if (q <= 0) continue;
-                const float d = (float)q * inv_scale;
-                if (!(d >= thr)) continue;
-                const int i = od_wire_cm(col_fbk[c] / d, max_m, min_cm, max_cm) - min_cm;
-                if ((i >> shift) == coarse) atomicAdd(&hist[i & (nb2 - 1)], 1u);
+                const int i = od_index(row[c], inv_scale, thr, col_fbk, c, max_m, min_cm, max_cm);
+                if (i >= 0 && (i >> shift) == coarse) atomicAdd(&hist[i & (nb2 - 1)], 1u);
             }
         }
         __syncthreads();
