@@ -119,15 +119,14 @@ def _sgm_kernel_times(est: Any, cp: Any, n: int) -> dict[str, dict[str, float]]:
     w, h = est.width_px, est.height_px
     p1, p2, uniq, lr_max, median = est._sgm_args
     fb, pct, min_valid, max_depth = est._region_args
-    cen_l, cen_r = est._census[0], est._census[1]
     tw, th = SGM_CENSUS_TILE
     with est._device:
         for i in range(n + 10):
             events[0].record(s)
             k["sgm_census"]((-(-w // tw), -(-h // th), 2), (tw, th),
-                            (est._rect_l, est._rect_r, cen_l, cen_r, est._right_keys), stream=s)
+                            (est._rect_l, est._rect_r, est._census, est._right_keys), stream=s)
             events[1].record(s)
-            k["sgm_paths"]((-(-sp.path_tasks // 4),), (128,), (cen_l, cen_r, est._volumes, p1, p2), stream=s)
+            k["sgm_paths"]((-(-sp.path_tasks // 4),), (128,), (est._census, est._volumes, p1, p2), stream=s)
             events[2].record(s)
             k["sgm_wta"]((-(-sp.wta_tasks // 4),), (128,), (est._volumes, est._winner, est._right_keys, uniq),
                          stream=s)

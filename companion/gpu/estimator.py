@@ -285,7 +285,8 @@ class CupyRegionEstimator:
             self._hist = cp.zeros(N_REGIONS * p.num_disparities, dtype=cp.uint32)
         else:
             sp = self.sgm_plan
-            self._census = cp.zeros((2, h, w), dtype=cp.uint64)
+            # zero padding left of each image (plan.census_pad_px), written once here
+            self._census = cp.zeros((2, h, sp.census_pad_px + w), dtype=cp.uint64)
             self._volumes = cp.zeros((sp.paths, h, w, sp.dpad), dtype=cp.uint8)
             self._winner = cp.zeros((h, w), dtype=cp.int32)
             self._right_keys = cp.zeros((h, w), dtype=cp.uint32)
@@ -720,12 +721,11 @@ class CupyRegionEstimator:
         k = self._k_sgm
         p1, p2, uniq, lr_max, median = self._sgm_args
         fb, pct, min_valid, max_depth = self._region_args
-        cen_l, cen_r = self._census[0], self._census[1]
         tw, th = SGM_CENSUS_TILE
         k["sgm_census"]((-(-w // tw), -(-h // th), 2), (tw, th),
-                        (self._rect_l, self._rect_r, cen_l, cen_r, self._right_keys), stream=s)
+                        (self._rect_l, self._rect_r, self._census, self._right_keys), stream=s)
         warps = SGM_PATH_THREADS // 32
-        k["sgm_paths"]((-(-sp.path_tasks // warps),), (SGM_PATH_THREADS,), (cen_l, cen_r, self._volumes, p1, p2),
+        k["sgm_paths"]((-(-sp.path_tasks // warps),), (SGM_PATH_THREADS,), (self._census, self._volumes, p1, p2),
                        stream=s)
         k["sgm_wta"]((-(-sp.wta_tasks // warps),), (SGM_PATH_THREADS,),
                      (self._volumes, self._winner, self._right_keys, uniq), stream=s)

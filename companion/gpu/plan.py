@@ -321,6 +321,12 @@ class SgmPlan:
         return 32 // self.lanes_per_line
 
     @property
+    def census_pad_px(self) -> int:
+        """Zero columns left of each census image (``CEN_PAD`` = ``DPAD``): ``sgm_paths`` reads the right
+        census of ``x - d`` for every ``d < DPAD`` without a bounds test."""
+        return self.dpad
+
+    @property
     def volume_bytes(self) -> int:
         """Bytes of one path's cost volume (``H·W·DPAD`` uint8)."""
         return self.height_px * self.width_px * self.dpad
@@ -349,7 +355,7 @@ class SgmPlan:
         hw = self.height_px * self.width_px
         return {
             "path_volumes": self.paths * self.volume_bytes,
-            "census_left_right": 2 * 8 * hw,
+            "census_left_right": 2 * 8 * self.height_px * (self.census_pad_px + self.width_px),
             "left_winner_int32": 4 * hw,
             "right_keys_uint32": 4 * hw,
             "disparity_int16": 2 * hw,

@@ -215,8 +215,8 @@ class HostSgmKernels:
         rl = np.zeros((h, self.pitch), np.uint8)
         rr = np.zeros((h, self.pitch), np.uint8)
         rl[:, :w], rr[:, :w] = left, right
-        cl = np.zeros((h, w), np.uint64)
-        cr = np.zeros((h, w), np.uint64)
+        pad = p.census_pad_px
+        cen = np.zeros((2, h, pad + w), np.uint64)  # the padding stays zero, as on the device
         vols = np.full((p.paths, h, w, p.dpad), 0xEE, np.uint8)
         dl = np.full((h, w), -7, np.int32)
         drkey = np.full((h, w), 7, np.uint32)  # sgm_census resets it
@@ -225,10 +225,9 @@ class HostSgmKernels:
         counter = np.zeros(1, np.uint32)
         result = np.full(18, -7.0)
         tw, th = SGM_CENSUS_TILE
-        self._lib.run_census(self._ptr(rl), self._ptr(rr), self._ptr(cl), self._ptr(cr), self._ptr(drkey),
-                             -(-w // tw), -(-h // th))
+        self._lib.run_census(self._ptr(rl), self._ptr(rr), self._ptr(cen), self._ptr(drkey), -(-w // tw), -(-h // th))
         warps = SGM_PATH_THREADS // 32
-        self._lib.run_paths(self._ptr(cl), self._ptr(cr), self._ptr(vols), u32(p1), u32(p2), -(-p.path_tasks // warps))
+        self._lib.run_paths(self._ptr(cen), self._ptr(vols), u32(p1), u32(p2), -(-p.path_tasks // warps))
         self._lib.run_wta(self._ptr(vols), self._ptr(dl), self._ptr(drkey), u32(uniqueness_ratio_pct),
                           -(-p.wta_tasks // warps))
         self._lib.run_post(self._ptr(dl), self._ptr(drkey), self._ptr(disp), self._ptr(hist), self._ptr(counter),
@@ -236,7 +235,9 @@ class HostSgmKernels:
                            d(max_depth), p.post_blocks)
         if counter[0] != 0 or hist.any():
             raise AssertionError("the last block did not reset the histogram state")
-        return {"census_left": cl, "census_right": cr, "volumes": vols, "winner": dl, "right_keys": drkey,
+        if cen[:, :, :pad].any():
+            raise AssertionError("sgm_census wrote into the census padding")
+        return {"census_left": cen[0, :, pad:], "census_right": cen[1, :, pad:], "volumes": vols, "winner": dl, "right_keys": drkey,
                 "disparity": disp, "regions": result}
 
 

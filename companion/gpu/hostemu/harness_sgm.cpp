@@ -2,14 +2,14 @@
 // (development tool and CI check, see __init__.py).
 #include "cuda_emu.h"
 #include KERNEL_FILE
-struct CensusArgs { const u8 *rl, *rr; u64 *cl, *cr; u32* drkey; };
-static void census_thunk(void* p) { CensusArgs* a = (CensusArgs*)p; sgm_census(a->rl, a->rr, a->cl, a->cr, a->drkey); }
-extern "C" void run_census(const u8* rl, const u8* rr, u64* cl, u64* cr, u32* drkey, int gx, int gy) {
-  CensusArgs a{rl, rr, cl, cr, drkey}; emu_launch({(unsigned)gx, (unsigned)gy, 2}, {CT_W, CT_H, 1}, census_thunk, &a); }
-struct PathArgs { const u64 *cl, *cr; u8* vols; u32 p1, p2; };
-static void path_thunk(void* p) { PathArgs* a = (PathArgs*)p; sgm_paths(a->cl, a->cr, a->vols, a->p1, a->p2); }
-extern "C" void run_paths(const u64* cl, const u64* cr, u8* vols, u32 p1, u32 p2, int gx) {
-  PathArgs a{cl, cr, vols, p1, p2}; emu_launch({(unsigned)gx, 1, 1}, {128, 1, 1}, path_thunk, &a); }
+struct CensusArgs { const u8 *rl, *rr; u64* cen; u32* drkey; };
+static void census_thunk(void* p) { CensusArgs* a = (CensusArgs*)p; sgm_census(a->rl, a->rr, a->cen, a->drkey); }
+extern "C" void run_census(const u8* rl, const u8* rr, u64* cen, u32* drkey, int gx, int gy) {
+  CensusArgs a{rl, rr, cen, drkey}; emu_launch({(unsigned)gx, (unsigned)gy, 2}, {CT_W, CT_H, 1}, census_thunk, &a); }
+struct PathArgs { const u64* cen; u8* vols; u32 p1, p2; };
+static void path_thunk(void* p) { PathArgs* a = (PathArgs*)p; sgm_paths(a->cen, a->vols, a->p1, a->p2); }
+extern "C" void run_paths(const u64* cen, u8* vols, u32 p1, u32 p2, int gx) {
+  PathArgs a{cen, vols, p1, p2}; emu_launch({(unsigned)gx, 1, 1}, {128, 1, 1}, path_thunk, &a); }
 struct WtaArgs { const u8* vols; int* dl; u32* drkey; u32 uniq; };
 static void wta_thunk(void* p) { WtaArgs* a = (WtaArgs*)p; sgm_wta(a->vols, a->dl, a->drkey, a->uniq); }
 extern "C" void run_wta(const u8* vols, int* dl, u32* drkey, u32 uniq, int gx) {

@@ -40,6 +40,12 @@ typedef unsigned long long u64;
 #define CEN_HW 4
 #define CEN_HH 3
 #define PAIR_255 0x00ff00ffu
+// Census images: [2][IMG_H][CEN_STR] u64 (left, then right), image column x at CEN_PAD + x. The CEN_PAD
+// columns left of the image (zeroed once by the host, never written) let sgm_paths read the right census
+// of x - d for every d < DPAD without a bounds test: those disparities are excluded and their costs unused.
+#define CEN_PAD DPAD
+#define CEN_STR (IMG_W + CEN_PAD)
+#define CEN_IMG ((size_t)IMG_H * CEN_STR)
 
 // ------------------------------------------------------------------------------------------------
 // helpers
@@ -94,8 +100,7 @@ __device__ __forceinline__ u32 line_min(u32 v) {
 #define CT_H 8
 
 extern "C" __global__ void __launch_bounds__(CT_W * CT_H) sgm_census(const u8* __restrict__ rl, const u8* __restrict__ rr,
-                                                                     u64* __restrict__ cl, u64* __restrict__ cr,
-                                                                     u32* __restrict__ drkey) {
+                                                                     u64* __restrict__ cen, u32* __restrict__ drkey) {
   __shared__ short tile[CT_H + 2 * CEN_HH][CT_W + 2 * CEN_HW];  // -1 outside the image
   const u8* img = blockIdx.z ? rr : rl;
   const int bx = (int)blockIdx.x * CT_W - CEN_HW, by = (int)blockIdx.y * CT_H - CEN_HH;
@@ -121,7 +126,7 @@ extern "C" __global__ void __launch_bounds__(CT_W * CT_H) sgm_census(const u8* _
       ++k;
     }
   }
-  (blockIdx.z ? cr : cl)[(size_t)y * IMG_W + x] = bits;
+  cen[blockIdx.z * CEN_IMG + (size_t)y * CEN_STR + CEN_PAD + x] = bits;
   if (blockIdx.z == 0) drkey[(size_t)y * IMG_W + x] = KEY_INF;
 }
 
@@ -130,7 +135,7 @@ extern "C" __global__ void __launch_bounds__(CT_W * CT_H) sgm_census(const u8* _
 //
 // L: this lane's path costs at the previous pixel of the line (A/B words per group), updated in place to
 // this pixel's. c: this pixel's census costs (0 where excluded), xm: 0x00ff in each excluded 16-bit lane.
-// start: this pixel starts the path (L(p) = C(p)). p1x2 = P1 in both 16-bit lanes.
+// p1x2 = P1 in both 16-bit lanes. A path starts from L = 0 (then t = 0 and L(p) = C(p)).
 //
 // With m the line's minimum previous cost and t = min(L(d), L(d-1) + P1, L(d+1) + P1, m + P2), every
 // term is >= m, so t - m needs no borrow per 16-bit lane and (t - m) + C <= P2 + 62 <= 255 no carry;
@@ -142,18 +147,14 @@ struct PathState {
 };
 
 __device__ __forceinline__ void path_step(PathState& L, const u32 (&cA)[WPL], const u32 (&cB)[WPL],
-                                          const u32 (&xA)[WPL], const u32 (&xB)[WPL], bool start, u32 p1x2, u32 p2) {
+                                          const u32 (&xA)[WPL], const u32 (&xB)[WPL], u32 p1x2, u32 p2) {
   const int li = (int)(threadIdx.x & 31) % LPL;
-  if (start) {
-#pragma unroll
-    for (int w = 0; w < WPL; ++w) L.A[w] = L.B[w] = 0u;
-  }
   u32 mw = min2x16(L.A[0], L.B[0]);
 #pragma unroll
   for (int w = 1; w < WPL; ++w) mw = min3x16(mw, L.A[w], L.B[w]);
-  const u32 m = line_min(min(mw & 0xffffu, mw >> 16));
-  const u32 mp2 = (m + p2) * 0x00010001u;
-  const u32 mm = m * 0x00010001u;
+  // the lane's minimum in both halves (m * 0x10001), then the line's: min commutes with m -> m * 0x10001
+  const u32 mm = line_min(min2x16(mw, __byte_perm(mw, 0u, 0x1032)));
+  const u32 mp2 = mm + p2 * 0x00010001u;
   // neighbours across lanes: B of the group below (d - 1 of d0), A of the group above (d + 1 of d3)
   u32 lowB[WPL], highA[WPL];
 #pragma unroll
@@ -190,8 +191,9 @@ __device__ __forceinline__ void pixel_costs(u64 cL, const u64 (&win)[WPL][4], in
   for (int w = 0; w < WPL; ++w) {
     const int d0 = 4 * (li + LPL * w);
     if (x >= d0 + 3 && d0 + 3 < NDISP) {  // the usual case: all four included
-      cA[w] = popc64(cL ^ win[w][0]) | (popc64(cL ^ win[w][1]) << 16);
-      cB[w] = popc64(cL ^ win[w][2]) | (popc64(cL ^ win[w][3]) << 16);
+      // + rather than |: the same (each cost < 2^16), and one IMAD packs it
+      cA[w] = popc64(cL ^ win[w][0]) + (popc64(cL ^ win[w][1]) << 16);
+      cB[w] = popc64(cL ^ win[w][2]) + (popc64(cL ^ win[w][3]) << 16);
       xA[w] = xB[w] = 0u;
     } else {
       u32 c[4], ex[4];
@@ -210,97 +212,122 @@ __device__ __forceinline__ void pixel_costs(u64 cL, const u64 (&win)[WPL][4], in
   }
 }
 
-__device__ __forceinline__ u64 census_at(const u64* __restrict__ cen, int y, int x) {
-  return x >= 0 ? __ldg(cen + (size_t)y * IMG_W + x) : 0ull;
-}
-
-// What one step of a line needs from memory: the left census of its pixel and, per group, the right
-// census values it does not hold yet (horizontal walks slide a window and need one new value per group).
+// One step's loads, issued two steps ahead of the recurrence: the left census of the step's pixel and, per
+// group, the right census values it does not hold yet (a horizontal walk slides a window of four and
+// needs one new value per group; the other walks need all four).
 template <int DX, int DY>
 struct StepLoads {
   u64 cl;
   u64 r[WPL][DY == 0 ? 1 : 4];
 };
 
+// p: the left census of the step's pixel (in the padded layout); the right census of x - d is p[CEN_IMG - d].
 template <int DX, int DY>
-__device__ __forceinline__ void load_step(const u64* __restrict__ cl, const u64* __restrict__ cr, int x0, int y0,
-                                          int len, int s, StepLoads<DX, DY>& ld) {
-  const int li = (int)(threadIdx.x & 31) % LPL;
-  const bool act = s < len;
-  const int x = act ? x0 + DX * s : 0;
-  const int y = act ? y0 + DY * s : 0;
-  ld.cl = __ldg(cl + (size_t)y * IMG_W + x);
+__device__ __forceinline__ void load_step(const u64* __restrict__ p, int d0, StepLoads<DX, DY>& ld) {
+  ld.cl = __ldg(p);
+  const u64* q = p + CEN_IMG - d0;
 #pragma unroll
   for (int w = 0; w < WPL; ++w) {
-    const int d0 = 4 * (li + LPL * w);
     if (DY == 0) {
-      ld.r[w][0] = census_at(cr, y, DX > 0 ? x - d0 : x - d0 - 3);
+      ld.r[w][0] = __ldg(q - 4 * LPL * w - (DX > 0 ? 0 : 3));
     } else {
 #pragma unroll
-      for (int j = 0; j < (DY == 0 ? 1 : 4); ++j) ld.r[w][j] = census_at(cr, y, x - d0 - j);
+      for (int j = 0; j < (DY == 0 ? 1 : 4); ++j) ld.r[w][j] = __ldg(q - 4 * LPL * w - j);
     }
   }
 }
 
 // Walk one line of direction (DX, DY) from (x0, y0) for `len` pixels (`steps` >= len iterations so that all
 // lines of the warp keep stepping together; inactive steps store nothing), storing the path costs.
-// The census loads run two steps ahead and the costs one step ahead of the recurrence, so that the
-// recurrence (the only loop-carried chain) does not wait for memory.
+//
+// Why it is written this way (sgm_paths is issue-bound: every instruction per step counts): the census
+// pointer advances by a constant per step (clamped at the line's last pixel, so that the loads of inactive
+// steps stay inside the image) and the loads use constant offsets from it, with no bounds tests (the
+// padding); the loop is unrolled by UNR so that the two load buffers alternate and, on horizontal walks,
+// the window of four right census values rotates by name instead of by moves. The census loads of step t
+// are issued at step t - 2 and its costs computed at step t - 1, so the recurrence (the only loop-carried
+// chain) does not wait for memory.
 template <int DX, int DY>
-__device__ void walk_line(const u64* __restrict__ cl, const u64* __restrict__ cr, u8* __restrict__ vol, int x0,
-                          int y0, int len, int steps, u32 p1x2, u32 p2) {
+__device__ void walk_line(const u64* __restrict__ cen, u8* __restrict__ vol, int x0, int y0, int len, int steps,
+                          u32 p1x2, u32 p2) {
+  constexpr int UNR = DY == 0 ? 4 : 2;
+  constexpr long CSTEP = (long)DY * CEN_STR + DX;           // census elements per step
+  constexpr long VSTEP = ((long)DY * IMG_W + DX) * DPAD;    // volume bytes per step
   const int li = (int)(threadIdx.x & 31) % LPL;
+  const int d0 = 4 * li;
+  const bool any = len > 0;
+  const int xs = any ? x0 : 0, ys = any ? y0 : 0;
+  const int last = any ? len - 1 : 0;
+  const u64* p = cen + (size_t)ys * CEN_STR + CEN_PAD + xs;  // the census of the next step to load
+  u32* dst = (u32*)(vol + ((size_t)ys * IMG_W + xs) * DPAD) + li;
   PathState L;
+#pragma unroll
+  for (int w = 0; w < WPL; ++w) L.A[w] = L.B[w] = 0u;
+  // win[w][k]: the right census values of the window (horizontal walks: a ring whose slot of value
+  // x - d0 - j at step t is (t - j) & 3 going right, (t + j) & 3 going left; other walks: slot j).
   u64 win[WPL][4];
   {
-    // step 0: the whole window
-    const int x = len > 0 ? x0 : 0, y = len > 0 ? y0 : 0;
+    const u64* q = p + CEN_IMG - d0;
 #pragma unroll
     for (int w = 0; w < WPL; ++w) {
-      L.A[w] = L.B[w] = 0u;
-      const int d0 = 4 * (li + LPL * w);
 #pragma unroll
-      for (int j = 0; j < 4; ++j) win[w][j] = census_at(cr, y, x - d0 - j);
+      for (int j = 0; j < 4; ++j) win[w][DY == 0 ? (j & 3) * (DX > 0 ? -1 : 1) & 3 : j] = __ldg(q - 4 * LPL * w - j);
     }
   }
   u32 cA[WPL], cB[WPL], xA[WPL], xB[WPL];
-  pixel_costs(__ldg(cl + (size_t)(len > 0 ? y0 : 0) * IMG_W + (len > 0 ? x0 : 0)), win, len > 0 ? x0 : 0, cA, cB, xA,
-              xB);
-  StepLoads<DX, DY> next;
-  load_step<DX, DY>(cl, cr, x0, y0, len, 1, next);
-  for (int s = 0; s < steps; ++s) {
-    StepLoads<DX, DY> after;
-    load_step<DX, DY>(cl, cr, x0, y0, len, s + 2, after);
-    path_step(L, cA, cB, xA, xB, s == 0, p1x2, p2);
-    if (s < len) {
-      const int x = x0 + DX * s, y = y0 + DY * s;
-      u32* dst = (u32*)(vol + ((size_t)y * IMG_W + x) * DPAD);
+  {
+    u64 cur[WPL][4];
 #pragma unroll
-      for (int w = 0; w < WPL; ++w) dst[li + LPL * w] = __byte_perm(L.A[w], L.B[w], 0x6420);
-    }
-    // the costs of step s + 1
+    for (int w = 0; w < WPL; ++w)
 #pragma unroll
-    for (int w = 0; w < WPL; ++w) {
-      if (DY == 0) {
-        if (DX > 0) {
-          win[w][3] = win[w][2];
-          win[w][2] = win[w][1];
-          win[w][1] = win[w][0];
-          win[w][0] = next.r[w][0];
-        } else {
-          win[w][0] = win[w][1];
-          win[w][1] = win[w][2];
-          win[w][2] = win[w][3];
-          win[w][3] = next.r[w][0];
-        }
-      } else {
+      for (int j = 0; j < 4; ++j) cur[w][j] = win[w][DY == 0 ? (j & 3) * (DX > 0 ? -1 : 1) & 3 : j];
+    pixel_costs(__ldg(p), cur, xs, cA, cB, xA, xB);
+  }
+  int t_load = 1;  // the step whose loads are issued next
+  auto advance = [&]() {
+    if (t_load <= last) p += CSTEP;
+    ++t_load;
+  };
+  advance();
+  StepLoads<DX, DY> buf[2];
+  load_step<DX, DY>(p, d0, buf[1]);  // step 1
+  advance();
+  const int total = (steps + UNR - 1) / UNR * UNR;
+  for (int s0 = 0; s0 < total; s0 += UNR) {
 #pragma unroll
-        for (int j = 0; j < 4; ++j) win[w][j] = next.r[w][DY == 0 ? 0 : j];
+    for (int q = 0; q < UNR; ++q) {
+      const int s = s0 + q;
+      load_step<DX, DY>(p, d0, buf[q & 1]);  // step s + 2
+      advance();
+      path_step(L, cA, cB, xA, xB, p1x2, p2);
+      if (s < len) {
+#pragma unroll
+        for (int w = 0; w < WPL; ++w) dst[LPL * w] = __byte_perm(L.A[w], L.B[w], 0x6420);
       }
+      dst = (u32*)((u8*)dst + VSTEP);
+      // the costs of step s + 1 (its loads are in buf[(q + 1) & 1])
+      const StepLoads<DX, DY>& nx = buf[(q + 1) & 1];
+      u64 cur[WPL][4];
+#pragma unroll
+      for (int w = 0; w < WPL; ++w) {
+        if (DY == 0) {
+          const int t = q + 1;  // step s + 1 modulo UNR (= 4)
+          if (DX > 0) {
+            win[w][t & 3] = nx.r[w][0];
+#pragma unroll
+            for (int j = 0; j < 4; ++j) cur[w][j] = win[w][(t - j) & 3];
+          } else {
+            win[w][(t + 3) & 3] = nx.r[w][0];
+#pragma unroll
+            for (int j = 0; j < 4; ++j) cur[w][j] = win[w][(t + j) & 3];
+          }
+        } else {
+#pragma unroll
+          for (int j = 0; j < 4; ++j) cur[w][j] = nx.r[w][DY == 0 ? 0 : j];
+        }
+      }
+      pixel_costs(nx.cl, cur, x0 + DX * (s + 1), cA, cB, xA, xB);
     }
-    const int xn = s + 1 < len ? x0 + DX * (s + 1) : 0;
-    pixel_costs(next.cl, win, xn, cA, cB, xA, xB);
-    next = after;
   }
 }
 
@@ -331,12 +358,12 @@ __device__ __forceinline__ int warp_max(int v) {
 #define VOL_BYTES ((size_t)IMG_H * IMG_W * DPAD)
 
 template <int DX, int DY>
-__device__ __forceinline__ void diagonal_task(const u64* __restrict__ cl, const u64* __restrict__ cr, u8* vol,
+__device__ __forceinline__ void diagonal_task(const u64* __restrict__ cen, u8* vol,
                                               int task, u32 p1x2, u32 p2) {
   const int line = task * LPW + (int)(threadIdx.x & 31) / LPL;
   int x0 = 0, y0 = 0, len = 0;
   if (line < IMG_W + IMG_H - 1) diagonal_line<DX, DY>(line, x0, y0, len);
-  walk_line<DX, DY>(cl, cr, vol, x0, y0, len, warp_max(len), p1x2, p2);
+  walk_line<DX, DY>(cen, vol, x0, y0, len, warp_max(len), p1x2, p2);
 }
 
 // 3. Every path, one volume each, in one launch: warp task -> (direction, lines). Volume order is the
@@ -344,7 +371,7 @@ __device__ __forceinline__ void diagonal_task(const u64* __restrict__ cl, const 
 // the diagonals (1,1), (-1,1), (1,-1), (-1,-1). The longest walks (rows) are handed out first. Block: 128
 // threads.
 
-extern "C" __global__ void __launch_bounds__(128) sgm_paths(const u64* __restrict__ cl, const u64* __restrict__ cr,
+extern "C" __global__ void __launch_bounds__(128) sgm_paths(const u64* __restrict__ cen,
                                                             u8* __restrict__ vols, u32 p1, u32 p2) {
   int task = (int)(blockIdx.x * (blockDim.x / 32) + threadIdx.x / 32);
   const int sub = (int)(threadIdx.x & 31) / LPL;
@@ -353,8 +380,8 @@ extern "C" __global__ void __launch_bounds__(128) sgm_paths(const u64* __restric
     const bool rtl = task >= TASKS_H;
     const int row = (rtl ? task - TASKS_H : task) * LPW + sub;
     const int len = row < IMG_H ? IMG_W : 0;
-    if (rtl) walk_line<-1, 0>(cl, cr, vols + VOL_BYTES, IMG_W - 1, row, len, IMG_W, p1x2, p2);
-    else walk_line<1, 0>(cl, cr, vols, 0, row, len, IMG_W, p1x2, p2);
+    if (rtl) walk_line<-1, 0>(cen, vols + VOL_BYTES, IMG_W - 1, row, len, IMG_W, p1x2, p2);
+    else walk_line<1, 0>(cen, vols, 0, row, len, IMG_W, p1x2, p2);
     return;
   }
   task -= 2 * TASKS_H;
@@ -362,19 +389,19 @@ extern "C" __global__ void __launch_bounds__(128) sgm_paths(const u64* __restric
     const bool up = task >= TASKS_V;
     const int col = (up ? task - TASKS_V : task) * LPW + sub;
     const int len = col < IMG_W ? IMG_H : 0;
-    if (up) walk_line<0, -1>(cl, cr, vols + 3 * VOL_BYTES, col, IMG_H - 1, len, IMG_H, p1x2, p2);
-    else walk_line<0, 1>(cl, cr, vols + 2 * VOL_BYTES, col, 0, len, IMG_H, p1x2, p2);
+    if (up) walk_line<0, -1>(cen, vols + 3 * VOL_BYTES, col, IMG_H - 1, len, IMG_H, p1x2, p2);
+    else walk_line<0, 1>(cen, vols + 2 * VOL_BYTES, col, 0, len, IMG_H, p1x2, p2);
     return;
   }
 #if NPATHS == 8
   task -= 2 * TASKS_V;
-  if (task < TASKS_D) { diagonal_task<1, 1>(cl, cr, vols + 4 * VOL_BYTES, task, p1x2, p2); return; }
+  if (task < TASKS_D) { diagonal_task<1, 1>(cen, vols + 4 * VOL_BYTES, task, p1x2, p2); return; }
   task -= TASKS_D;
-  if (task < TASKS_D) { diagonal_task<-1, 1>(cl, cr, vols + 5 * VOL_BYTES, task, p1x2, p2); return; }
+  if (task < TASKS_D) { diagonal_task<-1, 1>(cen, vols + 5 * VOL_BYTES, task, p1x2, p2); return; }
   task -= TASKS_D;
-  if (task < TASKS_D) { diagonal_task<1, -1>(cl, cr, vols + 6 * VOL_BYTES, task, p1x2, p2); return; }
+  if (task < TASKS_D) { diagonal_task<1, -1>(cen, vols + 6 * VOL_BYTES, task, p1x2, p2); return; }
   task -= TASKS_D;
-  if (task < TASKS_D) { diagonal_task<-1, -1>(cl, cr, vols + 7 * VOL_BYTES, task, p1x2, p2); return; }
+  if (task < TASKS_D) { diagonal_task<-1, -1>(cen, vols + 7 * VOL_BYTES, task, p1x2, p2); return; }
 #endif
 }
 
@@ -406,11 +433,6 @@ __device__ __forceinline__ u32 pick_sum(const u32 (&SA)[WPL], const u32 (&SB)[WP
   return r;
 }
 
-__device__ __forceinline__ int floor_div(int n, int d) {  // d > 0
-  const int q = n / d;
-  return (n % d != 0 && n < 0) ? q - 1 : q;
-}
-
 #define RUNS_PER_ROW ((IMG_W + RUN - 1) / RUN)
 
 extern "C" __global__ void __launch_bounds__(128) sgm_wta(const u8* __restrict__ vols, int* __restrict__ dl,
@@ -435,6 +457,8 @@ extern "C" __global__ void __launch_bounds__(128) sgm_wta(const u8* __restrict__
 #pragma unroll
       for (int w = 0; w < WPL; ++w) nxt[k][w] = __ldcs(vrow + (size_t)k * (VOL_BYTES / 4) + (size_t)x * (DPAD / 4) + li + LPL * w);
   }
+  // unrolled by 2 so that nxt and cur alternate by name instead of by moves
+#pragma unroll 2
   for (int q = RUN - 1; q >= 0; --q) {
     const int x = x_lo + q;
     const bool act = row_ok && x < IMG_W;
@@ -451,7 +475,8 @@ extern "C" __global__ void __launch_bounds__(128) sgm_wta(const u8* __restrict__
         for (int w = 0; w < WPL; ++w)
           nxt[k][w] = __ldcs(vrow + (size_t)k * (VOL_BYTES / 4) + (size_t)xn * (DPAD / 4) + li + LPL * w);
     }
-    // sums (16-bit lanes: (d0, d1) and (d2, d3)), keys, winner
+    // sums (16-bit lanes: (d0, d1) and (d2, d3)), keys, winner; d is a candidate when d <= lim
+    const int lim = act ? min(x, NDISP - 1) : -1;
     u32 SA[WPL], SB[WPL];
     u32 key[WPL][4];
     u32 best = KEY_INF;
@@ -466,13 +491,11 @@ extern "C" __global__ void __launch_bounds__(128) sgm_wta(const u8* __restrict__
       SA[w] = sa;
       SB[w] = sb;
       const int d0 = 4 * (li + LPL * w);
-      const u32 sv[4] = {sa & 0xffffu, sa >> 16, sb & 0xffffu, sb >> 16};
-      const bool all_in = act && x >= d0 + 3 && d0 + 3 < NDISP;
+      // key = S << 8 | (255 - d): S's two bytes above 255 - d (< 256, so its byte 1 is a zero), one PRMT
+      const u32 raw[4] = {__byte_perm(sa, (u32)(255 - d0), 0x5104), __byte_perm(sa, (u32)(254 - d0), 0x5324),
+                          __byte_perm(sb, (u32)(253 - d0), 0x5104), __byte_perm(sb, (u32)(252 - d0), 0x5324)};
 #pragma unroll
-      for (int j = 0; j < 4; ++j) {
-        const int d = d0 + j;
-        key[w][j] = (all_in || (act && d <= x && d < NDISP)) ? (sv[j] << 8) | (u32)(255 - d) : KEY_INF;
-      }
+      for (int j = 0; j < 4; ++j) key[w][j] = d0 + j <= lim ? raw[j] : KEY_INF;
       best = min(best, min3u(key[w][0], key[w][1], min(key[w][2], key[w][3])));
     }
     best = line_min(best);
@@ -516,7 +539,9 @@ extern "C" __global__ void __launch_bounds__(128) sgm_wta(const u8* __restrict__
         int v = 16 * dstar;
         if (dstar >= 1 && dstar + 1 <= min(x, NDISP - 1)) {
           const int den = (int)c0 + (int)c2 - 2 * (int)sstar;
-          v += floor_div(16 * ((int)c0 - (int)c2) + den, 2 * den);
+          // floor of an exact quotient: |n| < 2^17 and 2 den < 2^14 are exact floats, and a quotient that
+          // is not an integer lies >= 1 / (2 den) from one, far beyond half an ulp of |q| <= 9: exact
+          v += (int)floorf(__fdiv_rn((float)(16 * ((int)c0 - (int)c2) + den), (float)(2 * den)));
         }
         out = (dstar << 16) | v;
       }
