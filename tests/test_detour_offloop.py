@@ -6,10 +6,14 @@ thread while the control loop keeps stepping, and a failure there ends the detou
 
 from __future__ import annotations
 
+import asyncio
+import logging
 import math
+import threading
 from dataclasses import replace
 
 import numpy as np
+from peers.fakes import FakeLink
 from test_detour import BRAKE, CLEAR, DET, MEM, _trusted_memory, _wall
 
 from companion.core import detour as detour_mod
@@ -24,6 +28,7 @@ from companion.core.detour import (
 )
 from companion.core.goal import GoalSpec
 from companion.core.supervisor import Goto, State, StepOutput
+from companion.core.types import VelocitySetpoint
 
 POS = np.array([0.0, 0.0, -1.5])
 
@@ -255,3 +260,116 @@ def test_a_failed_histogram_ends_the_detour_in_a_hold_that_says_why() -> None:
     out = _step(h)
     assert out.state is State.PAUSED and "could not be computed" in out.reason and "boom" in out.reason
     assert out.histogram_request is None and out.setpoint is not None and abs(out.setpoint.forward_m_s) < 0.3
+
+
+# ---------------------------------------------------------------------------------------------- daemon
+
+
+class _AskingSupervisor:
+    """Stands in for the supervisor: engaged, a setpoint every step, and a histogram request until a
+    step brings its result; records what each step was handed."""
+
+    def __init__(self, request: HistogramRequest) -> None:
+        self.request = request
+        self.steps: list[tuple[float, HistogramResult | None, str]] = []
+        self.answer: HistogramResult | None = None
+        self.engaged = True
+
+    def step(self, now_s, latest, vehicle, requests=(), camera_ok=True, histogram=None) -> StepOutput:
+        self.steps.append((now_s, histogram, threading.current_thread().name))
+        if histogram is not None and histogram.seq == self.request.seq:
+            self.answer = histogram
+        return StepOutput(
+            setpoint=VelocitySetpoint(0.5, 0.0, 0.0, 0.0),
+            actions=(),
+            state=State.ENGAGED,
+            reason="engaged",
+            replies=(),
+            changed=False,
+            frame_age_s=0.0,
+            histogram_request=None if self.answer is not None else self.request,
+        )
+
+
+def _request(seq: int = 1) -> HistogramRequest:
+    p = DetourPlanner(defer=True)
+    p._next_seq = seq - 1
+    _trigger(p, _trusted_memory(_wall(2.5, -8.0, 8.0)))
+    return p.pending_request
+
+
+def _daemon(tmp_path, histogram_fn):
+    from peers.fakes import service_config
+
+    from companion.service.daemon import Service
+
+    return Service(service_config(tmp_path), link=FakeLink(), install_signals=False, environ={}, histogram_fn=histogram_fn)
+
+
+async def _run_control_loop(service, until, timeout_s: float = 10.0) -> None:
+    """Run the daemon's control loop until ``until()`` holds (checked every 10 ms)."""
+    service._loop = asyncio.get_running_loop()
+    service._wake = asyncio.Event()
+    task = asyncio.get_running_loop().create_task(service._control_loop())
+    try:
+        for _ in range(int(timeout_s / 0.01)):
+            if until():
+                return
+            await asyncio.sleep(0.01)
+        raise AssertionError("timed out")
+    finally:
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+
+
+def test_the_daemon_computes_the_histogram_off_the_control_loop(tmp_path) -> None:
+    release = threading.Event()
+    calls: list[tuple[int, str]] = []
+
+    def slow(req: HistogramRequest):
+        calls.append((req.seq, threading.current_thread().name))
+        release.wait(30.0)  # as long as the test wants: the loop must not wait for it
+        return compute_histogram(req)
+
+    service = _daemon(tmp_path, slow)
+    req = _request()
+    sup = service.supervisor = _AskingSupervisor(req)
+
+    async def scenario() -> None:
+        await _run_control_loop(service, lambda: len(calls) == 1 and len(service.link.sent) >= 20)
+        # The worker is blocked; the loop stepped and sent setpoints all along, asking once only.
+        assert all(h is None for _, h, _ in sup.steps)
+        release.set()
+        await _run_control_loop(service, lambda: sup.answer is not None)
+        service._histogram_pool.shutdown(wait=True)
+
+    asyncio.run(scenario())
+    assert len(calls) == 1 and calls[0][0] == req.seq
+    loop_thread = sup.steps[0][2]
+    assert calls[0][1] != loop_thread and calls[0][1].startswith("detour-histogram")
+    assert {name for _, _, name in sup.steps} == {loop_thread}  # every step on the loop
+    want = compute_histogram(req)
+    assert sup.answer.error is None and np.array_equal(sup.answer.histogram.free_m, want.free_m)
+    assert service.histogram_stats == {"computed": 1, "failed": 0}
+
+
+def test_a_failure_in_the_worker_is_logged_and_handed_to_the_supervisor(tmp_path, caplog) -> None:
+    def broken(req: HistogramRequest):
+        raise RuntimeError("boom")
+
+    service = _daemon(tmp_path, broken)
+    req = _request(seq=5)
+    sup = service.supervisor = _AskingSupervisor(req)
+    caplog.set_level(logging.ERROR, logger="companion.service.daemon")
+
+    async def scenario() -> None:
+        await _run_control_loop(service, lambda: sup.answer is not None and len(service.link.sent) >= 5)
+        service._histogram_pool.shutdown(wait=True)
+
+    asyncio.run(scenario())
+    assert sup.answer.histogram is None and "RuntimeError: boom" in sup.answer.error
+    assert service.histogram_stats["failed"] == 1
+    assert "detour histogram" in (service._last_error or "") and "boom" in service._last_error
+    records = [r for r in caplog.records if "detour histogram failed" in r.getMessage()]
+    assert records and "request 5" in records[0].getMessage() and records[0].exc_info is not None
+
