@@ -121,6 +121,7 @@ def test_after_a_look_round_it_keeps_turning_in_place_while_the_histogram_is_com
     cmd = p.update(t, BRAKE, POS, 0.0, 0.0, 0.0, mem, MEM, DET, goal_distance_m=6.0)
     t += 0.05
     assert cmd.phase is Phase.SCAN and cmd.target_yaw_rad is not None and p.pending_request is None  # looking round
+    assert "looking round" in p.reason and "mapping" not in p.reason
     anchor = cmd.anchor_ned_m.copy()
     yaw = 0.0
     last_target = None
@@ -133,6 +134,7 @@ def test_after_a_look_round_it_keeps_turning_in_place_while_the_histogram_is_com
         if p.pending_request is not None:
             break
     assert p.pending_request is not None
+    assert p.reason == "looked round: mapping the way round"
     for _ in range(10):  # meanwhile: turning in place where it looked round, to the look's last heading
         assert cmd.phase is Phase.SCAN and np.array_equal(cmd.anchor_ned_m, anchor)
         assert cmd.target_yaw_rad == last_target

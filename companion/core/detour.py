@@ -89,6 +89,8 @@ _VETO_HALF_ANGLE_RAD = math.radians(15.0)
 _TRAIL_POINTS = 500
 #: Keep the direction flown unless another costs this much less, degrees (no dithering).
 _HYSTERESIS_DEG = 10.0
+#: What the reason says while a deferred histogram is awaited.
+_MAPPING = ": mapping the way round"
 #: A direction this near the heading has been seen (the camera's view is about ±45°, its left
 #: edge less): a detour toward it needs no look round first, degrees.
 _IN_VIEW_DEG = 30.0
@@ -611,7 +613,7 @@ class DetourPlanner:
             self.phase = Phase.SCAN
             self._anchor_ned_m = pos.copy()
             self._target_rad = None
-            self.reason = f"{self.reason}: mapping the way round"
+            self.reason = f"{self.reason}{_MAPPING}"
             return DetourCommand(Phase.SCAN, None, self._anchor_ned_m, self.reason)
         return self._begin_with(h, now_s, pos, yaw, goal, cfg, prefer_right)
 
@@ -679,6 +681,8 @@ class DetourPlanner:
         h = self._histogram(now_s, pos, goal, memory, memory_cfg, cfg, "choose")
         if h is None:
             self._last_plan_s = now_s  # asked: the next replan is due replan_interval_s from now
+            if self.phase is Phase.SCAN:
+                self.reason = f"looked round{_MAPPING}"
             return self._waiting(pos, yaw, cfg)
         return self._choose_with(h, now_s, pos, yaw, goal, cfg, prefer_right)
 
@@ -774,6 +778,7 @@ class DetourPlanner:
         # Directions a brake closed after the request was made are closed too.
         h = _close_vetoed(result.histogram, request.position_ned_m, tuple(self._vetoes[len(request.vetoes) :]))
         if purpose == "begin":
+            self.reason = self.reason.removesuffix(_MAPPING)  # the trigger's reason, as without the wait
             return self._begin_with(h, now_s, pos, yaw, goal, cfg, prefer_right)
         return self._choose_with(h, request.asked_s, pos, yaw, goal, cfg, prefer_right)
 
