@@ -69,9 +69,14 @@ class CourseHold:
     Built with no course; :meth:`engage` sets it. The clear timers run from construction on (a
     vehicle engaged after a clear stretch may hold its course at once), the latches and the
     progress clock from :meth:`engage`.
+
+    Args:
+        defer_histogram: the detour layer leaves its histograms to the caller
+            (:class:`~companion.core.detour.DetourPlanner`'s ``defer``: the service computes them off
+            its control loop); False: computed at once (the simulator).
     """
 
-    def __init__(self) -> None:
+    def __init__(self, defer_histogram: bool = False) -> None:
         self.origin_ned_m: np.ndarray | None = None
         self.heading_rad: float | None = None
         self.altitude_m: float | None = None
@@ -82,7 +87,7 @@ class CourseHold:
         self.overhead = OverheadMemory()
         self.progress = ProgressWatch()
         self.goal = Goal(COURSE, None)
-        self.detour = DetourPlanner()
+        self.detour = DetourPlanner(defer=defer_histogram)
         self._engaged_at: tuple[np.ndarray | None, float | None] = (None, None)
         #: Why the flight holds now (the goal reached, a dead end), or None: the caller holds (as for
         #: the progress watchdog) until :meth:`resume` or a new goal.

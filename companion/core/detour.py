@@ -39,6 +39,19 @@ Phases (:class:`Phase`)::
 The layer remembers where it has been (a trail of positions) and which side it went round: a new
 detour that starts within ``side_memory_m`` of the last one's end goes round the same side, so the
 vehicle does not swing between two detours.
+
+**Where the histogram is computed.** It costs tens of milliseconds with a full memory (20 000 points:
+~40 ms on a 2-core VM), too long for the service's control loop. So a choice is split in two: a
+*request* (:class:`HistogramRequest`: an immutable snapshot of the trusted points, the trail, the goal,
+the vetoes, the config, the position and the time) and its *result* (:class:`HistogramResult`), which
+:func:`compute_histogram` makes from the request alone. A planner built with ``defer=False`` (the
+simulator, the tests) computes it at once, inside :meth:`DetourPlanner.update`: the same numbers, the
+same steps as ever. With ``defer=True`` (the service) it exposes the request
+(:attr:`DetourPlanner.pending_request`) and flies on safely meanwhile: at a first choice it holds where
+it is, facing as it does; after a look round it keeps turning in place to the look's last heading;
+during a replan it keeps flying the direction chosen before (the controller's brake stays absolute).
+The caller computes the request elsewhere and hands the result back with :meth:`DetourPlanner.offer`;
+a result that does not answer the latest request (the detour ended, was reset, a new goal) is dropped.
 """
 
 from __future__ import annotations
@@ -76,6 +89,8 @@ _VETO_HALF_ANGLE_RAD = math.radians(15.0)
 _TRAIL_POINTS = 500
 #: Keep the direction flown unless another costs this much less, degrees (no dithering).
 _HYSTERESIS_DEG = 10.0
+#: What the reason says while a deferred histogram is awaited.
+_MAPPING = ": mapping the way round"
 #: A direction this near the heading has been seen (the camera's view is about ±45°, its left
 #: edge less): a detour toward it needs no look round first, degrees.
 _IN_VIEW_DEG = 30.0
@@ -310,11 +325,95 @@ def _through(
     return out
 
 
+@dataclass(frozen=True)
+class HistogramRequest:
+    """What one choice of the detour layer needs a histogram of: a snapshot that nothing changes, so
+    that another thread may compute it (:func:`compute_histogram`) while the planner flies on.
+
+    Attributes:
+        seq: which request this is; a planner takes only the result of its latest
+            (:meth:`DetourPlanner.offer`).
+        asked_s: when it was asked, seconds (the planner's clock).
+        position_ned_m: float64 ``(3,)`` NED metres: the vehicle then; the points, the trail and the
+            vetoes' reach are from here.
+        points_ne_m: float64 ``(N, 2)`` the memory's trusted points, north and east offsets from the
+            vehicle, metres (read-only).
+        trail_ne_m: float64 ``(M, 2)`` offsets of where the vehicle has been (old enough to count),
+            metres (read-only), or None.
+        goal_bearing_rad: the direction to the goal from here, radians from north.
+        goal_distance_m: how far the goal point is, metres (None: the course, no point).
+        vetoes: ``(north m, east m, bearing rad)`` of each direction a brake closed, from where.
+        map_depth_m: ``memory.map_depth_m``, metres.
+        cfg: the ``[detour]`` config (frozen).
+    """
+
+    seq: int
+    asked_s: float
+    position_ned_m: np.ndarray
+    points_ne_m: np.ndarray
+    trail_ne_m: np.ndarray | None
+    goal_bearing_rad: float
+    goal_distance_m: float | None
+    vetoes: tuple[tuple[float, float, float], ...]
+    map_depth_m: float
+    cfg: DetourConfig
+
+
+@dataclass(frozen=True)
+class HistogramResult:
+    """The answer to a :class:`HistogramRequest` (:meth:`DetourPlanner.offer`).
+
+    Attributes:
+        seq: the request's ``seq``.
+        histogram: :func:`compute_histogram` of it, or None when computing it failed.
+        error: why it failed (one line), or None.
+    """
+
+    seq: int
+    histogram: Histogram | None
+    error: str | None = None
+
+
+def compute_histogram(request: HistogramRequest) -> Histogram:
+    """The histogram a request asks for (pure; any thread): :func:`polar_histogram` of its points,
+    with the directions its vetoes close set to zero length."""
+    r = request
+    h = polar_histogram(r.points_ne_m, r.goal_bearing_rad, r.cfg, r.map_depth_m, r.trail_ne_m, r.goal_distance_m)
+    return _close_vetoed(h, r.position_ned_m, r.vetoes)
+
+
+def _close_vetoed(h: Histogram, pos: np.ndarray, vetoes) -> Histogram:
+    """``h`` with the directions closed by a brake (``(north, east, bearing)``) near ``pos``
+    (float ``(3,)`` NED metres) free for 0 m."""
+    if not vetoes:
+        return h
+    free, roomy, tight = h.free_m.copy(), h.roomy_m.copy(), h.tight_m.copy()
+    for n, e, b in vetoes:
+        if math.hypot(pos[0] - n, pos[1] - e) <= _VETO_RADIUS_M:
+            closed = np.abs(np.array([wrap_pi(x - b) for x in h.bearing_rad])) <= _VETO_HALF_ANGLE_RAD
+            free[closed] = roomy[closed] = tight[closed] = 0.0
+    return Histogram(h.bearing_rad, h.offset_rad, free, roomy, tight, h.visited, h.goal_index, h.through_m)
+
+
+def _frozen(a: np.ndarray | None) -> np.ndarray | None:
+    if a is not None:
+        a.setflags(write=False)  # shared with another thread: nobody may change it
+    return a
+
+
 class DetourPlanner:
     """The detour layer's state for one flight (see the module doc). Built idle; :meth:`reset` on
-    engage, a new goal, or resume."""
+    engage, a new goal, or resume.
 
-    def __init__(self) -> None:
+    Args:
+        defer: False: compute each histogram at once, inside :meth:`update` (the simulator, tests);
+            True: expose it as :attr:`pending_request` and wait for :meth:`offer` (the service, which
+            computes it off its control loop).
+    """
+
+    def __init__(self, defer: bool = False) -> None:
+        self.defer = defer
+        self._next_seq = 0  # kept across resets: a result for a request made before one never matches
         self.trail: deque[tuple[float, float, float]] = deque(maxlen=_TRAIL_POINTS)  # (north, east, time s)
         self._last_end: tuple[float, float, int] | None = None  # where the last detour ended, its side
         self._count_mark: float | None = None  # the progress mark the detours are counted at
@@ -340,6 +439,28 @@ class DetourPlanner:
         self._scans = 0
         self._goal_distance_m: float | None = None
         self._stall_mark: float | None = None
+        self._drop_request()
+
+    def _drop_request(self) -> None:
+        """Forget the histogram asked for (deferred): a result for it is dropped when offered."""
+        self._request: HistogramRequest | None = None
+        self._awaiting: str | None = None  # what the histogram is for: "begin" or "choose"
+        self._answer: HistogramResult | None = None
+
+    @property
+    def pending_request(self) -> HistogramRequest | None:
+        """The histogram the planner waits for (``defer``), not yet answered: compute it
+        (:func:`compute_histogram`) and :meth:`offer` the result. None: none wanted."""
+        return self._request if self._answer is None else None
+
+    def offer(self, result: HistogramResult) -> bool:
+        """The result of a :class:`HistogramRequest`, used at the next :meth:`update`. Only the answer
+        to the latest request is taken (True); any other (the detour ended or was reset, a new goal,
+        an answer already given) is dropped (False)."""
+        if self._request is None or self._answer is not None or result.seq != self._request.seq:
+            return False
+        self._answer = result
+        return True
 
     @property
     def active(self) -> bool:
@@ -385,6 +506,7 @@ class DetourPlanner:
         self._stall_mark = stall_mark_m
         if cfg.trigger_after_s <= 0.0 or memory is None or memory_cfg.duration_s <= 0.0:
             self.phase = Phase.IDLE
+            self._drop_request()
             return None
         pos = finite_position(position_ned_m)
         if pos is None or yaw_rad is None or not math.isfinite(yaw_rad) or goal_bearing_rad is None:
@@ -418,6 +540,8 @@ class DetourPlanner:
             return self._dead_end(pos, f"no way round within {cfg.max_time_s:g} s (detour.max_time_s)")
         elif self._distance_from_start_m(pos) > cfg.max_distance_m and self.phase is not Phase.HANDBACK:
             return self._dead_end(pos, f"no way round within {cfg.max_distance_m:g} m (detour.max_distance_m)")
+        if self._awaiting is not None:
+            return self._await(now_s, decision, pos, yaw_rad, goal_bearing_rad, cfg, prefer_right)
         if self.phase is Phase.SCAN:
             return self._scan(now_s, pos, yaw_rad, goal_bearing_rad, memory, memory_cfg, cfg, prefer_right)
         if self.phase is Phase.HANDBACK:
@@ -482,13 +606,28 @@ class DetourPlanner:
             n, e, side = self._last_end
             if math.hypot(pos[0] - n, pos[1] - e) <= cfg.side_memory_m:
                 self._side = side  # round the same side as the last detour nearby
-        h = self._histogram(now_s, pos, goal, memory, memory_cfg, cfg)
+        h = self._histogram(now_s, pos, goal, memory, memory_cfg, cfg, "begin")
+        if h is None:
+            # Deferred: hold here, facing as now, until the histogram comes (never fly a direction
+            # not chosen).
+            self.phase = Phase.SCAN
+            self._anchor_ned_m = pos.copy()
+            self._target_rad = None
+            self.reason = f"{self.reason}{_MAPPING}"
+            return DetourCommand(Phase.SCAN, None, self._anchor_ned_m, self.reason)
+        return self._begin_with(h, now_s, pos, yaw, goal, cfg, prefer_right)
+
+    def _begin_with(
+        self, h: Histogram, now_s: float, pos: np.ndarray, yaw: float, goal: float, cfg: DetourConfig, prefer_right: bool
+    ) -> DetourCommand | None:
+        """A detour's start, with the histogram from where it began: choose at once, or look round."""
         lean = self._side or _pick_side(h, prefer_right, cfg)
         k = _best(h, lean, cfg, None)
         if k is not None and abs(wrap_pi(h.bearing_rad[k] - yaw)) <= math.radians(_IN_VIEW_DEG):
-            # The way round is in view (it has been seen): no need to look round.
+            # The way round is in view (it has been seen): no need to look round. (The same snapshot:
+            # a second histogram now would be the same numbers.)
             self.phase = Phase.SCAN
-            return self._choose(now_s, pos, yaw, goal, memory, memory_cfg, cfg, prefer_right)
+            return self._choose_with(h, now_s, pos, yaw, goal, cfg, prefer_right)
         self._start_scan(now_s, pos, yaw, goal, cfg, lean)
         return DetourCommand(Phase.SCAN, self._target_rad, self._anchor_ned_m, self.reason)
 
@@ -539,8 +678,26 @@ class DetourPlanner:
         cfg: DetourConfig,
         prefer_right: bool,
     ) -> DetourCommand | None:
-        self._last_plan_s = now_s
-        h = self._histogram(now_s, pos, goal, memory, memory_cfg, cfg)
+        h = self._histogram(now_s, pos, goal, memory, memory_cfg, cfg, "choose")
+        if h is None:
+            self._last_plan_s = now_s  # asked: the next replan is due replan_interval_s from now
+            if self.phase is Phase.SCAN:
+                self.reason = f"looked round{_MAPPING}"
+            return self._waiting(pos, yaw, cfg)
+        return self._choose_with(h, now_s, pos, yaw, goal, cfg, prefer_right)
+
+    def _choose_with(
+        self,
+        h: Histogram,
+        asked_s: float,
+        pos: np.ndarray,
+        yaw: float,
+        goal: float,
+        cfg: DetourConfig,
+        prefer_right: bool,
+    ) -> DetourCommand | None:
+        """A choice from the histogram asked for at ``asked_s`` (seconds)."""
+        self._last_plan_s = asked_s
         gd = self._goal_distance_m
         need = cfg.radius_m if gd is None else min(cfg.radius_m, gd)
         if h.free_m[h.goal_index] >= need:
@@ -590,6 +747,53 @@ class DetourPlanner:
         cfg: DetourConfig,
         prefer_right: bool,
     ) -> DetourCommand | None:
+        self._note_brake(now_s, decision, yaw, pos, cfg)
+        if now_s - self._last_plan_s >= cfg.replan_interval_s:
+            return self._choose(now_s, pos, yaw, goal, memory, memory_cfg, cfg, prefer_right)
+        return self._fly_command(pos, yaw, cfg)
+
+    def _await(
+        self,
+        now_s: float,
+        decision: Decision | None,
+        pos: np.ndarray,
+        yaw: float,
+        goal: float,
+        cfg: DetourConfig,
+        prefer_right: bool,
+    ) -> DetourCommand | None:
+        """Deferred, a histogram asked for: fly on safely until it comes (:meth:`_waiting`), then
+        go on as :meth:`_begin` or :meth:`_choose` would have with it."""
+        if self._answer is None:
+            if self.phase is Phase.FLY:
+                self._note_brake(now_s, decision, yaw, pos, cfg)  # a brake meanwhile still closes the way
+            return self._waiting(pos, yaw, cfg)
+        request, purpose, result = self._request, self._awaiting, self._answer
+        self._drop_request()
+        assert request is not None
+        if result.histogram is None:
+            return self._dead_end(
+                pos, f"dead end: the detour's histogram could not be computed ({result.error or 'no reason given'})"
+            )
+        # Directions a brake closed after the request was made are closed too.
+        h = _close_vetoed(result.histogram, request.position_ned_m, tuple(self._vetoes[len(request.vetoes) :]))
+        if purpose == "begin":
+            self.reason = self.reason.removesuffix(_MAPPING)  # the trigger's reason, as without the wait
+            return self._begin_with(h, now_s, pos, yaw, goal, cfg, prefer_right)
+        return self._choose_with(h, request.asked_s, pos, yaw, goal, cfg, prefer_right)
+
+    def _waiting(self, pos: np.ndarray, yaw: float, cfg: DetourConfig) -> DetourCommand:
+        """While a histogram is awaited: in FLY, the direction chosen before (the controller's brake
+        stays absolute); else (a first choice, or after a look round) turn in place where the vehicle
+        holds, to the heading asked before (None: keep it), never toward a direction not chosen."""
+        if self.phase is Phase.FLY and self._target_rad is not None:
+            return self._fly_command(pos, yaw, cfg)
+        if self._anchor_ned_m is None:
+            self._anchor_ned_m = pos.copy()
+        return DetourCommand(Phase.SCAN, self._target_rad, self._anchor_ned_m, self.reason)
+
+    def _note_brake(self, now_s: float, decision: Decision | None, yaw: float, pos: np.ndarray, cfg: DetourConfig) -> None:
+        """Flying: a brake for ``trigger_after_s`` while facing the direction closes it from here."""
         braking = decision is not None and decision.kind is DecisionKind.BRAKE
         if not braking:
             self._brake_since_s = None
@@ -601,9 +805,6 @@ class DetourPlanner:
             self._vetoes.append((float(pos[0]), float(pos[1]), float(self._target_rad)))
             self._brake_since_s = None
             self._last_plan_s = -math.inf
-        if now_s - self._last_plan_s >= cfg.replan_interval_s:
-            return self._choose(now_s, pos, yaw, goal, memory, memory_cfg, cfg, prefer_right)
-        return self._fly_command(pos, yaw, cfg)
 
     def _fly_command(self, pos: np.ndarray, yaw: float, cfg: DetourConfig) -> DetourCommand:
         assert self._target_rad is not None
@@ -632,6 +833,7 @@ class DetourPlanner:
         self.reason = reason
 
     def _dead_end(self, pos: np.ndarray, reason: str) -> DetourCommand:
+        self._drop_request()
         self.phase = Phase.DEAD_END
         self._anchor_ned_m = pos.copy()
         self._target_rad = None
@@ -641,25 +843,47 @@ class DetourPlanner:
     # ------------------------------------------------------------------------------------ helpers
 
     def _histogram(
+        self,
+        now_s: float,
+        pos: np.ndarray,
+        goal: float,
+        memory: ObstacleMemory,
+        memory_cfg: MemoryConfig,
+        cfg: DetourConfig,
+        purpose: str,
+    ) -> Histogram | None:
+        """The histogram from here now; deferred: None, and the request is left for the caller
+        (:attr:`pending_request`), for ``purpose`` ("begin" or "choose")."""
+        request = self._request_for(now_s, pos, goal, memory, memory_cfg, cfg)
+        if not self.defer:
+            return compute_histogram(request)
+        self._request, self._awaiting, self._answer = request, purpose, None
+        return None
+
+    def _request_for(
         self, now_s: float, pos: np.ndarray, goal: float, memory: ObstacleMemory, memory_cfg: MemoryConfig, cfg: DetourConfig
-    ) -> Histogram:
+    ) -> HistogramRequest:
         reach_m = max(cfg.radius_m, memory_cfg.map_depth_m)
-        pts = memory.map_points(pos, now_s, memory_cfg, reach_m + cfg.clearance_m)
+        pts = memory.map_points(pos, now_s, memory_cfg, reach_m + cfg.clearance_m)  # a new array: no copy needed
         pts = np.empty((0, 2)) if pts is None else pts
         trail = None
         if self.trail:
             tr = np.array(self.trail, dtype=np.float64)
             old = tr[:, 2] <= now_s - cfg.visited_age_s
             trail = tr[old, :2] - pos[:2]
-        h = polar_histogram(pts, goal, cfg, memory_cfg.map_depth_m, trail, self._goal_distance_m)
-        if self._vetoes:
-            free, roomy, tight = h.free_m.copy(), h.roomy_m.copy(), h.tight_m.copy()
-            for n, e, b in self._vetoes:
-                if math.hypot(pos[0] - n, pos[1] - e) <= _VETO_RADIUS_M:
-                    closed = np.abs(np.array([wrap_pi(x - b) for x in h.bearing_rad])) <= _VETO_HALF_ANGLE_RAD
-                    free[closed] = roomy[closed] = tight[closed] = 0.0
-            h = Histogram(h.bearing_rad, h.offset_rad, free, roomy, tight, h.visited, h.goal_index, h.through_m)
-        return h
+        self._next_seq += 1
+        return HistogramRequest(
+            seq=self._next_seq,
+            asked_s=float(now_s),
+            position_ned_m=_frozen(pos.copy()),
+            points_ne_m=_frozen(pts),
+            trail_ne_m=_frozen(trail),
+            goal_bearing_rad=goal,
+            goal_distance_m=self._goal_distance_m,
+            vetoes=tuple(self._vetoes),
+            map_depth_m=float(memory_cfg.map_depth_m),
+            cfg=cfg,
+        )
 
     def _remember_trail(self, pos: np.ndarray, now_s: float, cfg: DetourConfig) -> None:
         if not self.trail or math.hypot(pos[0] - self.trail[-1][0], pos[1] - self.trail[-1][1]) >= cfg.visited_spacing_m:

@@ -72,6 +72,7 @@ from companion.config.core import MemoryConfig
 from companion.config.detour import DetourConfig
 from companion.core.command import NO_PROGRESS_HOLD
 from companion.core.course import CourseHold
+from companion.core.detour import HistogramRequest, HistogramResult
 from companion.core.goal import COURSE, GoalSpec
 from companion.core.memory import ObstacleMemory, ViewLimits
 from companion.core.pose import Pose
@@ -207,6 +208,10 @@ class StepOutput:
         replies: one per operator request, in order.
         changed: state or reason differ from before the step.
         frame_age_s: age of the newest frame result at ``now_s`` (inf without one), seconds.
+        histogram_request: the detour layer waits for this histogram (a supervisor built with
+            ``defer_histogram``): compute it off the control loop
+            (:func:`~companion.core.detour.compute_histogram`) and hand the result to a later
+            :meth:`Supervisor.step`; None: none wanted.
     """
 
     setpoint: VelocitySetpoint | None
@@ -216,6 +221,7 @@ class StepOutput:
     replies: tuple[Reply, ...]
     changed: bool
     frame_age_s: float
+    histogram_request: HistogramRequest | None = None
 
 
 @dataclass(frozen=True)
@@ -307,11 +313,19 @@ _ENGAGED_BY_SWITCH = "engaged by the pilot's offboard switch: avoiding obstacles
 
 
 class Supervisor:
-    """The service's state machine (see the module doc). Pure: every input is an argument."""
+    """The service's state machine (see the module doc). Pure: every input is an argument.
 
-    def __init__(self, cfg: SupervisorConfig) -> None:
+    Args:
+        cfg: the limits and timings.
+        defer_histogram: the detour layer's histograms (tens of milliseconds with a full memory) are
+            left to the caller: :attr:`StepOutput.histogram_request` asks for one, and its result comes
+            back through :meth:`step`'s ``histogram`` (the service: off its control loop). False:
+            computed at once, inside the step.
+    """
+
+    def __init__(self, cfg: SupervisorConfig, defer_histogram: bool = False) -> None:
         self._cfg = cfg
-        self._m = _Memory(autostart_pending=cfg.autostart)
+        self._m = _Memory(autostart_pending=cfg.autostart, course=CourseHold(defer_histogram))
 
     # ------------------------------------------------------------------------------------ queries
 
@@ -382,6 +396,7 @@ class Supervisor:
         vehicle: VehicleState,
         requests: Sequence[Request] = (),
         camera_ok: bool = True,
+        histogram: HistogramResult | None = None,
     ) -> StepOutput:
         """Advance to ``now_s`` and decide.
 
@@ -391,9 +406,13 @@ class Supervisor:
             vehicle: the vehicle's latest state.
             requests: operator requests and action results received since the last step.
             camera_ok: False while the camera is gone (reconnecting): frames count as stale at once.
+            histogram: the result of an earlier step's ``histogram_request`` (used only when it
+                answers the detour layer's latest request; any other is dropped), or None.
         """
         m = self._m
         before = (m.state, m.reason)
+        if histogram is not None:
+            m.course.detour.offer(histogram)
         m.actions = []
         age_s = math.inf if latest is None else max(0.0, now_s - latest.timestamp_s)
         if not math.isfinite(age_s):
@@ -430,6 +449,7 @@ class Supervisor:
             replies=replies,
             changed=(m.state, m.reason) != before,
             frame_age_s=age_s,
+            histogram_request=m.course.detour.pending_request,
         )
 
     # ------------------------------------------------------------------------------------ internals

@@ -12,10 +12,15 @@ Threads and tasks::
                                                        new result or request; the ONLY place that feeds
                                                        the systemd watchdog)
     health task (ZeroMQ PUB, 10 Hz + every state change)     vehicle connector task (waits for the autopilot)
+    detour histogram thread (one job at a time: the detour layer's polar histogram, asked for on a
+    step's output, computed here, its result handed to a later step on the loop)
 
 The control loop never waits for the pipeline: it steps on a fixed grid (``vehicle.setpoint_rate_hz``)
 whatever the vision rate, and also as soon as a new result arrives, so a decision reaches the vehicle
-without waiting for the next tick. If the control loop stalls, the watchdog is not fed and systemd kills
+without waiting for the next tick. Nor does it wait for the detour layer's histogram (tens of
+milliseconds with a full obstacle memory): the supervisor asks for it (``StepOutput.histogram_request``),
+one worker thread computes it from that immutable snapshot, and the result goes back into a later
+step on the loop, so every change to the supervisor's state stays on the loop. If the control loop stalls, the watchdog is not fed and systemd kills
 the process (MAVSDK's 20 Hz re-sending dies with it), and PX4's offboard-loss failsafe takes over.
 
 Shutdown (first SIGTERM/SIGINT): the supervisor sends zero and, if we own offboard, Hold; then the
@@ -27,7 +32,10 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import concurrent.futures
+import functools
 import logging
+import math
 import os
 import signal
 import threading
@@ -48,6 +56,7 @@ from companion.core.supervisor import (
     Supervisor,
     SupervisorConfig,
 )
+from companion.core.detour import Histogram, HistogramRequest, HistogramResult, compute_histogram
 from companion.core.safety import near_blindness
 from companion.core.types import ZERO_SETPOINT, VelocitySetpoint
 from companion.errors import (
@@ -105,6 +114,8 @@ class Service(ControlPlane, HealthReporter, PresencePlane):
         clock: monotonic clock, seconds (the clock of frame timestamps).
         install_signals: handle SIGTERM/SIGINT/SIGHUP (only possible in the main thread).
         notifier: sd_notify sender; default: from ``$NOTIFY_SOCKET`` (None when not under systemd).
+        histogram_fn: computes the detour layer's histogram in the worker thread (default
+            :func:`~companion.core.detour.compute_histogram`; tests inject a slow or failing one).
     """
 
     def __init__(
@@ -118,6 +129,7 @@ class Service(ControlPlane, HealthReporter, PresencePlane):
         install_signals: bool = True,
         notifier: Notifier | None = None,
         environ: dict[str, str] | None = None,
+        histogram_fn: Callable[[HistogramRequest], Histogram] = compute_histogram,
     ) -> None:
         self.config_path = config_path
         self.config = resolve_config_paths(cfg, config_path.parent if config_path else None)
@@ -129,7 +141,14 @@ class Service(ControlPlane, HealthReporter, PresencePlane):
         self._environ = dict(os.environ) if environ is None else environ
         self._notifier = notifier if notifier is not None else Notifier.from_environment(self._environ)
         self._watchdog_s = watchdog_interval_s(self._environ)
-        self.supervisor = Supervisor(SupervisorConfig.from_config(self.config))
+        # The detour layer's histograms are computed off the control loop (_plan_off_loop).
+        self.supervisor = Supervisor(SupervisorConfig.from_config(self.config), defer_histogram=True)
+        self._histogram_fn = histogram_fn
+        self._histogram_pool: concurrent.futures.ThreadPoolExecutor | None = None  # one worker, made on first use
+        self._histogram_job: HistogramRequest | None = None  # the request being computed now
+        self._histogram_asked: int | None = None  # seq of the last request handed to the worker
+        self._histogram_done: HistogramResult | None = None  # computed, for the next step
+        self.histogram_stats = {"computed": 0, "failed": 0}
         self._presence_init()
         self.config_version = 1
         self.exit_code = exitcodes.OK
@@ -399,6 +418,10 @@ class Service(ControlPlane, HealthReporter, PresencePlane):
         if self._processor is not None:
             await asyncio.get_running_loop().run_in_executor(None, self._processor.stop)
             self._processor = None
+        if self._histogram_pool is not None:
+            # A job under way finishes (tens of milliseconds); its result is not wanted any more.
+            pool, self._histogram_pool = self._histogram_pool, None
+            await asyncio.get_running_loop().run_in_executor(None, functools.partial(pool.shutdown, wait=True, cancel_futures=True))
         if self._pipeline is not None:
             closer = getattr(self._pipeline.estimator, "close", None)  # the GPU backend frees its memory
             if closer is not None:
@@ -576,13 +599,16 @@ class Service(ControlPlane, HealthReporter, PresencePlane):
 
             vehicle = VehicleState()
         camera_ok = capture.ok if capture is not None else False
+        histogram, self._histogram_done = self._histogram_done, None
         out = self.supervisor.step(
             now,
             latest.result if latest is not None else None,
             vehicle,
             [r for r, _ in pending],
             camera_ok=camera_ok,
+            histogram=histogram,
         )
+        self._plan_off_loop(out.histogram_request)
         replies = iter(out.replies)
         for _, fut in pending:
             if fut is None:
@@ -616,6 +642,45 @@ class Service(ControlPlane, HealthReporter, PresencePlane):
             log.info("state %s: %s", out.state.value, out.reason)
             self._notify(f"STATUS={out.state.value}: {out.reason}")
             self._kick_health()
+
+    def _plan_off_loop(self, request: HistogramRequest | None) -> None:
+        """Hand the detour layer's histogram request to the worker thread (one job at a time; a request
+        already handed over is not computed again). Its result is offered at the next step."""
+        if request is None or self._histogram_job is not None or request.seq == self._histogram_asked:
+            return
+        loop = self._loop
+        assert loop is not None
+        if self._histogram_pool is None:
+            self._histogram_pool = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="detour-histogram")
+        self._histogram_job = request
+        self._histogram_asked = request.seq
+        fut = loop.run_in_executor(self._histogram_pool, self._histogram_fn, request)
+        fut.add_done_callback(functools.partial(self._on_histogram, request))
+
+    def _on_histogram(self, request: HistogramRequest, fut: asyncio.Future) -> None:
+        """On the loop: the worker finished ``request``; keep the result (or the failure) for the next
+        step, which hands it to the supervisor (a stale one is dropped there)."""
+        self._histogram_job = None
+        if fut.cancelled():
+            return
+        err = fut.exception()
+        if err is None:
+            self.histogram_stats["computed"] += 1
+            self._histogram_done = HistogramResult(request.seq, fut.result())
+        else:
+            # Not swallowed: logged with its context, and the detour ends in a hold that says why.
+            self.histogram_stats["failed"] += 1
+            log.error(
+                "detour histogram failed (request %d asked at %.3f s, %d map points, goal bearing %.1f deg)",
+                request.seq,
+                request.asked_s,
+                len(request.points_ne_m),
+                math.degrees(request.goal_bearing_rad),
+                exc_info=err,
+            )
+            self._error(f"detour histogram: {type(err).__name__}: {err}")
+            self._histogram_done = HistogramResult(request.seq, None, f"{type(err).__name__}: {err}")
+        self._wake_control()
 
     def _run_action(self, action: Action) -> None:
         """START_OFFBOARD / HOLD wait for the autopilot's ack (seconds): run them beside the loop and

@@ -328,7 +328,10 @@ def fly(
     latest: FrameResult | None = None
     camera_ok = True
     n_cam = n_sp = 0
-    hold = CourseHold()  # course hold's bookkeeping, the service's own (core/course.py)
+    # Course hold's bookkeeping, the service's own (core/course.py). The detour layer's histograms are
+    # computed at once, inside the step that asks (the service's worker thread answers a step later):
+    # in simulated time that costs nothing, and every flight stays the same, bit for bit.
+    hold = CourseHold(defer_histogram=False)
     goal = GoalSpec()  # the course: the start pose
     if sim.goal == "point":
         north, east, _ = course.goal_point_ned_m
