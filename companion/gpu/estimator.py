@@ -285,8 +285,8 @@ class CupyRegionEstimator:
             self._hist = cp.zeros(N_REGIONS * p.num_disparities, dtype=cp.uint32)
         else:
             sp = self.sgm_plan
-            # zero padding left of each image (plan.census_pad_px), written once here
-            self._census = cp.zeros((2, h, sp.census_pad_px + w), dtype=cp.uint64)
+            # left, right, right shifted by one (sgm.cu); the zero padding is written once, here
+            self._census = cp.zeros((3, h, sp.census_stride_px), dtype=cp.uint64)
             self._volumes = cp.zeros((sp.paths, h, w, sp.dpad), dtype=cp.uint8)
             self._winner = cp.zeros((h, w), dtype=cp.int32)
             self._right_keys = cp.zeros((h, w), dtype=cp.uint32)

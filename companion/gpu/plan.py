@@ -327,6 +327,12 @@ class SgmPlan:
         return self.dpad
 
     @property
+    def census_stride_px(self) -> int:
+        """Elements per census row (``CEN_STR``): the padding, the image and one more column for the
+        shifted copy of the right eye, rounded up to even (16-byte aligned rows)."""
+        return (self.width_px + self.census_pad_px + 2) // 2 * 2
+
+    @property
     def volume_bytes(self) -> int:
         """Bytes of one path's cost volume (``H·W·DPAD`` uint8)."""
         return self.height_px * self.width_px * self.dpad
@@ -355,7 +361,7 @@ class SgmPlan:
         hw = self.height_px * self.width_px
         return {
             "path_volumes": self.paths * self.volume_bytes,
-            "census_left_right": 2 * 8 * self.height_px * (self.census_pad_px + self.width_px),
+            "census_left_right": 3 * 8 * self.height_px * self.census_stride_px,  # the right eye twice
             "left_winner_int32": 4 * hw,
             "right_keys_uint32": 4 * hw,
             "disparity_int16": 2 * hw,

@@ -216,7 +216,7 @@ class HostSgmKernels:
         rr = np.zeros((h, self.pitch), np.uint8)
         rl[:, :w], rr[:, :w] = left, right
         pad = p.census_pad_px
-        cen = np.zeros((2, h, pad + w), np.uint64)  # the padding stays zero, as on the device
+        cen = _zeros_aligned((3, h, p.census_stride_px), np.uint64)  # as on the device: zero padding, 16-B aligned
         vols = np.full((p.paths, h, w, p.dpad), 0xEE, np.uint8)
         dl = np.full((h, w), -7, np.int32)
         drkey = np.full((h, w), 7, np.uint32)  # sgm_census resets it
@@ -235,10 +235,21 @@ class HostSgmKernels:
                            d(max_depth), p.post_blocks)
         if counter[0] != 0 or hist.any():
             raise AssertionError("the last block did not reset the histogram state")
-        if cen[:, :, :pad].any():
-            raise AssertionError("sgm_census wrote into the census padding")
-        return {"census_left": cen[0, :, pad:], "census_right": cen[1, :, pad:], "volumes": vols, "winner": dl, "right_keys": drkey,
+        if cen[:, :, :pad].any() or cen[:2, :, pad + w :].any():
+            raise AssertionError("sgm_census wrote outside the images")
+        if not np.array_equal(cen[2, :, pad + 1 : pad + 1 + w], cen[1, :, pad : pad + w]):
+            raise AssertionError("the shifted copy of the right census differs from it")
+        return {"census_left": cen[0, :, pad : pad + w], "census_right": cen[1, :, pad : pad + w], "volumes": vols, "winner": dl, "right_keys": drkey,
                 "disparity": disp, "regions": result}
+
+
+def _zeros_aligned(shape: tuple[int, ...], dtype: type, align: int = 256) -> np.ndarray:
+    """Zeros whose first byte is ``align``-byte aligned (CuPy's allocations are 256-byte aligned; the
+    kernels' 16-byte loads rely on it)."""
+    n = int(np.prod(shape)) * np.dtype(dtype).itemsize
+    raw = np.zeros(n + align, np.uint8)
+    off = (-raw.ctypes.data) % align
+    return raw[off : off + n].view(dtype).reshape(shape)
 
 
 class HostObstacleKernel:

@@ -18,6 +18,7 @@
 struct uint3e { unsigned x, y, z; };
 struct uint4 { unsigned x, y, z, w; } __attribute__((aligned(16)));
 struct uint2 { unsigned x, y; } __attribute__((aligned(8)));
+struct ulonglong2 { unsigned long long x, y; } __attribute__((aligned(16)));
 inline uint4 make_uint4(unsigned a, unsigned b, unsigned c, unsigned d) { return {a, b, c, d}; }
 inline uint2 make_uint2(unsigned a, unsigned b) { return {a, b}; }
 
