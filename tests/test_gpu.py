@@ -5,6 +5,8 @@ run them on a GPU machine with ``pytest -m gpu tests/test_gpu.py``.
 
 from __future__ import annotations
 
+import gc
+
 import json
 import math
 from pathlib import Path
@@ -344,6 +346,34 @@ def test_frame_written_into_the_staging_buffer_and_strided_frames() -> None:
     strided = big[:, 5 : 5 + 2 * w]
     strided[...] = frame  # a non-contiguous view
     _assert_regions_equal(est.estimate(strided).regions, cpu.estimate(frame).regions)
+
+
+@pytest.mark.parametrize("zero_copy", [False, True])
+@pytest.mark.parametrize("matcher", ["sad", "sgm"])
+def test_frames_decoded_into_the_frame_pool_are_read_in_place(zero_copy: bool, matcher: str) -> None:
+    w, h = 320, 180
+    rng = np.random.default_rng(18)
+    cfg = _cfg(D=64, matcher=matcher, zero_copy=zero_copy)
+    est = _gpu(cfg, w, h)
+    cpu = _cpu(cfg, w, h)
+    pool = est.frame_pool(2)
+    assert est.frame_pool(5) is pool  # made once
+    held = []
+    for i in range(5):  # the two buffers in turn, each read in place (no host copy), in any order
+        frame = _bgr_frame(h, w, rng)
+        buf = pool.acquire()
+        if buf is None:  # both held: the camera decodes elsewhere (a plain copy, as ever)
+            held.clear()
+            gc.collect()
+            buf = pool.acquire()
+        assert buf is not None
+        buf[...] = frame
+        assert est._source(buf, 3).copy is None
+        _assert_regions_equal(est.estimate(buf).regions, cpu.estimate(frame).regions)
+        held.append(buf)
+    plain = _bgr_frame(h, w, rng)  # a frame outside the pool still works, through the staging copy
+    assert est._source(plain, 3).copy is not None
+    _assert_regions_equal(est.estimate(plain).regions, cpu.estimate(plain).regions)
 
 
 def test_disparity_preview_is_the_block_maximum() -> None:

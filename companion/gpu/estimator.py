@@ -7,7 +7,8 @@ event per band):
 1. band k of the caller's frame is copied into a pinned staging buffer (``np.copyto``, or OpenCV's
    parallel BGR->RGB shuffle with ``gpu.host_copy_engine = "opencv"``) and its DMA is queued on the
    copy stream; with ``gpu.zero_copy`` the staging buffer is mapped and read in place (Jetsons); a
-   frame written straight into :meth:`CupyRegionEstimator.frame_buffer` skips the host copy;
+   frame written straight into :meth:`CupyRegionEstimator.frame_buffer`, or decoded by the camera
+   into one of :meth:`CupyRegionEstimator.frame_pool`'s buffers, skips the host copy;
 2. the compute stream waits for band k's DMA, then ``grey_*`` converts its rows (OpenCV's
    fixed-point formula, bit-exact), ``remap_linear`` rectifies the rows that depend only on rows
    uploaded so far (bit-exact with ``cv2.remap``; skipped for an ideal rig), and
@@ -53,6 +54,7 @@ from companion.core.regions import RegionLayout, region_layout
 from companion.core.stereo import split_frame
 from companion.core.types import N_REGIONS, RegionDepths
 from companion.errors import BackendError, ConfigError
+from companion.framepool import FramePool
 from companion.gpu.plan import (
     SGM_CENSUS_TILE,
     SGM_PATH_THREADS,
@@ -317,7 +319,13 @@ class CupyRegionEstimator:
             np.float64(rc.max_depth_m),
         )
         self._registered = 0  # caller frame page-locked for the DMA in flight (register_frames)
-        self._graphs: dict[tuple[int, bool, bool], Any] = {}
+        # frame_pool(): pinned buffers a camera decodes into, host pointer -> where the kernels read the
+        # frame from (the device copy; on a zero-copy device the mapped buffer itself)
+        self._pool: FramePool | None = None
+        self._pool_mem: list[Any] = []
+        self._pool_ptrs: dict[int, int] = {}
+        self._kernel_frame_ptr = self._frame_dev_ptr  # where this frame's kernels read it
+        self._graphs: dict[tuple[int, int, bool, bool, int], Any] = {}
         self._graph_ok = bool(self._gpu_cfg.use_cuda_graph) and not self._gpu_cfg.stage_timing
         self._events = [cp.cuda.Event() for _ in range(5)] if self._gpu_cfg.stage_timing else []
         n_threads = self._gpu_cfg.host_copy_threads
@@ -402,6 +410,38 @@ class CupyRegionEstimator:
         shape = (self.height_px, 2 * self.width_px) + ((channels,) if channels > 1 else ())
         return self._host_frame[: math.prod(shape)].reshape(shape)
 
+    def frame_pool(self, count: int = 3, channels: int = 3) -> FramePool:
+        """``count`` more pinned buffers of the frame's shape (``(H, 2W, channels)``, uint8) for a camera to
+        decode into (:mod:`companion.framepool`): a frame in one of them goes to the device with no host
+        copy, as from :meth:`frame_buffer`, but the camera may fill the next buffer while this frame is
+        processed. Made once; later calls return the same pool (``count`` and ``channels`` of the first).
+
+        Raises:
+            ValueError: ``count`` < 1, or ``channels`` not 1, 3 or 4.
+        """
+        if self._pool is not None:
+            return self._pool
+        if count < 1:
+            raise ValueError(f"count must be >= 1, got {count}")
+        shape = self.frame_buffer(channels).shape
+        cp = self._cp
+        flags = cp.cuda.runtime.hostAllocMapped if self._dev_frame is None else cp.cuda.runtime.hostAllocPortable
+        nbytes = math.prod(shape)
+        buffers = []
+        with self._device:
+            for _ in range(count):
+                mem = cp.cuda.PinnedMemory(nbytes, flags)
+                self._pool_mem.append(mem)
+                buf = np.frombuffer(cp.cuda.PinnedMemoryPointer(mem, 0), dtype=np.uint8, count=nbytes).reshape(shape)
+                if self._dev_frame is None:  # zero copy: the kernels read the buffer through its mapping
+                    dev = int(cp.cuda.runtime.pointerGetAttributes(mem.ptr).devicePointer)
+                else:
+                    dev = self._frame_dev_ptr
+                self._pool_ptrs[int(mem.ptr)] = dev
+                buffers.append(buf)
+        self._pool = FramePool(buffers)
+        return self._pool
+
     def estimate(self, frame: np.ndarray, want_disparity: bool = False, near_block_px: int = 0) -> RegionEstimate:
         """9 raw region depths of one side-by-side frame.
 
@@ -458,6 +498,7 @@ class CupyRegionEstimator:
         try:
             with self._device:
                 src = self._source(frame, channels)
+                self._kernel_frame_ptr = src.kernel_ptr
                 ev = self._events
                 for k, band in enumerate(self._bands):
                     self._upload_band(src, band, self._band_events[k])
@@ -546,7 +587,12 @@ class CupyRegionEstimator:
         staging = self.frame_buffer(channels)
         host_ptr = self._host_frame_mem.ptr
         zero_copy = self._dev_frame is None
-        in_place = frame.__array_interface__["data"][0] == host_ptr and frame.shape == staging.shape
+        ptr = frame.__array_interface__["data"][0]
+        in_place = ptr == host_ptr and frame.shape == staging.shape
+        pooled = self._pool_ptrs.get(ptr) if frame.shape == staging.shape and frame.dtype == np.uint8 else None
+        if pooled is not None and frame.flags.c_contiguous:
+            # decoded into one of frame_pool()'s buffers: DMA (or, zero copy, read) from it in place
+            return _Source(frame, staging, None, ptr, False, zero_copy, pooled)
         if (
             self._gpu_cfg.register_frames
             and not in_place
@@ -555,9 +601,9 @@ class CupyRegionEstimator:
             and self._register(frame)
         ):
             # The caller's own pages are locked for this frame: DMA straight from them.
-            return _Source(frame, staging, None, frame.ctypes.data, False, zero_copy)
+            return _Source(frame, staging, None, frame.ctypes.data, False, zero_copy, self._frame_dev_ptr)
         if in_place:
-            return _Source(frame, staging, None, host_ptr, False, zero_copy)
+            return _Source(frame, staging, None, host_ptr, False, zero_copy, self._frame_dev_ptr)
         if self._gpu_cfg.host_copy_engine == "opencv" and channels > 1:
             import cv2
 
@@ -568,8 +614,8 @@ class CupyRegionEstimator:
                 if out.__array_interface__["data"][0] != dst.__array_interface__["data"][0]:
                     np.copyto(dst, out)  # cv2 reallocated (not expected for these layouts)
 
-            return _Source(frame, staging, copy, host_ptr, True, zero_copy)
-        return _Source(frame, staging, np.copyto, host_ptr, False, zero_copy)
+            return _Source(frame, staging, copy, host_ptr, True, zero_copy, self._frame_dev_ptr)
+        return _Source(frame, staging, np.copyto, host_ptr, False, zero_copy, self._frame_dev_ptr)
 
     def _upload_band(self, src: _Source, band: _Band, done: Any) -> None:
         """Host-copy band rows into the staging buffer, queue their DMA, record ``done`` after it."""
@@ -619,7 +665,7 @@ class CupyRegionEstimator:
             self._cp.cuda.runtime.hostUnregister(ptr)
 
     def _graph(self, k: int, channels: int, swapped: bool, want_disparity: bool) -> Any:
-        key = (k, channels, swapped, want_disparity)
+        key = (k, channels, swapped, want_disparity, self._kernel_frame_ptr)  # a pool buffer read in place: its own
         graph = self._graphs.get(key)
         if graph is None:
             stream = self._stream
@@ -652,7 +698,7 @@ class CupyRegionEstimator:
             quads = -(-w // 4)
             self._k_grey[(channels, swapped)](
                 (-(-quads // _EW_THREADS), b - a, 2), (_EW_THREADS,),
-                (np.uint64(self._frame_dev_ptr), self._raw_l, self._raw_r, np.int32(a)), stream=s,
+                (np.uint64(self._kernel_frame_ptr), self._raw_l, self._raw_r, np.int32(a)), stream=s,
             )
         ra, rb = band.rect
         if self._maps is not None and rb > ra:
@@ -867,7 +913,8 @@ class _Band:
 
 @dataclass(frozen=True)
 class _Source:
-    """Where one frame's bytes come from: host copy into ``staging`` (None: no copy), DMA source."""
+    """Where one frame's bytes come from: host copy into ``staging`` (None: no copy), DMA source, and
+    where the kernels then read them."""
 
     frame: np.ndarray
     staging: np.ndarray
@@ -875,4 +922,5 @@ class _Source:
     dma_ptr: int
     swapped: bool
     zero_copy: bool
+    kernel_ptr: int  # where the kernels read the frame (the device copy, or a mapped buffer in place)
 

@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from companion.errors import CameraError
+from companion.framepool import FrameBuffers
 from companion.interfaces import CameraSource, Frame, VehicleState
 from companion.sim.placement import CoursePlacement
 
@@ -127,6 +128,10 @@ class UvcCamera:
     ``model`` ``zed``: the mode (W, H, fps) was validated against the ZED's modes at config time;
     ``sbs``: any mode, checked only against what the driver actually gives. The mode is asked for
     with ``fourcc`` (YUYV for the ZED).
+
+    :attr:`frame_buffers` (set by the service when the GPU backend offers pinned buffers,
+    :mod:`companion.framepool`): each frame is decoded straight into one of them, so that the GPU reads
+    it with no host copy; when none is free, or OpenCV would not decode into it, into memory of its own.
     """
 
     def __init__(
@@ -152,6 +157,7 @@ class UvcCamera:
         self._clock = clock
         self._cap = None
         self._seq = 0
+        self.frame_buffers: FrameBuffers | None = None
 
     @property
     def eye_size_px(self) -> tuple[int, int]:
@@ -174,10 +180,14 @@ class UvcCamera:
         cap = self._cap
         if cap is None:
             raise CameraError(f"{self.name}: not open")
-        ok, image = cap.read()
+        pool = self.frame_buffers
+        buf = pool.acquire((self.height_px, 2 * self.width_px, 3)) if pool is not None else None
+        ok, image = cap.read(buf) if buf is not None else cap.read()
         t = self._clock()
         if not ok or image is None:
             raise CameraError(f"{self.name}: no frame (camera unplugged or stalled)")
+        # (OpenCV decodes into buf when its shape and type fit; else it returns an array of its own and
+        # buf goes back to the pool when dropped here)
         image = _check_frame(image, self.name, self.width_px, self.height_px)
         self._seq += 1
         return Frame(image=image, timestamp_s=t, seq=self._seq)

@@ -65,6 +65,7 @@ from companion.errors import (
     FrameError,
     VehicleError,
 )
+from companion.framepool import FrameBuffers
 from companion.interfaces import CameraSource, Frame, VehicleLink
 from companion.service.aio import wait_event
 from companion.service.backoff import LogBackoff
@@ -134,6 +135,7 @@ class Service(ControlPlane, HealthReporter, PresencePlane):
         self.config_path = config_path
         self.config = resolve_config_paths(cfg, config_path.parent if config_path else None)
         self._camera = camera
+        self._frame_buffers = FrameBuffers()  # the GPU backend's pinned buffers for the camera, or none
         self._telemetry_pose: TelemetryPose | None = None  # the sim camera's pose source, when it has one
         self.link = link
         self._clock = clock
@@ -286,6 +288,8 @@ class Service(ControlPlane, HealthReporter, PresencePlane):
                     self.link.state, placement_from_config(cfg), cfg.camera.sim_pose_max_age_s, self._clock
                 )
             self._camera = make_camera(cfg, pose_provider=self._telemetry_pose, clock=self._clock)
+        if hasattr(self._camera, "frame_buffers"):  # a UVC camera decodes into the GPU's pinned buffers
+            self._camera.frame_buffers = self._frame_buffers
         eye = tuple(self._camera.eye_size_px)
         if eye != (cfg.camera.width_px, cfg.camera.height_px):
             raise StartupError(
@@ -331,15 +335,25 @@ class Service(ControlPlane, HealthReporter, PresencePlane):
         old = self._pipeline.estimator
         changed = self._pipeline.reconfigure(cfg)
         if self._pipeline.estimator is not old:
+            self._offer_frame_pool(self._pipeline, cfg)
             closer = getattr(old, "close", None)
             if closer is not None:
                 closer()
         return changed
 
+    def _offer_frame_pool(self, pipeline: Any, cfg: CompanionConfig) -> None:
+        """In the pipeline thread: the camera decodes into the estimator's pinned buffers, when it has
+        them (the GPU backend) and ``gpu.camera_frame_buffers`` > 0; else into memory of its own."""
+        make_pool = getattr(pipeline.estimator, "frame_pool", None)
+        count = cfg.gpu.camera_frame_buffers
+        self._frame_buffers.pool = make_pool(count) if make_pool is not None and count > 0 else None
+
     def _build_pipeline(self, cfg: CompanionConfig) -> Any:
         from companion.backends import make_pipeline
 
-        return make_pipeline(cfg, cfg.camera.width_px, cfg.camera.height_px, clock=time.perf_counter)
+        pipeline = make_pipeline(cfg, cfg.camera.width_px, cfg.camera.height_px, clock=time.perf_counter)
+        self._offer_frame_pool(pipeline, cfg)
+        return pipeline
 
     def _spawn(self, coro: Any, name: str, critical: bool = False) -> None:
         assert self._loop is not None
