@@ -33,6 +33,7 @@ import os
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -288,6 +289,25 @@ def _kernel_times(est: Any, cp: Any, n: int) -> dict[str, dict[str, float]]:
     return out
 
 
+def _time_in_place(
+    est: Any, frames: list[np.ndarray], warmup: int, n: int, buffer: Callable[[], np.ndarray | None]
+) -> dict[str, Any]:
+    """Wall times of ``est.estimate`` on frames written first into ``buffer()`` (a pinned buffer the
+    estimator reads in place; each frame's buffer is dropped before the next is asked for)."""
+    times = []
+    for i in range(warmup + n):
+        buf = buffer()
+        if buf is None:
+            raise RuntimeError("no free frame buffer in the benchmark")
+        buf[...] = frames[i % len(frames)]
+        t0 = time.perf_counter()
+        est.estimate(buf)
+        if i >= warmup:
+            times.append((time.perf_counter() - t0) * 1e3)
+        del buf
+    return stats_ms(times)
+
+
 def _time_estimator(est: Any, frames: list[np.ndarray], warmup: int, n: int) -> tuple[dict[str, Any], dict[str, Any]]:
     wall = []
     stages: dict[str, list[float]] = {}
@@ -463,28 +483,12 @@ def run_gpu_bench(args: argparse.Namespace, sizes: list[BenchSize]) -> dict[str,
         e = CupyRegionEstimator(_cfg(size, calib, **opts), size.width_px, size.height_px)
         whole["default_last"], _ = _time_estimator(e, frames, warmup, n)
         whole["default"] = max(whole["default_first"], whole["default_last"], key=lambda v: v["median_ms"])
-        buf = e.frame_buffer(3)
-        in_place = []  # frames already in the staging buffer (a camera decoding into it): no host copy
-        for i in range(warmup + n):
-            buf[...] = frames[i % len(frames)]
-            t0 = time.perf_counter()
-            e.estimate(buf)
-            if i >= warmup:
-                in_place.append((time.perf_counter() - t0) * 1e3)
-        whole["frame_in_staging_buffer"] = stats_ms(in_place)
-        pool = e.frame_pool(3)  # a camera decoding into the estimator's pinned buffers (the service's UVC path)
-        pooled = []
-        for i in range(warmup + n):
-            buf = pool.acquire()
-            if buf is None:  # each frame's buffer is dropped before the next is asked for
-                raise RuntimeError("frame pool exhausted in the benchmark")
-            buf[...] = frames[i % len(frames)]
-            t0 = time.perf_counter()
-            e.estimate(buf)
-            if i >= warmup:
-                pooled.append((time.perf_counter() - t0) * 1e3)
-            del buf
-        whole["frame_in_pool_buffer"] = stats_ms(pooled)
+        # frames already in pinned memory, no host copy: the staging buffer, and a camera decoding into
+        # the estimator's pool (the service's UVC path)
+        staging = e.frame_buffer(3)
+        whole["frame_in_staging_buffer"] = _time_in_place(e, frames, warmup, n, lambda: staging)
+        pool = e.frame_pool(3)
+        whole["frame_in_pool_buffer"] = _time_in_place(e, frames, warmup, n, pool.acquire)
         e.close()
         entry["whole_frame"] = whole
         entry["opencv"] = _opencv(size, calib, frames, warmup, n)

@@ -255,14 +255,9 @@ class CupyRegionEstimator:
         self._band_events = [cp.cuda.Event(disable_timing=True) for _ in self._bands]
         # Pinned staging for the largest frame (4 channels); per-channel views share it.
         frame_bytes = h * 2 * w * _MAX_CHANNELS
-        flags = cp.cuda.runtime.hostAllocMapped if self._gpu_cfg.zero_copy else cp.cuda.runtime.hostAllocPortable
-        self._host_frame_mem = cp.cuda.PinnedMemory(frame_bytes, flags)
-        self._host_frame = np.frombuffer(
-            cp.cuda.PinnedMemoryPointer(self._host_frame_mem, 0), dtype=np.uint8, count=frame_bytes
-        )
+        self._host_frame_mem, self._host_frame, mapped_ptr = self._pinned(frame_bytes)
         if self._gpu_cfg.zero_copy:
-            attrs_ptr = cp.cuda.runtime.pointerGetAttributes(self._host_frame_mem.ptr)
-            self._frame_dev_ptr = int(attrs_ptr.devicePointer)
+            self._frame_dev_ptr = mapped_ptr
             self._dev_frame = None
         else:
             self._dev_frame = cp.empty(frame_bytes, dtype=cp.uint8)
@@ -319,11 +314,11 @@ class CupyRegionEstimator:
             np.float64(rc.max_depth_m),
         )
         self._registered = 0  # caller frame page-locked for the DMA in flight (register_frames)
-        # frame_pool(): pinned buffers a camera decodes into, host pointer -> where the kernels read the
-        # frame from (the device copy; on a zero-copy device the mapped buffer itself)
+        # The pinned buffers a frame is read from in place (the staging buffer, frame_pool()'s): host
+        # pointer -> where the kernels read the frame (the device copy; zero copy: the buffer's mapping).
         self._pool: FramePool | None = None
         self._pool_mem: list[Any] = []
-        self._pool_ptrs: dict[int, int] = {}
+        self._in_place_ptrs: dict[int, int] = {int(self._host_frame_mem.ptr): self._frame_dev_ptr}
         self._kernel_frame_ptr = self._frame_dev_ptr  # where this frame's kernels read it
         self._graphs: dict[tuple[int, int, bool, bool, int], Any] = {}
         self._graph_ok = bool(self._gpu_cfg.use_cuda_graph) and not self._gpu_cfg.stage_timing
@@ -424,23 +419,27 @@ class CupyRegionEstimator:
         if count < 1:
             raise ValueError(f"count must be >= 1, got {count}")
         shape = self.frame_buffer(channels).shape
-        cp = self._cp
-        flags = cp.cuda.runtime.hostAllocMapped if self._dev_frame is None else cp.cuda.runtime.hostAllocPortable
-        nbytes = math.prod(shape)
         buffers = []
         with self._device:
             for _ in range(count):
-                mem = cp.cuda.PinnedMemory(nbytes, flags)
+                mem, buf, mapped_ptr = self._pinned(math.prod(shape))
                 self._pool_mem.append(mem)
-                buf = np.frombuffer(cp.cuda.PinnedMemoryPointer(mem, 0), dtype=np.uint8, count=nbytes).reshape(shape)
-                if self._dev_frame is None:  # zero copy: the kernels read the buffer through its mapping
-                    dev = int(cp.cuda.runtime.pointerGetAttributes(mem.ptr).devicePointer)
-                else:
-                    dev = self._frame_dev_ptr
-                self._pool_ptrs[int(mem.ptr)] = dev
-                buffers.append(buf)
+                # zero copy: the kernels read the buffer through its mapping; else the DMA reads it
+                self._in_place_ptrs[int(mem.ptr)] = mapped_ptr if self._dev_frame is None else self._frame_dev_ptr
+                buffers.append(buf.reshape(shape))
         self._pool = FramePool(buffers)
         return self._pool
+
+    def _pinned(self, nbytes: int) -> tuple[Any, np.ndarray, int]:
+        """Page-locked host memory for frames (mapped with ``gpu.zero_copy``): the allocation, a uint8
+        ``(nbytes,)`` array over it, and its device-side pointer (0 when not mapped)."""
+        cp = self._cp
+        zero_copy = self._gpu_cfg.zero_copy
+        flags = cp.cuda.runtime.hostAllocMapped if zero_copy else cp.cuda.runtime.hostAllocPortable
+        mem = cp.cuda.PinnedMemory(nbytes, flags)
+        array = np.frombuffer(cp.cuda.PinnedMemoryPointer(mem, 0), dtype=np.uint8, count=nbytes)
+        mapped = int(cp.cuda.runtime.pointerGetAttributes(mem.ptr).devicePointer) if zero_copy else 0
+        return mem, array, mapped
 
     def estimate(self, frame: np.ndarray, want_disparity: bool = False, near_block_px: int = 0) -> RegionEstimate:
         """9 raw region depths of one side-by-side frame.
@@ -588,22 +587,20 @@ class CupyRegionEstimator:
         host_ptr = self._host_frame_mem.ptr
         zero_copy = self._dev_frame is None
         ptr = frame.__array_interface__["data"][0]
-        in_place = ptr == host_ptr and frame.shape == staging.shape
-        pooled = self._pool_ptrs.get(ptr) if frame.shape == staging.shape and frame.dtype == np.uint8 else None
-        if pooled is not None and frame.flags.c_contiguous:
-            # decoded into one of frame_pool()'s buffers: DMA (or, zero copy, read) from it in place
-            return _Source(frame, staging, None, ptr, False, zero_copy, pooled)
+        in_place = None
+        if frame.shape == staging.shape and frame.dtype == np.uint8 and frame.flags.c_contiguous:
+            # written into frame_buffer() or decoded into a frame_pool() buffer: DMA (zero copy: read) it there
+            in_place = self._in_place_ptrs.get(ptr)
+        if in_place is not None:
+            return _Source(frame, staging, None, ptr, False, zero_copy, in_place)
         if (
             self._gpu_cfg.register_frames
-            and not in_place
             and not zero_copy
             and frame.flags.c_contiguous
             and self._register(frame)
         ):
             # The caller's own pages are locked for this frame: DMA straight from them.
             return _Source(frame, staging, None, frame.ctypes.data, False, zero_copy, self._frame_dev_ptr)
-        if in_place:
-            return _Source(frame, staging, None, host_ptr, False, zero_copy, self._frame_dev_ptr)
         if self._gpu_cfg.host_copy_engine == "opencv" and channels > 1:
             import cv2
 

@@ -288,24 +288,20 @@ __device__ void walk_line(const u64* __restrict__ cen, u8* __restrict__ vol, int
   PathState L;
 #pragma unroll
   for (int w = 0; w < WPL; ++w) L.A[w] = L.B[w] = 0u;
-  // win[w][k]: the right census values of the window (horizontal walks: a ring whose slot of value
-  // x - d0 - j at step t is (t - j) & 3 going right, (t + j) & 3 going left; other walks: slot j).
+  // win[w][k]: a horizontal walk's window of right census values, a ring whose slot of value x - d0 - j
+  // at step t is (t - j) & 3 going right, (t + j) & 3 going left (other walks load all four per step).
   u64 win[WPL][4];
-  {
-    const u64* q = p + CEN_IMG - d0;
-#pragma unroll
-    for (int w = 0; w < WPL; ++w) {
-#pragma unroll
-      for (int j = 0; j < 4; ++j) win[w][DY == 0 ? (j & 3) * (DX > 0 ? -1 : 1) & 3 : j] = __ldg(q - 4 * LPL * w - j);
-    }
-  }
   u32 cA[WPL], cB[WPL], xA[WPL], xB[WPL];
   {
-    u64 cur[WPL][4];
+    const u64* q = p + CEN_IMG - d0;
+    u64 cur[WPL][4];  // step 0's right census values, j = 0..3
 #pragma unroll
     for (int w = 0; w < WPL; ++w)
 #pragma unroll
-      for (int j = 0; j < 4; ++j) cur[w][j] = win[w][DY == 0 ? (j & 3) * (DX > 0 ? -1 : 1) & 3 : j];
+      for (int j = 0; j < 4; ++j) {
+        cur[w][j] = __ldg(q - 4 * LPL * w - j);
+        win[w][(DX > 0 ? -j : j) & 3] = cur[w][j];
+      }
     pixel_costs(__ldg(p), cur, xs, cA, cB, xA, xB);
   }
   int t_load = 1;  // the step whose loads are issued next
