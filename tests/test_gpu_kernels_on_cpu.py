@@ -62,6 +62,7 @@ def test_kernel_source_equals_the_reference(w: int, h: int, d: int, b: int, u: i
         (40, 18, 32, 8, 10, 120, 10, 1, True, 32),  # a whole warp per line (96 padded disparities), diagonals
         (48, 12, 128, 4, 8, 80, 0, 0, False, 16),  # 16 lanes x 2 groups (the faster 128 layout), u = 0, strict LR
         (56, 16, 48, 4, 192, 193, 5, -1, True, 8),  # padded (48 of 64), 2 groups per lane, costs up to 255, no LR
+        (24, 70, 16, 4, 10, 120, 10, 1, True, 0),  # census tiles over 3 block rows (the last partial), 1-row post slabs
     ],
 )
 def test_sgm_kernel_source_equals_the_reference(
@@ -81,6 +82,7 @@ def test_sgm_kernel_source_equals_the_reference(
     out = kernels.run(left, right, p1, p2, u, lr, median)
 
     np.testing.assert_array_equal(out["census_left"], S.census_9x7(left))
+    np.testing.assert_array_equal(out["census_right"], S.census_9x7(right))
     cost = S.census_costs(left, right, d)
     for k, (dx, dy) in enumerate(S.PATH_DIRECTIONS[:paths]):
         np.testing.assert_array_equal(out["volumes"][k][:, :, :d], S.aggregate_path(cost, dx, dy, p1, p2))

@@ -49,6 +49,8 @@ def test_kernel_source_equals_the_reference(w: int, h: int, ndisp: int, scale: i
         q[rng.random(q.shape) < (0.3 if trial == 0 else 0.7)] = -1
         q[rng.random(q.shape) < 0.02] = 0
         ref = reduce_obstacle_distance(_host_view(q, scale), lay).distances_cm
-        np.testing.assert_array_equal(kernel.run(q, scale, lay), ref)
+        # the estimator's row slices, one slice (a block per bin), and more slices than rows (empty ones)
+        for slices in (None, 1, h + 3) if trial == 0 else (None,):
+            np.testing.assert_array_equal(kernel.run(q, scale, lay, slices), ref)
     blank = np.full((h, w), -1, np.int16)
     np.testing.assert_array_equal(kernel.run(blank, scale, lay), reduce_obstacle_distance(_host_view(blank, scale), lay).distances_cm)

@@ -117,14 +117,12 @@ def _sgm_kernel_times(est: Any, cp: Any, n: int) -> dict[str, dict[str, float]]:
     samples: dict[str, list[float]] = {k: [] for k in (*names, "sgm_total")}
     k = est._k_sgm
     sp = est.sgm_plan
-    w, h = est.width_px, est.height_px
     p1, p2, uniq, lr_max, median = est._sgm_args
     fb, pct, min_valid, max_depth = est._region_args
-    tw, th = SGM_CENSUS_TILE
     with est._device:
         for i in range(n + 10):
             events[0].record(s)
-            k["sgm_census"]((-(-w // tw), -(-h // th), 2), (tw, th),
+            k["sgm_census"](sp.census_grid, SGM_CENSUS_TILE,
                             (est._rect_l, est._rect_r, est._census, est._right_keys), stream=s)
             events[1].record(s)
             k["sgm_paths"]((-(-sp.path_tasks // 4),), (128,), (est._census, est._volumes, p1, p2), stream=s)

@@ -16,8 +16,8 @@ event per band):
    histograms fused in; the last block of the last band turns the histograms into the 9 robust
    depths (``sad_naive`` + ``regions_from_disp`` for configurations the fast kernel does not cover);
 3. the 9 depths and 9 valid fractions (144 bytes) come back to a pinned host buffer; with
-   ``obstacle_distance.send`` on, ``obstacle_bins`` (``kernels/obstacle.cu``, one block per 5° bin)
-   first reduces the device disparity to OBSTACLE_DISTANCE's 72 bins (144 more bytes back), exactly
+   ``obstacle_distance.send`` on, ``obstacle_bins`` (``kernels/obstacle.cu``, a column of blocks per 5° bin)
+   first reduces the device disparity to OBSTACLE_DISTANCE's 72 bins (144 more bytes, in the same copy), exactly
    :func:`companion.core.obstacle.reduce_obstacle_distance`.
 
 With ``stereo.matcher = "sgm"`` (the default) the bands carry the upload, grey and rectification only;
@@ -56,12 +56,16 @@ from companion.core.types import N_REGIONS, RegionDepths
 from companion.errors import BackendError, ConfigError
 from companion.framepool import FramePool
 from companion.gpu.plan import (
+    OBSTACLE_HIST_BINS,
+    OBSTACLE_THREADS,
     SGM_CENSUS_TILE,
     SGM_PATH_THREADS,
     SGM_POST_THREADS,
     DisparityPlan,
     SgmPlan,
     kernel_defines,
+    obstacle_defines,
+    obstacle_slices,
     plan_disparity,
     plan_sgm,
     sgm_defines,
@@ -76,9 +80,6 @@ _EW_THREADS = 128
 #: Threads per block of the fallback kernels.
 _NAIVE_THREADS = 64
 _REGIONS_THREADS = 256
-#: Threads per block of the OBSTACLE_DISTANCE kernel (one block per bin; only the ~18 bins inside
-#: a 90° view do work, so wide blocks; at 1280×720 on an H100 the one-pass histogram takes 0.045 ms).
-OBSTACLE_THREADS = 1024
 _MAX_CHANNELS = 4
 
 
@@ -222,16 +223,17 @@ class CupyRegionEstimator:
         if self.obstacle_layout is not None:
             lay = self.obstacle_layout
             self._od_module = cp.RawModule(
-                code=f"#define OD_THREADS {OBSTACLE_THREADS}\n" + kernel_source("obstacle.cu"),
+                code=obstacle_defines(OBSTACLE_THREADS) + kernel_source("obstacle.cu"),
                 options=("--std=c++17", "--fmad=false"),
             )
             self._k_obstacle = self._od_module.get_function("obstacle_bins")
             self._od_row_thr = cp.asarray(lay.row_threshold_px, dtype=cp.float32)
             self._od_col_fbk = cp.asarray(lay.column_fbk, dtype=cp.float32)
             self._od_cols = cp.asarray(lay.bin_columns.astype(np.int32).reshape(-1))
-            self._od_out = cp.zeros(N_BINS, dtype=cp.uint16)
-            self._od_host_mem = cp.cuda.alloc_pinned_memory(N_BINS * 2)
-            self._od_host = np.frombuffer(self._od_host_mem, dtype=np.uint16, count=N_BINS)
+            # each bin's totals over its row slices; the bin's last block zeroes them for the next frame
+            self._od_hist = cp.zeros(N_BINS * OBSTACLE_HIST_BINS, dtype=cp.uint32)
+            self._od_counts = cp.zeros(N_BINS * 4, dtype=cp.uint32)
+            self._od_grid = (N_BINS, obstacle_slices(h))
 
         attrs = self._device.attributes
         self.sm_count = int(attrs["MultiProcessorCount"])
@@ -289,9 +291,16 @@ class CupyRegionEstimator:
             self._right_keys = cp.zeros((h, w), dtype=cp.uint32)
             self._hist = cp.zeros(N_REGIONS * sp.nbins, dtype=cp.uint32)
         self._counter = cp.zeros(1, dtype=cp.uint32)
-        self._result_dev = cp.zeros(2 * N_REGIONS, dtype=cp.float64)
-        self._result_host = cp.cuda.alloc_pinned_memory(2 * N_REGIONS * 8)
+        # The 9 depths and 9 valid fractions (float64), then OBSTACLE_DISTANCE's 72 bins (uint16): one
+        # buffer each side, so that one copy brings both back.
+        region_bytes = 2 * N_REGIONS * 8
+        self._out_bytes = region_bytes + (N_BINS * 2 if self.obstacle_layout is not None else 0)
+        self._out_dev = cp.zeros(region_bytes + N_BINS * 2, dtype=cp.uint8)
+        self._result_dev = self._out_dev[:region_bytes].view(cp.float64)
+        self._od_out = self._out_dev[region_bytes:].view(cp.uint16)
+        self._result_host = cp.cuda.alloc_pinned_memory(region_bytes + N_BINS * 2)
         self._result = np.frombuffer(self._result_host, dtype=np.float64, count=2 * N_REGIONS)
+        self._od_host = np.frombuffer(self._result_host, dtype=np.uint16, count=N_BINS, offset=region_bytes)
 
         f = self._gpu_cfg.disparity_preview_downsample
         self._preview_factor = f if f >= 2 else 1
@@ -508,8 +517,6 @@ class CupyRegionEstimator:
                         self._graph(k, channels, src.swapped, want_device_disparity).launch(comp)
                     else:
                         self._enqueue_band(k, channels, src.swapped, want_device_disparity)
-                if self.obstacle_layout is not None:
-                    self._enqueue_obstacle(comp)
                 t1 = clock()
                 try:
                     comp.synchronize()
@@ -540,20 +547,18 @@ class CupyRegionEstimator:
         )
 
     def _enqueue_obstacle(self, stream: Any) -> None:
-        """Queue the OBSTACLE_DISTANCE kernel on the device disparity and its 144-byte copy back."""
-        cp = self._cp
+        """Queue the OBSTACLE_DISTANCE kernel on the device disparity (its 72 bins come back with the
+        regions' copy)."""
         lay = self.obstacle_layout
         assert lay is not None
         self._k_obstacle(
-            (N_BINS,), (OBSTACLE_THREADS,),
+            self._od_grid, (OBSTACLE_THREADS,),
             (self._disp, np.int32(self.width_px), np.int32(self.height_px), np.float32(1.0 / self.disparity_scale),
              self._od_row_thr, self._od_col_fbk, self._od_cols, np.float64(lay.percentile_pct),
              np.int32(lay.min_points), np.float64(lay.min_valid_fraction), np.float32(lay.max_distance_m),
-             np.int32(lay.min_distance_cm), np.int32(lay.max_distance_cm), self._od_out),
+             np.int32(lay.min_distance_cm), np.int32(lay.max_distance_cm), self._od_hist, self._od_counts,
+             self._od_out),
             stream=stream,
-        )
-        cp.cuda.runtime.memcpyAsync(
-            self._od_host.ctypes.data, self._od_out.data.ptr, N_BINS * 2, cp.cuda.runtime.memcpyDeviceToHost, stream.ptr
         )
 
     def rectified_pair(self) -> tuple[np.ndarray, np.ndarray]:
@@ -731,14 +736,14 @@ class CupyRegionEstimator:
                  fb, pct, min_valid, max_depth),
                 stream=s,
             )
+        if last and self.obstacle_layout is not None:
+            self._enqueue_obstacle(s)
         if events:
             events[3].record(s)
         if not last:
             return
         d2h = cp.cuda.runtime.memcpyDeviceToHost
-        cp.cuda.runtime.memcpyAsync(
-            self._result_host.ptr, self._result_dev.data.ptr, 2 * N_REGIONS * 8, d2h, s.ptr
-        )
+        cp.cuda.runtime.memcpyAsync(self._result_host.ptr, self._out_dev.data.ptr, self._out_bytes, d2h, s.ptr)
         if want_disparity:
             if self._preview_factor > 1:
                 oh, ow = self._preview_shape
@@ -760,12 +765,10 @@ class CupyRegionEstimator:
         """Queue the SGM kernels on stream ``s`` (the rectified pair is complete)."""
         sp = self.sgm_plan
         assert sp is not None
-        w, h = self.width_px, self.height_px
         k = self._k_sgm
         p1, p2, uniq, lr_max, median = self._sgm_args
         fb, pct, min_valid, max_depth = self._region_args
-        tw, th = SGM_CENSUS_TILE
-        k["sgm_census"]((-(-w // tw), -(-h // th), 2), (tw, th),
+        k["sgm_census"](sp.census_grid, SGM_CENSUS_TILE,
                         (self._rect_l, self._rect_r, self._census, self._right_keys), stream=s)
         warps = SGM_PATH_THREADS // 32
         k["sgm_paths"]((-(-sp.path_tasks // warps),), (SGM_PATH_THREADS,), (self._census, self._volumes, p1, p2),
@@ -804,6 +807,9 @@ class CupyRegionEstimator:
                 self._unregister()
                 self._hist.fill(0)
                 self._counter.fill(0)
+                if self.obstacle_layout is not None:
+                    self._od_hist.fill(0)
+                    self._od_counts.fill(0)
         except Exception as err:  # the context may be unusable; the next frame reports it
             log.error("GPU estimator could not reset its state after an error: %s", err)
 

@@ -275,13 +275,35 @@ def kernel_defines(plan: DisparityPlan, row_edges: Sequence[int], col_edges: Seq
 
 
 # --------------------------------------------------------------------------------------------------
+# OBSTACLE_DISTANCE (kernels/obstacle.cu)
+
+#: OBSTACLE_DISTANCE kernel (``kernels/obstacle.cu``): threads per block, centimetre bins of a block's
+#: histogram, and rows per block (each 5-degree bin is a column of blocks over row slices, so that its
+#: ~70 columns by every row keep enough of the GPU busy).
+OBSTACLE_THREADS = 256
+OBSTACLE_HIST_BINS = 4096
+OBSTACLE_ROWS_PER_SLICE = 32
+
+
+def obstacle_slices(height_px: int) -> int:
+    """Row slices (the grid's second dimension) of the OBSTACLE_DISTANCE kernel for an image height."""
+    return max(1, -(-int(height_px) // OBSTACLE_ROWS_PER_SLICE))
+
+
+def obstacle_defines(threads: int = OBSTACLE_THREADS) -> str:
+    """The ``#define``s that ``obstacle.cu`` needs: threads per block and histogram bins."""
+    return f"#define OD_THREADS {int(threads)}\n#define OD_HIST {OBSTACLE_HIST_BINS}\n"
+
+
+# --------------------------------------------------------------------------------------------------
 # Semi-global matcher (kernels/sgm.cu)
 
 #: Threads per block of the SGM path and winner kernels (4 warps) and of the post-processing kernel.
 SGM_PATH_THREADS = 128
 SGM_POST_THREADS = 256
-#: Census tile (threads per block: 32 × 8 pixels).
+#: Census block (32 × 8 threads) and rows per thread: a block covers 32 × 32 pixels.
 SGM_CENSUS_TILE = (32, 8)
+SGM_CENSUS_ROWS_PER_THREAD = 4
 
 
 @dataclass(frozen=True)
@@ -353,6 +375,13 @@ class SgmPlan:
         return -(-runs // self.lines_per_warp)
 
     @property
+    def census_grid(self) -> tuple[int, int, int]:
+        """``sgm_census``'s grid: tiles of ``SGM_CENSUS_TILE`` threads, each thread
+        ``SGM_CENSUS_ROWS_PER_THREAD`` rows, both eyes."""
+        tw, th = SGM_CENSUS_TILE
+        return -(-self.width_px // tw), -(-self.height_px // (th * SGM_CENSUS_ROWS_PER_THREAD)), 2
+
+    @property
     def post_blocks(self) -> int:
         return sum(self.slabs)
 
@@ -406,7 +435,8 @@ def plan_sgm(width_px: int, height_px: int, num_disparities: int, paths: int, ro
         lpl = min(32, dpad // 4)
         wpl = max(1, dpad // (4 * lpl))
     nbins = 16 * (D - 1) + 1
-    slab = max(1, min(65535 // w, 8, -(-h // 192)))
+    # about 384 post blocks: one wave on a large GPU (1280x720: 2 rows, 361 blocks, measured best of 1/2/4)
+    slab = max(1, min(65535 // w, 8, -(-h // 384)))
     while slab > 1 and _sgm_post_smem(nbins, slab, w) > SMEM_BUDGET_BYTES:
         slab -= 1
     if _sgm_post_smem(nbins, slab, w) > SMEM_BUDGET_BYTES:
@@ -431,6 +461,9 @@ def sgm_defines(plan: SgmPlan, pitch_bytes: int, row_edges: Sequence[int], col_e
         "WPL": plan.words_per_lane,
         "NPATHS": plan.paths,
         "RUN": plan.run_px,
+        "CT_W": SGM_CENSUS_TILE[0],
+        "CT_H": SGM_CENSUS_TILE[1],
+        "CT_R": SGM_CENSUS_ROWS_PER_THREAD,
         "NBINS": plan.nbins,
         "SLAB_ROWS": plan.slab_rows,
         "NSLAB0": plan.slabs[0],

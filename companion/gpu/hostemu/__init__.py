@@ -23,7 +23,16 @@ from typing import Any
 
 import numpy as np
 
-from companion.gpu.plan import SGM_CENSUS_TILE, SGM_PATH_THREADS, kernel_defines, plan_disparity, plan_sgm, sgm_defines
+from companion.gpu.plan import (
+    OBSTACLE_HIST_BINS,
+    SGM_PATH_THREADS,
+    kernel_defines,
+    obstacle_defines,
+    obstacle_slices,
+    plan_disparity,
+    plan_sgm,
+    sgm_defines,
+)
 
 _HERE = Path(__file__).resolve().parent
 _KERNEL = _HERE.parent / "kernels" / "stereo.cu"
@@ -224,8 +233,8 @@ class HostSgmKernels:
         hist = np.zeros(9 * p.nbins, np.uint32)
         counter = np.zeros(1, np.uint32)
         result = np.full(18, -7.0)
-        tw, th = SGM_CENSUS_TILE
-        self._lib.run_census(self._ptr(rl), self._ptr(rr), self._ptr(cen), self._ptr(drkey), -(-w // tw), -(-h // th))
+        gx, gy, _ = p.census_grid
+        self._lib.run_census(self._ptr(rl), self._ptr(rr), self._ptr(cen), self._ptr(drkey), gx, gy)
         warps = SGM_PATH_THREADS // 32
         self._lib.run_paths(self._ptr(cen), self._ptr(vols), u32(p1), u32(p2), -(-p.path_tasks // warps))
         self._lib.run_wta(self._ptr(vols), self._ptr(dl), self._ptr(drkey), u32(uniqueness_ratio_pct),
@@ -261,23 +270,28 @@ class HostObstacleKernel:
 
     def __init__(self, threads: int = 256) -> None:
         self.threads = int(threads)
-        src = f"#define OD_THREADS {self.threads}\n" + (_HERE.parent / "kernels" / "obstacle.cu").read_text(encoding="utf-8")
+        src = obstacle_defines(self.threads) + (_HERE.parent / "kernels" / "obstacle.cu").read_text(encoding="utf-8")
         self._lib = _build(src, "harness_obstacle.cpp")
 
-    def run(self, disparity: np.ndarray, scale: int, layout: Any) -> np.ndarray:
+    def run(self, disparity: np.ndarray, scale: int, layout: Any, slices: int | None = None) -> np.ndarray:
         """uint16 ``(72,)`` bins of an int16 disparity (px × ``scale``, -1 invalid) with an
-        :class:`~companion.core.obstacle.ObstacleLayout`."""
+        :class:`~companion.core.obstacle.ObstacleLayout`; ``slices``: row slices per bin (default: the
+        estimator's choice for the height)."""
         disp = np.ascontiguousarray(disparity, dtype=np.int16)
         h, w = disp.shape
         thr = np.ascontiguousarray(layout.row_threshold_px, dtype=np.float32)
         fbk = np.ascontiguousarray(layout.column_fbk, dtype=np.float32)
         cols = np.ascontiguousarray(layout.bin_columns, dtype=np.int32).reshape(-1)
         out = np.full(72, 0xBEEF, np.uint16)
+        hist = np.zeros(72 * OBSTACLE_HIST_BINS, np.uint32)
+        counts = np.zeros(72 * 4, np.uint32)
         ptr = lambda a: ctypes.c_void_p(a.ctypes.data)  # noqa: E731
         self._lib.run_obstacle(
             ptr(disp), w, h, ctypes.c_float(1.0 / scale), ptr(thr), ptr(fbk), ptr(cols),
             ctypes.c_double(layout.percentile_pct), int(layout.min_points), ctypes.c_double(layout.min_valid_fraction),
             ctypes.c_float(float(layout.max_distance_m)), int(layout.min_distance_cm), int(layout.max_distance_cm),
-            ptr(out), self.threads,
+            ptr(hist), ptr(counts), ptr(out), self.threads, obstacle_slices(h) if slices is None else int(slices),
         )
+        if hist.any() or counts.any():
+            raise AssertionError("the bins' last blocks did not reset the totals")
         return out

@@ -1,4 +1,4 @@
-// OBSTACLE_DISTANCE bins from the device disparity image (issue 18): one block per 5-degree bin.
+// OBSTACLE_DISTANCE bins from the device disparity image (issue 18): a column of blocks per 5-degree bin.
 //
 // Exactly companion/core/obstacle.py's reduce_obstacle_distance on the disparity as the host sees it
 // (int16 x scale, -1 invalid -> NaN): the same float32 compare for the height band (d >= row_thr[v]),
@@ -8,20 +8,25 @@
 //
 // Why one pass suffices: the wire value is a non-decreasing function of the distance, and the k-th
 // smallest commutes with such a function. So the kernel never needs the k-th distance itself, only the
-// k-th wire value: a histogram of centimetres in shared memory, filled in the same pass that counts the
-// valid and in-band pixels, then a block-wide scan to find the bin holding rank k. Only when the
-// centimetre range is wider than OD_HIST bins (max_distance_m above ~40 m) does a second pass resolve
-// the coarse bin found first (bins of 2^shift cm). The block's decisions (unknown, no obstacle) are
-// uniform, so an early return never strands a barrier.
+// k-th wire value: a histogram of centimetres, filled in the same pass that counts the valid and in-band
+// pixels, then a block-wide scan to find the bin holding rank k. Only when the centimetre range is wider
+// than OD_HIST bins (max_distance_m above ~40 m) does a second pass resolve the coarse bin found first
+// (bins of 2^shift cm).
 //
-// Threads: a warp walks one row's columns of the bin (coalesced), the warps stride over rows.
-// Launch: grid (72), block (OD_THREADS, a multiple of 32, at most 1024). Compiled with --fmad=false like
-// the other modules (the rounding must be the reference's).
+// Why a column of blocks per bin: a bin is ~70 columns by every row, too little for one block to hide
+// its loads (one block per bin took 58 us at 1280x720 on an H100, 18 blocks busy). Block (j, s) counts
+// the pixels of bin j in row slice s into a shared histogram and adds its non-zero counts and its valid
+// and in-band totals to bin j's global ones (integer sums: the order does not matter); the last block
+// of the bin (a ticket counter) takes the totals, zeroes them for the next frame, and finds the rank.
+// Its decisions (unknown, no obstacle) are uniform over the block, so an early return never strands a
+// barrier.
+//
+// Threads: the slice's pixels in row-major order, OD_THREADS at a time (a warp reads consecutive
+// columns of a row). Launch: grid (72, slices), block (OD_THREADS, a multiple of 32, at most 1024);
+// hist_g (72 * OD_HIST) and cnt_g (72 * 4) zero before the first launch. Compiled with --fmad=false
+// like the other modules (the rounding must be the reference's).
 
-#ifndef OD_THREADS
-#define OD_THREADS 256
-#endif
-#define OD_HIST 4096
+// OD_THREADS and OD_HIST come from companion/gpu/plan.py (obstacle_defines).
 #define OD_WARPS (OD_THREADS / 32)
 
 static_assert(OD_THREADS % 32 == 0 && OD_THREADS <= 1024, "OD_THREADS: whole warps, at most 1024");
@@ -88,16 +93,16 @@ extern "C" __global__ void __launch_bounds__(OD_THREADS) obstacle_bins(
     const short* __restrict__ disp, int width, int height, float inv_scale,
     const float* __restrict__ row_thr, const float* __restrict__ col_fbk, const int* __restrict__ bin_cols,
     double pct, int min_points, double min_valid_fraction, float max_m, int min_cm, int max_cm,
-    unsigned short* __restrict__ out)
+    od_u32* __restrict__ hist_g, od_u32* __restrict__ cnt_g, unsigned short* __restrict__ out)
 {
     __shared__ od_u32 hist[OD_HIST];
     __shared__ od_u32 wsum[32];
-    __shared__ od_u32 s_valid, s_band, s_bin, s_k;
+    __shared__ od_u32 s_valid, s_band, s_bin, s_k, s_last;
     const int j = blockIdx.x;
     const int c0 = bin_cols[2 * j], c1 = bin_cols[2 * j + 1];
-    const int t = threadIdx.x, lane = t & 31, warp = t >> 5;
+    const int t = threadIdx.x;
     if (c1 <= c0) {  // outside the matched view: unknown
-        if (t == 0) out[j] = 65535;
+        if (t == 0 && blockIdx.y == 0) out[j] = 65535;
         return;
     }
     // Wire values min_cm .. max_cm + 1, as indices 0 .. nb - 1; coarse bins of 2^shift when too many.
@@ -108,26 +113,52 @@ extern "C" __global__ void __launch_bounds__(OD_THREADS) obstacle_bins(
     if (t == 0) { s_valid = 0; s_band = 0; }
     for (int b = t; b < nb1; b += OD_THREADS) hist[b] = 0;
     __syncthreads();
+    const int ncols = c1 - c0;
+    const int r0 = (int)(((long long)blockIdx.y * height) / gridDim.y);
+    const int r1 = (int)(((long long)(blockIdx.y + 1) * height) / gridDim.y);
+    const int npx = (r1 - r0) * ncols;
     od_u32 nv = 0, nbd = 0;
-    for (int r = warp; r < height; r += OD_WARPS) {
-        const float thr = row_thr[r];
-        const short* row = disp + (size_t)r * width;
-        for (int c = c0 + lane; c < c1; c += 32) {
-            const short q = row[c];
-            if (q < 0) continue;
-            ++nv;
-            const int i = od_index(q, inv_scale, thr, col_fbk, c, max_m, min_cm, max_cm);
-            if (i >= 0) {
-                ++nbd;
-                atomicAdd(&hist[i >> shift], 1u);
-            }
+    for (int i = t; i < npx; i += OD_THREADS) {
+        const int r = r0 + i / ncols, c = c0 + i % ncols;
+        const short q = disp[(size_t)r * width + c];
+        if (q < 0) continue;
+        ++nv;
+        const int x = od_index(q, inv_scale, row_thr[r], col_fbk, c, max_m, min_cm, max_cm);
+        if (x >= 0) {
+            ++nbd;
+            atomicAdd(&hist[x >> shift], 1u);
         }
     }
     atomicAdd(&s_valid, nv);
     atomicAdd(&s_band, nbd);
     __syncthreads();
+    od_u32* hj = hist_g + (size_t)j * OD_HIST;
+    od_u32* cj = cnt_g + 4 * j;
+    for (int b = t; b < nb1; b += OD_THREADS)
+        if (hist[b]) atomicAdd(hj + b, hist[b]);
+    if (t == 0) {
+        if (s_valid) atomicAdd(cj, s_valid);
+        if (s_band) atomicAdd(cj + 1, s_band);
+    }
+    // ---- the bin's last block: the totals (zeroed for the next frame), then the rank
+    __threadfence();
+    __syncthreads();
+    if (t == 0) s_last = atomicAdd(cj + 2, 1u) == gridDim.y - 1;
+    __syncthreads();
+    if (!s_last) return;
+    __threadfence();
+    for (int b = t; b < nb1; b += OD_THREADS) {
+        hist[b] = __ldcg(hj + b);
+        hj[b] = 0u;
+    }
+    if (t == 0) {
+        s_valid = __ldcg(cj);
+        s_band = __ldcg(cj + 1);
+        cj[0] = cj[1] = cj[2] = 0u;
+    }
+    __syncthreads();
     const od_u32 n_valid = s_valid, n_band = s_band;
-    const int n = (c1 - c0) * height;
+    const int n = ncols * height;
     if (n_valid == 0 || (double)n_valid < min_valid_fraction * (double)n) {  // nothing matched: unknown
         if (t == 0) out[j] = 65535;
         return;
@@ -140,20 +171,18 @@ extern "C" __global__ void __launch_bounds__(OD_THREADS) obstacle_bins(
     const od_u32 k = kk < 1.0 ? 1u : (od_u32)kk;
     od_find_rank(hist, nb1, k, wsum, &s_bin, &s_k);
     int idx = (int)s_bin;
-    if (shift > 0) {  // resolve the coarse bin: a second pass over its members only
+    if (shift > 0) {  // resolve the coarse bin: a second pass over its members only, every row, this block
         const int coarse = idx;
         const od_u32 k2 = s_k;
         const int nb2 = 1 << shift;
         __syncthreads();  // everyone has read s_bin and s_k
         for (int b = t; b < nb2; b += OD_THREADS) hist[b] = 0;
         __syncthreads();
-        for (int r = warp; r < height; r += OD_WARPS) {
-            const float thr = row_thr[r];
-            const short* row = disp + (size_t)r * width;
-            for (int c = c0 + lane; c < c1; c += 32) {
-                const int i = od_index(row[c], inv_scale, thr, col_fbk, c, max_m, min_cm, max_cm);
-                if (i >= 0 && (i >> shift) == coarse) atomicAdd(&hist[i & (nb2 - 1)], 1u);
-            }
+        const int nall = height * ncols;
+        for (int i = t; i < nall; i += OD_THREADS) {
+            const int r = i / ncols, c = c0 + i % ncols;
+            const int x = od_index(disp[(size_t)r * width + c], inv_scale, row_thr[r], col_fbk, c, max_m, min_cm, max_cm);
+            if (x >= 0 && (x >> shift) == coarse) atomicAdd(&hist[x & (nb2 - 1)], 1u);
         }
         __syncthreads();
         od_find_rank(hist, nb2, k2, wsum, &s_bin, &s_k);

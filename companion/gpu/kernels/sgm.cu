@@ -96,44 +96,67 @@ __device__ __forceinline__ u32 line_min(u32 v) {
 }
 
 // ------------------------------------------------------------------------------------------------
-// 1. Census 9x7 of both rectified eyes (reference rule 1), from a shared-memory tile. Block (32, 8) pixels,
-// grid (ceil(IMG_W / 32), ceil(IMG_H / 8), 2). The left eye's blocks also reset the right view's disparity
-// keys of their pixels for this frame (sgm_wta min-reduces into them).
+// 1. Census 9x7 of both rectified eyes (reference rule 1), from a shared-memory tile. Block (CT_W, CT_H)
+// threads, each CT_R rows of one column (a block: CT_W x CT_H * CT_R pixels, so that the tile's halo and the
+// block's start are paid for CT_R pixels), grid (ceil(IMG_W / CT_W), ceil(IMG_H / (CT_H * CT_R)), 2)
+// (plan.py: CT_* come from sgm_defines). A thread walks the CT_R + 6 tile rows its pixels see once, each
+// row's 9 values in registers, comparing them with every centre whose window holds that row. Outside the
+// image the tile holds 0x7fff, which is never below a centre (<= 255): the reference's 0. The left eye's
+// blocks also reset the right view's disparity keys of their pixels for this frame (sgm_wta min-reduces
+// into them).
 
-#define CT_W 32
-#define CT_H 8
+#define CT_ROWS (CT_H * CT_R)
+#define CT_TW (CT_W + 2 * CEN_HW)
 
 extern "C" __global__ void __launch_bounds__(CT_W * CT_H) sgm_census(const u8* __restrict__ rl, const u8* __restrict__ rr,
                                                                      u64* __restrict__ cen, u32* __restrict__ drkey) {
-  __shared__ short tile[CT_H + 2 * CEN_HH][CT_W + 2 * CEN_HW];  // -1 outside the image
+  __shared__ short tile[CT_ROWS + 2 * CEN_HH][CT_TW];
   const u8* img = blockIdx.z ? rr : rl;
-  const int bx = (int)blockIdx.x * CT_W - CEN_HW, by = (int)blockIdx.y * CT_H - CEN_HH;
+  const int bx = (int)blockIdx.x * CT_W - CEN_HW, by = (int)blockIdx.y * CT_ROWS - CEN_HH;
   const int tid = (int)(threadIdx.y * CT_W + threadIdx.x);
-  for (int i = tid; i < (CT_H + 2 * CEN_HH) * (CT_W + 2 * CEN_HW); i += CT_W * CT_H) {
-    const int ty = i / (CT_W + 2 * CEN_HW), tx = i % (CT_W + 2 * CEN_HW);
+  for (int i = tid; i < (CT_ROWS + 2 * CEN_HH) * CT_TW; i += CT_W * CT_H) {
+    const int ty = i / CT_TW, tx = i % CT_TW;
     const int yy = by + ty, xx = bx + tx;
-    tile[ty][tx] = (yy >= 0 && yy < IMG_H && xx >= 0 && xx < IMG_W) ? (short)img[(size_t)yy * PITCH + xx] : (short)-1;
+    tile[ty][tx] = (yy >= 0 && yy < IMG_H && xx >= 0 && xx < IMG_W) ? (short)img[(size_t)yy * PITCH + xx] : (short)0x7fff;
   }
   __syncthreads();
-  const int x = (int)(blockIdx.x * CT_W + threadIdx.x), y = (int)(blockIdx.y * CT_H + threadIdx.y);
-  if (x >= IMG_W || y >= IMG_H) return;
-  const int c = tile[threadIdx.y + CEN_HH][threadIdx.x + CEN_HW];
-  u64 bits = 0;
-  int k = 0;
+  const int x = (int)(blockIdx.x * CT_W + threadIdx.x);
+  const int t0 = (int)threadIdx.y * CT_R;  // the first of this thread's rows, in tile rows (window tops)
+  const int y0 = (int)blockIdx.y * CT_ROWS + t0;
+  if (x >= IMG_W || y0 >= IMG_H) return;
+  int c[CT_R];
+  u64 bits[CT_R];
 #pragma unroll
-  for (int i = 0; i <= 2 * CEN_HH; ++i) {
+  for (int o = 0; o < CT_R; ++o) {
+    c[o] = tile[t0 + o + CEN_HH][threadIdx.x + CEN_HW];
+    bits[o] = 0;
+  }
 #pragma unroll
-    for (int j = 0; j <= 2 * CEN_HW; ++j) {
-      if (i == CEN_HH && j == CEN_HW) continue;
-      const int q = tile[threadIdx.y + i][threadIdx.x + j];
-      if (q >= 0 && q < c) bits |= 1ull << k;  // outside the image (-1) gives 0
-      ++k;
+  for (int r = 0; r < CT_R + 2 * CEN_HH; ++r) {
+    int q[2 * CEN_HW + 1];
+#pragma unroll
+    for (int j = 0; j <= 2 * CEN_HW; ++j) q[j] = tile[t0 + r][threadIdx.x + j];
+#pragma unroll
+    for (int o = 0; o < CT_R; ++o) {
+      const int i = r - o;  // the window row of pixel o that tile row r is
+      if (i < 0 || i > 2 * CEN_HH) continue;
+#pragma unroll
+      for (int j = 0; j <= 2 * CEN_HW; ++j) {
+        if (i == CEN_HH && j == CEN_HW) continue;
+        const int k = i * (2 * CEN_HW + 1) + j - ((i > CEN_HH || (i == CEN_HH && j > CEN_HW)) ? 1 : 0);
+        if (q[j] < c[o]) bits[o] |= 1ull << k;
+      }
     }
   }
-  const size_t at = (size_t)y * CEN_STR + CEN_PAD + x;
-  cen[blockIdx.z * CEN_IMG + at] = bits;
-  if (blockIdx.z) cen[2 * CEN_IMG + at + 1] = bits;  // the shifted copy
-  if (blockIdx.z == 0) drkey[(size_t)y * IMG_W + x] = KEY_INF;
+#pragma unroll
+  for (int o = 0; o < CT_R; ++o) {
+    const int y = y0 + o;
+    if (y >= IMG_H) break;
+    const size_t at = (size_t)y * CEN_STR + CEN_PAD + x;
+    cen[blockIdx.z * CEN_IMG + at] = bits[o];
+    if (blockIdx.z) cen[2 * CEN_IMG + at + 1] = bits[o];  // the shifted copy
+    else drkey[(size_t)y * IMG_W + x] = KEY_INF;
+  }
 }
 
 // ------------------------------------------------------------------------------------------------
@@ -613,7 +636,12 @@ struct SmemPost {
   int flag;
 };
 
-// the lower median of the valid values among the 3x3 neighbours (rows r - 1 .. r + 1 of chk)
+// The lower median of the valid values among the 3x3 neighbours (rows r - 1 .. r + 1 of chk); the centre
+// is valid. Invalid neighbours become 0x7fff (above every v <= 16 * 255) and a comparator network
+// (Batcher's for 9 inputs, pruned to the 23 comparators that fix the 5 smallest: checked on all 512 0/1
+// inputs) sorts the 5 smallest into v[0..4]; with n valid the lower median is v[(n - 1) / 2], n >= 1.
+#define SGM_MED_PAIRS 0, 8, 0, 4, 1, 5, 2, 6, 3, 7, 4, 8, 0, 2, 1, 3, 4, 6, 5, 7, 2, 8, 2, 4, 3, 5, 6, 8, 0, 1, 2, 3, 4, 5, 6, 7, 1, 8, 1, 4, 3, 6, 1, 2, 3, 4
+
 __device__ __forceinline__ int median_valid_3x3(const short* chk, int r, int x) {
   int v[9];
   int n = 0;
@@ -623,22 +651,22 @@ __device__ __forceinline__ int median_valid_3x3(const short* chk, int r, int x) 
     for (int j = 0; j < 3; ++j) {
       const int xx = x + j - 1;
       const int q = (xx >= 0 && xx < IMG_W) ? (int)chk[(r + i - 1) * IMG_W + xx] : -1;
-      v[i * 3 + j] = q;
+      v[i * 3 + j] = q >= 0 ? q : 0x7fff;
       n += q >= 0;
     }
-  const int target = (n - 1) / 2;
-  int res = -1;
+  constexpr int pairs[] = {SGM_MED_PAIRS};
 #pragma unroll
-  for (int a = 0; a < 9; ++a) {
-    int lt = 0, le = 0;
-#pragma unroll
-    for (int b = 0; b < 9; ++b) {
-      lt += (v[b] >= 0) & (v[b] < v[a]);
-      le += (v[b] >= 0) & (v[b] <= v[a]);
-    }
-    if (v[a] >= 0 && lt <= target && target < le) res = v[a];
+  for (int c = 0; c < (int)(sizeof(pairs) / sizeof(pairs[0])); c += 2) {
+    const int lo = min(v[pairs[c]], v[pairs[c + 1]]);
+    v[pairs[c + 1]] = max(v[pairs[c]], v[pairs[c + 1]]);
+    v[pairs[c]] = lo;
   }
-  return res;
+  const int target = (n - 1) / 2;
+  int res = v[0];
+#pragma unroll
+  for (int k = 1; k < 5; ++k)
+    if (target == k) res = v[k];
+  return n > 0 ? res : -1;
 }
 
 extern "C" __global__ void __launch_bounds__(POST_THREADS) sgm_post(const int* __restrict__ dl,
