@@ -122,8 +122,9 @@ def _sgm_kernel_times(est: Any, cp: Any, n: int) -> dict[str, dict[str, float]]:
     with est._device:
         for i in range(n + 10):
             events[0].record(s)
-            k["sgm_census"](sp.census_grid, SGM_CENSUS_TILE,
-                            (est._rect_l, est._rect_r, est._census, est._right_keys), stream=s)
+            k["sgm_census"](sp.census_grid(sp.height_px), SGM_CENSUS_TILE,
+                            (est._rect_l, est._rect_r, est._census, est._right_keys, np.int32(0),
+                             np.int32(sp.height_px)), stream=s)
             events[1].record(s)
             k["sgm_paths"]((-(-sp.path_tasks // 4),), (128,), (est._census, est._volumes, p1, p2), stream=s)
             events[2].record(s)

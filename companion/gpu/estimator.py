@@ -20,9 +20,10 @@ event per band):
    first reduces the device disparity to OBSTACLE_DISTANCE's 72 bins (144 more bytes, in the same copy), exactly
    :func:`companion.core.obstacle.reduce_obstacle_distance`.
 
-With ``stereo.matcher = "sgm"`` (the default) the bands carry the upload, grey and rectification only;
-after the last band the semi-global matcher of ``kernels/sgm.cu`` runs on the whole rectified pair:
-``sgm_census``, ``sgm_paths`` (every path in one launch, one byte per (pixel, disparity) and path),
+With ``stereo.matcher = "sgm"`` (the default) the bands carry the upload, grey, rectification and
+``sgm_census`` of the rows whose rows ±3 are rectified by then (so that it overlaps the later bands'
+upload); after the last band the rest of the semi-global matcher of ``kernels/sgm.cu`` runs on the whole
+rectified pair: ``sgm_paths`` (every path in one launch, one byte per (pixel, disparity) and path),
 ``sgm_wta`` (the winner, uniqueness, sub-pixel and the right view's disparity, per run of pixels) and
 ``sgm_post`` (left-right check, median, the disparity image and the 9 region depths), exactly
 :mod:`companion.core.disparity.sgm`'s rules.
@@ -58,6 +59,7 @@ from companion.framepool import FramePool
 from companion.gpu.plan import (
     OBSTACLE_HIST_BINS,
     OBSTACLE_THREADS,
+    SGM_CENSUS_HALF_HEIGHT,
     SGM_CENSUS_TILE,
     SGM_PATH_THREADS,
     SGM_POST_THREADS,
@@ -382,6 +384,9 @@ class CupyRegionEstimator:
             reach = np.maximum.accumulate(np.clip(np.floor(row_max) + 2, 0, h)).astype(int)
             src_end = [h if k == k_bands - 1 else int(reach[rect_end[k] - 1]) for k in range(k_bands)]
             src_end = [max(src_end[: k + 1]) for k in range(k_bands)]
+        # SGM: the census rows each band can run, those whose rows +-3 are rectified by then
+        census_end = [h if k == k_bands - 1 else max(0, rect_end[k] - SGM_CENSUS_HALF_HEIGHT) for k in range(k_bands)]
+        census_end = [max(census_end[: k + 1]) for k in range(k_bands)] if sgm else [0] * k_bands
         bands = []
         for k in range(k_bands):
             rows = outs[k + 1] - outs[k]
@@ -391,6 +396,7 @@ class CupyRegionEstimator:
                     src=(src_end[k - 1] if k else 0, src_end[k]),
                     rect=(rect_end[k - 1] if k else 0, rect_end[k]),
                     out=(outs[k], outs[k + 1]),
+                    census=(census_end[k - 1] if k else 0, census_end[k]),
                     rows_per_block=rpb,
                     grid=(p.tiles_x, max(1, -(-rows // rpb)), 1),
                 )
@@ -712,6 +718,11 @@ class CupyRegionEstimator:
             events[2].record(s)
         fb, pct, min_valid, max_depth = self._region_args
         if self.sgm_plan is not None:
+            ca, cb = band.census
+            if cb > ca:  # this band's share of the census overlaps the next bands' upload
+                self._k_sgm["sgm_census"](self.sgm_plan.census_grid(cb - ca), SGM_CENSUS_TILE,
+                                          (self._rect_l, self._rect_r, self._census, self._right_keys,
+                                           np.int32(ca), np.int32(cb)), stream=s)
             if last:
                 self._enqueue_sgm(s)
         elif p.fast:
@@ -762,14 +773,13 @@ class CupyRegionEstimator:
             events[4].record(s)
 
     def _enqueue_sgm(self, s: Any) -> None:
-        """Queue the SGM kernels on stream ``s`` (the rectified pair is complete)."""
+        """Queue the SGM kernels after the census on stream ``s`` (the rectified pair and its census
+        are complete)."""
         sp = self.sgm_plan
         assert sp is not None
         k = self._k_sgm
         p1, p2, uniq, lr_max, median = self._sgm_args
         fb, pct, min_valid, max_depth = self._region_args
-        k["sgm_census"](sp.census_grid, SGM_CENSUS_TILE,
-                        (self._rect_l, self._rect_r, self._census, self._right_keys), stream=s)
         warps = SGM_PATH_THREADS // 32
         k["sgm_paths"]((-(-sp.path_tasks // warps),), (SGM_PATH_THREADS,), (self._census, self._volumes, p1, p2),
                        stream=s)
@@ -904,12 +914,14 @@ class _Band:
         src: source rows uploaded (and converted to grey) with this band.
         rect: rectified rows computed with this band (equal to ``src`` for an ideal rig).
         out: disparity output rows matched with this band.
+        census: SGM: the census rows computed with this band (their rows ±3 are rectified by then).
         rows_per_block, grid: the disparity launch of this band.
     """
 
     src: tuple[int, int]
     rect: tuple[int, int]
     out: tuple[int, int]
+    census: tuple[int, int]
     rows_per_block: int
     grid: tuple[int, int, int]
 

@@ -304,6 +304,8 @@ SGM_POST_THREADS = 256
 #: Census block (32 × 8 threads) and rows per thread: a block covers 32 × 32 pixels.
 SGM_CENSUS_TILE = (32, 8)
 SGM_CENSUS_ROWS_PER_THREAD = 4
+#: Rows above and below a pixel that its 9×7 census reads (``CEN_HH`` in sgm.cu).
+SGM_CENSUS_HALF_HEIGHT = 3
 
 
 @dataclass(frozen=True)
@@ -374,12 +376,11 @@ class SgmPlan:
         runs = -(-self.width_px // self.run_px) * self.height_px
         return -(-runs // self.lines_per_warp)
 
-    @property
-    def census_grid(self) -> tuple[int, int, int]:
-        """``sgm_census``'s grid: tiles of ``SGM_CENSUS_TILE`` threads, each thread
-        ``SGM_CENSUS_ROWS_PER_THREAD`` rows, both eyes."""
+    def census_grid(self, rows: int) -> tuple[int, int, int]:
+        """``sgm_census``'s grid for ``rows`` image rows: tiles of ``SGM_CENSUS_TILE`` threads, each
+        thread ``SGM_CENSUS_ROWS_PER_THREAD`` rows, both eyes."""
         tw, th = SGM_CENSUS_TILE
-        return -(-self.width_px // tw), -(-self.height_px // (th * SGM_CENSUS_ROWS_PER_THREAD)), 2
+        return -(-self.width_px // tw), max(1, -(-int(rows) // (th * SGM_CENSUS_ROWS_PER_THREAD))), 2
 
     @property
     def post_blocks(self) -> int:

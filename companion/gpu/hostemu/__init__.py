@@ -215,10 +215,12 @@ class HostSgmKernels:
         pct: float = 2.0,
         min_valid: float = 0.1,
         max_depth: float = 20.0,
+        census_splits: tuple[int, ...] = (),
     ) -> dict[str, np.ndarray]:
         """Every stage's output: ``census_left``/``census_right`` (uint64), ``volumes`` (uint8
         ``(paths, H, W, DPAD)``), ``winner`` (int32), ``right_keys`` (uint32), ``disparity`` (int16 × 16,
-        -1 invalid) and ``regions`` (9 depths, 9 valid fractions)."""
+        -1 invalid) and ``regions`` (9 depths, 9 valid fractions). ``census_splits``: rows where the
+        census is cut into separate launches (the estimator's row bands)."""
         p, w, h = self.plan, self.w, self.h
         u32, f32, d = ctypes.c_uint32, ctypes.c_float, ctypes.c_double
         rl = np.zeros((h, self.pitch), np.uint8)
@@ -233,8 +235,11 @@ class HostSgmKernels:
         hist = np.zeros(9 * p.nbins, np.uint32)
         counter = np.zeros(1, np.uint32)
         result = np.full(18, -7.0)
-        gx, gy, _ = p.census_grid
-        self._lib.run_census(self._ptr(rl), self._ptr(rr), self._ptr(cen), self._ptr(drkey), gx, gy)
+        # the census in pieces of rows, as the estimator runs it per row band
+        edges = [0, *sorted({int(e) for e in census_splits if 0 < int(e) < h}), h]
+        for y_lo, y_hi in zip(edges, edges[1:]):
+            gx, gy, _ = p.census_grid(y_hi - y_lo)
+            self._lib.run_census(self._ptr(rl), self._ptr(rr), self._ptr(cen), self._ptr(drkey), y_lo, y_hi, gx, gy)
         warps = SGM_PATH_THREADS // 32
         self._lib.run_paths(self._ptr(cen), self._ptr(vols), u32(p1), u32(p2), -(-p.path_tasks // warps))
         self._lib.run_wta(self._ptr(vols), self._ptr(dl), self._ptr(drkey), u32(uniqueness_ratio_pct),

@@ -2,10 +2,10 @@
 // (development tool and CI check, see __init__.py).
 #include "cuda_emu.h"
 #include KERNEL_FILE
-struct CensusArgs { const u8 *rl, *rr; u64* cen; u32* drkey; };
-static void census_thunk(void* p) { CensusArgs* a = (CensusArgs*)p; sgm_census(a->rl, a->rr, a->cen, a->drkey); }
-extern "C" void run_census(const u8* rl, const u8* rr, u64* cen, u32* drkey, int gx, int gy) {
-  CensusArgs a{rl, rr, cen, drkey}; emu_launch({(unsigned)gx, (unsigned)gy, 2}, {CT_W, CT_H, 1}, census_thunk, &a); }
+struct CensusArgs { const u8 *rl, *rr; u64* cen; u32* drkey; int y_lo, y_hi; };
+static void census_thunk(void* p) { CensusArgs* a = (CensusArgs*)p; sgm_census(a->rl, a->rr, a->cen, a->drkey, a->y_lo, a->y_hi); }
+extern "C" void run_census(const u8* rl, const u8* rr, u64* cen, u32* drkey, int y_lo, int y_hi, int gx, int gy) {
+  CensusArgs a{rl, rr, cen, drkey, y_lo, y_hi}; emu_launch({(unsigned)gx, (unsigned)gy, 2}, {CT_W, CT_H, 1}, census_thunk, &a); }
 struct PathArgs { const u64* cen; u8* vols; u32 p1, p2; };
 static void path_thunk(void* p) { PathArgs* a = (PathArgs*)p; sgm_paths(a->cen, a->vols, a->p1, a->p2); }
 extern "C" void run_paths(const u64* cen, u8* vols, u32 p1, u32 p2, int gx) {

@@ -96,23 +96,25 @@ __device__ __forceinline__ u32 line_min(u32 v) {
 }
 
 // ------------------------------------------------------------------------------------------------
-// 1. Census 9x7 of both rectified eyes (reference rule 1), from a shared-memory tile. Block (CT_W, CT_H)
-// threads, each CT_R rows of one column (a block: CT_W x CT_H * CT_R pixels, so that the tile's halo and the
-// block's start are paid for CT_R pixels), grid (ceil(IMG_W / CT_W), ceil(IMG_H / (CT_H * CT_R)), 2)
-// (plan.py: CT_* come from sgm_defines). A thread walks the CT_R + 6 tile rows its pixels see once, each
-// row's 9 values in registers, comparing them with every centre whose window holds that row. Outside the
-// image the tile holds 0x7fff, which is never below a centre (<= 255): the reference's 0. The left eye's
-// blocks also reset the right view's disparity keys of their pixels for this frame (sgm_wta min-reduces
-// into them).
+// 1. Census 9x7 of both rectified eyes (reference rule 1), from a shared-memory tile, for image rows
+// [y_lo, y_hi) (the estimator runs each row band's share as soon as its rectified rows, +-3, are there, so
+// that the first bands' census overlaps the later bands' upload). Block (CT_W, CT_H) threads, each CT_R rows
+// of one column (a block: CT_W x CT_H * CT_R pixels, so that the tile's halo and the block's start are paid
+// for CT_R pixels), grid (ceil(IMG_W / CT_W), ceil((y_hi - y_lo) / (CT_H * CT_R)), 2) (plan.py: CT_* come
+// from sgm_defines). A thread walks the CT_R + 6 tile rows its pixels see once, each row's 9 values in
+// registers, comparing them with every centre whose window holds that row. Outside the image the tile
+// holds 0x7fff, which is never below a centre (<= 255): the reference's 0. The left eye's blocks also reset
+// the right view's disparity keys of their pixels for this frame (sgm_wta min-reduces into them).
 
 #define CT_ROWS (CT_H * CT_R)
 #define CT_TW (CT_W + 2 * CEN_HW)
 
 extern "C" __global__ void __launch_bounds__(CT_W * CT_H) sgm_census(const u8* __restrict__ rl, const u8* __restrict__ rr,
-                                                                     u64* __restrict__ cen, u32* __restrict__ drkey) {
+                                                                     u64* __restrict__ cen, u32* __restrict__ drkey,
+                                                                     int y_lo, int y_hi) {
   __shared__ short tile[CT_ROWS + 2 * CEN_HH][CT_TW];
   const u8* img = blockIdx.z ? rr : rl;
-  const int bx = (int)blockIdx.x * CT_W - CEN_HW, by = (int)blockIdx.y * CT_ROWS - CEN_HH;
+  const int bx = (int)blockIdx.x * CT_W - CEN_HW, by = y_lo + (int)blockIdx.y * CT_ROWS - CEN_HH;
   const int tid = (int)(threadIdx.y * CT_W + threadIdx.x);
   for (int i = tid; i < (CT_ROWS + 2 * CEN_HH) * CT_TW; i += CT_W * CT_H) {
     const int ty = i / CT_TW, tx = i % CT_TW;
@@ -122,8 +124,8 @@ extern "C" __global__ void __launch_bounds__(CT_W * CT_H) sgm_census(const u8* _
   __syncthreads();
   const int x = (int)(blockIdx.x * CT_W + threadIdx.x);
   const int t0 = (int)threadIdx.y * CT_R;  // the first of this thread's rows, in tile rows (window tops)
-  const int y0 = (int)blockIdx.y * CT_ROWS + t0;
-  if (x >= IMG_W || y0 >= IMG_H) return;
+  const int y0 = y_lo + (int)blockIdx.y * CT_ROWS + t0;
+  if (x >= IMG_W || y0 >= y_hi) return;
   int c[CT_R];
   u64 bits[CT_R];
 #pragma unroll
@@ -151,7 +153,7 @@ extern "C" __global__ void __launch_bounds__(CT_W * CT_H) sgm_census(const u8* _
 #pragma unroll
   for (int o = 0; o < CT_R; ++o) {
     const int y = y0 + o;
-    if (y >= IMG_H) break;
+    if (y >= y_hi) break;
     const size_t at = (size_t)y * CEN_STR + CEN_PAD + x;
     cen[blockIdx.z * CEN_IMG + at] = bits[o];
     if (blockIdx.z) cen[2 * CEN_IMG + at + 1] = bits[o];  // the shifted copy
