@@ -212,12 +212,20 @@ def test_connections_beyond_the_limit_are_refused(tmp_path: Path) -> None:
         for _ in range(6):
             s = ctx.socket(zmq.DEALER)
             s.setsockopt(zmq.LINGER, 0)
+            # A refused connection can leave the socket without a pipe, where a blocking send waits
+            # forever (this test once hung CI): a send that cannot go out counts as not answered.
+            s.setsockopt(zmq.SNDTIMEO, 500)
             s.connect(service.bus.control_endpoint)
             socks.append(s)
             time.sleep(0.05)
+        sent = []
         for i, s in enumerate(socks):
-            s.send(json.dumps({"cmd": "ping", "id": i}).encode())
-        answered = sum(1 for s in socks if s.poll(500) and s.recv())
+            try:
+                s.send(json.dumps({"cmd": "ping", "id": i}).encode())
+                sent.append(s)
+            except zmq.Again:
+                pass
+        answered = sum(1 for s in sent if s.poll(500) and s.recv())
         # The count comes from the socket's monitor, a moment behind a handshake: one more may slip in.
         assert answered in (3, 4), answered
         assert wait_until(lambda: service.bus.stats()["refused_connections"] >= 6 - answered, 2.0)
@@ -229,6 +237,33 @@ def test_connections_beyond_the_limit_are_refused(tmp_path: Path) -> None:
         assert again.call("ping")["ok"]
         again.close()
         ctx.term()
+
+
+def test_a_client_beyond_the_limit_gets_an_error_not_a_hang(tmp_path: Path) -> None:
+    """``companion ctl``'s client against a service whose connections are all taken: each call
+    returns, with a reply or a ClientError naming the endpoint, within its timeout (a refused
+    connection can leave nothing to send on, where a plain send waited forever). Which connections
+    the gatekeeper refuses is test_connections_beyond_the_limit_are_refused's business."""
+    from companion.service.client import ClientError, ControlClient
+
+    cfg = service_config(tmp_path, bus={"max_connections": 1})
+    service = Service(cfg, camera=avoid_scene_camera(10.0), link=FakeLink(), install_signals=False, environ={})
+    with ServiceRunner(service):
+        clients = [ControlClient(service.bus.control_endpoint, timeout_s=1.0) for _ in range(5)]
+        errors = []
+        t0 = time.monotonic()
+        try:
+            for c in clients:  # every connection stays open: later ones are beyond the limit
+                try:
+                    assert c.call({"cmd": "ping"})["ok"]
+                except ClientError as err:
+                    errors.append(str(err))
+        finally:
+            for c in clients:
+                c.close()
+        elapsed_s = time.monotonic() - t0
+        assert elapsed_s < len(clients) * 2.0 + 5.0, elapsed_s  # each call ends by its 1 s timeout
+        assert all(service.bus.control_endpoint in e for e in errors), errors
 
 
 @pytest.mark.skipif(os.geteuid() != 0, reason="needs root to try the socket as another user (uid nobody)")

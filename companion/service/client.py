@@ -78,6 +78,9 @@ class ControlClient:
         self._ctx = zmq.Context()
         self._sock = self._ctx.socket(zmq.DEALER)
         self._sock.setsockopt(zmq.LINGER, 0)
+        # A connection the service refused (bus.max_connections, CURVE) can leave the socket with no
+        # pipe, where a blocking send would wait forever: bound it by the same timeout.
+        self._sock.setsockopt(zmq.SNDTIMEO, max(1, int(timeout_s * 1000)))
         for name, value in (curve or {}).items():
             setattr(self._sock, name, value)
         self._sock.connect(endpoint)
@@ -93,13 +96,19 @@ class ControlClient:
         """Send ``request`` (an ``id`` is added if missing) and return the reply object.
 
         Raises:
-            ClientError: no reply within the timeout.
+            ClientError: the request could not be sent, or no reply came, within the timeout.
         """
         request = dict(request)
         if request.get("id") is None:
             request["id"] = self._next_id
             self._next_id += 1
-        self._sock.send(json.dumps(request).encode("utf-8"))
+        try:
+            self._sock.send(json.dumps(request).encode("utf-8"))
+        except zmq.Again:
+            raise ClientError(
+                f"could not send to {self.endpoint} within {self.timeout_s:g} s (is the service running? "
+                "did it refuse the connection: bus.max_connections, CURVE keys?)"
+            ) from None
         deadline_ms = int(self.timeout_s * 1000)
         while self._sock.poll(deadline_ms):
             reply = json.loads(self._sock.recv())
