@@ -141,6 +141,47 @@ def test_a_free_goal_direction_hands_back() -> None:
     assert out is None and not p.active and "handed back" in p.reason
 
 
+def test_a_door_just_wide_enough_hands_back_in_front_of_it() -> None:
+    # A far wall 1 m ahead with a door 1.2 m wide centred 0.1 m off the vehicle: the way through keeps
+    # 0.5 m from the jambs, less than clearance_m but more than squeeze_clearance_m: the brake's detour
+    # hands straight back (the controller's brake and the guard still act on the way through). A door
+    # 0.7 m wide does not: the detour goes on.
+    assert DET.squeeze_clearance_m < 0.5 < DET.clearance_m
+    pos = np.array([0.0, 0.0, -1.5])
+    for door, through in (((-0.5, 0.7), True), ((-0.35, 0.35), False)):
+        mem = _trusted_memory(np.concatenate([_wall(1.0, -4.0, door[0]), _wall(1.0, door[1], 4.0)]))
+        p = DetourPlanner()
+        t, began = 0.0, False
+        while t < DET.trigger_after_s + 0.5 and not began:
+            cmd = p.update(t, BRAKE, pos, 0.0, 0.0, 0.0, mem, MEM, DET, goal_distance_m=4.0)
+            began = cmd is not None or p.reason != "no detour"
+            t += 0.05
+        assert began
+        if through:
+            assert cmd is None and not p.active and "handed back" in p.reason
+        else:
+            assert cmd is not None and p.active
+
+
+def test_the_direction_flown_is_kept_while_the_goal_bearing_turns() -> None:
+    # Flying along a wall toward its end, the goal's bearing turns a little every step: the directions
+    # are laid out from it, so the one flown is between two of them; a direction costing a few degrees
+    # less does not take over (hysteresis), one costing far less does.
+    from companion.core.detour import _best
+
+    h = polar_histogram(_wall(2.5, -8.0, 3.0), 0.0, DET, MEM.map_depth_m)
+    step = math.radians(DET.sector_deg)
+    k = _best(h, 1, DET, None)
+    assert k is not None
+    flown = float(h.bearing_rad[k]) + 0.3 * step  # the goal's bearing turned 0.3 sector since
+    nxt = min(k + 1, len(h.bearing_rad) - 1)
+    kept = _best(h, 1, DET, float(h.bearing_rad[nxt]) - 0.3 * step)
+    assert kept == nxt  # one sector farther (5 deg dearer) and still flown: kept
+    assert _best(h, 1, DET, flown) == k
+    far = min(k + 6, len(h.bearing_rad) - 1)  # 30 deg dearer: the better one takes over
+    assert _best(h, 1, DET, float(h.bearing_rad[far]) + 0.3 * step) == k
+
+
 def test_a_new_detour_near_the_last_one_goes_round_the_same_side() -> None:
     # A symmetric wall: either side would do; the last detour's side is kept (no swinging between two).
     mem = _trusted_memory(_wall(2.5, -8.0, 8.0))
@@ -360,6 +401,21 @@ def test_the_detour_course_reaches_the_goal_and_the_reactive_controller_alone_do
     result = fly(course, CFG)
     assert result.outcome.value == "goal" and result.detours >= 1, result.reason
     assert fly(course, CompanionConfig()).outcome.value != "goal"  # the default: the layer off
+
+
+@pytest.mark.slow
+def test_the_office_door_is_flown_through_once_the_map_forgets_what_it_sees_past() -> None:
+    # office-0 (StereoBM): the door's jambs, smeared into its opening, closed the door on the detour
+    # layer's map; the detour flew to and fro along the far wall until the time ran out. Points the
+    # camera sees past leave the map (memory.map_clear_after_frames), and it flies through.
+    from companion.sim.courses import make_course
+    from companion.sim.loop import fly
+
+    cfg = parse_config({"stereo": {"backend": "opencv-bm"}, "detour": {"trigger_after_s": 0.8}})
+    course = make_course("office", 0)
+    assert fly(course, cfg).outcome.value == "goal"
+    kept = cfg.model_copy(update={"memory": cfg.memory.model_copy(update={"map_clear_after_frames": 0})})
+    assert fly(course, kept).outcome.value != "goal"
 
 
 @pytest.mark.parametrize("goal_deg", [0.0, 37.0, 179.0, -179.0, 120.0])

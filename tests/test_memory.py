@@ -12,7 +12,9 @@ from companion.config.core import MemoryConfig
 from companion.core.command import setpoint_for
 from companion.core.geometry import StereoGeometry
 from companion.core.memory import (
+    CLEAR_WINDOW_BLOCKS,
     BlockMax,
+    FarView,
     NearCells,
     ObstacleMemory,
     ViewLimits,
@@ -20,6 +22,7 @@ from companion.core.memory import (
     block_max,
     camera_points_to_ned,
     view_limits,
+    window_max,
 )
 from companion.core.pose import Pose
 from companion.core.types import ZERO_SETPOINT, Decision, DecisionKind
@@ -391,3 +394,109 @@ def test_ned_to_body_horizontal_rotates_by_the_heading_for_floats_and_arrays() -
     f, r = ned_to_body_horizontal(np.array([1.0, 0.0]), np.array([0.0, 1.0]), 0.0)
     np.testing.assert_allclose(f, [1.0, 0.0])
     np.testing.assert_allclose(r, [0.0, 1.0])
+
+
+# ------------------------------------------------------------------------------------- seeing past
+
+
+def test_window_max_is_the_nearest_valid_block_round_each_measured_block() -> None:
+    b = np.full((5, 7), 2.0, np.float32)
+    b[2, 3] = 9.0  # one near block (a thin post)
+    b[0, 0] = np.nan  # not measured
+    got = window_max(b, 1)
+    assert got[1:4, 2:5].min() == 9.0 and got[2, 5] == 2.0  # the post keeps its neighbours near
+    assert np.isnan(got[0, 0]) and got[0, 1] == 2.0  # a block not measured is not judged
+    assert window_max(np.full((2, 2), np.nan, np.float32), 2).shape == (2, 2)
+    rng = np.random.default_rng(3)
+    r = rng.uniform(1, 60, (9, 13)).astype(np.float32)
+    r[rng.random(r.shape) < 0.3] = np.nan
+    want = np.full(r.shape, np.nan, np.float32)
+    for y, x in zip(*np.nonzero(r > 0)):
+        want[y, x] = np.nanmax(r[max(0, y - 2) : y + 3, max(0, x - 2) : x + 3])
+    assert np.array_equal(window_max(r, 2), want, equal_nan=True)  # the brute force, exactly
+
+
+def _far_view(depth_m: float, shape: tuple[int, int] = (16, 32)) -> FarView:
+    """A frame of GEOM whose every block measures ``depth_m`` (NaN: nothing measured)."""
+    d = GEOM.focal_baseline_px_m / depth_m if math.isfinite(depth_m) else np.nan
+    return FarView(np.full(shape, d, np.float32), GEOM.focal_px, GEOM.cx_px, GEOM.cy_px,
+                   GEOM.focal_baseline_px_m, 4, VIEW)
+
+
+SEEN = MemoryConfig(trust_min_frames=2, trust_persist_s=0.0)  # trusted from the second frame
+
+
+def _remembered(points_ned: np.ndarray) -> ObstacleMemory:
+    mem = ObstacleMemory()
+    for k in range(2):  # trusted by persistence, from the start point
+        mem.add(points_ned, 0.1 * k, SEEN.duration_s, ranges_m=np.full(len(points_ned), 2.0),
+                viewpoint_ned_m=np.array([0.0, 0.0, -1.5]), cfg=SEEN)
+    return mem
+
+
+def test_a_point_seen_past_frame_after_frame_leaves_the_map_but_still_guards() -> None:
+    here = np.array([0.0, 0.0, -1.5])
+    mem = _remembered(np.array([[2.0, 0.0, -1.5]]))  # 2 m ahead of a vehicle facing north
+    pose = Pose(tuple(here), 0.0)
+    assert len(mem.map_points(here, 0.2, SEEN, 5.0)) == 1
+    for k in range(SEEN.map_clear_after_frames - 1):
+        assert mem.see_through(_far_view(6.0), pose, SEEN) == 0  # the wall 6 m off: a miss
+    assert len(mem.map_points(here, 0.2, SEEN, 5.0)) == 1
+    assert mem.see_through(_far_view(6.0), pose, SEEN) == 1
+    assert len(mem.map_points(here, 0.2, SEEN, 5.0)) == 0  # out of the detour layer's map
+    beside = np.array([2.0, -0.45, -1.5])  # the point 0.45 m to the right, out of view
+    g = mem.guard(beside, 0.0, 0.2, SEEN, VIEW)
+    assert g is not None and g[0, 0] == pytest.approx(0.45)  # it still guards
+    mem.add(np.array([[2.0, 0.0, -1.5]]), 0.3, SEEN.duration_s, ranges_m=np.array([2.0]),
+            viewpoint_ned_m=here, cfg=SEEN)
+    assert len(mem.map_points(here, 0.3, SEEN, 5.0)) == 1  # seen again: back
+
+
+def test_a_point_seen_at_its_depth_starts_counting_again() -> None:
+    here = np.array([0.0, 0.0, -1.5])
+    mem = _remembered(np.array([[2.0, 0.0, -1.5]]))
+    pose = Pose(tuple(here), 0.0)
+    n = SEEN.map_clear_after_frames
+    for _ in range(n - 1):
+        mem.see_through(_far_view(6.0), pose, SEEN)
+    mem.see_through(_far_view(2.1), pose, SEEN)  # there after all (within the ratio)
+    for _ in range(n - 1):
+        mem.see_through(_far_view(6.0), pose, SEEN)
+    assert len(mem.map_points(here, 0.2, SEEN, 5.0)) == 1  # never n misses in a row
+    mem.see_through(_far_view(1.0), pose, SEEN)  # something nearer in front: hidden, not past
+    assert len(mem.map_points(here, 0.2, SEEN, 5.0)) == 1
+
+
+@pytest.mark.parametrize(
+    "point, far_m, why",
+    [
+        ((2.0, 0.0, -1.5), math.nan, "its block not measured (a plain wall)"),
+        ((0.1, 0.0, -1.5), 6.0, "nearer than the rig can see"),
+        ((-2.0, 0.0, -1.5), 6.0, "behind the camera"),
+        ((2.0, -1.9, -1.5), 6.0, "left of the measured view"),
+        ((2.0, 3.0, -1.5), 6.0, "outside the image"),
+    ],
+)
+def test_points_the_frame_does_not_measure_are_never_cleared(point, far_m, why) -> None:
+    here = np.array([0.0, 0.0, -1.5])
+    mem = _remembered(np.array([point]))
+    before = len(mem.map_points(here, 0.2, SEEN, 5.0))
+    for _ in range(3 * SEEN.map_clear_after_frames):
+        mem.see_through(_far_view(far_m), Pose(tuple(here), 0.0), SEEN)
+    assert len(mem.map_points(here, 0.2, SEEN, 5.0)) == before, why
+
+
+def test_seeing_past_is_off_with_zero_frames_and_the_pipeline_hands_the_frame_over() -> None:
+    here = np.array([0.0, 0.0, -1.5])
+    off = SEEN.model_copy(update={"map_clear_after_frames": 0})
+    mem = _remembered(np.array([[2.0, 0.0, -1.5]]))
+    for _ in range(5):
+        mem.add_frame(np.empty((0, 3)), Pose(tuple(here), 0.0), 0.2, off, _far_view(6.0))
+    assert len(mem.map_points(here, 0.2, off, 5.0)) == 1
+    near = NearCells(CFG, GEOM, (16, 32))
+    blocks = np.full((16, 32), 4.0, np.float32)
+    fv = near.far_view(blocks, VIEW)
+    assert fv.nearest_disparity_px.shape == (16, 32) and fv.block_px == CFG.block_px
+    assert CLEAR_WINDOW_BLOCKS >= 1
+    with pytest.raises(ValueError, match="must be"):
+        near.far_view(np.zeros((3, 3), np.float32), VIEW)

@@ -127,8 +127,9 @@ class DetourConfig(StrictModel):
         le=5.0,
         description=(
             "Along a detour, on the side chosen, when no direction keeps clearance_m (an opening just "
-            "wide enough, seen with its jambs' depth noise), one keeping this much still goes on, "
-            "metres: the 0.25 m vehicle plus 0.15 m (the controller and the guard still act)."
+            "wide enough, seen with its jambs' depth noise), one keeping this much still goes on, and "
+            "the goal direction keeping this much is enough to hand back, metres: the 0.25 m vehicle "
+            "plus 0.15 m (the controller and the guard still act)."
         ),
     )
     preferred_clearance_m: float = Field(

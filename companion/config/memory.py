@@ -95,6 +95,29 @@ class MemoryConfig(StrictModel):
             "counting as far: a false match that lasts one frame is not remembered."
         ),
     )
+    map_clear_after_frames: int = Field(
+        default=3,
+        ge=0,
+        le=100,
+        description=(
+            "A remembered point that this many frames in a row see well past (map_clear_depth_ratio) "
+            "leaves the detour layer's map until it is seen again, frames; 0 = never. Only measured "
+            "blocks judge: a plain wall the matcher leaves unmatched, a point out of view or nearer "
+            "than the rig can see stays. It still guards the vehicle (a point the position drift "
+            "moved is seen past too). A door's jambs smeared into its opening closed the door on "
+            "the map."
+        ),
+    )
+    map_clear_depth_ratio: float = Field(
+        default=1.3,
+        gt=1.0,
+        le=10.0,
+        description=(
+            "A frame sees past a remembered point when every valid block within 2 blocks of its ray "
+            "measures at least this many times the point's depth (a ratio: stereo depth error grows "
+            "with depth)."
+        ),
+    )
     guard_distance_m: float = Field(
         default=0.6,
         gt=0.0,

@@ -700,7 +700,12 @@ class DetourPlanner:
         self._last_plan_s = asked_s
         gd = self._goal_distance_m
         need = cfg.radius_m if gd is None else min(cfg.radius_m, gd)
-        if h.free_m[h.goal_index] >= need:
+        # The goal direction free with squeeze_clearance_m is enough to hand back: a door just wide
+        # enough for the vehicle (the office's 1.1-1.4 m, 0.55-0.7 m each side of its centre line) is
+        # free with clearance_m only within a few centimetres of that line, and a detour that
+        # waited for it flew to and fro along the wall past the door. The controller's brake and the
+        # guard still act on the way through.
+        if h.free_m[h.goal_index] >= need or h.tight_m[h.goal_index] >= need:
             self.phase = Phase.HANDBACK
             self._target_rad = goal
             self._anchor_ned_m = pos.copy()
@@ -933,9 +938,12 @@ def _best(
     cost = np.where(on, cost, np.inf)
     k = int(np.argmin(cost))
     if current_rad is not None:
+        # The directions are laid out from the goal's bearing, which turns as the vehicle moves:
+        # the one flown now is the nearest within half a sector, not an exact match (which held only
+        # while the vehicle hovered, so a detour in flight flipped between directions).
         near = np.abs(np.array([wrap_pi(b - current_rad) for b in h.bearing_rad]))
         j = int(np.argmin(near))
-        if on[j] and near[j] < 1e-6 and cost[j] - cost[k] < _HYSTERESIS_DEG:
+        if on[j] and near[j] <= 0.5 * math.radians(cfg.sector_deg) + 1e-9 and cost[j] - cost[k] < _HYSTERESIS_DEG:
             return j
     return k
 

@@ -27,6 +27,15 @@ From one frame to points (:func:`block_max`, :class:`NearCells`):
    counting as far, so that a false match lasting one frame is not remembered.
 4. points: each cell nearer than ``max_depth_m`` gives one point at that depth, on the ray of the block
    it came from, in the camera frame (x right, y down, z forward, metres).
+5. seeing through (:class:`FarView`, :meth:`ObstacleMemory.see_through`): a remembered point that
+   ``map_clear_after_frames`` frames in a row see well past (every valid block round its ray measures
+   at least ``map_clear_depth_ratio`` times its depth) leaves the detour layer's map
+   (:meth:`ObstacleMemory.map_points`) until it is seen again. A false match (a door's jamb smeared
+   into its opening, an alias on a fence) is not there when looked at again; a true surface is seen
+   again at its depth, or not measured at all (a plain wall: no valid block), which never clears it.
+   It still guards: the position estimate's drift moves true points off their surfaces too, where
+   they are seen past, and the guard needs them (forgetting them outright added 4 collisions to the
+   simulator's four drift suites).
 
 The memory lives in the vehicle's position estimate; a real estimate drifts against the world, which
 is why points are forgotten.
@@ -129,6 +138,7 @@ class NearCells:
     def __init__(self, cfg: MemoryConfig, geometry: StereoGeometry, block_shape: tuple[int, int]) -> None:
         self.cfg = cfg
         self._fb = float(geometry.focal_baseline_px_m)
+        self._camera = (float(geometry.focal_px), float(geometry.cx_px), float(geometry.cy_px))
         bh, bw = int(block_shape[0]), int(block_shape[1])
         self.block_shape = (bh, bw)
         rows, cols = min(cfg.grid_rows, bh), min(cfg.grid_cols, bw)
@@ -209,6 +219,14 @@ class NearCells:
         z = z[near]
         return np.stack([ray[:, 0] * z, ray[:, 1] * z, z], axis=1)
 
+    def far_view(self, blocks: np.ndarray, view: ViewLimits) -> FarView:
+        """This frame's :class:`FarView` from its block image (float32 ``block_shape``, NaN none), for
+        :meth:`ObstacleMemory.see_through`."""
+        if blocks.shape != self.block_shape:
+            raise ValueError(f"block image must be {self.block_shape}, got {blocks.shape}")
+        f, cx, cy = self._camera
+        return FarView(window_max(blocks, CLEAR_WINDOW_BLOCKS), f, cx, cy, self._fb, self.cfg.block_px, view)
+
 
 @dataclass(frozen=True)
 class ViewLimits:
@@ -231,6 +249,57 @@ def view_limits(geometry: StereoGeometry, num_disparities: int) -> ViewLimits:
         right_rad=math.atan(max(0.0, geometry.width_px - 1 - cx) / f),
         min_range_m=float(geometry.focal_baseline_px_m) / max(1, num_disparities - 1),
     )
+
+
+#: A remembered point counts as seen past only if every valid block within this many blocks of its
+#: ray (a 5 × 5 window at 2) measures beyond it: the point's place in the image is uncertain by the
+#: pose's error and the block it came from, and a thin surface beside the ray must keep it.
+CLEAR_WINDOW_BLOCKS = 2
+
+
+@dataclass(frozen=True)
+class FarView:
+    """What one frame measured, for :meth:`ObstacleMemory.see_through`.
+
+    Attributes:
+        nearest_disparity_px: float32 ``(rows, cols)`` of the block image: the largest valid block
+            disparity within :data:`CLEAR_WINDOW_BLOCKS` of each block (the nearest surface round
+            its ray), pixels; NaN where the block itself has no valid disparity (not measured).
+        focal_px, cx_px, cy_px: the rectified camera, pixels (pixel centres at integers).
+        focal_baseline_px_m: f·B, pixel metres (depth = f·B / disparity).
+        block_px: the block side, pixels.
+        view: what the rig measures (:class:`ViewLimits`): points outside it, or nearer than its
+            nearest depth, are not judged.
+    """
+
+    nearest_disparity_px: np.ndarray
+    focal_px: float
+    cx_px: float
+    cy_px: float
+    focal_baseline_px_m: float
+    block_px: int
+    view: ViewLimits
+
+
+def window_max(blocks: np.ndarray, radius: int) -> np.ndarray:
+    """The largest valid value within ``radius`` blocks of each block of ``blocks`` (float ``(rows,
+    cols)``, NaN or <= 0 invalid), float32 of the same shape; NaN where the block itself is invalid."""
+    b = np.asarray(blocks, dtype=np.float32)
+    valid = b > 0.0  # NaN compares False
+    src = np.where(valid, b, -np.inf).astype(np.float32)
+    rows, cols = src.shape
+    # Separable: the window's maximum is the maximum over rows of the maximum over columns.
+    pad = np.full((rows, cols + 2 * radius), -np.inf, dtype=np.float32)
+    pad[:, radius : radius + cols] = src
+    across = np.full((rows + 2 * radius, cols), -np.inf, dtype=np.float32)
+    mid = across[radius : radius + rows]
+    for dx in range(2 * radius + 1):
+        np.maximum(mid, pad[:, dx : dx + cols], out=mid)
+    out = np.full((rows, cols), -np.inf, dtype=np.float32)
+    for dy in range(2 * radius + 1):
+        np.maximum(out, across[dy : dy + rows], out=out)
+    out[~valid] = np.nan
+    return out
 
 
 def camera_points_to_ned(points_cam_m: np.ndarray, pose: Pose) -> np.ndarray:
@@ -275,6 +344,7 @@ class ObstacleMemory:
         self._pts = np.empty((0, 3))
         self._t = np.empty(0)
         self._range = np.empty(0)
+        self._misses = np.empty(0, dtype=np.int64)  # frames in a row that saw past each point
         # Trust cubes, sorted by key: first and last time seen, frames seen in, the first viewpoint
         # (north, east) and the largest horizontal distance of a later viewpoint from it.
         self._tkeys = np.empty(0, dtype=np.int64)
@@ -299,9 +369,13 @@ class ObstacleMemory:
         seen_from: Pose,
         t_s: float,
         cfg: MemoryConfig,
+        far_view: FarView | None = None,
     ) -> None:
         """One frame's points (float ``(K, 3)`` camera frame metres, :meth:`NearCells.points`) seen from
-        ``seen_from`` at ``t_s`` seconds: :meth:`add` with their depths and the viewpoint."""
+        ``seen_from`` at ``t_s`` seconds: first :meth:`see_through` with the frame's ``far_view`` (None:
+        not judged), then :meth:`add` with their depths and the viewpoint."""
+        if far_view is not None:
+            self.see_through(far_view, seen_from, cfg)
         p = np.asarray(points_cam_m, dtype=np.float64).reshape(-1, 3)
         self.add(
             camera_points_to_ned(p, seen_from),
@@ -336,6 +410,7 @@ class ObstacleMemory:
             return
         keep = (t_s - self._t) <= duration_s
         keys, pts, ts, rs = self._keys[keep], self._pts[keep], self._t[keep], self._range[keep]
+        misses = self._misses[keep]
         if len(p):
             new_keys, inverse = np.unique(self._key(p), return_inverse=True)
             first = np.zeros(new_keys.size, dtype=np.int64)
@@ -351,12 +426,53 @@ class ObstacleMemory:
             pts = np.concatenate([pts[~old], p[first]])
             ts = np.concatenate([ts[~old], np.full(new_keys.size, float(t_s))])
             rs = np.concatenate([rs[~old], new_r])
+            misses = np.concatenate([misses[~old], np.zeros(new_keys.size, dtype=np.int64)])  # seen: no misses
         if keys.size > self.max_points:
             newest = np.argsort(ts, kind="stable")[-self.max_points :]
-            keys, pts, ts, rs = keys[newest], pts[newest], ts[newest], rs[newest]
-        self._keys, self._pts, self._t, self._range = keys, pts, ts, rs
+            keys, pts, ts, rs, misses = keys[newest], pts[newest], ts[newest], rs[newest], misses[newest]
+        self._keys, self._pts, self._t, self._range, self._misses = keys, pts, ts, rs, misses
         if cfg is not None:
             self._update_trust(p, t_s, duration_s, viewpoint_ned_m, cfg)
+
+    def see_through(self, far: FarView, seen_from: Pose, cfg: MemoryConfig) -> int:
+        """Judge every remembered point against one frame seen from ``seen_from`` (module doc, 5): a
+        point inside the measured view, no nearer than the rig can measure, whose ray's every valid
+        block (:attr:`FarView.nearest_disparity_px`) lies at least ``cfg.map_clear_depth_ratio``
+        times farther counts a miss; one seen at or in front of its depth starts again from none; one
+        not judged (out of view, too near, its block not measured) keeps its count. A point with
+        ``cfg.map_clear_after_frames`` misses in a row is left out of :meth:`map_points` (0: never)
+        until it is seen again. Returns how many points are left out now."""
+        if cfg.map_clear_after_frames <= 0 or not self._keys.size:
+            return 0
+        cam = (self._pts - np.asarray(seen_from.position_ned_m, dtype=np.float64)) @ seen_from.ned_from_camera()
+        x, y, z = cam[:, 0], cam[:, 1], cam[:, 2]
+        view = far.view
+        ahead = z >= max(view.min_range_m, 1e-6)
+        zs = np.where(ahead, z, 1.0)
+        u = far.focal_px * x / zs + far.cx_px
+        v = far.focal_px * y / zs + far.cy_px
+        rows, cols = far.nearest_disparity_px.shape
+        bx = np.floor((u + 0.5) / far.block_px).astype(np.int64)
+        by = np.floor((v + 0.5) / far.block_px).astype(np.int64)
+        bearing = np.arctan2(x, zs)  # positive: right of the optical axis
+        judged = (
+            ahead
+            & (bx >= 0) & (bx < cols) & (by >= 0) & (by < rows)
+            & (bearing >= -view.left_rad) & (bearing <= view.right_rad)
+        )
+        d = np.full(z.shape, np.nan, dtype=np.float64)
+        d[judged] = far.nearest_disparity_px[by[judged], bx[judged]]
+        judged &= np.isfinite(d)
+        point_d = far.focal_baseline_px_m / zs
+        past = judged & (d * cfg.map_clear_depth_ratio <= point_d)  # measured depth >= ratio x the point's
+        self._misses = np.where(past, self._misses + 1, np.where(judged, 0, self._misses))
+        return int(np.count_nonzero(self._misses >= cfg.map_clear_after_frames))
+
+    def _seen_past(self, cfg: MemoryConfig) -> np.ndarray:
+        """bool ``(points,)``: the points :meth:`see_through` leaves out of the map now."""
+        if cfg.map_clear_after_frames <= 0:
+            return np.zeros(self._keys.size, dtype=bool)
+        return self._misses >= cfg.map_clear_after_frames
 
     def _trust_keys(self, p: np.ndarray, cell_m: float) -> np.ndarray:
         return self._pack(np.floor(p / cell_m).astype(np.int64))
@@ -435,13 +551,14 @@ class ObstacleMemory:
         self, position_ned_m: np.ndarray, now_s: float, cfg: MemoryConfig, radius_m: float
     ) -> np.ndarray | None:
         """The trusted points the detour layer maps with: seen within ``cfg.duration_s`` of ``now_s``
-        (at any depth out to ``cfg.map_depth_m``), within ``cfg.height_band_m`` of the vehicle's
-        altitude and within ``radius_m`` of it horizontally, as float64 ``(N, 2)`` north and east
-        offsets from the vehicle, metres; None without a finite position."""
+        (at any depth out to ``cfg.map_depth_m``), not seen past since (:meth:`see_through`), within
+        ``cfg.height_band_m`` of the vehicle's altitude and within ``radius_m`` of it horizontally, as
+        float64 ``(N, 2)`` north and east offsets from the vehicle, metres; None without a finite
+        position."""
         pos = np.asarray(position_ned_m, dtype=np.float64).reshape(-1)
         if pos.shape != (3,) or not np.all(np.isfinite(pos)):
             return None
-        keep = (now_s - self._t) <= cfg.duration_s
+        keep = ((now_s - self._t) <= cfg.duration_s) & ~self._seen_past(cfg)
         rel = self._pts[keep] - pos
         near = (np.abs(rel[:, 2]) <= cfg.height_band_m) & (np.hypot(rel[:, 0], rel[:, 1]) < radius_m)
         rel = rel[near]

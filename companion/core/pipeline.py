@@ -29,7 +29,7 @@ from companion.core.estimator import Clock, EstimatorFactory, RegionEstimator
 from companion.core.fuzzy.avoidance import AvoidanceController
 from companion.core.geometry import StereoGeometry
 from companion.core.lut import DepthLUT, median_filter, release_filter
-from companion.core.memory import NearCells, ViewLimits, view_limits
+from companion.core.memory import FarView, NearCells, ViewLimits, view_limits
 from companion.core.obstacle import ObstacleDistance
 from companion.core.types import Decision, RegionDepths
 
@@ -56,6 +56,9 @@ class FrameResult:
             (:class:`~companion.core.memory.NearCells`); else None.
         view_limits: with the memory on, what the rig measures (:func:`~companion.core.memory.view_limits`),
             for the guard; else None.
+        far_view: with the memory on and ``memory.map_clear_after_frames`` > 0: what this frame
+            measured round each block (:class:`~companion.core.memory.FarView`), for the memory to
+            leave the points it sees past out of the detour layer's map; else None.
         measured: this frame's own region depths after the LUT, before the median and release
             filters, metres (NaN unknown): what the camera measured now.
         filtered: bool ``(9,)``: True where ``refined`` came out of the release filter (smoothing a
@@ -76,6 +79,7 @@ class FrameResult:
     disparity: np.ndarray | None = None
     near_points_cam_m: np.ndarray | None = None
     view_limits: ViewLimits | None = None
+    far_view: FarView | None = None
     measured: RegionDepths | None = None
     filtered: np.ndarray | None = None
     stand_in: np.ndarray | None = None
@@ -206,9 +210,11 @@ class Pipeline:
         t2 = clock()
         decision = self._controller.decide(refined)
         t3 = clock()
-        points = None
+        points = far = None
         if near is not None and est.near_blocks is not None:
             points = near.points(est.near_blocks)
+            if self.config.memory.map_clear_after_frames > 0:
+                far = near.far_view(est.near_blocks, self._view_limits)
         t4 = clock()
         timings = dict(est.timings_ms)
         timings["lut_ms"] = (t2 - t1) * 1e3
@@ -224,6 +230,7 @@ class Pipeline:
             timings_ms=timings,
             disparity=est.disparity,
             near_points_cam_m=points,
+            far_view=far,
             view_limits=None if points is None else self._view_limits,
             measured=RegionDepths(depth_m=np.asarray(looked_up, dtype=np.float64), valid_fraction=est.regions.valid_fraction),
             filtered=filtered,

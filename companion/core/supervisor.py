@@ -473,7 +473,7 @@ class Supervisor:
         t_seen, seen_from = min(m.poses, key=lambda tp: abs(tp[0] - latest.timestamp_s))
         if abs(t_seen - latest.timestamp_s) <= _POSE_MATCH_S:
             # With the viewpoint, so that the memory can trust points seen from two places (detours).
-            m.obstacles.add_frame(points, seen_from, latest.timestamp_s, self._cfg.memory)
+            m.obstacles.add_frame(points, seen_from, latest.timestamp_s, self._cfg.memory, getattr(latest, "far_view", None))
 
     def _commanding(self) -> bool:
         m = self._m

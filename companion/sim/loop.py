@@ -399,7 +399,7 @@ def fly(
         while pending and pending[0][0] <= t + _EPS_S:
             _, latest, seen_from = pending.popleft()
             if memory is not None and latest.near_points_cam_m is not None:
-                memory.add_frame(latest.near_points_cam_m, seen_from, latest.timestamp_s, cfg.memory)
+                memory.add_frame(latest.near_points_cam_m, seen_from, latest.timestamp_s, cfg.memory, latest.far_view)
                 if audit is not None and len(f_t) % 5 == 0:
                     _add_counts(audit, audit_points(memory, course, latest.timestamp_s, seen_from, cfg))
 
