@@ -20,8 +20,8 @@ from companion.core.types import Decision, DecisionKind
 from companion.errors import ProtocolError
 from companion.service.protocol import parse_request, request_adapter
 
-# The detour layer is off by default (detour.trigger_after_s = 0) until it flies the drift suite with no
-# collision; these tests turn it on as `[detour] trigger_after_s = 0.8` does.
+# The detour layer is off by default (detour.trigger_after_s = 0) while it ends too many PX4 SITL flights
+# in a timeout; these tests turn it on as `[detour] trigger_after_s = 0.8` does.
 CFG = parse_config({"detour": {"trigger_after_s": 0.8}})
 DET = CFG.detour
 MEM = CFG.memory

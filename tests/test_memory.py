@@ -444,6 +444,7 @@ def test_a_point_seen_past_frame_after_frame_leaves_the_map_but_still_guards() -
     assert len(mem.map_points(here, 0.2, SEEN, 5.0)) == 1
     assert mem.see_through(_far_view(6.0), pose, SEEN) == 1
     assert len(mem.map_points(here, 0.2, SEEN, 5.0)) == 0  # out of the detour layer's map
+    assert mem.seen_past_mask(0.2, SEEN).tolist() == [True]  # what the simulator's audit leaves out
     beside = np.array([2.0, -0.45, -1.5])  # the point 0.45 m to the right, out of view
     g = mem.guard(beside, 0.0, 0.2, SEEN, VIEW)
     assert g is not None and g[0, 0] == pytest.approx(0.45)  # it still guards
@@ -486,7 +487,7 @@ def test_points_the_frame_does_not_measure_are_never_cleared(point, far_m, why) 
     assert len(mem.map_points(here, 0.2, SEEN, 5.0)) == before, why
 
 
-def test_seeing_past_is_off_with_zero_frames_and_the_pipeline_hands_the_frame_over() -> None:
+def test_seeing_past_is_off_with_zero_frames_and_near_cells_make_the_frame_view() -> None:
     here = np.array([0.0, 0.0, -1.5])
     off = SEEN.model_copy(update={"map_clear_after_frames": 0})
     mem = _remembered(np.array([[2.0, 0.0, -1.5]]))

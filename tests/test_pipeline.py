@@ -170,3 +170,19 @@ def test_memory_off_gives_no_points_and_can_be_switched_live() -> None:
     pipeline.reconfigure(cfg)
     r = pipeline.process(frame, timestamp_s=0.1)
     assert r.near_points_cam_m is not None and "memory_ms" in r.timings_ms
+
+
+def test_a_frame_carries_what_it_saw_past_only_for_the_detour_layer() -> None:
+    """The detour layer's map forgets what a frame sees past (memory.map_clear_after_frames): the
+    frame's block view comes with it when the layer is on, and costs nothing when it is off."""
+    cfg, pipeline, frame, _ = _render(Scene(obstacles=(_wall(1.0),)))
+    assert cfg.detour.trigger_after_s == 0.0  # the default: the layer off
+    assert pipeline.process(frame, timestamp_s=0.0).far_view is None
+    pipeline.reconfigure(apply_patch(cfg, {"detour": {"trigger_after_s": 0.8}}))
+    fv = pipeline.process(frame, timestamp_s=0.1).far_view
+    assert fv is not None and fv.view == pipeline.process(frame, timestamp_s=0.2).view_limits
+    wall_d = pipeline.geometry.focal_baseline_px_m / 1.0  # the wall 1 m ahead fills the view
+    measured = fv.nearest_disparity_px[np.isfinite(fv.nearest_disparity_px)]
+    assert measured.size > 0 and np.median(measured) == pytest.approx(wall_d, rel=0.15)
+    pipeline.reconfigure(apply_patch(cfg, {"detour": {"trigger_after_s": 0.8}, "memory": {"map_clear_after_frames": 0}}))
+    assert pipeline.process(frame, timestamp_s=0.3).far_view is None

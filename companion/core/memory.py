@@ -547,6 +547,12 @@ class ObstacleMemory:
         keep = (now_s - self._t) <= cfg.duration_s
         return self._range[keep] <= cfg.max_depth_m
 
+    def seen_past_mask(self, now_s: float, cfg: MemoryConfig) -> np.ndarray:
+        """bool, aligned with :meth:`points`: left out of the detour layer's map now, seen past
+        (:meth:`see_through`)."""
+        keep = (now_s - self._t) <= cfg.duration_s
+        return self._seen_past(cfg)[keep]
+
     def map_points(
         self, position_ned_m: np.ndarray, now_s: float, cfg: MemoryConfig, radius_m: float
     ) -> np.ndarray | None:

@@ -56,8 +56,8 @@ class FrameResult:
             (:class:`~companion.core.memory.NearCells`); else None.
         view_limits: with the memory on, what the rig measures (:func:`~companion.core.memory.view_limits`),
             for the guard; else None.
-        far_view: with the memory on and ``memory.map_clear_after_frames`` > 0: what this frame
-            measured round each block (:class:`~companion.core.memory.FarView`), for the memory to
+        far_view: with the memory, the detour layer and ``memory.map_clear_after_frames`` on: what
+            this frame measured round each block (:class:`~companion.core.memory.FarView`), for the memory to
             leave the points it sees past out of the detour layer's map; else None.
         measured: this frame's own region depths after the LUT, before the median and release
             filters, metres (NaN unknown): what the camera measured now.
@@ -213,8 +213,8 @@ class Pipeline:
         points = far = None
         if near is not None and est.near_blocks is not None:
             points = near.points(est.near_blocks)
-            if self.config.memory.map_clear_after_frames > 0:
-                far = near.far_view(est.near_blocks, self._view_limits)
+            if self.config.memory.map_clear_after_frames > 0 and self.config.detour.trigger_after_s > 0.0:
+                far = near.far_view(est.near_blocks, self._view_limits)  # the map is the detour layer's alone
         t4 = clock()
         timings = dict(est.timings_ms)
         timings["lut_ms"] = (t2 - t1) * 1e3

@@ -546,8 +546,9 @@ def audit_points(memory: ObstacleMemory, course: Course, now_s: float, seen_from
     """The memory's points at ``now_s`` judged against the course's true geometry: ``points`` (all
     remembered), ``false`` (farther than :data:`FALSE_POINT_TOLERANCE_M` from every surface, ground
     included), ``trusted`` and ``trusted_false``; and the same for the points the detour layer maps
-    with (``map_*``: trusted, within ``memory.height_band_m`` of the vehicle and within the detour's
-    reach of it) and those that guard (``near_*``: seen nearer than ``memory.max_depth_m``)."""
+    with (``map_*``: trusted, not seen past, within ``memory.height_band_m`` of the vehicle and within
+    the detour's reach of it) and those that guard (``near_*``: seen nearer than
+    ``memory.max_depth_m``)."""
     from companion.sim.scoring import ClearanceField
 
     field_ = ClearanceField(course.scene)
@@ -558,7 +559,8 @@ def audit_points(memory: ObstacleMemory, course: Course, now_s: float, seen_from
     pos = np.asarray(seen_from.position_ned_m, dtype=np.float64)
     reach = max(cfg.detour.radius_m, cfg.memory.map_depth_m) + cfg.detour.clearance_m
     rel = pts - pos
-    mapped = trusted & (np.abs(rel[:, 2]) <= cfg.memory.height_band_m) & (np.hypot(rel[:, 0], rel[:, 1]) < reach)
+    mapped = trusted & ~memory.seen_past_mask(now_s, cfg.memory)
+    mapped &= (np.abs(rel[:, 2]) <= cfg.memory.height_band_m) & (np.hypot(rel[:, 0], rel[:, 1]) < reach)
     return {
         "points": int(len(pts)),
         "false": int(np.count_nonzero(false)),
