@@ -24,9 +24,9 @@ class DetourConfig(StrictModel):
         description=(
             "Start a detour once the controller has braked (the way ahead blocked, no escape) this "
             "long without a break, seconds; 0 = the detour layer is off (the reactive controller and "
-            "course hold alone, as before it; the default while in PX4 SITL it ends too many flights "
-            "in a timeout rather than a goal or a hold: issue 21). 0.8 turns it on: short, since the "
-            "simulator's judge, and a pilot, call a vehicle stopped for 3 s held."
+            "course hold alone, as before it; the default until a full PX4 SITL standard run with it "
+            "on has no collision: issue 21). 0.8 turns it on: short, since the simulator's judge, and "
+            "a pilot, call a vehicle stopped for 3 s held."
         ),
     )
     trigger_no_progress_s: float = Field(

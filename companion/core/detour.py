@@ -925,7 +925,8 @@ def _best(
     """The index of the free direction (free for ``min_free_m``) on ``side`` of the goal costing least:
     its angle off the goal, plus ``prefer_clear_cost_deg`` when it is not free for ``min_free_m`` with
     ``preferred_clearance_m`` and ``visited_cost_deg`` back over the trail; the direction flown now
-    (``current_rad``) keeps its place unless another costs :data:`_HYSTERESIS_DEG` less. None: none
+    (``current_rad``, when it is one of the histogram's: while hovering or turning in place) keeps its
+    place unless another costs :data:`_HYSTERESIS_DEG` less. None: none
     free on that side. ``share``: the part of ``min_free_m`` that counts as free; ``tight``: free with
     ``squeeze_clearance_m`` instead of ``clearance_m``."""
     free = h.tight_m if tight else h.free_m
@@ -938,12 +939,14 @@ def _best(
     cost = np.where(on, cost, np.inf)
     k = int(np.argmin(cost))
     if current_rad is not None:
-        # The directions are laid out from the goal's bearing, which turns as the vehicle moves:
-        # the one flown now is the nearest within half a sector, not an exact match (which held only
-        # while the vehicle hovered, so a detour in flight flipped between directions).
+        # The directions are laid out from the goal's bearing, which turns as the vehicle moves, so
+        # this matches only while it hovers or turns in place; in flight every replan chooses afresh.
+        # Matching the nearest within half a sector kept a detour on its direction in flight too:
+        # in PX4 SITL it then flew past openings it would otherwise have turned into (quick suite,
+        # layer on: 3 more timeouts, doorway-1, office-0 and detour-0; history.md, 2026-11-24).
         near = np.abs(np.array([wrap_pi(b - current_rad) for b in h.bearing_rad]))
         j = int(np.argmin(near))
-        if on[j] and near[j] <= 0.5 * math.radians(cfg.sector_deg) + 1e-9 and cost[j] - cost[k] < _HYSTERESIS_DEG:
+        if on[j] and near[j] < 1e-6 and cost[j] - cost[k] < _HYSTERESIS_DEG:
             return j
     return k
 
