@@ -419,8 +419,7 @@ def test_window_max_is_the_nearest_valid_block_round_each_measured_block() -> No
 def _far_view(depth_m: float, shape: tuple[int, int] = (16, 32)) -> FarView:
     """A frame of GEOM whose every block measures ``depth_m`` (NaN: nothing measured)."""
     d = GEOM.focal_baseline_px_m / depth_m if math.isfinite(depth_m) else np.nan
-    return FarView(np.full(shape, d, np.float32), GEOM.focal_px, GEOM.cx_px, GEOM.cy_px,
-                   GEOM.focal_baseline_px_m, 4, VIEW)
+    return FarView(np.full(shape, d, np.float32), GEOM, 4, VIEW)
 
 
 SEEN = MemoryConfig(trust_min_frames=2, trust_persist_s=0.0)  # trusted from the second frame

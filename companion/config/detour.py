@@ -240,6 +240,11 @@ class DetourConfig(StrictModel):
         ),
     )
 
+    @property
+    def on(self) -> bool:
+        """Whether the detour layer is on (``trigger_after_s`` > 0)."""
+        return self.trigger_after_s > 0.0
+
     @model_validator(mode="after")
     def _order(self) -> DetourConfig:
         if self.preferred_clearance_m < self.clearance_m:

@@ -504,7 +504,7 @@ class DetourPlanner:
         answered by one detour)."""
         self._goal_distance_m = goal_distance_m
         self._stall_mark = stall_mark_m
-        if cfg.trigger_after_s <= 0.0 or memory is None or memory_cfg.duration_s <= 0.0:
+        if not cfg.on or memory is None or memory_cfg.duration_s <= 0.0:
             self.phase = Phase.IDLE
             self._drop_request()
             return None

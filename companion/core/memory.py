@@ -138,7 +138,7 @@ class NearCells:
     def __init__(self, cfg: MemoryConfig, geometry: StereoGeometry, block_shape: tuple[int, int]) -> None:
         self.cfg = cfg
         self._fb = float(geometry.focal_baseline_px_m)
-        self._camera = (float(geometry.focal_px), float(geometry.cx_px), float(geometry.cy_px))
+        self._geometry = geometry
         bh, bw = int(block_shape[0]), int(block_shape[1])
         self.block_shape = (bh, bw)
         rows, cols = min(cfg.grid_rows, bh), min(cfg.grid_cols, bw)
@@ -224,8 +224,7 @@ class NearCells:
         :meth:`ObstacleMemory.see_through`."""
         if blocks.shape != self.block_shape:
             raise ValueError(f"block image must be {self.block_shape}, got {blocks.shape}")
-        f, cx, cy = self._camera
-        return FarView(window_max(blocks, CLEAR_WINDOW_BLOCKS), f, cx, cy, self._fb, self.cfg.block_px, view)
+        return FarView(window_max(blocks, CLEAR_WINDOW_BLOCKS), self._geometry, self.cfg.block_px, view)
 
 
 @dataclass(frozen=True)
@@ -236,6 +235,11 @@ class ViewLimits:
     left_rad: float
     right_rad: float
     min_range_m: float
+
+    def covers(self, bearing_rad: np.ndarray, range_m: np.ndarray) -> np.ndarray:
+        """bool, broadcast: whether the rig measures a point ``bearing_rad`` off the optical axis
+        (positive right) and ``range_m`` metres away."""
+        return (bearing_rad >= -self.left_rad) & (bearing_rad <= self.right_rad) & (range_m >= self.min_range_m)
 
 
 def view_limits(geometry: StereoGeometry, num_disparities: int) -> ViewLimits:
@@ -265,18 +269,14 @@ class FarView:
         nearest_disparity_px: float32 ``(rows, cols)`` of the block image: the largest valid block
             disparity within :data:`CLEAR_WINDOW_BLOCKS` of each block (the nearest surface round
             its ray), pixels; NaN where the block itself has no valid disparity (not measured).
-        focal_px, cx_px, cy_px: the rectified camera, pixels (pixel centres at integers).
-        focal_baseline_px_m: f·B, pixel metres (depth = f·B / disparity).
+        geometry: the rectified rig the frame was seen with (pixel centres at integers).
         block_px: the block side, pixels.
         view: what the rig measures (:class:`ViewLimits`): points outside it, or nearer than its
             nearest depth, are not judged.
     """
 
     nearest_disparity_px: np.ndarray
-    focal_px: float
-    cx_px: float
-    cy_px: float
-    focal_baseline_px_m: float
+    geometry: StereoGeometry
     block_px: int
     view: ViewLimits
 
@@ -446,24 +446,19 @@ class ObstacleMemory:
             return 0
         cam = (self._pts - np.asarray(seen_from.position_ned_m, dtype=np.float64)) @ seen_from.ned_from_camera()
         x, y, z = cam[:, 0], cam[:, 1], cam[:, 2]
-        view = far.view
-        ahead = z >= max(view.min_range_m, 1e-6)
+        g = far.geometry
+        ahead = z > 1e-6
         zs = np.where(ahead, z, 1.0)
-        u = far.focal_px * x / zs + far.cx_px
-        v = far.focal_px * y / zs + far.cy_px
+        u = g.focal_px * x / zs + g.cx_px
+        v = g.focal_px * y / zs + g.cy_px
         rows, cols = far.nearest_disparity_px.shape
         bx = np.floor((u + 0.5) / far.block_px).astype(np.int64)
         by = np.floor((v + 0.5) / far.block_px).astype(np.int64)
-        bearing = np.arctan2(x, zs)  # positive: right of the optical axis
-        judged = (
-            ahead
-            & (bx >= 0) & (bx < cols) & (by >= 0) & (by < rows)
-            & (bearing >= -view.left_rad) & (bearing <= view.right_rad)
-        )
+        judged = ahead & far.view.covers(np.arctan2(x, zs), z) & (bx >= 0) & (bx < cols) & (by >= 0) & (by < rows)
         d = np.full(z.shape, np.nan, dtype=np.float64)
         d[judged] = far.nearest_disparity_px[by[judged], bx[judged]]
         judged &= np.isfinite(d)
-        point_d = far.focal_baseline_px_m / zs
+        point_d = g.focal_baseline_px_m / zs
         past = judged & (d * cfg.map_clear_depth_ratio <= point_d)  # measured depth >= ratio x the point's
         self._misses = np.where(past, self._misses + 1, np.where(judged, 0, self._misses))
         return int(np.count_nonzero(self._misses >= cfg.map_clear_after_frames))
@@ -698,7 +693,7 @@ def _guard_rows(
     """:meth:`ObstacleMemory.guard`'s rows from body-frame points (forward, right, distance, metres;
     trusted, bool)."""
     bearing = np.arctan2(right, fwd)
-    unseen = (bearing < -view.left_rad) | (bearing > view.right_rad) | (dist < view.min_range_m)
+    unseen = ~view.covers(bearing, dist)
     keep = unseen & (dist < cfg.guard_distance_m) & (dist > 1e-6)
     if not np.any(keep):
         return None

@@ -213,7 +213,7 @@ class Pipeline:
         points = far = None
         if near is not None and est.near_blocks is not None:
             points = near.points(est.near_blocks)
-            if self.config.memory.map_clear_after_frames > 0 and self.config.detour.trigger_after_s > 0.0:
+            if self.config.memory.map_clear_after_frames > 0 and self.config.detour.on:
                 far = near.far_view(est.near_blocks, self._view_limits)  # the map is the detour layer's alone
         t4 = clock()
         timings = dict(est.timings_ms)
