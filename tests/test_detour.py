@@ -163,6 +163,24 @@ def test_a_door_just_wide_enough_hands_back_in_front_of_it() -> None:
             assert cmd is not None and p.active
 
 
+def test_a_climb_ends_a_detour_only_while_it_faces_the_goal() -> None:
+    # A detour facing a side (looking round, or flying a way round) sees a cabinet or a fence top and
+    # the controller climbs: that says nothing of the way to the goal, so the detour goes on. The same
+    # climb facing the goal direction is the way over what braked the vehicle: the detour ends there.
+    climb = Decision(DecisionKind.AVOID, yaw=0.0, pitch=-0.5, speed_fraction=0.5, reason="up")
+    mem = _trusted_memory(_wall(2.5, -8.0, 8.0))
+    pos = np.array([0.0, 0.0, -1.5])
+    for yaw_deg, ends in ((70.0, False), (-70.0, False), (20.0, True), (0.0, True)):
+        p = DetourPlanner()
+        cmd, t = _brake_until_detour(p, mem, 0.0)
+        assert cmd is not None and p.active
+        cmd = p.update(t, climb, pos, math.radians(yaw_deg), 0.0, 0.0, mem, MEM, DET, goal_distance_m=6.0)
+        if ends:
+            assert cmd is None and not p.active and "escapes over or under" in p.reason
+        else:
+            assert cmd is not None and p.active
+
+
 def test_the_direction_flown_keeps_its_place_only_while_it_is_one_of_the_histograms() -> None:
     # Hovering or turning in place (the same goal bearing), a direction costing a few degrees less
     # does not take over (hysteresis), one costing far less does. In flight the goal's bearing turns

@@ -73,9 +73,15 @@ if TYPE_CHECKING:
     from companion.core.memory import ObstacleMemory
 
 #: An AVOID decision climbing or descending at least this much (and more than it turns) is the
-#: controller escaping vertically: the way over or under is free, so no detour (and a look round
-#: stops). The side rules' slight climb away from the ground (0.05-0.15) is not one.
+#: controller escaping vertically: the way over or under is free, so no detour (and one under way
+#: stops while the vehicle faces the goal, :data:`_ESCAPE_FACING_DEG`). The side rules' slight climb
+#: away from the ground (0.05-0.15) is not one.
 VERTICAL_ESCAPE = 0.2
+#: A vertical escape ends a detour only while the vehicle faces within this of the goal direction
+#: (the way over or under is toward the goal): a climb while a look round or a way round faces a side
+#: (a cabinet, a fence's top) says nothing of the way to the goal, and ending the detour there sent
+#: the vehicle back to the brake that began it (office and forest timeouts), degrees.
+_ESCAPE_FACING_DEG = 30.0
 #: A scan target counts as reached within this, radians.
 _SCAN_TOLERANCE_RAD = math.radians(6.0)
 #: Nearer than the clearance to something, a path may come no nearer to anything than this less
@@ -533,7 +539,8 @@ class DetourPlanner:
                 return None
             self._count += 1
             return self._begin(now_s, pos, yaw_rad, goal_bearing_rad, memory, memory_cfg, cfg, prefer_right)
-        if _vertical_escape(decision):
+        facing_goal = abs(wrap_pi(yaw_rad - goal_bearing_rad)) <= math.radians(_ESCAPE_FACING_DEG)
+        if _vertical_escape(decision) and facing_goal:
             self._end(pos, "the controller escapes over or under: no detour")
             return None
         elif now_s - self._since_s > cfg.max_time_s and self.phase is not Phase.HANDBACK:
