@@ -444,12 +444,14 @@ def test_a_point_seen_past_frame_after_frame_leaves_the_map_but_still_guards() -
     assert mem.see_through(_far_view(6.0), pose, SEEN) == 1
     assert len(mem.map_points(here, 0.2, SEEN, 5.0)) == 0  # out of the detour layer's map
     assert mem.seen_past_mask(0.2, SEEN).tolist() == [True]  # what the simulator's audit leaves out
+    assert mem.seen_past_count(SEEN) == 1  # what the health message reports
     beside = np.array([2.0, -0.45, -1.5])  # the point 0.45 m to the right, out of view
     g = mem.guard(beside, 0.0, 0.2, SEEN, VIEW)
     assert g is not None and g[0, 0] == pytest.approx(0.45)  # it still guards
     mem.add(np.array([[2.0, 0.0, -1.5]]), 0.3, SEEN.duration_s, ranges_m=np.array([2.0]),
             viewpoint_ned_m=here, cfg=SEEN)
     assert len(mem.map_points(here, 0.3, SEEN, 5.0)) == 1  # seen again: back
+    assert mem.seen_past_count(SEEN) == 0
 
 
 def test_a_point_seen_at_its_depth_starts_counting_again() -> None:

@@ -967,3 +967,10 @@ def test_no_ready_stream_after_a_failsafe_until_an_explicit_engage() -> None:
     h.run(0.5)
     assert h.sup.state is State.FAILSAFE and not h.sup.ready
     assert all(o.setpoint is None for o in h.run(1.0))
+
+
+def test_the_memory_status_says_how_many_points_the_detour_map_leaves_out() -> None:
+    # The health message's `memory` block: what is remembered, what guarded, and what the detour
+    # layer's map leaves out (seen past: tests/test_memory.py).
+    sup = Supervisor(default_config())
+    assert sup.memory_status() == {"points": 0, "guarding": 0, "seen_past": 0}

@@ -548,6 +548,11 @@ class ObstacleMemory:
         keep = (now_s - self._t) <= cfg.duration_s
         return self._seen_past(cfg)[keep]
 
+    def seen_past_count(self, cfg: MemoryConfig) -> int:
+        """How many remembered points are left out of the detour layer's map now, seen past
+        (:meth:`see_through`; the health message reports it)."""
+        return int(np.count_nonzero(self._seen_past(cfg)))
+
     def map_points(
         self, position_ned_m: np.ndarray, now_s: float, cfg: MemoryConfig, radius_m: float
     ) -> np.ndarray | None:

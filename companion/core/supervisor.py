@@ -382,8 +382,14 @@ class Supervisor:
 
     def memory_status(self) -> dict[str, float | int]:
         """The obstacle memory for the health message: ``points`` remembered (5 cm cubes),
-        ``guarding``: how many (one per 45° sector) pushed the last engaged setpoint."""
-        return {"points": len(self._m.obstacles), "guarding": self._m.guarding}
+        ``guarding``: how many (one per 45° sector) pushed the last engaged setpoint, ``seen_past``:
+        how many the detour layer's map leaves out because the camera has seen past them (they still
+        guard; :meth:`~companion.core.memory.ObstacleMemory.see_through`)."""
+        return {
+            "points": len(self._m.obstacles),
+            "guarding": self._m.guarding,
+            "seen_past": self._m.obstacles.seen_past_count(self._cfg.memory),
+        }
 
     def reconfigure(self, cfg: SupervisorConfig) -> None:
         """Swap the limits and timings; the state is kept (autostart is consumed only at start)."""

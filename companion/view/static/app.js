@@ -198,7 +198,8 @@ function applyHealth(h) {
   const v = h.vehicle || {};
   setText("vehicle", `${v.link ?? "–"}, ${v.flight_mode ?? "–"}, ${v.armed ? "armed" : "disarmed"}`);
   const m = h.memory || {};
-  setText("memory", m.points === undefined ? "–" : `${m.points} points, ${m.guarding || 0} guarding`);
+  setText("memory", m.points === undefined ? "–"
+    : `${m.points} points, ${m.guarding || 0} guarding` + (m.seen_past ? `, ${m.seen_past} seen past` : ""));
   setText("last-error", h.last_error || "none");
   $("last-error").className = h.last_error ? "err" : "";
   updateButtons();
