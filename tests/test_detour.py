@@ -167,7 +167,7 @@ def test_a_climb_ends_a_detour_only_while_it_faces_the_goal() -> None:
     # A detour facing a side (looking round, or flying a way round) sees a cabinet or a fence top and
     # the controller climbs: that says nothing of the way to the goal, so the detour goes on. The same
     # climb facing the goal direction is the way over what braked the vehicle: the detour ends there.
-    climb = Decision(DecisionKind.AVOID, yaw=0.0, pitch=-0.5, speed_fraction=0.5, reason="up")
+    climb = Decision(DecisionKind.AVOID, yaw=0.0, pitch=0.5, speed_fraction=0.5, reason="up")
     mem = _trusted_memory(_wall(2.5, -8.0, 8.0))
     pos = np.array([0.0, 0.0, -1.5])
     for yaw_deg, ends in ((70.0, False), (-70.0, False), (20.0, True), (0.0, True)):
