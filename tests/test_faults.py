@@ -153,7 +153,10 @@ def test_sigterm_in_the_middle_of_an_engage(tmp_path: Path) -> None:
                 proc.kill()
         time.sleep(0.5)
         assert rc == exitcodes.OK, err[-3000:]
-        assert exit_s < 1.0, exit_s
+        # It did not finish the engage first: no offboard request, and the stream stopped at once
+        # (below). How long the process then takes to exit is a figure, not behaviour (2.3 s once on
+        # the loaded 2-core CI VM, against well under 1 s usually); a hang would show here.
+        assert exit_s < 5.0, exit_s
         assert peer.mode == "POSCTL" and [c.mode for c in peer.mode_commands()] == []
         assert peer.setpoints[-1].is_zero
         assert peer.setpoints_since(t_term + 0.3) == []
