@@ -461,7 +461,7 @@ class ObstacleMemory:
         point_d = g.focal_baseline_px_m / zs
         past = judged & (d * cfg.map_clear_depth_ratio <= point_d)  # measured depth >= ratio x the point's
         self._misses = np.where(past, self._misses + 1, np.where(judged, 0, self._misses))
-        return int(np.count_nonzero(self._misses >= cfg.map_clear_after_frames))
+        return self.seen_past_count(cfg)
 
     def _seen_past(self, cfg: MemoryConfig) -> np.ndarray:
         """bool ``(points,)``: the points :meth:`see_through` leaves out of the map now."""
