@@ -368,6 +368,7 @@ def setpoint_for(
     remembered_sides: tuple[bool, bool] | None = None,
     velocity_body_m_s: tuple[float, float] | None = None,
     gap_offset_m: float | None = None,
+    below_clear: bool | None = None,
 ) -> VelocitySetpoint:
     """The setpoint to send for ``decision``, made ``since_last_frame_s`` seconds after its frame.
 
@@ -416,7 +417,10 @@ def setpoint_for(
       ``cmd.line_hold_lateral_clear_depth_m`` deep), scaled by ``1 - |yaw|``;
     * ``altitude_error_m`` (altitude at engagement minus altitude now, metres, positive = climb):
       adds ``clip(-altitude_hold_gain_per_s · error, ±max_altitude_hold_speed_m_s)`` m/s of down
-      speed, scaled by ``1 - |pitch|``;
+      speed, scaled by ``1 - |pitch|``; a descent does not wait (for ``clear_for_s`` or
+      ``clear_for_m``) when ``below_clear`` is True (:meth:`~companion.core.memory.ObstacleMemory.clear_below`:
+      nothing remembered below the vehicle down to that altitude): what it climbed over was seen
+      on the way there, and an office never gives 1.5 m of straight, clear flight;
     * turning back: when the heading aimed at (the two above) lies more than ``cmd.turn_back_angle_deg``
       away, none of this: forward and sideways speed 0, and a yaw rate of
       ``±max_heading_hold_rate_deg_s`` toward it, whatever the side regions read (the decision's
@@ -473,13 +477,13 @@ def setpoint_for(
             right_m_s = (1.0 - abs(yaw)) * _line_hold_right_m_s(
                 line_offset_m, heading_error_rad, region_depths_m, cmd, remembered_sides
             )
-    if (
-        clear
-        and not turning_back
-        and (clear_for_s is None or clear_for_s >= cmd.hold_resume_delay_s)
-        and (clear_for_m is None or clear_for_m >= cmd.hold_resume_distance_m)
-    ):
-        down_m_s += (1.0 - abs(pitch)) * _altitude_hold_down_m_s(altitude_error_m, region_depths_m, cmd)
+    if clear and not turning_back:
+        waited = (clear_for_s is None or clear_for_s >= cmd.hold_resume_delay_s) and (
+            clear_for_m is None or clear_for_m >= cmd.hold_resume_distance_m
+        )
+        hold_down_m_s = _altitude_hold_down_m_s(altitude_error_m, region_depths_m, cmd)
+        if waited or (below_clear is True and hold_down_m_s > 0.0):
+            down_m_s += (1.0 - abs(pitch)) * hold_down_m_s
     gap_on = gap_offset_m is not None and guard_cfg is not None and guard_cfg.gap_centering_gain_per_s > 0.0
     if clear and not turning_back and gap_on and math.isfinite(gap_offset_m):
         limit = guard_cfg.max_gap_centering_speed_m_s

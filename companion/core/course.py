@@ -236,7 +236,8 @@ class CourseHold:
             guard_m, remembered_sides, gap_offset_m: the obstacle memory's inputs
                 (:meth:`~companion.core.memory.ObstacleMemory.hold_inputs`), or None (memory off).
             memory_cfg: the ``[memory]`` config that goes with them.
-            obstacles: the obstacle memory itself, for the detour layer (None: no detour).
+            obstacles: the obstacle memory itself, for the detour layer and course hold's descent
+                (:meth:`~companion.core.memory.ObstacleMemory.clear_below`); None: neither.
             detour_cfg: the ``[detour]`` config (None: no detour).
             prefer_right: a detour's tie goes right (``controller.preferred_yaw_side``).
             planning: False while the caller holds (the watchdog, the goal reached, a dead end): no
@@ -278,6 +279,16 @@ class CourseHold:
                 altitude_error = self.altitude_m + down  # altitude then minus now; positive: climb back
         if self.ready(position_ned_m):
             line_offset = line_offset_m(position_ned_m, self.origin_ned_m, self.heading_rad)
+        below_clear = None
+        if (
+            altitude_error is not None
+            and altitude_error < 0.0
+            and self.altitude_m is not None
+            and position_ned_m is not None
+            and obstacles is not None
+            and memory_cfg is not None
+        ):
+            below_clear = obstacles.clear_below(position_ned_m, now_s, memory_cfg, -self.altitude_m)
         clear_since = self._clear_since_s
         heading_since = self._heading_clear_since_s
         return setpoint_for(
@@ -302,6 +313,7 @@ class CourseHold:
             remembered_sides=remembered_sides,
             velocity_body_m_s=horizontal_velocity_body_m_s(velocity_ned_m_s, yaw),
             gap_offset_m=gap_offset_m,
+            below_clear=below_clear,
         )
 
     def _plan(

@@ -571,6 +571,27 @@ class ObstacleMemory:
         trusted = self.trusted(rel + pos, cfg)
         return rel[trusted, :2]
 
+    def clear_below(self, position_ned_m: np.ndarray, now_s: float, cfg: MemoryConfig, down_to_m: float) -> bool | None:
+        """Whether the way down is free of remembered points: no point seen within
+        ``cfg.duration_s`` of ``now_s`` (near or far, trusted or not) lies within ``cfg.hold_clear_m``
+        of the vehicle horizontally and below it, above ``down_to_m + cfg.height_band_m`` (NED down,
+        metres: the altitude to descend to, less the band a point at the vehicle's height lies in).
+
+        Course hold's descent back to the engagement altitude uses it: the camera cannot see what
+        is straight below, but it saw what the vehicle climbed over on the way there.
+
+        Returns:
+            None without a finite position or ``down_to_m``; else the answer (True for an empty
+            memory).
+        """
+        pos = np.asarray(position_ned_m, dtype=np.float64).reshape(-1)
+        if pos.shape != (3,) or not np.all(np.isfinite(pos)) or not math.isfinite(down_to_m):
+            return None
+        pts = self._pts[(now_s - self._t) <= cfg.duration_s]
+        below = (pts[:, 2] > pos[2]) & (pts[:, 2] < down_to_m + cfg.height_band_m)
+        horizontal = np.hypot(pts[:, 0] - pos[0], pts[:, 1] - pos[1])
+        return not bool(np.any(below & (horizontal < cfg.hold_clear_m)))
+
     def _nearby(
         self,
         position_ned_m: np.ndarray,
