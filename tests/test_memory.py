@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from companion.config import CompanionConfig, parse_config
-from companion.config.core import MemoryConfig
+from companion.config.core import CommandConfig, MemoryConfig
 from companion.core.command import setpoint_for
 from companion.core.geometry import StereoGeometry
 from companion.core.memory import (
@@ -326,6 +326,43 @@ def test_course_hold_neither_turns_nor_slides_toward_a_remembered_side() -> None
     blocked = setpoint_for(clear, 0.0, cmd, remembered_sides=(True, False), **kw)
     assert blocked.yaw_rate_deg_s == 0.0 and blocked.right_m_s == 0.0
     assert setpoint_for(clear, 0.0, cmd, remembered_sides=(False, True), **kw) == free
+
+
+def test_clear_below_looks_for_remembered_points_under_the_way_down() -> None:
+    """Climbed over a 1.3 m cabinet to 2.0 m (engaged at 1.5 m): its top, remembered, lies below
+    the vehicle until it has flown hold_clear_m past it."""
+    mem = ObstacleMemory()
+    cfg = MemoryConfig(hold_clear_m=1.0, height_band_m=0.4)
+    down_to = -1.5
+    assert mem.clear_below(np.array([0.0, 0.0, -2.0]), 0.0, cfg, down_to) is True  # empty memory
+    mem.add(np.array([[0.0, 0.0, -1.3]]), 0.0, 30.0)  # the cabinet's top, 1.3 m high (not near: still counts)
+    assert mem.clear_below(np.array([0.5, 0.0, -2.0]), 1.0, cfg, down_to) is False  # over it
+    assert mem.clear_below(np.array([0.0, -0.9, -2.0]), 1.0, cfg, down_to) is False  # beside, within 1 m
+    assert mem.clear_below(np.array([1.1, 0.0, -2.0]), 1.0, cfg, down_to) is True  # flown past it
+    # More than the band below the altitude to descend to: the descent never comes that close.
+    assert mem.clear_below(np.array([0.5, 0.0, -2.0]), 1.0, cfg, -1.8) is True
+    # Above the vehicle: not on the way down.
+    assert mem.clear_below(np.array([0.5, 0.0, -0.5]), 1.0, cfg, 0.0) is True
+    assert mem.clear_below(np.array([0.5, 0.0, -2.0]), 40.0, cfg, down_to) is True  # forgotten
+    assert mem.clear_below(np.array([np.nan, 0.0, -2.0]), 1.0, cfg, down_to) is None
+    assert mem.clear_below(np.array([0.5, 0.0, -2.0]), 1.0, cfg, math.nan) is None
+
+
+def test_the_descent_back_to_the_engagement_altitude_waits_only_for_what_is_remembered_below() -> None:
+    """An office never gives 1.5 m of straight, clear flight; a descent over nothing remembered need
+    not wait for it, a climb back up still does, and the down region must still read clear."""
+    cmd = CommandConfig(altitude_hold_gain_per_s=0.5, hold_resume_delay_s=1.5, hold_resume_distance_m=1.5,
+                        hold_clear_depth_m=2.25)
+    clear = Decision(DecisionKind.CLEAR, 0.0, 0.0, 1.0, "clear")
+    kw = {"altitude_error_m": -0.5, "clear_for_s": 0.2, "clear_for_m": 0.1}  # 0.5 m above, just cleared
+    assert setpoint_for(clear, 0.1, cmd, **kw).down_m_s == 0.0
+    assert setpoint_for(clear, 0.1, cmd, below_clear=False, **kw).down_m_s == 0.0
+    assert setpoint_for(clear, 0.1, cmd, below_clear=True, **kw).down_m_s == pytest.approx(0.25)
+    assert setpoint_for(clear, 0.1, cmd, below_clear=True, region_depths_m=np.full(9, 1.0), **kw).down_m_s == 0.0
+    up = {**kw, "altitude_error_m": 0.5}  # below the engagement altitude: the climb still waits
+    assert setpoint_for(clear, 0.1, cmd, below_clear=True, **up).down_m_s == 0.0
+    avoid = Decision(DecisionKind.AVOID, 0.3, 0.0, 0.5, "avoid")  # only on CLEAR
+    assert setpoint_for(avoid, 0.1, cmd, below_clear=True, **kw).down_m_s == 0.0
 
 
 def test_gap_offset_is_the_middle_between_the_nearest_points_left_and_right() -> None:
