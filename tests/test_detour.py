@@ -127,6 +127,35 @@ def test_a_dead_end_holds_and_says_so() -> None:
     assert p.status()["phase"] == "dead_end"
 
 
+def test_a_dead_end_holds_where_and_as_the_look_round_left_the_vehicle() -> None:
+    """The hold after a dead end keeps the heading the look round ended on: turning back to where the
+    brake began (PX4 SITL deadend-0: 137 deg at 20 deg/s) only delays a settled hold."""
+    pts = np.concatenate([_wall(1.2, -1.5, 1.5), np.stack([np.linspace(-3, 1.2, 40), np.full(40, -0.7)], 1),
+                          np.stack([np.linspace(-3, 1.2, 40), np.full(40, 0.7)], 1)])
+    mem = _trusted_memory(pts)
+    hold = CourseHold()
+    pos = np.array([0.0, 0.0, -1.5])
+    hold.engage(pos, 0.0, GoalSpec(kind="point", north_m=6.0, east_m=0.0))
+    yaw, t, dt = 0.0, 0.0, 0.05
+    kw = {"position_ned_m": pos, "obstacles": mem, "memory_cfg": MEM, "detour_cfg": DET}
+    turned = 0.0
+    while hold.holding_reason is None and t < 40.0:
+        sp = hold.setpoint(BRAKE, t, 0.05, CMD, yaw_rad=yaw, **kw)
+        yaw = wrap_pi(yaw + math.radians(sp.yaw_rate_deg_s) * dt)
+        turned = max(turned, abs(yaw))
+        t += dt
+    assert hold.holding_reason is not None and "dead end" in hold.holding_reason
+    assert turned > math.radians(45.0)  # the look round turned it
+    for _ in range(20):
+        sp = hold.setpoint(BRAKE, t, 0.05, CMD, yaw_rad=yaw, **kw)
+        assert sp.yaw_rate_deg_s == 0.0 and (sp.forward_m_s, sp.right_m_s, sp.down_m_s) == (0.0, 0.0, 0.0)
+        t += dt
+    # Pushed 0.2 m east, it flies back to where it held, without turning.
+    sp = hold.setpoint(BRAKE, t, 0.05, CMD, yaw_rad=yaw, **{**kw, "position_ned_m": pos + [0.0, 0.2, 0.0]})
+    back = np.array([math.cos(yaw), math.sin(yaw)]) * sp.forward_m_s + np.array([-math.sin(yaw), math.cos(yaw)]) * sp.right_m_s
+    assert back[1] < 0.0 and abs(back[0]) < 1e-9 and sp.yaw_rate_deg_s == 0.0
+
+
 def test_a_free_goal_direction_hands_back() -> None:
     mem = _trusted_memory(_wall(2.5, -8.0, 8.0))
     p = DetourPlanner()

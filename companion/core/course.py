@@ -361,6 +361,9 @@ class CourseHold:
             self.holding_reason = (
                 f"{command.reason}: holding position; goto another goal, resume to look again, or take over"
             )
+            # Hold here, facing as the look round left it: the brake's latch from before the look round
+            # turned a PX4 SITL vehicle back through 137 deg for 8 s, and the hold settled only after.
+            self.brake.reset()
             return None
         if was_active and command is None and self.goal.is_point:
             self._anchor_to_goal(pos)  # handed back: the course is now the line from here to the goal
