@@ -231,6 +231,35 @@ def test_nothing_climbs_until_the_vehicle_has_flown_past_what_was_overhead() -> 
     assert memory.update(_depths(), np.array([7.0, 0.0, -1.0]), 2.25) is None
 
 
+def test_a_clear_decision_that_keeps_turning_away_is_turned_back_after_turn_back_after_clear_s() -> None:
+    """A side rule along a corridor wall kept a CLEAR decision turning right at 23 deg/s for 5 s: it
+    carried the vehicle round through 160 deg and back along the course at cruise (kinematic
+    corridor-7 with drift), since course hold waited for a CLEAR decision that does not turn."""
+    turning = Decision(DecisionKind.CLEAR, 0.25, 0.0, 1.0, "S2: left near")
+    kw = {"heading_error_rad": -math.radians(130.0), "heading_clear_for_s": 0.0, "clear_for_s": 0.0}
+    sp = setpoint_for(turning, 0.1, HOLD, any_clear_for_s=1.0, **kw)  # just cleared: the escape's own turn
+    assert sp.forward_m_s == HOLD.cruise_speed_m_s and sp.yaw_rate_deg_s == pytest.approx(0.25 * HOLD.max_yaw_rate_deg_s)
+    sp = setpoint_for(turning, 0.1, HOLD, any_clear_for_s=HOLD.turn_back_after_clear_s, **kw)
+    assert (sp.forward_m_s, sp.yaw_rate_deg_s) == (0.0, -HOLD.max_heading_hold_rate_deg_s)  # stops, turns back
+    # Below the turn-back angle the heading hold still waits for a straight CLEAR.
+    near = {**kw, "heading_error_rad": -math.radians(60.0)}
+    sp = setpoint_for(turning, 0.1, HOLD, any_clear_for_s=10.0, **near)
+    assert sp.yaw_rate_deg_s == pytest.approx(0.25 * HOLD.max_yaw_rate_deg_s)
+    # Course hold times CLEAR decisions, turning or not, from the first one's frame.
+    from companion.core.course import CourseHold
+
+    hold = CourseHold()
+    here = np.array([4.0, 0.5, -1.5])
+    hold.engage(np.array([0.0, 0.0, -1.5]), 0.0)
+    yaw = math.radians(130.0)
+    for t in (10.0, 11.0, 12.0):
+        hold.observe(turning, t, here)
+        assert hold.setpoint(turning, t, 0.05, HOLD, position_ned_m=here, yaw_rad=yaw).forward_m_s > 0.0
+    hold.observe(turning, 13.0, here)
+    sp = hold.setpoint(turning, 13.0, 0.05, HOLD, position_ned_m=here, yaw_rad=yaw)
+    assert (sp.forward_m_s, sp.yaw_rate_deg_s) == (0.0, -HOLD.max_heading_hold_rate_deg_s)
+
+
 def test_facing_away_from_the_course_it_stops_and_turns_back_in_place_whatever_the_sides_read() -> None:
     """A vehicle that turned around in a corridor has walls beside it nearer than hold_clear_depth_m,
     which block the ordinary hold; past turn_back_angle_deg it turns back in place instead."""

@@ -80,6 +80,19 @@ class CommandConfig(StrictModel):
     max_heading_hold_rate_deg_s: float = Field(
         default=20.0, ge=0.0, le=360.0, description="Course hold: largest yaw rate it commands, deg/s."
     )
+    turn_back_after_clear_s: float = Field(
+        default=3.0,
+        ge=0.0,
+        le=600.0,
+        description=(
+            "Course hold, turning back: once the decisions have been CLEAR this long, seconds, turning "
+            "or not, turning back acts without waiting for hold_resume_delay_s of CLEAR without "
+            "turning. A side rule along a wall keeps a CLEAR decision turning for as long as the wall "
+            "reads partly near, and it carried a vehicle round through 160 deg and back along the "
+            "course at cruise (kinematic corridor-7 and pitch-7 with drift, until the regress "
+            "watchdog held it)."
+        ),
+    )
     turn_back_angle_deg: float = Field(
         default=100.0,
         ge=0.0,

@@ -359,6 +359,7 @@ def setpoint_for(
     clear_for_s: float | None = None,
     clear_for_m: float | None = None,
     heading_clear_for_s: float | None = None,
+    any_clear_for_s: float | None = None,
     brake_offset_body_m: np.ndarray | None = None,
     brake_heading_error_rad: float | None = None,
     line_offset_m: float | None = None,
@@ -463,26 +464,27 @@ def setpoint_for(
     forward_m_s = cmd.cruise_speed_m_s * speed
     clear = decision.kind is DecisionKind.CLEAR
     heading_wait_s = heading_clear_for_s if heading_clear_for_s is not None else clear_for_s
+    waited = heading_wait_s is None or heading_wait_s >= cmd.hold_resume_delay_s
     turning_back = False
-    if clear and (heading_wait_s is None or heading_wait_s >= cmd.hold_resume_delay_s):
-        aim = _aim_error_rad(heading_error_rad, line_offset_m, cmd)
-        if aim is not None and abs(aim) > math.radians(cmd.turn_back_angle_deg) and cmd.turn_back_angle_deg < 180.0:
-            # Facing away from the course: stop and turn back in place (module doc, turning back).
-            forward_m_s, yaw_rate_deg_s = 0.0, math.copysign(cmd.max_heading_hold_rate_deg_s, aim)
-            turning_back = True
-        else:
-            yaw_rate_deg_s += (1.0 - abs(yaw)) * _heading_hold_deg_s(
-                heading_error_rad, region_depths_m, cmd, line_offset_m, remembered_sides
-            )
-            right_m_s = (1.0 - abs(yaw)) * _line_hold_right_m_s(
-                line_offset_m, heading_error_rad, region_depths_m, cmd, remembered_sides
-            )
+    aim = _aim_error_rad(heading_error_rad, line_offset_m, cmd) if clear else None
+    facing_away = aim is not None and abs(aim) > math.radians(cmd.turn_back_angle_deg) and cmd.turn_back_angle_deg < 180.0
+    if facing_away and (waited or (any_clear_for_s is not None and any_clear_for_s >= cmd.turn_back_after_clear_s)):
+        # Facing away from the course: stop and turn back in place (module doc, turning back).
+        forward_m_s, yaw_rate_deg_s = 0.0, math.copysign(cmd.max_heading_hold_rate_deg_s, aim)
+        turning_back = True
+    elif clear and waited:
+        yaw_rate_deg_s += (1.0 - abs(yaw)) * _heading_hold_deg_s(
+            heading_error_rad, region_depths_m, cmd, line_offset_m, remembered_sides
+        )
+        right_m_s = (1.0 - abs(yaw)) * _line_hold_right_m_s(
+            line_offset_m, heading_error_rad, region_depths_m, cmd, remembered_sides
+        )
     if clear and not turning_back:
-        waited = (clear_for_s is None or clear_for_s >= cmd.hold_resume_delay_s) and (
+        altitude_waited = (clear_for_s is None or clear_for_s >= cmd.hold_resume_delay_s) and (
             clear_for_m is None or clear_for_m >= cmd.hold_resume_distance_m
         )
         hold_down_m_s = _altitude_hold_down_m_s(altitude_error_m, region_depths_m, cmd)
-        if waited or (below_clear is True and hold_down_m_s > 0.0):
+        if altitude_waited or (below_clear is True and hold_down_m_s > 0.0):
             down_m_s += (1.0 - abs(pitch)) * hold_down_m_s
     gap_on = gap_offset_m is not None and guard_cfg is not None and guard_cfg.gap_centering_gain_per_s > 0.0
     if clear and not turning_back and gap_on and math.isfinite(gap_offset_m):

@@ -51,7 +51,7 @@ from companion.core.command import (
 from companion.core.detour import DetourPlanner, Phase
 from companion.core.frames import finite_position
 from companion.core.goal import COURSE, Goal, GoalSpec, resolve_goal
-from companion.core.types import Decision, VelocitySetpoint
+from companion.core.types import Decision, DecisionKind, VelocitySetpoint
 
 if TYPE_CHECKING:
     from companion.config.core import CommandConfig, MemoryConfig
@@ -83,6 +83,7 @@ class CourseHold:
         self._clear_since_s: float | None = None
         self._clear_since_ned_m: np.ndarray | None = None
         self._heading_clear_since_s: float | None = None
+        self._any_clear_since_s: float | None = None  # CLEAR, turning or not
         self.brake = BrakeLatch()
         self.overhead = OverheadMemory()
         self.progress = ProgressWatch()
@@ -148,6 +149,10 @@ class CourseHold:
             self._heading_clear_since_s = None
         elif self._heading_clear_since_s is None:
             self._heading_clear_since_s = float(decision_time_s)
+        if decision is None or decision_time_s is None or decision.kind is not DecisionKind.CLEAR:
+            self._any_clear_since_s = None
+        elif self._any_clear_since_s is None:
+            self._any_clear_since_s = float(decision_time_s)
 
     def ready(self, position_ned_m: object) -> bool:
         """Whether the course (origin and heading) and the vehicle's position are known."""
@@ -291,6 +296,7 @@ class CourseHold:
             below_clear = obstacles.clear_below(position_ned_m, now_s, memory_cfg, -self.altitude_m)
         clear_since = self._clear_since_s
         heading_since = self._heading_clear_since_s
+        any_since = self._any_clear_since_s
         return setpoint_for(
             decision,
             since_last_frame_s,
@@ -304,6 +310,7 @@ class CourseHold:
             clear_for_s=0.0 if clear_since is None else max(0.0, now_s - clear_since),
             clear_for_m=0.0 if clear_since is None else horizontal_distance_m(self._clear_since_ned_m, position_ned_m),
             heading_clear_for_s=0.0 if heading_since is None else max(0.0, now_s - heading_since),
+            any_clear_for_s=0.0 if any_since is None else max(0.0, now_s - any_since),
             brake_offset_body_m=self.brake.offset_body(decision, position_ned_m, yaw),
             brake_heading_error_rad=self.brake.heading_error_rad(yaw),
             line_offset_m=line_offset,
