@@ -127,6 +127,40 @@ def test_a_dead_end_holds_and_says_so() -> None:
     assert p.status()["phase"] == "dead_end"
 
 
+def test_a_gap_just_wide_enough_is_taken_before_a_dead_end() -> None:
+    """Closed ahead and on both sides but for an opening 1.0 m wide up ahead on the left: no direction
+    keeps clearance_m (0.55 m) from its jambs, one keeps squeeze_clearance_m (0.4 m); a look round
+    flies through it rather than holding (kinematic office-0: a 1.3 m gap on the map, a false dead end)."""
+    front = np.concatenate([_wall(1.2, -1.6, -1.35), _wall(1.2, -0.25, 1.6)])
+    sides = [np.stack([np.linspace(-3, 1.2, 43), np.full(43, e)], 1) for e in (-1.6, 1.6)]
+    mem = _trusted_memory(np.concatenate([front, *sides]))
+    p = DetourPlanner()
+    cmd, t = _brake_until_detour(p, mem, 0.0)
+    pos = np.array([0.0, 0.0, -1.5])
+    yaw = 0.0
+    for _ in range(400):  # turn as asked (the scan), until it decides
+        if cmd is None or cmd.phase is not Phase.SCAN:
+            break
+        if cmd.target_yaw_rad is not None:
+            yaw += max(-0.05, min(0.05, wrap_pi(cmd.target_yaw_rad - yaw)))
+        cmd = p.update(t, BRAKE, pos, yaw, 0.0, 0.0, mem, MEM, DET, goal_distance_m=6.0)
+        t += 0.05
+    assert cmd is not None and cmd.phase is Phase.FLY, p.reason
+    assert -45.0 < math.degrees(cmd.target_yaw_rad) < -25.0  # through the opening (centre -0.8 m at 1.2 m: -34 deg)
+    wider = DET.model_copy(update={"squeeze_clearance_m": DET.clearance_m})
+    p = DetourPlanner()
+    cmd, t = _brake_until_detour(p, mem, 0.0)
+    yaw = 0.0
+    for _ in range(400):
+        if cmd is None or cmd.phase is not Phase.SCAN:
+            break
+        if cmd.target_yaw_rad is not None:
+            yaw += max(-0.05, min(0.05, wrap_pi(cmd.target_yaw_rad - yaw)))
+        cmd = p.update(t, BRAKE, pos, yaw, 0.0, 0.0, mem, MEM, wider, goal_distance_m=6.0)
+        t += 0.05
+    assert cmd is not None and cmd.phase is Phase.DEAD_END  # no squeezing: the same gap is a dead end
+
+
 def test_a_dead_end_holds_where_and_as_the_look_round_left_the_vehicle() -> None:
     """The hold after a dead end keeps the heading the look round ended on: turning back to where the
     brake began (PX4 SITL deadend-0: 137 deg at 20 deg/s) only delays a settled hold."""

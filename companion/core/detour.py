@@ -734,6 +734,15 @@ class DetourPlanner:
             self._side = -self._side
             k = _best(h, self._side, cfg, None)
         if k is None:
+            # Before a dead end: a direction free for all of min_free_m with squeeze_clearance_m,
+            # either side (a gap just wide enough: kinematic office-0 held between a cabinet and a
+            # wall 1.3 m apart on the map, whose wall grazing-angle stereo had smeared 0.4 m inward).
+            for side in (self._side, -self._side):
+                k = _best(h, side, cfg, None, 1.0, tight=True)
+                if k is not None:
+                    self._side = side
+                    break
+        if k is None:
             return self._dead_end(
                 pos,
                 f"dead end: no direction within {cfg.max_angle_deg:g} deg of the goal free for "
@@ -924,6 +933,7 @@ def _pick_side(h: Histogram, prefer_right: bool, cfg: DetourConfig) -> int:
     if abs(best[1] - best[-1]) > 0.5 * math.radians(cfg.sector_deg):
         return 1 if best[1] < best[-1] else -1
     return 1 if prefer_right else -1
+
 
 
 def _best(
