@@ -858,21 +858,32 @@ def test_no_progress_clock_waits_while_paused_stale_or_overridden() -> None:
 def test_course_hold_waits_while_a_clear_decision_still_turns() -> None:
     """The release filter lets an escape's yaw fade over a few CLEAR decisions. Course hold (and its
     turning back in place) waits for straight CLEAR decisions, as in the simulator: acting at once,
-    it turned the vehicle back against the escape's last turn (PX4 SITL, corridor-0 and doorway-4)."""
+    it turned the vehicle back against the escape's last turn (PX4 SITL, corridor-0 and doorway-4).
+    A turn that lasts command.turn_back_after_clear_s is no fade: then turning back acts."""
     import numpy as np
 
     h = _engaged_at([0.0, 0.0, -1.5])
     h.vehicle = replace(h.vehicle, attitude_rad=np.array([0.0, 0.0, math.radians(120.0)]))  # facing away
     fading = Decision(DecisionKind.CLEAR, yaw=0.3, pitch=0.0, speed_fraction=1.0, reason="release")
+    escape = Decision(DecisionKind.AVOID, yaw=0.6, pitch=0.0, speed_fraction=0.5, reason="escape")
+    h.frame = Result(h.now, escape)
+    h.step()
     h.frame = Result(h.now, fading)
     cmd = h.cfg.command
-    for out in h.run(3.0):
+    for out in h.run(cmd.turn_back_after_clear_s - 0.5):
         assert out.setpoint.yaw_rate_deg_s == pytest.approx(0.3 * cmd.max_yaw_rate_deg_s)
         assert out.setpoint.forward_m_s == pytest.approx(cmd.cruise_speed_m_s)
     h.frame = Result(h.now, CLEAR)
     assert h.step().setpoint.yaw_rate_deg_s == 0.0  # straight and CLEAR: the wait starts now
     turned = h.run(cmd.hold_resume_delay_s + 0.1)[-1].setpoint
     assert turned.forward_m_s == 0.0 and turned.yaw_rate_deg_s == -cmd.max_heading_hold_rate_deg_s  # back in place
+    # A turn that goes on: after turn_back_after_clear_s of CLEAR decisions it turns back all the same.
+    h.frame = Result(h.now, escape)
+    h.step()
+    h.frame = Result(h.now, fading)
+    outs = h.run(cmd.turn_back_after_clear_s + 0.2)
+    assert outs[0].setpoint.forward_m_s == pytest.approx(cmd.cruise_speed_m_s)
+    assert outs[-1].setpoint.forward_m_s == 0.0 and outs[-1].setpoint.yaw_rate_deg_s == -cmd.max_heading_hold_rate_deg_s
 
 
 def test_a_clear_decision_that_only_climbs_lets_course_hold_turn_back() -> None:
