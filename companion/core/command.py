@@ -401,7 +401,9 @@ def setpoint_for(
     Course hold (all keyword inputs optional; ``None`` = off, the paper's behaviour). Only on a CLEAR
     decision. The heading, line and turning back wait until ``heading_clear_for_s`` (seconds the
     decisions have been CLEAR without turning, :func:`is_heading_clear`; None = ``clear_for_s``)
-    reaches ``cmd.hold_resume_delay_s``; the altitude hold until ``clear_for_s`` (seconds they have
+    reaches ``cmd.hold_resume_delay_s`` (turning back also once ``any_clear_for_s``, seconds they
+    have been CLEAR turning or not, reaches ``cmd.turn_back_after_clear_s``: a side rule along a wall
+    can keep a CLEAR decision turning for good); the altitude hold until ``clear_for_s`` (seconds they have
     been CLEAR without turning or climbing, :func:`is_straight_clear`; None = no wait) does, and
     ``clear_for_m`` (metres flown horizontally since then; None = no wait) reaches
     ``cmd.hold_resume_distance_m``:

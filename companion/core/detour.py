@@ -935,7 +935,6 @@ def _pick_side(h: Histogram, prefer_right: bool, cfg: DetourConfig) -> int:
     return 1 if prefer_right else -1
 
 
-
 def _best(
     h: Histogram, side: int, cfg: DetourConfig, current_rad: float | None, share: float = 1.0, tight: bool = False
 ) -> int | None:
