@@ -335,7 +335,8 @@ def test_clear_below_looks_for_remembered_points_under_the_way_down() -> None:
     cfg = MemoryConfig(hold_clear_m=1.0, height_band_m=0.4)
     down_to = -1.5
     assert mem.clear_below(np.array([0.0, 0.0, -2.0]), 0.0, cfg, down_to) is True  # empty memory
-    mem.add(np.array([[0.0, 0.0, -1.3]]), 0.0, 30.0)  # the cabinet's top, 1.3 m high (not near: still counts)
+    # The cabinet's top, 1.3 m high, seen once from 4 m: far and untrusted, it counts all the same.
+    mem.add(np.array([[0.0, 0.0, -1.3]]), 0.0, 30.0, ranges_m=np.array([4.0]))
     assert mem.clear_below(np.array([0.5, 0.0, -2.0]), 1.0, cfg, down_to) is False  # over it
     assert mem.clear_below(np.array([0.0, -0.9, -2.0]), 1.0, cfg, down_to) is False  # beside, within 1 m
     assert mem.clear_below(np.array([1.1, 0.0, -2.0]), 1.0, cfg, down_to) is True  # flown past it
