@@ -9,10 +9,10 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from companion.config import CompanionConfig, parse_config
+from companion.config import CompanionConfig, DetourConfig, parse_config
 from companion.core.command import ProgressWatch
 from companion.core.course import CourseHold
-from companion.core.detour import DetourPlanner, Phase, free_length_m, polar_histogram, wrap_pi
+from companion.core.detour import DetourCommand, DetourPlanner, Phase, free_length_m, polar_histogram, wrap_pi
 from companion.core.goal import GoalSpec, resolve_goal
 from companion.core.memory import ObstacleMemory
 from companion.core.supervisor import Goto, Resume, State
@@ -86,6 +86,30 @@ def _brake_until_detour(p: DetourPlanner, mem: ObstacleMemory, t0: float, yaw: f
     return cmd, t
 
 
+def _look_round(mem: ObstacleMemory, cfg: DetourConfig = DET) -> tuple[DetourPlanner, DetourCommand | None]:
+    """A fresh planner, braked at the origin facing north until a detour begins, then turned as the look
+    round asks (at most 0.05 rad a step) until it decides: the planner and its last command."""
+    p = DetourPlanner()
+    cmd, t = _brake_until_detour(p, mem, 0.0)
+    pos = np.array([0.0, 0.0, -1.5])
+    yaw = 0.0
+    for _ in range(400):
+        if cmd is None or cmd.phase is not Phase.SCAN:
+            break
+        if cmd.target_yaw_rad is not None:
+            yaw += max(-0.05, min(0.05, wrap_pi(cmd.target_yaw_rad - yaw)))
+        cmd = p.update(t, BRAKE, pos, yaw, 0.0, 0.0, mem, MEM, cfg, goal_distance_m=6.0)
+        t += 0.05
+    return p, cmd
+
+
+def _closed_on_three_sides() -> np.ndarray:
+    """Points (north, east, metres) of a dead end round the origin: a wall 1.2 m ahead and walls 0.7 m
+    to each side, within the clearance-enlarged reach of every direction."""
+    return np.concatenate([_wall(1.2, -1.5, 1.5), np.stack([np.linspace(-3, 1.2, 40), np.full(40, -0.7)], 1),
+                           np.stack([np.linspace(-3, 1.2, 40), np.full(40, 0.7)], 1)])
+
+
 def test_a_brake_long_enough_starts_a_detour_and_a_short_one_does_not() -> None:
     mem = _trusted_memory(_wall(2.5, -8.0, 8.0))
     p = DetourPlanner()
@@ -108,21 +132,7 @@ def test_the_detour_layer_is_off_with_trigger_zero() -> None:
 
 
 def test_a_dead_end_holds_and_says_so() -> None:
-    # Closed on three sides within the clearance-enlarged reach: ahead and both sides.
-    pts = np.concatenate([_wall(1.2, -1.5, 1.5), np.stack([np.linspace(-3, 1.2, 40), np.full(40, -0.7)], 1),
-                          np.stack([np.linspace(-3, 1.2, 40), np.full(40, 0.7)], 1)])
-    mem = _trusted_memory(pts)
-    p = DetourPlanner()
-    cmd, t = _brake_until_detour(p, mem, 0.0)
-    pos = np.array([0.0, 0.0, -1.5])
-    yaw = 0.0
-    for _ in range(400):  # turn as asked (the scan), until it decides
-        if cmd is None or cmd.phase is Phase.DEAD_END:
-            break
-        if cmd.target_yaw_rad is not None:
-            yaw += max(-0.05, min(0.05, wrap_pi(cmd.target_yaw_rad - yaw)))
-        cmd = p.update(t, BRAKE, pos, yaw, 0.0, 0.0, mem, MEM, DET, goal_distance_m=6.0)
-        t += 0.05
+    p, cmd = _look_round(_trusted_memory(_closed_on_three_sides()))
     assert cmd is not None and cmd.phase is Phase.DEAD_END and "dead end" in cmd.reason
     assert p.status()["phase"] == "dead_end"
 
@@ -134,39 +144,17 @@ def test_a_gap_just_wide_enough_is_taken_before_a_dead_end() -> None:
     front = np.concatenate([_wall(1.2, -1.6, -1.35), _wall(1.2, -0.25, 1.6)])
     sides = [np.stack([np.linspace(-3, 1.2, 43), np.full(43, e)], 1) for e in (-1.6, 1.6)]
     mem = _trusted_memory(np.concatenate([front, *sides]))
-    p = DetourPlanner()
-    cmd, t = _brake_until_detour(p, mem, 0.0)
-    pos = np.array([0.0, 0.0, -1.5])
-    yaw = 0.0
-    for _ in range(400):  # turn as asked (the scan), until it decides
-        if cmd is None or cmd.phase is not Phase.SCAN:
-            break
-        if cmd.target_yaw_rad is not None:
-            yaw += max(-0.05, min(0.05, wrap_pi(cmd.target_yaw_rad - yaw)))
-        cmd = p.update(t, BRAKE, pos, yaw, 0.0, 0.0, mem, MEM, DET, goal_distance_m=6.0)
-        t += 0.05
+    p, cmd = _look_round(mem)
     assert cmd is not None and cmd.phase is Phase.FLY, p.reason
     assert -45.0 < math.degrees(cmd.target_yaw_rad) < -25.0  # through the opening (centre -0.8 m at 1.2 m: -34 deg)
-    wider = DET.model_copy(update={"squeeze_clearance_m": DET.clearance_m})
-    p = DetourPlanner()
-    cmd, t = _brake_until_detour(p, mem, 0.0)
-    yaw = 0.0
-    for _ in range(400):
-        if cmd is None or cmd.phase is not Phase.SCAN:
-            break
-        if cmd.target_yaw_rad is not None:
-            yaw += max(-0.05, min(0.05, wrap_pi(cmd.target_yaw_rad - yaw)))
-        cmd = p.update(t, BRAKE, pos, yaw, 0.0, 0.0, mem, MEM, wider, goal_distance_m=6.0)
-        t += 0.05
+    _, cmd = _look_round(mem, DET.model_copy(update={"squeeze_clearance_m": DET.clearance_m}))
     assert cmd is not None and cmd.phase is Phase.DEAD_END  # no squeezing: the same gap is a dead end
 
 
 def test_a_dead_end_holds_where_and_as_the_look_round_left_the_vehicle() -> None:
     """The hold after a dead end keeps the heading the look round ended on: turning back to where the
     brake began (PX4 SITL deadend-0: 137 deg at 20 deg/s) only delays a settled hold."""
-    pts = np.concatenate([_wall(1.2, -1.5, 1.5), np.stack([np.linspace(-3, 1.2, 40), np.full(40, -0.7)], 1),
-                          np.stack([np.linspace(-3, 1.2, 40), np.full(40, 0.7)], 1)])
-    mem = _trusted_memory(pts)
+    mem = _trusted_memory(_closed_on_three_sides())
     hold = CourseHold()
     pos = np.array([0.0, 0.0, -1.5])
     hold.engage(pos, 0.0, GoalSpec(kind="point", north_m=6.0, east_m=0.0))
