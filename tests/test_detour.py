@@ -475,14 +475,20 @@ def test_the_office_door_is_flown_through_once_the_map_forgets_what_it_sees_past
     # office-0 (StereoBM): the door's jambs, smeared into its opening, closed the door on the detour
     # layer's map; the detour flew to and fro along the far wall until the time ran out. Points the
     # camera sees past leave the map (memory.map_clear_after_frames), and it flies through.
+    # (With command.sideways_clear_depth_m it gets through without the clearing too, so the check
+    # turns that off.)
     from companion.sim.courses import make_course
     from companion.sim.loop import fly
 
-    cfg = parse_config({"stereo": {"backend": "opencv-bm"}, "detour": {"trigger_after_s": 0.8}})
+    cfg = parse_config(
+        {"stereo": {"backend": "opencv-bm"}, "detour": {"trigger_after_s": 0.8}, "command": {"sideways_clear_depth_m": 0.0}}
+    )
     course = make_course("office", 0)
     assert fly(course, cfg).outcome.value == "goal"
     kept = cfg.model_copy(update={"memory": cfg.memory.model_copy(update={"map_clear_after_frames": 0})})
     assert fly(course, kept).outcome.value != "goal"
+    ruled = parse_config({"stereo": {"backend": "opencv-bm"}, "detour": {"trigger_after_s": 0.8}})
+    assert fly(course, ruled).outcome.value == "goal"
 
 
 @pytest.mark.parametrize("goal_deg", [0.0, 37.0, 179.0, -179.0, 120.0])

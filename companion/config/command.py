@@ -175,6 +175,20 @@ class CommandConfig(StrictModel):
             "wall ~2 m ahead and the vehicle must still line up with the gap."
         ),
     )
+    sideways_clear_depth_m: float = Field(
+        default=1.0,
+        ge=0.0,
+        le=50.0,
+        description=(
+            "The obstacle memory's push and lean, and gap centering, never move the vehicle sideways "
+            "toward a side whose region (left, right) reads nearer than this, metres, and nearer than "
+            "the other side (unknown counts as 0 m); 0 = off. The memory places what it saw with the "
+            "autopilot's position estimate, which wanders (PX4 SITL: 0.5-0.7 m in corridor-8, where "
+            "a push away from a remembered wall slid the vehicle into a box's corner the camera "
+            "saw); the camera does not. Only nearer than the other side: in a dead end both sides "
+            "read near, and the push away from the wall the vehicle drifts toward keeps it off it."
+        ),
+    )
     altitude_hold_gain_per_s: float = Field(
         default=0.5,
         ge=0.0,

@@ -489,7 +489,9 @@ def setpoint_for(
         if altitude_waited or (below_clear is True and hold_down_m_s > 0.0):
             down_m_s += (1.0 - abs(pitch)) * hold_down_m_s
     gap_on = gap_offset_m is not None and guard_cfg is not None and guard_cfg.gap_centering_gain_per_s > 0.0
-    if clear and not turning_back and gap_on and math.isfinite(gap_offset_m):
+    blocked = blocked_sides(region_depths_m, cmd) or (False, False)
+    toward_blocked = gap_on and ((gap_offset_m < 0.0 and blocked[0]) or (gap_offset_m > 0.0 and blocked[1]))
+    if clear and not turning_back and gap_on and math.isfinite(gap_offset_m) and not toward_blocked:
         limit = guard_cfg.max_gap_centering_speed_m_s
         right_m_s = (1.0 - abs(yaw)) * min(limit, max(-limit, guard_cfg.gap_centering_gain_per_s * gap_offset_m))
     if since_up_near_m is not None and since_up_near_m < cmd.hold_resume_distance_m and down_m_s < 0.0:
@@ -540,15 +542,36 @@ def _guarded(
     cmd: CommandConfig | None = None,
 ) -> VelocitySetpoint:
     """``sp`` with the stand-off's push (:func:`standoff_push_m_s`, with ``region_depths_m`` and
-    ``cmd``) added, then the memory's guard applied (:func:`~companion.core.memory.apply_guard`)."""
+    ``cmd``) added, then the memory's guard applied (:func:`~companion.core.memory.apply_guard`), its
+    push and lean never toward a side the camera reads near (:func:`blocked_sides`)."""
+    blocked = blocked_sides(region_depths_m, cmd)
     if cmd is not None:
         push_f, push_r = standoff_push_m_s(region_depths_m, cmd)
         if push_f != 0.0 or push_r != 0.0:
             sp = VelocitySetpoint(sp.forward_m_s + push_f, sp.right_m_s + push_r, sp.down_m_s, sp.yaw_rate_deg_s)
     if guard_m is None or cfg is None or len(guard_m) == 0:
         return sp
-    forward, right = apply_guard(sp.forward_m_s, sp.right_m_s, guard_m, cfg, velocity_body_m_s)
+    forward, right = apply_guard(sp.forward_m_s, sp.right_m_s, guard_m, cfg, velocity_body_m_s, blocked)
     return VelocitySetpoint(forward_m_s=forward, right_m_s=right, down_m_s=sp.down_m_s, yaw_rate_deg_s=sp.yaw_rate_deg_s)
+
+
+def blocked_sides(region_depths_m: np.ndarray | None, cmd: CommandConfig | None) -> tuple[bool, bool] | None:
+    """(left, right): True where that middle-row region (float ``(9,)`` refined depths, metres, NaN
+    unknown, counted as 0) reads nearer than ``cmd.sideways_clear_depth_m`` and nearer than the
+    other side: the memory's guard and gap centering do not move the vehicle toward it. None when
+    off or without depths.
+
+    Nearer than the other side, not just near: in a dead end both sides read near, and the guard's
+    push away from the wall the vehicle drifts toward is what keeps it off that wall (kinematic
+    suite, 0.14 m/s drift: blocking every near side made four dead ends collide)."""
+    if region_depths_m is None or cmd is None or cmd.sideways_clear_depth_m <= 0.0:
+        return None
+    left = float(region_depths_m[REGION_INDEX["left"]])
+    right = float(region_depths_m[REGION_INDEX["right"]])
+    left = left if math.isfinite(left) else 0.0
+    right = right if math.isfinite(right) else 0.0
+    near = cmd.sideways_clear_depth_m
+    return (left < near and left < right, right < near and right < left)
 
 
 def detour_setpoint(

@@ -744,6 +744,7 @@ def apply_guard(
     guard_m: np.ndarray | None,
     cfg: MemoryConfig,
     velocity_body_m_s: tuple[float, float] | None = None,
+    blocked_sides: tuple[bool, bool] | None = None,
 ) -> tuple[float, float]:
     """A horizontal body-frame velocity (m/s) with the guard applied. For each guarding point
     (:meth:`ObstacleMemory.guard` rows: distance m, unit forward, unit right, and whether it may push;
@@ -759,7 +760,11 @@ def apply_guard(
     it at ``counter_velocity_fraction`` times the closing speed (less what it already moves away):
     leaning against the motion stops it in about a third of the distance a zero command would (a
     first-order lag). The lean and the push together are capped at ``max_guard_speed_m_s``: a
-    vehicle shoved sideways flies into what the camera does not see either (kinematic forest-4)."""
+    vehicle shoved sideways flies into what the camera does not see either (kinematic forest-4).
+
+    ``blocked_sides`` ((left, right), :func:`~companion.core.command.blocked_sides`: True where the
+    camera reads that side near): the push and the lean lose their sideways part toward such a side.
+    The memory places its points with a position estimate that wanders, the camera does not."""
     if guard_m is None or len(guard_m) == 0:
         return forward_m_s, right_m_s
     g = np.asarray(guard_m, dtype=np.float64)
@@ -786,6 +791,8 @@ def apply_guard(
                 away -= max(0.0, cfg.counter_velocity_fraction * closing + toward) * u
         if push:
             away -= cfg.guard_gain_per_s * max(0.0, cfg.guard_distance_m - dist) * u
+    if blocked_sides is not None and ((blocked_sides[0] and away[1] < 0.0) or (blocked_sides[1] and away[1] > 0.0)):
+        away[1] = 0.0
     n = float(np.hypot(away[0], away[1]))
     if n > cfg.max_guard_speed_m_s > 0.0:
         away *= cfg.max_guard_speed_m_s / n
