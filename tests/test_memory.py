@@ -424,6 +424,64 @@ def test_a_clear_decision_slides_toward_the_middle_of_a_gap_instead_of_the_line(
     assert setpoint_for(clear, 0.0, cmd, gap_offset_m=0.1, **off) == setpoint_for(clear, 0.0, cmd, **off)
 
 
+def _sides(left_m: float, right_m: float) -> np.ndarray:
+    """Region depths (float ``(9,)`` metres) that are far everywhere but the left and right regions."""
+    from companion.core.types import REGION_INDEX
+
+    d = np.full(9, 10.0)
+    d[REGION_INDEX["left"]], d[REGION_INDEX["right"]] = left_m, right_m
+    return d
+
+
+def test_blocked_sides_are_near_and_nearer_than_the_other_side() -> None:
+    from companion.core.command import blocked_sides
+
+    cmd = CompanionConfig().command  # sideways_clear_depth_m = 1.0
+    assert blocked_sides(_sides(0.6, 3.0), cmd) == (True, False)
+    assert blocked_sides(_sides(3.0, 0.9), cmd) == (False, True)
+    assert blocked_sides(_sides(0.6, 0.8), cmd) == (True, False)  # a dead end: only the nearer side
+    assert blocked_sides(_sides(0.7, 0.7), cmd) == (False, False)
+    assert blocked_sides(_sides(1.5, 3.0), cmd) == (False, False)  # not near
+    assert blocked_sides(_sides(math.nan, 2.0), cmd) == (True, False)  # unknown counts as 0 m
+    assert blocked_sides(_sides(math.nan, math.nan), cmd) == (False, False)
+    assert blocked_sides(_sides(0.6, math.nan), cmd) == (False, True)
+    assert blocked_sides(None, cmd) is None
+    assert blocked_sides(_sides(0.6, 3.0), cmd.model_copy(update={"sideways_clear_depth_m": 0.0})) is None
+
+
+def test_apply_guard_neither_pushes_nor_leans_toward_a_blocked_side() -> None:
+    cfg = guard_cfg(guard_distance_m=0.6, guard_gain_per_s=1.5, max_guard_speed_m_s=0.5, counter_velocity_fraction=1.0)
+    right = np.array([[0.3, 0.0, 1.0]])  # 0.3 m to the right: pushes left at 0.45 m/s
+    assert apply_guard(0.7, 0.0, right, cfg) == pytest.approx((0.7, -0.45))
+    assert apply_guard(0.7, 0.0, right, cfg, None, (True, False)) == pytest.approx((0.7, 0.0))
+    assert apply_guard(0.7, 0.0, right, cfg, (0.0, 0.3), (True, False)) == pytest.approx((0.7, 0.0))  # no lean
+    assert apply_guard(0.7, 0.0, right, cfg, None, (False, True)) == pytest.approx((0.7, -0.45))
+    # The motion toward the point is still removed: blocked sides only hold the push back.
+    assert apply_guard(0.0, 0.3, right, cfg, None, (True, False)) == pytest.approx((0.0, 0.0))
+
+
+def test_a_remembered_wall_does_not_push_the_vehicle_into_what_the_camera_sees_on_the_other_side() -> None:
+    """PX4 SITL corridor-8: passing a box close to the wall on the right, PX4's estimate 0.5-0.7 m
+    off; the guard pushed away from the remembered wall at 0.5 m/s, into the box's corner that the
+    left regions read at 0.9 -> 0.5 m. The camera's nearer side now holds that push back."""
+    cmd = CompanionConfig().command
+    mem = MemoryConfig(gap_centering_gain_per_s=1.0)
+    clear = Decision(DecisionKind.CLEAR, 0.0, 0.0, 1.0, "clear")
+    wall = np.array([[0.2, 0.0, 1.0]])  # remembered 0.2 m to the right, beside the vehicle (out of view)
+    kw = {"guard_m": wall, "guard_cfg": mem}
+    assert setpoint_for(clear, 0.0, cmd, region_depths_m=_sides(3.0, 3.0), **kw).right_m_s < -0.3  # pushed left
+    corner = setpoint_for(clear, 0.0, cmd, region_depths_m=_sides(0.6, 3.0), **kw)
+    assert corner.right_m_s == pytest.approx(0.0) and corner.forward_m_s == pytest.approx(cmd.cruise_speed_m_s)
+    # Gap centering toward the nearer side is held back too; toward the farther side it acts.
+    gap = {"guard_cfg": mem, "gap_offset_m": -0.2}
+    assert setpoint_for(clear, 0.0, cmd, region_depths_m=_sides(3.0, 3.0), **gap).right_m_s == pytest.approx(-0.2)
+    assert setpoint_for(clear, 0.0, cmd, region_depths_m=_sides(0.6, 3.0), **gap).right_m_s == 0.0
+    assert setpoint_for(clear, 0.0, cmd, region_depths_m=_sides(3.0, 0.6), **gap).right_m_s == pytest.approx(-0.2)
+    # Off: the push as before.
+    off = cmd.model_copy(update={"sideways_clear_depth_m": 0.0})
+    assert setpoint_for(clear, 0.0, off, region_depths_m=_sides(0.6, 3.0), **kw).right_m_s < -0.3
+
+
 def test_ned_to_body_horizontal_rotates_by_the_heading_for_floats_and_arrays() -> None:
     from companion.core.frames import ned_to_body_horizontal
 
