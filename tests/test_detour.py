@@ -249,6 +249,23 @@ def test_the_direction_flown_keeps_its_place_only_while_it_is_one_of_the_histogr
     assert _best(h, 1, DET, float(h.bearing_rad[nxt]) - 0.3 * step) == k  # in flight: afresh
 
 
+def test_a_door_just_past_the_goal_direction_is_taken_from_either_side() -> None:
+    # Flying left along a wall 1.3 m ahead, a 1.4 m door whose middle lies 0.4 m to the right of the
+    # goal direction: the goal direction itself passes 0.3 m from the left jamb (no hand back), the
+    # way through is 15 deg to the right. With drift, kinematic detour-0 and -7 flew past their
+    # openings, keeping to their side.
+    from companion.core.detour import _best
+
+    wall = np.concatenate([_wall(1.3, -5.0, -0.3), _wall(1.3, 1.1, 5.0)])
+    h = polar_histogram(wall, 0.0, DET, MEM.map_depth_m)
+    assert h.free_m[h.goal_index] < DET.min_free_m and h.tight_m[h.goal_index] < DET.min_free_m
+    k = _best(h, -1, DET, None)
+    assert k is not None and math.degrees(h.offset_rad[k]) == pytest.approx(15.0)
+    only_left = DET.model_copy(update={"either_side_within_deg": 0.0})
+    k = _best(h, -1, only_left, None)
+    assert k is not None and math.degrees(h.offset_rad[k]) < -45.0  # along the wall, away from the door
+
+
 def test_a_new_detour_near_the_last_one_goes_round_the_same_side() -> None:
     # A symmetric wall: either side would do; the last detour's side is kept (no swinging between two).
     mem = _trusted_memory(_wall(2.5, -8.0, 8.0))
@@ -475,20 +492,23 @@ def test_the_office_door_is_flown_through_once_the_map_forgets_what_it_sees_past
     # office-0 (StereoBM): the door's jambs, smeared into its opening, closed the door on the detour
     # layer's map; the detour flew to and fro along the far wall until the time ran out. Points the
     # camera sees past leave the map (memory.map_clear_after_frames), and it flies through.
-    # (With command.sideways_clear_depth_m it gets through without the clearing too, so the check
+    # (With detour.either_side_within_deg it gets through without the clearing too, so the check
     # turns that off.)
     from companion.sim.courses import make_course
     from companion.sim.loop import fly
 
     cfg = parse_config(
-        {"stereo": {"backend": "opencv-bm"}, "detour": {"trigger_after_s": 0.8}, "command": {"sideways_clear_depth_m": 0.0}}
+        {
+            "stereo": {"backend": "opencv-bm"},
+            "detour": {"trigger_after_s": 0.8, "either_side_within_deg": 0.0},
+        }
     )
     course = make_course("office", 0)
     assert fly(course, cfg).outcome.value == "goal"
     kept = cfg.model_copy(update={"memory": cfg.memory.model_copy(update={"map_clear_after_frames": 0})})
     assert fly(course, kept).outcome.value != "goal"
-    ruled = parse_config({"stereo": {"backend": "opencv-bm"}, "detour": {"trigger_after_s": 0.8}})
-    assert fly(course, ruled).outcome.value == "goal"
+    cone = parse_config({"stereo": {"backend": "opencv-bm"}, "detour": {"trigger_after_s": 0.8}})
+    assert fly(course, cone).outcome.value == "goal"
 
 
 @pytest.mark.parametrize("goal_deg", [0.0, 37.0, 179.0, -179.0, 120.0])

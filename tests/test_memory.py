@@ -436,7 +436,7 @@ def _sides(left_m: float, right_m: float) -> np.ndarray:
 def test_blocked_sides_are_near_and_nearer_than_the_other_side() -> None:
     from companion.core.command import blocked_sides
 
-    cmd = CompanionConfig().command  # sideways_clear_depth_m = 1.0
+    cmd = CompanionConfig().command.model_copy(update={"sideways_clear_depth_m": 1.0})  # off by default
     assert blocked_sides(_sides(0.6, 3.0), cmd) == (True, False)
     assert blocked_sides(_sides(3.0, 0.9), cmd) == (False, True)
     assert blocked_sides(_sides(0.6, 0.8), cmd) == (True, False)  # a dead end: only the nearer side
@@ -446,7 +446,7 @@ def test_blocked_sides_are_near_and_nearer_than_the_other_side() -> None:
     assert blocked_sides(_sides(math.nan, math.nan), cmd) == (False, False)
     assert blocked_sides(_sides(0.6, math.nan), cmd) == (False, True)
     assert blocked_sides(None, cmd) is None
-    assert blocked_sides(_sides(0.6, 3.0), cmd.model_copy(update={"sideways_clear_depth_m": 0.0})) is None
+    assert blocked_sides(_sides(0.6, 3.0), CompanionConfig().command) is None  # off
 
 
 def test_apply_guard_neither_pushes_nor_leans_toward_a_blocked_side() -> None:
@@ -464,7 +464,7 @@ def test_a_remembered_wall_does_not_push_the_vehicle_into_what_the_camera_sees_o
     """PX4 SITL corridor-8: passing a box close to the wall on the right, PX4's estimate 0.5-0.7 m
     off; the guard pushed away from the remembered wall at 0.5 m/s, into the box's corner that the
     left regions read at 0.9 -> 0.5 m. The camera's nearer side now holds that push back."""
-    cmd = CompanionConfig().command
+    cmd = CompanionConfig().command.model_copy(update={"sideways_clear_depth_m": 1.0})  # off by default
     mem = MemoryConfig(gap_centering_gain_per_s=1.0)
     clear = Decision(DecisionKind.CLEAR, 0.0, 0.0, 1.0, "clear")
     wall = np.array([[0.2, 0.0, 1.0]])  # remembered 0.2 m to the right, beside the vehicle (out of view)

@@ -176,17 +176,20 @@ class CommandConfig(StrictModel):
         ),
     )
     sideways_clear_depth_m: float = Field(
-        default=1.0,
+        default=0.0,
         ge=0.0,
         le=50.0,
         description=(
             "The obstacle memory's push and lean, and gap centering, never move the vehicle sideways "
             "toward a side whose region (left, right) reads nearer than this, metres, and nearer than "
-            "the other side (unknown counts as 0 m); 0 = off. The memory places what it saw with the "
-            "autopilot's position estimate, which wanders (PX4 SITL: 0.5-0.7 m in corridor-8, where "
-            "a push away from a remembered wall slid the vehicle into a box's corner the camera "
-            "saw); the camera does not. Only nearer than the other side: in a dead end both sides "
-            "read near, and the push away from the wall the vehicle drifts toward keeps it off it."
+            "the other side (unknown counts as 0 m); 0 = off, the default. The memory places what it "
+            "saw with the autopilot's position estimate, which wanders (PX4 SITL: 0.5-0.7 m in "
+            "corridor-8, where a push away from a remembered wall slid the vehicle into a box's corner "
+            "the camera saw); the camera does not. Only nearer than the other side: in a dead end both "
+            "sides read near, and the push away from the wall the vehicle drifts toward keeps it off "
+            "it (blocking every near side made four kinematic dead ends collide with drift). Off by "
+            "default: at 1.0 the kinematic suite (detour layer on) lost corridor-6 and office-6 and "
+            "came within 0.05 m of deadend-2's wall with drift, and gained nothing it measures."
         ),
     )
     altitude_hold_gain_per_s: float = Field(

@@ -86,6 +86,18 @@ class DetourConfig(StrictModel):
             "it; none free: a dead end. Above 90 allows a little back-tracking round a corner."
         ),
     )
+    either_side_within_deg: float = Field(
+        default=15.0,
+        ge=0.0,
+        le=90.0,
+        description=(
+            "A detour keeps to the side of the goal direction it chose, but a free direction within "
+            "this many degrees of the goal direction may be taken on either side, degrees (0 = only "
+            "the side chosen). Flying along a wall, an opening just past the goal direction is the "
+            "way through, not a switch of sides: with 0.14 m/s drift, kinematic detour-0 and -7 flew "
+            "past theirs and ran out of time; 15 took both through, 25 lost two others."
+        ),
+    )
     sector_deg: float = Field(
         default=5.0,
         ge=1.0,

@@ -938,7 +938,9 @@ def _pick_side(h: Histogram, prefer_right: bool, cfg: DetourConfig) -> int:
 def _best(
     h: Histogram, side: int, cfg: DetourConfig, current_rad: float | None, share: float = 1.0, tight: bool = False
 ) -> int | None:
-    """The index of the free direction (free for ``min_free_m``) on ``side`` of the goal costing least:
+    """The index of the free direction (free for ``min_free_m``) on ``side`` of the goal, or within
+    ``either_side_within_deg`` of it on the other side (costing half a sector more; the goal direction
+    itself hands back instead), costing least:
     its angle off the goal, plus ``prefer_clear_cost_deg`` when it is not free for ``min_free_m`` with
     ``preferred_clearance_m`` and ``visited_cost_deg`` back over the trail; the direction flown now
     (``current_rad``, when it is one of the histogram's: while hovering or turning in place) keeps its
@@ -946,12 +948,15 @@ def _best(
     free on that side. ``share``: the part of ``min_free_m`` that counts as free; ``tight``: free with
     ``squeeze_clearance_m`` instead of ``clearance_m``."""
     free = h.tight_m if tight else h.free_m
-    on = (np.sign(h.offset_rad) == side) & (free >= share * cfg.min_free_m)
+    toward = (np.sign(h.offset_rad) == side) | (np.abs(h.offset_rad) <= math.radians(cfg.either_side_within_deg) + 1e-9)
+    on = toward & (h.offset_rad != 0.0) & (free >= share * cfg.min_free_m)
     if not np.any(on):
         return None
     cost = np.degrees(np.abs(h.offset_rad))
     cost = cost + np.where(h.roomy_m >= share * cfg.min_free_m, 0.0, cfg.prefer_clear_cost_deg)
     cost = cost + np.where(h.visited, cfg.visited_cost_deg, 0.0)
+    # The side chosen wins a tie: the other side's directions near the goal are for an opening there.
+    cost = cost + np.where(np.sign(h.offset_rad) == side, 0.0, 0.5 * cfg.sector_deg)
     cost = np.where(on, cost, np.inf)
     k = int(np.argmin(cost))
     if current_rad is not None:
