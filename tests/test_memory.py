@@ -433,7 +433,7 @@ def _sides(left_m: float, right_m: float) -> np.ndarray:
     return d
 
 
-def test_blocked_sides_are_near_and_nearer_than_the_other_side() -> None:
+def test_blocked_sides_are_near_and_nearer_than_the_other_side_or_unknown() -> None:
     from companion.core.command import blocked_sides
 
     cmd = CompanionConfig().command.model_copy(update={"sideways_clear_depth_m": 1.0})  # off by default
@@ -442,9 +442,12 @@ def test_blocked_sides_are_near_and_nearer_than_the_other_side() -> None:
     assert blocked_sides(_sides(0.6, 0.8), cmd) == (True, False)  # a dead end: only the nearer side
     assert blocked_sides(_sides(0.7, 0.7), cmd) == (False, False)
     assert blocked_sides(_sides(1.5, 3.0), cmd) == (False, False)  # not near
-    assert blocked_sides(_sides(math.nan, 2.0), cmd) == (True, False)  # unknown counts as 0 m
-    assert blocked_sides(_sides(math.nan, math.nan), cmd) == (False, False)
-    assert blocked_sides(_sides(0.6, math.nan), cmd) == (False, True)
+    # Unknown is blocked, and a measured near side is no farther than an unknown one (PX4 SITL
+    # office-0: with unknown as 0 m, the guard pushed toward a left region reading 0.37 m).
+    assert blocked_sides(_sides(math.nan, 2.0), cmd) == (True, False)
+    assert blocked_sides(_sides(math.nan, math.nan), cmd) == (True, True)
+    assert blocked_sides(_sides(0.37, math.nan), cmd) == (True, True)
+    assert blocked_sides(_sides(1.5, math.nan), cmd) == (False, True)
     assert blocked_sides(None, cmd) is None
     assert blocked_sides(_sides(0.6, 3.0), CompanionConfig().command) is None  # off
 

@@ -182,7 +182,7 @@ class CommandConfig(StrictModel):
         description=(
             "The obstacle memory's push and lean, and gap centering, never move the vehicle sideways "
             "toward a side whose region (left, right) reads nearer than this, metres, and nearer than "
-            "the other side (unknown counts as 0 m); 0 = off, the default. The memory places what it "
+            "the other side, or cannot be read; 0 = off, the default. The memory places what it "
             "saw with the autopilot's position estimate, which wanders (PX4 SITL: 0.5-0.7 m in "
             "corridor-8, where a push away from a remembered wall slid the vehicle into a box's corner "
             "the camera saw); the camera does not. Only nearer than the other side: in a dead end both "

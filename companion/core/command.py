@@ -557,21 +557,27 @@ def _guarded(
 
 def blocked_sides(region_depths_m: np.ndarray | None, cmd: CommandConfig | None) -> tuple[bool, bool] | None:
     """(left, right): True where that middle-row region (float ``(9,)`` refined depths, metres, NaN
-    unknown, counted as 0) reads nearer than ``cmd.sideways_clear_depth_m`` and nearer than the
-    other side: the memory's guard and gap centering do not move the vehicle toward it. None when
-    off or without depths.
+    unknown) reads nearer than ``cmd.sideways_clear_depth_m`` and nearer than the other side, or
+    cannot be read: the memory's guard and gap centering do not move the vehicle toward it. None
+    when off or without depths.
 
     Nearer than the other side, not just near: in a dead end both sides read near, and the guard's
     push away from the wall the vehicle drifts toward is what keeps it off that wall (kinematic
-    suite, 0.14 m/s drift: blocking every near side made four dead ends collide)."""
+    suite, 0.14 m/s drift: blocking every near side made four dead ends collide). An unknown side
+    is blocked and does not count as farther than a measured one: counted as 0 m, it let PX4 SITL's
+    office-0 be pushed toward a left region that read 0.37 m."""
     if region_depths_m is None or cmd is None or cmd.sideways_clear_depth_m <= 0.0:
         return None
+    near = cmd.sideways_clear_depth_m
     left = float(region_depths_m[REGION_INDEX["left"]])
     right = float(region_depths_m[REGION_INDEX["right"]])
-    left = left if math.isfinite(left) else 0.0
-    right = right if math.isfinite(right) else 0.0
-    near = cmd.sideways_clear_depth_m
-    return (left < near and left < right, right < near and right < left)
+
+    def blocked(this: float, other: float) -> bool:
+        if not math.isfinite(this):
+            return True
+        return this < near and (not math.isfinite(other) or this < other)
+
+    return blocked(left, right), blocked(right, left)
 
 
 def detour_setpoint(
