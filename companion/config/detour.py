@@ -95,7 +95,7 @@ class DetourConfig(StrictModel):
             "this many degrees of the goal direction may be taken on either side, degrees (0 = only "
             "the side chosen). Flying along a wall, an opening just past the goal direction is the "
             "way through, not a switch of sides: with 0.14 m/s drift, kinematic detour-0 and -7 flew "
-            "past theirs and ran out of time; 15 took both through, 25 lost two others."
+            "past theirs and ran out of time; 15 took both through, 25 reached two goals fewer."
         ),
     )
     sector_deg: float = Field(
