@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from companion.core.frames import ned_to_body_horizontal
-from companion.core.memory import apply_guard
+from companion.core.memory import apply_guard, toward_blocked
 from companion.core.types import (
     REGION_INDEX,
     ZERO_SETPOINT,
@@ -488,10 +488,14 @@ def setpoint_for(
         hold_down_m_s = _altitude_hold_down_m_s(altitude_error_m, region_depths_m, cmd)
         if altitude_waited or (below_clear is True and hold_down_m_s > 0.0):
             down_m_s += (1.0 - abs(pitch)) * hold_down_m_s
-    gap_on = gap_offset_m is not None and guard_cfg is not None and guard_cfg.gap_centering_gain_per_s > 0.0
-    blocked = blocked_sides(region_depths_m, cmd) or (False, False)
-    toward_blocked = gap_on and ((gap_offset_m < 0.0 and blocked[0]) or (gap_offset_m > 0.0 and blocked[1]))
-    if clear and not turning_back and gap_on and math.isfinite(gap_offset_m) and not toward_blocked:
+    gap_on = (
+        gap_offset_m is not None
+        and guard_cfg is not None
+        and guard_cfg.gap_centering_gain_per_s > 0.0
+        # not toward a side the camera reads near
+        and not toward_blocked(gap_offset_m, blocked_sides(region_depths_m, cmd))
+    )
+    if clear and not turning_back and gap_on and math.isfinite(gap_offset_m):
         limit = guard_cfg.max_gap_centering_speed_m_s
         right_m_s = (1.0 - abs(yaw)) * min(limit, max(-limit, guard_cfg.gap_centering_gain_per_s * gap_offset_m))
     if since_up_near_m is not None and since_up_near_m < cmd.hold_resume_distance_m and down_m_s < 0.0:
@@ -568,16 +572,14 @@ def blocked_sides(region_depths_m: np.ndarray | None, cmd: CommandConfig | None)
     office-0 be pushed toward a left region that read 0.37 m."""
     if region_depths_m is None or cmd is None or cmd.sideways_clear_depth_m <= 0.0:
         return None
-    near = cmd.sideways_clear_depth_m
     left = float(region_depths_m[REGION_INDEX["left"]])
     right = float(region_depths_m[REGION_INDEX["right"]])
-
-    def blocked(this: float, other: float) -> bool:
-        if not math.isfinite(this):
-            return True
-        return this < near and (not math.isfinite(other) or this < other)
-
-    return blocked(left, right), blocked(right, left)
+    # Near or unknown (_side_open), unless measured at least as deep as the other side: a NaN on
+    # either side makes the comparison False.
+    return (
+        not _side_open(region_depths_m, "left", cmd.sideways_clear_depth_m) and not left >= right,
+        not _side_open(region_depths_m, "right", cmd.sideways_clear_depth_m) and not right >= left,
+    )
 
 
 def detour_setpoint(

@@ -948,15 +948,16 @@ def _best(
     free on that side. ``share``: the part of ``min_free_m`` that counts as free; ``tight``: free with
     ``squeeze_clearance_m`` instead of ``clearance_m``."""
     free = h.tight_m if tight else h.free_m
-    toward = (np.sign(h.offset_rad) == side) | (np.abs(h.offset_rad) <= math.radians(cfg.either_side_within_deg) + 1e-9)
-    on = toward & (h.offset_rad != 0.0) & (free >= share * cfg.min_free_m)
+    own = np.sign(h.offset_rad) == side
+    near_goal = np.abs(h.offset_rad) <= math.radians(cfg.either_side_within_deg) + 1e-9
+    on = (own | near_goal) & (h.offset_rad != 0.0) & (free >= share * cfg.min_free_m)
     if not np.any(on):
         return None
     cost = np.degrees(np.abs(h.offset_rad))
     cost = cost + np.where(h.roomy_m >= share * cfg.min_free_m, 0.0, cfg.prefer_clear_cost_deg)
     cost = cost + np.where(h.visited, cfg.visited_cost_deg, 0.0)
     # The side chosen wins a tie: the other side's directions near the goal are for an opening there.
-    cost = cost + np.where(np.sign(h.offset_rad) == side, 0.0, 0.5 * cfg.sector_deg)
+    cost = cost + np.where(own, 0.0, 0.5 * cfg.sector_deg)
     cost = np.where(on, cost, np.inf)
     k = int(np.argmin(cost))
     if current_rad is not None:

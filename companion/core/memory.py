@@ -791,7 +791,7 @@ def apply_guard(
                 away -= max(0.0, cfg.counter_velocity_fraction * closing + toward) * u
         if push:
             away -= cfg.guard_gain_per_s * max(0.0, cfg.guard_distance_m - dist) * u
-    if blocked_sides is not None and ((blocked_sides[0] and away[1] < 0.0) or (blocked_sides[1] and away[1] > 0.0)):
+    if toward_blocked(float(away[1]), blocked_sides):
         away[1] = 0.0
     n = float(np.hypot(away[0], away[1]))
     if n > cfg.max_guard_speed_m_s > 0.0:
@@ -800,6 +800,14 @@ def apply_guard(
         away[:] = 0.0
     v += away
     return float(v[0]), float(v[1])
+
+
+def toward_blocked(right_m_s: float, blocked_sides: tuple[bool, bool] | None) -> bool:
+    """Whether a sideways motion (m/s, positive = right) goes toward a blocked side ((left, right),
+    :func:`~companion.core.command.blocked_sides`; None = none blocked)."""
+    if blocked_sides is None:
+        return False
+    return (blocked_sides[0] and right_m_s < 0.0) or (blocked_sides[1] and right_m_s > 0.0)
 
 
 def _on_path(dist: float, u: np.ndarray, v: np.ndarray, speed: float, keep_out_m: float) -> bool:
