@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
 from companion.config import CompanionConfig
 from companion.core.course import CourseHold
@@ -92,3 +93,30 @@ def test_a_brake_holds_where_it_began() -> None:
     hold.setpoint(BRAKE, 1.0, 0.05, CMD, position_ned_m=ORIGIN.copy(), yaw_rad=0.0)  # latches here
     sp = hold.setpoint(BRAKE, 1.5, 0.05, CMD, position_ned_m=ORIGIN + np.array([0.4, 0.0, 0.0]), yaw_rad=0.0)
     assert sp.forward_m_s < 0.0  # drifted 0.4 m forward: flies back
+
+
+def test_no_setpoint_descends_through_the_floor_whatever_asks_for_it() -> None:
+    """PX4 SITL office-2: the up regions unknown (plain sky over the office), the controller ducked,
+    and the vehicle flew into the floor. Every setpoint's descent is capped near the floor."""
+    from companion.core.command import FLOOR_GAIN_PER_S
+
+    duck = Decision(DecisionKind.AVOID, 0.0, -1.0, 0.3, "up near: duck")  # descend at the most
+    full = CMD.max_vertical_speed_m_s
+
+    def down(altitude_m: float, cmd=CMD) -> float:
+        hold = CourseHold()
+        hold.engage(np.array([0.0, 0.0, -1.5]), 0.0)
+        return hold.setpoint(duck, 1.0, 0.05, cmd, position_ned_m=np.array([0.0, 0.0, -altitude_m]), yaw_rad=0.0).down_m_s
+
+    assert CMD.min_altitude_m == 0.5
+    assert down(2.0) == pytest.approx(full)  # well above it: the controller's own descent
+    assert down(0.6) == pytest.approx(FLOOR_GAIN_PER_S * 0.1)
+    assert down(0.5) == 0.0 and down(0.3) == 0.0
+    off = CMD.model_copy(update={"min_altitude_m": 0.0})
+    assert down(0.3, off) == pytest.approx(full)
+    # A climb is never held back, and an unknown altitude leaves the setpoint as it was.
+    climb = Decision(DecisionKind.AVOID, 0.0, 1.0, 0.3, "down near: climb")
+    hold = CourseHold()
+    hold.engage(np.array([0.0, 0.0, -1.5]), 0.0)
+    assert hold.setpoint(climb, 1.0, 0.05, CMD, position_ned_m=np.array([0.0, 0.0, -0.3]), yaw_rad=0.0).down_m_s < 0.0
+    assert CourseHold().setpoint(duck, 1.0, 0.05, CMD, position_ned_m=None, yaw_rad=0.0).down_m_s == pytest.approx(full)

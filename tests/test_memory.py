@@ -433,40 +433,79 @@ def _sides(left_m: float, right_m: float) -> np.ndarray:
     return d
 
 
-def test_blocked_sides_are_near_and_nearer_than_the_other_side_or_unknown() -> None:
-    from companion.core.command import blocked_sides
+def test_side_room_shrinks_with_the_depth_a_side_region_reads_and_is_none_where_unknown() -> None:
+    from companion.core.command import side_room_m_s
 
     cmd = CompanionConfig().command.model_copy(update={"sideways_clear_depth_m": 1.0})  # off by default
-    assert blocked_sides(_sides(0.6, 3.0), cmd) == (True, False)
-    assert blocked_sides(_sides(3.0, 0.9), cmd) == (False, True)
-    assert blocked_sides(_sides(0.6, 0.8), cmd) == (True, False)  # a dead end: only the nearer side
-    assert blocked_sides(_sides(0.7, 0.7), cmd) == (False, False)
-    assert blocked_sides(_sides(1.5, 3.0), cmd) == (False, False)  # not near
-    # Unknown is blocked, and a measured near side is no farther than an unknown one (PX4 SITL
-    # office-0: with unknown as 0 m, the guard pushed toward a left region reading 0.37 m).
-    assert blocked_sides(_sides(math.nan, 2.0), cmd) == (True, False)
-    assert blocked_sides(_sides(math.nan, math.nan), cmd) == (True, True)
-    assert blocked_sides(_sides(0.37, math.nan), cmd) == (True, True)
-    assert blocked_sides(_sides(1.5, math.nan), cmd) == (False, True)
-    assert blocked_sides(None, cmd) is None
-    assert blocked_sides(_sides(0.6, 3.0), CompanionConfig().command) is None  # off
+    assert side_room_m_s(_sides(0.8, 3.0), cmd) == pytest.approx((0.3, math.inf))
+    assert side_room_m_s(_sides(1.0, 0.6), cmd) == pytest.approx((math.inf, 0.1))
+    assert side_room_m_s(_sides(0.45, 0.9), cmd) == (0.0, math.inf)
+    # In a dead end both sides read near: the deeper one is not limited (the push away from the wall
+    # the vehicle drifts toward keeps it off that wall).
+    assert side_room_m_s(_sides(0.6, 0.8), cmd) == pytest.approx((0.1, math.inf))
+    assert side_room_m_s(_sides(0.5, 0.37), cmd) == (math.inf, 0.0)
+    assert side_room_m_s(_sides(0.7, 0.7), cmd) == (math.inf, math.inf)
+    # Unknown has no room (PX4 SITL office-0: counted as 0 m against the other side, the guard
+    # pushed toward a left region that read 0.37 m).
+    assert side_room_m_s(_sides(math.nan, 2.0), cmd) == (0.0, math.inf)
+    assert side_room_m_s(_sides(0.37, math.nan), cmd) == (0.0, 0.0)
+    assert side_room_m_s(None, cmd) is None
+    assert side_room_m_s(_sides(0.6, 3.0), CompanionConfig().command) is None  # off
 
 
-def test_apply_guard_neither_pushes_nor_leans_toward_a_blocked_side() -> None:
+def test_within_room_holds_the_sideways_speed_unless_it_was_already_more() -> None:
+    from companion.core.memory import within_room
+
+    assert within_room(0.5, 0.0, (0.0, 0.2)) == pytest.approx(0.2)
+    assert within_room(-0.5, 0.0, (0.0, 0.2)) == 0.0
+    assert within_room(0.5, 0.4, (0.0, 0.2)) == pytest.approx(0.4)  # the command had 0.4 itself
+    assert within_room(-0.5, 0.0, None) == -0.5
+
+
+def test_apply_guard_pushes_and_leans_toward_a_near_side_only_within_its_room() -> None:
     cfg = guard_cfg(guard_distance_m=0.6, guard_gain_per_s=1.5, max_guard_speed_m_s=0.5, counter_velocity_fraction=1.0)
     right = np.array([[0.3, 0.0, 1.0]])  # 0.3 m to the right: pushes left at 0.45 m/s
     assert apply_guard(0.7, 0.0, right, cfg) == pytest.approx((0.7, -0.45))
-    assert apply_guard(0.7, 0.0, right, cfg, None, (True, False)) == pytest.approx((0.7, 0.0))
-    assert apply_guard(0.7, 0.0, right, cfg, (0.0, 0.3), (True, False)) == pytest.approx((0.7, 0.0))  # no lean
-    assert apply_guard(0.7, 0.0, right, cfg, None, (False, True)) == pytest.approx((0.7, -0.45))
-    # The motion toward the point is still removed: blocked sides only hold the push back.
-    assert apply_guard(0.0, 0.3, right, cfg, None, (True, False)) == pytest.approx((0.0, 0.0))
+    assert apply_guard(0.7, 0.0, right, cfg, None, (0.0, math.inf)) == pytest.approx((0.7, 0.0))
+    assert apply_guard(0.7, 0.0, right, cfg, None, (0.2, math.inf)) == pytest.approx((0.7, -0.2))
+    assert apply_guard(0.7, 0.0, right, cfg, (0.0, 0.3), (0.0, math.inf)) == pytest.approx((0.7, 0.0))  # no lean
+    assert apply_guard(0.7, 0.0, right, cfg, None, (math.inf, 0.0)) == pytest.approx((0.7, -0.45))
+    # The motion toward the point is still removed: the room only holds the push back.
+    assert apply_guard(0.0, 0.3, right, cfg, None, (0.0, math.inf)) == pytest.approx((0.0, 0.0))
+
+
+def test_the_slide_past_a_remembered_point_stays_within_the_room_on_that_side() -> None:
+    """PX4 SITL corridor-0: between a box on the left (remembered, its region unknown) and the
+    corridor's wall on the right (its region 0.8 m), taking the forward motion off toward the box's
+    point ahead on the left slid the vehicle right at 0.3-0.5 m/s, into the wall."""
+    cfg = guard_cfg(guard_distance_m=0.6, guard_gain_per_s=0.0, keep_out_m=0.35)
+    c = math.cos(math.radians(30.0))
+    ahead_left = np.array([[0.5, c, -0.5, 1.0]])  # 0.5 m away, 30 deg left of straight ahead
+    f, r = apply_guard(0.7, 0.0, ahead_left, cfg)
+    assert r > 0.25 and f < 0.7  # slides right, past it
+    assert apply_guard(0.7, 0.0, ahead_left, cfg, None, (0.0, 0.0)) == pytest.approx((0.0, 0.0))  # no room: stops
+    f2, r2 = apply_guard(0.7, 0.0, ahead_left, cfg, None, (0.0, 0.1))
+    assert r2 == pytest.approx(0.1) and 0.0 < f2 < f and f2 * c - 0.5 * r2 <= 1e-9  # slower, not toward it
+    assert apply_guard(0.7, 0.0, ahead_left, cfg, None, (0.0, math.inf)) == pytest.approx((f, r))
+    # The slide for the vehicle's own motion (a command off the point's line, the vehicle still
+    # flying at it) is held back the same way.
+    lean = guard_cfg(guard_distance_m=0.6, guard_gain_per_s=0.0, keep_out_m=0.35, counter_velocity_fraction=0.0)
+    assert apply_guard(0.6, 0.35, ahead_left, lean, (0.7, 0.0))[1] > 0.5
+    held = apply_guard(0.6, 0.35, ahead_left, lean, (0.7, 0.0), (0.0, 0.0))
+    assert held[1] == pytest.approx(0.35) and held[0] * c - 0.5 * held[1] <= 1e-9
+    # Through the whole setpoint: held with the side rule on, the slide with it off.
+    cmd = CompanionConfig().command.model_copy(update={"sideways_clear_depth_m": 1.0})
+    clear = Decision(DecisionKind.CLEAR, 0.0, 0.0, 1.0, "clear")
+    kw = {"guard_m": ahead_left, "guard_cfg": cfg, "region_depths_m": _sides(math.nan, 0.8)}
+    assert setpoint_for(clear, 0.0, cmd, **kw).right_m_s == pytest.approx(0.3)
+    off = cmd.model_copy(update={"sideways_clear_depth_m": 0.0})
+    assert setpoint_for(clear, 0.0, off, **kw).right_m_s > 0.25
 
 
 def test_a_remembered_wall_does_not_push_the_vehicle_into_what_the_camera_sees_on_the_other_side() -> None:
     """PX4 SITL corridor-8: passing a box close to the wall on the right, PX4's estimate 0.5-0.7 m
     off; the guard pushed away from the remembered wall at 0.5 m/s, into the box's corner that the
-    left regions read at 0.9 -> 0.5 m. The camera's nearer side now holds that push back."""
+    left regions read at 0.9 -> 0.5 m. The camera's reading of that side now limits the push."""
     cmd = CompanionConfig().command.model_copy(update={"sideways_clear_depth_m": 1.0})  # off by default
     mem = MemoryConfig(gap_centering_gain_per_s=1.0)
     clear = Decision(DecisionKind.CLEAR, 0.0, 0.0, 1.0, "clear")
@@ -474,11 +513,12 @@ def test_a_remembered_wall_does_not_push_the_vehicle_into_what_the_camera_sees_o
     kw = {"guard_m": wall, "guard_cfg": mem}
     assert setpoint_for(clear, 0.0, cmd, region_depths_m=_sides(3.0, 3.0), **kw).right_m_s < -0.3  # pushed left
     corner = setpoint_for(clear, 0.0, cmd, region_depths_m=_sides(0.6, 3.0), **kw)
-    assert corner.right_m_s == pytest.approx(0.0) and corner.forward_m_s == pytest.approx(cmd.cruise_speed_m_s)
+    assert corner.right_m_s == pytest.approx(-0.1) and corner.forward_m_s == pytest.approx(cmd.cruise_speed_m_s)
+    assert setpoint_for(clear, 0.0, cmd, region_depths_m=_sides(0.5, 3.0), **kw).right_m_s == pytest.approx(0.0)
     # Gap centering toward the nearer side is held back too; toward the farther side it acts.
     gap = {"guard_cfg": mem, "gap_offset_m": -0.2}
     assert setpoint_for(clear, 0.0, cmd, region_depths_m=_sides(3.0, 3.0), **gap).right_m_s == pytest.approx(-0.2)
-    assert setpoint_for(clear, 0.0, cmd, region_depths_m=_sides(0.6, 3.0), **gap).right_m_s == 0.0
+    assert setpoint_for(clear, 0.0, cmd, region_depths_m=_sides(0.6, 3.0), **gap).right_m_s == pytest.approx(-0.1)
     assert setpoint_for(clear, 0.0, cmd, region_depths_m=_sides(3.0, 0.6), **gap).right_m_s == pytest.approx(-0.2)
     # Off: the push as before.
     off = cmd.model_copy(update={"sideways_clear_depth_m": 0.0})

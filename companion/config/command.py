@@ -180,16 +180,17 @@ class CommandConfig(StrictModel):
         ge=0.0,
         le=50.0,
         description=(
-            "The obstacle memory's push and lean, and gap centering, never move the vehicle sideways "
-            "toward a side whose region (left, right) reads nearer than this, metres, and nearer than "
-            "the other side, or cannot be read; 0 = off, the default. The memory places what it "
-            "saw with the autopilot's position estimate, which wanders (PX4 SITL: 0.5-0.7 m in "
-            "corridor-8, where a push away from a remembered wall slid the vehicle into a box's corner "
-            "the camera saw); the camera does not. Only nearer than the other side: in a dead end both "
-            "sides read near, and the push away from the wall the vehicle drifts toward keeps it off "
-            "it (blocking every near side made four kinematic dead ends collide with drift). Off by "
-            "default: at 1.0 the kinematic suite (detour layer on) lost corridor-6 and office-6 and "
-            "came within 0.05 m of deadend-2's wall with drift, and gained nothing it measures."
+            "The obstacle memory's push, lean and slide past a point, and gap centering, move the "
+            "vehicle sideways toward a side whose region (left, right) reads nearer than this, metres, "
+            "at no more than (depth - half of this) per second, and not at all from half of it in or "
+            "toward a side that cannot be read; 0 = off, the default. The memory places what it saw "
+            "with the autopilot's position estimate, which wanders (PX4 SITL: 0.5-0.7 m in corridor-8, "
+            "where a push away from a remembered wall slid the vehicle into a box's corner the camera "
+            "saw; corridor-0, where the slide past a remembered box went into the wall); the camera "
+            "does not. A limit that shrinks with the room, not a ban: in a dead end both sides read "
+            "near, and the push away from the wall the vehicle drifts toward keeps it off it. Off by "
+            "default: the kinematic suite (detour layer on) measures nothing it gains; "
+            "docs/history.md has the figures."
         ),
     )
     altitude_hold_gain_per_s: float = Field(
@@ -227,6 +228,20 @@ class CommandConfig(StrictModel):
             "decisions turned CLEAR and straight. The camera cannot see straight up: under a block, "
             "rules that climb away from the ground (and a hold that waited only for a time) flew the "
             "vehicle into the block's rear edge (simulator and PX4 SITL)."
+        ),
+    )
+    min_altitude_m: float = Field(
+        default=0.5,
+        ge=0.0,
+        le=100.0,
+        description=(
+            "Floor: no setpoint descends below this altitude above the autopilot's local origin "
+            "(where its position estimate began: normally the take-off point on the ground), metres; "
+            "0 = off. Descending, the down speed is capped at 2/s times the height left above it, so "
+            "the vehicle's lag does not carry it through. Unknown counts as near, and a plain ceiling "
+            "or sky the up regions cannot read sends the vehicle down: PX4 SITL flew an office flight "
+            "into the floor that way. Above ground that rises from the take-off point it does not "
+            "protect: the down regions do."
         ),
     )
     brake_hold_gain_per_s: float = Field(

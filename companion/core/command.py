@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from companion.core.frames import ned_to_body_horizontal
-from companion.core.memory import apply_guard, toward_blocked
+from companion.core.memory import apply_guard, within_room
 from companion.core.types import (
     REGION_INDEX,
     ZERO_SETPOINT,
@@ -488,16 +488,12 @@ def setpoint_for(
         hold_down_m_s = _altitude_hold_down_m_s(altitude_error_m, region_depths_m, cmd)
         if altitude_waited or (below_clear is True and hold_down_m_s > 0.0):
             down_m_s += (1.0 - abs(pitch)) * hold_down_m_s
-    gap_on = (
-        gap_offset_m is not None
-        and guard_cfg is not None
-        and guard_cfg.gap_centering_gain_per_s > 0.0
-        # not toward a side the camera reads near
-        and not toward_blocked(gap_offset_m, blocked_sides(region_depths_m, cmd))
-    )
+    gap_on = gap_offset_m is not None and guard_cfg is not None and guard_cfg.gap_centering_gain_per_s > 0.0
     if clear and not turning_back and gap_on and math.isfinite(gap_offset_m):
         limit = guard_cfg.max_gap_centering_speed_m_s
         right_m_s = (1.0 - abs(yaw)) * min(limit, max(-limit, guard_cfg.gap_centering_gain_per_s * gap_offset_m))
+        # not faster toward a side than the camera's reading of it allows
+        right_m_s = within_room(right_m_s, 0.0, side_room_m_s(region_depths_m, cmd))
     if since_up_near_m is not None and since_up_near_m < cmd.hold_resume_distance_m and down_m_s < 0.0:
         down_m_s = 0.0  # something was overhead within the last metres: it may still be, out of view
     sp = VelocitySetpoint(
@@ -546,40 +542,70 @@ def _guarded(
     cmd: CommandConfig | None = None,
 ) -> VelocitySetpoint:
     """``sp`` with the stand-off's push (:func:`standoff_push_m_s`, with ``region_depths_m`` and
-    ``cmd``) added, then the memory's guard applied (:func:`~companion.core.memory.apply_guard`), its
-    push and lean never toward a side the camera reads near (:func:`blocked_sides`)."""
-    blocked = blocked_sides(region_depths_m, cmd)
+    ``cmd``) added, then the memory's guard applied (:func:`~companion.core.memory.apply_guard`), never
+    faster toward a side than the camera's reading of it allows (:func:`side_room_m_s`)."""
+    room = side_room_m_s(region_depths_m, cmd)
     if cmd is not None:
         push_f, push_r = standoff_push_m_s(region_depths_m, cmd)
         if push_f != 0.0 or push_r != 0.0:
             sp = VelocitySetpoint(sp.forward_m_s + push_f, sp.right_m_s + push_r, sp.down_m_s, sp.yaw_rate_deg_s)
     if guard_m is None or cfg is None or len(guard_m) == 0:
         return sp
-    forward, right = apply_guard(sp.forward_m_s, sp.right_m_s, guard_m, cfg, velocity_body_m_s, blocked)
+    forward, right = apply_guard(sp.forward_m_s, sp.right_m_s, guard_m, cfg, velocity_body_m_s, room)
     return VelocitySetpoint(forward_m_s=forward, right_m_s=right, down_m_s=sp.down_m_s, yaw_rate_deg_s=sp.yaw_rate_deg_s)
 
 
-def blocked_sides(region_depths_m: np.ndarray | None, cmd: CommandConfig | None) -> tuple[bool, bool] | None:
-    """(left, right): True where that middle-row region (float ``(9,)`` refined depths, metres, NaN
-    unknown) reads nearer than ``cmd.sideways_clear_depth_m`` and nearer than the other side, or
-    cannot be read: the memory's guard and gap centering do not move the vehicle toward it. None
-    when off or without depths.
+#: Descending toward ``command.min_altitude_m``, the down speed is at most this times the height left
+#: above it, m/s per metre: a first-order approach, so the autopilot's lag (PX4 SIH: ~0.85 s) does not
+#: carry the vehicle through the floor.
+FLOOR_GAIN_PER_S = 2.0
 
-    Nearer than the other side, not just near: in a dead end both sides read near, and the guard's
-    push away from the wall the vehicle drifts toward is what keeps it off that wall (kinematic
-    suite, 0.14 m/s drift: blocking every near side made four dead ends collide). An unknown side
-    is blocked and does not count as farther than a measured one: counted as 0 m, it let PX4 SITL's
-    office-0 be pushed toward a left region that read 0.37 m."""
+
+def above_floor(sp: VelocitySetpoint, position_ned_m: np.ndarray | None, cmd: CommandConfig) -> VelocitySetpoint:
+    """``sp`` with its descent capped at ``FLOOR_GAIN_PER_S · (altitude - cmd.min_altitude_m)`` m/s
+    (0 at or below the floor), the altitude being ``-down`` of ``position_ned_m`` (float ``(3,)`` NED
+    metres from the autopilot's local origin). Unchanged when off, climbing, or without a finite
+    position."""
+    if cmd.min_altitude_m <= 0.0 or sp.down_m_s <= 0.0 or position_ned_m is None:
+        return sp
+    altitude = -float(np.asarray(position_ned_m, dtype=np.float64).reshape(-1)[2])
+    if not math.isfinite(altitude):
+        return sp
+    limit = FLOOR_GAIN_PER_S * max(0.0, altitude - cmd.min_altitude_m)
+    if sp.down_m_s <= limit:
+        return sp
+    return VelocitySetpoint(sp.forward_m_s, sp.right_m_s, limit, sp.yaw_rate_deg_s)
+
+
+#: Sideways, the memory may move the vehicle toward a side reading ``depth`` (< the threshold D,
+#: ``command.sideways_clear_depth_m``) at ``SIDE_ROOM_GAIN_PER_S · (depth - D/2)`` m/s at most.
+SIDE_ROOM_GAIN_PER_S = 1.0
+
+
+def side_room_m_s(region_depths_m: np.ndarray | None, cmd: CommandConfig | None) -> tuple[float, float] | None:
+    """(left, right): the largest sideways speed, m/s, at which the memory's guard (its push, its lean,
+    its slide past a point) and gap centering may move the vehicle toward that side, from the
+    middle-row region's depth (float ``(9,)`` refined depths, metres, NaN unknown): unlimited (inf) at
+    or beyond ``D = cmd.sideways_clear_depth_m`` and where the region reads at least as deep as the
+    other side's; else ``SIDE_ROOM_GAIN_PER_S · (depth - D/2)``, 0 from D/2 in and where the region
+    cannot be read (an unknown side is never the deeper one). None when off or without depths.
+
+    The memory places what it saw with a position estimate that wanders; the camera does not. The
+    deeper side is not limited: in a dead end both sides read near, and the push away from the wall
+    the vehicle drifts toward is what keeps it off that wall (kinematic suite, 0.14 m/s drift:
+    limiting both sides made four dead ends collide, as banning every near side had)."""
     if region_depths_m is None or cmd is None or cmd.sideways_clear_depth_m <= 0.0:
         return None
+    half = 0.5 * cmd.sideways_clear_depth_m
     left = float(region_depths_m[REGION_INDEX["left"]])
     right = float(region_depths_m[REGION_INDEX["right"]])
-    # Near or unknown (_side_open), unless measured at least as deep as the other side: a NaN on
-    # either side makes the comparison False.
-    return (
-        not _side_open(region_depths_m, "left", cmd.sideways_clear_depth_m) and not left >= right,
-        not _side_open(region_depths_m, "right", cmd.sideways_clear_depth_m) and not right >= left,
-    )
+
+    def room(side: str, depth: float, other: float) -> float:
+        if _side_open(region_depths_m, side, cmd.sideways_clear_depth_m) or depth >= other:  # NaN: False
+            return math.inf
+        return SIDE_ROOM_GAIN_PER_S * (depth - half) if depth > half else 0.0  # NaN: 0
+
+    return room("left", left, right), room("right", right, left)
 
 
 def detour_setpoint(

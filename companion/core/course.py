@@ -34,6 +34,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from companion.core.command import (
+    above_floor,
     NO_PROGRESS_HOLD,
     BrakeLatch,
     OverheadMemory,
@@ -231,7 +232,8 @@ class CourseHold:
     ) -> VelocitySetpoint:
         """The setpoint for ``decision`` at ``now_s`` (seconds, the clock of :meth:`observe`'s times),
         its frame ``since_last_frame_s`` old, with the course hold's inputs from this flight's
-        bookkeeping (:func:`~companion.core.command.setpoint_for`).
+        bookkeeping (:func:`~companion.core.command.setpoint_for`), never descending below
+        ``cmd.min_altitude_m`` (:func:`~companion.core.command.above_floor`).
 
         Args:
             position_ned_m: float ``(3,)`` NED metres now, or None.
@@ -260,7 +262,7 @@ class CourseHold:
         if self.holding_reason is not None and decision is not None:
             decision = NO_PROGRESS_HOLD  # the goal reached, or a dead end: the brake's holds
         if command is not None and detour_cfg is not None:
-            return detour_setpoint(
+            sp = detour_setpoint(
                 command,
                 decision,
                 since_last_frame_s,
@@ -275,6 +277,7 @@ class CourseHold:
                 velocity_body_m_s=horizontal_velocity_body_m_s(velocity_ned_m_s, yaw),
                 region_depths_m=region_depths_m,
             )
+            return above_floor(sp, position_ned_m, cmd)
         heading_error = altitude_error = line_offset = None
         if self.heading_rad is not None and yaw is not None:
             heading_error = self.heading_rad - yaw  # positive: the course lies to the right
@@ -297,7 +300,7 @@ class CourseHold:
         clear_since = self._clear_since_s
         heading_since = self._heading_clear_since_s
         any_since = self._any_clear_since_s
-        return setpoint_for(
+        sp = setpoint_for(
             decision,
             since_last_frame_s,
             cmd,
@@ -322,6 +325,7 @@ class CourseHold:
             gap_offset_m=gap_offset_m,
             below_clear=below_clear,
         )
+        return above_floor(sp, position_ned_m, cmd)  # whatever drove it: the floor
 
     def _plan(
         self,
