@@ -34,12 +34,12 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from companion.core.command import (
-    above_floor,
     NO_PROGRESS_HOLD,
     BrakeLatch,
     OverheadMemory,
     ProgressWatch,
     _aim_error_rad,
+    above_floor,
     along_course_m,
     detour_setpoint,
     horizontal_distance_m,

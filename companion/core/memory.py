@@ -814,11 +814,11 @@ def _slide_past(v: np.ndarray, u: np.ndarray, toward: float, side_room_m_s: tupl
     if right == slid[1]:
         return slid
     slid[1] = right
-    left_toward = float(slid @ u)
-    if left_toward > 0.0:
+    remaining = float(slid @ u)  # what is still toward the point
+    if remaining > 0.0:
         if u[0] <= 1e-6:
             return np.zeros(2)
-        slid[0] -= left_toward / u[0]
+        slid[0] -= remaining / u[0]
     return slid
 
 
