@@ -544,13 +544,13 @@ def _guarded(
     """``sp`` with the stand-off's push (:func:`standoff_push_m_s`, with ``region_depths_m`` and
     ``cmd``) added, then the memory's guard applied (:func:`~companion.core.memory.apply_guard`), never
     faster toward a side than the camera's reading of it allows (:func:`side_room_m_s`)."""
-    room = side_room_m_s(region_depths_m, cmd)
     if cmd is not None:
         push_f, push_r = standoff_push_m_s(region_depths_m, cmd)
         if push_f != 0.0 or push_r != 0.0:
             sp = VelocitySetpoint(sp.forward_m_s + push_f, sp.right_m_s + push_r, sp.down_m_s, sp.yaw_rate_deg_s)
     if guard_m is None or cfg is None or len(guard_m) == 0:
         return sp
+    room = side_room_m_s(region_depths_m, cmd)
     forward, right = apply_guard(sp.forward_m_s, sp.right_m_s, guard_m, cfg, velocity_body_m_s, room)
     return VelocitySetpoint(forward_m_s=forward, right_m_s=right, down_m_s=sp.down_m_s, yaw_rate_deg_s=sp.yaw_rate_deg_s)
 
