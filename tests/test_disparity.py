@@ -305,7 +305,7 @@ def test_reference_recovers_shifted_pair_exactly() -> None:
 def test_opencv_invalid_is_nan_and_disparity_is_right(backend: str) -> None:
     grid = np.array([[4, 12, 20], [28, 8, 36]])
     left, right, true_d = shifted_pair(180, 320, grid, seed=2, blur=True)
-    cfg = StereoConfig(backend=backend, num_disparities=48, block_size_px=9)
+    cfg = StereoConfig(backend=backend, num_disparities=48, block_size_px=9, bm_scale_check="off")
     m = make_cpu_matcher(cfg)
     assert m.name == backend and isinstance(m, DisparityMatcher)
     disp = m.compute(left, right)
@@ -417,3 +417,96 @@ def test_left_right_checks_of_the_opencv_matchers() -> None:
     np.testing.assert_array_equal(checked[kept], plain[kept])
     assert kept.sum() < (~np.isnan(plain)).sum()
     assert np.nanmedian(checked[:, 40:110]) == 6.0
+
+
+# --------------------------------------------------------------------------------------------------
+# StereoBM's half-size check (stereo.bm_scale_check)
+
+
+class _FixedHalf:
+    """Stands in for the half-size StereoBM: writes a fixed int16 result (1/16 px, < 0 invalid)."""
+
+    def __init__(self, raw16: np.ndarray) -> None:
+        self.raw16 = raw16
+
+    def compute(self, left: np.ndarray, right: np.ndarray, dst: np.ndarray) -> np.ndarray:
+        assert left.shape == right.shape == dst.shape == self.raw16.shape
+        dst[...] = self.raw16
+        return dst
+
+
+def test_bm_scale_check_keeps_a_disparity_only_where_the_half_size_one_agrees() -> None:
+    """agree: kept where twice the half-size disparity is within the tolerance (2 px by default),
+    rejected where it differs or is missing; no_conflict: a missing half-size match rejects nothing."""
+    from companion.core.disparity import OpenCVBMMatcher
+
+    left, right, _ = shifted_pair(80, 240, np.array([[10]]), seed=5, blur=True)
+    plain = OpenCVBMMatcher(StereoConfig(num_disparities=32, bm_scale_check="off")).compute(left, right)
+    ok = np.isfinite(plain)
+    assert ok.sum() > 1000
+    raw = np.where(ok, np.round(plain * 16), -16).astype(np.int32)
+    # Bands of 8 rows: twice the half-size value is the full-size one plus about 0, 2 (the tolerance),
+    # 2 1/8 and 5 px (1/16 px units, within one unit of rounding below), or missing.
+    offsets16 = (0, 32, 34, 80, None)
+    band = (np.arange(80) // 8) % 5
+    half = np.full((40, 120), -16, np.int16)
+    for hy in range(40):
+        off = offsets16[band[2 * hy]]
+        row = raw[2 * hy, 0::2]  # the full-size pixel each half-size one stands for, exactly (2x nearest)
+        if off is not None:
+            half[hy] = np.where(row >= 0, (row + off) >> 1, -16)
+    even = np.zeros_like(ok)
+    even[0::2, 0::2] = True
+    for mode, kept_bands in (("agree", {0, 1}), ("no_conflict", {0, 1, 4})):
+        m = OpenCVBMMatcher(StereoConfig(num_disparities=32, bm_scale_check=mode))
+        m._half = _FixedHalf(half)  # type: ignore[assignment]
+        d = m.compute(left, right)
+        kept = np.isfinite(d)
+        np.testing.assert_array_equal(d[kept], plain[kept])  # the check only removes pixels
+        for b in range(5):
+            sel = even & ok & (band[:, None] == b)
+            assert sel.sum() > 50
+            assert (kept[sel] == (b in kept_bands)).all(), (mode, b)
+
+
+def test_bm_scale_check_leaves_true_matches() -> None:
+    """On a textured pair with one true disparity per patch both modes keep most of StereoBM's
+    matches right of the half-size matcher's unmatched band, with the same values."""
+    grid = np.array([[4, 12, 20], [28, 8, 36]])
+    left, right, true_d = shifted_pair(180, 320, grid, seed=2, blur=True)
+    base = StereoConfig(backend="opencv-bm", num_disparities=48, block_size_px=9)
+    plain = make_cpu_matcher(base.model_copy(update={"bm_scale_check": "off"})).compute(left, right)
+    core = interior_mask(true_d, 12)
+    core[:, : 2 * (32 + 5)] = False  # the half-size matcher's band: 32 disparities, a 9 px window
+    for mode in ("agree", "no_conflict"):
+        d = make_cpu_matcher(base.model_copy(update={"bm_scale_check": mode})).compute(left, right)
+        kept = np.isfinite(d)
+        np.testing.assert_array_equal(d[kept], plain[kept])
+        assert kept[core].sum() > 0.9 * np.isfinite(plain[core]).sum()
+
+
+def test_bm_scale_check_removes_the_office_fence_aliases() -> None:
+    """The office's start view (fence bars ahead): StereoBM alone matches many pixels too near by more
+    than 2 px (bars matched a period off); with the half-size check (the default) far fewer remain, at
+    most a fifth less density."""
+    from companion.core.geometry import StereoGeometry
+    from companion.sim.courses import make_course
+    from companion.sim.render import Photometry, Pose, StereoRenderer, TextureBank
+
+    geo = StereoGeometry.ideal(336, 188, hfov_deg=90.0, baseline_m=0.12)  # the simulator's eye
+    assert StereoConfig().bm_scale_check == "agree"
+    for seed in (0, 2, 6):
+        scene = make_course("office", seed).scene
+        res = StereoRenderer(geo, scene, seed=seed, textures=TextureBank(0, 1024, pad=512)).render(
+            Pose.at(0.0, 0.0, 1.5), left=Photometry(1.01, 2.0), right=Photometry(0.99, 2.0),
+            rng=np.random.default_rng(seed))
+        left, right = res.left_bgr[:, :, 0].copy(), res.right_bgr[:, :, 0].copy()
+        truth = geo.focal_baseline_px_m / res.depth_m
+        counts = {}
+        for mode in ("off", "agree"):
+            d = make_cpu_matcher(StereoConfig(backend="opencv-bm", cpu_threads=1, bm_scale_check=mode)).compute(left, right)
+            ok = np.isfinite(d)
+            counts[mode] = (ok.sum(), (ok & (d > truth + 2.0)).sum())
+        assert counts["off"][1] > 300
+        assert counts["agree"][1] < 0.4 * counts["off"][1], (seed, counts)
+        assert counts["agree"][0] > 0.75 * counts["off"][0], (seed, counts)

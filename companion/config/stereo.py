@@ -104,6 +104,25 @@ class StereoConfig(StrictModel):
             "sgbm_lr_check (OpenCV 5's StereoSGBM itself ignores disp12MaxDiff: measured identical)."
         ),
     )
+    bm_scale_check: Literal["off", "agree", "no_conflict"] = Field(
+        default="agree",
+        description=(
+            "opencv-bm: a second StereoBM on the pair at half size (half the disparities, the same "
+            "settings) checks each full-size disparity d against twice the half-size one at the same place. "
+            "agree: keep d only where the half-size match exists and is within "
+            "bm_scale_check_tolerance_px of it; no_conflict: reject d only where the half-size match "
+            "exists and differs. A window over thin bars and what lies behind them (a "
+            "fence, a grid) matches a wrong period at one size and not at the other; a true match agrees. agree (the default since 2026-11-24): the office's "
+            "phantom near regions 43 -> 9 in 54 views, Aloe (half size) bad-2 1.16 -> 0.76 % at density "
+            "59.8 -> 54.7 %, about 1.4 ms more on 2 cores at 672x376 (docs/benchmarks.md)."
+        ),
+    )
+    bm_scale_check_tolerance_px: float = Field(
+        default=2.0,
+        ge=0.5,
+        le=16.0,
+        description="opencv-bm, bm_scale_check: largest difference between d and twice the half-size disparity, full-size px.",
+    )
     sgbm_lr_check: bool = Field(
         default=False,
         description=(

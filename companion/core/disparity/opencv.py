@@ -109,6 +109,59 @@ class OpenCVBMMatcher(_OpenCVMatcher):
         bm.setSpeckleRange(cfg.speckle_range_px)
         bm.setDisp12MaxDiff(cfg.disp12_max_diff_px)
         super().__init__(bm, cfg.num_disparities, cfg.block_size_px)
+        self._scale_check = cfg.bm_scale_check
+        self._half: cv2.StereoBM | None = None
+        self._half_disparities = max(16, -(-cfg.num_disparities // 32) * 16)  # half the range, rounded up to 16
+        if self._scale_check != "off":
+            half = cv2.StereoBM.create(numDisparities=self._half_disparities, blockSize=cfg.block_size_px)
+            half.setMinDisparity(0)
+            half.setPreFilterType(_PREFILTER[cfg.bm_prefilter_type])
+            half.setPreFilterSize(cfg.bm_prefilter_size_px)
+            half.setPreFilterCap(cfg.bm_prefilter_cap)
+            half.setUniquenessRatio(cfg.uniqueness_ratio_pct)
+            half.setTextureThreshold(cfg.bm_texture_threshold)
+            half.setSpeckleWindowSize(cfg.speckle_window_px // 4)  # a blob's area in pixels shrinks fourfold
+            half.setSpeckleRange(cfg.speckle_range_px)
+            half.setDisp12MaxDiff(cfg.disp12_max_diff_px)
+            self._half = half
+        # |d - 2 d_half| in OpenCV's 1/16 px units; every buffer below is allocated on the first frame
+        self._tol16 = int(round(16 * cfg.bm_scale_check_tolerance_px))
+        self._bufs: tuple[np.ndarray, ...] | None = None
+
+    def compute(self, left: np.ndarray, right: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """float32 ``(H, W)`` disparity of ``left``, px, NaN where rejected: by StereoBM, and with
+        ``bm_scale_check`` by the half-size check (:class:`~companion.config.stereo.StereoConfig`)."""
+        out = super().compute(left, right, out)
+        if self._half is None or self._raw is None:
+            return out
+        h, w = left.shape
+        hh, wh = h // 2, w // 2
+        if hh <= self._block_size or wh < self._half_disparities + self._block_size:
+            return out  # too small to match at half size: no check (the full-size result stands)
+        if self._bufs is None or self._bufs[0].shape != (hh, wh) or self._bufs[3].shape != (h, w):
+            self._bufs = (
+                np.empty((hh, wh), np.uint8), np.empty((hh, wh), np.uint8), np.empty((hh, wh), np.int16),
+                np.empty((h, w), np.int16), np.empty((h, w), np.int16), np.empty((h, w), bool),
+            )
+        lh, rh, dh, up, diff, reject = self._bufs
+        cv2.resize(left, (wh, hh), dst=lh, interpolation=cv2.INTER_AREA)
+        cv2.resize(right, (wh, hh), dst=rh, interpolation=cv2.INTER_AREA)
+        try:
+            dh = self._half.compute(lh, rh, dh)
+        except cv2.error as exc:
+            raise FrameError(f"{self.name} failed on the {wh}x{hh} half-size pair: {str(exc).strip()}") from exc
+        cv2.resize(dh, (w, h), dst=up, interpolation=cv2.INTER_NEAREST)
+        # |raw - 2 up| fits int16: both are below 16 * 2 * num_disparities
+        np.multiply(up, 2, out=diff)
+        np.subtract(self._raw, diff, out=diff)
+        np.abs(diff, out=diff)
+        np.greater(diff, self._tol16, out=reject)
+        if self._scale_check == "agree":
+            np.logical_or(reject, up < 0, out=reject)
+        else:  # no_conflict: only a half-size match that exists can reject
+            np.logical_and(reject, up >= 0, out=reject)
+        np.copyto(out, np.float32(np.nan), where=reject)
+        return out
 
 
 class OpenCVSGBMMatcher(_OpenCVMatcher):
