@@ -249,6 +249,29 @@ def test_the_direction_flown_keeps_its_place_only_while_it_is_one_of_the_histogr
     assert _best(h, 1, DET, float(h.bearing_rad[nxt]) - 0.3 * step) == k  # in flight: afresh
 
 
+def test_turning_in_place_holds_one_anchor_however_often_it_replans() -> None:
+    # Kinematic detour-4 with drift: turning in place toward a detour's direction, every replan (each
+    # 0.4 s) moved the target a few degrees and took the drifted position as the new anchor, so the
+    # hold never pulled back: the vehicle drifted 1 m into the wall in 3 s while turning.
+    mem = _trusted_memory(np.concatenate([_wall(2.5, -8.0, 2.2), _wall(2.5, 3.8, 8.0)]))
+    p, cmd = _look_round(mem)
+    assert cmd is not None and cmd.phase is Phase.FLY and cmd.target_yaw_rad is not None
+    yaw = wrap_pi(cmd.target_yaw_rad + 2.5)  # far from the direction chosen: a turn in place
+    pos = np.array([0.0, 0.0, -1.5])
+    t = 10.0
+    anchors, targets = [], set()
+    for _ in range(60):  # 3 s, drifting north 0.2 m/s
+        cmd = p.update(t, BRAKE, pos, yaw, 0.0, 0.0, mem, MEM, DET, goal_distance_m=6.0)
+        assert cmd is not None and cmd.phase is Phase.FLY and cmd.anchor_ned_m is not None
+        anchors.append(cmd.anchor_ned_m.copy())
+        targets.add(round(cmd.target_yaw_rad, 6))
+        pos = pos + np.array([0.01, 0.0, 0.0])
+        t += 0.05
+    assert len(targets) > 1  # it did replan to another direction on the way
+    np.testing.assert_array_equal(anchors[-1], anchors[0])
+    assert anchors[0][0] == 0.0
+
+
 def test_a_door_just_past_the_goal_direction_is_taken_from_either_side() -> None:
     # Flying left along a wall 1.3 m ahead, a 1.4 m door whose middle lies 0.4 m to the right of the
     # goal direction: the goal direction itself passes 0.3 m from the left jamb (no hand back), the

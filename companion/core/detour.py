@@ -715,7 +715,8 @@ class DetourPlanner:
         if h.free_m[h.goal_index] >= need or h.tight_m[h.goal_index] >= need:
             self.phase = Phase.HANDBACK
             self._target_rad = goal
-            self._anchor_ned_m = pos.copy()
+            if self._anchor_ned_m is None:  # turning in place already: hold where that began
+                self._anchor_ned_m = pos.copy()
             self.reason = "the goal direction is free: turning to it"
             return self._handback(pos, yaw, goal, cfg)
         flying = self.phase is Phase.FLY
@@ -748,8 +749,10 @@ class DetourPlanner:
                 f"dead end: no direction within {cfg.max_angle_deg:g} deg of the goal free for "
                 f"{cfg.min_free_m:g} m (detour.min_free_m), either side",
             )
-        if self.phase is not Phase.FLY or self._target_rad is None or abs(wrap_pi(h.bearing_rad[k] - self._target_rad)) > 1e-9:
-            self._anchor_ned_m = None
+        # A new direction keeps the anchor: while the vehicle turns in place (a look round, or a turn
+        # toward the direction before) it must hold where that turn began. Re-anchoring at each replan
+        # let an unseen drift carry it on, 0.4 s at a time (kinematic detour-4 with drift: 1 m into
+        # the wall in 3 s). Once it flies a direction there is no anchor, and the next turn starts one.
         self.phase = Phase.FLY
         self._target_rad = float(h.bearing_rad[k])
         side = "right" if self._side > 0 else "left"
