@@ -43,22 +43,24 @@ from companion.core.regions import reduce_regions, region_layout  # noqa: E402
 from companion.sim.render import Photometry, Pose, StereoRenderer, corridor_scene  # noqa: E402
 from companion.core.types import REGION_NAMES  # noqa: E402
 
-OLD = {"uniqueness_ratio_pct": 10, "disp12_max_diff_px": -1}
+OLD = {"uniqueness_ratio_pct": 10, "disp12_max_diff_px": -1, "bm_scale_check": "off"}
+NO_HALF = {"bm_scale_check": "off"}  # the rows of 2026-11-23, before StereoBM's half-size check
 SETTINGS: dict[str, dict] = {
     "bm, old default": {"backend": "opencv-bm", **OLD},
-    "bm disp12 1": {"backend": "opencv-bm", "uniqueness_ratio_pct": 10, "disp12_max_diff_px": 1},
-    "bm disp12 1 u5 (new default)": {"backend": "opencv-bm", "uniqueness_ratio_pct": 5, "disp12_max_diff_px": 1},
-    "bm disp12 1 u5 scale check agree": {"backend": "opencv-bm", "uniqueness_ratio_pct": 5, "disp12_max_diff_px": 1,
-                                         "bm_scale_check": "agree"},
+    "bm disp12 1": {"backend": "opencv-bm", "uniqueness_ratio_pct": 10, "disp12_max_diff_px": 1, **NO_HALF},
+    "bm disp12 1 u5 (2026-11-23 default)": {"backend": "opencv-bm", "uniqueness_ratio_pct": 5, "disp12_max_diff_px": 1,
+                                            **NO_HALF},
+    "bm disp12 1 u5 scale check agree (default)": {"backend": "opencv-bm", "uniqueness_ratio_pct": 5,
+                                                   "disp12_max_diff_px": 1, "bm_scale_check": "agree"},
     "bm disp12 1 u5 scale check no_conflict": {"backend": "opencv-bm", "uniqueness_ratio_pct": 5,
                                                "disp12_max_diff_px": 1, "bm_scale_check": "no_conflict"},
-    "bm disp12 1 u15": {"backend": "opencv-bm", "uniqueness_ratio_pct": 15, "disp12_max_diff_px": 1},
+    "bm disp12 1 u15": {"backend": "opencv-bm", "uniqueness_ratio_pct": 15, "disp12_max_diff_px": 1, **NO_HALF},
     "bm disp12 1 texture 0": {"backend": "opencv-bm", "uniqueness_ratio_pct": 10, "disp12_max_diff_px": 1,
-                              "bm_texture_threshold": 0},
+                              "bm_texture_threshold": 0, **NO_HALF},
     "bm disp12 1 speckle off": {"backend": "opencv-bm", "uniqueness_ratio_pct": 10, "disp12_max_diff_px": 1,
-                                "speckle_window_px": 0},
+                                "speckle_window_px": 0, **NO_HALF},
     "bm disp12 1 speckle 400": {"backend": "opencv-bm", "uniqueness_ratio_pct": 10, "disp12_max_diff_px": 1,
-                                "speckle_window_px": 400},
+                                "speckle_window_px": 400, **NO_HALF},
     "sgbm b9": {"backend": "opencv-sgbm", **OLD},
     "sgbm b5": {"backend": "opencv-sgbm", "block_size_px": 5, **OLD},
     "sgbm b5 mirrored lr": {"backend": "opencv-sgbm", "block_size_px": 5, "sgbm_lr_check": True, **OLD},

@@ -108,13 +108,15 @@ class StereoConfig(StrictModel):
         default="agree",
         description=(
             "opencv-bm: a second StereoBM on the pair at half size (half the disparities, the same "
-            "settings) checks each full-size disparity d against twice the half-size one at the same place. "
-            "agree: keep d only where the half-size match exists and is within "
+            "settings) checks each full-size disparity d against twice the half-size one at the same "
+            "place. agree: keep d only where the half-size match exists and is within "
             "bm_scale_check_tolerance_px of it; no_conflict: reject d only where the half-size match "
-            "exists and differs. A window over thin bars and what lies behind them (a "
-            "fence, a grid) matches a wrong period at one size and not at the other; a true match agrees. agree (the default since 2026-11-24): the office's "
-            "phantom near regions 43 -> 9 in 54 views, Aloe (half size) bad-2 1.16 -> 0.76 % at density "
-            "59.8 -> 54.7 %, about 1.4 ms more on 2 cores at 672x376 (docs/benchmarks.md)."
+            "exists and differs; off: no check. A window over thin bars and what lies behind them (a "
+            "fence, a grid) matches a wrong period at one size and not at the other; a true match "
+            "agrees. agree (the default since 2026-11-24): in the simulator's office views the phantom "
+            "near regions fell from 43 to 9 in 54 views; Aloe (half size) bad-2 1.16 -> 0.76 % at "
+            "density 59.8 -> 54.7 %; about 1.4 ms more a frame on 2 cores at 672x376 "
+            "(docs/benchmarks.md)."
         ),
     )
     bm_scale_check_tolerance_px: float = Field(

@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 
 from companion.config.core import StereoConfig
-from companion.core.disparity.base import check_out, check_grey_pair
+from companion.core.disparity.base import check_grey_pair, check_out, half_size_disparities
 from companion.errors import FrameError
 
 _PREFILTER = MappingProxyType({
@@ -111,7 +111,7 @@ class OpenCVBMMatcher(_OpenCVMatcher):
         super().__init__(bm, cfg.num_disparities, cfg.block_size_px)
         self._scale_check = cfg.bm_scale_check
         self._half: cv2.StereoBM | None = None
-        self._half_disparities = max(16, -(-cfg.num_disparities // 32) * 16)  # half the range, rounded up to 16
+        self._half_disparities = half_size_disparities(cfg.num_disparities)
         if self._scale_check != "off":
             half = cv2.StereoBM.create(numDisparities=self._half_disparities, blockSize=cfg.block_size_px)
             half.setMinDisparity(0)
@@ -142,8 +142,9 @@ class OpenCVBMMatcher(_OpenCVMatcher):
             self._bufs = (
                 np.empty((hh, wh), np.uint8), np.empty((hh, wh), np.uint8), np.empty((hh, wh), np.int16),
                 np.empty((h, w), np.int16), np.empty((h, w), np.int16), np.empty((h, w), bool),
+                np.empty((h, w), bool),
             )
-        lh, rh, dh, up, diff, reject = self._bufs
+        lh, rh, dh, up, diff, reject, half_ok = self._bufs
         cv2.resize(left, (wh, hh), dst=lh, interpolation=cv2.INTER_AREA)
         cv2.resize(right, (wh, hh), dst=rh, interpolation=cv2.INTER_AREA)
         try:
@@ -156,10 +157,11 @@ class OpenCVBMMatcher(_OpenCVMatcher):
         np.subtract(self._raw, diff, out=diff)
         np.abs(diff, out=diff)
         np.greater(diff, self._tol16, out=reject)
-        if self._scale_check == "agree":
-            np.logical_or(reject, up < 0, out=reject)
+        np.greater_equal(up, 0, out=half_ok)
+        if self._scale_check == "agree":  # a missing half-size match rejects too
+            np.logical_or(reject, np.logical_not(half_ok, out=half_ok), out=reject)
         else:  # no_conflict: only a half-size match that exists can reject
-            np.logical_and(reject, up >= 0, out=reject)
+            np.logical_and(reject, half_ok, out=reject)
         np.copyto(out, np.float32(np.nan), where=reject)
         return out
 
