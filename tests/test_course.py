@@ -120,3 +120,43 @@ def test_no_setpoint_descends_through_the_floor_whatever_asks_for_it() -> None:
     hold.engage(np.array([0.0, 0.0, -1.5]), 0.0)
     assert hold.setpoint(climb, 1.0, 0.05, CMD, position_ned_m=np.array([0.0, 0.0, -0.3]), yaw_rad=0.0).down_m_s < 0.0
     assert CourseHold().setpoint(duck, 1.0, 0.05, CMD, position_ned_m=None, yaw_rad=0.0).down_m_s == pytest.approx(full)
+
+
+def test_every_setpoint_keeps_clear_of_what_is_remembered_below() -> None:
+    """PX4 SITL pitch-4: over a low wall it had climbed, the vehicle braked, PX4 sagged 0.3 m with every
+    setpoint's vertical speed 0, and it touched the wall's top, which the camera no longer saw. Within
+    memory.clearance_below_m of a remembered point below, every setpoint climbs back (the up region
+    open), whatever drove it; the ground's points (below the floor's altitude) do not count."""
+    from companion.core.command import BELOW_CLIMB_GAIN_PER_S
+    from companion.core.memory import ObstacleMemory
+
+    assert CompanionConfig().memory.clearance_below_m == 0.0  # off by default (its description says why)
+    mem_cfg = CompanionConfig().memory.model_copy(update={"clearance_below_m": 0.6})
+    up_open = np.full(9, 10.0)
+
+    def down(gap_m: float, *, regions=up_open, decision=CLEAR, mem_cfg=mem_cfg, top_altitude_m=1.62,
+             horizontal_m: float = 0.2) -> float:
+        mem = ObstacleMemory()
+        top = np.array([[0.0, horizontal_m, -top_altitude_m], [0.1, horizontal_m, -top_altitude_m]])
+        mem.add(top, 0.0, mem_cfg.duration_s, ranges_m=np.full(2, 1.0), viewpoint_ned_m=np.array([-1.0, 0.0, -2.0]),
+                cfg=mem_cfg)
+        hold = CourseHold()
+        hold.engage(ORIGIN, 0.0)
+        here = np.array([0.0, 0.0, -(top_altitude_m + gap_m)])
+        return hold.setpoint(decision, 1.0, 0.05, CMD, position_ned_m=here, yaw_rad=0.0, region_depths_m=regions,
+                             memory_cfg=mem_cfg, obstacles=mem).down_m_s
+
+    assert down(0.5) == pytest.approx(-BELOW_CLIMB_GAIN_PER_S * 0.1)  # 0.1 m short: climbs 0.2 m/s
+    assert down(0.3) == pytest.approx(-CMD.max_altitude_hold_speed_m_s)  # at most the hold's speed
+    assert down(0.7) >= 0.0  # clear by more than 0.6 m: no climb
+    assert down(0.3, horizontal_m=0.5) >= 0.0  # beside the vehicle (a wall), not under it
+    assert down(0.3, mem_cfg=mem_cfg.model_copy(update={"clearance_below_m": 0.0})) >= 0.0  # off
+    up_near = up_open.copy()
+    up_near[1] = 0.5
+    assert down(0.3, regions=up_near) >= 0.0  # no climb into what the up region sees
+    # A braking or ducking decision climbs back all the same; a faster climb is kept.
+    assert down(0.3, decision=BRAKE) == pytest.approx(-CMD.max_altitude_hold_speed_m_s)
+    climb = Decision(DecisionKind.AVOID, 0.0, 1.0, 0.3, "down near: climb")
+    assert down(0.3, decision=climb) < -CMD.max_altitude_hold_speed_m_s
+    # The ground is not an obstacle below: points 0.2 m over the take-off point lie below the 0.5 m floor.
+    assert down(0.4, top_altitude_m=0.2) >= 0.0

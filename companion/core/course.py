@@ -41,6 +41,7 @@ from companion.core.command import (
     _aim_error_rad,
     above_floor,
     along_course_m,
+    clear_of_below,
     detour_setpoint,
     horizontal_distance_m,
     horizontal_velocity_body_m_s,
@@ -277,7 +278,7 @@ class CourseHold:
                 velocity_body_m_s=horizontal_velocity_body_m_s(velocity_ned_m_s, yaw),
                 region_depths_m=region_depths_m,
             )
-            return above_floor(sp, position_ned_m, cmd)
+            return self._vertical_limits(sp, now_s, cmd, position_ned_m, region_depths_m, obstacles, memory_cfg)
         heading_error = altitude_error = line_offset = None
         if self.heading_rad is not None and yaw is not None:
             heading_error = self.heading_rad - yaw  # positive: the course lies to the right
@@ -325,7 +326,26 @@ class CourseHold:
             gap_offset_m=gap_offset_m,
             below_clear=below_clear,
         )
-        return above_floor(sp, position_ned_m, cmd)  # whatever drove it: the floor
+        return self._vertical_limits(sp, now_s, cmd, position_ned_m, region_depths_m, obstacles, memory_cfg)
+
+    @staticmethod
+    def _vertical_limits(
+        sp: VelocitySetpoint,
+        now_s: float,
+        cmd: CommandConfig,
+        position_ned_m: object,
+        region_depths_m: np.ndarray | None,
+        obstacles: ObstacleMemory | None,
+        memory_cfg: MemoryConfig | None,
+    ) -> VelocitySetpoint:
+        """Whatever drove ``sp``: a climb back to ``memory.clearance_below_m`` over what is remembered
+        below (:func:`~companion.core.command.clear_of_below`), and the floor
+        (:func:`~companion.core.command.above_floor`)."""
+        pos = finite_position(position_ned_m)
+        if obstacles is not None and memory_cfg is not None and memory_cfg.clearance_below_m > 0.0 and pos is not None:
+            gap = obstacles.gap_below_m(pos, now_s, memory_cfg, -cmd.min_altitude_m)
+            sp = clear_of_below(sp, gap, region_depths_m, memory_cfg.clearance_below_m, cmd)
+        return above_floor(sp, position_ned_m, cmd)
 
     def _plan(
         self,

@@ -592,6 +592,24 @@ class ObstacleMemory:
         horizontal = np.hypot(pts[:, 0] - pos[0], pts[:, 1] - pos[1])
         return not bool(np.any(below & (horizontal < cfg.hold_clear_m)))
 
+    def gap_below_m(
+        self, position_ned_m: np.ndarray, now_s: float, cfg: MemoryConfig, ground_down_m: float
+    ) -> float | None:
+        """The height, metres, from the vehicle's centre down to the highest point below it that was
+        seen within ``cfg.duration_s`` of ``now_s`` and not seen past since, lies under it (within
+        ``cfg.keep_out_m`` horizontally: a wall beside the vehicle is the guard's business), no more
+        than ``cfg.clearance_below_m`` below, and above ``ground_down_m`` (NED down, metres: the
+        ground's own points lie below it). None when there is no such point, or no finite position."""
+        pos = np.asarray(position_ned_m, dtype=np.float64).reshape(-1)
+        if pos.shape != (3,) or not np.all(np.isfinite(pos)) or self._keys.size == 0:
+            return None
+        keep = ((now_s - self._t) <= cfg.duration_s) & ~self._seen_past(cfg)
+        pts = self._pts[keep]
+        gap = pts[:, 2] - pos[2]  # > 0: below the vehicle
+        near = (gap > 0.0) & (gap <= cfg.clearance_below_m) & (pts[:, 2] < ground_down_m)
+        near &= np.hypot(pts[:, 0] - pos[0], pts[:, 1] - pos[1]) < cfg.keep_out_m
+        return float(gap[near].min()) if np.any(near) else None
+
     def _nearby(
         self,
         position_ned_m: np.ndarray,
