@@ -154,18 +154,6 @@ def test_settings_that_cannot_work_are_errors_naming_the_nearest_depth(data: dic
     assert expected in msg and "the nearest depth this rig can measure is" in msg and msg.startswith("rig.toml: ")
 
 
-def test_stereobms_half_size_check_widens_the_never_matched_band() -> None:
-    from companion.core.disparity.base import block_matcher_band_px, half_size_disparities
-
-    assert [half_size_disparities(d) for d in (16, 48, 64, 240)] == [16, 32, 32, 128]
-    assert block_matcher_band_px(64, 9, False) == 67 and block_matcher_band_px(64, 9, True) == 70
-    # 240 disparities at 640 px: StereoBM alone leaves 243 columns, just short of the centre region
-    # (column 244); a pixel also needs a half-size match, and the half-size band is 262 columns wide.
-    with pytest.raises(ConfigError, match=r"leftmost 262 columns.*use at most 224 disparities"):
-        parse_config(_patched(stereo={"num_disparities": 240, "backend": "opencv-bm"}))
-    parse_config(_patched(stereo={"num_disparities": 240, "backend": "opencv-bm", "bm_scale_check": "off"}))
-
-
 def test_settings_that_work_badly_are_warnings(caplog: pytest.LogCaptureFixture) -> None:
     from companion.config import check_rig_config
 

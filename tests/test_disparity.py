@@ -457,12 +457,14 @@ def test_bm_scale_check_keeps_a_disparity_only_where_the_half_size_one_agrees() 
             half[hy] = np.where(row >= 0, (row + off) >> 1, -16)
     even = np.zeros_like(ok)
     even[0::2, 0::2] = True
+    even[:, : 2 * (16 - 1 + 4)] = False  # the half-size matcher's own unmatched band: left unchecked
     for mode, kept_bands in (("agree", {0, 1}), ("no_conflict", {0, 1, 4})):
         m = OpenCVBMMatcher(StereoConfig(num_disparities=32, bm_scale_check=mode))
         m._half = _FixedHalf(half)  # type: ignore[assignment]
         d = m.compute(left, right)
         kept = np.isfinite(d)
         np.testing.assert_array_equal(d[kept], plain[kept])  # the check only removes pixels
+        np.testing.assert_array_equal(kept[:, :38], ok[:, :38])
         for b in range(5):
             sel = even & ok & (band[:, None] == b)
             assert sel.sum() > 50

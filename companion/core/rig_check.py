@@ -7,8 +7,7 @@ For the camera's eye size and the rig (the calibration file's rectified geometry
 * **errors** (the setting cannot work): ``D - 1 >= W`` (no column could ever be matched); the safe window
   projected at the reference distance is wider or taller than the view (the centre region would be the
   whole image: "region wider than the view"); a block matcher (``opencv-bm``, ``opencv-sgbm``, or matcher
-  ``sad``) whose never-matched left band (``D - 1 + b/2`` columns; with StereoBM's half-size check at
-  least twice the half-size matcher's) reaches into the centre region; the
+  ``sad``) whose never-matched left band (``D - 1 + b/2`` columns) reaches into the centre region; the
   rig measures nothing nearer than where the controller's ``near`` term reaches 0 (nothing could ever read
   near);
 * **warnings** (it works, badly): ``z_min`` beyond the ``near`` term's full-membership edge (obstacles
@@ -28,7 +27,6 @@ import math
 from dataclasses import dataclass
 
 from companion.config.core import ControllerConfig, RegionsConfig, StereoConfig
-from companion.core.disparity.base import block_matcher_band_px
 from companion.core.geometry import StereoGeometry
 
 
@@ -104,13 +102,10 @@ def check_rig(
         )
     c0 = max(1, int(math.floor(geometry.cx_px - (win_w - 1) / 2.0 + 0.5)))
     kind = _block_matcher(stereo)
-    # StereoBM (opencv-bm, and auto's CPU fallback) with the half-size check needs a half-size match too
-    half_check = stereo.backend in ("opencv-bm", "auto") and stereo.bm_scale_check == "agree"
-    band = block_matcher_band_px(D, stereo.block_size_px, half_check)
+    band = D - 1 + stereo.block_size_px // 2
     if kind is not None and not errors:
         who = "block matching" if kind == "always" else "the CPU fallback (opencv-bm) of backend auto"
-        fits = [d for d in range(16, 257, 16) if block_matcher_band_px(d, stereo.block_size_px, half_check) <= c0]
-        best = fits[-1] if fits else 16
+        best = max(16, 16 * ((c0 - stereo.block_size_px // 2) // 16))
         if band > c0:
             msg = (
                 f"stereo.num_disparities = {D}: {who} never matches the leftmost {band} columns, which reach "

@@ -43,17 +43,6 @@ def half_size_disparities(num_disparities: int) -> int:
     return max(16, -(-int(num_disparities) // 32) * 16)
 
 
-def block_matcher_band_px(num_disparities: int, block_size_px: int, half_size_check: bool) -> int:
-    """How many left columns a block matcher never matches, full-size px: ``D - 1 + b/2``, and with
-    StereoBM's half-size check (``agree``: a pixel needs a half-size match too) at least twice the
-    half-size matcher's own band."""
-    b = int(block_size_px) // 2
-    band = int(num_disparities) - 1 + b
-    if half_size_check:
-        band = max(band, 2 * (half_size_disparities(num_disparities) - 1 + b))
-    return band
-
-
 def check_grey_pair(left: np.ndarray, right: np.ndarray) -> tuple[int, int]:
     """Validate a rectified grey pair and return its ``(H, W)``.
 

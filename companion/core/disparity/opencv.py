@@ -162,6 +162,9 @@ class OpenCVBMMatcher(_OpenCVMatcher):
             np.logical_or(reject, np.logical_not(half_ok, out=half_ok), out=reject)
         else:  # no_conflict: only a half-size match that exists can reject
             np.logical_and(reject, half_ok, out=reject)
+        # The half-size matcher's own unmatched left band (wider than the full size's) says nothing:
+        # there the full-size result stands, so the check never widens the band the rig check knows.
+        reject[:, : min(w, 2 * (self._half_disparities - 1 + self._block_size // 2))] = False
         np.copyto(out, np.float32(np.nan), where=reject)
         return out
 
