@@ -520,6 +520,9 @@ def test_the_office_door_is_flown_through_once_the_map_forgets_what_it_sees_past
     from companion.sim.courses import make_course
     from companion.sim.loop import fly
 
+    # (Since 2026-11-24, a turn in place that keeps its anchor gets office-0 through without the
+    # clearing too, with StereoBM's half-size check or without: the flight no longer shows what the
+    # clearing alone does, so only the goal is checked.)
     cfg = parse_config(
         {
             "stereo": {"backend": "opencv-bm"},
@@ -528,8 +531,6 @@ def test_the_office_door_is_flown_through_once_the_map_forgets_what_it_sees_past
     )
     course = make_course("office", 0)
     assert fly(course, cfg).outcome.value == "goal"
-    kept = cfg.model_copy(update={"memory": cfg.memory.model_copy(update={"map_clear_after_frames": 0})})
-    assert fly(course, kept).outcome.value != "goal"
     cone = parse_config({"stereo": {"backend": "opencv-bm"}, "detour": {"trigger_after_s": 0.8}})
     assert fly(course, cone).outcome.value == "goal"
 
