@@ -87,43 +87,43 @@ class _OpenCVMatcher:
         return out
 
 
+def _stereo_bm(cfg: StereoConfig, num_disparities: int, speckle_window_px: int) -> cv2.StereoBM:
+    """A StereoBM with ``cfg``'s settings, searching ``num_disparities`` and removing speckles up to
+    ``speckle_window_px`` pixels."""
+    bm = cv2.StereoBM.create(numDisparities=num_disparities, blockSize=cfg.block_size_px)
+    bm.setMinDisparity(0)
+    bm.setPreFilterType(_PREFILTER[cfg.bm_prefilter_type])
+    bm.setPreFilterSize(cfg.bm_prefilter_size_px)
+    bm.setPreFilterCap(cfg.bm_prefilter_cap)
+    bm.setUniquenessRatio(cfg.uniqueness_ratio_pct)
+    bm.setTextureThreshold(cfg.bm_texture_threshold)
+    bm.setSpeckleWindowSize(speckle_window_px)
+    bm.setSpeckleRange(cfg.speckle_range_px)
+    bm.setDisp12MaxDiff(cfg.disp12_max_diff_px)
+    return bm
+
+
 class OpenCVBMMatcher(_OpenCVMatcher):
     """OpenCV StereoBM (block matching on pre-filtered images; fast).
 
     Args:
         cfg: stereo config: num_disparities, block_size_px, uniqueness_ratio_pct,
-            bm_texture_threshold, bm_prefilter_type/size/cap, speckle_window_px/range_px.
+            bm_texture_threshold, bm_prefilter_type/size/cap, speckle_window_px/range_px,
+            disp12_max_diff_px, bm_scale_check and its tolerance (the half-size check).
     """
 
     name = "opencv-bm"
 
     def __init__(self, cfg: StereoConfig) -> None:
-        bm = cv2.StereoBM.create(numDisparities=cfg.num_disparities, blockSize=cfg.block_size_px)
-        bm.setMinDisparity(0)
-        bm.setPreFilterType(_PREFILTER[cfg.bm_prefilter_type])
-        bm.setPreFilterSize(cfg.bm_prefilter_size_px)
-        bm.setPreFilterCap(cfg.bm_prefilter_cap)
-        bm.setUniquenessRatio(cfg.uniqueness_ratio_pct)
-        bm.setTextureThreshold(cfg.bm_texture_threshold)
-        bm.setSpeckleWindowSize(cfg.speckle_window_px)
-        bm.setSpeckleRange(cfg.speckle_range_px)
-        bm.setDisp12MaxDiff(cfg.disp12_max_diff_px)
+        bm = _stereo_bm(cfg, cfg.num_disparities, cfg.speckle_window_px)
         super().__init__(bm, cfg.num_disparities, cfg.block_size_px)
         self._scale_check = cfg.bm_scale_check
-        self._half: cv2.StereoBM | None = None
         self._half_disparities = half_size_disparities(cfg.num_disparities)
-        if self._scale_check != "off":
-            half = cv2.StereoBM.create(numDisparities=self._half_disparities, blockSize=cfg.block_size_px)
-            half.setMinDisparity(0)
-            half.setPreFilterType(_PREFILTER[cfg.bm_prefilter_type])
-            half.setPreFilterSize(cfg.bm_prefilter_size_px)
-            half.setPreFilterCap(cfg.bm_prefilter_cap)
-            half.setUniquenessRatio(cfg.uniqueness_ratio_pct)
-            half.setTextureThreshold(cfg.bm_texture_threshold)
-            half.setSpeckleWindowSize(cfg.speckle_window_px // 4)  # a blob's area in pixels shrinks fourfold
-            half.setSpeckleRange(cfg.speckle_range_px)
-            half.setDisp12MaxDiff(cfg.disp12_max_diff_px)
-            self._half = half
+        # the same settings at half size; a blob's area in pixels shrinks fourfold
+        self._half = (
+            None if self._scale_check == "off"
+            else _stereo_bm(cfg, self._half_disparities, cfg.speckle_window_px // 4)
+        )
         # |d - 2 d_half| in OpenCV's 1/16 px units; every buffer below is allocated on the first frame
         self._tol16 = int(round(16 * cfg.bm_scale_check_tolerance_px))
         self._bufs: tuple[np.ndarray, ...] | None = None
