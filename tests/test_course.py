@@ -141,8 +141,8 @@ def test_every_setpoint_keeps_clear_of_what_is_remembered_below() -> None:
         mem.add(top, 0.0, mem_cfg.duration_s, ranges_m=np.full(2, 1.0), viewpoint_ned_m=np.array([-1.0, 0.0, -2.0]),
                 cfg=mem_cfg)
         hold = CourseHold()
-        hold.engage(ORIGIN, 0.0)
         here = np.array([0.0, 0.0, -(top_altitude_m + gap_m)])
+        hold.engage(here, 0.0)  # engaged here: the altitude hold has nothing to add
         return hold.setpoint(decision, 1.0, 0.05, CMD, position_ned_m=here, yaw_rad=0.0, region_depths_m=regions,
                              memory_cfg=mem_cfg, obstacles=mem).down_m_s
 

@@ -272,6 +272,34 @@ def test_turning_in_place_holds_one_anchor_however_often_it_replans() -> None:
     assert anchors[0][0] == 0.0
 
 
+def test_a_turn_in_place_toward_a_target_right_behind_keeps_its_side() -> None:
+    # A target 180 deg away is as near either way round; chosen afresh at each step, the side flipped
+    # whenever the yaw wobbled across it (the autopilot's lag), and the vehicle turned back and forth.
+    from companion.core.command import detour_setpoint
+
+    target = 0.3
+    anchor = np.array([0.0, 0.0, -1.5])
+    command = DetourCommand(Phase.FLY, target, anchor, "a detour behind")
+    behind = [wrap_pi(target + math.pi + d) for d in (0.02, -0.02, 0.03, -0.03, 0.01)]
+    fresh = {
+        math.copysign(1.0, detour_setpoint(command, BRAKE, 0.0, CMD, DET, position_ned_m=anchor, yaw_rad=y).yaw_rate_deg_s)
+        for y in behind
+    }
+    assert fresh == {1.0, -1.0}  # without a side to keep, both ways
+    hold = CourseHold()
+    hold.engage(anchor, 0.0)
+    hold._plan = lambda *args, **kwargs: command  # the planner's answer, fixed
+    rates = [
+        hold.setpoint(BRAKE, 1.0 + 0.05 * i, 0.0, CMD, position_ned_m=anchor, yaw_rad=y, detour_cfg=DET).yaw_rate_deg_s
+        for i, y in enumerate(behind)
+    ]
+    assert all(r == pytest.approx(rates[0]) for r in rates) and abs(rates[0]) == pytest.approx(DET.turn_rate_deg_s)
+    # Nearer than 150 deg the shorter way wins again, whatever the side so far.
+    near = wrap_pi(target - math.radians(120.0))  # the target 120 deg to the right
+    r = hold.setpoint(BRAKE, 2.0, 0.0, CMD, position_ned_m=anchor, yaw_rad=near, detour_cfg=DET).yaw_rate_deg_s
+    assert r > 0.0
+
+
 def test_a_door_just_past_the_goal_direction_is_taken_from_either_side() -> None:
     # Flying left along a wall 1.3 m ahead, a 1.4 m door whose middle lies 0.4 m to the right of the
     # goal direction: the goal direction itself passes 0.3 m from the left jamb (no hand back), the

@@ -53,7 +53,7 @@ def test_altitude_hold_climbs_when_low_and_descends_when_high() -> None:
 
 
 def test_hold_waits_for_clear_straight_decisions_and_the_resume_delay() -> None:
-    kw = {"heading_error_rad": 0.3, "altitude_error_m": 0.5}
+    kw = {"heading_error_rad": 0.3, "altitude_error_m": -0.5}  # a descent waits; a climb back does not (below)
     assert setpoint_for(CLEAR, 0.1, HOLD, clear_for_s=0.5, **kw) == setpoint_for(CLEAR, 0.1, HOLD)
     for kind in (DecisionKind.AVOID, DecisionKind.BRAKE):
         d = Decision(kind, 0.3 if kind is DecisionKind.AVOID else 0.0, 0.0, 0.5, "x")
@@ -193,14 +193,34 @@ def test_lateral_line_hold_flies_sideways_toward_the_line() -> None:
 def test_altitude_hold_waits_for_a_distance_flown_as_well_as_a_time() -> None:
     cmd = CommandConfig(heading_hold_gain_per_s=1.0, altitude_hold_gain_per_s=0.5, hold_resume_delay_s=1.0,
                         hold_resume_distance_m=1.5)
-    # Ducked under a block, slowed down: clear for 3 s but only 0.8 m further on: no climb back yet
-    # (the block's rear edge may be overhead, out of view); turning back to the heading does not wait.
-    slow = setpoint_for(CLEAR, 0.1, cmd, altitude_error_m=0.5, heading_error_rad=0.2, clear_for_s=3.0, clear_for_m=0.8)
+    # Climbed over a box, slowed down: clear for 3 s but only 0.8 m further on: no descent yet
+    # (the box's rear edge may be below, out of view); turning back to the heading does not wait.
+    slow = setpoint_for(CLEAR, 0.1, cmd, altitude_error_m=-0.5, heading_error_rad=0.2, clear_for_s=3.0, clear_for_m=0.8)
     assert slow.down_m_s == 0.0 and slow.yaw_rate_deg_s > 0.0
-    on = setpoint_for(CLEAR, 0.1, cmd, altitude_error_m=0.5, heading_error_rad=0.2, clear_for_s=3.0, clear_for_m=1.6)
-    assert on.down_m_s < 0.0 and on.yaw_rate_deg_s == slow.yaw_rate_deg_s
+    on = setpoint_for(CLEAR, 0.1, cmd, altitude_error_m=-0.5, heading_error_rad=0.2, clear_for_s=3.0, clear_for_m=1.6)
+    assert on.down_m_s > 0.0 and on.yaw_rate_deg_s == slow.yaw_rate_deg_s
     # Unknown distance (no position): the time alone decides, as before.
-    assert setpoint_for(CLEAR, 0.1, cmd, altitude_error_m=0.5, clear_for_s=3.0).down_m_s < 0.0
+    assert setpoint_for(CLEAR, 0.1, cmd, altitude_error_m=-0.5, clear_for_s=3.0).down_m_s > 0.0
+
+
+def test_a_climb_back_to_the_engaged_altitude_does_not_wait() -> None:
+    """PX4 SITL pitch-4: PX4 sagged 0.27 m as it sped up after engaging, the controller's small climbs
+    on CLEAR decisions (the ground near in the down regions) kept resetting the clear timers, and
+    the altitude hold never acted: 0.3 m low, the low wall's top filled the up regions and the way
+    over it read blocked. Below the engaged altitude, on a level or climbing CLEAR decision, the
+    hold climbs back at once; what was overhead (since_up_near_m) and the up region still stop it."""
+    cmd = CommandConfig(altitude_hold_gain_per_s=0.5, hold_resume_delay_s=1.5, hold_resume_distance_m=1.5)
+    for kw in ({"clear_for_s": 0.0, "clear_for_m": 0.0}, {}):
+        assert setpoint_for(CLEAR, 0.1, cmd, altitude_error_m=0.26, **kw).down_m_s == pytest.approx(-0.13)
+    climbing = Decision(DecisionKind.CLEAR, 0.0, 0.05, 1.0, "centre clear, ground near below")
+    sp = setpoint_for(climbing, 0.1, cmd, altitude_error_m=0.26, clear_for_s=0.0, clear_for_m=0.0)
+    assert sp.down_m_s == pytest.approx(-0.05 * cmd.max_vertical_speed_m_s - 0.95 * 0.13)
+    ducking = Decision(DecisionKind.CLEAR, 0.0, -0.2, 1.0, "going under")
+    assert setpoint_for(ducking, 0.1, cmd, altitude_error_m=0.26, clear_for_s=0.0).down_m_s > 0.0  # no climb back
+    assert setpoint_for(CLEAR, 0.1, cmd, altitude_error_m=0.26, since_up_near_m=0.5).down_m_s == 0.0
+    assert setpoint_for(CLEAR, 0.1, cmd, altitude_error_m=0.26, region_depths_m=_depths(up=1.0)).down_m_s == 0.0
+    brake = Decision(DecisionKind.BRAKE, 0.0, 0.0, 0.0, "no escape")
+    assert setpoint_for(brake, 0.1, cmd, altitude_error_m=0.26).down_m_s == 0.0
 
 
 def test_nothing_climbs_until_the_vehicle_has_flown_past_what_was_overhead() -> None:
@@ -322,9 +342,9 @@ def test_a_climb_alone_does_not_keep_the_heading_hold_waiting() -> None:
     assert (sp.forward_m_s, sp.yaw_rate_deg_s) == (0.0, 20.0)
     assert sp.down_m_s == pytest.approx(-0.2 * HOLD.max_vertical_speed_m_s)
     assert setpoint_for(climbing, 0.1, HOLD, heading_clear_for_s=0.5, **kw).forward_m_s == HOLD.cruise_speed_m_s
-    sp = setpoint_for(climbing, 0.1, HOLD, heading_error_rad=0.1, heading_clear_for_s=5.0, clear_for_s=0.0, altitude_error_m=0.5)
+    sp = setpoint_for(climbing, 0.1, HOLD, heading_error_rad=0.1, heading_clear_for_s=5.0, clear_for_s=0.0, altitude_error_m=-0.5)
     assert sp.yaw_rate_deg_s == pytest.approx(math.degrees(0.1))  # the heading hold acts
-    assert sp.down_m_s == pytest.approx(-0.2 * HOLD.max_vertical_speed_m_s)  # the altitude hold waits
+    assert sp.down_m_s == pytest.approx(-0.2 * HOLD.max_vertical_speed_m_s)  # the altitude hold's descent waits
     # Without heading_clear_for_s, one timer as before.
     assert setpoint_for(climbing, 0.1, HOLD, heading_error_rad=0.1, clear_for_s=0.0).yaw_rate_deg_s == 0.0
 

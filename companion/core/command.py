@@ -423,7 +423,11 @@ def setpoint_for(
       speed, scaled by ``1 - |pitch|``; a descent does not wait (for ``clear_for_s`` or
       ``clear_for_m``) when ``below_clear`` is True (:meth:`~companion.core.memory.ObstacleMemory.clear_below`:
       nothing remembered below the vehicle down to that altitude): what it climbed over was seen
-      on the way there, and an office never gives 1.5 m of straight, clear flight;
+      on the way there, and an office never gives 1.5 m of straight, clear flight. A climb back
+      (below that altitude, the decision level or climbing) waits for neither: PX4 sags 0.2-0.3 m
+      as it speeds up, and the controller's small climbs on a CLEAR reset the clear timers, so
+      PX4 SITL pitch-4 flew 0.3 m low until the low wall's top filled the up regions.
+      What was overhead still stops it (``since_up_near_m``);
     * turning back: when the heading aimed at (the two above) lies more than ``cmd.turn_back_angle_deg``
       away, none of this: forward and sideways speed 0, and a yaw rate of
       ``±max_heading_hold_rate_deg_s`` toward it, whatever the side regions read (the decision's
@@ -486,7 +490,8 @@ def setpoint_for(
             clear_for_m is None or clear_for_m >= cmd.hold_resume_distance_m
         )
         hold_down_m_s = _altitude_hold_down_m_s(altitude_error_m, region_depths_m, cmd)
-        if altitude_waited or (below_clear is True and hold_down_m_s > 0.0):
+        climb_back = hold_down_m_s < 0.0 and pitch >= 0.0
+        if altitude_waited or climb_back or (below_clear is True and hold_down_m_s > 0.0):
             down_m_s += (1.0 - abs(pitch)) * hold_down_m_s
     gap_on = gap_offset_m is not None and guard_cfg is not None and guard_cfg.gap_centering_gain_per_s > 0.0
     if clear and not turning_back and gap_on and math.isfinite(gap_offset_m):
@@ -636,6 +641,11 @@ def side_room_m_s(region_depths_m: np.ndarray | None, cmd: CommandConfig | None)
     return room("left", left, right), room("right", right, left)
 
 
+#: A turn in place keeps its side while its target lies within this of right behind, degrees
+#: (:func:`detour_setpoint`): more than the yaw a step and the autopilot's lag move it back across.
+TURN_SIDE_KEEP_DEG = 30.0
+
+
 def detour_setpoint(
     command: DetourCommand,
     decision: Decision | None,
@@ -651,6 +661,7 @@ def detour_setpoint(
     guard_cfg: MemoryConfig | None = None,
     velocity_body_m_s: tuple[float, float] | None = None,
     region_depths_m: np.ndarray | None = None,
+    turn_sign: float = 0.0,
 ) -> VelocitySetpoint:
     """The setpoint while the detour layer acts (:class:`~companion.core.detour.DetourCommand`).
 
@@ -662,7 +673,10 @@ def detour_setpoint(
       the turn began; ``clip(-brake_hold_gain_per_s · offset, ±brake_hold_max_speed_m_s)``) and a yaw
       rate toward the target, ``turn_rate_deg_s``, proportionally less within 15° of it. A turn in
       place moves the vehicle toward nothing, so it goes on whatever the decision is, a brake
-      included; the guard still acts.
+      included; the guard still acts. ``turn_sign`` (+1 right, -1 left, 0 none: the side this turn
+      has been turning) keeps that side while the target lies more than 180° -
+      :data:`TURN_SIDE_KEEP_DEG` away: a target right behind is as near either way, and choosing
+      afresh each step turned the vehicle back and forth across it.
     * Flying a direction: a BRAKE decision is the reactive setpoint itself (the brake's holds);
       otherwise the reactive setpoint (:func:`setpoint_for` of the decision alone: the controller's
       yaw, pitch and slowing) with its forward speed scaled by ``min(1, speed_m_s / cruise_speed_m_s)
@@ -686,6 +700,8 @@ def detour_setpoint(
             offset = brake_offset_body(np.asarray(position_ned_m, dtype=np.float64), command.anchor_ned_m, yaw)
         hold = _brake_hold(offset, None, cmd)
         rate = 0.0 if err is None else limit * max(-1.0, min(1.0, err / math.radians(15.0)))
+        if err is not None and turn_sign != 0.0 and abs(err) > math.pi - math.radians(TURN_SIDE_KEEP_DEG):
+            rate = math.copysign(limit, turn_sign)
         sp = VelocitySetpoint(hold.forward_m_s, hold.right_m_s, hold.down_m_s, rate)
         return _guarded(sp, guard_m, guard_cfg, velocity_body_m_s, region_depths_m, cmd)
     if decision.kind is DecisionKind.BRAKE:

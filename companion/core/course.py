@@ -92,6 +92,8 @@ class CourseHold:
         self.goal = Goal(COURSE, None)
         self.detour = DetourPlanner(defer=defer_histogram)
         self._engaged_at: tuple[np.ndarray | None, float | None] = (None, None)
+        #: The side the detour's turn in place has been turning (+1 right, -1 left, 0 none).
+        self._turn_sign = 0.0
         #: Why the flight holds now (the goal reached, a dead end), or None: the caller holds (as for
         #: the progress watchdog) until :meth:`resume` or a new goal.
         self.holding_reason: str | None = None
@@ -277,8 +279,12 @@ class CourseHold:
                 guard_cfg=memory_cfg,
                 velocity_body_m_s=horizontal_velocity_body_m_s(velocity_ned_m_s, yaw),
                 region_depths_m=region_depths_m,
+                turn_sign=self._turn_sign,
             )
+            turning = command.anchor_ned_m is not None and sp.yaw_rate_deg_s != 0.0
+            self._turn_sign = math.copysign(1.0, sp.yaw_rate_deg_s) if turning else 0.0
             return self._vertical_limits(sp, now_s, cmd, position_ned_m, region_depths_m, obstacles, memory_cfg)
+        self._turn_sign = 0.0
         heading_error = altitude_error = line_offset = None
         if self.heading_rad is not None and yaw is not None:
             heading_error = self.heading_rad - yaw  # positive: the course lies to the right
