@@ -651,10 +651,12 @@ def test_course_hold_steers_back_to_the_heading_at_engagement_when_enabled() -> 
     h.frame = Result(h.now, CLEAR)
     early = h.step()
     assert early.setpoint.yaw_rate_deg_s == pytest.approx(0.0, abs=1e-9)  # waits hold_resume_delay_s
-    # Clear for long enough: back to the heading; but not yet 1 m further on (slowed down under a
-    # block), so the climb back waits.
+    # A climb back waits for nothing (nothing was seen overhead): 0.4 m at 0.5/s.
+    assert early.setpoint.down_m_s == pytest.approx(-0.2, rel=1e-6)
+    # Clear for long enough: back to the heading, not yet 1 m further on.
     waiting = h.run(1.2)[-1].setpoint
-    assert waiting.yaw_rate_deg_s == pytest.approx(math.degrees(0.2), rel=1e-6) and waiting.down_m_s == 0.0
+    assert waiting.yaw_rate_deg_s == pytest.approx(math.degrees(0.2), rel=1e-6)
+    assert waiting.down_m_s == pytest.approx(-0.2, rel=1e-6)
     h.vehicle = replace(h.vehicle, position_ned_m=np.array([5.7, 0.8, -1.6]))  # 1.06 m on
     later = h.step()
     assert later.setpoint.yaw_rate_deg_s == pytest.approx(math.degrees(0.2), rel=1e-6)
