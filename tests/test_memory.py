@@ -351,7 +351,8 @@ def test_clear_below_looks_for_remembered_points_under_the_way_down() -> None:
 
 def test_the_descent_back_to_the_engagement_altitude_waits_only_for_what_is_remembered_below() -> None:
     """An office never gives 1.5 m of straight, clear flight; a descent over nothing remembered need
-    not wait for it, a climb back up still does, and the down region must still read clear."""
+    not wait for it, and the down region must still read clear. (A climb back up waits for nothing
+    but what was overhead: test_sim_goal_seeking.)"""
     cmd = CommandConfig(altitude_hold_gain_per_s=0.5, hold_resume_delay_s=1.5, hold_resume_distance_m=1.5,
                         hold_clear_depth_m=2.25)
     clear = Decision(DecisionKind.CLEAR, 0.0, 0.0, 1.0, "clear")
@@ -360,8 +361,9 @@ def test_the_descent_back_to_the_engagement_altitude_waits_only_for_what_is_reme
     assert setpoint_for(clear, 0.1, cmd, below_clear=False, **kw).down_m_s == 0.0
     assert setpoint_for(clear, 0.1, cmd, below_clear=True, **kw).down_m_s == pytest.approx(0.25)
     assert setpoint_for(clear, 0.1, cmd, below_clear=True, region_depths_m=np.full(9, 1.0), **kw).down_m_s == 0.0
-    up = {**kw, "altitude_error_m": 0.5}  # below the engagement altitude: the climb still waits
-    assert setpoint_for(clear, 0.1, cmd, below_clear=True, **up).down_m_s == 0.0
+    up = {**kw, "altitude_error_m": 0.5}  # below the engagement altitude: the climb back does not wait
+    assert setpoint_for(clear, 0.1, cmd, below_clear=True, **up).down_m_s == pytest.approx(-0.25)
+    assert setpoint_for(clear, 0.1, cmd, since_up_near_m=0.5, **up).down_m_s == 0.0  # unless under something
     avoid = Decision(DecisionKind.AVOID, 0.3, 0.0, 0.5, "avoid")  # only on CLEAR
     assert setpoint_for(avoid, 0.1, cmd, below_clear=True, **kw).down_m_s == 0.0
 
