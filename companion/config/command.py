@@ -214,7 +214,9 @@ class CommandConfig(StrictModel):
             "seconds: an obstacle just passed is beside or below the vehicle, out of the camera's view. "
             "The heading part (and turning back) counts decisions that do not turn, the altitude part "
             "ones that neither turn nor climb (a slight climb away from the ground must not keep a "
-            "vehicle facing away from its course from turning back)."
+            "vehicle facing away from its course from turning back). A climb back up to the engaged "
+            "altitude does not wait (only the overhead memory, hold_resume_distance_m, stops it): PX4 "
+            "sags 0.2-0.3 m as it speeds up."
         ),
     )
     hold_resume_distance_m: float = Field(
@@ -224,7 +226,7 @@ class CommandConfig(StrictModel):
         description=(
             "Overhead memory, metres (0 = off): no climb at all (by a rule or by course hold) until the "
             "vehicle has flown this far (horizontally) since the up region last read nearer than "
-            "hold_clear_depth_m, and course hold's altitude part also waits this far after the "
+            "hold_clear_depth_m, and course hold's descent also waits this far after the "
             "decisions turned CLEAR and straight. The camera cannot see straight up: under a block, "
             "rules that climb away from the ground (and a hold that waited only for a time) flew the "
             "vehicle into the block's rear edge (simulator and PX4 SITL)."
