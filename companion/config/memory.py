@@ -223,7 +223,8 @@ class MemoryConfig(StrictModel):
         description=(
             "Keep at least this much height between the vehicle's centre and the highest point "
             "remembered below it (seen within duration_s, not seen past since, within keep_out_m "
-            "horizontally, above command.min_altitude_m over the take-off point, so not the ground): nearer, every setpoint climbs at 2/s times the shortfall (at most "
+            "horizontally, above command.min_altitude_m over the take-off point, so not the ground): "
+            "nearer, every setpoint climbs at 2/s times the shortfall (at most "
             "command.max_altitude_hold_speed_m_s) while the up region is open, metres; 0 = off. The "
             "camera cannot see what is under the vehicle, and an autopilot sags while it brakes or "
             "turns hard: PX4 SITL pitch-4 lost 0.3 m over a wall's top that way and touched it. Off "
