@@ -432,6 +432,30 @@ def test_camera_gone_gives_zero_at_once_and_it_reconnects(tmp_path: Path) -> Non
         client.close()
 
 
+def test_the_stale_zero_goes_out_when_the_frame_turns_stale_not_at_the_next_tick(tmp_path: Path) -> None:
+    """With a slow setpoint stream (2 Hz: a tick every 0.5 s), the zero still goes out 0.5 s after the
+    newest frame: the control loop wakes at the stale deadline instead of waiting for its tick."""
+    from peers.fakes import GatedCamera
+
+    cfg = service_config(tmp_path, vehicle={"setpoint_rate_hz": 2.0}, envelope={"min_setpoint_rate_hz": 2.0})
+    link = FakeLink()
+    camera = GatedCamera(avoid_scene_camera(15.0))
+    service = Service(cfg, camera=camera, link=link, install_signals=False, environ={})
+    with ServiceRunner(service):
+        client = Client(service.bus.control_endpoint)
+        _engage(client, link)
+        time.sleep(0.3)
+        camera.freeze()
+        t_freeze = time.monotonic()
+        assert wait_until(lambda: any(s.setpoint.is_zero for s in link.sent_since(t_freeze)), 1.5)
+        last_frame_s = camera.last_timestamp_s
+        assert last_frame_s is not None
+        first_zero = next(s for s in link.sent_since(t_freeze) if s.setpoint.is_zero)
+        assert 0.5 <= first_zero.t_s - last_frame_s <= 0.6, first_zero.t_s - last_frame_s
+        camera.thaw()
+        client.close()
+
+
 def test_the_sim_scene_placement_applies_live_but_the_rest_of_the_camera_waits_for_a_restart() -> None:
     from companion.config import parse_config
     from companion.service.daemon import keep_restart_fields, restart_required

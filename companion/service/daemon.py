@@ -579,7 +579,13 @@ class Service(ControlPlane, HealthReporter, PresencePlane):
         next_tick = self._clock()
         while True:
             period = 1.0 / self.config.vehicle.setpoint_rate_hz
-            timeout = next_tick - self._clock()
+            wake_at = next_tick
+            stale_at = self._stale_deadline()
+            if stale_at is not None and self._clock() < stale_at < wake_at:
+                # The zero for stale frames goes out when the newest frame turns stale, not up to a
+                # setpoint period later (the promise is 0.5 s, not 0.5 s plus a tick).
+                wake_at = stale_at
+            timeout = wake_at - self._clock()
             if timeout > 0:
                 await wait_event(self._wake, timeout)
             self._wake.clear()
@@ -601,6 +607,14 @@ class Service(ControlPlane, HealthReporter, PresencePlane):
                 await self._safe_link_call("send_setpoint", ZERO_SETPOINT)
                 raise
             self._feed_watchdog(now)
+
+    def _stale_deadline(self) -> float | None:
+        """Clock time (s) just past the moment the newest frame turns stale, or None without one."""
+        latest = self._latest
+        if latest is None:
+            return None
+        # Just past: the supervisor counts a frame exactly ``stale_frame_timeout_s`` old as fresh.
+        return latest.result.timestamp_s + self.config.command.stale_frame_timeout_s + 1e-3
 
     async def _control_step(self, now: float, ticked: bool) -> None:
         latest = self._latest

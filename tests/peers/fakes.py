@@ -89,7 +89,9 @@ class FakeLink:
 
 class GatedCamera:
     """Wraps a camera source; ``freeze()`` makes read() block (frames stop) until ``thaw()``;
-    ``fail()`` makes the next read raise (the camera unplugged) until ``thaw()``."""
+    ``fail()`` makes the next read raise (the camera unplugged) until ``thaw()``. ``last_timestamp_s``:
+    the capture time (s, the service's clock) of the newest frame handed out; a freeze lets a read
+    already past the gate finish, so the newest frame can be up to one frame period younger than it."""
 
     def __init__(self, inner) -> None:
         self.inner = inner
@@ -98,6 +100,7 @@ class GatedCamera:
         self._open.set()
         self._fail = False
         self._closed = threading.Event()
+        self.last_timestamp_s: float | None = None
 
     @property
     def eye_size_px(self):
@@ -116,7 +119,9 @@ class GatedCamera:
             self._open.wait(0.02)
         if self._fail:
             raise CameraError(f"{self.name}: unplugged")
-        return self.inner.read()
+        frame = self.inner.read()
+        self.last_timestamp_s = frame.timestamp_s
+        return frame
 
     def close(self) -> None:
         self._closed.set()
