@@ -61,7 +61,8 @@ def test_sighup_reload_and_sigterm_clean_shutdown_on_the_wire(tmp_path: Path) ->
         # from the first zero on, everything is zero, and the zero precedes the Hold.
         first_zero = next(i for i, s in enumerate(sent) if s.is_zero)
         assert sent[first_zero].t_s < holds[0].t_s and all(s.is_zero for s in sent[first_zero:])
-        assert all(s.t_s - t_term < 0.06 for s in sent[:first_zero]), sent[:first_zero]
+        # Within one 20 Hz period and the signal's delivery.
+        assert all(s.t_s - t_term < 0.1 for s in sent[:first_zero]), sent[:first_zero]
         assert notify.lines("STOPPING=1")
 
 
