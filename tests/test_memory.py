@@ -330,21 +330,23 @@ def test_course_hold_neither_turns_nor_slides_toward_a_remembered_side() -> None
 
 def test_clear_below_looks_for_remembered_points_under_the_way_down() -> None:
     """Climbed over a 1.3 m cabinet to 2.0 m (engaged at 1.5 m): its top, remembered, lies below
-    the vehicle until it has flown hold_clear_m past it."""
+    the vehicle until it has flown keep_out_m (its radius and a margin) past it."""
     mem = ObstacleMemory()
-    cfg = MemoryConfig(hold_clear_m=1.0, height_band_m=0.4)
+    cfg = MemoryConfig(keep_out_m=0.35, height_band_m=0.4)
     down_to = -1.5
     assert mem.clear_below(np.array([0.0, 0.0, -2.0]), 0.0, cfg, down_to) is True  # empty memory
     # The cabinet's top, 1.3 m high, seen once from 4 m: far and untrusted, it counts all the same.
     mem.add(np.array([[0.0, 0.0, -1.3]]), 0.0, 30.0, ranges_m=np.array([4.0]))
-    assert mem.clear_below(np.array([0.5, 0.0, -2.0]), 1.0, cfg, down_to) is False  # over it
-    assert mem.clear_below(np.array([0.0, -0.9, -2.0]), 1.0, cfg, down_to) is False  # beside, within 1 m
-    assert mem.clear_below(np.array([1.1, 0.0, -2.0]), 1.0, cfg, down_to) is True  # flown past it
+    assert mem.clear_below(np.array([0.1, 0.0, -2.0]), 1.0, cfg, down_to) is False  # over it
+    assert mem.clear_below(np.array([0.3, 0.0, -2.0]), 1.0, cfg, down_to) is False  # still over its edge
+    assert mem.clear_below(np.array([0.5, 0.0, -2.0]), 1.0, cfg, down_to) is True  # flown past it
+    # Beside it (0.9 m: a wall beside the vehicle, not under it): the guard's business, not the descent's.
+    assert mem.clear_below(np.array([0.0, -0.9, -2.0]), 1.0, cfg, down_to) is True
     # More than the band below the altitude to descend to: the descent never comes that close.
-    assert mem.clear_below(np.array([0.5, 0.0, -2.0]), 1.0, cfg, -1.8) is True
+    assert mem.clear_below(np.array([0.1, 0.0, -2.0]), 1.0, cfg, -1.8) is True
     # Above the vehicle: not on the way down.
-    assert mem.clear_below(np.array([0.5, 0.0, -0.5]), 1.0, cfg, 0.0) is True
-    assert mem.clear_below(np.array([0.5, 0.0, -2.0]), 40.0, cfg, down_to) is True  # forgotten
+    assert mem.clear_below(np.array([0.1, 0.0, -0.5]), 1.0, cfg, 0.0) is True
+    assert mem.clear_below(np.array([0.1, 0.0, -2.0]), 40.0, cfg, down_to) is True  # forgotten
     assert mem.clear_below(np.array([np.nan, 0.0, -2.0]), 1.0, cfg, down_to) is None
     assert mem.clear_below(np.array([0.5, 0.0, -2.0]), 1.0, cfg, math.nan) is None
 
@@ -364,8 +366,32 @@ def test_the_descent_back_to_the_engagement_altitude_waits_only_for_what_is_reme
     up = {**kw, "altitude_error_m": 0.5}  # below the engagement altitude: the climb back does not wait
     assert setpoint_for(clear, 0.1, cmd, below_clear=True, **up).down_m_s == pytest.approx(-0.25)
     assert setpoint_for(clear, 0.1, cmd, since_up_near_m=0.5, **up).down_m_s == 0.0  # unless under something
-    avoid = Decision(DecisionKind.AVOID, 0.3, 0.0, 0.5, "avoid")  # only on CLEAR
-    assert setpoint_for(avoid, 0.1, cmd, below_clear=True, **kw).down_m_s == 0.0
+
+def test_steering_round_something_the_vehicle_still_returns_to_its_altitude() -> None:
+    """On an AVOID decision (an office's walls: the CLEAR wait never ends) the altitude hold acts
+    where it does not fight the controller: a climb back while the decision does not descend, a
+    descent over nothing remembered below while it does not climb; the vertical regions and what
+    was overhead still stop it. A BRAKE's holds are its own."""
+    cmd = CommandConfig(altitude_hold_gain_per_s=0.5, hold_resume_delay_s=1.5, hold_resume_distance_m=1.5,
+                        hold_clear_depth_m=2.25)
+    level = Decision(DecisionKind.AVOID, 0.3, 0.0, 0.5, "avoid")
+    above = {"altitude_error_m": -0.5}  # 0.5 m above the engagement altitude
+    below = {"altitude_error_m": 0.5}
+    assert setpoint_for(level, 0.1, cmd, below_clear=True, **above).down_m_s == pytest.approx(0.25)
+    assert setpoint_for(level, 0.1, cmd, below_clear=False, **above).down_m_s == 0.0
+    assert setpoint_for(level, 0.1, cmd, **above).down_m_s == 0.0  # below unknown: no descent
+    assert setpoint_for(level, 0.1, cmd, below_clear=True, region_depths_m=np.full(9, 1.0), **above).down_m_s == 0.0
+    assert setpoint_for(level, 0.1, cmd, **below).down_m_s == pytest.approx(-0.25)
+    assert setpoint_for(level, 0.1, cmd, since_up_near_m=0.5, **below).down_m_s == 0.0
+    own = 0.5 * cmd.max_vertical_speed_m_s  # the controller's half-rate climb or descent, m/s
+    climbing = Decision(DecisionKind.AVOID, 0.0, 0.5, 0.5, "over")
+    assert setpoint_for(climbing, 0.1, cmd, below_clear=True, **above).down_m_s == pytest.approx(-own)
+    assert setpoint_for(climbing, 0.1, cmd, **below).down_m_s == pytest.approx(-own - 0.5 * 0.25)
+    descending = Decision(DecisionKind.AVOID, 0.0, -0.5, 0.5, "under")
+    assert setpoint_for(descending, 0.1, cmd, **below).down_m_s == pytest.approx(own)
+    assert setpoint_for(descending, 0.1, cmd, below_clear=True, **above).down_m_s == pytest.approx(own + 0.5 * 0.25)
+    brake = Decision(DecisionKind.BRAKE, 0.0, 0.0, 0.0, "brake")
+    assert setpoint_for(brake, 0.1, cmd, below_clear=True, **above).down_m_s == 0.0
 
 
 def test_gap_offset_is_the_middle_between_the_nearest_points_left_and_right() -> None:

@@ -199,7 +199,9 @@ class CommandConfig(StrictModel):
         le=10.0,
         description=(
             "Course hold: on a CLEAR decision, climb or descend back toward the altitude at engagement "
-            "at this speed per metre of altitude error, 1/s (0 = off)."
+            "at this speed per metre of altitude error, 1/s (0 = off); on an AVOID decision too, where "
+            "it does not fight the decision's own climb or descent (a descent only over nothing "
+            "remembered below)."
         ),
     )
     max_altitude_hold_speed_m_s: float = Field(

@@ -241,6 +241,28 @@ def _altitude_hold_down_m_s(
     return down
 
 
+def _altitude_return_m_s(
+    altitude_error_m: float | None,
+    region_depths_m: np.ndarray | None,
+    pitch: float,
+    below_clear: bool | None,
+    cmd: CommandConfig,
+    *,
+    waited: bool,
+) -> float:
+    """The altitude hold's down speed (m/s, + down) that acts now: all of it once ``waited``; else a
+    climb back while the decision does not descend (``pitch`` >= 0), or a descent while it does not
+    climb (``pitch`` <= 0) and ``below_clear`` is True; else 0."""
+    down = _altitude_hold_down_m_s(altitude_error_m, region_depths_m, cmd)
+    if waited:
+        return down
+    if down < 0.0 and pitch >= 0.0:
+        return down
+    if down > 0.0 and pitch <= 0.0 and below_clear is True:
+        return down
+    return 0.0
+
+
 def horizontal_distance_m(a_ned_m: np.ndarray | None, b_ned_m: np.ndarray | None) -> float | None:
     """Horizontal distance between two NED positions (float ``(3,)`` metres), metres; None when
     either is missing or the distance is not finite."""
@@ -427,7 +449,9 @@ def setpoint_for(
       (below that altitude, the decision level or climbing) waits for neither: PX4 sags 0.2-0.3 m
       as it speeds up, and the controller's small climbs on a CLEAR reset the clear timers, so
       PX4 SITL pitch-4 flew 0.3 m low until the low wall's top filled the up regions.
-      What was overhead still stops it (``since_up_near_m``);
+      What was overhead still stops it (``since_up_near_m``). On an AVOID decision (steering round
+      something; an office's walls never let the CLEAR wait end) the same climb back and descent
+      over nothing remembered act, never against the decision's own climb or descent;
     * turning back: when the heading aimed at (the two above) lies more than ``cmd.turn_back_angle_deg``
       away, none of this: forward and sideways speed 0, and a yaw rate of
       ``±max_heading_hold_rate_deg_s`` toward it, whatever the side regions read (the decision's
@@ -489,10 +513,17 @@ def setpoint_for(
         altitude_waited = (clear_for_s is None or clear_for_s >= cmd.hold_resume_delay_s) and (
             clear_for_m is None or clear_for_m >= cmd.hold_resume_distance_m
         )
-        hold_down_m_s = _altitude_hold_down_m_s(altitude_error_m, region_depths_m, cmd)
-        climb_back = hold_down_m_s < 0.0 and pitch >= 0.0
-        if altitude_waited or climb_back or (below_clear is True and hold_down_m_s > 0.0):
-            down_m_s += (1.0 - abs(pitch)) * hold_down_m_s
+        down_m_s += (1.0 - abs(pitch)) * _altitude_return_m_s(
+            altitude_error_m, region_depths_m, pitch, below_clear, cmd, waited=altitude_waited
+        )
+    elif decision.kind is DecisionKind.AVOID:
+        # Steering round something, the vehicle still goes back to its altitude where that does not
+        # fight the controller's own climb or descent: an office's AVOIDs never let the CLEAR wait
+        # end, and PX4 SITL reached its doors 0.3-0.7 m above the engaged altitude, the lintel
+        # within the memory's height band (the door closed on the map).
+        down_m_s += (1.0 - abs(pitch)) * _altitude_return_m_s(
+            altitude_error_m, region_depths_m, pitch, below_clear, cmd, waited=False
+        )
     gap_on = gap_offset_m is not None and guard_cfg is not None and guard_cfg.gap_centering_gain_per_s > 0.0
     if clear and not turning_back and gap_on and math.isfinite(gap_offset_m):
         limit = guard_cfg.max_gap_centering_speed_m_s

@@ -573,12 +573,15 @@ class ObstacleMemory:
 
     def clear_below(self, position_ned_m: np.ndarray, now_s: float, cfg: MemoryConfig, down_to_m: float) -> bool | None:
         """Whether the way down is free of remembered points: no point seen within
-        ``cfg.duration_s`` of ``now_s`` (near or far, trusted or not) lies within ``cfg.hold_clear_m``
+        ``cfg.duration_s`` of ``now_s`` (near or far, trusted or not) lies within ``cfg.keep_out_m``
         of the vehicle horizontally and below it, above ``down_to_m + cfg.height_band_m`` (NED down,
         metres: the altitude to descend to, less the band a point at the vehicle's height lies in).
 
         Course hold's descent back to the engagement altitude uses it: the camera cannot see what
-        is straight below, but it saw what the vehicle climbed over on the way there.
+        is straight below, but it saw what the vehicle climbed over on the way there. Only what lies
+        under the vehicle (``keep_out_m``: its radius and a margin, as :meth:`gap_below_m`) stops
+        it: a wall beside it is the guard's business, and with ``hold_clear_m`` (1 m) an office's
+        walls, 0.5-1 m away, kept the vehicle at the height it had climbed to, above the door.
 
         Returns:
             None without a finite position or ``down_to_m``; else the answer (True for an empty
@@ -590,7 +593,7 @@ class ObstacleMemory:
         pts = self._pts[(now_s - self._t) <= cfg.duration_s]
         below = (pts[:, 2] > pos[2]) & (pts[:, 2] < down_to_m + cfg.height_band_m)
         horizontal = np.hypot(pts[:, 0] - pos[0], pts[:, 1] - pos[1])
-        return not bool(np.any(below & (horizontal < cfg.hold_clear_m)))
+        return not bool(np.any(below & (horizontal < cfg.keep_out_m)))
 
     def gap_below_m(
         self, position_ned_m: np.ndarray, now_s: float, cfg: MemoryConfig, ground_down_m: float
