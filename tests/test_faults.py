@@ -78,8 +78,8 @@ def test_camera_stall_zero_within_0_6_s_then_hold_at_5_s(flying) -> None:
     assert last_frame_s is not None and last_frame_s < t_freeze + 0.1
     first_zero = next(s for s in peer.setpoints_since(t_freeze) if s.is_zero)
     # The zero goes out as the frame turns stale (0.5 s), not a setpoint period later; 0.1 s is the
-    # wire's and a loaded machine's share.
-    assert 0.5 <= first_zero.t_s - last_frame_s <= 0.6, first_zero.t_s - last_frame_s
+    # wire's and a loaded machine's share (and a newest frame the pipeline skipped, 1/15 s less).
+    assert 0.4 <= first_zero.t_s - last_frame_s <= 0.6, first_zero.t_s - last_frame_s
     assert all(s.is_zero for s in peer.setpoints_since(last_frame_s + 0.6))
     assert peer.wait_for(lambda: peer.mode == "HOLD", 6.5)
     hold = peer.mode_commands()[-1]
