@@ -368,15 +368,19 @@ def test_the_descent_back_to_the_engagement_altitude_waits_only_for_what_is_reme
     assert setpoint_for(clear, 0.1, cmd, since_up_near_m=0.5, **up).down_m_s == 0.0  # unless under something
 
 def test_steering_round_something_the_vehicle_still_returns_to_its_altitude() -> None:
-    """On an AVOID decision (an office's walls: the CLEAR wait never ends) the altitude hold acts
-    where it does not fight the controller: a climb back while the decision does not descend, a
-    descent over nothing remembered below while it does not climb; the vertical regions and what
-    was overhead still stop it. A BRAKE's holds are its own."""
-    cmd = CommandConfig(altitude_hold_gain_per_s=0.5, hold_resume_delay_s=1.5, hold_resume_distance_m=1.5,
+    """With command.altitude_hold_on_avoid, on an AVOID decision (an office's walls: the CLEAR wait
+    never ends) the altitude hold acts where it does not fight the controller: a climb back while
+    the decision does not descend, a descent over nothing remembered below while it does not climb;
+    the vertical regions and what was overhead still stop it. A BRAKE's holds are its own."""
+    off = CommandConfig(altitude_hold_gain_per_s=0.5, hold_resume_delay_s=1.5, hold_resume_distance_m=1.5,
                         hold_clear_depth_m=2.25)
+    cmd = off.model_copy(update={"altitude_hold_on_avoid": True})
     level = Decision(DecisionKind.AVOID, 0.3, 0.0, 0.5, "avoid")
     above = {"altitude_error_m": -0.5}  # 0.5 m above the engagement altitude
     below = {"altitude_error_m": 0.5}
+    # Off by default: an AVOID decision's vertical speed is the controller's alone.
+    assert setpoint_for(level, 0.1, off, below_clear=True, **above).down_m_s == 0.0
+    assert setpoint_for(level, 0.1, off, **below).down_m_s == 0.0
     assert setpoint_for(level, 0.1, cmd, below_clear=True, **above).down_m_s == pytest.approx(0.25)
     assert setpoint_for(level, 0.1, cmd, below_clear=False, **above).down_m_s == 0.0
     assert setpoint_for(level, 0.1, cmd, **above).down_m_s == 0.0  # below unknown: no descent

@@ -199,9 +199,16 @@ class CommandConfig(StrictModel):
         le=10.0,
         description=(
             "Course hold: on a CLEAR decision, climb or descend back toward the altitude at engagement "
-            "at this speed per metre of altitude error, 1/s (0 = off); on an AVOID decision too, where "
-            "it does not fight the decision's own climb or descent (a descent only over nothing "
-            "remembered below)."
+            "at this speed per metre of altitude error, 1/s (0 = off)."
+        ),
+    )
+    altitude_hold_on_avoid: bool = Field(
+        default=False,
+        description=(
+            "Course hold's altitude hold acts on AVOID decisions too, where it does not fight the "
+            "decision's own climb or descent (a descent only over nothing remembered below). Off by "
+            "default: in its one full PX4 SITL run the office doors were reached at the engaged "
+            "altitude, but two doorway flights collided with a jamb (docs/history.md)."
         ),
     )
     max_altitude_hold_speed_m_s: float = Field(

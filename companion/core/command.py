@@ -449,9 +449,10 @@ def setpoint_for(
       (below that altitude, the decision level or climbing) waits for neither: PX4 sags 0.2-0.3 m
       as it speeds up, and the controller's small climbs on a CLEAR reset the clear timers, so
       PX4 SITL pitch-4 flew 0.3 m low until the low wall's top filled the up regions.
-      What was overhead still stops it (``since_up_near_m``). On an AVOID decision (steering round
-      something; an office's walls never let the CLEAR wait end) the same climb back and descent
-      over nothing remembered act, never against the decision's own climb or descent;
+      What was overhead still stops it (``since_up_near_m``). With ``cmd.altitude_hold_on_avoid``, on
+      an AVOID decision (steering round something; an office's walls never let the CLEAR wait end)
+      the same climb back and descent over nothing remembered act, never against the decision's
+      own climb or descent;
     * turning back: when the heading aimed at (the two above) lies more than ``cmd.turn_back_angle_deg``
       away, none of this: forward and sideways speed 0, and a yaw rate of
       ``±max_heading_hold_rate_deg_s`` toward it, whatever the side regions read (the decision's
@@ -516,7 +517,7 @@ def setpoint_for(
         down_m_s += (1.0 - abs(pitch)) * _altitude_return_m_s(
             altitude_error_m, region_depths_m, pitch, below_clear, cmd, waited=altitude_waited
         )
-    elif decision.kind is DecisionKind.AVOID:
+    elif decision.kind is DecisionKind.AVOID and cmd.altitude_hold_on_avoid:
         # Steering round something, the vehicle still goes back to its altitude where that does not
         # fight the controller's own climb or descent: an office's AVOIDs never let the CLEAR wait
         # end, and PX4 SITL reached its doors 0.3-0.7 m above the engaged altitude, the lintel
