@@ -3,6 +3,7 @@ every command, malformed messages, live config, health fields, CURVE."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import time
@@ -16,6 +17,7 @@ from hypothesis import strategies as st
 from peers.fakes import (
     Client,
     FakeLink,
+    GatedCamera,
     ServiceRunner,
     avoid_scene_camera,
     expected_result,
@@ -407,16 +409,26 @@ def test_protocol_errors_are_one_line_and_name_the_field() -> None:
     assert math.isfinite(protocol.parse_request(b'{"cmd":"override","yaw":1,"pitch":-1,"speed":0,"duration_s":0.1}', adapter).yaw)
 
 
-def test_camera_gone_gives_zero_at_once_and_it_reconnects(tmp_path: Path) -> None:
-    from peers.fakes import GatedCamera
-
-    cfg = service_config(tmp_path, camera={"fps_hz": 15.0, "reconnect_initial_s": 0.05, "reconnect_max_s": 0.2})
+@contextlib.contextmanager
+def _engaged_with_gated_camera(tmp_path: Path, **sections):
+    """An engaged service (``service_config`` with ``sections``) on a fake link, with a camera that can
+    freeze or fail (:class:`~peers.fakes.GatedCamera`); yields ``(link, camera, client)``."""
+    cfg = service_config(tmp_path, **sections)
     link = FakeLink()
     camera = GatedCamera(avoid_scene_camera(15.0))
     service = Service(cfg, camera=camera, link=link, install_signals=False, environ={})
     with ServiceRunner(service):
         client = Client(service.bus.control_endpoint)
-        _engage(client, link)
+        try:
+            _engage(client, link)
+            yield link, camera, client
+        finally:
+            client.close()
+
+
+def test_camera_gone_gives_zero_at_once_and_it_reconnects(tmp_path: Path) -> None:
+    camera_cfg = {"fps_hz": 15.0, "reconnect_initial_s": 0.05, "reconnect_max_s": 0.2}
+    with _engaged_with_gated_camera(tmp_path, camera=camera_cfg) as (link, camera, client):
         camera.fail()  # unplugged: the next read fails, reopening fails
         t_gone = time.monotonic()
         assert wait_until(lambda: client.call("status")["result"]["camera"]["status"] == "reconnecting", 1.0)
@@ -429,21 +441,13 @@ def test_camera_gone_gives_zero_at_once_and_it_reconnects(tmp_path: Path) -> Non
         assert wait_until(lambda: client.call("status")["result"]["state"] == "engaged", 3.0)
         assert client.call("status")["result"]["camera"]["reconnects"] == 1
         assert not link.sent[-1].setpoint.is_zero
-        client.close()
 
 
 def test_the_stale_zero_goes_out_when_the_frame_turns_stale_not_at_the_next_tick(tmp_path: Path) -> None:
     """With a slow setpoint stream (2 Hz: a tick every 0.5 s), the zero still goes out 0.5 s after the
     newest frame: the control loop wakes at the stale deadline instead of waiting for its tick."""
-    from peers.fakes import GatedCamera
-
-    cfg = service_config(tmp_path, vehicle={"setpoint_rate_hz": 2.0}, envelope={"min_setpoint_rate_hz": 2.0})
-    link = FakeLink()
-    camera = GatedCamera(avoid_scene_camera(15.0))
-    service = Service(cfg, camera=camera, link=link, install_signals=False, environ={})
-    with ServiceRunner(service):
-        client = Client(service.bus.control_endpoint)
-        _engage(client, link)
+    slow = {"vehicle": {"setpoint_rate_hz": 2.0}, "envelope": {"min_setpoint_rate_hz": 2.0}}
+    with _engaged_with_gated_camera(tmp_path, **slow) as (link, camera, _):
         time.sleep(0.3)
         camera.freeze()
         t_freeze = time.monotonic()
@@ -453,7 +457,6 @@ def test_the_stale_zero_goes_out_when_the_frame_turns_stale_not_at_the_next_tick
         first_zero = next(s for s in link.sent_since(t_freeze) if s.setpoint.is_zero)
         assert 0.4 <= first_zero.t_s - last_frame_s <= 0.6, first_zero.t_s - last_frame_s
         camera.thaw()
-        client.close()
 
 
 def test_the_sim_scene_placement_applies_live_but_the_rest_of_the_camera_waits_for_a_restart() -> None:
