@@ -348,12 +348,12 @@ def test_frame_written_into_the_staging_buffer_and_strided_frames() -> None:
     _assert_regions_equal(est.estimate(strided).regions, cpu.estimate(frame).regions)
 
 
-@pytest.mark.parametrize("zero_copy", [False, True])
+@pytest.mark.parametrize(("zero_copy", "bands"), [(False, 2), (True, 2), (False, 3)])
 @pytest.mark.parametrize("matcher", ["sad", "sgm"])
-def test_frames_decoded_into_the_frame_pool_are_read_in_place(zero_copy: bool, matcher: str) -> None:
+def test_frames_decoded_into_the_frame_pool_are_read_in_place(zero_copy: bool, bands: int, matcher: str) -> None:
     w, h = 320, 180
     rng = np.random.default_rng(18)
-    cfg = _cfg(D=64, matcher=matcher, zero_copy=zero_copy)
+    cfg = _cfg(D=64, matcher=matcher, zero_copy=zero_copy, pipeline_bands=bands)
     est = _gpu(cfg, w, h)
     cpu = _cpu(cfg, w, h)
     pool = est.frame_pool(2)
@@ -368,11 +368,19 @@ def test_frames_decoded_into_the_frame_pool_are_read_in_place(zero_copy: bool, m
             buf = pool.acquire()
         assert buf is not None
         buf[...] = frame
-        assert est._source(buf, 3).copy is None
-        _assert_regions_equal(est.estimate(buf).regions, cpu.estimate(frame).regions)
+        assert est._in_place(buf) is not None
+        want = i == 3
+        res = est.estimate(buf, want_disparity=want)
+        _assert_regions_equal(res.regions, cpu.estimate(frame).regions)
+        if want:
+            assert res.disparity is not None
         held.append(buf)
+    # one whole-frame graph per buffer read in place (and per disparity request): the warm-up's staging
+    # buffer, the two pool buffers, one of them once more with the disparity
+    assert len(est._frame_graphs) == 4
     plain = _bgr_frame(h, w, rng)  # a frame outside the pool still works, through the staging copy
-    assert est._source(plain, 3).copy is not None
+    assert est._in_place(plain) is None
+    assert est._in_place(buf[:, ::2]) is None  # a view of a pool buffer is not the buffer
     _assert_regions_equal(est.estimate(plain).regions, cpu.estimate(plain).regions)
 
 
@@ -541,14 +549,14 @@ def test_sgm_ties_flat_and_periodic_patches() -> None:
 
 
 @pytest.mark.parametrize(
-    ("size", "paths"),
-    [(BenchSize(320, 180, 64), 4), (BenchSize(672, 376, 64), 4), (BenchSize(672, 376, 64), 8),
-     (BenchSize(1280, 720, 128), 4)],
+    ("size", "paths", "prefetch"),
+    [(BenchSize(320, 180, 64), 4, 0), (BenchSize(672, 376, 64), 4, 0), (BenchSize(672, 376, 64), 8, 0),
+     (BenchSize(1280, 720, 128), 4, 0), (BenchSize(672, 376, 64), 4, 4), (BenchSize(1280, 720, 128), 8, 4)],
 )
-def test_sgm_disparity_and_regions_on_rendered_frames(size: BenchSize, paths: int) -> None:
+def test_sgm_disparity_and_regions_on_rendered_frames(size: BenchSize, paths: int, prefetch: int) -> None:
     _, frames = rendered_frames(size, 2, seed=3)
     cfg = _cfg(D=size.num_disparities, matcher="sgm", sgm={"sgm_paths": paths},
-               regions={"robust_percentile_pct": 2.0})
+               regions={"robust_percentile_pct": 2.0}, sgm_prefetch_steps=prefetch)
     est = _gpu(cfg, size.width_px, size.height_px)
     cpu = _cpu(cfg, size.width_px, size.height_px)
     for frame in frames:
@@ -591,6 +599,8 @@ def test_sgm_region_depths_equal_cpu_reference(tmp_path: Path, regions: dict[str
         {"pipeline_bands": 5, "host_copy_threads": 3},
         {"host_copy_engine": "opencv", "pipeline_bands": 3},
         {"stage_timing": True},
+        {"sgm_prefetch_steps": 4},
+        {"sgm_prefetch_steps": 4, "sgm_lanes_per_line": 8},
     ],
 )
 def test_sgm_options_give_the_same_results(tmp_path: Path, gpu: dict[str, Any]) -> None:

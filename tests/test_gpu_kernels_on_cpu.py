@@ -57,16 +57,19 @@ def test_kernel_source_equals_the_reference(w: int, h: int, d: int, b: int, u: i
 
 
 @pytest.mark.parametrize(
-    ("w", "h", "d", "paths", "p1", "p2", "u", "lr", "median", "lanes"),
+    ("w", "h", "d", "paths", "p1", "p2", "u", "lr", "median", "lanes", "prefetch"),
     [
-        (40, 18, 32, 8, 10, 120, 10, 1, True, 32),  # a whole warp per line (96 padded disparities), diagonals
-        (48, 12, 128, 4, 8, 80, 0, 0, False, 16),  # 16 lanes x 2 groups (the faster 128 layout), u = 0, strict LR
-        (56, 16, 48, 4, 192, 193, 5, -1, True, 8),  # padded (48 of 64), 2 groups per lane, costs up to 255, no LR
-        (24, 70, 16, 4, 10, 120, 10, 1, True, 0),  # census tiles over 3 block rows (the last partial), 1-row post slabs
+        # a whole warp per line (96 padded disparities), diagonals; loads 4 steps ahead
+        (40, 18, 32, 8, 10, 120, 10, 1, True, 32, 4),
+        (48, 12, 128, 4, 8, 80, 0, 0, False, 16, 0),  # 16 lanes x 2 groups (the faster 128 layout), u = 0, strict LR
+        # padded (48 of 64), 2 groups per lane, costs up to 255, no LR; loads 4 steps ahead
+        (56, 16, 48, 4, 192, 193, 5, -1, True, 8, 4),
+        # census tiles over 3 block rows (the last partial), 1-row post slabs
+        (24, 70, 16, 4, 10, 120, 10, 1, True, 0, 2),
     ],
 )
 def test_sgm_kernel_source_equals_the_reference(
-    w: int, h: int, d: int, paths: int, p1: int, p2: int, u: int, lr: int, median: bool, lanes: int
+    w: int, h: int, d: int, paths: int, p1: int, p2: int, u: int, lr: int, median: bool, lanes: int, prefetch: int
 ) -> None:
     from companion.core.disparity import sgm as S
     from companion.gpu.hostemu import HostSgmKernels
@@ -78,7 +81,7 @@ def test_sgm_kernel_source_equals_the_reference(
     left[h // 4 : h // 2, w // 3 : w // 2] = 90  # a flat patch: equal sums everywhere
     right[h // 4 : h // 2, w // 3 : w // 2] = 90
     rows_e, cols_e = [0, h // 3, 2 * h // 3, h], [0, w // 3, 2 * w // 3, w]
-    kernels = HostSgmKernels(w, h, d, paths, rows_e, cols_e, lanes_per_line=lanes)
+    kernels = HostSgmKernels(w, h, d, paths, rows_e, cols_e, lanes_per_line=lanes, prefetch_steps=prefetch)
     # the census in three launches of rows, as the estimator's row bands run it (cuts at arbitrary rows)
     out = kernels.run(left, right, p1, p2, u, lr, median, census_splits=(h // 3, h // 3 + 5))
 

@@ -113,6 +113,14 @@ class GpuConfig(StrictModel):
             "a behaviour: every setting gives the same results."
         ),
     )
+    sgm_prefetch_steps: Literal[0, 2, 4] = Field(
+        default=0,
+        description=(
+            "SGM path kernel: steps between a pixel's census loads and its path costs (more hides more "
+            "memory latency, at the price of registers); 0 = the plan's choice (2). A tuning knob, not a "
+            "behaviour: every setting gives the same results."
+        ),
+    )
     stage_timing: bool = Field(
         default=False,
         description=(

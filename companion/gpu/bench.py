@@ -445,6 +445,7 @@ def run_gpu_bench(args: argparse.Namespace, sizes: list[BenchSize]) -> dict[str,
             entry["plan"] = {
                 "matcher": "sgm", "paths": sp.paths, "lanes_per_line": sp.lanes_per_line,
                 "words_per_lane": sp.words_per_lane, "run_px": sp.run_px, "slab_rows": sp.slab_rows, "dpad": sp.dpad,
+                "prefetch_steps": sp.prefetch_steps,
                 "buffers_bytes": sp.device_bytes(),
                 "kernel_regs_smem": {
                     name: [int(k.attributes["num_regs"]), int(k.attributes["shared_size_bytes"])]
@@ -461,6 +462,13 @@ def run_gpu_bench(args: argparse.Namespace, sizes: list[BenchSize]) -> dict[str,
                 _time_estimator(alt, frames, 2, 3)
                 entry[f"kernels_lanes_{lanes}"] = _sgm_kernel_times(alt, cp, min(n, 100))
                 alt.close()
+            # the other load distance of the path kernel (the plan picks by warps per SM: is it right here?)
+            other_pf = 2 if sp.prefetch_steps == 4 else 4
+            alt = CupyRegionEstimator(_cfg(size, calib, stage_timing=True, sgm_prefetch_steps=other_pf, **opts),
+                                      size.width_px, size.height_px)
+            _time_estimator(alt, frames, 2, 3)
+            entry[f"kernels_prefetch_{other_pf}"] = _sgm_kernel_times(alt, cp, min(n, 100))
+            alt.close()
         else:
             entry["plan"] = {
                 "fast": est.plan.fast, "tile_cols": est.plan.tx, "threads": est.plan.nt,
@@ -519,7 +527,7 @@ def run_gpu_bench(args: argparse.Namespace, sizes: list[BenchSize]) -> dict[str,
             rows.append([size.label, f"stage {k.removesuffix('_ms')}", f"{v['median_ms']:.3f}", f"{v['p99_ms']:.3f}"])
         for k, v in entry["kernels"].items():
             rows.append([size.label, f"kernel {k}", f"{v['median_ms']:.3f}", f"{v['p99_ms']:.3f}"])
-        for key in [key for key in entry if key.startswith("kernels_lanes_")]:
+        for key in [key for key in entry if key.startswith(("kernels_lanes_", "kernels_prefetch_"))]:
             for k, v in entry[key].items():
                 rows.append([size.label, f"{key.removeprefix('kernels_')} {k}", f"{v['median_ms']:.3f}",
                              f"{v['p99_ms']:.3f}"])

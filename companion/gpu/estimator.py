@@ -145,18 +145,6 @@ class CupyRegionEstimator:
         self.layout: RegionLayout = region_layout(self.geometry, cfg.regions)
         st = cfg.stereo
         self.matcher: str = st.matcher
-        self.plan: DisparityPlan = plan_disparity(self.width_px, self.height_px, st.num_disparities, st.block_size_px)
-        self.sgm_plan: SgmPlan | None = None
-        if self.matcher == "sgm":
-            self.sgm_plan = plan_sgm(self.width_px, self.height_px, st.num_disparities, st.sgm_paths,
-                                     self.layout.row_edges, cfg.gpu.sgm_lanes_per_line)
-        self.disparity_scale = 16 if self.matcher == "sgm" else 1
-        self.obstacle_layout: ObstacleLayout | None = (
-            obstacle_layout(self.geometry, st.num_disparities, cfg.obstacle_distance)
-            if cfg.obstacle_distance.send != "off"
-            else None
-        )
-        self._identity = bool(rectifier.is_identity)
         try:
             n_dev = cp.cuda.runtime.getDeviceCount()
         except cp.cuda.runtime.CUDARuntimeError as err:
@@ -164,6 +152,23 @@ class CupyRegionEstimator:
         if not 0 <= cfg.gpu.device_id < n_dev:
             raise BackendError(f"gpu.device_id = {cfg.gpu.device_id} but {n_dev} CUDA device(s) are present")
         self._device = cp.cuda.Device(cfg.gpu.device_id)
+        try:
+            self.sm_count = int(self._device.attributes["MultiProcessorCount"])
+        except cp.cuda.runtime.CUDARuntimeError as err:
+            raise BackendError(f"cannot read the CUDA device's attributes: {err}") from None
+        self.plan: DisparityPlan = plan_disparity(self.width_px, self.height_px, st.num_disparities, st.block_size_px)
+        self.sgm_plan: SgmPlan | None = None
+        if self.matcher == "sgm":
+            self.sgm_plan = plan_sgm(self.width_px, self.height_px, st.num_disparities, st.sgm_paths,
+                                     self.layout.row_edges, cfg.gpu.sgm_lanes_per_line, cfg.gpu.sgm_prefetch_steps,
+                                     self.sm_count)
+        self.disparity_scale = 16 if self.matcher == "sgm" else 1
+        self.obstacle_layout: ObstacleLayout | None = (
+            obstacle_layout(self.geometry, st.num_disparities, cfg.obstacle_distance)
+            if cfg.obstacle_distance.send != "off"
+            else None
+        )
+        self._identity = bool(rectifier.is_identity)
         try:
             with self._device:
                 self.device_name = cp.cuda.runtime.getDeviceProperties(self._device.id)["name"].decode()
@@ -237,8 +242,6 @@ class CupyRegionEstimator:
             self._od_counts = cp.zeros(N_BINS * 4, dtype=cp.uint32)
             self._od_grid = (N_BINS, obstacle_slices(h))
 
-        attrs = self._device.attributes
-        self.sm_count = int(attrs["MultiProcessorCount"])
         if p.fast:
             blocks_per_sm = cp.cuda.driver.occupancyMaxActiveBlocksPerMultiprocessor(
                 self._k_fast[False].kernel.ptr, p.nt, 0
@@ -330,9 +333,14 @@ class CupyRegionEstimator:
         self._pool: FramePool | None = None
         self._pool_mem: list[Any] = []
         self._in_place_ptrs: dict[int, int] = {int(self._host_frame_mem.ptr): self._frame_dev_ptr}
+        self._frame_shapes = {self.frame_buffer(c).shape: c for c in (1, 3, 4)}  # shape -> channels
         self._kernel_frame_ptr = self._frame_dev_ptr  # where this frame's kernels read it
         self._graphs: dict[tuple[int, int, bool, bool, int], Any] = {}
         self._graph_ok = bool(self._gpu_cfg.use_cuda_graph) and not self._gpu_cfg.stage_timing
+        # a frame read in place (no host copy): one graph for the whole frame (_frame_graph)
+        self._frame_graphs: dict[tuple[int, bool, bool, int, int], Any] = {}
+        self._frame_graph_ok = self._graph_ok
+        self._fork_event = cp.cuda.Event(disable_timing=True)
         self._events = [cp.cuda.Event() for _ in range(5)] if self._gpu_cfg.stage_timing else []
         n_threads = self._gpu_cfg.host_copy_threads
         self._crew = _CopyCrew(n_threads, self._device.id) if n_threads > 1 else None
@@ -480,11 +488,15 @@ class CupyRegionEstimator:
             BackendError: a CUDA error.
         """
         t0 = self._clock()
-        left, right = split_frame(frame, self.width_px, self.height_px)
-        channels = 1 if frame.ndim == 2 else int(frame.shape[2])
+        in_place = self._in_place(frame)
+        if in_place is None:
+            split_frame(frame, self.width_px, self.height_px)  # the checks; the eyes are split on the device
+            channels = 1 if frame.ndim == 2 else int(frame.shape[2])
+        else:  # one of this estimator's pinned buffers, as one: shape and dtype are right by construction
+            channels = in_place[0]
         timings: dict[str, float] = {}
         try:
-            return self._estimate(frame, channels, want_disparity, near_block_px, t0, timings)
+            return self._estimate(frame, channels, in_place, want_disparity, near_block_px, t0, timings)
         finally:
             if self._registered:  # an error left the caller's frame page-locked: wait, then unlock
                 try:
@@ -499,6 +511,7 @@ class CupyRegionEstimator:
         self,
         frame: np.ndarray,
         channels: int,
+        in_place: tuple[int, int] | None,
         want_disparity: bool,
         near_block_px: int,
         t0: float,
@@ -511,18 +524,24 @@ class CupyRegionEstimator:
         comp = self._stream
         try:
             with self._device:
-                src = self._source(frame, channels)
+                src = self._source(frame, channels, in_place)
                 self._kernel_frame_ptr = src.kernel_ptr
                 ev = self._events
-                for k, band in enumerate(self._bands):
-                    self._upload_band(src, band, self._band_events[k])
-                    comp.wait_event(self._band_events[k])
-                    if ev:
-                        self._enqueue_band(k, channels, src.swapped, want_device_disparity, events=ev)
-                    elif self._graph_ok:
-                        self._graph(k, channels, src.swapped, want_device_disparity).launch(comp)
-                    else:
-                        self._enqueue_band(k, channels, src.swapped, want_device_disparity)
+                frame_graph = None
+                if self._frame_graph_ok and src.copy is None and not self._registered:
+                    frame_graph = self._frame_graph(src, channels, want_device_disparity)
+                if frame_graph is not None:
+                    frame_graph.launch(comp)
+                else:
+                    for k, band in enumerate(self._bands):
+                        self._upload_band(src, band, self._band_events[k])
+                        comp.wait_event(self._band_events[k])
+                        if ev:
+                            self._enqueue_band(k, channels, src.swapped, want_device_disparity, events=ev)
+                        elif self._graph_ok:
+                            self._graph(k, channels, src.swapped, want_device_disparity).launch(comp)
+                        else:
+                            self._enqueue_band(k, channels, src.swapped, want_device_disparity)
                 t1 = clock()
                 try:
                     comp.synchronize()
@@ -592,18 +611,26 @@ class CupyRegionEstimator:
     # ----------------------------------------------------------------------------------------------
     # per-frame internals
 
-    def _source(self, frame: np.ndarray, channels: int) -> _Source:
-        """How this frame reaches the device: host copy function, DMA source, channel order."""
+    def _in_place(self, frame: Any) -> tuple[int, int] | None:
+        """``(channels, where the kernels read it)`` for a frame written into :meth:`frame_buffer` or
+        decoded into a :meth:`frame_pool` buffer, as a whole C-contiguous uint8 frame; else None."""
+        if type(frame) is not np.ndarray:
+            return None
+        kernel_ptr = self._in_place_ptrs.get(frame.ctypes.data)
+        if kernel_ptr is None or not frame.flags.c_contiguous or frame.dtype != np.uint8:
+            return None
+        channels = self._frame_shapes.get(frame.shape)
+        return None if channels is None else (channels, kernel_ptr)
+
+    def _source(self, frame: np.ndarray, channels: int, in_place: tuple[int, int] | None) -> _Source:
+        """How this frame reaches the device: host copy function, DMA source, channel order
+        (``in_place``: :meth:`_in_place`'s answer for it)."""
+        zero_copy = self._dev_frame is None
+        if in_place is not None:
+            # written into frame_buffer() or decoded into a frame_pool() buffer: DMA (zero copy: read) it there
+            return _Source(frame, frame, None, frame.ctypes.data, False, zero_copy, in_place[1])
         staging = self.frame_buffer(channels)
         host_ptr = self._host_frame_mem.ptr
-        zero_copy = self._dev_frame is None
-        ptr = frame.__array_interface__["data"][0]
-        in_place = None
-        if frame.shape == staging.shape and frame.dtype == np.uint8 and frame.flags.c_contiguous:
-            # written into frame_buffer() or decoded into a frame_pool() buffer: DMA (zero copy: read) it there
-            in_place = self._in_place_ptrs.get(ptr)
-        if in_place is not None:
-            return _Source(frame, staging, None, ptr, False, zero_copy, in_place)
         if (
             self._gpu_cfg.register_frames
             and not zero_copy
@@ -688,6 +715,36 @@ class CupyRegionEstimator:
                 self._graph_ok = False
                 return _Direct(self, k, channels, swapped, want_disparity)
             self._graphs[key] = graph
+        return graph
+
+    def _frame_graph(self, src: _Source, channels: int, want_disparity: bool) -> Any | None:
+        """One CUDA graph for a whole frame read in place from a pinned buffer (the staging buffer, a
+        pool buffer): every band's DMA on the copy stream's branch, every band's kernels on the compute
+        branch after its DMA, as the per-band path queues them, so band k's kernels still overlap band
+        k+1's DMA; one launch per frame instead of a copy, an event, a wait and a launch per band.
+        Captured on first use per (buffer, channels, order, disparity); None where capture fails (the
+        per-band path then runs, from then on)."""
+        key = (channels, src.swapped, want_disparity, src.dma_ptr, src.kernel_ptr)
+        graph = self._frame_graphs.get(key)
+        if graph is not None:
+            return graph
+        s, cs = self._stream, self._copy_stream
+        try:
+            s.begin_capture()
+            try:
+                self._fork_event.record(s)  # the copy stream joins the capture here
+                cs.wait_event(self._fork_event)
+                for k, band in enumerate(self._bands):
+                    self._upload_band(src, band, self._band_events[k])
+                    s.wait_event(self._band_events[k])
+                    self._enqueue_band(k, channels, src.swapped, want_disparity)
+            finally:
+                graph = s.end_capture()
+        except Exception as err:  # capture of two streams unsupported here: per-band launches from now on
+            log.warning("CUDA graph capture of a whole frame failed (%s); launching per band", err)
+            self._frame_graph_ok = False
+            return None
+        self._frame_graphs[key] = graph
         return graph
 
     def _enqueue_band(
@@ -810,6 +867,7 @@ class CupyRegionEstimator:
     def _recover(self) -> None:
         """After a CUDA error: forget graphs and zero the histogram state a half-run kernel left."""
         self._graphs.clear()
+        self._frame_graphs.clear()
         try:
             with self._device:
                 self._copy_stream.synchronize()

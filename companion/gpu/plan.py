@@ -23,6 +23,7 @@ a multiple of 4; otherwise the plan falls back to the simple exact kernel ``sad_
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
@@ -306,6 +307,8 @@ SGM_CENSUS_TILE = (32, 8)
 SGM_CENSUS_ROWS_PER_THREAD = 4
 #: Rows above and below a pixel that its 9×7 census reads (``CEN_HH`` in sgm.cu).
 SGM_CENSUS_HALF_HEIGHT = 3
+#: ``sgm_paths`` loads 4 steps ahead below this many warps per SM (:func:`plan_sgm`).
+SGM_PREFETCH_WARPS_PER_SM = 16
 
 
 @dataclass(frozen=True)
@@ -323,6 +326,8 @@ class SgmPlan:
         slab_rows: rows of one post-processing block (``<= 65535 / W``: 16-bit shared counters; its
             shared memory, the checked rows and the histogram, within 48 KB).
         slabs: post-processing blocks in each of the three region row bands.
+        prefetch_steps: steps between a step's census loads and its path recurrence in ``sgm_paths``
+            (``SGM_PF``: 2 or 4; the same results).
     """
 
     width_px: int
@@ -335,6 +340,7 @@ class SgmPlan:
     nbins: int
     slab_rows: int
     slabs: tuple[int, int, int]
+    prefetch_steps: int = 2
 
     @property
     def dpad(self) -> int:
@@ -409,13 +415,19 @@ def _sgm_post_smem(nbins: int, slab_rows: int, width_px: int) -> int:
 
 
 def plan_sgm(width_px: int, height_px: int, num_disparities: int, paths: int, row_edges: Sequence[int],
-             lanes_per_line: int = 0) -> SgmPlan:
+             lanes_per_line: int = 0, prefetch_steps: int = 0, sm_count: int = 0) -> SgmPlan:
     """The SGM kernels' shape for one eye size, disparity count and path count.
 
     ``lanes_per_line`` 0 picks ``min(32, DPAD/4)`` lanes, ``DPAD`` the power of two >= D (at least 16),
     each with ``DPAD / (4·lanes)`` groups of 4 disparities (64 disparities: 16 lanes of 1 group; 128: 32
     of 1; 256: 32 of 2): the layouts verified bit-exact on the device. 16 lanes of 2 groups at 128
     disparities measured 12 % faster kernels on an H100 (``gpu.sgm_lanes_per_line = 16``; docs/gpu_notes.md).
+
+    ``prefetch_steps`` 0 (``gpu.sgm_prefetch_steps``) picks 4 where ``sgm_paths`` has fewer than
+    :data:`SGM_PREFETCH_WARPS_PER_SM` warps per SM of a GPU with ``sm_count`` SMs (too few warps per
+    scheduler to hide the census loads' latency: 672×376/64 on an H100, 8 warps per SM, measured 0.163 →
+    0.142 ms), else 2 (more registers only cost occupancy there: 1280×720/128, 30 warps per SM, measured
+    0.460 → 0.507 ms with 4); 2 when ``sm_count`` is 0 (unknown).
 
     Raises:
         ValueError: a parameter the reference would also reject, or a shape that does not fit.
@@ -448,7 +460,17 @@ def plan_sgm(width_px: int, height_px: int, num_disparities: int, paths: int, ro
     bands = [int(row_edges[1]) - int(row_edges[0]), int(row_edges[2]) - int(row_edges[1]),
              int(row_edges[3]) - int(row_edges[2])]
     slabs = tuple(-(-b // slab) for b in bands)
-    return SgmPlan(w, h, D, int(paths), lpl, wpl, 64, nbins, slab, slabs)  # type: ignore[arg-type]
+    # sgm_wta's runs: 32 px with 4 paths (H100: 0.219 -> 0.211 ms at 1280x720/128, 0.049 -> 0.044 at
+    # 672x376/64), 64 with 8 (0.368 -> 0.365); every length gives the same results
+    run = 32 if paths == 4 else 64
+    plan = SgmPlan(w, h, D, int(paths), lpl, wpl, run, nbins, slab, slabs)  # type: ignore[arg-type]
+    pf = int(prefetch_steps)
+    if pf == 0:
+        few_warps = 0 < plan.path_tasks < SGM_PREFETCH_WARPS_PER_SM * int(sm_count)
+        pf = 4 if few_warps else 2
+    if pf not in (2, 4):
+        raise ValueError(f"prefetch_steps must be 0, 2 or 4, got {prefetch_steps}")
+    return dataclasses.replace(plan, prefetch_steps=pf)
 
 
 def sgm_defines(plan: SgmPlan, pitch_bytes: int, row_edges: Sequence[int], col_edges: Sequence[int]) -> str:
@@ -461,6 +483,7 @@ def sgm_defines(plan: SgmPlan, pitch_bytes: int, row_edges: Sequence[int], col_e
         "LPL": plan.lanes_per_line,
         "WPL": plan.words_per_lane,
         "NPATHS": plan.paths,
+        "SGM_PF": plan.prefetch_steps,
         "RUN": plan.run_px,
         "CT_W": SGM_CENSUS_TILE[0],
         "CT_H": SGM_CENSUS_TILE[1],

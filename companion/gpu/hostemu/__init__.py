@@ -188,11 +188,13 @@ class HostSgmKernels:
         paths: 4 or 8.
         row_edges, col_edges: the region layout's edges (4 ints each).
         lanes_per_line: force the lane layout (0: the plan's choice).
+        prefetch_steps: force ``sgm_paths``' load distance (0: the plan's choice).
     """
 
     def __init__(self, width_px: int, height_px: int, num_disparities: int, paths: int, row_edges: Any,
-                 col_edges: Any, lanes_per_line: int = 0):
-        self.plan = p = plan_sgm(width_px, height_px, num_disparities, paths, row_edges, lanes_per_line)
+                 col_edges: Any, lanes_per_line: int = 0, prefetch_steps: int = 0):
+        self.plan = p = plan_sgm(width_px, height_px, num_disparities, paths, row_edges, lanes_per_line,
+                                 prefetch_steps)
         self.pitch = -(-(width_px + 16) // 16) * 16
         src = sgm_defines(p, self.pitch, row_edges, col_edges) + _SGM_KERNEL.read_text(encoding="utf-8")
         self._lib = _build(src, "harness_sgm.cpp")

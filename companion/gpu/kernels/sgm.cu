@@ -48,6 +48,9 @@ typedef unsigned long long u64;
 // d < DPAD without a bounds test: those disparities are excluded and their costs unused. CEN_STR is even
 // (a row starts 16-byte aligned) with room for the shifted copy's last column.
 #define CEN_PAD DPAD
+#ifndef SGM_PF
+#define SGM_PF 2  // sgm_paths: steps between a step's census loads and its recurrence (2 or 4; plan.py)
+#endif
 #define CEN_STR ((IMG_W + CEN_PAD + 2) / 2 * 2)
 #define CEN_IMG ((size_t)IMG_H * CEN_STR)
 
@@ -243,8 +246,8 @@ __device__ __forceinline__ void pixel_costs(u64 cL, const u64 (&win)[WPL][4], in
   }
 }
 
-// One step's loads, issued two steps ahead of the recurrence: the left census of the step's pixel and, per
-// group, the right census values it does not hold yet (a horizontal walk slides a window of four and
+// One step's loads, issued SGM_PF steps ahead of the recurrence: the left census of the step's pixel and,
+// per group, the right census values it does not hold yet (a horizontal walk slides a window of four and
 // needs one new value per group; the other walks need all four).
 template <int DX, int DY>
 struct StepLoads {
@@ -293,14 +296,17 @@ __device__ __forceinline__ void load_step(const u64* __restrict__ p, int d0, Ste
 // Why it is written this way (sgm_paths is issue-bound: every instruction per step counts): the census
 // pointer advances by a constant per step (clamped at the line's last pixel, so that the loads of inactive
 // steps stay inside the image) and the loads use constant offsets from it, with no bounds tests (the
-// padding); the loop is unrolled by UNR so that the two load buffers alternate and, on horizontal walks,
-// the window of four right census values rotates by name instead of by moves. The census loads of step t
-// are issued at step t - 2 and its costs computed at step t - 1, so the recurrence (the only loop-carried
-// chain) does not wait for memory.
+// padding); the loop is unrolled by UNR so that the ring of load buffers rotates by name and, on horizontal
+// walks, the window of four right census values too, instead of by moves. The census loads of step t are
+// issued at step t - SGM_PF (2, or 4 where few warps per scheduler leave the loads' latency exposed:
+// plan.py) and its costs computed at step t - 1, so the recurrence (the only loop-carried chain) does not
+// wait for memory.
 template <int DX, int DY>
 __device__ void walk_line(const u64* __restrict__ cen, u8* __restrict__ vol, int x0, int y0, int len, int steps,
                           u32 p1x2, u32 p2) {
-  constexpr int UNR = DY == 0 ? 4 : 2;
+  // UNR is a multiple of SGM_PF (the load ring's slot of step s is then s % SGM_PF, known at compile time)
+  // and, on rows, of 4 (the window ring)
+  constexpr int UNR = DY == 0 ? (SGM_PF > 4 ? SGM_PF : 4) : (SGM_PF > 2 ? SGM_PF : 2);
   constexpr long CSTEP = (long)DY * CEN_STR + DX;           // census elements per step
   constexpr long VSTEP = ((long)DY * IMG_W + DX) * DPAD;    // volume bytes per step
   const int li = (int)(threadIdx.x & 31) % LPL;
@@ -335,15 +341,19 @@ __device__ void walk_line(const u64* __restrict__ cen, u8* __restrict__ vol, int
     ++t_load;
   };
   advance();
-  StepLoads<DX, DY> buf[2];
-  load_step<DX, DY>(p, d0, buf[1]);  // step 1
-  advance();
+  // a ring of SGM_PF steps' loads: step t's in slot t % SGM_PF
+  StepLoads<DX, DY> buf[SGM_PF];
+#pragma unroll
+  for (int i = 1; i < SGM_PF; ++i) {
+    load_step<DX, DY>(p, d0, buf[i]);  // steps 1 .. SGM_PF - 1
+    advance();
+  }
   const int total = (steps + UNR - 1) / UNR * UNR;
   for (int s0 = 0; s0 < total; s0 += UNR) {
 #pragma unroll
     for (int q = 0; q < UNR; ++q) {
       const int s = s0 + q;
-      load_step<DX, DY>(p, d0, buf[q & 1]);  // step s + 2
+      load_step<DX, DY>(p, d0, buf[q % SGM_PF]);  // step s + SGM_PF
       advance();
       path_step(L, cA, cB, xA, xB, p1x2, p2);
       if (s < len) {
@@ -351,8 +361,8 @@ __device__ void walk_line(const u64* __restrict__ cen, u8* __restrict__ vol, int
         for (int w = 0; w < WPL; ++w) dst[LPL * w] = __byte_perm(L.A[w], L.B[w], 0x6420);
       }
       dst = (u32*)((u8*)dst + VSTEP);
-      // the costs of step s + 1 (its loads are in buf[(q + 1) & 1])
-      const StepLoads<DX, DY>& nx = buf[(q + 1) & 1];
+      // the costs of step s + 1 (its loads are in buf[(q + 1) % SGM_PF])
+      const StepLoads<DX, DY>& nx = buf[(q + 1) % SGM_PF];
       u64 cur[WPL][4];
 #pragma unroll
       for (int w = 0; w < WPL; ++w) {
