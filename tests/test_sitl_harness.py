@@ -12,7 +12,8 @@ from companion.config import load_config, parse_config
 from companion.config.document import render_config_toml
 from companion.sim.courses import make_course
 from companion.sim.placement import CoursePlacement
-from companion.sitl.flight import sitl_config
+from companion.config import apply_patch
+from companion.sitl.flight import placement_patch, sitl_config
 from companion.sitl.px4 import PX4_BUILD_ENV, Px4Ports, SitlError, find_px4_build
 
 
@@ -179,3 +180,22 @@ def test_the_service_config_accepts_every_course_the_harness_flies() -> None:
 
     allowed = set(typing.get_args(CameraConfig.model_fields["sim_course"].annotation))
     assert set(COURSE_KINDS) | {"head-on", "wall"} <= allowed
+
+
+def test_the_floor_moves_with_the_course_ground() -> None:
+    """The course's ground lies where the hover put it, not at PX4's take-off point: the placement
+    patch keeps the user's floor at its height over the ground the camera sees and the judge scores."""
+    user = parse_config({"command": {"min_altitude_m": 0.5}})
+    course = make_course("office", 0)
+    # hovering 0.17 m above the course's start altitude: the course's ground is 0.17 m above the origin
+    above = CoursePlacement((1.0, 2.0, -0.17), 0.3)
+    patch = placement_patch(user, above)
+    assert patch["command"]["min_altitude_m"] == pytest.approx(0.67)
+    placed = apply_patch(sitl_config(user, course, above, "udpin://127.0.0.1:14541", Path("/tmp")), patch)
+    assert placed.camera.sim_origin_down_m == -0.17
+    assert placed.command.min_altitude_m == pytest.approx(0.67)
+    # below the start altitude: the floor comes down with the ground, never to 0 (off)
+    assert placement_patch(user, CoursePlacement((0.0, 0.0, 0.2), 0.0))["command"]["min_altitude_m"] == pytest.approx(0.3)
+    assert placement_patch(user, CoursePlacement((0.0, 0.0, 0.9), 0.0))["command"]["min_altitude_m"] == 0.01
+    off = parse_config({"command": {"min_altitude_m": 0.0}})
+    assert placement_patch(off, above)["command"]["min_altitude_m"] == 0.0

@@ -247,11 +247,30 @@ async def start_and_place(service: ServiceProcess, pilot: Pilot, course: Course)
     return await place_course(service, pilot, course)
 
 
+def placement_patch(cfg: CompanionConfig, placement: CoursePlacement) -> dict[str, dict[str, float]]:
+    """The live ``set_config`` patch that puts the service's course at ``placement``: the camera's
+    ``sim_origin_*``, and the floor (``command.min_altitude_m`` of ``cfg``, the user's) moved to the
+    same height over the course's ground as the user set over the take-off point.
+
+    The course's ground lies ``placement.origin_ned_m[2]`` metres below the autopilot's local origin
+    (:func:`placement_at`: wherever the hover put it, 0.17 m *above* PX4's take-off ground in one
+    flight), and the rendered floor and the judge's are the course's. Left at the take-off point, a
+    0.5 m floor stood 0.33 m over that ground, 0.08 m over the collision sphere: PX4's lag carried an
+    office flight that far below it (PX4 SITL, 2026-11-25). 0 (off) stays off.
+    """
+    floor = cfg.command.min_altitude_m
+    if floor > 0.0:
+        # over the local origin; at least 1 cm, since 0 would turn the floor off
+        floor = max(0.01, floor - float(placement.origin_ned_m[2]))
+    return {"camera": placement_fields(placement), "command": {"min_altitude_m": floor}}
+
+
 async def place_course(service: ServiceProcess, pilot: Pilot, course: Course) -> CoursePlacement:
-    """Step 3 alone: wait for a steady hover and move the running service's course under the vehicle."""
+    """Step 3 alone: wait for a steady hover and move the running service's course (and its floor:
+    :func:`placement_patch`) under the vehicle."""
     await pilot.wait_steady(1.0)
     placement = placement_at(pilot, course)
-    await service.request({"cmd": "set_config", "patch": {"camera": placement_fields(placement)}})
+    await service.request({"cmd": "set_config", "patch": placement_patch(service.cfg, placement)})
     return placement
 
 
