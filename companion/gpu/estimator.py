@@ -511,7 +511,7 @@ class CupyRegionEstimator:
         self,
         frame: np.ndarray,
         channels: int,
-        in_place: tuple[int, int] | None,
+        in_place: tuple[int, int, int] | None,
         want_disparity: bool,
         near_block_px: int,
         t0: float,
@@ -611,24 +611,26 @@ class CupyRegionEstimator:
     # ----------------------------------------------------------------------------------------------
     # per-frame internals
 
-    def _in_place(self, frame: Any) -> tuple[int, int] | None:
-        """``(channels, where the kernels read it)`` for a frame written into :meth:`frame_buffer` or
-        decoded into a :meth:`frame_pool` buffer, as a whole C-contiguous uint8 frame; else None."""
+    def _in_place(self, frame: Any) -> tuple[int, int, int] | None:
+        """``(channels, host pointer, where the kernels read it)`` for a frame written into
+        :meth:`frame_buffer` or decoded into a :meth:`frame_pool` buffer, as a whole C-contiguous uint8
+        frame; else None."""
         if type(frame) is not np.ndarray:
             return None
-        kernel_ptr = self._in_place_ptrs.get(frame.ctypes.data)
+        ptr = frame.ctypes.data
+        kernel_ptr = self._in_place_ptrs.get(ptr)
         if kernel_ptr is None or not frame.flags.c_contiguous or frame.dtype != np.uint8:
             return None
         channels = self._frame_shapes.get(frame.shape)
-        return None if channels is None else (channels, kernel_ptr)
+        return None if channels is None else (channels, ptr, kernel_ptr)
 
-    def _source(self, frame: np.ndarray, channels: int, in_place: tuple[int, int] | None) -> _Source:
+    def _source(self, frame: np.ndarray, channels: int, in_place: tuple[int, int, int] | None) -> _Source:
         """How this frame reaches the device: host copy function, DMA source, channel order
         (``in_place``: :meth:`_in_place`'s answer for it)."""
         zero_copy = self._dev_frame is None
         if in_place is not None:
             # written into frame_buffer() or decoded into a frame_pool() buffer: DMA (zero copy: read) it there
-            return _Source(frame, frame, None, frame.ctypes.data, False, zero_copy, in_place[1])
+            return _Source(frame, frame, None, in_place[1], False, zero_copy, in_place[2])
         staging = self.frame_buffer(channels)
         host_ptr = self._host_frame_mem.ptr
         if (
