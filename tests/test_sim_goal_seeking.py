@@ -190,6 +190,26 @@ def test_lateral_line_hold_flies_sideways_toward_the_line() -> None:
                         line_offset_m=0.4, clear_for_s=5.0).right_m_s == 0.0
 
 
+def test_lateral_line_hold_waits_for_the_turn_toward_its_aim() -> None:
+    """Sliding toward a side while still turning toward it would carry the body into what the camera
+    has not seen yet (PX4 SITL forest-4): the sideways speed tapers to 0 at the aim error's limit."""
+    cmd = CommandConfig(heading_hold_gain_per_s=0.8, line_hold_gain_per_m=0.0, line_hold_lateral_gain_per_s=1.0,
+                        max_line_hold_lateral_speed_m_s=0.3, hold_resume_delay_s=1.0,
+                        line_hold_lateral_max_aim_error_deg=15.0)
+    facing = setpoint_for(CLEAR, 0.1, cmd, heading_error_rad=0.0, line_offset_m=-4.0, clear_for_s=5.0)
+    assert facing.right_m_s == pytest.approx(-0.3)
+    # the course lies 30 deg left: turning left at full rate, no slide left yet
+    turning = setpoint_for(CLEAR, 0.1, cmd, heading_error_rad=math.radians(-30.0), line_offset_m=-4.0, clear_for_s=5.0)
+    assert turning.yaw_rate_deg_s < 0.0 and turning.right_m_s == 0.0
+    # 7.5 deg from the aim: half the slide (times the heading error's cosine)
+    near = setpoint_for(CLEAR, 0.1, cmd, heading_error_rad=math.radians(-7.5), line_offset_m=-4.0, clear_for_s=5.0)
+    assert near.right_m_s == pytest.approx(-0.3 * 0.5 * math.cos(math.radians(7.5)))
+    # 180: no taper (the slide as before)
+    old = cmd.model_copy(update={"line_hold_lateral_max_aim_error_deg": 180.0})
+    assert setpoint_for(CLEAR, 0.1, old, heading_error_rad=math.radians(-30.0), line_offset_m=-4.0,
+                        clear_for_s=5.0).right_m_s == pytest.approx(-0.3 * math.cos(math.radians(30.0)))
+
+
 def test_altitude_hold_waits_for_a_distance_flown_as_well_as_a_time() -> None:
     cmd = CommandConfig(heading_hold_gain_per_s=1.0, altitude_hold_gain_per_s=0.5, hold_resume_delay_s=1.0,
                         hold_resume_distance_m=1.5)

@@ -223,6 +223,11 @@ def _line_hold_right_m_s(
     # Toward the line is the body's right only while facing along the course: scale by the cosine of
     # the heading error (0 when crossing the line at right angles, reversed when facing back).
     right = min(limit, max(-limit, cmd.line_hold_lateral_gain_per_s * line_offset)) * math.cos(heading_error_rad)
+    aim = _aim_error_rad(heading_error_rad, line_offset, cmd)
+    taper = cmd.line_hold_lateral_max_aim_error_deg
+    if aim is not None and taper < 180.0:
+        # still turning toward the aim: the body would slide into what the camera has not seen yet
+        right *= max(0.0, 1.0 - abs(math.degrees(aim)) / taper)
     side = "right" if right > 0 else "left"
     if right != 0.0 and not _side_open(region_depths_m, side, cmd.line_hold_lateral_clear_depth_m, remembered):
         return 0.0
@@ -439,7 +444,8 @@ def setpoint_for(
       ``cmd.line_hold_lateral_gain_per_s`` > 0 the vehicle also flies sideways toward it at
       ``clip(gain · offset, ±max_line_hold_lateral_speed_m_s) · cos(heading error)`` m/s (right
       positive; needs ``heading_error_rad``; only toward a side region at least
-      ``cmd.line_hold_lateral_clear_depth_m`` deep), scaled by ``1 - |yaw|``;
+      ``cmd.line_hold_lateral_clear_depth_m`` deep), tapered to 0 as the heading aimed at lies
+      ``cmd.line_hold_lateral_max_aim_error_deg`` from the heading now, and scaled by ``1 - |yaw|``;
     * ``altitude_error_m`` (altitude at engagement minus altitude now, metres, positive = climb):
       adds ``clip(-altitude_hold_gain_per_s · error, ±max_altitude_hold_speed_m_s)`` m/s of down
       speed, scaled by ``1 - |pitch|``; a descent does not wait (for ``clear_for_s`` or
