@@ -117,8 +117,9 @@ class GpuConfig(StrictModel):
         default=0,
         description=(
             "SGM path kernel: steps between a pixel's census loads and its path costs (more hides more "
-            "memory latency, at the price of registers); 0 = the plan's choice (2). A tuning knob, not a "
-            "behaviour: every setting gives the same results."
+            "memory latency, at the price of registers); 0 = the plan's choice: 4 where the kernel has "
+            "fewer than 16 warps per SM of the GPU, else 2. A tuning knob, not a behaviour: every "
+            "setting gives the same results."
         ),
     )
     stage_timing: bool = Field(
