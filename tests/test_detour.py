@@ -588,3 +588,34 @@ def test_free_lengths_from_pairs_equal_the_full_computation_bit_for_bit(goal_deg
     al, ac = _rays(pts[:, 0], pts[:, 1], fan)
     (got,) = free_lengths_m(pts[:, 0], pts[:, 1], fan, goal + 0.3 - step, step, 0, (0.55,))
     assert np.array_equal(got, free_length_m(al, ac, 0.55))
+
+
+def test_a_detour_flies_back_to_the_engaged_altitude_on_clear_decisions() -> None:
+    # PX4 SITL doorway-1: a detour flew on 0.35 m above the engaged altitude, where the controller's
+    # last climb had left it; the door's lintel then lay within the memory's height band, the door
+    # was closed on the map, and the detour flew past it along the wall.
+    from companion.core.command import detour_setpoint
+    from companion.core.types import REGION_INDEX
+
+    start = np.array([0.0, 0.0, -1.5])
+    east = math.pi / 2
+    command = DetourCommand(Phase.FLY, east, None, "round the right")
+    hold = CourseHold()
+    hold.engage(start, 0.0)
+    hold._plan = lambda *args, **kwargs: command  # the planner's answer, fixed
+    low = np.array([0.0, 0.5, -1.2])  # 0.3 m below the engaged altitude
+    sp = hold.setpoint(CLEAR, 1.0, 0.0, CMD, position_ned_m=low, yaw_rad=east, detour_cfg=DET)
+    assert sp.down_m_s == pytest.approx(-min(CMD.max_altitude_hold_speed_m_s, 0.3 * CMD.altitude_hold_gain_per_s))
+    assert sp.forward_m_s > 0.0  # still flying the detour
+    # without the course's altitude (the detour's setpoint alone): level, as before
+    assert detour_setpoint(command, CLEAR, 0.0, CMD, DET, position_ned_m=low, yaw_rad=east).down_m_s == 0.0
+    # the up region reading near: no climb back (the hold climbs only toward an open side)
+    depths = np.full(9, 5.0)
+    depths[REGION_INDEX["up"]] = 0.5 * CMD.hold_clear_depth_m
+    sp = hold.setpoint(CLEAR, 1.05, 0.0, CMD, position_ned_m=low, yaw_rad=east, region_depths_m=depths, detour_cfg=DET)
+    assert sp.down_m_s == 0.0
+    # turning in place holds where the turn began, height included, whatever the course's altitude
+    turning = DetourCommand(Phase.FLY, east, low.copy(), "turning toward the detour")
+    hold._plan = lambda *args, **kwargs: turning
+    sp = hold.setpoint(CLEAR, 1.1, 0.0, CMD, position_ned_m=low, yaw_rad=0.0, detour_cfg=DET)
+    assert sp.down_m_s == 0.0 and sp.yaw_rate_deg_s > 0.0

@@ -268,6 +268,26 @@ def _altitude_return_m_s(
     return 0.0
 
 
+def _clear_altitude_return_m_s(
+    altitude_error_m: float | None,
+    region_depths_m: np.ndarray | None,
+    pitch: float,
+    below_clear: bool | None,
+    clear_for_s: float | None,
+    clear_for_m: float | None,
+    cmd: CommandConfig,
+) -> float:
+    """The altitude hold's down speed (m/s, + down) on a CLEAR decision of pitch ``pitch`` (in
+    [-1, 1]), scaled by ``1 - |pitch|``: all of :func:`_altitude_return_m_s` once the decisions have
+    been straight and CLEAR for ``cmd.hold_resume_delay_s`` (``clear_for_s``) and
+    ``cmd.hold_resume_distance_m`` (``clear_for_m``; None = no wait), before that only its climb back
+    or its descent over nothing remembered (:func:`setpoint_for`)."""
+    waited = (clear_for_s is None or clear_for_s >= cmd.hold_resume_delay_s) and (
+        clear_for_m is None or clear_for_m >= cmd.hold_resume_distance_m
+    )
+    return (1.0 - abs(pitch)) * _altitude_return_m_s(altitude_error_m, region_depths_m, pitch, below_clear, cmd, waited=waited)
+
+
 def horizontal_distance_m(a_ned_m: np.ndarray | None, b_ned_m: np.ndarray | None) -> float | None:
     """Horizontal distance between two NED positions (float ``(3,)`` metres), metres; None when
     either is missing or the distance is not finite."""
@@ -517,11 +537,8 @@ def setpoint_for(
             line_offset_m, heading_error_rad, region_depths_m, cmd, remembered_sides
         )
     if clear and not turning_back:
-        altitude_waited = (clear_for_s is None or clear_for_s >= cmd.hold_resume_delay_s) and (
-            clear_for_m is None or clear_for_m >= cmd.hold_resume_distance_m
-        )
-        down_m_s += (1.0 - abs(pitch)) * _altitude_return_m_s(
-            altitude_error_m, region_depths_m, pitch, below_clear, cmd, waited=altitude_waited
+        down_m_s += _clear_altitude_return_m_s(
+            altitude_error_m, region_depths_m, pitch, below_clear, clear_for_s, clear_for_m, cmd
         )
     elif decision.kind is DecisionKind.AVOID and cmd.altitude_hold_on_avoid:
         # Steering round something, the vehicle still goes back to its altitude where that does not
@@ -700,6 +717,11 @@ def detour_setpoint(
     velocity_body_m_s: tuple[float, float] | None = None,
     region_depths_m: np.ndarray | None = None,
     turn_sign: float = 0.0,
+    altitude_error_m: float | None = None,
+    below_clear: bool | None = None,
+    clear_for_s: float | None = None,
+    clear_for_m: float | None = None,
+    since_up_near_m: float | None = None,
 ) -> VelocitySetpoint:
     """The setpoint while the detour layer acts (:class:`~companion.core.detour.DetourCommand`).
 
@@ -720,7 +742,12 @@ def detour_setpoint(
       yaw, pitch and slowing) with its forward speed scaled by ``min(1, speed_m_s / cruise_speed_m_s)
       · max(0, cos(heading error))`` (never faster, never sideways or up or down beyond it), and a yaw
       rate toward the direction of ``clip(heading_hold_gain_per_s · error, ±turn_rate_deg_s)``,
-      scaled by ``1 - |yaw|`` (the controller's own turn comes first).
+      scaled by ``1 - |yaw|`` (the controller's own turn comes first). On a CLEAR decision the
+      altitude hold acts as in course hold (``altitude_error_m``, ``below_clear``, ``clear_for_s``,
+      ``clear_for_m``, ``since_up_near_m``: :func:`setpoint_for`): without it a detour flew on at
+      whatever height the controller's last climb had left (PX4 SITL doorway-1: 0.35 m up, a door's
+      lintel then within the memory's height band, the door closed on the map, and the detour flew
+      past it).
 
     ``region_depths_m`` (float ``(9,)`` metres, NaN unknown): the stand-off's push acts here too
     (:func:`standoff_push_m_s`).
@@ -763,5 +790,12 @@ def detour_setpoint(
         scale *= max(0.0, math.cos(err))
         turn = min(limit, max(-limit, math.degrees(cmd.heading_hold_gain_per_s * err)))
         rate += (1.0 - min(1.0, abs(decision.yaw))) * turn
-    sp = VelocitySetpoint(reactive.forward_m_s * scale, reactive.right_m_s, reactive.down_m_s, rate)
+    down = reactive.down_m_s
+    if decision.kind is DecisionKind.CLEAR:
+        hold = _clear_altitude_return_m_s(
+            altitude_error_m, region_depths_m, min(1.0, max(-1.0, decision.pitch)), below_clear, clear_for_s, clear_for_m, cmd
+        )
+        if not (hold < 0.0 and since_up_near_m is not None and since_up_near_m < cmd.hold_resume_distance_m):
+            down += hold  # no climb back where something was overhead, out of view now
+    sp = VelocitySetpoint(reactive.forward_m_s * scale, reactive.right_m_s, down, rate)
     return _guarded(sp, guard_m, guard_cfg, velocity_body_m_s, region_depths_m, cmd)

@@ -264,6 +264,28 @@ class CourseHold:
             command = self._plan(decision, now_s, cmd, position_ned_m, yaw, obstacles, memory_cfg, detour_cfg, prefer_right)
         if self.holding_reason is not None and decision is not None:
             decision = NO_PROGRESS_HOLD  # the goal reached, or a dead end: the brake's holds
+        altitude_error = None
+        if self.altitude_m is not None and position_ned_m is not None:
+            down = float(np.asarray(position_ned_m, dtype=np.float64)[2])
+            if math.isfinite(down):
+                altitude_error = self.altitude_m + down  # altitude then minus now; positive: climb back
+        below_clear = None
+        if (
+            altitude_error is not None
+            and altitude_error < 0.0
+            and self.altitude_m is not None
+            and position_ned_m is not None
+            and obstacles is not None
+            and memory_cfg is not None
+        ):
+            below_clear = obstacles.clear_below(position_ned_m, now_s, memory_cfg, -self.altitude_m)
+        clear_since = self._clear_since_s
+        # Not straight and CLEAR now (a CLEAR decision still turning, as the release filter lets an
+        # escape fade, included): the holds wait from zero. None here would mean "no wait", and
+        # turning back in place then fought the escape's last turn.
+        clear_for_s = 0.0 if clear_since is None else max(0.0, now_s - clear_since)
+        clear_for_m = 0.0 if clear_since is None else horizontal_distance_m(self._clear_since_ned_m, position_ned_m)
+        since_up_near = self.overhead.update(region_depths_m, position_ned_m, cmd.hold_clear_depth_m)
         if command is not None and detour_cfg is not None:
             sp = detour_setpoint(
                 command,
@@ -280,31 +302,21 @@ class CourseHold:
                 velocity_body_m_s=horizontal_velocity_body_m_s(velocity_ned_m_s, yaw),
                 region_depths_m=region_depths_m,
                 turn_sign=self._turn_sign,
+                altitude_error_m=altitude_error,
+                below_clear=below_clear,
+                clear_for_s=clear_for_s,
+                clear_for_m=clear_for_m,
+                since_up_near_m=since_up_near,
             )
             turning = command.anchor_ned_m is not None and sp.yaw_rate_deg_s != 0.0
             self._turn_sign = math.copysign(1.0, sp.yaw_rate_deg_s) if turning else 0.0
             return self._vertical_limits(sp, now_s, cmd, position_ned_m, region_depths_m, obstacles, memory_cfg)
         self._turn_sign = 0.0
-        heading_error = altitude_error = line_offset = None
+        heading_error = line_offset = None
         if self.heading_rad is not None and yaw is not None:
             heading_error = self.heading_rad - yaw  # positive: the course lies to the right
-        if self.altitude_m is not None and position_ned_m is not None:
-            down = float(np.asarray(position_ned_m, dtype=np.float64)[2])
-            if math.isfinite(down):
-                altitude_error = self.altitude_m + down  # altitude then minus now; positive: climb back
         if self.ready(position_ned_m):
             line_offset = line_offset_m(position_ned_m, self.origin_ned_m, self.heading_rad)
-        below_clear = None
-        if (
-            altitude_error is not None
-            and altitude_error < 0.0
-            and self.altitude_m is not None
-            and position_ned_m is not None
-            and obstacles is not None
-            and memory_cfg is not None
-        ):
-            below_clear = obstacles.clear_below(position_ned_m, now_s, memory_cfg, -self.altitude_m)
-        clear_since = self._clear_since_s
         heading_since = self._heading_clear_since_s
         any_since = self._any_clear_since_s
         sp = setpoint_for(
@@ -314,17 +326,14 @@ class CourseHold:
             heading_error_rad=heading_error,
             altitude_error_m=altitude_error,
             region_depths_m=region_depths_m,
-            # Not straight and CLEAR now (a CLEAR decision still turning, as the release filter lets
-            # an escape fade, included): course hold waits from zero. None here would mean "no wait",
-            # and turning back in place then fought the escape's last turn.
-            clear_for_s=0.0 if clear_since is None else max(0.0, now_s - clear_since),
-            clear_for_m=0.0 if clear_since is None else horizontal_distance_m(self._clear_since_ned_m, position_ned_m),
+            clear_for_s=clear_for_s,
+            clear_for_m=clear_for_m,
             heading_clear_for_s=0.0 if heading_since is None else max(0.0, now_s - heading_since),
             any_clear_for_s=0.0 if any_since is None else max(0.0, now_s - any_since),
             brake_offset_body_m=self.brake.offset_body(decision, position_ned_m, yaw),
             brake_heading_error_rad=self.brake.heading_error_rad(yaw),
             line_offset_m=line_offset,
-            since_up_near_m=self.overhead.update(region_depths_m, position_ned_m, cmd.hold_clear_depth_m),
+            since_up_near_m=since_up_near,
             guard_m=guard_m,
             guard_cfg=memory_cfg,
             remembered_sides=remembered_sides,
