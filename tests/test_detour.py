@@ -619,3 +619,55 @@ def test_a_detour_flies_back_to_the_engaged_altitude_on_clear_decisions() -> Non
     hold._plan = lambda *args, **kwargs: turning
     sp = hold.setpoint(CLEAR, 1.1, 0.0, CMD, position_ned_m=low, yaw_rad=0.0, detour_cfg=DET)
     assert sp.down_m_s == 0.0 and sp.yaw_rate_deg_s > 0.0
+
+
+
+def _trusted_points(points_ned_m: np.ndarray) -> ObstacleMemory:
+    """A memory holding ``points_ned_m`` (N, 3) NED metres, seen from two places 1 m apart."""
+    mem = ObstacleMemory()
+    for k, east in enumerate((-0.5, 0.5)):
+        vp = np.array([0.0, east, float(np.mean(points_ned_m[:, 2]))])
+        mem.add(points_ned_m, 0.1 * k, MEM.duration_s, ranges_m=np.full(len(points_ned_m), 2.0), viewpoint_ned_m=vp, cfg=MEM)
+    return mem
+
+
+def _at(points_ne_m: np.ndarray, altitude_m: float) -> np.ndarray:
+    return np.column_stack([points_ne_m, np.full(len(points_ne_m), -altitude_m)])
+
+
+def test_the_map_holds_what_blocks_at_the_vehicles_height_and_at_the_course_height() -> None:
+    # PX4 SITL office-2: 0.4 m above the engaged altitude at a door, its lintel (2.1 m) lay within the
+    # memory's height band, the door was closed on the map and the detour held there as a dead end.
+    # The altitude hold takes the vehicle back down: what it clears there does not block.
+    lintel = _trusted_points(_at(np.array([[2.0, 0.0]]), 2.15))
+    jamb = _trusted_points(_at(np.array([[2.0, 0.6]]), 1.7))
+    low_wall = _trusted_points(_at(np.array([[2.0, 0.0]]), 1.3))
+    high = np.array([0.0, 0.0, -1.9])
+    course = -1.5
+    assert lintel.map_points(high, 0.2, MEM, 5.0).shape == (1, 2)  # the vehicle's band alone
+    assert lintel.map_points(high, 0.2, MEM, 5.0, course).shape == (0, 2)
+    assert lintel.map_points(high, 0.2, MEM, 5.0, math.nan).shape == (1, 2)  # unknown: the vehicle's band
+    assert jamb.map_points(high, 0.2, MEM, 5.0, course).shape == (1, 2)  # blocks at both heights
+    climbed = np.array([0.0, 0.0, -1.6])
+    assert low_wall.map_points(climbed, 0.2, MEM, 5.0, course).shape == (1, 2)  # not over it yet
+    over = np.array([0.0, 0.0, -2.0])
+    assert low_wall.map_points(over, 0.2, MEM, 5.0, course).shape == (0, 2)
+
+
+def test_a_detour_maps_at_the_course_altitude_too() -> None:
+    # A wall 2 m ahead with a 1.4 m door whose lintel lies 0.25 m over the vehicle, 0.4 m above its
+    # course: at the course altitude the door is open, and the detour hands back through it.
+    pts = np.concatenate(
+        [_at(np.concatenate([_wall(2.0, -4.0, -0.7), _wall(2.0, 0.7, 4.0)]), a) for a in (1.5, 1.9, 2.15)]
+        + [_at(_wall(2.0, -0.6, 0.6), 2.15)]
+    )
+    mem = _trusted_points(pts)
+    pos = np.array([0.0, 0.0, -1.9])
+    phases = {}
+    for course_down in (None, -1.5):
+        p = DetourPlanner()
+        for k in range(30):  # braked for trigger_after_s, then the look and the choice
+            p.update(0.2 + 0.05 * k, BRAKE, pos, 0.0, 0.0, 0.0, mem, MEM, DET, goal_distance_m=6.0, course_down_m=course_down)
+        phases[course_down] = p.phase
+    assert phases[-1.5] in (Phase.HANDBACK, Phase.IDLE), phases
+    assert phases[None] not in (Phase.HANDBACK, Phase.IDLE), phases

@@ -402,6 +402,7 @@ class CourseHold:
             prefer_right,
             goal_distance_m=d,
             stall_mark_m=self.progress.mark_m,
+            course_down_m=None if self.altitude_m is None else -self.altitude_m,
         )
         if command is not None and command.phase is Phase.DEAD_END:
             self.holding_reason = (

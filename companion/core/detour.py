@@ -445,6 +445,7 @@ class DetourPlanner:
         self._scans = 0
         self._goal_distance_m: float | None = None
         self._stall_mark: float | None = None
+        self._course_down_m: float | None = None
         self._drop_request()
 
     def _drop_request(self) -> None:
@@ -499,6 +500,7 @@ class DetourPlanner:
         prefer_right: bool = True,
         goal_distance_m: float | None = None,
         stall_mark_m: float | None = None,
+        course_down_m: float | None = None,
     ) -> DetourCommand | None:
         """Advance to ``now_s`` (seconds) with the decision in force (fresh), the vehicle's position
         (float ``(3,)`` NED metres) and heading (radians), the direction to the goal from here
@@ -507,8 +509,11 @@ class DetourPlanner:
         ``prefer_right``: the side a tie goes to (``controller.preferred_yaw_side``);
         ``goal_distance_m``: how far the goal point is (None: the course, no point);
         ``stall_mark_m``: the progress the vehicle has stalled at (the watchdog's mark: a stall is
-        answered by one detour)."""
+        answered by one detour); ``course_down_m``: NED down of the altitude course hold keeps, metres
+        (the map holds only points in the height band of it and of the vehicle's,
+        :meth:`~companion.core.memory.ObstacleMemory.map_points`; None: the vehicle's alone)."""
         self._goal_distance_m = goal_distance_m
+        self._course_down_m = course_down_m
         self._stall_mark = stall_mark_m
         if not cfg.on or memory is None or memory_cfg.duration_s <= 0.0:
             self.phase = Phase.IDLE
@@ -888,7 +893,8 @@ class DetourPlanner:
         self, now_s: float, pos: np.ndarray, goal: float, memory: ObstacleMemory, memory_cfg: MemoryConfig, cfg: DetourConfig
     ) -> HistogramRequest:
         reach_m = max(cfg.radius_m, memory_cfg.map_depth_m)
-        pts = memory.map_points(pos, now_s, memory_cfg, reach_m + cfg.clearance_m)  # a new array: no copy needed
+        # a new array: no copy needed
+        pts = memory.map_points(pos, now_s, memory_cfg, reach_m + cfg.clearance_m, self._course_down_m)
         pts = np.empty((0, 2)) if pts is None else pts
         trail = None
         if self.trail:

@@ -554,19 +554,32 @@ class ObstacleMemory:
         return int(np.count_nonzero(self._seen_past(cfg)))
 
     def map_points(
-        self, position_ned_m: np.ndarray, now_s: float, cfg: MemoryConfig, radius_m: float
+        self,
+        position_ned_m: np.ndarray,
+        now_s: float,
+        cfg: MemoryConfig,
+        radius_m: float,
+        course_down_m: float | None = None,
     ) -> np.ndarray | None:
         """The trusted points the detour layer maps with: seen within ``cfg.duration_s`` of ``now_s``
         (at any depth out to ``cfg.map_depth_m``), not seen past since (:meth:`see_through`), within
         ``cfg.height_band_m`` of the vehicle's altitude and within ``radius_m`` of it horizontally, as
         float64 ``(N, 2)`` north and east offsets from the vehicle, metres; None without a finite
-        position."""
+        position.
+
+        ``course_down_m`` (NED down of the altitude course hold flies back to, metres; None = off):
+        only points within the band of that altitude too. A point the vehicle clears at one of the
+        two heights is passed there: a door's lintel 0.2 m over a vehicle that has climbed 0.4 m
+        (PX4 SITL office-2: held at the door as a dead end), or a low wall's top under one that
+        has climbed over it."""
         pos = np.asarray(position_ned_m, dtype=np.float64).reshape(-1)
         if pos.shape != (3,) or not np.all(np.isfinite(pos)):
             return None
         keep = ((now_s - self._t) <= cfg.duration_s) & ~self._seen_past(cfg)
         rel = self._pts[keep] - pos
         near = (np.abs(rel[:, 2]) <= cfg.height_band_m) & (np.hypot(rel[:, 0], rel[:, 1]) < radius_m)
+        if course_down_m is not None and math.isfinite(course_down_m):
+            near &= np.abs(rel[:, 2] + (pos[2] - course_down_m)) <= cfg.height_band_m
         rel = rel[near]
         trusted = self.trusted(rel + pos, cfg)
         return rel[trusted, :2]
