@@ -745,9 +745,9 @@ def detour_setpoint(
       scaled by ``1 - |yaw|`` (the controller's own turn comes first). On a CLEAR decision the
       altitude hold acts as in course hold (``altitude_error_m``, ``below_clear``, ``clear_for_s``,
       ``clear_for_m``, ``since_up_near_m``: :func:`setpoint_for`): without it a detour flew on at
-      whatever height the controller's last climb had left (PX4 SITL doorway-1: 0.35 m up, a door's
-      lintel then within the memory's height band, the door closed on the map, and the detour flew
-      past it).
+      whatever height the vehicle had reached (PX4 SITL doorway-1: 0.45 m up, drifted there under
+      zero vertical speed setpoints; a door's lintel then within the memory's height band, the door
+      closed on the map, and the detour flew past it).
 
     ``region_depths_m`` (float ``(9,)`` metres, NaN unknown): the stand-off's push acts here too
     (:func:`standoff_push_m_s`).
