@@ -298,6 +298,14 @@ def test_a_turn_in_place_toward_a_target_right_behind_keeps_its_side() -> None:
     near = wrap_pi(target - math.radians(120.0))  # the target 120 deg to the right
     r = hold.setpoint(BRAKE, 2.0, 0.0, CMD, position_ned_m=anchor, yaw_rad=near, detour_cfg=DET).yaw_rate_deg_s
     assert r > 0.0
+    # A new goal, or a resume, forgets the side: the next turn behind chooses afresh.
+    for forget in (lambda: hold.set_goal(GoalSpec(), anchor, 0.0), hold.resume):
+        first = hold.setpoint(BRAKE, 3.0, 0.0, CMD, position_ned_m=anchor, yaw_rad=behind[0], detour_cfg=DET).yaw_rate_deg_s
+        forget()
+        y = behind[1] if first > 0.0 else behind[0]  # a yaw the shorter way from which is the other side
+        other = hold.setpoint(BRAKE, 3.05, 0.0, CMD, position_ned_m=anchor, yaw_rad=y, detour_cfg=DET).yaw_rate_deg_s
+        fresh_rate = detour_setpoint(command, BRAKE, 0.0, CMD, DET, position_ned_m=anchor, yaw_rad=y).yaw_rate_deg_s
+        assert other == pytest.approx(fresh_rate) and math.copysign(1.0, other) != math.copysign(1.0, first)
 
 
 def test_a_door_just_past_the_goal_direction_is_taken_from_either_side() -> None:

@@ -123,6 +123,7 @@ class CourseHold:
             self.origin_ned_m, self.heading_rad = self._engaged_at
         self.progress.reset()
         self.detour.reset()
+        self._turn_sign = 0.0
         self.holding_reason = None
 
     def resume(self) -> None:
@@ -130,6 +131,7 @@ class CourseHold:
         detour (its trail is kept)."""
         self.progress.reset()
         self.detour.reset()
+        self._turn_sign = 0.0
         self.holding_reason = None
 
     def _anchor_to_goal(self, position_ned_m: object) -> None:
