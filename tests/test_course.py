@@ -122,6 +122,36 @@ def test_no_setpoint_descends_through_the_floor_whatever_asks_for_it() -> None:
     assert CourseHold().setpoint(duck, 1.0, 0.05, CMD, position_ned_m=None, yaw_rad=0.0).down_m_s == pytest.approx(full)
 
 
+def test_below_the_floor_a_fresh_setpoint_climbs_back_and_a_stale_one_stays_zero() -> None:
+    """PX4 in offboard velocity control holds a vertical speed, not a height: with 0.1 m/s of vertical
+    drift the kinematic suite flew 4 vehicles into the ground under setpoints that asked for no
+    descent. Below the floor, a fresh decision's setpoint climbs back (the up region readable and
+    at least FLOOR_CLIMB_UP_CLEAR_M deep); a stale frame still gets zero velocity."""
+    from companion.core.command import FLOOR_CLIMB_UP_CLEAR_M, FLOOR_GAIN_PER_S
+    from companion.core.types import REGION_INDEX
+
+    open_up = np.full(9, 5.0)
+    low = np.array([0.0, 0.0, -0.35])  # 0.15 m under the 0.5 m floor
+
+    def sp(decision: Decision, age_s: float = 0.05, depths: np.ndarray | None = open_up):
+        hold = _engaged()
+        return hold.setpoint(decision, 1.0, age_s, CMD, position_ned_m=low, yaw_rad=0.0, region_depths_m=depths)
+
+    climb = min(CMD.max_altitude_hold_speed_m_s, FLOOR_GAIN_PER_S * 0.15)
+    for decision in (CLEAR, TURN, BRAKE):
+        assert sp(decision).down_m_s == pytest.approx(-climb), decision.reason
+    near_up = open_up.copy()
+    near_up[REGION_INDEX["up"]] = 0.5 * FLOOR_CLIMB_UP_CLEAR_M
+    unknown_up = open_up.copy()
+    unknown_up[REGION_INDEX["up"]] = np.nan
+    assert sp(CLEAR, depths=near_up).down_m_s <= 0.0 and sp(CLEAR, depths=near_up).down_m_s > -climb
+    assert sp(TURN, depths=unknown_up).down_m_s == 0.0  # no climb into what cannot be read, no descent
+    stale = sp(CLEAR, age_s=CMD.stale_frame_timeout_s + 0.1)
+    assert (stale.forward_m_s, stale.right_m_s, stale.down_m_s, stale.yaw_rate_deg_s) == (0.0, 0.0, 0.0, 0.0)
+    off = CMD.model_copy(update={"min_altitude_m": 0.0})
+    assert _engaged().setpoint(TURN, 1.0, 0.05, off, position_ned_m=low, yaw_rad=0.0, region_depths_m=open_up).down_m_s == 0.0
+
+
 def test_every_setpoint_keeps_clear_of_what_is_remembered_below() -> None:
     """PX4 SITL pitch-4: over a low wall it had climbed, the vehicle braked, PX4 sagged 0.3 m with every
     setpoint's vertical speed 0, and it touched the wall's top, which the camera no longer saw. Within

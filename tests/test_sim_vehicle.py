@@ -148,6 +148,27 @@ def test_drift_moves_the_position_not_the_velocity_seeded_and_of_the_asked_size(
         VehicleParams(drift_speed_m_s=-0.1)
 
 
+def test_vertical_drift_moves_the_height_and_leaves_the_horizontal_drift_as_it_was() -> None:
+    """sim.vertical_drift_speed_m_s: PX4 in offboard velocity control holds a vertical speed, not a
+    height; the horizontal drift of the same seed is unchanged by it."""
+
+    def hover(params: VehicleParams, seconds: float) -> tuple[np.ndarray, np.ndarray]:
+        m = VehicleModel(params, Pose.at(0, 0, 1.5), seed=3)
+        drift = []
+        for _ in range(int(round(seconds / DT))):
+            m.step(DT)
+            drift.append(m.drift_ned_m_s.copy())
+        assert np.all(m.velocity_ned_m_s == 0.0)
+        return m.position_ned_m, np.asarray(drift)
+
+    both, drift = hover(VehicleParams(drift_speed_m_s=0.2, vertical_drift_speed_m_s=0.1, drift_time_constant_s=2.0), 400.0)
+    flat, flat_drift = hover(VehicleParams(drift_speed_m_s=0.2, drift_time_constant_s=2.0), 400.0)
+    assert np.array_equal(drift[:, :2], flat_drift[:, :2]) and np.all(flat_drift[:, 2] == 0.0)
+    assert np.std(drift[:, 2]) == pytest.approx(0.1, rel=0.25) and both[2] != pytest.approx(-1.5)
+    with pytest.raises(ValueError, match="vertical_drift_speed_m_s"):
+        VehicleParams(vertical_drift_speed_m_s=-0.1)
+
+
 def test_vehicle_link_protocol_and_async_wrappers() -> None:
     v = SimVehicle(VehicleParams(), Pose.at(1.0, 2.0, 1.5, yaw_rad=0.2))
     assert isinstance(v, VehicleLink)

@@ -129,6 +129,17 @@ class SimConfig(StrictModel):
         le=60.0,
         description="Correlation time of that drift (a first-order Gauss-Markov process), seconds.",
     )
+    vertical_drift_speed_m_s: float = Field(
+        default=0.0,
+        ge=0.0,
+        le=1.0,
+        description=(
+            "Standard deviation of a random vertical drift added to the vehicle's motion, m/s (the "
+            "same correlation time); 0 = none. PX4 in offboard velocity control holds a vertical "
+            "speed, not a height: PX4 SITL drifted up 0.4 m in 4 s under zero vertical speed "
+            "setpoints, and sagged 0.1-0.2 m as it sped up. Seeded by the course."
+        ),
+    )
     # -- the goal --------------------------------------------------------------------------------
     goal: Literal["point", "course"] = Field(
         default="point",

@@ -620,18 +620,44 @@ def _guarded(
 #: carry the vehicle through the floor.
 FLOOR_GAIN_PER_S = 2.0
 
+#: Below the floor, the climb back needs the up region to read at least this deep, metres (unknown
+#: blocks it): a climb of a few decimetres at most ``max_altitude_hold_speed_m_s``, so less than
+#: course hold's ``hold_clear_depth_m`` (2.25 m: an office's walls and ceiling kept a vehicle sinking
+#: under the floor from climbing back).
+FLOOR_CLIMB_UP_CLEAR_M = 1.0
 
-def above_floor(sp: VelocitySetpoint, position_ned_m: np.ndarray | None, cmd: CommandConfig) -> VelocitySetpoint:
+
+def above_floor(
+    sp: VelocitySetpoint,
+    position_ned_m: np.ndarray | None,
+    cmd: CommandConfig,
+    region_depths_m: np.ndarray | None = None,
+    climb_back: bool = False,
+) -> VelocitySetpoint:
     """``sp`` with its descent capped at ``FLOOR_GAIN_PER_S · (altitude - cmd.min_altitude_m)`` m/s
     (0 at or below the floor), the altitude being ``-down`` of ``position_ned_m`` (float ``(3,)`` NED
-    metres from the autopilot's local origin). Unchanged when off, climbing, or without a finite
-    position."""
-    if cmd.min_altitude_m <= 0.0 or sp.down_m_s <= 0.0 or position_ned_m is None:
+    metres from the autopilot's local origin). With ``climb_back`` (a fresh decision's setpoint), below
+    the floor it climbs at ``FLOOR_GAIN_PER_S`` times the shortfall (at most
+    ``cmd.max_altitude_hold_speed_m_s``; a faster climb in ``sp`` is kept) while the up region of
+    ``region_depths_m`` (float ``(9,)`` metres, NaN unknown; None: not known, no climb) reads at least
+    :data:`FLOOR_CLIMB_UP_CLEAR_M`: PX4 in offboard velocity control holds a vertical speed, not a
+    height, and drifts under a setpoint that asks for none (the kinematic suite with 0.1 m/s of
+    vertical drift: 4 flights into the ground without it, none with it). Unchanged when off or
+    without a finite position."""
+    if cmd.min_altitude_m <= 0.0 or position_ned_m is None:
         return sp
     altitude = -float(np.asarray(position_ned_m, dtype=np.float64).reshape(-1)[2])
     if not math.isfinite(altitude):
         return sp
-    limit = FLOOR_GAIN_PER_S * max(0.0, altitude - cmd.min_altitude_m)
+    short = cmd.min_altitude_m - altitude
+    if climb_back and short > 0.0 and region_depths_m is not None and _side_open(region_depths_m, "up", FLOOR_CLIMB_UP_CLEAR_M):
+        climb = min(cmd.max_altitude_hold_speed_m_s, FLOOR_GAIN_PER_S * short)
+        if sp.down_m_s > -climb:
+            return VelocitySetpoint(sp.forward_m_s, sp.right_m_s, -climb, sp.yaw_rate_deg_s)
+        return sp
+    if sp.down_m_s <= 0.0:
+        return sp
+    limit = FLOOR_GAIN_PER_S * max(0.0, -short)
     if sp.down_m_s <= limit:
         return sp
     return VelocitySetpoint(sp.forward_m_s, sp.right_m_s, limit, sp.yaw_rate_deg_s)

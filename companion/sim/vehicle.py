@@ -52,6 +52,8 @@ class VehicleParams:
             motion, per axis, m/s (>= 0; 0 = none). It models the estimator's error as PX4 shows it:
             the position moves while the velocity the vehicle reports (and tracks) does not.
         drift_time_constant_s: correlation time of that drift (Ornstein-Uhlenbeck), seconds (> 0).
+        vertical_drift_speed_m_s: the same for a vertical drift (the same correlation time), m/s
+            (>= 0; 0 = none): PX4 in offboard velocity control holds a vertical speed, not a height.
     """
 
     velocity_time_constant_s: float = 0.3
@@ -64,6 +66,7 @@ class VehicleParams:
     collision_radius_m: float = 0.25
     drift_speed_m_s: float = 0.0
     drift_time_constant_s: float = 4.0
+    vertical_drift_speed_m_s: float = 0.0
 
     def __post_init__(self) -> None:
         for name in (
@@ -79,8 +82,10 @@ class VehicleParams:
             v = float(getattr(self, name))
             if not (v > 0.0 and math.isfinite(v)):
                 raise ValueError(f"VehicleParams.{name} must be finite and > 0, got {v}")
-        if not (self.drift_speed_m_s >= 0.0 and math.isfinite(self.drift_speed_m_s)):
-            raise ValueError(f"VehicleParams.drift_speed_m_s must be finite and >= 0, got {self.drift_speed_m_s}")
+        for name in ("drift_speed_m_s", "vertical_drift_speed_m_s"):
+            v = float(getattr(self, name))
+            if not (v >= 0.0 and math.isfinite(v)):
+                raise ValueError(f"VehicleParams.{name} must be finite and >= 0, got {v}")
 
     @classmethod
     def from_config(cls, sim: object) -> VehicleParams:
@@ -110,7 +115,8 @@ class VehicleModel:
         self.accel_ned_m_s2 = np.zeros(3)
         self.setpoint: VelocitySetpoint = ZERO_SETPOINT
         self._rng = np.random.default_rng(seed)
-        self.drift_ned_m_s = np.zeros(3)  # the estimator-like drift now (horizontal), m/s
+        self._vrng = np.random.default_rng([seed, 1])  # the vertical drift's own draws
+        self.drift_ned_m_s = np.zeros(3)  # the estimator-like drift now, m/s
 
     def command(self, setpoint: VelocitySetpoint) -> None:
         """Set the velocity/yaw-rate setpoint tracked from now on (non-finite values are refused)."""
@@ -144,11 +150,17 @@ class VehicleModel:
         acc[2] = min(p.max_vertical_accel_m_s2, max(-p.max_vertical_accel_m_s2, acc[2]))
         v_new = v + acc * dt_s
         self.position_ned_m = self.position_ned_m + 0.5 * (v + v_new) * dt_s
-        if p.drift_speed_m_s > 0.0:
-            # Ornstein-Uhlenbeck, exact over dt: stationary std drift_speed_m_s per horizontal axis.
+        if p.drift_speed_m_s > 0.0 or p.vertical_drift_speed_m_s > 0.0:
+            # Ornstein-Uhlenbeck, exact over dt: stationary std drift_speed_m_s per horizontal axis
+            # (vertical_drift_speed_m_s down), each from its own draws so that one does not change
+            # the other's sequence.
             a = math.exp(-dt_s / p.drift_time_constant_s)
-            noise = self._rng.standard_normal(2) * (p.drift_speed_m_s * math.sqrt(1.0 - a * a))
-            self.drift_ned_m_s[:2] = a * self.drift_ned_m_s[:2] + noise
+            if p.drift_speed_m_s > 0.0:
+                noise = self._rng.standard_normal(2) * (p.drift_speed_m_s * math.sqrt(1.0 - a * a))
+                self.drift_ned_m_s[:2] = a * self.drift_ned_m_s[:2] + noise
+            if p.vertical_drift_speed_m_s > 0.0:
+                noise = self._vrng.standard_normal() * (p.vertical_drift_speed_m_s * math.sqrt(1.0 - a * a))
+                self.drift_ned_m_s[2] = a * self.drift_ned_m_s[2] + noise
             self.position_ned_m = self.position_ned_m + self.drift_ned_m_s * dt_s
         self.velocity_ned_m_s = v_new
         self.accel_ned_m_s2 = acc
