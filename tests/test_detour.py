@@ -397,6 +397,41 @@ def test_regress_holds_sooner_than_no_progress() -> None:
     assert fired_at - 4.0 <= CMD.regress_distance_m + CMD.regress_timeout_s + 0.2 < CMD.no_progress_timeout_s
 
 
+def test_flying_back_starts_a_detour_before_the_regress_hold_once_per_stall() -> None:
+    """PX4 SITL detour-3 (2026-11-26): avoiding along the wall turned the vehicle 137 deg away, CLEAR
+    decisions flew it 1.5 m back, and the watchdog's regress held with no detour begun. Flying back
+    (the regress clock running) now starts one, once per stall mark; off with trigger_on_regress."""
+    mem = _trusted_memory(_wall(2.5, -8.0, 8.0))
+    pos = np.array([0.0, 0.0, -1.5])
+    w = ProgressWatch()
+    t = 0.0
+    for k in range(30):  # 3 m toward the goal, then back
+        w.update(0.1 * k, t, CMD)
+        t += 0.1
+    back = 2.9
+    while not w.regressing:
+        back -= 0.1
+        assert not w.update(back, t, CMD)  # the regress clock starts; its hold is regress_timeout_s away
+        t += 0.1
+    assert back <= 2.9 - CMD.regress_distance_m + 1e-9
+    p = DetourPlanner()
+    got = p.update(t, CLEAR, pos, 0.0, 0.0, w.stalled_for_s(t), mem, MEM, DET, stall_mark_m=w.mark_m, regressing=True)
+    assert got is not None and p.active  # begun at once (its look round or its choice)
+    assert DetourPlanner().update(t, CLEAR, pos, 0.0, 0.0, 1.0, mem, MEM, DET, stall_mark_m=2.0) is None  # not flying back
+    # The same stall is not answered twice; a new one (another mark) is.
+    p.reset()
+    again = p.update(t + 0.1, CLEAR, pos, 0.0, 0.0, 1.0, mem, MEM, DET, stall_mark_m=w.mark_m, regressing=True)
+    assert again is not None  # reset() forgets the mark: a reset planner answers afresh
+    p2 = DetourPlanner()
+    p2.update(t, CLEAR, pos, 0.0, 0.0, 1.0, mem, MEM, DET, stall_mark_m=2.0, regressing=True)
+    p2._end(pos, "handed back")  # as a finished detour does: the stall stays answered
+    assert p2.update(t + 0.1, CLEAR, pos, 0.0, 0.0, 1.0, mem, MEM, DET, stall_mark_m=2.0, regressing=True) is None
+    assert p2.update(t + 0.2, CLEAR, pos, 0.0, 0.0, 1.0, mem, MEM, DET, stall_mark_m=3.0, regressing=True) is not None
+    off = DET.model_copy(update={"trigger_on_regress": False})
+    p3 = DetourPlanner()
+    assert p3.update(t, CLEAR, pos, 0.0, 0.0, 1.0, mem, MEM, off, stall_mark_m=2.0, regressing=True) is None
+
+
 def test_regress_is_not_judged_during_a_detour() -> None:
     w = ProgressWatch()
     w.update(5.0, 0.0, CMD)

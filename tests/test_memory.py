@@ -15,6 +15,7 @@ from companion.core.memory import (
     CLEAR_WINDOW_BLOCKS,
     BlockMax,
     FarView,
+    Gap,
     NearCells,
     ObstacleMemory,
     ViewLimits,
@@ -398,22 +399,24 @@ def test_steering_round_something_the_vehicle_still_returns_to_its_altitude() ->
     assert setpoint_for(brake, 0.1, cmd, below_clear=True, **above).down_m_s == 0.0
 
 
-def test_gap_offset_is_the_middle_between_the_nearest_points_left_and_right() -> None:
+def test_a_gap_is_the_middle_and_width_between_the_nearest_points_left_and_right() -> None:
     """A 1.2 m doorway 1 m ahead whose middle lies 0.3 m right: its jambs bound the gap, not the wall
     beyond them; a wide gap, one side only, points beyond the lookahead or centering off: no gap."""
-    from companion.core.memory import gap_offset_m
+    from companion.core.memory import find_gap
 
     cfg = MemoryConfig(gap_centering_gain_per_s=1.0)  # off by default
     right = np.concatenate([np.linspace(-2.0, -0.3, 18), np.linspace(0.9, 2.5, 17)])  # wall, door -0.3..0.9
     fwd = np.full_like(right, 1.0)
-    assert gap_offset_m(fwd, right, cfg) == pytest.approx(0.3)
-    assert gap_offset_m(fwd[right < 0], right[right < 0], cfg) is None  # one side only
+    gap = find_gap(fwd, right, cfg)
+    assert gap is not None
+    assert gap.offset_m == pytest.approx(0.3) and gap.width_m == pytest.approx(1.2)
+    assert find_gap(fwd[right < 0], right[right < 0], cfg) is None  # one side only
     wide = cfg.model_copy(update={"gap_max_width_m": 1.1})
-    assert gap_offset_m(fwd, right, wide) is None
-    assert gap_offset_m(fwd + cfg.gap_lookahead_m, right, cfg) is None  # beyond the lookahead
-    assert gap_offset_m(fwd - 1.0 - cfg.keep_out_m - 0.01, right, cfg) is None  # passed, behind
+    assert find_gap(fwd, right, wide) is None
+    assert find_gap(fwd + cfg.gap_lookahead_m, right, cfg) is None  # beyond the lookahead
+    assert find_gap(fwd - 1.0 - cfg.keep_out_m - 0.01, right, cfg) is None  # passed, behind
     off = cfg.model_copy(update={"gap_centering_gain_per_s": 0.0})
-    assert gap_offset_m(fwd, right, off) is None
+    assert find_gap(fwd, right, off) is None
 
 
 def test_hold_inputs_find_a_doorway_from_the_memory() -> None:
@@ -424,13 +427,14 @@ def test_hold_inputs_find_a_doorway_from_the_memory() -> None:
     here = np.array([0.0, 0.0, -1.5])
     mem.add(wall, 0.0, 30.0, viewpoint_ned_m=here + [-0.5, 0.0, 0.0], cfg=cfg)
     # Seen from one place once: not trusted, so no gap (a false point made a false gap, run 22).
-    assert mem.hold_inputs(here, 0.0, 0.1, cfg, VIEW).gap_offset_m is None
+    assert mem.hold_inputs(here, 0.0, 0.1, cfg, VIEW).gap is None
     mem.add(wall, 0.1, 30.0, viewpoint_ned_m=here, cfg=cfg)  # seen again from 0.5 m on: trusted
     got = mem.hold_inputs(here, 0.0, 0.5, cfg, VIEW)
     assert got.guard_m is None and got.sides == (False, False)  # beyond the guard and hold_clear_m
-    assert got.gap_offset_m == pytest.approx(0.3, abs=0.03)
+    assert got.gap is not None
+    assert got.gap.offset_m == pytest.approx(0.3, abs=0.03) and got.gap.width_m == pytest.approx(1.2, abs=0.06)
     # Facing south the same door lies behind: no gap.
-    assert mem.hold_inputs(here, math.pi, 0.5, cfg, VIEW).gap_offset_m is None
+    assert mem.hold_inputs(here, math.pi, 0.5, cfg, VIEW).gap is None
 
 
 def test_a_clear_decision_slides_toward_the_middle_of_a_gap_instead_of_the_line() -> None:
@@ -439,21 +443,95 @@ def test_a_clear_decision_slides_toward_the_middle_of_a_gap_instead_of_the_line(
     clear = Decision(DecisionKind.CLEAR, 0.0, 0.0, 1.0, "clear")
     kw = {"heading_error_rad": 0.0, "line_offset_m": -0.5, "clear_for_s": 5.0, "guard_cfg": cfg}  # line left
     assert setpoint_for(clear, 0.0, cmd, **kw).right_m_s < 0.0
-    sp = setpoint_for(clear, 0.0, cmd, gap_offset_m=0.1, **kw)  # the gap's middle 0.1 m right
+    sp = setpoint_for(clear, 0.0, cmd, gap=Gap(0.1, 1.5), **kw)  # the gap's middle 0.1 m right
     assert sp.right_m_s == pytest.approx(cfg.gap_centering_gain_per_s * 0.1)
-    far = setpoint_for(clear, 0.0, cmd, gap_offset_m=2.0, **kw)
+    far = setpoint_for(clear, 0.0, cmd, gap=Gap(2.0, 1.5), **kw)
     assert far.right_m_s == pytest.approx(cfg.max_gap_centering_speed_m_s)
     # At once, without course hold's wait; scaled down while the decision turns.
-    waiting = setpoint_for(clear, 0.0, cmd, gap_offset_m=0.1, **{**kw, "clear_for_s": 0.0, "heading_clear_for_s": 0.0})
+    waiting = setpoint_for(clear, 0.0, cmd, gap=Gap(0.1, 1.5), **{**kw, "clear_for_s": 0.0, "heading_clear_for_s": 0.0})
     assert waiting.right_m_s == pytest.approx(sp.right_m_s)
     turning = Decision(DecisionKind.CLEAR, 0.5, 0.0, 1.0, "clear")
-    assert setpoint_for(turning, 0.0, cmd, gap_offset_m=0.1, **kw).right_m_s == pytest.approx(0.5 * sp.right_m_s)
+    assert setpoint_for(turning, 0.0, cmd, gap=Gap(0.1, 1.5), **kw).right_m_s == pytest.approx(0.5 * sp.right_m_s)
     # Only on CLEAR: an avoiding decision keeps its own (no sideways) velocity.
     avoid = Decision(DecisionKind.AVOID, 0.3, 0.0, 0.5, "avoid")
-    assert setpoint_for(avoid, 0.0, cmd, gap_offset_m=0.1, **kw).right_m_s == 0.0
+    assert setpoint_for(avoid, 0.0, cmd, gap=Gap(0.1, 1.5), **kw).right_m_s == 0.0
     # Off (the default): the line hold's sideways step stays.
     off = {**kw, "guard_cfg": MemoryConfig()}
-    assert setpoint_for(clear, 0.0, cmd, gap_offset_m=0.1, **off) == setpoint_for(clear, 0.0, cmd, **off)
+    assert setpoint_for(clear, 0.0, cmd, gap=Gap(0.1, 1.5), **off) == setpoint_for(clear, 0.0, cmd, **off)
+
+
+def test_off_the_middle_of_a_gap_the_vehicle_lines_up_before_it_flies_on() -> None:
+    """PX4 SITL doorway-2 (2026-11-26): a 1.3 m door, the vehicle 0.5 m off its middle 0.9 m short of
+    it, CLEAR at the full 0.7 m/s while gap centering slid it at 0.3 m/s (PX4 ~0.85 s late): it hit
+    the jamb. Off the middle by more than half the width less gap_pass_clearance_m, the forward
+    speed falls to 0 over gap_lineup_ramp_m; the slide goes on; a narrowed gap keeps a small band."""
+    from companion.core.command import gap_lineup_fraction
+
+    cfg = MemoryConfig(gap_centering_gain_per_s=1.0)  # off by default
+    assert (cfg.gap_pass_clearance_m, cfg.gap_lineup_ramp_m, cfg.gap_lineup_min_slack_m) == (0.35, 0.1, 0.05)
+    # A 1.3 m door: lined up within 0.65 - 0.35 = 0.3 m of its middle; stopped from 0.4 m off.
+    assert gap_lineup_fraction(Gap(0.3, 1.3), cfg) == 1.0
+    assert gap_lineup_fraction(Gap(-0.35, 1.3), cfg) == pytest.approx(0.5)
+    assert gap_lineup_fraction(Gap(0.5, 1.3), cfg) == 0.0
+    # A gap the map has narrowed below twice the clearance still lets a centred vehicle through.
+    assert gap_lineup_fraction(Gap(0.04, 0.5), cfg) == 1.0
+    assert gap_lineup_fraction(Gap(0.2, 0.5), cfg) == 0.0
+    assert gap_lineup_fraction(Gap(0.5, 1.3), cfg.model_copy(update={"gap_pass_clearance_m": 0.0})) == 1.0
+
+    cmd = CompanionConfig().command.model_copy(update={"hold_resume_delay_s": 0.0})
+    clear = Decision(DecisionKind.CLEAR, 0.0, 0.0, 1.0, "clear")
+    kw = {"heading_error_rad": 0.0, "line_offset_m": 0.0, "clear_for_s": 5.0, "guard_cfg": cfg}
+    off_middle = setpoint_for(clear, 0.0, cmd, gap=Gap(-0.5, 1.3), **kw)  # the middle 0.5 m left
+    assert off_middle.forward_m_s == 0.0
+    assert off_middle.right_m_s == pytest.approx(-cfg.max_gap_centering_speed_m_s)  # still sliding to it
+    lined_up = setpoint_for(clear, 0.0, cmd, gap=Gap(-0.1, 1.3), **kw)
+    assert lined_up.forward_m_s == pytest.approx(cmd.cruise_speed_m_s)
+    assert lined_up.right_m_s == pytest.approx(-0.1)
+    # Centering off: neither the slide nor the line-up.
+    off = {**kw, "guard_cfg": MemoryConfig()}
+    assert setpoint_for(clear, 0.0, cmd, gap=Gap(-0.5, 1.3), **off) == setpoint_for(clear, 0.0, cmd, **off)
+
+
+def test_what_lies_in_the_path_slows_the_vehicle_enough_to_stop_short_of_it() -> None:
+    """PX4 SITL side-4 and doorway-2 (2026-11-26): CLEAR at 0.7 m/s into a corner the right region read
+    at 0.4-0.9 m; the centre region, a fixed angle wide, did not hold it. With path_slow_time_s the
+    nearest trusted point within path_half_width_m of the centre line caps the forward speed at
+    (distance - path_stop_m) / path_slow_time_s; points beside the path, behind, or seen past do not."""
+    from companion.core.command import path_speed_limit_m_s
+    from companion.core.memory import path_ahead_m
+
+    cfg = MemoryConfig(path_slow_time_s=1.0)  # off by default
+    assert MemoryConfig().path_slow_time_s == 0.0 and path_ahead_m(np.array([1.0]), np.array([0.0]), MemoryConfig()) is None
+    assert (cfg.path_stop_m, cfg.path_half_width_m, cfg.path_range_m) == (0.2, 0.3, 2.0)
+    # A corner 0.9 m ahead, 0.18 m right: it comes within 0.3 m after 0.9 - sqrt(0.3² - 0.18²) = 0.66 m.
+    fwd = np.array([0.9, 0.6, -0.3, 1.5, 0.05])
+    right = np.array([0.18, 0.35, 0.0, -0.1, -0.29])  # in the path / beside it / behind / in the path / abreast
+    assert path_ahead_m(fwd[:4], right[:4], cfg) == pytest.approx(0.66)
+    assert path_ahead_m(fwd[1:3], right[1:3], cfg) is None  # a wall alongside, 0.35 m off: not in the way
+    assert path_ahead_m(fwd, right, cfg) == 0.0  # 0.29 m off and just ahead: as near as it may come
+    assert path_speed_limit_m_s(0.66, cfg) == pytest.approx(0.46)
+    assert path_speed_limit_m_s(0.1, cfg) == 0.0 and math.isinf(path_speed_limit_m_s(None, cfg))
+    assert math.isinf(path_speed_limit_m_s(0.66, MemoryConfig()))
+
+    cmd = CompanionConfig().command
+    clear = Decision(DecisionKind.CLEAR, 0.0, 0.0, 1.0, "clear")
+    avoid = Decision(DecisionKind.AVOID, 0.3, 0.0, 1.0, "avoid")
+    for d in (clear, avoid):
+        assert setpoint_for(d, 0.0, cmd, guard_cfg=cfg, path_ahead_m=0.66).forward_m_s == pytest.approx(0.46)
+        assert setpoint_for(d, 0.0, cmd, guard_cfg=cfg, path_ahead_m=2.0).forward_m_s == pytest.approx(cmd.cruise_speed_m_s)
+    # From the memory: a trusted corner 0.9 m ahead, 0.18 m right of the centre line.
+    mem = ObstacleMemory()
+    here = np.array([0.0, 0.0, -1.5])
+    corner = np.array([[0.9, 0.18, -1.5]])
+    for k in range(2):
+        mem.add(corner, 0.1 * k, 30.0, ranges_m=np.array([1.0]), viewpoint_ned_m=here + [0.0, 0.5 * k, 0.0], cfg=cfg)
+    got = mem.hold_inputs(here, 0.0, 0.2, cfg, VIEW)
+    assert got.ahead_m == pytest.approx(0.66, abs=0.05)
+    assert mem.hold_inputs(here, 0.0, 0.2, MemoryConfig(), VIEW).ahead_m is None  # off
+    assert mem.hold_inputs(here, math.pi / 2, 0.2, cfg, VIEW).ahead_m is None  # facing east: beside, not ahead
+    for _ in range(cfg.map_clear_after_frames):  # the camera sees past it: not in the way now
+        mem.see_through(_far_view(6.0), Pose(tuple(here), 0.0), cfg)
+    assert mem.hold_inputs(here, 0.0, 0.2, cfg, VIEW).ahead_m is None
 
 
 def _sides(left_m: float, right_m: float) -> np.ndarray:
@@ -548,7 +626,7 @@ def test_a_remembered_wall_does_not_push_the_vehicle_into_what_the_camera_sees_o
     assert corner.right_m_s == pytest.approx(-0.1) and corner.forward_m_s == pytest.approx(cmd.cruise_speed_m_s)
     assert setpoint_for(clear, 0.0, cmd, region_depths_m=_sides(0.5, 3.0), **kw).right_m_s == pytest.approx(0.0)
     # Gap centering toward the nearer side is held back too; toward the farther side it acts.
-    gap = {"guard_cfg": mem, "gap_offset_m": -0.2}
+    gap = {"guard_cfg": mem, "gap": Gap(-0.2, 1.5)}
     assert setpoint_for(clear, 0.0, cmd, region_depths_m=_sides(3.0, 3.0), **gap).right_m_s == pytest.approx(-0.2)
     assert setpoint_for(clear, 0.0, cmd, region_depths_m=_sides(0.6, 3.0), **gap).right_m_s == pytest.approx(-0.1)
     assert setpoint_for(clear, 0.0, cmd, region_depths_m=_sides(3.0, 0.6), **gap).right_m_s == pytest.approx(-0.2)
@@ -623,6 +701,30 @@ def test_a_point_seen_past_frame_after_frame_leaves_the_map_but_still_guards() -
             viewpoint_ned_m=here, cfg=SEEN)
     assert len(mem.map_points(here, 0.3, SEEN, 5.0)) == 1  # seen again: back
     assert mem.seen_past_count(SEEN) == 0
+
+
+def test_a_point_seen_past_long_enough_stops_guarding_with_guard_clear_after_frames() -> None:
+    """Kinematic office-4: a door's jamb smeared into the opening, seen past 50-230 frames in a row,
+    kept the vehicle in the door for 10 s. With guard_clear_after_frames a point seen past that many
+    frames in a row no longer guards, keeps course hold from a side or bounds a gap; seen again, it
+    does. Off by default (0), and never sooner than its own count."""
+    here = np.array([0.0, 0.0, -1.5])
+    beside = np.array([2.0, -0.45, -1.5])  # 0.45 m left of the point, facing north: out of view
+    cfg = SEEN.model_copy(update={"guard_clear_after_frames": 10})
+    mem = _remembered(np.array([[2.0, 0.0, -1.5]]))
+    pose = Pose(tuple(here), 0.0)
+    for _ in range(9):
+        mem.see_through(_far_view(6.0), pose, cfg)
+    assert mem.guard(beside, 0.0, 0.2, cfg, VIEW) is not None  # 9 frames: still there
+    assert mem.hold_inputs(beside, 0.0, 0.2, cfg, VIEW).sides == (False, True)
+    mem.see_through(_far_view(6.0), pose, cfg)
+    assert mem.guard(beside, 0.0, 0.2, cfg, VIEW) is None  # 10: not there
+    assert mem.hold_inputs(beside, 0.0, 0.2, cfg, VIEW).sides == (False, False)
+    assert mem.guard(beside, 0.0, 0.2, SEEN, VIEW) is not None  # off (0), the default: it guards
+    assert MemoryConfig().guard_clear_after_frames == 0
+    mem.add(np.array([[2.0, 0.0, -1.5]]), 0.3, cfg.duration_s, ranges_m=np.array([2.0]),
+            viewpoint_ned_m=here, cfg=cfg)
+    assert mem.guard(beside, 0.0, 0.3, cfg, VIEW) is not None  # seen again: guards again
 
 
 def test_a_point_seen_at_its_depth_starts_counting_again() -> None:

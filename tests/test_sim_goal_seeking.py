@@ -243,6 +243,36 @@ def test_a_climb_back_to_the_engaged_altitude_does_not_wait() -> None:
     assert setpoint_for(brake, 0.1, cmd, altitude_error_m=0.26).down_m_s == 0.0
 
 
+def test_a_level_decision_a_hair_off_zero_pitch_still_climbs_back_and_descends() -> None:
+    """The defuzzified pitch of a level CLEAR decision is rarely exactly 0 (-1e-4 in the simulator):
+    a strict sign test read it as a descent and the climb back waited for 1.5 m of straight flight
+    while the vehicle sank (0.1 m/s vertical drift: pitch-2 sank 0.37 m and lost its way over the
+    low wall). Level means within STRAIGHT_TOLERANCE, as in is_straight_clear."""
+    from companion.core.command import STRAIGHT_TOLERANCE
+
+    cmd = CommandConfig(altitude_hold_gain_per_s=0.5, hold_resume_delay_s=1.5, hold_resume_distance_m=1.5)
+    hair = 0.1 * STRAIGHT_TOLERANCE
+    for pitch in (-hair, hair):
+        level = Decision(DecisionKind.CLEAR, 0.0, pitch, 1.0, "centre clear")
+        assert is_straight_clear(level)
+        # Below the engaged altitude: the climb back at once (scaled by 1 - |pitch|, and the pitch's own
+        # tiny vertical speed on top).
+        sp = setpoint_for(level, 0.1, cmd, altitude_error_m=0.26, clear_for_s=0.0, clear_for_m=0.0)
+        assert sp.down_m_s == pytest.approx(-pitch * cmd.max_vertical_speed_m_s - (1.0 - abs(pitch)) * 0.13)
+        # Above it, over nothing remembered below: the descent at once too.
+        sp = setpoint_for(level, 0.1, cmd, altitude_error_m=-0.26, clear_for_s=0.0, clear_for_m=0.0, below_clear=True)
+        assert sp.down_m_s == pytest.approx(-pitch * cmd.max_vertical_speed_m_s + (1.0 - abs(pitch)) * 0.13)
+    # A real descent or climb of the decision still keeps the hold from fighting it.
+    ducking = Decision(DecisionKind.CLEAR, 0.0, -STRAIGHT_TOLERANCE, 1.0, "going under")
+    assert setpoint_for(ducking, 0.1, cmd, altitude_error_m=0.26, clear_for_s=0.0).down_m_s == pytest.approx(
+        STRAIGHT_TOLERANCE * cmd.max_vertical_speed_m_s
+    )
+    climbing = Decision(DecisionKind.CLEAR, 0.0, STRAIGHT_TOLERANCE, 1.0, "climbing over")
+    assert setpoint_for(
+        climbing, 0.1, cmd, altitude_error_m=-0.26, clear_for_s=0.0, below_clear=True
+    ).down_m_s == pytest.approx(-STRAIGHT_TOLERANCE * cmd.max_vertical_speed_m_s)
+
+
 def test_nothing_climbs_until_the_vehicle_has_flown_past_what_was_overhead() -> None:
     from companion.core.command import OverheadMemory
 

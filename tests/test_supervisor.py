@@ -817,6 +817,26 @@ def test_no_progress_pauses_with_a_position_hold_and_resume_goes_on() -> None:
     assert all(o.state is State.ENGAGED for o in h.run(cmd.no_progress_timeout_s - 1.0))
 
 
+def test_a_regress_pause_says_it_was_flying_back_and_keeps_saying_so() -> None:
+    """PX4 SITL detour-3 (2026-11-26): the watchdog held for a regress 16 s after engaging, and the
+    service said "no progress along the course for 20 s": the reason was read after the reset that
+    clears the watchdog's why. It is kept from the moment of the pause."""
+    import numpy as np
+
+    cmd = CompanionConfig().command
+    assert cmd.regress_distance_m == 1.5 and cmd.regress_timeout_s == 3.0
+    h = _engaged_at([0.0, 0.0, -1.5])
+    for k in range(40):  # 2 m along the course, then back 2 m past the start
+        h.vehicle = replace(h.vehicle, position_ned_m=np.array([0.05 * k, 0.0, -1.5]))
+        assert h.step().state is State.ENGAGED
+    h.vehicle = replace(h.vehicle, position_ned_m=np.array([0.0, 0.0, -1.5]))
+    outs = h.run(cmd.regress_timeout_s + 0.5)
+    paused = [o for o in outs if o.state is State.PAUSED]
+    assert paused, "regress never held"
+    assert all("flying back" in o.reason and "no progress" not in o.reason for o in paused)
+    assert all("flying back" in o.reason for o in h.run(2.0))
+
+
 def test_progress_keeps_the_flight_going() -> None:
     import numpy as np
 

@@ -50,6 +50,16 @@ class DetourConfig(StrictModel):
             "0 = off."
         ),
     )
+    trigger_on_regress: bool = Field(
+        default=True,
+        description=(
+            "Also start a detour as soon as the vehicle has flown command.regress_distance_m back from "
+            "the nearest it has been to its goal, before the progress watchdog's regress hold "
+            "(command.regress_timeout_s later): once per stall, as for trigger_no_progress_s. PX4 "
+            "SITL detour-3: avoiding along the wall turned the vehicle 137 deg from the goal, CLEAR "
+            "decisions flew it back 1.5 m, and the watchdog held 16 s after engaging, no detour begun."
+        ),
+    )
     scan_half_angle_deg: float = Field(
         default=90.0,
         ge=0.0,

@@ -108,6 +108,20 @@ class MemoryConfig(StrictModel):
             "the map."
         ),
     )
+    guard_clear_after_frames: int = Field(
+        default=0,
+        ge=0,
+        le=1000,
+        description=(
+            "A remembered point that this many frames in a row see well past (as for "
+            "map_clear_after_frames, which must be on, with the detour layer: they judge the points) "
+            "no longer guards the vehicle, keeps course hold from a side or bounds a gap until it is "
+            "seen again, frames; 0 = never (the default). Far more than map_clear_after_frames: a "
+            "point the position drift moved off its surface is seen past too, and forgetting after 3 "
+            "frames collided where keeping did. A door's jamb smeared into the opening from 1.2-1.8 m "
+            "and seen past 50-230 frames in a row still stopped kinematic office-4 in the door for 10 s."
+        ),
+    )
     map_clear_depth_ratio: float = Field(
         default=1.3,
         gt=1.0,
@@ -214,6 +228,79 @@ class MemoryConfig(StrictModel):
             "Gap centering: points up to this far ahead of the vehicle (and abreast, down to keep_out_m "
             "behind) count as its sides, metres: far enough to line up with a doorway before its "
             "jambs leave the view, near enough not to centre on what lies beyond a turn."
+        ),
+    )
+    path_slow_time_s: float = Field(
+        default=0.0,
+        ge=0.0,
+        le=10.0,
+        description=(
+            "Slow down for what lies in the vehicle's path: on CLEAR and AVOID decisions the forward "
+            "speed is at most (how far it can fly straight on before a trusted remembered point comes "
+            "within path_half_width_m of its centre, less path_stop_m) / this, seconds; 0 = off (the "
+            "default). About the autopilot's velocity lag plus a frame: PX4 follows a "
+            "setpoint ~0.85 s late. The centre region is a fixed angle wide, so near the vehicle what "
+            "it will hit sits in a side region (the paper's Fig. 11): PX4 SITL side-4 and doorway-2 "
+            "flew CLEAR at 0.7 m/s into a corner the right region read at 0.4-0.9 m. Points the "
+            "camera now sees past do not count."
+        ),
+    )
+    path_stop_m: float = Field(
+        default=0.2,
+        ge=0.0,
+        le=5.0,
+        description=(
+            "Slowing for the path: the speed reaches 0 this far short of where a point would come "
+            "within path_half_width_m, metres."
+        ),
+    )
+    path_half_width_m: float = Field(
+        default=0.3,
+        gt=0.0,
+        le=5.0,
+        description=(
+            "Slowing for the path: a point less than this from the vehicle's centre line, sideways, "
+            "is in its path, and the vehicle may come no nearer to it than this, metres (the 0.25 m "
+            "vehicle plus 0.05 m). A wall alongside, farther sideways, does not slow it."
+        ),
+    )
+    path_range_m: float = Field(
+        default=2.0,
+        gt=0.0,
+        le=10.0,
+        description="Slowing for the path: points farther than this, horizontally, do not count, metres.",
+    )
+    gap_pass_clearance_m: float = Field(
+        default=0.35,
+        ge=0.0,
+        le=2.0,
+        description=(
+            "Gap centering: the vehicle flies on into a gap only while its centre stays this far from "
+            "the nearest bounding point on either side, metres (0 = off: it flies on while it "
+            "centres): off the middle by more than half the gap's width less this, the forward speed "
+            "falls to 0 over gap_lineup_ramp_m while the sideways slide lines it up (at least "
+            "gap_lineup_min_slack_m off the middle always counts as lined up, so that a gap the map "
+            "has narrowed still lets a centred vehicle through). The vehicle's 0.25 m plus 0.1 m: "
+            "PX4 SITL doorway-2 arrived at a 1.3 m door 0.5 m off its middle at 0.7 m/s, the "
+            "centering's 0.3 m/s slide 0.3 s from taking it, and hit the jamb."
+        ),
+    )
+    gap_lineup_ramp_m: float = Field(
+        default=0.1,
+        gt=0.0,
+        le=2.0,
+        description=(
+            "Gap centering: beyond the lined-up band (gap_pass_clearance_m), the forward speed falls "
+            "from full to 0 over this much more offset from the gap's middle, metres."
+        ),
+    )
+    gap_lineup_min_slack_m: float = Field(
+        default=0.05,
+        ge=0.0,
+        le=1.0,
+        description=(
+            "Gap centering: this far off the gap's middle always counts as lined up, metres, however "
+            "narrow the map makes the gap (stereo smears a jamb's edge inward, into the opening)."
         ),
     )
     clearance_below_m: float = Field(

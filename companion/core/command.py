@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from companion.core.frames import ned_to_body_horizontal
-from companion.core.memory import apply_guard, within_room
+from companion.core.memory import Gap, apply_guard, within_room
 from companion.core.types import (
     REGION_INDEX,
     ZERO_SETPOINT,
@@ -174,6 +174,12 @@ class ProgressWatch:
         return self._mark_m
 
     @property
+    def regressing(self) -> bool:
+        """Whether the progress is ``regress_distance_m`` or more below the best now, the regress
+        clock running (:meth:`update`: not while paused)."""
+        return self._regress_since_s is not None
+
+    @property
     def best_m(self) -> float | None:
         """The most progress reached (metres), or None."""
         return self._best_m
@@ -256,14 +262,18 @@ def _altitude_return_m_s(
     waited: bool,
 ) -> float:
     """The altitude hold's down speed (m/s, + down) that acts now: all of it once ``waited``; else a
-    climb back while the decision does not descend (``pitch`` >= 0), or a descent while it does not
-    climb (``pitch`` <= 0) and ``below_clear`` is True; else 0."""
+    climb back while the decision does not descend (``pitch`` > -:data:`STRAIGHT_TOLERANCE`), or a
+    descent while it does not climb (``pitch`` < :data:`STRAIGHT_TOLERANCE`) and ``below_clear`` is
+    True; else 0."""
     down = _altitude_hold_down_m_s(altitude_error_m, region_depths_m, cmd)
     if waited:
         return down
-    if down < 0.0 and pitch >= 0.0:
+    # Level within STRAIGHT_TOLERANCE, as is_straight_clear has it: the defuzzified pitch of a level
+    # CLEAR decision is a hair off zero either way (-1e-4), and a strict sign test let that block
+    # the climb back for the first 1.5 m (simulator, 0.1 m/s vertical drift: pitch-2 sank 0.37 m).
+    if down < 0.0 and pitch > -STRAIGHT_TOLERANCE:
         return down
-    if down > 0.0 and pitch <= 0.0 and below_clear is True:
+    if down > 0.0 and pitch < STRAIGHT_TOLERANCE and below_clear is True:
         return down
     return 0.0
 
@@ -415,8 +425,9 @@ def setpoint_for(
     guard_cfg: MemoryConfig | None = None,
     remembered_sides: tuple[bool, bool] | None = None,
     velocity_body_m_s: tuple[float, float] | None = None,
-    gap_offset_m: float | None = None,
+    gap: Gap | None = None,
     below_clear: bool | None = None,
+    path_ahead_m: float | None = None,
 ) -> VelocitySetpoint:
     """The setpoint to send for ``decision``, made ``since_last_frame_s`` seconds after its frame.
 
@@ -494,12 +505,18 @@ def setpoint_for(
     :func:`standoff_push_m_s` added (a middle-row region nearer than ``cmd.standoff_depth_m`` pushes
     the vehicle away from it), before the guard.
 
-    Gap centering: ``gap_offset_m`` (:func:`~companion.core.memory.gap_offset_m`: where the middle of
-    a narrow gap between remembered points lies, sideways, metres, positive = right; None = no gap)
-    with ``guard_cfg``: on a CLEAR decision (not turning back) the sideways speed is
+    Gap centering: ``gap`` (:func:`~companion.core.memory.find_gap`: where the middle of a narrow
+    gap between remembered points lies, sideways, metres, positive = right, and its width; None = no
+    gap) with ``guard_cfg``: on a CLEAR decision (not turning back) the sideways speed is
     ``clip(gap_centering_gain_per_s · offset, ±max_gap_centering_speed_m_s)``, scaled by ``1 - |yaw|``,
     instead of the line hold's, at once (no wait): the centre region sees through a gap the vehicle is
-    off-centre in, and the line need not run through the gap's middle.
+    off-centre in, and the line need not run through the gap's middle. The forward speed is scaled by
+    :func:`gap_lineup_fraction`: the vehicle lines up before it flies on into the gap.
+
+    Slowing for the path: ``path_ahead_m`` (:func:`~companion.core.memory.path_ahead_m`: how far ahead
+    the nearest remembered point in the vehicle's path lies, metres; None = none) with ``guard_cfg``:
+    on CLEAR and AVOID decisions the forward speed is at most ``(path_ahead_m - path_stop_m) /
+    path_slow_time_s`` (never below 0; :func:`path_speed_limit_m_s`).
     """
     if decision is None or not math.isfinite(since_last_frame_s):
         return ZERO_SETPOINT
@@ -548,14 +565,16 @@ def setpoint_for(
         down_m_s += (1.0 - abs(pitch)) * _altitude_return_m_s(
             altitude_error_m, region_depths_m, pitch, below_clear, cmd, waited=False
         )
-    gap_on = gap_offset_m is not None and guard_cfg is not None and guard_cfg.gap_centering_gain_per_s > 0.0
-    if clear and not turning_back and gap_on and math.isfinite(gap_offset_m):
+    gap_on = gap is not None and guard_cfg is not None and guard_cfg.gap_centering_gain_per_s > 0.0
+    if clear and not turning_back and gap_on and math.isfinite(gap.offset_m) and math.isfinite(gap.width_m):
         limit = guard_cfg.max_gap_centering_speed_m_s
-        right_m_s = (1.0 - abs(yaw)) * min(limit, max(-limit, guard_cfg.gap_centering_gain_per_s * gap_offset_m))
+        right_m_s = (1.0 - abs(yaw)) * min(limit, max(-limit, guard_cfg.gap_centering_gain_per_s * gap.offset_m))
         # not faster toward a side than the camera's reading of it allows
         right_m_s = within_room(right_m_s, 0.0, side_room_m_s(region_depths_m, cmd))
+        forward_m_s *= gap_lineup_fraction(gap, guard_cfg)
     if since_up_near_m is not None and since_up_near_m < cmd.hold_resume_distance_m and down_m_s < 0.0:
         down_m_s = 0.0  # something was overhead within the last metres: it may still be, out of view
+    forward_m_s = min(forward_m_s, path_speed_limit_m_s(path_ahead_m, guard_cfg))
     sp = VelocitySetpoint(
         forward_m_s=forward_m_s,
         right_m_s=right_m_s,
@@ -563,6 +582,30 @@ def setpoint_for(
         yaw_rate_deg_s=yaw_rate_deg_s,
     )
     return _guarded(sp, guard_m, guard_cfg, velocity_body_m_s, region_depths_m, cmd)
+
+
+def path_speed_limit_m_s(path_ahead_m: float | None, cfg: MemoryConfig | None) -> float:
+    """The forward speed allowed with the nearest remembered point in the path ``path_ahead_m`` ahead
+    (metres; None: none): ``max(0, (path_ahead_m - path_stop_m) / path_slow_time_s)`` m/s, inf when
+    off or nothing is in the path: the vehicle can stop short of it though the autopilot follows a
+    setpoint late."""
+    if path_ahead_m is None or cfg is None or cfg.path_slow_time_s <= 0.0 or not math.isfinite(path_ahead_m):
+        return math.inf
+    return max(0.0, (path_ahead_m - cfg.path_stop_m) / cfg.path_slow_time_s)
+
+
+def gap_lineup_fraction(gap: Gap, cfg: MemoryConfig) -> float:
+    """The share of the forward speed, in [0, 1], that flies on into ``gap`` (metres, body frame):
+    all of it while the vehicle is within ``slack = max(gap_lineup_min_slack_m, width / 2 -
+    gap_pass_clearance_m)`` of the gap's middle, falling linearly to 0 at ``gap_lineup_ramp_m`` beyond
+    that; 1 with ``gap_pass_clearance_m`` = 0. The sideways slide of gap centering goes on
+    meanwhile: a vehicle off the middle of a door stops short of it, lines up, then flies through,
+    instead of reaching the jamb before the slide (PX4 follows a setpoint ~0.85 s late) has moved it."""
+    if cfg.gap_pass_clearance_m == 0.0:
+        return 1.0
+    slack = max(cfg.gap_lineup_min_slack_m, 0.5 * gap.width_m - cfg.gap_pass_clearance_m)
+    excess = abs(gap.offset_m) - slack
+    return min(1.0, max(0.0, 1.0 - excess / cfg.gap_lineup_ramp_m))
 
 
 def standoff_push_m_s(region_depths_m: np.ndarray | None, cmd: CommandConfig) -> tuple[float, float]:
@@ -748,6 +791,7 @@ def detour_setpoint(
     clear_for_s: float | None = None,
     clear_for_m: float | None = None,
     since_up_near_m: float | None = None,
+    path_ahead_m: float | None = None,
 ) -> VelocitySetpoint:
     """The setpoint while the detour layer acts (:class:`~companion.core.detour.DetourCommand`).
 
@@ -773,7 +817,8 @@ def detour_setpoint(
       ``clear_for_m``, ``since_up_near_m``: :func:`setpoint_for`): without it a detour flew on at
       whatever height the vehicle had reached (PX4 SITL doorway-1: 0.45 m up, drifted there under
       zero vertical speed setpoints; a door's lintel then within the memory's height band, the door
-      closed on the map, and the detour flew past it).
+      closed on the map, and the detour flew past it). Flying, the forward speed is also held to
+      :func:`path_speed_limit_m_s` of ``path_ahead_m``, as in :func:`setpoint_for`.
 
     ``region_depths_m`` (float ``(9,)`` metres, NaN unknown): the stand-off's push acts here too
     (:func:`standoff_push_m_s`).
@@ -823,5 +868,6 @@ def detour_setpoint(
         )
         if not (hold < 0.0 and since_up_near_m is not None and since_up_near_m < cmd.hold_resume_distance_m):
             down += hold  # no climb back where something was overhead, out of view now
-    sp = VelocitySetpoint(reactive.forward_m_s * scale, reactive.right_m_s, down, rate)
+    forward = min(reactive.forward_m_s * scale, path_speed_limit_m_s(path_ahead_m, guard_cfg))
+    sp = VelocitySetpoint(forward, reactive.right_m_s, down, rate)
     return _guarded(sp, guard_m, guard_cfg, velocity_body_m_s, region_depths_m, cmd)

@@ -58,7 +58,7 @@ from companion.core.types import Decision, DecisionKind, VelocitySetpoint
 if TYPE_CHECKING:
     from companion.config.core import CommandConfig, MemoryConfig
     from companion.config.detour import DetourConfig
-    from companion.core.memory import ObstacleMemory
+    from companion.core.memory import Gap, ObstacleMemory
 
 
 def _finite(x: float | None) -> float | None:
@@ -228,7 +228,8 @@ class CourseHold:
         region_depths_m: np.ndarray | None = None,
         guard_m: np.ndarray | None = None,
         remembered_sides: tuple[bool, bool] | None = None,
-        gap_offset_m: float | None = None,
+        gap: Gap | None = None,
+        path_ahead_m: float | None = None,
         memory_cfg: MemoryConfig | None = None,
         obstacles: ObstacleMemory | None = None,
         detour_cfg: DetourConfig | None = None,
@@ -245,7 +246,7 @@ class CourseHold:
             yaw_rad: heading now, radians, or None.
             velocity_ned_m_s: float ``(3,)`` NED m/s now, or None (the guard's lean needs it).
             region_depths_m: float ``(9,)`` refined region depths, metres, NaN unknown, or None.
-            guard_m, remembered_sides, gap_offset_m: the obstacle memory's inputs
+            guard_m, remembered_sides, gap, path_ahead_m: the obstacle memory's inputs
                 (:meth:`~companion.core.memory.ObstacleMemory.hold_inputs`), or None (memory off).
             memory_cfg: the ``[memory]`` config that goes with them.
             obstacles: the obstacle memory itself, for the detour layer and course hold's descent
@@ -309,6 +310,7 @@ class CourseHold:
                 clear_for_s=clear_for_s,
                 clear_for_m=clear_for_m,
                 since_up_near_m=since_up_near,
+                path_ahead_m=path_ahead_m,
             )
             turning = command.anchor_ned_m is not None and sp.yaw_rate_deg_s != 0.0
             self._turn_sign = math.copysign(1.0, sp.yaw_rate_deg_s) if turning else 0.0
@@ -340,7 +342,8 @@ class CourseHold:
             guard_cfg=memory_cfg,
             remembered_sides=remembered_sides,
             velocity_body_m_s=horizontal_velocity_body_m_s(velocity_ned_m_s, yaw),
-            gap_offset_m=gap_offset_m,
+            gap=gap,
+            path_ahead_m=path_ahead_m,
             below_clear=below_clear,
         )
         return self._vertical_limits(sp, now_s, cmd, position_ned_m, region_depths_m, obstacles, memory_cfg, fresh)
@@ -406,6 +409,7 @@ class CourseHold:
             goal_distance_m=d,
             stall_mark_m=self.progress.mark_m,
             course_down_m=None if self.altitude_m is None else -self.altitude_m,
+            regressing=self.progress.regressing,
         )
         if command is not None and command.phase is Phase.DEAD_END:
             self.holding_reason = (

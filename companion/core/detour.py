@@ -501,6 +501,7 @@ class DetourPlanner:
         goal_distance_m: float | None = None,
         stall_mark_m: float | None = None,
         course_down_m: float | None = None,
+        regressing: bool = False,
     ) -> DetourCommand | None:
         """Advance to ``now_s`` (seconds) with the decision in force (fresh), the vehicle's position
         (float ``(3,)`` NED metres) and heading (radians), the direction to the goal from here
@@ -511,7 +512,9 @@ class DetourPlanner:
         ``stall_mark_m``: the progress the vehicle has stalled at (the watchdog's mark: a stall is
         answered by one detour); ``course_down_m``: NED down of the altitude course hold keeps, metres
         (the map holds only points in the height band of it and of the vehicle's,
-        :meth:`~companion.core.memory.ObstacleMemory.map_points`; None: the vehicle's alone)."""
+        :meth:`~companion.core.memory.ObstacleMemory.map_points`; None: the vehicle's alone);
+        ``regressing``: the vehicle is flying back from its goal
+        (:attr:`~companion.core.command.ProgressWatch.regressing`)."""
         self._goal_distance_m = goal_distance_m
         self._course_down_m = course_down_m
         self._stall_mark = stall_mark_m
@@ -534,7 +537,7 @@ class DetourPlanner:
         if self._stall_mark is None or self._count_mark is None or abs(self._stall_mark - self._count_mark) > 1e-6:
             self._count_mark, self._count = self._stall_mark, 0  # progress since: count afresh
         if self.phase is Phase.IDLE:
-            if not self._triggered(now_s, decision, yaw_rad, goal_bearing_rad, stalled_for_s, cfg):
+            if not self._triggered(now_s, decision, yaw_rad, goal_bearing_rad, stalled_for_s, cfg, regressing):
                 return None
             if self._count >= cfg.max_detours_without_progress:
                 self.reason = (
@@ -570,6 +573,7 @@ class DetourPlanner:
         goal: float,
         stalled_for_s: float | None,
         cfg: DetourConfig,
+        regressing: bool = False,
     ) -> bool:
         braking = decision is not None and decision.kind is DecisionKind.BRAKE
         if not braking or _vertical_escape(decision):
@@ -584,13 +588,16 @@ class DetourPlanner:
         if cfg.trigger_away_deg > 0.0 and steering and away >= math.radians(cfg.trigger_away_deg):
             self.reason = f"steered {math.degrees(away):.0f} deg away from the goal"
             return True
-        if stalled_for_s is None or cfg.trigger_no_progress_s <= 0.0:
+        if stalled_for_s is None:
             self._progress_mark_s = None
             return False
         mark = self._stall_mark  # the progress the vehicle stalled at: one detour per stall
-        if stalled_for_s >= cfg.trigger_no_progress_s and (
-            self._progress_mark_s is None or mark is None or abs(mark - self._progress_mark_s) > 1e-6
-        ):
+        fresh = self._progress_mark_s is None or mark is None or abs(mark - self._progress_mark_s) > 1e-6
+        if cfg.trigger_on_regress and regressing and fresh:
+            self._progress_mark_s = mark
+            self.reason = "flying back from the goal"
+            return True
+        if cfg.trigger_no_progress_s > 0.0 and stalled_for_s >= cfg.trigger_no_progress_s and fresh:
             self._progress_mark_s = mark
             self.reason = f"no progress for {cfg.trigger_no_progress_s:g} s"
             return True

@@ -10,7 +10,8 @@ guards it: :func:`apply_guard` pushes the vehicle away, and removes the velocity
 when the point is on its path (see :func:`~companion.core.command.setpoint_for`). Course hold also
 neither turns nor slides toward a side with a point within ``memory.hold_clear_m``, abreast or
 ahead (:meth:`ObstacleMemory.sides_near`), and between points on both sides of a narrow gap (a
-doorway) a clear decision slides toward the gap's middle (:func:`gap_offset_m`). The autopilot follows a setpoint late (PX4: ~0.85 s), so
+doorway) a clear decision slides toward the gap's middle, and does not fly on into it until it is
+lined up with it (:func:`find_gap`). The autopilot follows a setpoint late (PX4: ~0.85 s), so
 the guard also counts the path the vehicle is actually flying (and, with
 ``memory.counter_velocity_fraction``, leans against its motion toward a point on it).
 
@@ -59,12 +60,20 @@ from companion.core.pose import Pose
 GUARD_SECTORS = 8
 
 
+class Gap(NamedTuple):
+    """A narrow gap beside and ahead of the vehicle (:func:`find_gap`), body frame."""
+
+    offset_m: float  # where its middle lies, sideways from the vehicle, metres (positive = right)
+    width_m: float  # between the nearest bounding points left and right, metres
+
+
 class HoldInputs(NamedTuple):
     """What the memory gives :func:`~companion.core.command.setpoint_for` for one setpoint."""
 
     guard_m: np.ndarray | None  # :meth:`ObstacleMemory.guard` rows, or None
     sides: tuple[bool, bool] | None  # :meth:`ObstacleMemory.sides_near`, or None
-    gap_offset_m: float | None  # :func:`gap_offset_m`, or None
+    gap: Gap | None  # :func:`find_gap`, or None
+    ahead_m: float | None = None  # :func:`path_ahead_m`, or None
 
 
 class BlockMax:
@@ -634,16 +643,21 @@ class ObstacleMemory:
         cfg: MemoryConfig,
         radius_m: float,
         trusted_only: bool = False,
+        seen_now: bool = False,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
         """The points seen within ``cfg.duration_s`` of ``now_s`` nearer than ``cfg.max_depth_m``
         (the map's farther points do not guard), within ``cfg.height_band_m`` of the vehicle's
-        altitude and within ``radius_m`` of it horizontally (``trusted_only``: trusted ones only), in
-        the body frame: forward, right and horizontal distance, float64 ``(N,)`` metres each, and
+        altitude and within ``radius_m`` of it horizontally (``trusted_only``: trusted ones only;
+        ``seen_now``: not those the camera now sees past, :meth:`see_through`), in the body frame: forward, right and horizontal distance, float64 ``(N,)`` metres each, and
         whether each is trusted, bool ``(N,)``; None without a finite position and heading."""
         pos = np.asarray(position_ned_m, dtype=np.float64).reshape(-1)
         if pos.shape != (3,) or not np.all(np.isfinite(pos)) or not math.isfinite(yaw_rad):
             return None
         sel = ((now_s - self._t) <= cfg.duration_s) & (self._range <= cfg.max_depth_m)
+        if cfg.guard_clear_after_frames > 0:
+            sel &= self._misses < cfg.guard_clear_after_frames  # seen past that long: not there
+        if seen_now:
+            sel &= ~self._seen_past(cfg)
         pts = self._pts[sel]
         rel = pts - pos
         fwd, right = ned_to_body_horizontal(rel[:, 0], rel[:, 1], yaw_rad)
@@ -658,9 +672,9 @@ class ObstacleMemory:
     def hold_inputs(
         self, position_ned_m: np.ndarray, yaw_rad: float, now_s: float, cfg: MemoryConfig, view: ViewLimits | None
     ) -> HoldInputs:
-        """:meth:`guard` (None without ``view``), :meth:`sides_near` and :func:`gap_offset_m` (from
+        """:meth:`guard` (None without ``view``), :meth:`sides_near` and :func:`find_gap` (from
         trusted points only), from the memory: what :func:`~companion.core.command.setpoint_for` takes
-        as ``guard_m``, ``remembered_sides`` and ``gap_offset_m``."""
+        as ``guard_m``, ``remembered_sides`` and ``gap``."""
         radius = max(cfg.guard_distance_m, cfg.hold_clear_m)
         near = self._nearby(position_ned_m, yaw_rad, now_s, cfg, radius)
         if near is None:
@@ -670,8 +684,12 @@ class ObstacleMemory:
         if cfg.gap_centering_gain_per_s > 0.0:
             radius = max(radius, math.hypot(cfg.gap_lookahead_m, cfg.gap_max_width_m))
             trusted = self._nearby(position_ned_m, yaw_rad, now_s, cfg, radius, trusted_only=True)
-            gap = None if trusted is None else gap_offset_m(trusted[0], trusted[1], cfg)
-        return HoldInputs(guard, _sides(*near[:3], cfg), gap)
+            gap = None if trusted is None else find_gap(trusted[0], trusted[1], cfg)
+        ahead = None
+        if cfg.path_slow_time_s > 0.0:
+            path = self._nearby(position_ned_m, yaw_rad, now_s, cfg, cfg.path_range_m, trusted_only=True, seen_now=True)
+            ahead = None if path is None else path_ahead_m(path[0], path[1], cfg)
+        return HoldInputs(guard, _sides(*near[:3], cfg), gap, ahead)
 
     def sides_near(
         self, position_ned_m: np.ndarray, yaw_rad: float, now_s: float, cfg: MemoryConfig
@@ -709,9 +727,9 @@ class ObstacleMemory:
         return None if near is None else _guard_rows(*near, cfg, view)
 
 
-def gap_offset_m(fwd: np.ndarray, right: np.ndarray, cfg: MemoryConfig) -> float | None:
-    """Where the middle of a narrow gap lies, sideways from the vehicle, metres (positive = right),
-    or None when there is no such gap (or centering is off).
+def find_gap(fwd: np.ndarray, right: np.ndarray, cfg: MemoryConfig) -> Gap | None:
+    """The narrow gap the vehicle is in or about to enter: where its middle lies, sideways from the
+    vehicle, and how wide it is, metres; None when there is no such gap (or centering is off).
 
     ``fwd``, ``right``: remembered points in the body frame, horizontal metres, float ``(N,)``. The
     points from ``cfg.keep_out_m`` behind to ``cfg.gap_lookahead_m`` ahead are the vehicle's sides;
@@ -730,7 +748,27 @@ def gap_offset_m(fwd: np.ndarray, right: np.ndarray, cfg: MemoryConfig) -> float
     lo, hi = float(left_m.min()), float(right_m.min())
     if lo + hi >= cfg.gap_max_width_m:
         return None
-    return 0.5 * (hi - lo)
+    return Gap(0.5 * (hi - lo), lo + hi)
+
+
+def path_ahead_m(fwd: np.ndarray, right: np.ndarray, cfg: MemoryConfig) -> float | None:
+    """How far the vehicle can fly straight ahead before a point comes within
+    ``cfg.path_half_width_m`` of its centre, metres: over the points (body frame, horizontal
+    metres, float ``(N,)``) ahead of it and less than that sideways, the least
+    ``fwd - sqrt(half_width² - right²)`` (at least 0); None when none (or it is off). The half
+    width is the vehicle's radius and a little: a wall alongside, farther sideways, is not in the way
+    however near it is (stopping beside one left a drifting vehicle there, kinematic deadend-7). The
+    centre region is a fixed angle wide, so near the vehicle what it will hit sits in a side region
+    (the paper's Fig. 11); the memory's points, in the body frame, say where it is."""
+    if cfg.path_slow_time_s <= 0.0:
+        return None
+    fwd = np.asarray(fwd, dtype=np.float64)
+    right = np.asarray(right, dtype=np.float64)
+    hw = cfg.path_half_width_m
+    on = (fwd > 0.0) & (np.abs(right) < hw)
+    if not np.any(on):
+        return None
+    return float(max(0.0, (fwd[on] - np.sqrt(hw * hw - right[on] ** 2)).min()))
 
 
 def _sides(fwd: np.ndarray, right: np.ndarray, dist: np.ndarray, cfg: MemoryConfig) -> tuple[bool, bool]:

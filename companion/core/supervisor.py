@@ -300,6 +300,7 @@ class _Memory:
     course: CourseHold = field(default_factory=CourseHold)  # course hold's timers, latches and progress clock
     obstacles: ObstacleMemory = field(default_factory=ObstacleMemory)  # near points seen (the guard)
     stalled: bool = False  # paused by the progress watchdog, a dead end or the goal reached (not by the operator)
+    stall_reason: str = ""  # why, as it was when it stalled (the watchdog's clock is reset right after)
     goal: GoalSpec = COURSE  # the goal of the engage under way (applied when offboard is confirmed)
     poses: deque[tuple[float, Pose]] = field(default_factory=lambda: deque(maxlen=_POSE_HISTORY))  # (time s, pose)
     last_frame_s: float | None = None  # capture time of the newest frame put in the memory
@@ -787,10 +788,13 @@ class Supervisor:
         if m.activity is State.ENGAGED and (m.course.holding_reason is not None or self._no_progress(now_s, v)):
             m.activity = State.PAUSED  # the goal reached, a dead end, or the progress watchdog
             m.stalled = True
+            # Before the reset below: it clears the watchdog's why, and a regress was reported as
+            # "no progress for 20 s" (PX4 SITL detour-3, held 16 s after engaging).
+            m.stall_reason = self._stalled_reason()
         if m.activity is not State.ENGAGED:
             m.course.progress.reset()  # the watchdog times the automatic flight only
         if m.activity is State.PAUSED:
-            reason = self._stalled_reason() if m.stalled else "paused by the operator: zero velocity in offboard"
+            reason = m.stall_reason if m.stalled else "paused by the operator: zero velocity in offboard"
             self._set(State.PAUSED, reason)
         elif m.activity is State.OVERRIDE:
             self._set(State.OVERRIDE, "manual override (automatic again when it expires)")
@@ -872,9 +876,11 @@ class Supervisor:
         decision = NO_PROGRESS_HOLD if hold else latest.decision
         heading_now = _finite_or_none(v.attitude_rad, 2)
         refined = getattr(latest, "refined", None)
-        guard = sides = gap = None
+        guard = sides = gap = ahead = None
         if self._cfg.memory.duration_s > 0.0 and v.position_ned_m is not None and heading_now is not None:
-            guard, sides, gap = m.obstacles.hold_inputs(v.position_ned_m, heading_now, now_s, self._cfg.memory, m.view_limits)
+            guard, sides, gap, ahead = m.obstacles.hold_inputs(
+                v.position_ned_m, heading_now, now_s, self._cfg.memory, m.view_limits
+            )
         m.guarding = 0 if guard is None else len(guard)
         return m.course.setpoint(
             decision,
@@ -887,7 +893,8 @@ class Supervisor:
             region_depths_m=getattr(refined, "depth_m", None),
             guard_m=guard,
             remembered_sides=sides,
-            gap_offset_m=gap,
+            gap=gap,
+            path_ahead_m=ahead,
             memory_cfg=self._cfg.memory,
             obstacles=m.obstacles if self._cfg.memory.duration_s > 0.0 else None,
             detour_cfg=self._cfg.detour,

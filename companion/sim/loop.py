@@ -420,10 +420,10 @@ def fly(
                 hold_reason = hold.holding_reason
             if stalled and decision is not None:
                 decision = NO_PROGRESS_HOLD
-            guard = sides = gap = None
+            guard = sides = gap = ahead = None
             if memory is not None:
                 view = latest.view_limits if latest is not None else None
-                guard, sides, gap = memory.hold_inputs(m.position_ned_m, m.yaw_rad, t, cfg.memory, view)
+                guard, sides, gap, ahead = memory.hold_inputs(m.position_ned_m, m.yaw_rad, t, cfg.memory, view)
             sp = hold.setpoint(
                 decision,
                 t,
@@ -435,7 +435,8 @@ def fly(
                 region_depths_m=latest.refined.depth_m if latest is not None else None,
                 guard_m=guard,
                 remembered_sides=sides,
-                gap_offset_m=gap,
+                gap=gap,
+                path_ahead_m=ahead,
                 memory_cfg=cfg.memory,
                 obstacles=memory,
                 detour_cfg=cfg.detour,
