@@ -462,7 +462,7 @@ def test_a_clear_decision_slides_toward_the_middle_of_a_gap_instead_of_the_line(
 
 def test_off_the_middle_of_a_gap_the_vehicle_lines_up_before_it_flies_on() -> None:
     """PX4 SITL doorway-2 (2026-11-26): a 1.3 m door, the vehicle 0.5 m off its middle 0.9 m short of
-    it, CLEAR at the full 0.7 m/s while gap centering slid it at 0.3 m/s (PX4 ~0.85 s late): it hit
+    it, CLEAR at the full 0.7 m/s while gap centering slid it at 0.18 m/s (PX4 ~0.85 s late): it hit
     the jamb. Off the middle by more than half the width less gap_pass_clearance_m, the forward
     speed falls to 0 over gap_lineup_ramp_m; the slide goes on; a narrowed gap keeps a small band."""
     from companion.core.command import gap_lineup_fraction

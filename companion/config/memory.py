@@ -281,8 +281,8 @@ class MemoryConfig(StrictModel):
             "falls to 0 over gap_lineup_ramp_m while the sideways slide lines it up (at least "
             "gap_lineup_min_slack_m off the middle always counts as lined up, so that a gap the map "
             "has narrowed still lets a centred vehicle through). The vehicle's 0.25 m plus 0.1 m: "
-            "PX4 SITL doorway-2 arrived at a 1.3 m door 0.5 m off its middle at 0.7 m/s, the "
-            "centering's 0.3 m/s slide 0.3 s from taking it, and hit the jamb."
+            "PX4 SITL doorway-2 arrived at a 1.3 m door 0.5 m off its middle at 0.7 m/s while the "
+            "centering slid it at 0.18 m/s, and hit the jamb."
         ),
     )
     gap_lineup_ramp_m: float = Field(
