@@ -29,6 +29,7 @@ Pure: positions, headings and times are passed in; nothing here reads a clock.
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -50,10 +51,12 @@ from companion.core.command import (
     line_offset_m,
     setpoint_for,
 )
+from companion.core.closing import ClosingWatch
 from companion.core.detour import DetourPlanner, Phase
 from companion.core.frames import finite_position
 from companion.core.goal import COURSE, Goal, GoalSpec, resolve_goal
-from companion.core.types import Decision, DecisionKind, VelocitySetpoint
+from companion.core.memory import apply_guard
+from companion.core.types import REGION_INDEX, Decision, DecisionKind, VelocitySetpoint
 
 if TYPE_CHECKING:
     from companion.config.core import CommandConfig, MemoryConfig
@@ -91,6 +94,10 @@ class CourseHold:
         self.progress = ProgressWatch()
         self.goal = Goal(COURSE, None)
         self.detour = DetourPlanner(defer=defer_histogram)
+        #: The camera's check on the velocity estimate (``command.unseen_closing_range_m``).
+        self.closing = ClosingWatch()
+        #: The unseen drift the last setpoint countered, m/s (0: none), for the health message.
+        self.unseen_drift_m_s = 0.0
         self._engaged_at: tuple[np.ndarray | None, float | None] = (None, None)
         #: The side the detour's turn in place has been turning (+1 right, -1 left, 0 none).
         self._turn_sign = 0.0
@@ -110,6 +117,7 @@ class CourseHold:
         self._engaged_at = (origin, self.heading_rad)
         self.brake.reset()
         self.overhead.reset()
+        self.closing.reset()
         self.set_goal(goal, position_ned_m, heading_rad)
 
     def set_goal(self, goal: GoalSpec, position_ned_m: object, heading_rad: float | None) -> None:
@@ -262,6 +270,7 @@ class CourseHold:
             and math.isfinite(since_last_frame_s)
             and since_last_frame_s <= cmd.stale_frame_timeout_s
         )
+        self._observe_closing(decision, now_s, since_last_frame_s, region_depths_m, yaw, velocity_ned_m_s, cmd)
         command = None
         if planning and fresh and self.holding_reason is None:
             command = self._plan(decision, now_s, cmd, position_ned_m, yaw, obstacles, memory_cfg, detour_cfg, prefer_right)
@@ -314,6 +323,7 @@ class CourseHold:
             )
             turning = command.anchor_ned_m is not None and sp.yaw_rate_deg_s != 0.0
             self._turn_sign = math.copysign(1.0, sp.yaw_rate_deg_s) if turning else 0.0
+            sp = self._counter_unseen_closing(sp, now_s, yaw, cmd, fresh, guard_m, memory_cfg)
             return self._vertical_limits(sp, now_s, cmd, position_ned_m, region_depths_m, obstacles, memory_cfg, fresh)
         self._turn_sign = 0.0
         heading_error = line_offset = None
@@ -346,7 +356,59 @@ class CourseHold:
             path_ahead_m=path_ahead_m,
             below_clear=below_clear,
         )
+        sp = self._counter_unseen_closing(sp, now_s, yaw, cmd, fresh, guard_m, memory_cfg)
         return self._vertical_limits(sp, now_s, cmd, position_ned_m, region_depths_m, obstacles, memory_cfg, fresh)
+
+    def _observe_closing(
+        self,
+        decision: Decision | None,
+        now_s: float,
+        since_last_frame_s: float,
+        region_depths_m: np.ndarray | None,
+        yaw: float | None,
+        velocity_ned_m_s: np.ndarray | None,
+        cmd: CommandConfig,
+    ) -> None:
+        """Feed :attr:`closing` the reported forward speed now and, once per frame, the centre's depth."""
+        if cmd.unseen_closing_range_m <= 0.0:
+            return
+        body = horizontal_velocity_body_m_s(velocity_ned_m_s, yaw)
+        self.closing.observe_velocity(now_s, None if body is None else body[0])
+        if decision is None or region_depths_m is None or not math.isfinite(since_last_frame_s):
+            return
+        centre = float(np.asarray(region_depths_m, dtype=np.float64)[REGION_INDEX["center"]])
+        self.closing.observe_frame(now_s - since_last_frame_s, centre, yaw, cmd)
+
+    def _counter_unseen_closing(
+        self,
+        sp: VelocitySetpoint,
+        now_s: float,
+        yaw: float | None,
+        cmd: CommandConfig,
+        fresh: bool,
+        guard_m: np.ndarray | None,
+        memory_cfg: MemoryConfig | None,
+    ) -> VelocitySetpoint:
+        """``sp`` less the drift the camera sees and the estimate does not (the vehicle flies the
+        setpoint plus the drift), in the body frame at ``yaw``; a stale frame's zero stays zero. The
+        counter backs away from what the camera sees, toward what it does not: the guard's slide
+        past a remembered point on the path (``guard_m``, no push again) applies to the result."""
+        self.unseen_drift_m_s = 0.0
+        if not fresh or yaw is None or cmd.unseen_closing_range_m <= 0.0:
+            return sp
+        drift = self.closing.drift(now_s, cmd)
+        if drift is None:
+            return sp
+        speed, heading = drift
+        self.unseen_drift_m_s = speed
+        off = heading - yaw  # positive: the drift points to the right of the nose
+        forward = sp.forward_m_s - speed * math.cos(off)
+        right = sp.right_m_s - speed * math.sin(off)
+        if guard_m is not None and memory_cfg is not None and len(guard_m):
+            slide_only = np.array(guard_m, dtype=np.float64).reshape(len(guard_m), -1)[:, :3]
+            slide_only = np.column_stack([slide_only, np.zeros(len(slide_only))])
+            forward, right = apply_guard(forward, right, slide_only, memory_cfg)
+        return replace(sp, forward_m_s=forward, right_m_s=right)
 
     @staticmethod
     def _vertical_limits(
