@@ -353,11 +353,11 @@ class CommandConfig(StrictModel):
         description=(
             "The camera's check on the velocity estimate: while the centre region reads nearer than "
             "this, the rate its depth falls less the forward speed the vehicle reports (the forward "
-            "drift the autopilot's estimate does not show) comes off the forward setpoint, metres "
-            "(0 = off). The depth of a static point falls at exactly the forward speed; PX4 flies "
-            "its velocity estimate, and an estimate 0.45 m/s off carried a simulated vehicle into a "
-            "cabinet while every setpoint slowed it (kinematic office-4 with 0.14 m/s drift: with "
-            "the check, the goal; 3 collisions in 4 drift suites without it, 1 with it)."
+            "drift the autopilot's estimate does not show) comes off the setpoint, metres (0 = "
+            "off). The depth of a static point falls at exactly the forward speed; PX4 flies its "
+            "velocity estimate, and an estimate 0.45 m/s off carried a simulated vehicle into a "
+            "cabinet while every setpoint slowed it (kinematic office-4 with 0.14 m/s drift collided "
+            "in 3 of 4 drift suites; with the check it reaches its goal)."
         ),
     )
     unseen_closing_window_s: float = Field(
@@ -371,7 +371,9 @@ class CommandConfig(StrictModel):
         ge=0.0,
         le=2.0,
         description=(
-            "Unseen closing below this is left alone (stereo noise, the LUT's scale), m/s."
+            "Unseen closing below this is left alone (stereo noise, the LUT's scale), and the centre's "
+            "depth must itself fall at least this fast (backing off a surface whose depth does not "
+            "rise is no danger), m/s."
         ),
     )
     unseen_closing_max_yaw_rate_deg_s: float = Field(
@@ -416,7 +418,7 @@ class CommandConfig(StrictModel):
         default=0.5,
         ge=0.0,
         le=2.0,
-        description="The most the check takes off the forward setpoint, m/s.",
+        description="The most the check takes off the setpoint, m/s.",
     )
 
     @model_validator(mode="after")
