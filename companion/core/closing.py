@@ -76,12 +76,14 @@ class ClosingWatch:
         self._frames = _Ring(3)  # capture time s, centre depth m, yaw rad
         self._speeds = _Ring(2)  # time s, reported forward speed m/s
         self._held: tuple[float, float, float] | None = None  # m/s, heading rad, until s
+        self._unseen_m_s = 0.0  # measured at the newest frame (it changes only with a frame)
 
     def reset(self) -> None:
         """Forget every sample (a new engagement)."""
         self._frames.clear()
         self._speeds.clear()
         self._held = None
+        self._unseen_m_s = 0.0
 
     def observe_velocity(self, now_s: float, forward_m_s: float | None) -> None:
         """The forward speed the vehicle reports (body x, m/s) at ``now_s``; None or not finite: none."""
@@ -89,8 +91,10 @@ class ClosingWatch:
             self._speeds.push(float(now_s), float(forward_m_s))
 
     def observe_frame(self, capture_s: float, centre_depth_m: float, yaw_rad: float | None, cmd: CommandConfig) -> None:
-        """A new frame's centre depth (metres, NaN unknown) seen at ``capture_s`` facing ``yaw_rad``.
-        The same capture time again changes nothing."""
+        """A new frame's centre depth (metres, NaN unknown) seen at ``capture_s`` facing ``yaw_rad``,
+        and the measurement with it (:meth:`unseen_closing_m_s`: the speeds it uses are those
+        reported up to the frame, so it is made once here). The same capture time again changes
+        nothing."""
         last = self._frames.last()
         if last is not None and capture_s <= last[0]:
             return
@@ -101,6 +105,7 @@ class ClosingWatch:
             or centre_depth_m > cmd.unseen_closing_range_m
         ):
             self._frames.clear()
+            self._unseen_m_s = 0.0
             return
         if last is not None:
             dt = capture_s - last[0]
@@ -109,6 +114,7 @@ class ClosingWatch:
             if dt > 2.0 * cmd.unseen_closing_window_s or abs((last[1] - centre_depth_m) - explained) > cmd.unseen_closing_max_step_m:
                 self._frames.clear()
         self._frames.push(float(capture_s), float(centre_depth_m), float(yaw_rad))
+        self._unseen_m_s = self._measure(cmd)
 
     def _mean_speed(self, t0_s: float, t1_s: float) -> float | None:
         rows = self._speeds.since(t0_s)
@@ -136,6 +142,11 @@ class ClosingWatch:
         return None
 
     def unseen_closing_m_s(self, cmd: CommandConfig) -> float:
+        """The forward drift toward the centre's surface the reported velocity does not show, m/s, as
+        measured at the newest frame (:meth:`_measure`); 0 when off (``unseen_closing_range_m`` 0)."""
+        return self._unseen_m_s if cmd.unseen_closing_range_m > 0.0 else 0.0
+
+    def _measure(self, cmd: CommandConfig) -> float:
         """The forward drift toward the centre's surface the reported velocity does not show, m/s, or
         0: off (``unseen_closing_range_m`` 0), too few frames (4, over half the window), turning
         faster than ``unseen_closing_max_yaw_rate_deg_s``, or below ``unseen_closing_min_m_s``. At most
