@@ -35,6 +35,12 @@ def test_one_course_prints_the_verdict_and_draws_the_plot(tmp_path: Path, capsys
         (["sim", "--course", "doorway", "--plot", "/no/such/dir/x.png"], "no such directory"),
         (["sim", "--course", "doorway", "--plot", "plot.txt"], "must be an image"),
         (["sim", "--course", "doorway", "--config", "/no/such.toml"], "cannot read config"),
+        (["sim", "--course", "head-on", "--start", "1,2,3"], "expected N,E,ALT,YAW"),
+        (["sim", "--course", "head-on", "--start", "1,0,x,0"], "expected N,E,ALT,YAW"),
+        (["sim", "--course", "head-on", "--start", "1,0,0,0"], "altitude must be above 0 m"),
+        (["sim", "--course", "head-on", "--start", "5,0,1.5,0"], "from an obstacle in head-on-0"),
+        (["sim", "--course", "head-on", "--start=-50,0,1.5,0"], "outside head-on-0's bounds"),
+        (["sim", "--suite", "quick", "--start", "1,0,1.5,0"], "go with --course"),
     ],
 )
 def test_bad_input_is_one_line_and_exit_2(argv: list[str], message: str, capsys: pytest.CaptureFixture[str]) -> None:
@@ -85,3 +91,26 @@ def test_quick_suite_over_two_workers(capsys: pytest.CaptureFixture[str]) -> Non
     assert main(["sim", "--suite", "quick", "--workers", "2"]) == 0
     out = capsys.readouterr().out
     assert "[ 16/16]" in out and "collisions" in out
+
+
+def test_start_replays_a_course_from_another_pose(capsys: pytest.CaptureFixture[str]) -> None:
+    """--start: past head-on's box (its face 4.7 m north), facing the goal line 3 m on, the flight
+    begins there and reaches the goal at once; the course and its goal are unchanged."""
+    assert main(["sim", "--course", "head-on", "--start", "6,0,1.5,0"]) == 0
+    out = capsys.readouterr().out
+    assert "outcome:       goal (success)" in out
+    path = float(re.search(r"path length:\s+([\d.]+) m", out).group(1))
+    assert path < 3.5  # from 6 m to the goal line at 8 m, not from the start 5 m before the box
+
+
+def test_started_at_keeps_the_goal_and_sets_the_heading() -> None:
+    import math
+
+    from companion.core.pose import Pose
+    from companion.sim.courses import make_course
+
+    course = make_course("office", 3)
+    moved = course.started_at(Pose.at(0.86, 1.54, 1.76, math.radians(-5.6)), 0.25)
+    assert moved.start.position_ned_m == pytest.approx((0.86, 1.54, -1.76))
+    assert math.degrees(moved.start.yaw_rad) == pytest.approx(-5.6)
+    assert (moved.goal_north_m, moved.goal_east_m, moved.scene) == (course.goal_north_m, course.goal_east_m, course.scene)

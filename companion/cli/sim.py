@@ -37,6 +37,16 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="--suite: fly only these course kinds of the suite (e.g. office: its 9 standard seeds)",
     )
     p.add_argument("--seed", type=int, default=0, help="course seed, 0..2147483647 (default 0)")
+    p.add_argument(
+        "--start",
+        metavar="N,E,ALT,YAW",
+        help=(
+            "--course: fly from this pose instead of the course's start: north and east (m, the course's "
+            "frame), altitude (m) and heading (degrees, 0 = north, 90 = east), e.g. a moment of a SITL "
+            "flight to replay (its health log's vehicle.position_ned_m and attitude); write a negative north as "
+            "--start=-1,0,1.5,0"
+        ),
+    )
     p.add_argument("--config", type=Path, help="TOML config (default: built-in defaults)")
     p.add_argument("--plot", type=Path, metavar="OUT.png", help="--course: write a top-down plot of the flight")
     p.add_argument("--side-view", action="store_true", help="--course: add the altitude profile to the plot")
@@ -52,8 +62,8 @@ def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     if args.course is not None:
         return _run_course(args, cfg)
-    if args.plot is not None or args.side_view or args.realtime or args.view:
-        raise InputError("--plot, --side-view, --realtime and --view go with --course, not --suite")
+    if args.plot is not None or args.side_view or args.realtime or args.view or args.start is not None:
+        raise InputError("--plot, --side-view, --realtime, --view and --start go with --course, not --suite")
     if args.kinds is not None and not args.kinds.strip():
         raise InputError("--kinds needs at least one course kind")
     return _run_suite(args, cfg)
@@ -80,6 +90,8 @@ def _run_course(args: argparse.Namespace, cfg: Any) -> int:
     from companion.sim.loop import fly
 
     course = make_course(args.course, args.seed)
+    if args.start is not None:
+        course = course.started_at(parse_start(args.start), cfg.sim.collision_radius_m)
     plot_path = _check_plot_path(args.plot) if args.plot is not None else None
     bridge = None
     if args.view:
@@ -97,6 +109,29 @@ def _run_course(args: argparse.Namespace, cfg: Any) -> int:
     if bridge is not None:
         finish_view(bridge, args.view_linger_s)
     return 0
+
+
+def parse_start(text: str) -> Any:
+    """``N,E,ALT,YAW`` (metres, metres, metres, degrees) as a :class:`~companion.core.pose.Pose`.
+
+    Raises:
+        InputError: not four finite numbers, or an altitude not above 0.
+    """
+    import math
+
+    from companion.core.pose import Pose
+
+    parts = [p.strip() for p in text.split(",")]
+    try:
+        values = [float(p) for p in parts]
+    except ValueError:
+        values = []
+    if len(values) != 4 or not all(math.isfinite(v) for v in values):
+        raise InputError(f"--start {text!r}: expected N,E,ALT,YAW: four numbers (m, m, m, degrees)")
+    north, east, altitude, yaw_deg = values
+    if altitude <= 0.0:
+        raise InputError(f"--start {text!r}: the altitude must be above 0 m, got {altitude:g}")
+    return Pose.at(north, east, altitude, math.radians(yaw_deg))
 
 
 def add_view_options(p: argparse.ArgumentParser, prefix: str = "") -> None:

@@ -103,6 +103,34 @@ class Course:
         n, e = float(position_ned_m[0]), float(position_ned_m[1])
         return n >= self.goal_north_m and self.goal_east_m[0] <= e <= self.goal_east_m[1]
 
+    def started_at(self, start: Pose, clearance_m: float) -> Course:
+        """This course flown from ``start`` instead of its own start pose (to replay a moment of a
+        SITL or field flight where it went wrong); the goal stays where it was.
+
+        Args:
+            start: the new start pose (level, at rest; pitch and roll are ignored).
+            clearance_m: the start must be at least this far from every obstacle and the ground,
+                metres (the vehicle's collision radius).
+
+        Raises:
+            InputError: the start lies outside the course bounds, or nearer an obstacle than
+                ``clearance_m`` (the message says how near).
+        """
+        n, e, d = start.position_ned_m
+        if not self.in_bounds(np.array([n, e, d])):
+            lo, hi = self.bounds_min_ned_m, self.bounds_max_ned_m
+            raise InputError(
+                f"start N {n:.2f} m, E {e:+.2f} m, altitude {-d:.2f} m is outside {self.name}'s bounds "
+                f"(N {lo[0]:.1f}..{hi[0]:.1f} m, E {lo[1]:.1f}..{hi[1]:.1f} m, altitude up to {-lo[2]:.1f} m)"
+            )
+        gap = float(self.scene.distance_to_obstacles_m(np.array([n, e, d]), include_ground=True))
+        if gap < clearance_m:
+            raise InputError(
+                f"start N {n:.2f} m, E {e:+.2f} m, altitude {-d:.2f} m is {gap:.2f} m from an obstacle "
+                f"in {self.name}; the vehicle needs {clearance_m:.2f} m"
+            )
+        return dataclasses.replace(self, start=Pose(position_ned_m=(n, e, d), yaw_rad=start.yaw_rad))
+
     def in_bounds(self, position_ned_m: np.ndarray) -> bool:
         """Whether a position (float ``(3,)`` NED metres) is inside the course bounds."""
         p = np.asarray(position_ned_m, dtype=np.float64)
