@@ -113,4 +113,5 @@ def test_started_at_keeps_the_goal_and_sets_the_heading() -> None:
     moved = course.started_at(Pose.at(0.86, 1.54, 1.76, math.radians(-5.6)), 0.25)
     assert moved.start.position_ned_m == pytest.approx((0.86, 1.54, -1.76))
     assert math.degrees(moved.start.yaw_rad) == pytest.approx(-5.6)
-    assert (moved.goal_north_m, moved.goal_east_m, moved.scene) == (course.goal_north_m, course.goal_east_m, course.scene)
+    assert moved.goal_north_m == course.goal_north_m and moved.goal_east_m == course.goal_east_m
+    assert moved.scene is course.scene
