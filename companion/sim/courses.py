@@ -105,7 +105,8 @@ class Course:
 
     def started_at(self, start: Pose, clearance_m: float) -> Course:
         """This course flown from ``start`` instead of its own start pose (to replay a moment of a
-        SITL or field flight where it went wrong); the goal stays where it was.
+        SITL or field flight where it went wrong); the goal line stays where it was (the goal as a
+        point, :attr:`goal_point_ned_m`, takes the new start's altitude).
 
         Args:
             start: the new start pose (level, at rest; pitch and roll are ignored).
