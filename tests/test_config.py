@@ -64,6 +64,8 @@ def test_every_field_has_a_description() -> None:
         ({"controller": {"main_rules": [{"name": "x", "when": "centre is far", "then": {"yaw": "left"}}]}}, "centre"),
         ({"controller": {"main_rules": [{"name": "x", "when": "center is far", "then": {"yaw": "up"}}]}}, "'up'"),
         ({"controller": {"input_terms": {"near": {"shape": "triangle", "params_m": [1.0, 0.5, 2.0]}}}}, "non-decreasing"),
+        ({"memory": {"push_baseline_m": 0.3}}, "push_baseline_m (0.3 m) must be 0 or at least 0.45 m"),
+        ({"memory": {"trust_cell_m": 0.5}}, "push_baseline_m"),
     ],
 )
 def test_invalid_patch_names_the_field_and_keeps_the_old(patch: dict, expected: str) -> None:

@@ -169,7 +169,7 @@ def test_only_trusted_points_push_untrusted_ones_only_stop_the_motion_toward_the
     """A point seen for a moment from one place may be a false match in the air; its push would move
     the vehicle sideways into what the camera does not see (kinematic forest-2 with StereoBM: a
     false point beside the vehicle pushed it into a pillar out of view). A point seen from two places
-    0.3 m apart is trusted and pushes."""
+    0.6 m apart (more than memory.push_baseline_m) pushes."""
     cfg = guard_cfg()
     vehicle = np.array([0.0, 0.0, -1.5])
     left_point = np.array([[0.0, -0.4, -1.5]])
@@ -181,18 +181,58 @@ def test_only_trusted_points_push_untrusted_ones_only_stop_the_motion_toward_the
     assert apply_guard(0.0, -0.3, g, cfg) == pytest.approx((0.0, 0.0))  # but no sliding into it
     twice = ObstacleMemory()
     twice.add(left_point, 0.0, 30.0, viewpoint_ned_m=np.array([-1.5, 0.0, -1.5]), cfg=cfg)
-    twice.add(left_point, 0.5, 30.0, viewpoint_ned_m=np.array([-1.0, 0.0, -1.5]), cfg=cfg)
+    twice.add(left_point, 0.5, 30.0, viewpoint_ned_m=np.array([-0.9, 0.0, -1.5]), cfg=cfg)
     g = twice.guard(vehicle, 0.0, 1.0, cfg, VIEW)
     assert g is not None and g.shape == (1, 4) and g[0, 3] == 1.0
     f, r = apply_guard(0.0, 0.0, g, cfg)
     assert (f, r) == pytest.approx((0.0, cfg.guard_gain_per_s * (cfg.guard_distance_m - 0.4)))
 
 
+def test_a_point_that_only_persists_from_one_place_is_trusted_but_never_pushes() -> None:
+    """Persistence is what a false match that moves with the vehicle has too; only a point seen from
+    two places moves the vehicle sideways (PX4 SITL r5 office-3: StereoBM's alias on a fence, trusted
+    by persistence, pushed the vehicle into the right wall). It still stops the motion toward it."""
+    cfg = guard_cfg()
+    vehicle = np.array([0.0, 0.0, -1.5])
+    left_point = np.array([[0.0, -0.4, -1.5]])
+    mem = ObstacleMemory()
+    for k in range(10):
+        mem.add(left_point, 0.1 * k, 30.0, viewpoint_ned_m=np.array([-1.0, 0.0, -1.5]), cfg=cfg)
+    assert mem.trusted(left_point, cfg)[0]  # for the map and the path ahead
+    assert not mem.may_push(left_point, cfg)[0]
+    g = mem.guard(vehicle, 0.0, 1.0, cfg, VIEW)
+    assert g is not None and g.shape == (1, 4) and g[0, 3] == 0.0
+    assert apply_guard(0.0, 0.0, g, cfg) == (0.0, 0.0)
+    assert apply_guard(0.0, -0.3, g, cfg) == pytest.approx((0.0, 0.0))
+
+
+def test_a_false_match_that_follows_the_vehicle_never_pushes_where_a_real_point_does() -> None:
+    """A fence's alias (or a smudge on the lens) sits at the same place in the view wherever the
+    vehicle goes: seen from two places ``push_baseline_m`` (0.5 m) apart it lands 0.5 m apart, never
+    in one 0.3 m cube, however long the vehicle wanders; it persists, so it is trusted, but it never
+    pushes. A real point lands in its cube from everywhere."""
+    cfg = guard_cfg()
+    mem = ObstacleMemory()
+    real = np.array([[2.0, -0.6, -1.5]])
+    rng = np.random.default_rng(3)
+    east = 0.0
+    for k in range(300):  # 30 s, wandering sideways over 1 m at up to 0.5 m/s
+        east = float(np.clip(east + rng.uniform(-0.05, 0.05), -0.5, 0.5))
+        here = np.array([1.0, east, -1.5])
+        phantom = here + [0.25, -0.35, 0.0]  # 0.43 m ahead-left, wherever the vehicle is
+        mem.add(np.vstack([phantom, real]), 0.1 * k, 30.0, viewpoint_ned_m=here, cfg=cfg)
+    pts, _ = mem.points(30.0, cfg)
+    phantoms = pts[np.abs(pts[:, 0] - 1.25) < 1e-6]
+    assert len(phantoms) > 5 and mem.trusted(phantoms, cfg).any()
+    assert not mem.may_push(phantoms, cfg).any()
+    assert mem.may_push(real, cfg)[0]
+
+
 def test_guard_keeps_the_nearest_trusted_point_of_a_sector_beside_a_nearer_untrusted_one() -> None:
     cfg = guard_cfg()
     mem = ObstacleMemory()
     real = np.array([[0.0, -0.5, -1.5]])
-    for t, north in ((0.0, -1.5), (0.5, -1.0)):
+    for t, north in ((0.0, -1.5), (0.5, -0.9)):
         mem.add(real, t, 30.0, viewpoint_ned_m=np.array([north, 0.0, -1.5]), cfg=cfg)
     mem.add(np.array([[0.0, -0.2, -1.5]]), 0.9, 30.0, viewpoint_ned_m=np.array([-0.5, 0.0, -1.5]), cfg=cfg)
     g = mem.guard(np.array([0.0, 0.0, -1.5]), 0.0, 1.0, cfg, VIEW)

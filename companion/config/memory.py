@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
-from pydantic import Field, field_validator
+from pydantic import Field, field_validator, model_validator
 
 from companion.config._base import StrictModel
 
+
+#: ``push_baseline_m`` is 0 or at least this many ``trust_cell_m`` (a cube's horizontal diagonal is 1.41).
+PUSH_BASELINE_MIN_CELLS = 1.5
 
 class MemoryConfig(StrictModel):
     """Obstacle memory: what the camera saw near, kept for a few seconds in the local (NED) frame, so
@@ -159,7 +162,8 @@ class MemoryConfig(StrictModel):
         le=10.0,
         description=(
             "The push away: this gain times how far inside guard_distance_m the point is, per second "
-            "(m/s per metre); 0 = only stop the motion toward it. Only trusted points push (trust_*): "
+            "(m/s per metre); 0 = only stop the motion toward it. Only points seen from two places "
+            "push (push_baseline_m): "
             "a push moves the vehicle where the camera does not see, and a false point seen once "
             "pushed a simulated vehicle into a pillar out of view; every guarding point stops the "
             "motion toward it."
@@ -345,9 +349,23 @@ class MemoryConfig(StrictModel):
         description=(
             "A remembered point is trusted once its cube has been seen from two camera positions at "
             "least this far apart, metres (0 = from any two frames). Only trusted points open or close "
-            "a detour's direction or bound a gap to centre in: a false point the vehicle flew through "
+            "a detour's direction (push_baseline_m: push, or bound a gap): a false point the vehicle flew through "
             "made a false gap and a collision (PX4 SITL, run 22), and a false match moves with the "
             "view where a surface does not."
+        ),
+    )
+    push_baseline_m: float = Field(
+        default=0.5,
+        ge=0.0,
+        le=10.0,
+        description=(
+            "Only a point whose trust_cell_m cube has been seen from two camera positions at least this "
+            "far apart pushes the vehicle away (guard_gain_per_s) or bounds a gap to centre in, metres; "
+            "0 = every trusted point does. A false match that follows the vehicle (StereoBM's alias on a "
+            "fence's bars, a smudge on the lens) lands in one cube only while the vehicle moves less "
+            "than the cube's width, and persists: trusted by persistence, such an alias pushed a PX4 "
+            "SITL vehicle into the wall across from it (r5, office-3). At least trust_cell_m × 1.5 "
+            "(a cube's horizontal diagonal, and a little)."
         ),
     )
     trust_persist_s: float = Field(
@@ -365,6 +383,17 @@ class MemoryConfig(StrictModel):
         le=100,
         description="Frames its cube must be seen in to be trusted by persistence (trust_persist_s).",
     )
+
+    @model_validator(mode="after")
+    def _push_beyond_a_cube(self) -> MemoryConfig:
+        if 0.0 < self.push_baseline_m < PUSH_BASELINE_MIN_CELLS * self.trust_cell_m:
+            raise ValueError(
+                f"push_baseline_m ({self.push_baseline_m} m) must be 0 or at least "
+                f"{PUSH_BASELINE_MIN_CELLS * self.trust_cell_m:g} m ({PUSH_BASELINE_MIN_CELLS} × trust_cell_m): "
+                f"a false match that follows the vehicle stays in one cube while the vehicle moves up to "
+                f"the cube's diagonal, and would push"
+            )
+        return self
 
     @field_validator("confirm_frames")
     @classmethod

@@ -317,6 +317,88 @@ def camera_points_to_ned(points_cam_m: np.ndarray, pose: Pose) -> np.ndarray:
     return p @ pose.ned_from_camera().T + np.asarray(pose.position_ned_m, dtype=np.float64)
 
 
+def _pack_cubes(q: np.ndarray) -> np.ndarray:
+    """int64 ``(K,)`` keys of integer cube indices ``q`` (int64 ``(K, 3)``)."""
+    q = q + (1 << 20)  # ±52 km at 5 cm: never wraps
+    return (q[:, 0] << 42) | (q[:, 1] << 21) | q[:, 2]
+
+
+class _CellViews:
+    """How often, how long and from how far apart each cube of a given side has been seen: sorted
+    cube keys, first and last time seen, frames seen in, the first viewpoint (north, east) and the
+    largest horizontal distance of a later viewpoint from it. A new cube side starts again."""
+
+    def __init__(self) -> None:
+        self._clear(None)
+
+    def _clear(self, cell_m: float | None) -> None:
+        self.cell_m = cell_m
+        self.keys = np.empty(0, dtype=np.int64)
+        self.first = np.empty(0)
+        self.last = np.empty(0)
+        self.count = np.empty(0, dtype=np.int64)
+        self.vp = np.empty((0, 2))
+        self.spread = np.empty(0)
+
+    @staticmethod
+    def _keys_of(p: np.ndarray, cell_m: float) -> np.ndarray:
+        return _pack_cubes(np.floor(p / cell_m).astype(np.int64))
+
+    def update(self, p: np.ndarray, t_s: float, duration_s: float, vp: np.ndarray, cell_m: float) -> None:
+        """Count the cubes of ``p`` (float ``(K, 3)`` NED metres) as seen at ``t_s`` from ``vp`` (float
+        ``(2,)`` north, east metres, NaN unknown); forget those unseen for ``duration_s``."""
+        if self.cell_m != cell_m:
+            self._clear(cell_m)
+        keep = (t_s - self.last) <= duration_s
+        if not np.all(keep):
+            self.keys, self.first, self.last = self.keys[keep], self.first[keep], self.last[keep]
+            self.count, self.vp, self.spread = self.count[keep], self.vp[keep], self.spread[keep]
+        if not len(p):
+            return
+        seen = np.unique(self._keys_of(p, cell_m))
+        at = np.searchsorted(self.keys, seen)
+        known = at < self.keys.size
+        known[known] = self.keys[at[known]] == seen[known]
+        i = at[known]
+        self.last[i] = t_s
+        self.count[i] += 1
+        vp0 = self.vp[i]
+        missing = ~np.all(np.isfinite(vp0), axis=1)
+        if np.all(np.isfinite(vp)):
+            vp0[missing] = vp  # the first viewpoint known
+            self.vp[i] = vp0
+            self.spread[i] = np.maximum(self.spread[i], np.hypot(vp0[:, 0] - vp[0], vp0[:, 1] - vp[1]))
+        fresh = seen[~known]
+        if fresh.size:
+            keys = np.concatenate([self.keys, fresh])
+            order = np.argsort(keys, kind="stable")
+            n = fresh.size
+            self.keys = keys[order]
+            self.first = np.concatenate([self.first, np.full(n, float(t_s))])[order]
+            self.last = np.concatenate([self.last, np.full(n, float(t_s))])[order]
+            self.count = np.concatenate([self.count, np.ones(n, dtype=np.int64)])[order]
+            self.vp = np.concatenate([self.vp, np.tile(vp, (n, 1))])[order]
+            self.spread = np.concatenate([self.spread, np.zeros(n)])[order]
+
+    def seen(
+        self, points_ned_m: np.ndarray, cell_m: float, cfg: MemoryConfig, baseline_m: float | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """bool ``(K,)`` twice: each point's cube seen from two positions ``baseline_m`` apart (None:
+        ``cfg.trust_baseline_m``); seen in ``cfg.trust_min_frames`` frames spanning
+        ``cfg.trust_persist_s``. All False when the cubes were not kept at ``cell_m``."""
+        baseline = cfg.trust_baseline_m if baseline_m is None else baseline_m
+        p = np.asarray(points_ned_m, dtype=np.float64).reshape(-1, 3)
+        if not len(p) or self.cell_m != cell_m or not self.keys.size:
+            none = np.zeros(len(p), dtype=bool)
+            return none, none.copy()
+        keys = self._keys_of(p, cell_m)
+        at = np.minimum(np.searchsorted(self.keys, keys), self.keys.size - 1)
+        found = self.keys[at] == keys
+        by_place = found & (self.spread[at] >= baseline) & (self.count[at] >= 2)
+        by_time = found & (self.count[at] >= cfg.trust_min_frames) & (self.last[at] - self.first[at] >= cfg.trust_persist_s)
+        return by_place, by_time
+
+
 class ObstacleMemory:
     """Remembered points, NED metres, one per ``voxel_m`` cube, with the time each cube was last seen
     occupied and the nearest depth it was seen at (re-seeing a cube refreshes it instead of adding a
@@ -327,13 +409,17 @@ class ObstacleMemory:
     ``memory.map_depth_m``) are for the detour layer's map (:meth:`map_points`).
 
     **Trust.** A false stereo match moves with the view where a surface does not, so a point is
-    *trusted* (:meth:`map_points`, gap centering) only once the ``memory.trust_cell_m`` cube it lies in
-    has been seen from two camera positions at least ``memory.trust_baseline_m`` apart, or in
+    *trusted* (:meth:`map_points`, slowing for the path) only once the ``memory.trust_cell_m`` cube it
+    lies in has been seen from two camera positions at least ``memory.trust_baseline_m`` apart, or in
     ``memory.trust_min_frames`` frames spanning at least ``memory.trust_persist_s``. Untrusted points
     still guard, but only by stopping the motion toward them: the guard's push away moves the vehicle
-    sideways into what the camera does not see, so only trusted points push (a false point in the air,
-    seen for a moment from one place, pushed a simulated vehicle into a pillar out of view: forest-2
-    with StereoBM).
+    sideways into what the camera does not see (a false point in the air, seen for a moment from one
+    place, pushed a simulated vehicle into a pillar out of view: forest-2 with StereoBM). So a point
+    *may push* (and bound a gap to centre in, :meth:`may_push`) only once its cube has been seen from
+    two positions ``memory.push_baseline_m`` apart, more than a cube's width: a false match that
+    follows the vehicle (StereoBM's alias on a fence's bars, a smudge on the lens) persists, and stays
+    in one cube only while the vehicle moves less than that. Trusted by persistence, such an alias
+    pushed a PX4 SITL vehicle into the wall across from it (r5, office-3).
 
     Args:
         max_points: most cubes kept; beyond it the least recently seen are dropped.
@@ -354,23 +440,10 @@ class ObstacleMemory:
         self._t = np.empty(0)
         self._range = np.empty(0)
         self._misses = np.empty(0, dtype=np.int64)  # frames in a row that saw past each point
-        # Trust cubes, sorted by key: first and last time seen, frames seen in, the first viewpoint
-        # (north, east) and the largest horizontal distance of a later viewpoint from it.
-        self._tkeys = np.empty(0, dtype=np.int64)
-        self._tfirst = np.empty(0)
-        self._tlast = np.empty(0)
-        self._tcount = np.empty(0, dtype=np.int64)
-        self._tvp = np.empty((0, 2))
-        self._tspread = np.empty(0)
-        self._trust_cell_m: float | None = None
-
-    @staticmethod
-    def _pack(q: np.ndarray) -> np.ndarray:
-        q = q + (1 << 20)  # ±52 km at 5 cm: never wraps
-        return (q[:, 0] << 42) | (q[:, 1] << 21) | q[:, 2]
+        self._trust = _CellViews()  # trust_cell_m cubes: where from, how often, how long
 
     def _key(self, p: np.ndarray) -> np.ndarray:
-        return self._pack(np.floor(p / self.voxel_m).astype(np.int64))
+        return _pack_cubes(np.floor(p / self.voxel_m).astype(np.int64))
 
     def add_frame(
         self,
@@ -478,65 +551,30 @@ class ObstacleMemory:
             return np.zeros(self._keys.size, dtype=bool)
         return self._misses >= cfg.map_clear_after_frames
 
-    def _trust_keys(self, p: np.ndarray, cell_m: float) -> np.ndarray:
-        return self._pack(np.floor(p / cell_m).astype(np.int64))
-
     def _update_trust(
         self, p: np.ndarray, t_s: float, duration_s: float, viewpoint_ned_m: np.ndarray | None, cfg: MemoryConfig
     ) -> None:
-        if self._trust_cell_m != cfg.trust_cell_m:
-            self._tkeys = np.empty(0, dtype=np.int64)  # a new cube size: start again
-            self._tfirst, self._tlast, self._tspread = np.empty(0), np.empty(0), np.empty(0)
-            self._tcount, self._tvp = np.empty(0, dtype=np.int64), np.empty((0, 2))
-            self._trust_cell_m = cfg.trust_cell_m
-        keep = (t_s - self._tlast) <= duration_s
-        if not np.all(keep):
-            self._tkeys, self._tfirst, self._tlast = self._tkeys[keep], self._tfirst[keep], self._tlast[keep]
-            self._tcount, self._tvp, self._tspread = self._tcount[keep], self._tvp[keep], self._tspread[keep]
-        if not len(p):
-            return
         vp = np.full(2, np.nan)
         if viewpoint_ned_m is not None:
             v = np.asarray(viewpoint_ned_m, dtype=np.float64).reshape(-1)
             if v.size >= 2 and np.all(np.isfinite(v[:2])):
                 vp = v[:2].copy()
-        seen = np.unique(self._trust_keys(p, cfg.trust_cell_m))
-        at = np.searchsorted(self._tkeys, seen)
-        known = at < self._tkeys.size
-        known[known] = self._tkeys[at[known]] == seen[known]
-        i = at[known]
-        self._tlast[i] = t_s
-        self._tcount[i] += 1
-        vp0 = self._tvp[i]
-        missing = ~np.all(np.isfinite(vp0), axis=1)
-        if np.all(np.isfinite(vp)):
-            vp0[missing] = vp  # the first viewpoint known
-            self._tvp[i] = vp0
-            self._tspread[i] = np.maximum(self._tspread[i], np.hypot(vp0[:, 0] - vp[0], vp0[:, 1] - vp[1]))
-        fresh = seen[~known]
-        if fresh.size:
-            keys = np.concatenate([self._tkeys, fresh])
-            order = np.argsort(keys, kind="stable")
-            n = fresh.size
-            self._tkeys = keys[order]
-            self._tfirst = np.concatenate([self._tfirst, np.full(n, float(t_s))])[order]
-            self._tlast = np.concatenate([self._tlast, np.full(n, float(t_s))])[order]
-            self._tcount = np.concatenate([self._tcount, np.ones(n, dtype=np.int64)])[order]
-            self._tvp = np.concatenate([self._tvp, np.tile(vp, (n, 1))])[order]
-            self._tspread = np.concatenate([self._tspread, np.zeros(n)])[order]
+        self._trust.update(p, t_s, duration_s, vp, cfg.trust_cell_m)
 
     def trusted(self, points_ned_m: np.ndarray, cfg: MemoryConfig) -> np.ndarray:
         """bool ``(K,)``: whether each point (float ``(K, 3)`` NED metres) lies in a trusted cube (see
         the class doc); all False when trust has not been kept with this ``cfg.trust_cell_m``."""
-        p = np.asarray(points_ned_m, dtype=np.float64).reshape(-1, 3)
-        if not len(p) or self._trust_cell_m != cfg.trust_cell_m or not self._tkeys.size:
-            return np.zeros(len(p), dtype=bool)
-        keys = self._trust_keys(p, cfg.trust_cell_m)
-        at = np.minimum(np.searchsorted(self._tkeys, keys), self._tkeys.size - 1)
-        found = self._tkeys[at] == keys
-        by_place = (self._tspread[at] >= cfg.trust_baseline_m) & (self._tcount[at] >= 2)
-        by_time = (self._tcount[at] >= cfg.trust_min_frames) & (self._tlast[at] - self._tfirst[at] >= cfg.trust_persist_s)
-        return found & (by_place | by_time)
+        by_place, by_time = self._trust.seen(points_ned_m, cfg.trust_cell_m, cfg)
+        return by_place | by_time
+
+    def may_push(self, points_ned_m: np.ndarray, cfg: MemoryConfig) -> np.ndarray:
+        """bool ``(K,)``: whether each point (float ``(K, 3)`` NED metres) may push the vehicle or bound
+        a gap to centre in: its ``cfg.trust_cell_m`` cube seen from two camera positions at least
+        ``cfg.push_baseline_m`` apart (0: :meth:`trusted`). See the class doc."""
+        if cfg.push_baseline_m <= 0.0:
+            return self.trusted(points_ned_m, cfg)
+        by_place, _ = self._trust.seen(points_ned_m, cfg.trust_cell_m, cfg, baseline_m=cfg.push_baseline_m)
+        return by_place
 
     def points(self, now_s: float, cfg: MemoryConfig) -> tuple[np.ndarray, np.ndarray]:
         """Every point seen within ``cfg.duration_s`` of ``now_s``: float64 ``(K, 3)`` NED metres, and
@@ -644,12 +682,14 @@ class ObstacleMemory:
         radius_m: float,
         trusted_only: bool = False,
         seen_now: bool = False,
+        pushing: bool = True,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
         """The points seen within ``cfg.duration_s`` of ``now_s`` nearer than ``cfg.max_depth_m``
         (the map's farther points do not guard), within ``cfg.height_band_m`` of the vehicle's
         altitude and within ``radius_m`` of it horizontally (``trusted_only``: trusted ones only;
         ``seen_now``: not those the camera now sees past, :meth:`see_through`), in the body frame: forward, right and horizontal distance, float64 ``(N,)`` metres each, and
-        whether each is trusted, bool ``(N,)``; None without a finite position and heading."""
+        whether each may push (:meth:`may_push`; ``pushing`` False: whether it is :meth:`trusted`),
+        bool ``(N,)``; ``trusted_only`` keeps those; None without a finite position and heading."""
         pos = np.asarray(position_ned_m, dtype=np.float64).reshape(-1)
         if pos.shape != (3,) or not np.all(np.isfinite(pos)) or not math.isfinite(yaw_rad):
             return None
@@ -663,7 +703,7 @@ class ObstacleMemory:
         fwd, right = ned_to_body_horizontal(rel[:, 0], rel[:, 1], yaw_rad)
         dist = np.hypot(fwd, right)
         keep = (np.abs(rel[:, 2]) <= cfg.height_band_m) & (dist < radius_m)
-        trusted = self.trusted(pts[keep], cfg)
+        trusted = self.may_push(pts[keep], cfg) if pushing else self.trusted(pts[keep], cfg)
         fwd, right, dist = fwd[keep], right[keep], dist[keep]
         if trusted_only:
             return fwd[trusted], right[trusted], dist[trusted], trusted[trusted]
@@ -672,9 +712,10 @@ class ObstacleMemory:
     def hold_inputs(
         self, position_ned_m: np.ndarray, yaw_rad: float, now_s: float, cfg: MemoryConfig, view: ViewLimits | None
     ) -> HoldInputs:
-        """:meth:`guard` (None without ``view``), :meth:`sides_near` and :func:`find_gap` (from
-        trusted points only), from the memory: what :func:`~companion.core.command.setpoint_for` takes
-        as ``guard_m``, ``remembered_sides`` and ``gap``."""
+        """:meth:`guard` (None without ``view``), :meth:`sides_near`, :func:`find_gap` (from points
+        that may push only) and :func:`path_ahead_m` (from trusted points), from the memory: what
+        :func:`~companion.core.command.setpoint_for` takes as ``guard_m``, ``remembered_sides``, ``gap``
+        and ``path_ahead_m``."""
         radius = max(cfg.guard_distance_m, cfg.hold_clear_m)
         near = self._nearby(position_ned_m, yaw_rad, now_s, cfg, radius)
         if near is None:
@@ -687,7 +728,9 @@ class ObstacleMemory:
             gap = None if trusted is None else find_gap(trusted[0], trusted[1], cfg)
         ahead = None
         if cfg.path_slow_time_s > 0.0:
-            path = self._nearby(position_ned_m, yaw_rad, now_s, cfg, cfg.path_range_m, trusted_only=True, seen_now=True)
+            path = self._nearby(
+                position_ned_m, yaw_rad, now_s, cfg, cfg.path_range_m, trusted_only=True, seen_now=True, pushing=False
+            )
             ahead = None if path is None else path_ahead_m(path[0], path[1], cfg)
         return HoldInputs(guard, _sides(*near[:3], cfg), gap, ahead)
 
@@ -720,8 +763,8 @@ class ObstacleMemory:
         Returns:
             float64 ``(S, 4)``, ``S <= 2 · GUARD_SECTORS``: horizontal distance (metres), the unit
             direction to the point in the body frame (forward, right), and 1.0 where the point may push
-            (it is trusted) else 0.0: per sector, the nearest point, and the nearest trusted one when
-            that is another.
+            (:meth:`may_push`) else 0.0: per sector, the nearest point, and the nearest one that may
+            push when that is another.
         """
         near = self._nearby(position_ned_m, yaw_rad, now_s, cfg, cfg.guard_distance_m)
         return None if near is None else _guard_rows(*near, cfg, view)
