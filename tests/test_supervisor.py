@@ -740,9 +740,9 @@ def test_a_remembered_obstacle_beside_the_vehicle_pushes_it_away() -> None:
     leaning = base.model_copy(update={"memory": base.memory.model_copy(update={"counter_velocity_fraction": 1.0})})
     h = Harness(SupervisorConfig.from_config(leaning))
     h.engage()
-    # A box corner 0.3 m left of the line at north 0.5 m, seen from two places 0.3 m apart (in view:
-    # 21°, then 31°): trusted, so it may push once it is out of view.
-    for north, ahead in ((-0.3, 0.8), (0.0, 0.5)):
+    # A box corner 0.3 m left of the line at north 0.5 m, seen from two places 0.6 m apart (in view:
+    # 15°, then 31°; more than memory.push_baseline_m), so it may push once it is out of view.
+    for north, ahead in ((-0.6, 1.1), (0.0, 0.5)):
         at = np.array([north, 0.0, -1.5])
         h.vehicle = replace(vehicle("OFFBOARD"), attitude_rad=np.zeros(3), position_ned_m=at, position_timestamp_s=h.now)
         h.frame = SeenResult(h.now, CLEAR, np.array([[-0.3, 0.0, ahead]]), view)
