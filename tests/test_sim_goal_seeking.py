@@ -399,6 +399,41 @@ def test_a_climb_alone_does_not_keep_the_heading_hold_waiting() -> None:
     assert setpoint_for(climbing, 0.1, HOLD, heading_error_rad=0.1, clear_for_s=0.0).yaw_rate_deg_s == 0.0
 
 
+def test_the_motion_brake_leans_against_flying_on_into_what_the_camera_reads_near() -> None:
+    """Kinematic office-4 with drift: turning away from a cabinet, the vehicle still flew its old
+    course at 0.9 m/s, 40 degrees right of its nose, into what its right region read. The brake
+    takes the setpoint's own motion that way out and leans against the speed it cannot stop in."""
+    from companion.core.command import motion_brake
+
+    cmd = CommandConfig()
+    assert cmd.motion_brake_clearance_m == 0.5 and cmd.motion_brake_lag_s == 0.85  # on by default
+    b = math.radians(40.0)
+    v = (0.9 * math.cos(b), 0.9 * math.sin(b))  # 40 deg right: the right region
+    allowed = (0.9 / math.cos(b) - 0.5) / 0.85
+    sp = motion_brake(setpoint_for(CLEAR, 0.1, cmd), _depths(right=0.9), v, cmd)
+    along = sp.forward_m_s * math.cos(b) + sp.right_m_s * math.sin(b)
+    assert along == pytest.approx(-(0.9 - allowed))  # nothing toward it, the excess against it
+    # Through the whole setpoint, BRAKE included.
+    sp = setpoint_for(BRAKE, 0.1, cmd, region_depths_m=_depths(right=0.9), velocity_body_m_s=v)
+    assert sp.forward_m_s * math.cos(b) + sp.right_m_s * math.sin(b) == pytest.approx(-(0.9 - allowed))
+    # Where it can stop short, moving back, out of the view's sides or toward an unknown region:
+    # unchanged (the controller already counts unknown as near; the memory guards the sides).
+    free = setpoint_for(CLEAR, 0.1, cmd)
+    assert motion_brake(free, _depths(right=3.0), v, cmd) == free
+    assert motion_brake(free, _depths(right=0.4), (-0.5, 0.3), cmd) == free
+    assert motion_brake(free, _depths(right=0.4), (0.2, 0.6), cmd) == free  # 72 deg: out of view
+    assert motion_brake(free, _depths(right=math.nan), v, cmd) == free
+    assert motion_brake(free, _depths(right=0.4), None, cmd) == free
+    # Straight at a wall the centre reads 0.8 m, at cruise: backs off by what it cannot stop in;
+    # the brake never commands more than the cruise speed.
+    at_wall = motion_brake(free, _depths(center=0.8), (0.7, 0.0), cmd)
+    assert (at_wall.forward_m_s, at_wall.right_m_s) == pytest.approx((-(0.7 - 0.3 / 0.85), 0.0))
+    fast = motion_brake(free, _depths(center=0.6), (1.5, 0.0), cmd)
+    assert (fast.forward_m_s, fast.right_m_s) == pytest.approx((-cmd.cruise_speed_m_s, 0.0))
+    off = cmd.model_copy(update={"motion_brake_clearance_m": 0.0})
+    assert motion_brake(free, _depths(right=0.9), v, off) == free
+
+
 def test_standoff_is_off_by_default_and_pushes_away_from_a_near_middle_row_region_when_on() -> None:
     """The stand-off closes the loop on the measured depth (a drifting velocity estimate carries the
     vehicle on into a wall it sees): every decision, the brake included, gets the push; unknown and

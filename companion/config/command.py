@@ -346,6 +346,31 @@ class CommandConfig(StrictModel):
         ),
     )
 
+    motion_brake_clearance_m: float = Field(
+        default=0.5,
+        ge=0.0,
+        le=5.0,
+        description=(
+            "The camera's check on where the vehicle is actually going: where its measured velocity "
+            "points into the view's middle row (the centre region within 15 degrees of the nose, "
+            "left and right to 45), it must be able to stop short of what that region reads, less "
+            "this, metres, within motion_brake_lag_s; faster, and the setpoint loses its own motion "
+            "that way and leans against the excess (0 = off). The fuzzy controller judges the way "
+            "along the heading; a vehicle turning away from a cabinet still flew its old course at "
+            "0.9 m/s, into what its right region read (kinematic office-4 and forest-6 with 0.14 m/s "
+            "drift: the last collisions of the suites)."
+        ),
+    )
+    motion_brake_lag_s: float = Field(
+        default=0.85,
+        gt=0.0,
+        le=5.0,
+        description=(
+            "How long the autopilot takes to follow a new velocity setpoint, seconds (a first-order "
+            "lag's time constant; PX4 SIH ~0.85 s): the motion brake allows a closing speed of "
+            "(range - motion_brake_clearance_m) / this."
+        ),
+    )
     unseen_closing_range_m: float = Field(
         default=1.5,
         ge=0.0,

@@ -503,7 +503,9 @@ def setpoint_for(
 
     Stand-off: with ``region_depths_m``, every setpoint but the stale one's zero gets
     :func:`standoff_push_m_s` added (a middle-row region nearer than ``cmd.standoff_depth_m`` pushes
-    the vehicle away from it), before the guard.
+    the vehicle away from it), before the guard; then, with ``velocity_body_m_s`` too,
+    :func:`motion_brake` (the vehicle's own motion toward what the camera reads near, beyond what it
+    can stop short of, is leaned against).
 
     Gap centering: ``gap`` (:func:`~companion.core.memory.find_gap`: where the middle of a narrow
     gap between remembered points lies, sideways, metres, positive = right, and its width; None = no
@@ -645,17 +647,77 @@ def _guarded(
     cmd: CommandConfig | None = None,
 ) -> VelocitySetpoint:
     """``sp`` with the stand-off's push (:func:`standoff_push_m_s`, with ``region_depths_m`` and
-    ``cmd``) added, then the memory's guard applied (:func:`~companion.core.memory.apply_guard`), never
-    faster toward a side than the camera's reading of it allows (:func:`side_room_m_s`)."""
+    ``cmd``) added, braked for where the vehicle is actually going (:func:`motion_brake`), then the
+    memory's guard applied (:func:`~companion.core.memory.apply_guard`), never faster toward a side
+    than the camera's reading of it allows (:func:`side_room_m_s`)."""
     if cmd is not None:
         push_f, push_r = standoff_push_m_s(region_depths_m, cmd)
         if push_f != 0.0 or push_r != 0.0:
             sp = VelocitySetpoint(sp.forward_m_s + push_f, sp.right_m_s + push_r, sp.down_m_s, sp.yaw_rate_deg_s)
+    if cmd is not None:
+        sp = motion_brake(sp, region_depths_m, velocity_body_m_s, cmd)
     if guard_m is None or cfg is None or len(guard_m) == 0:
         return sp
     room = side_room_m_s(region_depths_m, cmd)
     forward, right = apply_guard(sp.forward_m_s, sp.right_m_s, guard_m, cfg, velocity_body_m_s, room)
     return VelocitySetpoint(forward_m_s=forward, right_m_s=right, down_m_s=sp.down_m_s, yaw_rate_deg_s=sp.yaw_rate_deg_s)
+
+
+#: The middle row's regions by bearing from the nose, degrees (a ~90° view in thirds): the centre
+#: within this, left and right out to :data:`MOTION_VIEW_HALF_DEG`; beyond it the memory guards.
+MOTION_CENTRE_HALF_DEG = 15.0
+MOTION_VIEW_HALF_DEG = 45.0
+
+
+def motion_brake(
+    sp: VelocitySetpoint,
+    region_depths_m: np.ndarray | None,
+    velocity_body_m_s: tuple[float, float] | None,
+    cmd: CommandConfig,
+) -> VelocitySetpoint:
+    """``sp`` braked for where the vehicle is actually going (``command.motion_brake_*``).
+
+    ``velocity_body_m_s`` (the vehicle's measured horizontal velocity, body frame: forward, right,
+    m/s) picks the middle-row region it points into (``region_depths_m``, float ``(9,)`` refined
+    depths, metres; the centre within :data:`MOTION_CENTRE_HALF_DEG` of the nose, left or right out
+    to :data:`MOTION_VIEW_HALF_DEG`); the range along it is that depth over the cosine of the
+    bearing. At a speed above ``(range - motion_brake_clearance_m) / motion_brake_lag_s`` (at least
+    0) the setpoint loses its own motion along the velocity and gets the excess against it, the
+    horizontal speed capped at ``cruise_speed_m_s``. Unchanged when off, without a velocity or
+    depths, when moving backwards or out of the view's sides (the memory's guard acts there), or
+    when that region cannot be read (the controller already counts it as near).
+
+    A first-order lag of ``lag`` stops a vehicle moving at ``v`` in about ``v · lag``; leaning
+    against the excess shortens it, as the memory's counter-velocity lean does for what is out of
+    view."""
+    if cmd.motion_brake_clearance_m <= 0.0 or region_depths_m is None or velocity_body_m_s is None:
+        return sp
+    vf, vr = float(velocity_body_m_s[0]), float(velocity_body_m_s[1])
+    speed = math.hypot(vf, vr)
+    if not math.isfinite(speed) or speed < 1e-3 or vf <= 0.0:
+        return sp
+    bearing = math.atan2(vr, vf)
+    half = math.radians(MOTION_CENTRE_HALF_DEG)
+    if abs(bearing) < half:
+        name = "center"
+    elif abs(bearing) < math.radians(MOTION_VIEW_HALF_DEG):
+        name = "right" if bearing > 0.0 else "left"
+    else:
+        return sp
+    depth = float(np.asarray(region_depths_m, dtype=np.float64)[REGION_INDEX[name]])
+    if not math.isfinite(depth):
+        return sp
+    allowed = max(0.0, (depth / math.cos(bearing) - cmd.motion_brake_clearance_m) / cmd.motion_brake_lag_s)
+    if speed <= allowed:
+        return sp
+    uf, ur = vf / speed, vr / speed
+    toward = max(0.0, sp.forward_m_s * uf + sp.right_m_s * ur)
+    k = toward + (speed - allowed)
+    forward, right = sp.forward_m_s - k * uf, sp.right_m_s - k * ur
+    n = math.hypot(forward, right)
+    if n > cmd.cruise_speed_m_s > 0.0:
+        forward, right = forward * cmd.cruise_speed_m_s / n, right * cmd.cruise_speed_m_s / n
+    return VelocitySetpoint(forward, right, sp.down_m_s, sp.yaw_rate_deg_s)
 
 
 #: Descending toward ``command.min_altitude_m``, the down speed is at most this times the height left
