@@ -10,6 +10,7 @@ from companion.config._base import StrictModel
 #: ``push_baseline_m`` is 0 or at least this many ``trust_cell_m`` (a cube's horizontal diagonal is 1.41).
 PUSH_BASELINE_MIN_CELLS = 1.5
 
+
 class MemoryConfig(StrictModel):
     """Obstacle memory: what the camera saw near, kept for a few seconds in the local (NED) frame, so
     that an obstacle the vehicle turned away from or flew past still keeps it away. The camera sees
@@ -349,8 +350,8 @@ class MemoryConfig(StrictModel):
         description=(
             "A remembered point is trusted once its cube has been seen from two camera positions at "
             "least this far apart, metres (0 = from any two frames). Only trusted points open or close "
-            "a detour's direction (push_baseline_m: push, or bound a gap): a false point the vehicle flew through "
-            "made a false gap and a collision (PX4 SITL, run 22), and a false match moves with the "
+            "a detour's direction (to push or bound a gap, push_baseline_m): a false point the vehicle "
+            "flew through made a false gap and a collision (PX4 SITL, run 22), and a false match moves with the "
             "view where a surface does not."
         ),
     )
@@ -363,7 +364,7 @@ class MemoryConfig(StrictModel):
             "far apart pushes the vehicle away (guard_gain_per_s) or bounds a gap to centre in, metres; "
             "0 = every trusted point does. A false match that follows the vehicle (StereoBM's alias on a "
             "fence's bars, a smudge on the lens) lands in one cube only while the vehicle moves less "
-            "than the cube's width, and persists: trusted by persistence, such an alias pushed a PX4 "
+            "than about the cube's diagonal, and persists: trusted by persistence, such an alias pushed a PX4 "
             "SITL vehicle into the wall across from it (r5, office-3). At least trust_cell_m × 1.5 "
             "(a cube's horizontal diagonal, and a little)."
         ),

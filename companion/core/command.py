@@ -654,7 +654,6 @@ def _guarded(
         push_f, push_r = standoff_push_m_s(region_depths_m, cmd)
         if push_f != 0.0 or push_r != 0.0:
             sp = VelocitySetpoint(sp.forward_m_s + push_f, sp.right_m_s + push_r, sp.down_m_s, sp.yaw_rate_deg_s)
-    if cmd is not None:
         sp = motion_brake(sp, region_depths_m, velocity_body_m_s, cmd)
     if guard_m is None or cfg is None or len(guard_m) == 0:
         return sp
