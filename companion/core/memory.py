@@ -324,9 +324,9 @@ def _pack_cubes(q: np.ndarray) -> np.ndarray:
 
 
 class _CellViews:
-    """How often, how long and from how far apart each cube of a given side has been seen: sorted
-    cube keys, first and last time seen, frames seen in, the first viewpoint (north, east) and the
-    largest horizontal distance of a later viewpoint from it. A new cube side starts again."""
+    """How often, how long and from how far apart each ``memory.trust_cell_m`` cube has been seen:
+    sorted cube keys, first and last time seen, frames seen in, the first viewpoint (north, east) and
+    the largest horizontal distance of a later viewpoint from it. A new cube side starts again."""
 
     def __init__(self) -> None:
         self._clear(None)
@@ -344,9 +344,10 @@ class _CellViews:
     def _keys_of(p: np.ndarray, cell_m: float) -> np.ndarray:
         return _pack_cubes(np.floor(p / cell_m).astype(np.int64))
 
-    def update(self, p: np.ndarray, t_s: float, duration_s: float, vp: np.ndarray, cell_m: float) -> None:
+    def update(self, p: np.ndarray, t_s: float, duration_s: float, vp: np.ndarray, cfg: MemoryConfig) -> None:
         """Count the cubes of ``p`` (float ``(K, 3)`` NED metres) as seen at ``t_s`` from ``vp`` (float
         ``(2,)`` north, east metres, NaN unknown); forget those unseen for ``duration_s``."""
+        cell_m = cfg.trust_cell_m
         if self.cell_m != cell_m:
             self._clear(cell_m)
         keep = (t_s - self.last) <= duration_s
@@ -381,12 +382,13 @@ class _CellViews:
             self.spread = np.concatenate([self.spread, np.zeros(n)])[order]
 
     def seen(
-        self, points_ned_m: np.ndarray, cell_m: float, cfg: MemoryConfig, baseline_m: float | None = None
+        self, points_ned_m: np.ndarray, cfg: MemoryConfig, baseline_m: float | None = None
     ) -> tuple[np.ndarray, np.ndarray]:
         """bool ``(K,)`` twice: each point's cube seen from two positions ``baseline_m`` apart (None:
         ``cfg.trust_baseline_m``); seen in ``cfg.trust_min_frames`` frames spanning
-        ``cfg.trust_persist_s``. All False when the cubes were not kept at ``cell_m``."""
+        ``cfg.trust_persist_s``. All False when the cubes were not kept at ``cfg.trust_cell_m``."""
         baseline = cfg.trust_baseline_m if baseline_m is None else baseline_m
+        cell_m = cfg.trust_cell_m
         p = np.asarray(points_ned_m, dtype=np.float64).reshape(-1, 3)
         if not len(p) or self.cell_m != cell_m or not self.keys.size:
             none = np.zeros(len(p), dtype=bool)
@@ -559,12 +561,12 @@ class ObstacleMemory:
             v = np.asarray(viewpoint_ned_m, dtype=np.float64).reshape(-1)
             if v.size >= 2 and np.all(np.isfinite(v[:2])):
                 vp = v[:2].copy()
-        self._trust.update(p, t_s, duration_s, vp, cfg.trust_cell_m)
+        self._trust.update(p, t_s, duration_s, vp, cfg)
 
     def trusted(self, points_ned_m: np.ndarray, cfg: MemoryConfig) -> np.ndarray:
         """bool ``(K,)``: whether each point (float ``(K, 3)`` NED metres) lies in a trusted cube (see
         the class doc); all False when trust has not been kept with this ``cfg.trust_cell_m``."""
-        by_place, by_time = self._trust.seen(points_ned_m, cfg.trust_cell_m, cfg)
+        by_place, by_time = self._trust.seen(points_ned_m, cfg)
         return by_place | by_time
 
     def may_push(self, points_ned_m: np.ndarray, cfg: MemoryConfig) -> np.ndarray:
@@ -573,7 +575,7 @@ class ObstacleMemory:
         ``cfg.push_baseline_m`` apart (0: :meth:`trusted`). See the class doc."""
         if cfg.push_baseline_m <= 0.0:
             return self.trusted(points_ned_m, cfg)
-        by_place, _ = self._trust.seen(points_ned_m, cfg.trust_cell_m, cfg, baseline_m=cfg.push_baseline_m)
+        by_place, _ = self._trust.seen(points_ned_m, cfg, baseline_m=cfg.push_baseline_m)
         return by_place
 
     def points(self, now_s: float, cfg: MemoryConfig) -> tuple[np.ndarray, np.ndarray]:

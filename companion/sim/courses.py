@@ -118,13 +118,14 @@ class Course:
                 ``clearance_m`` (the message says how near).
         """
         n, e, d = start.position_ned_m
-        if not self.in_bounds(np.array([n, e, d])):
+        at = np.array([n, e, d], dtype=np.float64)
+        if not self.in_bounds(at):
             lo, hi = self.bounds_min_ned_m, self.bounds_max_ned_m
             raise InputError(
                 f"start N {n:.2f} m, E {e:+.2f} m, altitude {-d:.2f} m is outside {self.name}'s bounds "
                 f"(N {lo[0]:.1f}..{hi[0]:.1f} m, E {lo[1]:.1f}..{hi[1]:.1f} m, altitude up to {-lo[2]:.1f} m)"
             )
-        gap = float(self.scene.distance_to_obstacles_m(np.array([n, e, d]), include_ground=True))
+        gap = float(self.scene.distance_to_obstacles_m(at, include_ground=True))
         if gap < clearance_m:
             raise InputError(
                 f"start N {n:.2f} m, E {e:+.2f} m, altitude {-d:.2f} m is {gap:.2f} m from an obstacle "
