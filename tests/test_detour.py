@@ -20,8 +20,8 @@ from companion.core.types import Decision, DecisionKind
 from companion.errors import ProtocolError
 from companion.service.protocol import parse_request, request_adapter
 
-# The detour layer is off by default (detour.trigger_after_s = 0) until a full PX4 SITL standard run
-# with it on has no collision; these tests turn it on as `[detour] trigger_after_s = 0.8` does.
+# The detour layer as configured by default (detour.trigger_after_s = 0.8), pinned: these tests are
+# about the layer, not about the default.
 CFG = parse_config({"detour": {"trigger_after_s": 0.8}})
 DET = CFG.detour
 MEM = CFG.memory
@@ -124,8 +124,8 @@ def test_a_brake_long_enough_starts_a_detour_and_a_short_one_does_not() -> None:
 
 def test_the_detour_layer_is_off_with_trigger_zero() -> None:
     mem = _trusted_memory(_wall(2.5, -8.0, 8.0))
-    off = CompanionConfig().detour  # the default
-    assert off.trigger_after_s == 0.0
+    off = parse_config({"detour": {"trigger_after_s": 0.0}}).detour
+    assert not off.on
     p = DetourPlanner()
     for k in range(60):
         assert p.update(0.05 * k, BRAKE, np.array([0.0, 0.0, -1.5]), 0.0, 0.0, 0.0, mem, MEM, off) is None
@@ -578,7 +578,9 @@ def test_the_detour_course_reaches_the_goal_and_the_reactive_controller_alone_do
     course = make_course("detour", 0)
     result = fly(course, CFG)
     assert result.outcome.value == "goal" and result.detours >= 1, result.reason
-    assert fly(course, CompanionConfig()).outcome.value != "goal"  # the default: the layer off
+    off = parse_config({"detour": {"trigger_after_s": 0.0}})  # the reactive controller and course hold alone
+    assert fly(course, off).outcome.value != "goal"
+    assert CompanionConfig().detour.on  # the layer is on by default
 
 
 @pytest.mark.slow

@@ -359,7 +359,10 @@ def test_sides_near_tells_which_side_has_a_remembered_point_within_hold_clear_m(
 
 
 def test_course_hold_neither_turns_nor_slides_toward_a_remembered_side() -> None:
-    cmd = CompanionConfig().command.model_copy(update={"hold_resume_delay_s": 0.0})
+    # No taper of the sideways step while the aim lies off the nose: that is another rule's test.
+    cmd = CompanionConfig().command.model_copy(
+        update={"hold_resume_delay_s": 0.0, "line_hold_lateral_max_aim_error_deg": 180.0}
+    )
     clear = Decision(DecisionKind.CLEAR, 0.0, 0.0, 1.0, "clear")
     kw = {"heading_error_rad": -0.3, "line_offset_m": -0.5, "clear_for_s": 5.0}  # the course lies left
     free = setpoint_for(clear, 0.0, cmd, **kw)
@@ -444,7 +447,7 @@ def test_a_gap_is_the_middle_and_width_between_the_nearest_points_left_and_right
     beyond them; a wide gap, one side only, points beyond the lookahead or centering off: no gap."""
     from companion.core.memory import find_gap
 
-    cfg = MemoryConfig(gap_centering_gain_per_s=1.0)  # off by default
+    cfg = MemoryConfig(gap_centering_gain_per_s=1.0)  # the default, pinned
     right = np.concatenate([np.linspace(-2.0, -0.3, 18), np.linspace(0.9, 2.5, 17)])  # wall, door -0.3..0.9
     fwd = np.full_like(right, 1.0)
     gap = find_gap(fwd, right, cfg)
@@ -462,7 +465,7 @@ def test_a_gap_is_the_middle_and_width_between_the_nearest_points_left_and_right
 def test_hold_inputs_find_a_doorway_from_the_memory() -> None:
     """The remembered jambs of a door 1 m ahead (beyond hold_clear_m and the guard) give the gap."""
     mem = ObstacleMemory()
-    cfg = MemoryConfig(gap_centering_gain_per_s=1.0)  # off by default
+    cfg = MemoryConfig(gap_centering_gain_per_s=1.0)  # the default, pinned
     wall = np.array([[1.0, e, -1.5] for e in np.arange(-2.0, 2.51, 0.05) if not -0.3 < e < 0.9])
     here = np.array([0.0, 0.0, -1.5])
     mem.add(wall, 0.0, 30.0, viewpoint_ned_m=here + [-0.5, 0.0, 0.0], cfg=cfg)
@@ -478,7 +481,7 @@ def test_hold_inputs_find_a_doorway_from_the_memory() -> None:
 
 
 def test_a_clear_decision_slides_toward_the_middle_of_a_gap_instead_of_the_line() -> None:
-    cfg = MemoryConfig(gap_centering_gain_per_s=1.0)  # off by default
+    cfg = MemoryConfig(gap_centering_gain_per_s=1.0)  # the default, pinned
     cmd = CompanionConfig().command.model_copy(update={"hold_resume_delay_s": 0.0})
     clear = Decision(DecisionKind.CLEAR, 0.0, 0.0, 1.0, "clear")
     kw = {"heading_error_rad": 0.0, "line_offset_m": -0.5, "clear_for_s": 5.0, "guard_cfg": cfg}  # line left
@@ -495,8 +498,8 @@ def test_a_clear_decision_slides_toward_the_middle_of_a_gap_instead_of_the_line(
     # Only on CLEAR: an avoiding decision keeps its own (no sideways) velocity.
     avoid = Decision(DecisionKind.AVOID, 0.3, 0.0, 0.5, "avoid")
     assert setpoint_for(avoid, 0.0, cmd, gap=Gap(0.1, 1.5), **kw).right_m_s == 0.0
-    # Off (the default): the line hold's sideways step stays.
-    off = {**kw, "guard_cfg": MemoryConfig()}
+    # Off: the line hold's sideways step stays.
+    off = {**kw, "guard_cfg": MemoryConfig(gap_centering_gain_per_s=0.0)}
     assert setpoint_for(clear, 0.0, cmd, gap=Gap(0.1, 1.5), **off) == setpoint_for(clear, 0.0, cmd, **off)
 
 
@@ -507,7 +510,7 @@ def test_off_the_middle_of_a_gap_the_vehicle_lines_up_before_it_flies_on() -> No
     speed falls to 0 over gap_lineup_ramp_m; the slide goes on; a narrowed gap keeps a small band."""
     from companion.core.command import gap_lineup_fraction
 
-    cfg = MemoryConfig(gap_centering_gain_per_s=1.0)  # off by default
+    cfg = MemoryConfig(gap_centering_gain_per_s=1.0)  # the default, pinned
     assert (cfg.gap_pass_clearance_m, cfg.gap_lineup_ramp_m, cfg.gap_lineup_min_slack_m) == (0.35, 0.1, 0.05)
     # A 1.3 m door: lined up within 0.65 - 0.35 = 0.3 m of its middle; stopped from 0.4 m off.
     assert gap_lineup_fraction(Gap(0.3, 1.3), cfg) == 1.0
@@ -528,7 +531,7 @@ def test_off_the_middle_of_a_gap_the_vehicle_lines_up_before_it_flies_on() -> No
     assert lined_up.forward_m_s == pytest.approx(cmd.cruise_speed_m_s)
     assert lined_up.right_m_s == pytest.approx(-0.1)
     # Centering off: neither the slide nor the line-up.
-    off = {**kw, "guard_cfg": MemoryConfig()}
+    off = {**kw, "guard_cfg": MemoryConfig(gap_centering_gain_per_s=0.0)}
     assert setpoint_for(clear, 0.0, cmd, gap=Gap(-0.5, 1.3), **off) == setpoint_for(clear, 0.0, cmd, **off)
 
 

@@ -176,7 +176,7 @@ def test_a_frame_carries_what_it_saw_past_only_for_the_detour_layer() -> None:
     """The detour layer's map forgets what a frame sees past (memory.map_clear_after_frames): the
     frame's block view comes with it when the layer is on, and costs nothing when it is off."""
     cfg, pipeline, frame, _ = _render(Scene(obstacles=(_wall(1.0),)))
-    assert cfg.detour.trigger_after_s == 0.0  # the default: the layer off
+    pipeline.reconfigure(apply_patch(cfg, {"detour": {"trigger_after_s": 0.0}}))  # the layer off
     assert pipeline.process(frame, timestamp_s=0.0).far_view is None
     pipeline.reconfigure(apply_patch(cfg, {"detour": {"trigger_after_s": 0.8}}))
     fv = pipeline.process(frame, timestamp_s=0.1).far_view

@@ -881,10 +881,13 @@ def test_course_hold_waits_while_a_clear_decision_still_turns() -> None:
     """The release filter lets an escape's yaw fade over a few CLEAR decisions. Course hold (and its
     turning back in place) waits for straight CLEAR decisions, as in the simulator: acting at once,
     it turned the vehicle back against the escape's last turn (PX4 SITL, corridor-0 and doorway-4).
-    A turn that lasts command.turn_back_after_clear_s is no fade: then turning back acts."""
+    A turn that lasts command.turn_back_after_clear_s is no fade: then turning back acts. (The detour
+    layer, off here, would take a vehicle facing this far from its goal round on its own.)"""
     import numpy as np
 
-    h = _engaged_at([0.0, 0.0, -1.5])
+    from companion.config.detour import DetourConfig
+
+    h = _engaged_at([0.0, 0.0, -1.5], cfg=default_config(detour=DetourConfig(trigger_after_s=0.0)))
     h.vehicle = replace(h.vehicle, attitude_rad=np.array([0.0, 0.0, math.radians(120.0)]))  # facing away
     fading = Decision(DecisionKind.CLEAR, yaw=0.3, pitch=0.0, speed_fraction=1.0, reason="release")
     escape = Decision(DecisionKind.AVOID, yaw=0.6, pitch=0.0, speed_fraction=0.5, reason="escape")

@@ -9,9 +9,10 @@ from typing import Any
 from companion.errors import InputError
 
 #: The demo's course: a block across the whole view, its bottom 0.2 m under the vehicle's top (pitch-1).
-#: Flown with the defaults, the vehicle slows, brakes and holds in front of it (2.4 s), finds the way
-#: under it (the pitch controller's escape: down), passes with 0.26 m to spare and reaches the goal: an
-#: avoidance and a brake in one short, deterministic flight (22 s simulated, about 4 s on a 2-core VM).
+#: Flown with the defaults, the vehicle slows and brakes in front of it, looks round (the detour
+#: layer's turn in place), finds the way under it (the pitch controller's escape: down), passes with
+#: 0.23 m to spare and reaches the goal: an avoidance and a brake in one short, deterministic flight
+#: (26 s simulated, about 5 s on a 2-core VM).
 #: The doorway (the paper's Fig. 10) shows neither: it is flown straight through (234 of 234 frames clear).
 DEMO_COURSE = ("pitch", 1)
 #: Where the demo writes when no --out is given: relative to the working directory on purpose (it is
@@ -28,9 +29,10 @@ def register(sub: argparse._SubParsersAction) -> None:
             "Fly a simulated course closed-loop with the real pipeline: rendered ZED frames -> 9 region "
             "depths -> fuzzy decision -> setpoints -> a simulated multicopter. The default course (pitch-1) "
             "puts a block across the way, too low to fly under at the start altitude: the vehicle slows, "
-            "brakes, then escapes downward, passes under it and reaches the goal. Prints the decisions and "
-            "the outcome, and writes the top-down and side-view plot and Fig. 10 overlay frames of the "
-            "moments that tell (the first avoid, the brake, the nearest, the last) to the output directory."
+            "brakes, looks round, then escapes downward, passes under it and reaches the goal. Prints the "
+            "decisions and the outcome, and writes the top-down and side-view plot and Fig. 10 overlay "
+            "frames of the moments that tell (the first avoid, the brake, the nearest, the last) to the "
+            "output directory."
         ),
     )
     p.add_argument("--out", type=Path, default=None, help=f"output directory (default ./{DEFAULT_OUT})")

@@ -176,16 +176,15 @@ class CommandConfig(StrictModel):
         ),
     )
     line_hold_lateral_max_aim_error_deg: float = Field(
-        default=180.0,
+        default=15.0,
         ge=1.0,
         le=180.0,
         description=(
             "Course hold, line, sideways: the sideways speed tapers to 0 as the heading the course hold "
-            "aims at lies this far from the heading now, degrees (180 = no taper, the default). A "
-            "vehicle still turning toward a side carries its body, sideways, into what the camera has "
-            "not seen yet: PX4 SITL forest-4 slid left at 0.3 m/s while turning left at 20 deg/s into a "
-            "pillar in the left image's unmatched strip. Off by default: at 15 the kinematic suite with "
-            "0.14 m/s drift traded one collision for another (a drift left uncorrected while turning)."
+            "aims at lies this far from the heading now, degrees (180 = no taper). A vehicle still "
+            "turning toward a side carries its body, sideways, into what the camera has not seen yet: "
+            "PX4 SITL forest-4 slid left at 0.3 m/s while turning left at 20 deg/s into a pillar in "
+            "the left image's unmatched strip."
         ),
     )
     sideways_clear_depth_m: float = Field(

@@ -18,15 +18,16 @@ class DetourConfig(StrictModel):
     flies it where the controller would not. Not in the paper."""
 
     trigger_after_s: float = Field(
-        default=0.0,
+        default=0.8,
         ge=0.0,
         le=30.0,
         description=(
             "Start a detour once the controller has braked (the way ahead blocked, no escape) this "
             "long without a break, seconds; 0 = the detour layer is off (the reactive controller and "
-            "course hold alone, as before it; the default until a full PX4 SITL standard run with it "
-            "on has no collision: issue 21). 0.8 turns it on: short, since the simulator's judge, and "
-            "a pilot, call a vehicle stopped for 3 s held."
+            "course hold alone, as before it). Short, since the simulator's judge, and a pilot, call "
+            "a vehicle stopped for 3 s held. On by default since two full PX4 SITL standard runs in a "
+            "row with it had no collision (57 and 51 of the 63 non-dead-end flights reached the "
+            "goal; the layer off reached 30 of 54 flights; docs/history.md)."
         ),
     )
     trigger_no_progress_s: float = Field(

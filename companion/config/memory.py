@@ -199,7 +199,7 @@ class MemoryConfig(StrictModel):
         ),
     )
     gap_centering_gain_per_s: float = Field(
-        default=0.0,
+        default=1.0,
         ge=0.0,
         le=10.0,
         description=(
@@ -207,10 +207,10 @@ class MemoryConfig(StrictModel):
             "gap_lookahead_m ahead, less than gap_max_width_m apart sideways (a doorway, two pillars), "
             "a CLEAR decision flies sideways toward the middle between the nearest of each side at "
             "this speed per metre off it, 1/s, instead of the line hold's sideways step (0 = off). "
-            "Off by default: at 1 it raised PX4 SITL's doorway clearances from 0.01-0.08 m to "
-            "0.10-0.25 m, but a false near point in the memory made a false gap, and with the guard's "
-            "push away from the same point it slid a forest flight into a pillar (1 collision in 27 "
-            "flights); the kinematic suite gave 100 % with and without drift."
+            "At 1 it raised PX4 SITL's doorway clearances from 0.01-0.08 m to 0.10-0.25 m. Only "
+            "points seen from two places push_baseline_m apart bound a gap: a false near point once "
+            "made a false gap and slid a forest flight into a pillar (1 collision in 27 PX4 SITL "
+            "flights, before that rule)."
         ),
     )
     max_gap_centering_speed_m_s: float = Field(
