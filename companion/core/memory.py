@@ -705,11 +705,11 @@ class ObstacleMemory:
         fwd, right = ned_to_body_horizontal(rel[:, 0], rel[:, 1], yaw_rad)
         dist = np.hypot(fwd, right)
         keep = (np.abs(rel[:, 2]) <= cfg.height_band_m) & (dist < radius_m)
-        trusted = self.may_push(pts[keep], cfg) if pushing else self.trusted(pts[keep], cfg)
+        marked = self.may_push(pts[keep], cfg) if pushing else self.trusted(pts[keep], cfg)
         fwd, right, dist = fwd[keep], right[keep], dist[keep]
         if trusted_only:
-            return fwd[trusted], right[trusted], dist[trusted], trusted[trusted]
-        return fwd, right, dist, trusted
+            return fwd[marked], right[marked], dist[marked], marked[marked]
+        return fwd, right, dist, marked
 
     def hold_inputs(
         self, position_ned_m: np.ndarray, yaw_rad: float, now_s: float, cfg: MemoryConfig, view: ViewLimits | None
@@ -719,15 +719,18 @@ class ObstacleMemory:
         :func:`~companion.core.command.setpoint_for` takes as ``guard_m``, ``remembered_sides``, ``gap``
         and ``path_ahead_m``."""
         radius = max(cfg.guard_distance_m, cfg.hold_clear_m)
-        near = self._nearby(position_ned_m, yaw_rad, now_s, cfg, radius)
-        if near is None:
+        centering = cfg.gap_centering_gain_per_s > 0.0
+        reach = max(radius, math.hypot(cfg.gap_lookahead_m, cfg.gap_max_width_m)) if centering else radius
+        wide = self._nearby(position_ned_m, yaw_rad, now_s, cfg, reach)  # one pass for the guard and the gap
+        if wide is None:
             return HoldInputs(None, None, None)
+        inside = wide[2] < radius
+        near = tuple(a[inside] for a in wide)
         guard = None if view is None else _guard_rows(*near, cfg, view)  # each filters by its own distance
         gap = None
-        if cfg.gap_centering_gain_per_s > 0.0:
-            radius = max(radius, math.hypot(cfg.gap_lookahead_m, cfg.gap_max_width_m))
-            trusted = self._nearby(position_ned_m, yaw_rad, now_s, cfg, radius, trusted_only=True)
-            gap = None if trusted is None else find_gap(trusted[0], trusted[1], cfg)
+        if centering:
+            pushing = wide[3]  # only points that may push bound a gap
+            gap = find_gap(wide[0][pushing], wide[1][pushing], cfg)
         ahead = None
         if cfg.path_slow_time_s > 0.0:
             path = self._nearby(
