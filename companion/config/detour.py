@@ -69,7 +69,22 @@ class DetourConfig(StrictModel):
             "The look round: turn in place to this many degrees either side of the goal direction, so "
             "that the camera (about ±45°) fills the memory out to scan_half_angle_deg + 45° round the "
             "goal, degrees. It first turns to the side the memory does not favour and ends facing the "
-            "one it does. No look round when the way round is already in view."
+            "one it does. No look round when the way round is already in view, or seen "
+            "(no_look_round_step_m)."
+        ),
+    )
+    no_look_round_step_m: float = Field(
+        default=1.5,
+        ge=0.0,
+        le=10.0,
+        description=(
+            "No look round when the memory already shows, on the side it favours, a sideways step "
+            "of at most this many metres (square to the goal direction) after which the way to the "
+            "goal is free: the end of a box seen on the approach. The detour chooses at once and "
+            "turns to face each direction before it flies it. Metres; 0 = always look round. Keep "
+            "it within what the camera saw beside the obstacle on the way in (about the brake "
+            "distance): farther out the map has not looked, so unseen space reads free (the detour "
+            "course's wall: steps of 2-3 m that were not there)."
         ),
     )
     turn_rate_deg_s: float = Field(

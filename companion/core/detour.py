@@ -18,6 +18,9 @@ Phases (:class:`Phase`)::
 
 * **scan**: turn in place (holding the position where it began) to the goal direction minus and plus
   ``scan_half_angle_deg``, the nearer side first, at ``turn_rate_deg_s``: the camera fills the memory.
+  None when the way round is already in view (within ``_IN_VIEW_DEG`` of the heading), or seen: on
+  the side the memory favours, a sideways step of at most ``no_look_round_step_m`` opens the way (a
+  box's end, seen on the approach); then it chooses at once.
 * **choose**: the polar histogram of the memory's *trusted* points (:meth:`ObstacleMemory.map_points
   <companion.core.memory.ObstacleMemory.map_points>`) round the vehicle, every ``sector_deg`` within
   ``max_angle_deg`` of the goal direction. A direction is *free* when no trusted point lies within
@@ -642,9 +645,12 @@ class DetourPlanner:
         """A detour's start, with the histogram from where it began: choose at once, or look round."""
         lean = self._side or _pick_side(h, prefer_right, cfg)
         k = _best(h, lean, cfg, None)
-        if k is not None and abs(wrap_pi(h.bearing_rad[k] - yaw)) <= math.radians(_IN_VIEW_DEG):
-            # The way round is in view (it has been seen): no need to look round. (The same snapshot:
-            # a second histogram now would be the same numbers.)
+        in_view = k is not None and abs(wrap_pi(h.bearing_rad[k] - yaw)) <= math.radians(_IN_VIEW_DEG)
+        # A step on the favoured side already opens the way (the map saw where the obstacle ends).
+        seen = k is not None and h.through_m[lean] <= cfg.no_look_round_step_m
+        if in_view or seen:
+            # The way round is in view, or seen: no need to look round. (The same snapshot: a
+            # second histogram now would be the same numbers.)
             self.phase = Phase.SCAN
             return self._choose_with(h, now_s, pos, yaw, goal, cfg, prefer_right)
         self._start_scan(now_s, pos, yaw, goal, cfg, lean)
