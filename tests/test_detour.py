@@ -127,7 +127,7 @@ def test_a_brake_long_enough_starts_a_detour_and_a_short_one_does_not() -> None:
 def test_a_box_whose_end_was_seen_is_flown_round_without_a_look_round() -> None:
     """A box 1 m wide 1.2 m ahead, both ends seen on the approach: a step of 1.5 m (at most
     detour.no_look_round_step_m) opens the way, so the detour turns at once to a way round (kinematic
-    corridors: 5-24 s faster at the boxes on the line); with the option at 0 it looks round first."""
+    corridors: 4-24 s faster at the boxes on the line); with the option at 0 it looks round first."""
     mem = _trusted_memory(_wall(1.2, -0.5, 0.5))
     assert DET.no_look_round_step_m >= 1.5
     cmd, _ = _brake_until_detour(DetourPlanner(), mem, 0.0)
@@ -139,10 +139,10 @@ def test_a_box_whose_end_was_seen_is_flown_round_without_a_look_round() -> None:
 
 
 def test_a_wall_whose_end_lies_beyond_the_step_is_looked_round_first() -> None:
-    """A wall 5 m wide 1.2 m ahead (the detour course's, where its brake stops): the way opens only
-    3 m to a side, farther than the camera saw beside it on the way in (unseen space reads free),
-    so the detour looks round first: to the goal direction ± 90 deg. Only the step decides: allowed
-    3 m, it would choose at once."""
+    """A wall 5 m wide 1.2 m ahead (where the brake stops): the way opens only after a step of 3 m
+    to a side, farther than the camera saw beside the wall on the way in (at the detour course's
+    wall, unseen space read free), so the detour looks round first: to the goal direction ± 90 deg.
+    Only the step decides: allowed 3 m, it would choose at once."""
     mem = _trusted_memory(_wall(1.2, -2.5, 2.5))
     p = DetourPlanner()
     cmd, _ = _brake_until_detour(p, mem, 0.0)
