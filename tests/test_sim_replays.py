@@ -16,7 +16,7 @@ from companion.sim.scoring import Outcome
 @pytest.mark.parametrize(
     "overrides",
     [
-        {},  # the defaults: the configuration PX4 SITL r5 flew (the detour layer and gap centering on)
+        {},  # the defaults: the detour layer and gap centering on, as PX4 SITL r5 flew them
         {  # the reactive controller and course hold alone, as the defaults were until issue 21's runs
             "detour": {"trigger_after_s": 0.0},
             "memory": {"gap_centering_gain_per_s": 0.0},
