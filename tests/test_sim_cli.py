@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import re
 from pathlib import Path
@@ -11,7 +12,9 @@ import pytest
 
 from companion.cli import main
 from companion.config import CompanionConfig
-from companion.sim.suite import run_suite, suite_rows, suite_table
+from companion.sim.courses import make_course
+from companion.sim.scoring import Outcome
+from companion.sim.suite import realization_line, run_suite, suite_rows, suite_table
 
 
 def test_one_course_prints_the_verdict_and_draws_the_plot(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -41,6 +44,7 @@ def test_one_course_prints_the_verdict_and_draws_the_plot(tmp_path: Path, capsys
         (["sim", "--course", "head-on", "--start", "5,0,1.5,0"], "from an obstacle in head-on-0"),
         (["sim", "--course", "head-on", "--start=-50,0,1.5,0"], "outside head-on-0's bounds"),
         (["sim", "--suite", "quick", "--start", "1,0,1.5,0"], "go with --course"),
+        (["sim", "--suite", "quick", "--realizations", "0"], "--realizations must be >= 1"),
     ],
 )
 def test_bad_input_is_one_line_and_exit_2(argv: list[str], message: str, capsys: pytest.CaptureFixture[str]) -> None:
@@ -84,6 +88,10 @@ def test_suite_runner_and_table_in_process() -> None:
     table = suite_table(results)
     assert "success" in table and "worst clear m" in table and "all" in table
     assert results[0].log is None  # logs are dropped unless asked for
+    goals = sum(r.outcome is Outcome.GOAL for r in results)
+    assert realization_line(3, results) == f"realization 3: goal {goals} of 2 not dead ends, 0 collisions"
+    held_end = dataclasses.replace(results[0], course=make_course("deadend", 0), outcome=Outcome.HELD)
+    assert realization_line(0, [held_end, results[1]]).endswith("of 1 not dead ends, 1 of 1 dead ends held, 0 collisions")
 
 
 @pytest.mark.slow
@@ -91,6 +99,20 @@ def test_quick_suite_over_two_workers(capsys: pytest.CaptureFixture[str]) -> Non
     assert main(["sim", "--suite", "quick", "--workers", "2"]) == 0
     out = capsys.readouterr().out
     assert "[ 16/16]" in out and "collisions" in out
+
+
+@pytest.mark.slow
+def test_a_suite_over_two_realizations_scores_them_together_and_one_by_one(capsys: pytest.CaptureFixture[str]) -> None:
+    """--realizations 2: every course flown under sim.realization 0 and 1, one table for all, a line each."""
+    assert main(["sim", "--suite", "quick", "--kinds", "pitch", "--realizations", "2", "--workers", "2"]) == 0
+    out = capsys.readouterr().out
+    assert "4 flights, realizations 0-1" in out
+    assert "r0 [  2/2] pitch-" in out and "r1 [  2/2] pitch-" in out
+    all_row = next(line for line in out.splitlines() if line.startswith("all"))
+    assert all_row.split()[1] == "4"
+    for r in (0, 1):
+        assert f"realization {r}: goal " in out
+    assert "of 2 not dead ends, 0 collisions" in out
 
 
 def test_start_replays_a_course_from_another_pose(capsys: pytest.CaptureFixture[str]) -> None:

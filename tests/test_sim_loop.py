@@ -35,6 +35,40 @@ def test_same_seed_same_flight(bank, head_on: FlightResult) -> None:
     np.testing.assert_array_equal(again.frame_log.region_depths_m, head_on.frame_log.region_depths_m)
 
 
+def test_a_realization_draws_other_noise_and_exposure_on_the_same_course(bank) -> None:
+    """sim.realization: the same course (geometry, textures) under another draw of the sensor noise,
+    the exposure steps and the eyes' mismatch; 0 is the seed's own draws, and each draw repeats."""
+    from companion.core.geometry import StereoGeometry
+    from companion.sim.camera import SimCamera
+    from companion.sim.render import Pose
+
+    course = make_course("pitch", 1)
+    geometry = StereoGeometry.ideal(96, 64, hfov_deg=90.0, baseline_m=0.12)
+    pose = Pose.at(1.0, 0.0, 1.5)
+
+    def frames(realization: int, noise: float, t_s: float = 3.0) -> np.ndarray:
+        cam = SimCamera(
+            geometry, course.scene, lambda: (pose, t_s), seed=course.seed, realization=realization,
+            textures=bank, noise_std_grey=noise, exposure_step_interval_s=2.0,
+            exposure_gain_range=(0.8, 1.2), eye_gain_mismatch=0.04,
+        )
+        cam.open()
+        return np.stack([cam.read().image for _ in range(2)])
+
+    seed_own = frames(0, 2.0)
+    assert np.array_equal(frames(0, 2.0), seed_own)
+    other = frames(1, 2.0)
+    assert not np.array_equal(other, seed_own) and np.array_equal(frames(1, 2.0), other)
+    # What differs is drawn, not the course: without noise, exposure or mismatch the images are equal.
+    plain = [
+        SimCamera(geometry, course.scene, lambda: (pose, 3.0), seed=course.seed, realization=r, textures=bank)
+        for r in (0, 1)
+    ]
+    for cam in plain:
+        cam.open()
+    assert np.array_equal(plain[0].read().image, plain[1].read().image)
+
+
 def test_a_head_on_box_is_avoided(head_on: FlightResult) -> None:
     assert head_on.outcome is Outcome.GOAL, head_on.reason
     assert head_on.min_clearance_m > 0.05

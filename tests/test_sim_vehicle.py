@@ -148,6 +148,23 @@ def test_drift_moves_the_position_not_the_velocity_seeded_and_of_the_asked_size(
         VehicleParams(drift_speed_m_s=-0.1)
 
 
+def test_a_realization_is_another_draw_of_the_same_seeds_drift() -> None:
+    """sim.realization: 0 flies the seed's own drift (the draws before realizations existed); another
+    number draws another drift for the same seed, the same one every time."""
+    params = VehicleParams(drift_speed_m_s=0.2, drift_time_constant_s=2.0, vertical_drift_speed_m_s=0.05)
+
+    def hover(**kw: int) -> np.ndarray:
+        m = VehicleModel(params, Pose.at(0, 0, 1.5), **kw)
+        _run(m, 20.0)
+        return m.position_ned_m
+
+    seed_only = hover(seed=4)
+    assert np.array_equal(hover(seed=4, realization=0), seed_only)
+    other = hover(seed=4, realization=1)
+    assert not np.array_equal(other, seed_only) and np.array_equal(hover(seed=4, realization=1), other)
+    assert not np.array_equal(hover(seed=4, realization=2), other)
+
+
 def test_vertical_drift_moves_the_height_and_leaves_the_horizontal_drift_as_it_was() -> None:
     """sim.vertical_drift_speed_m_s: PX4 in offboard velocity control holds a vertical speed, not a
     height; the horizontal drift of the same seed is unchanged by it."""

@@ -53,6 +53,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--realtime", action="store_true", help="--course: pace simulated time to the wall clock")
     add_view_options(p, "--course: ")
     p.add_argument("--workers", type=int, default=2, help="--suite: worker processes (default 2)")
+    p.add_argument(
+        "--realizations",
+        type=int,
+        default=1,
+        metavar="N",
+        help=(
+            "--suite: fly every course under N draws of the noise and drift (sim.realization, from the "
+            "config's on) and score them together, with a line per draw; the closed loop is chaotic, "
+            "so judge a change over several (default 1)"
+        ),
+    )
     p.set_defaults(func=run)
 
 
@@ -64,6 +75,8 @@ def run(args: argparse.Namespace) -> int:
         return _run_course(args, cfg)
     if args.plot is not None or args.side_view or args.realtime or args.view or args.start is not None:
         raise InputError("--plot, --side-view, --realtime, --view and --start go with --course, not --suite")
+    if args.realizations < 1:
+        raise InputError(f"--realizations must be >= 1, got {args.realizations}")
     if args.kinds is not None and not args.kinds.strip():
         raise InputError("--kinds needs at least one course kind")
     return _run_suite(args, cfg)
@@ -183,23 +196,37 @@ def write_plot(result: Any, path: Path, side_view: bool = False) -> None:
 
 def _run_suite(args: argparse.Namespace, cfg: Any) -> int:
     from companion.bench import machine_description
-    from companion.sim.suite import run_suite, select_kinds, suite_courses, suite_table
+    from companion.sim.suite import realization_line, run_suite, select_kinds, suite_courses, suite_table
 
     if args.workers < 1:
         raise InputError(f"--workers must be >= 1, got {args.workers}")
     courses = suite_courses(args.suite)
     if args.kinds is not None:
         courses = select_kinds(courses, args.kinds)
-    print(f"suite {args.suite}: {len(courses)} flights on {args.workers} worker(s); {machine_description()}")
-
-    def progress(done: int, total: int, result: Any) -> None:
-        print(f"[{done:3d}/{total}] {result.summary()}", flush=True)
-
+    n = args.realizations
+    first = cfg.sim.realization
+    draws = f", realizations {first}-{first + n - 1}" if n > 1 else ""
+    print(f"suite {args.suite}: {len(courses) * n} flights{draws} on {args.workers} worker(s); {machine_description()}")
     t0 = time.perf_counter()
-    results = run_suite(cfg, courses, workers=args.workers, progress=progress)
+    results: list[Any] = []
+    per_draw: list[tuple[int, list[Any]]] = []
+    for r in range(first, first + n):
+        tag = f"r{r} " if n > 1 else ""
+
+        def progress(done: int, total: int, result: Any, tag: str = tag) -> None:
+            print(f"{tag}[{done:3d}/{total}] {result.summary()}", flush=True)
+
+        drawn = cfg.model_copy(update={"sim": cfg.sim.model_copy(update={"realization": r})})
+        got = run_suite(drawn, courses, workers=args.workers, progress=progress)
+        per_draw.append((r, got))
+        results.extend(got)
     wall = time.perf_counter() - t0
     print()
     print(suite_table(results))
+    if n > 1:
+        print()
+        for r, got in per_draw:
+            print(realization_line(r, got))
     print(f"\nsuite wall time {wall:.0f} s ({sum(r.time_s for r in results):.0f} s simulated)")
     sys.stdout.flush()
     return 0

@@ -112,6 +112,19 @@ class SimConfig(StrictModel):
         le=5.0,
         description="The vehicle is a sphere of this radius around its centre for collisions and clearance, metres.",
     )
+    realization: int = Field(
+        default=0,
+        ge=0,
+        le=2**31 - 1,
+        description=(
+            "Which draw of the sensor noise, the exposure steps, the eyes' gain mismatch and the drift "
+            "a flight gets, with its course seed; the course itself (geometry, textures, start) "
+            "stays. 0 = the course seed's own draws (every figure in docs/ before 2026-11-27). The "
+            "closed loop is chaotic: a 1 % change of noise_std_grey changed the outcome of 20 of the "
+            "288 flights of four standard suites, so compare configurations over several "
+            "realizations (companion sim --realizations; docs/simulator.md, 'Judging a change')."
+        ),
+    )
     drift_speed_m_s: float = Field(
         default=0.0,
         ge=0.0,

@@ -8,3 +8,19 @@
 * :mod:`companion.sim.scoring`: clearance and outcomes; :mod:`companion.sim.suite`: many courses;
 * :mod:`companion.sim.plot`: top-down and side-view plots drawn with OpenCV.
 """
+
+from __future__ import annotations
+
+#: Mixed into a realization's draws so that they cannot coincide with a seed's own keys.
+_REALIZATION_TAG = 0x5EED
+
+
+def realization_key(seed: int, realization: int) -> tuple[int, ...]:
+    """The key of a flight's random draws (sensor noise, exposure, the eyes' mismatch, drift) for
+    course seed ``seed`` and ``sim.realization`` ``realization``: ``(seed,)`` for 0, the draws every
+    flight had before realizations existed; else ``(seed, tag, realization)``. Each draw appends its
+    own constants to it."""
+    if realization == 0:
+        return (int(seed),)
+    return (int(seed), _REALIZATION_TAG, int(realization))
+

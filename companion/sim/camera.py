@@ -4,7 +4,7 @@ Each :meth:`SimCamera.read` renders one rectified side-by-side frame, uint8 ``(H
 the pose of the vehicle *now* (simulated time; the loop calls it at the camera rate), stamped with
 the simulated time. Stereo is made non-ideal the way a real camera is: Gaussian sensor noise per eye
 and frame, an auto-exposure gain that jumps every few seconds (both eyes), and a fixed small gain
-mismatch between the eyes. All randomness comes from the flight seed, so a flight is reproducible.
+mismatch between the eyes. All randomness comes from the flight seed (and ``sim.realization``), so a flight is reproducible.
 """
 
 from __future__ import annotations
@@ -15,6 +15,7 @@ from collections.abc import Callable
 import numpy as np
 
 from companion.core.geometry import StereoGeometry
+from companion.sim import realization_key
 from companion.sim.render import Photometry, Pose, Scene, StereoRenderer, TextureBank
 from companion.errors import CameraError
 from companion.interfaces import Frame
@@ -37,6 +38,8 @@ class SimCamera:
         scene: the world.
         pose_at: returns ``(pose, time_s)`` of the vehicle now (e.g. a bound method of the vehicle).
         seed: flight seed (per-face texture offsets, noise and exposure draws).
+        realization: ``sim.realization``: which draw of the noise, the exposure steps and the eyes'
+            mismatch (:func:`~companion.sim.realization_key`); the textures stay the seed's.
         textures: a shared :class:`TextureBank` from :func:`make_texture_bank` (default: a new one
             like it; the images do not depend on whether the bank is shared).
         noise_std_grey: per-eye Gaussian noise, grey levels.
@@ -56,6 +59,7 @@ class SimCamera:
         pose_at: Callable[[], tuple[Pose, float]],
         *,
         seed: int = 0,
+        realization: int = 0,
         textures: TextureBank | None = None,
         noise_std_grey: float = 0.0,
         exposure_step_interval_s: float = 0.0,
@@ -67,15 +71,17 @@ class SimCamera:
         self.scene = scene
         self._pose_at = pose_at
         self._seed = int(seed)
+        # The random draws' key: the seed alone for realization 0 (the draws every earlier flight had)
+        self._draws = realization_key(self._seed, realization)
         self._textures = textures
         self._noise = float(noise_std_grey)
         self._exp_interval = float(exposure_step_interval_s)
         self._gain_lo, self._gain_hi = (float(g) for g in exposure_gain_range)
         self._fail_after_s = fail_after_s
-        rng = np.random.default_rng([self._seed, 0xCA3E])
+        rng = np.random.default_rng([*self._draws, 0xCA3E])
         m = float(eye_gain_mismatch) * float(rng.uniform(-1.0, 1.0))
         self._eye_gain = (1.0 + 0.5 * m, 1.0 - 0.5 * m)
-        self._noise_rng = np.random.default_rng([self._seed, 0x401E])
+        self._noise_rng = np.random.default_rng([*self._draws, 0x401E])
         self._renderer: StereoRenderer | None = None
         self._buffer: np.ndarray | None = None
         self._seq = 0
@@ -95,7 +101,7 @@ class SimCamera:
         if self._exp_interval <= 0.0:
             return 1.0
         k = max(0, int(math.floor(time_s / self._exp_interval)))
-        return float(np.random.default_rng([self._seed, 0xE7, k]).uniform(self._gain_lo, self._gain_hi))
+        return float(np.random.default_rng([*self._draws, 0xE7, k]).uniform(self._gain_lo, self._gain_hi))
 
     def read(self) -> Frame:
         """Render the frame the camera captures now (simulated time).

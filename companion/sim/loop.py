@@ -241,6 +241,7 @@ def make_camera(
         course.scene,
         lambda: (vehicle.pose(), vehicle.time_s),
         seed=course.seed,
+        realization=sim.realization,
         textures=textures,
         noise_std_grey=sim.noise_std_grey,
         exposure_step_interval_s=sim.exposure_step_interval_s,
@@ -299,7 +300,7 @@ def fly(
     sim, cmd = cfg.sim, cfg.command
     pipeline = make_pipeline(cfg, sim.eye_width_px, sim.eye_height_px)
     params = VehicleParams.from_config(sim)
-    vehicle = SimVehicle(params, course.start, seed=course.seed)
+    vehicle = SimVehicle(params, course.start, seed=course.seed, realization=sim.realization)
     camera = make_camera(course, cfg, vehicle, pipeline, textures, camera_fail_after_s)
     camera.open()
     radius = params.collision_radius_m

@@ -219,6 +219,18 @@ def suite_rows(results: Sequence[FlightResult]) -> list[SuiteRow]:
     return rows
 
 
+def realization_line(realization: int, results: Sequence[FlightResult]) -> str:
+    """One line for the flights of one ``sim.realization``: goals among the flights whose course is
+    not a dead end (where holding is the right answer), held dead ends, collisions."""
+    live = [r for r in results if r.course.kind != "deadend"]
+    goals = sum(r.outcome is Outcome.GOAL for r in live)
+    dead = [r for r in results if r.course.kind == "deadend"]
+    held = sum(r.outcome is Outcome.HELD for r in dead)
+    collisions = sum(r.outcome is Outcome.COLLISION for r in results)
+    held_part = f"{held} of {len(dead)} dead ends held, " if dead else ""
+    return f"realization {realization}: goal {goals} of {len(live)} not dead ends, {held_part}{collisions} collisions"
+
+
 def suite_table(results: Sequence[FlightResult]) -> str:
     """The suite's scores as a fixed-width text table."""
     from companion.bench import format_table

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from companion.sim import realization_key
 from companion.sim.render import Pose
 from companion.core.types import ZERO_SETPOINT, VelocitySetpoint
 from companion.errors import VehicleError
@@ -101,9 +102,13 @@ class VehicleModel:
         start: initial pose (only position and yaw are used: the vehicle starts level, at rest).
         time_s: initial simulated time, seconds.
         seed: seed of the drift's random generator (the same seed flies the same drift).
+        realization: ``sim.realization``: another draw of the drift for the same seed (0: the
+            seed's own; :func:`~companion.sim.realization_key`).
     """
 
-    def __init__(self, params: VehicleParams, start: Pose, time_s: float = 0.0, seed: int = 0) -> None:
+    def __init__(
+        self, params: VehicleParams, start: Pose, time_s: float = 0.0, seed: int = 0, realization: int = 0
+    ) -> None:
         self.params = params
         self.time_s = float(time_s)
         self.position_ned_m = np.array(start.position_ned_m, dtype=np.float64)
@@ -114,8 +119,9 @@ class VehicleModel:
         self.roll_rad = 0.0
         self.accel_ned_m_s2 = np.zeros(3)
         self.setpoint: VelocitySetpoint = ZERO_SETPOINT
-        self._rng = np.random.default_rng(seed)
-        self._vrng = np.random.default_rng([seed, 1])  # the vertical drift's own draws
+        key = realization_key(seed, realization)
+        self._rng = np.random.default_rng(key[0] if realization == 0 else list(key))
+        self._vrng = np.random.default_rng([*key, 1])  # the vertical drift's own draws
         self.drift_ned_m_s = np.zeros(3)  # the estimator-like drift now, m/s
 
     def command(self, setpoint: VelocitySetpoint) -> None:
@@ -214,10 +220,13 @@ class SimVehicle:
         start: initial pose (level, at rest).
         time_s: initial simulated time, seconds.
         seed: seed of the drift's random generator (see :class:`VehicleParams`).
+        realization: ``sim.realization`` (see :class:`VehicleModel`).
     """
 
-    def __init__(self, params: VehicleParams, start: Pose, time_s: float = 0.0, seed: int = 0) -> None:
-        self.model = VehicleModel(params, start, time_s, seed)
+    def __init__(
+        self, params: VehicleParams, start: Pose, time_s: float = 0.0, seed: int = 0, realization: int = 0
+    ) -> None:
+        self.model = VehicleModel(params, start, time_s, seed, realization)
         self.flight_mode = "POSCTL"
         self._last_setpoint: VelocitySetpoint | None = None
         self._connected = False
