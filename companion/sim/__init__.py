@@ -23,4 +23,3 @@ def realization_key(seed: int, realization: int) -> tuple[int, ...]:
     if realization == 0:
         return (int(seed),)
     return (int(seed), _REALIZATION_TAG, int(realization))
-

@@ -4,7 +4,8 @@ Each :meth:`SimCamera.read` renders one rectified side-by-side frame, uint8 ``(H
 the pose of the vehicle *now* (simulated time; the loop calls it at the camera rate), stamped with
 the simulated time. Stereo is made non-ideal the way a real camera is: Gaussian sensor noise per eye
 and frame, an auto-exposure gain that jumps every few seconds (both eyes), and a fixed small gain
-mismatch between the eyes. All randomness comes from the flight seed (and ``sim.realization``), so a flight is reproducible.
+mismatch between the eyes. All randomness comes from the flight seed (and ``sim.realization``), so
+a flight is reproducible.
 """
 
 from __future__ import annotations
