@@ -120,7 +120,7 @@ class VehicleModel:
         self.accel_ned_m_s2 = np.zeros(3)
         self.setpoint: VelocitySetpoint = ZERO_SETPOINT
         key = realization_key(seed, realization)
-        self._rng = np.random.default_rng(key[0] if realization == 0 else list(key))
+        self._rng = np.random.default_rng(list(key))  # [seed] draws as seed did: realization 0 unchanged
         self._vrng = np.random.default_rng([*key, 1])  # the vertical drift's own draws
         self.drift_ned_m_s = np.zeros(3)  # the estimator-like drift now, m/s
 
