@@ -750,7 +750,7 @@ def test_a_point_seen_past_long_enough_stops_guarding_with_guard_clear_after_fra
     """Kinematic office-4: a door's jamb smeared into the opening, seen past 50-230 frames in a row,
     kept the vehicle in the door for 10 s. With guard_clear_after_frames a point seen past that many
     frames in a row no longer guards, keeps course hold from a side or bounds a gap; seen again, it
-    does. Off by default (0), and never sooner than its own count."""
+    does. Never sooner than its own count; 0 turns it off (60 by default)."""
     here = np.array([0.0, 0.0, -1.5])
     beside = np.array([2.0, -0.45, -1.5])  # 0.45 m left of the point, facing north: out of view
     cfg = SEEN.model_copy(update={"guard_clear_after_frames": 10})
@@ -763,8 +763,9 @@ def test_a_point_seen_past_long_enough_stops_guarding_with_guard_clear_after_fra
     mem.see_through(_far_view(6.0), pose, cfg)
     assert mem.guard(beside, 0.0, 0.2, cfg, VIEW) is None  # 10: not there
     assert mem.hold_inputs(beside, 0.0, 0.2, cfg, VIEW).sides == (False, False)
-    assert mem.guard(beside, 0.0, 0.2, SEEN, VIEW) is not None  # off (0), the default: it guards
-    assert MemoryConfig().guard_clear_after_frames == 0
+    off = cfg.model_copy(update={"guard_clear_after_frames": 0})
+    assert mem.guard(beside, 0.0, 0.2, off, VIEW) is not None  # off (0): it guards
+    assert MemoryConfig().guard_clear_after_frames == 60
     mem.add(np.array([[2.0, 0.0, -1.5]]), 0.3, cfg.duration_s, ranges_m=np.array([2.0]),
             viewpoint_ned_m=here, cfg=cfg)
     assert mem.guard(beside, 0.0, 0.3, cfg, VIEW) is not None  # seen again: guards again
