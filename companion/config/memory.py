@@ -124,7 +124,8 @@ class MemoryConfig(StrictModel):
             "position drift moved off its surface is seen past too, and forgetting after 3 frames "
             "(30 in one drifting flight) collided where keeping did. A false match kept guarding for "
             "50-230 frames stopped kinematic offices and detours in open space; 60 (since 2026-11-27) "
-            "gained 11 goals over three realizations of three suites, no collision (docs/history.md)."
+            "gained 11 goals over three realizations of the four kinematic suites, with no collision "
+            "gained or lost (docs/history.md)."
         ),
     )
     map_clear_depth_ratio: float = Field(
