@@ -759,16 +759,20 @@ def test_a_point_seen_past_long_enough_stops_guarding_with_guard_clear_after_fra
     for _ in range(9):
         mem.see_through(_far_view(6.0), pose, cfg)
     assert mem.guard(beside, 0.0, 0.2, cfg, VIEW) is not None  # 9 frames: still there
+    assert mem.guard_cleared_count(cfg) == 0  # what the health message reports
     assert mem.hold_inputs(beside, 0.0, 0.2, cfg, VIEW).sides == (False, True)
     mem.see_through(_far_view(6.0), pose, cfg)
     assert mem.guard(beside, 0.0, 0.2, cfg, VIEW) is None  # 10: not there
+    assert mem.guard_cleared_count(cfg) == 1
     assert mem.hold_inputs(beside, 0.0, 0.2, cfg, VIEW).sides == (False, False)
     off = cfg.model_copy(update={"guard_clear_after_frames": 0})
     assert mem.guard(beside, 0.0, 0.2, off, VIEW) is not None  # off (0): it guards
+    assert mem.guard_cleared_count(off) == 0
     assert MemoryConfig().guard_clear_after_frames == 60
     mem.add(np.array([[2.0, 0.0, -1.5]]), 0.3, cfg.duration_s, ranges_m=np.array([2.0]),
             viewpoint_ned_m=here, cfg=cfg)
     assert mem.guard(beside, 0.0, 0.3, cfg, VIEW) is not None  # seen again: guards again
+    assert mem.guard_cleared_count(cfg) == 0
 
 
 def test_a_point_seen_at_its_depth_starts_counting_again() -> None:

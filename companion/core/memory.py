@@ -36,7 +36,8 @@ From one frame to points (:func:`block_max`, :class:`NearCells`):
    again at its depth, or not measured at all (a plain wall: no valid block), which never clears it.
    It still guards: the position estimate's drift moves true points off their surfaces too, where
    they are seen past, and the guard needs them (forgetting them outright added 4 collisions to the
-   simulator's four drift suites).
+   simulator's four drift suites). Only ``guard_clear_after_frames`` frames in a row of seeing past
+   (60, about 4 s at 15 Hz) take a point out of the guard as well.
 
 The memory lives in the vehicle's position estimate; a real estimate drifts against the world, which
 is why points are forgotten.
@@ -601,6 +602,13 @@ class ObstacleMemory:
         """How many remembered points are left out of the detour layer's map now, seen past
         (:meth:`see_through`; the health message reports it)."""
         return int(np.count_nonzero(self._seen_past(cfg)))
+
+    def guard_cleared_count(self, cfg: MemoryConfig) -> int:
+        """How many remembered points no longer guard, seen past ``cfg.guard_clear_after_frames``
+        frames in a row (:meth:`see_through`); 0 while that is off (the health message reports it)."""
+        if cfg.guard_clear_after_frames <= 0:
+            return 0
+        return int(np.count_nonzero(self._misses >= cfg.guard_clear_after_frames))
 
     def map_points(
         self,
