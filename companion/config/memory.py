@@ -125,7 +125,9 @@ class MemoryConfig(StrictModel):
             "(30 in one drifting flight) collided where keeping did. A false match kept guarding for "
             "50-230 frames stopped kinematic offices and detours in open space; 60 (since 2026-11-27) "
             "gained 11 goals over three realizations of the four kinematic suites, with no collision "
-            "gained or lost (docs/history.md)."
+            "gained or lost (docs/history.md). Counted in frames, measured at 15 Hz (the simulator's "
+            "and SITL's camera): 4 s there, 2 s at a 30 fps camera, as short as the 30 frames at 15 "
+            "Hz that collided; set 120 at 30 fps to keep the time measured."
         ),
     )
     map_clear_depth_ratio: float = Field(
