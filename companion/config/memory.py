@@ -108,8 +108,8 @@ class MemoryConfig(StrictModel):
             "leaves the detour layer's map until it is seen again, frames; 0 = never. Only measured "
             "blocks judge: a plain wall the matcher leaves unmatched, a point out of view or nearer "
             "than the rig can see stays. It still guards the vehicle (a point the position drift "
-            "moved is seen past too) until guard_clear_after_frames. A door's jambs smeared into its opening closed the door on "
-            "the map."
+            "moved is seen past too) until guard_clear_after_frames. A door's jambs smeared into "
+            "its opening closed the door on the map."
         ),
     )
     guard_clear_after_frames: int = Field(

@@ -387,9 +387,8 @@ class Supervisor:
         how many the detour layer's map leaves out because the camera has seen past them
         (:meth:`~companion.core.memory.ObstacleMemory.see_through`), ``guard_cleared``: how many of
         those no longer guard either (seen past ``memory.guard_clear_after_frames`` frames in a row),
-        ``unseen_drift_m_s``: the
-        drift toward what the centre sees that the velocity estimate does not show, which the last
-        setpoint countered (0: none; ``command.unseen_closing_range_m``)."""
+        ``unseen_drift_m_s``: the drift toward what the centre sees that the velocity estimate does
+        not show, which the last setpoint countered (0: none; ``command.unseen_closing_range_m``)."""
         return {
             "points": len(self._m.obstacles),
             "guarding": self._m.guarding,
