@@ -603,12 +603,17 @@ class ObstacleMemory:
         (:meth:`see_through`; the health message reports it)."""
         return int(np.count_nonzero(self._seen_past(cfg)))
 
-    def guard_cleared_count(self, cfg: MemoryConfig) -> int:
-        """How many remembered points no longer guard, seen past ``cfg.guard_clear_after_frames``
-        frames in a row (:meth:`see_through`); 0 while that is off (the health message reports it)."""
+    def _guard_cleared(self, cfg: MemoryConfig) -> np.ndarray:
+        """bool ``(points,)``: the points that no longer guard, seen past
+        ``cfg.guard_clear_after_frames`` frames in a row (:meth:`see_through`); none while that is 0."""
         if cfg.guard_clear_after_frames <= 0:
-            return 0
-        return int(np.count_nonzero(self._misses >= cfg.guard_clear_after_frames))
+            return np.zeros(self._keys.size, dtype=bool)
+        return self._misses >= cfg.guard_clear_after_frames
+
+    def guard_cleared_count(self, cfg: MemoryConfig) -> int:
+        """How many remembered points no longer guard (:meth:`_guard_cleared`; the health message
+        reports it)."""
+        return int(np.count_nonzero(self._guard_cleared(cfg)))
 
     def map_points(
         self,
@@ -704,8 +709,7 @@ class ObstacleMemory:
         if pos.shape != (3,) or not np.all(np.isfinite(pos)) or not math.isfinite(yaw_rad):
             return None
         sel = ((now_s - self._t) <= cfg.duration_s) & (self._range <= cfg.max_depth_m)
-        if cfg.guard_clear_after_frames > 0:
-            sel &= self._misses < cfg.guard_clear_after_frames  # seen past that long: not there
+        sel &= ~self._guard_cleared(cfg)  # seen past that long: not there
         if seen_now:
             sel &= ~self._seen_past(cfg)
         pts = self._pts[sel]

@@ -385,8 +385,8 @@ class Supervisor:
         """The obstacle memory for the health message: ``points`` remembered (5 cm cubes),
         ``guarding``: how many (one per 45° sector) pushed the last engaged setpoint, ``seen_past``:
         how many the detour layer's map leaves out because the camera has seen past them
-        (:meth:`~companion.core.memory.ObstacleMemory.see_through`), ``guard_cleared``: how many of
-        those no longer guard either (seen past ``memory.guard_clear_after_frames`` frames in a row),
+        (:meth:`~companion.core.memory.ObstacleMemory.see_through`), ``guard_cleared``: how many no
+        longer guard either (seen past ``memory.guard_clear_after_frames`` frames in a row),
         ``unseen_drift_m_s``: the drift toward what the centre sees that the velocity estimate does
         not show, which the last setpoint countered (0: none; ``command.unseen_closing_range_m``)."""
         return {
