@@ -108,6 +108,14 @@ def test_parse_config_rejects_unknown_top_level_keys() -> None:
         parse_config({"stereo": {}, "typo_section": {}})
 
 
+def test_a_renamed_key_is_refused_with_its_new_name() -> None:
+    """A config written before the guard's count became seconds names the new key and the conversion
+    rather than "unknown key"; nothing is silently dropped."""
+    with pytest.raises(ConfigError, match=r"memory\.guard_clear_after_frames: renamed memory\.guard_clear_after_s.*60 frames = 4 s.*got 120"):
+        parse_config({"memory": {"guard_clear_after_frames": 120}})
+    assert parse_config({"memory": {"guard_clear_after_s": 8.0}}).memory.guard_clear_after_s == 8.0
+
+
 def test_region_name_type_lists_the_regions_in_order() -> None:
     from typing import get_args
 

@@ -13,6 +13,7 @@ from companion.core.command import setpoint_for
 from companion.core.geometry import StereoGeometry
 from companion.core.memory import (
     CLEAR_WINDOW_BLOCKS,
+    LONGEST_COUNTED_FRAME_S,
     BlockMax,
     FarView,
     Gap,
@@ -573,7 +574,7 @@ def test_what_lies_in_the_path_slows_the_vehicle_enough_to_stop_short_of_it() ->
     assert mem.hold_inputs(here, 0.0, 0.2, MemoryConfig(), VIEW).ahead_m is None  # off
     assert mem.hold_inputs(here, math.pi / 2, 0.2, cfg, VIEW).ahead_m is None  # facing east: beside, not ahead
     for _ in range(cfg.map_clear_after_frames):  # the camera sees past it: not in the way now
-        mem.see_through(_far_view(6.0), Pose(tuple(here), 0.0), cfg)
+        mem.see_through(_far_view(6.0), Pose(tuple(here), 0.0), 0.2, cfg)
     assert mem.hold_inputs(here, 0.0, 0.2, cfg, VIEW).ahead_m is None
 
 
@@ -731,9 +732,9 @@ def test_a_point_seen_past_frame_after_frame_leaves_the_map_but_still_guards() -
     pose = Pose(tuple(here), 0.0)
     assert len(mem.map_points(here, 0.2, SEEN, 5.0)) == 1
     for k in range(SEEN.map_clear_after_frames - 1):
-        assert mem.see_through(_far_view(6.0), pose, SEEN) == 0  # the wall 6 m off: a miss
+        assert mem.see_through(_far_view(6.0), pose, 0.2, SEEN) == 0  # the wall 6 m off: a miss
     assert len(mem.map_points(here, 0.2, SEEN, 5.0)) == 1
-    assert mem.see_through(_far_view(6.0), pose, SEEN) == 1
+    assert mem.see_through(_far_view(6.0), pose, 0.2, SEEN) == 1
     assert len(mem.map_points(here, 0.2, SEEN, 5.0)) == 0  # out of the detour layer's map
     assert mem.seen_past_mask(0.2, SEEN).tolist() == [True]  # what the simulator's audit leaves out
     assert mem.seen_past_count(SEEN) == 1  # what the health message reports
@@ -746,33 +747,66 @@ def test_a_point_seen_past_frame_after_frame_leaves_the_map_but_still_guards() -
     assert mem.seen_past_count(SEEN) == 0
 
 
-def test_a_point_seen_past_long_enough_stops_guarding_with_guard_clear_after_frames() -> None:
-    """Kinematic office-4: a door's jamb smeared into the opening, seen past 50-230 frames in a row,
-    kept the vehicle in the door for 10 s. With guard_clear_after_frames a point seen past that many
-    frames in a row no longer guards, keeps course hold from a side or bounds a gap; seen again, it
-    does. Never sooner than its own count; 0 turns it off (60 by default)."""
+def test_a_point_seen_past_long_enough_stops_guarding_with_guard_clear_after_s() -> None:
+    """Kinematic office-4: a door's jamb smeared into the opening, seen past 3-15 s in a row, kept the
+    vehicle in the door for 10 s. A point seen past for guard_clear_after_s in a row no longer guards,
+    keeps course hold from a side or bounds a gap; seen again, it does. Never sooner; 0 turns it off
+    (4 s by default)."""
     here = np.array([0.0, 0.0, -1.5])
     beside = np.array([2.0, -0.45, -1.5])  # 0.45 m left of the point, facing north: out of view
-    cfg = SEEN.model_copy(update={"guard_clear_after_frames": 10})
+    cfg = SEEN.model_copy(update={"guard_clear_after_s": 1.0})
     mem = _remembered(np.array([[2.0, 0.0, -1.5]]))
     pose = Pose(tuple(here), 0.0)
-    for _ in range(9):
-        mem.see_through(_far_view(6.0), pose, cfg)
-    assert mem.guard(beside, 0.0, 0.2, cfg, VIEW) is not None  # 9 frames: still there
+    for k in range(10):  # 10 Hz: the first frame judged has no interval before it
+        mem.see_through(_far_view(6.0), pose, 0.2 + 0.1 * k, cfg)
+    assert mem.guard(beside, 0.0, 0.2, cfg, VIEW) is not None  # 0.9 s: still there
     assert mem.guard_cleared_count(cfg) == 0  # what the health message reports
     assert mem.hold_inputs(beside, 0.0, 0.2, cfg, VIEW).sides == (False, True)
-    mem.see_through(_far_view(6.0), pose, cfg)
-    assert mem.guard(beside, 0.0, 0.2, cfg, VIEW) is None  # 10: not there
+    mem.see_through(_far_view(6.0), pose, 1.2, cfg)
+    assert mem.guard(beside, 0.0, 0.2, cfg, VIEW) is None  # 1.0 s: not there
     assert mem.guard_cleared_count(cfg) == 1
     assert mem.hold_inputs(beside, 0.0, 0.2, cfg, VIEW).sides == (False, False)
-    off = cfg.model_copy(update={"guard_clear_after_frames": 0})
+    off = cfg.model_copy(update={"guard_clear_after_s": 0.0})
     assert mem.guard(beside, 0.0, 0.2, off, VIEW) is not None  # off (0): it guards
     assert mem.guard_cleared_count(off) == 0
-    assert MemoryConfig().guard_clear_after_frames == 60
-    mem.add(np.array([[2.0, 0.0, -1.5]]), 0.3, cfg.duration_s, ranges_m=np.array([2.0]),
+    assert MemoryConfig().guard_clear_after_s == 4.0
+    mem.add(np.array([[2.0, 0.0, -1.5]]), 1.3, cfg.duration_s, ranges_m=np.array([2.0]),
             viewpoint_ned_m=here, cfg=cfg)
-    assert mem.guard(beside, 0.0, 0.3, cfg, VIEW) is not None  # seen again: guards again
+    assert mem.guard(beside, 0.0, 1.3, cfg, VIEW) is not None  # seen again: guards again
     assert mem.guard_cleared_count(cfg) == 0
+
+
+@pytest.mark.parametrize("rate_hz", [15.0, 30.0, 60.0])
+def test_the_guard_forgets_after_the_same_time_at_any_camera_rate(rate_hz: float) -> None:
+    """The default (4 s) was measured at the simulator's 15 Hz as 60 frames; the ZED's default 30 fps
+    and 60 fps forget after the same 4 s, not after 2 s or 1 s."""
+    cfg = SEEN.model_copy(update={"guard_clear_after_s": 4.0})
+    here = np.array([0.0, 0.0, -1.5])
+    mem = _remembered(np.array([[2.0, 0.0, -1.5]]))
+    pose = Pose(tuple(here), 0.0)
+    period = 1.0 / rate_hz
+    n = round(4.0 * rate_hz)
+    mem.see_through(_far_view(2.0), pose, 0.2, cfg)  # seen at its depth: the frame before the run
+    for k in range(1, n):
+        mem.see_through(_far_view(6.0), pose, 0.2 + k * period, cfg)
+    assert mem.guard_cleared_count(cfg) == 0, f"{n - 1} frames at {rate_hz:g} Hz"
+    mem.see_through(_far_view(6.0), pose, 0.2 + n * period, cfg)
+    assert mem.guard_cleared_count(cfg) == 1, f"{n} frames at {rate_hz:g} Hz"
+
+
+def test_a_camera_stall_counts_as_one_look_not_as_time_seen_past() -> None:
+    """After a stall, one frame that sees past a point adds at most LONGEST_COUNTED_FRAME_S: a camera
+    that stops for 5 s does not let one look clear the guard."""
+    cfg = SEEN.model_copy(update={"guard_clear_after_s": 1.0})
+    here = np.array([0.0, 0.0, -1.5])
+    mem = _remembered(np.array([[2.0, 0.0, -1.5]]))
+    pose = Pose(tuple(here), 0.0)
+    mem.see_through(_far_view(2.0), pose, 0.2, cfg)
+    mem.see_through(_far_view(6.0), pose, 5.2, cfg)  # 5 s later, one look past it
+    assert mem.guard_cleared_count(cfg) == 0
+    for k in range(1, 5):  # four more looks, 0.2 s apart: 1.0 s counted in all
+        mem.see_through(_far_view(6.0), pose, 5.2 + 0.2 * k, cfg)
+    assert LONGEST_COUNTED_FRAME_S == 0.2 and mem.guard_cleared_count(cfg) == 1
 
 
 def test_a_point_seen_at_its_depth_starts_counting_again() -> None:
@@ -781,12 +815,12 @@ def test_a_point_seen_at_its_depth_starts_counting_again() -> None:
     pose = Pose(tuple(here), 0.0)
     n = SEEN.map_clear_after_frames
     for _ in range(n - 1):
-        mem.see_through(_far_view(6.0), pose, SEEN)
-    mem.see_through(_far_view(2.1), pose, SEEN)  # there after all (within the ratio)
+        mem.see_through(_far_view(6.0), pose, 0.2, SEEN)
+    mem.see_through(_far_view(2.1), pose, 0.2, SEEN)  # there after all (within the ratio)
     for _ in range(n - 1):
-        mem.see_through(_far_view(6.0), pose, SEEN)
+        mem.see_through(_far_view(6.0), pose, 0.2, SEEN)
     assert len(mem.map_points(here, 0.2, SEEN, 5.0)) == 1  # never n misses in a row
-    mem.see_through(_far_view(1.0), pose, SEEN)  # something nearer in front: hidden, not past
+    mem.see_through(_far_view(1.0), pose, 0.2, SEEN)  # something nearer in front: hidden, not past
     assert len(mem.map_points(here, 0.2, SEEN, 5.0)) == 1
 
 
@@ -805,7 +839,7 @@ def test_points_the_frame_does_not_measure_are_never_cleared(point, far_m, why) 
     mem = _remembered(np.array([point]))
     before = len(mem.map_points(here, 0.2, SEEN, 5.0))
     for _ in range(3 * SEEN.map_clear_after_frames):
-        mem.see_through(_far_view(far_m), Pose(tuple(here), 0.0), SEEN)
+        mem.see_through(_far_view(far_m), Pose(tuple(here), 0.0), 0.2, SEEN)
     assert len(mem.map_points(here, 0.2, SEEN, 5.0)) == before, why
 
 

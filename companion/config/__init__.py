@@ -13,6 +13,7 @@ import json
 import sys
 from collections.abc import Mapping
 from pathlib import Path
+from types import MappingProxyType
 from typing import Any
 
 from pydantic import Field, ValidationError, model_validator
@@ -109,6 +110,18 @@ class CompanionConfig(StrictModel):
         return self
 
 
+#: Settings that were renamed: the old key's path and what replaces it, so that a config written for an
+#: earlier version is refused with the way forward rather than "unknown key".
+RENAMED_KEYS: Mapping[str, str] = MappingProxyType(
+    {
+        "memory.guard_clear_after_frames": (
+            "renamed memory.guard_clear_after_s (seconds, default 4; the frames were counted at 15 Hz: "
+            "60 frames = 4 s)"
+        ),
+    }
+)
+
+
 def _short_repr(value: Any, limit: int = 80) -> str:
     text = repr(value)
     return text if len(text) <= limit else text[: limit - 3] + "..."
@@ -121,7 +134,7 @@ def format_validation_error(err: ValidationError, source: str) -> str:
         loc = ".".join(str(x) for x in e["loc"])
         msg = e["msg"].removeprefix("Value error, ")
         if e["type"] == "extra_forbidden":
-            msg = "unknown key (no such setting here; check the spelling)"
+            msg = RENAMED_KEYS.get(loc, "unknown key (no such setting here; check the spelling)")
         value = e.get("input")
         # A whole-model check (e.g. rule cross-references) already names the item in its message.
         got = "" if e["type"] == "missing" or isinstance(value, dict) else f" (got {_short_repr(value)})"

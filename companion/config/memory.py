@@ -108,26 +108,27 @@ class MemoryConfig(StrictModel):
             "leaves the detour layer's map until it is seen again, frames; 0 = never. Only measured "
             "blocks judge: a plain wall the matcher leaves unmatched, a point out of view or nearer "
             "than the rig can see stays. It still guards the vehicle (a point the position drift "
-            "moved is seen past too) until guard_clear_after_frames. A door's jambs smeared into "
+            "moved is seen past too) until guard_clear_after_s. A door's jambs smeared into "
             "its opening closed the door on the map."
         ),
     )
-    guard_clear_after_frames: int = Field(
-        default=60,
-        ge=0,
-        le=1000,
+    guard_clear_after_s: float = Field(
+        default=4.0,
+        ge=0.0,
+        le=60.0,
         description=(
-            "A remembered point that this many frames in a row see well past (as for "
+            "A remembered point that the camera sees well past for this long in a row (as for "
             "map_clear_after_frames, which must be on, with the detour layer: they judge the points) "
             "no longer guards the vehicle, keeps course hold from a side or bounds a gap until it is "
-            "seen again, frames; 0 = never. Far more than map_clear_after_frames: a point the "
-            "position drift moved off its surface is seen past too, and forgetting after 3 frames "
-            "(30 in one drifting flight) collided where keeping did. A false match kept guarding for "
-            "50-230 frames stopped kinematic offices and detours in open space; 60 (since 2026-11-27) "
-            "gained 11 goals over three realizations of the four kinematic suites, with no collision "
-            "gained or lost (docs/history.md). Counted in frames, measured at 15 Hz (the simulator's "
-            "and SITL's camera): 4 s there, 2 s at a 30 fps camera, as short as the 30 frames at 15 "
-            "Hz that collided; set 120 at 30 fps to keep the time measured."
+            "seen again, seconds; 0 = never. Each frame that sees past counts the time since the "
+            "frame before it, at most 0.2 s, so that a camera stall is not time spent seeing past. "
+            "Far longer than map_clear_after_frames: a point the position drift moved off its "
+            "surface is seen past too; forgetting after 3 frames collided, and after 2 s (30 frames "
+            "at 15 Hz) in one drifting flight, where keeping did not. A false match kept guarding "
+            "for 3-15 s stopped kinematic offices and detours in open space; 4 s (60 frames at the "
+            "simulator's 15 Hz, since 2026-11-27) gained 11 goals over three realizations of the "
+            "four kinematic suites with no collision gained or lost, and flew as well at 30 Hz "
+            "(docs/history.md). Seconds, not frames, so that it means the same at any camera rate."
         ),
     )
     map_clear_depth_ratio: float = Field(

@@ -36,8 +36,9 @@ From one frame to points (:func:`block_max`, :class:`NearCells`):
    again at its depth, or not measured at all (a plain wall: no valid block), which never clears it.
    It still guards: the position estimate's drift moves true points off their surfaces too, where
    they are seen past, and the guard needs them (forgetting them outright added 4 collisions to the
-   simulator's four drift suites). Only ``guard_clear_after_frames`` frames in a row of seeing past
-   (60, about 4 s at 15 Hz) take a point out of the guard as well.
+   simulator's four drift suites). Only ``guard_clear_after_s`` of seeing past in a row (4 s; each
+   frame counts the time since the one before, at most :data:`LONGEST_COUNTED_FRAME_S`) take a
+   point out of the guard as well: seconds, so that it means the same at any camera rate.
 
 The memory lives in the vehicle's position estimate; a real estimate drifts against the world, which
 is why points are forgotten.
@@ -56,6 +57,14 @@ from companion.config.core import MemoryConfig
 from companion.core.frames import ned_to_body_horizontal
 from companion.core.geometry import StereoGeometry
 from companion.core.pose import Pose
+
+#: The most one frame that sees past a point adds to the time it has been seen past, seconds (a 5 fps
+#: camera's interval): after a camera stall one frame is one look, not the stall's length.
+LONGEST_COUNTED_FRAME_S = 0.2
+
+#: Tolerance when the summed frame intervals meet ``guard_clear_after_s``, seconds: 60 frames at 15 Hz
+#: sum to 4 s give or take float rounding, and must count as 4 s.
+_SUM_TOLERANCE_S = 1e-6
 
 #: Sectors (of the full circle around the vehicle) the guard keeps one nearest point from.
 GUARD_SECTORS = 8
@@ -443,6 +452,8 @@ class ObstacleMemory:
         self._t = np.empty(0)
         self._range = np.empty(0)
         self._misses = np.empty(0, dtype=np.int64)  # frames in a row that saw past each point
+        self._past_s = np.empty(0)  # seconds in a row seen past (LONGEST_COUNTED_FRAME_S a frame)
+        self._judged_t_s: float | None = None  # when see_through last judged
         self._trust = _CellViews()  # trust_cell_m cubes: where from, how often, how long
 
     def _key(self, p: np.ndarray) -> np.ndarray:
@@ -460,7 +471,7 @@ class ObstacleMemory:
         ``seen_from`` at ``t_s`` seconds: first :meth:`see_through` with the frame's ``far_view`` (None:
         not judged), then :meth:`add` with their depths and the viewpoint."""
         if far_view is not None:
-            self.see_through(far_view, seen_from, cfg)
+            self.see_through(far_view, seen_from, t_s, cfg)
         p = np.asarray(points_cam_m, dtype=np.float64).reshape(-1, 3)
         self.add(
             camera_points_to_ned(p, seen_from),
@@ -495,7 +506,7 @@ class ObstacleMemory:
             return
         keep = (t_s - self._t) <= duration_s
         keys, pts, ts, rs = self._keys[keep], self._pts[keep], self._t[keep], self._range[keep]
-        misses = self._misses[keep]
+        misses, past_s = self._misses[keep], self._past_s[keep]
         if len(p):
             new_keys, inverse = np.unique(self._key(p), return_inverse=True)
             first = np.zeros(new_keys.size, dtype=np.int64)
@@ -512,21 +523,32 @@ class ObstacleMemory:
             ts = np.concatenate([ts[~old], np.full(new_keys.size, float(t_s))])
             rs = np.concatenate([rs[~old], new_r])
             misses = np.concatenate([misses[~old], np.zeros(new_keys.size, dtype=np.int64)])  # seen: no misses
+            past_s = np.concatenate([past_s[~old], np.zeros(new_keys.size)])
         if keys.size > self.max_points:
             newest = np.argsort(ts, kind="stable")[-self.max_points :]
-            keys, pts, ts, rs, misses = keys[newest], pts[newest], ts[newest], rs[newest], misses[newest]
-        self._keys, self._pts, self._t, self._range, self._misses = keys, pts, ts, rs, misses
+            keys, pts, ts, rs = keys[newest], pts[newest], ts[newest], rs[newest]
+            misses, past_s = misses[newest], past_s[newest]
+        self._keys, self._pts, self._t, self._range = keys, pts, ts, rs
+        self._misses, self._past_s = misses, past_s
         if cfg is not None:
             self._update_trust(p, t_s, duration_s, viewpoint_ned_m, cfg)
 
-    def see_through(self, far: FarView, seen_from: Pose, cfg: MemoryConfig) -> int:
-        """Judge every remembered point against one frame seen from ``seen_from`` (module doc, 5): a
-        point inside the measured view, no nearer than the rig can measure, whose ray's every valid
-        block (:attr:`FarView.nearest_disparity_px`) lies at least ``cfg.map_clear_depth_ratio``
-        times farther counts a miss; one seen at or in front of its depth starts again from none; one
-        not judged (out of view, too near, its block not measured) keeps its count. A point with
-        ``cfg.map_clear_after_frames`` misses in a row is left out of :meth:`map_points` (0: never)
-        until it is seen again. Returns how many points are left out now."""
+    def see_through(self, far: FarView, seen_from: Pose, t_s: float, cfg: MemoryConfig) -> int:
+        """Judge every remembered point against one frame seen from ``seen_from`` at ``t_s`` seconds
+        (module doc, 5): a point inside the measured view, no nearer than the rig can measure, whose
+        ray's every valid block (:attr:`FarView.nearest_disparity_px`) lies at least
+        ``cfg.map_clear_depth_ratio`` times farther counts a miss, and the time since the last frame
+        judged (at most :data:`LONGEST_COUNTED_FRAME_S`) as time seen past; one seen at or in front of
+        its depth starts again from none; one not judged (out of view, too near, its block not
+        measured) keeps its count and time. A point with ``cfg.map_clear_after_frames`` misses in a
+        row is left out of :meth:`map_points` (0: never) until it is seen again; one seen past for
+        ``cfg.guard_clear_after_s`` no longer guards either. Returns how many points are left out
+        now."""
+        step_s = 0.0
+        if self._judged_t_s is not None and math.isfinite(t_s):
+            step_s = min(max(t_s - self._judged_t_s, 0.0), LONGEST_COUNTED_FRAME_S)
+        if math.isfinite(t_s):
+            self._judged_t_s = float(t_s)
         if cfg.map_clear_after_frames <= 0 or not self._keys.size:
             return 0
         cam = (self._pts - np.asarray(seen_from.position_ned_m, dtype=np.float64)) @ seen_from.ned_from_camera()
@@ -546,6 +568,7 @@ class ObstacleMemory:
         point_d = g.focal_baseline_px_m / zs
         past = judged & (d * cfg.map_clear_depth_ratio <= point_d)  # measured depth >= ratio x the point's
         self._misses = np.where(past, self._misses + 1, np.where(judged, 0, self._misses))
+        self._past_s = np.where(past, self._past_s + step_s, np.where(judged, 0.0, self._past_s))
         return self.seen_past_count(cfg)
 
     def _seen_past(self, cfg: MemoryConfig) -> np.ndarray:
@@ -604,11 +627,11 @@ class ObstacleMemory:
         return int(np.count_nonzero(self._seen_past(cfg)))
 
     def _guard_cleared(self, cfg: MemoryConfig) -> np.ndarray:
-        """bool ``(points,)``: the points that no longer guard, seen past
-        ``cfg.guard_clear_after_frames`` frames in a row (:meth:`see_through`); none while that is 0."""
-        if cfg.guard_clear_after_frames <= 0:
+        """bool ``(points,)``: the points that no longer guard, seen past for
+        ``cfg.guard_clear_after_s`` in a row (:meth:`see_through`); none while that is 0."""
+        if cfg.guard_clear_after_s <= 0.0:
             return np.zeros(self._keys.size, dtype=bool)
-        return self._misses >= cfg.guard_clear_after_frames
+        return self._past_s >= cfg.guard_clear_after_s - _SUM_TOLERANCE_S
 
     def guard_cleared_count(self, cfg: MemoryConfig) -> int:
         """How many remembered points no longer guard (:meth:`_guard_cleared`; the health message

@@ -386,7 +386,7 @@ class Supervisor:
         ``guarding``: how many (one per 45° sector) pushed the last engaged setpoint, ``seen_past``:
         how many the detour layer's map leaves out because the camera has seen past them
         (:meth:`~companion.core.memory.ObstacleMemory.see_through`), ``guard_cleared``: how many no
-        longer guard either (seen past ``memory.guard_clear_after_frames`` frames in a row),
+        longer guard either (seen past for ``memory.guard_clear_after_s`` in a row),
         ``unseen_drift_m_s``: the drift toward what the centre sees that the velocity estimate does
         not show, which the last setpoint countered (0: none; ``command.unseen_closing_range_m``)."""
         return {
