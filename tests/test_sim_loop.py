@@ -93,6 +93,20 @@ def test_a_wide_head_on_box_is_a_hold_not_a_collision(bank) -> None:
     assert result.outcome is Outcome.GOAL and result.detours >= 1 and result.min_clearance_m > 0.15, result.reason
 
 
+def test_at_the_cameras_default_30_fps_the_boxes_are_avoided_and_gone_round(bank) -> None:
+    """The simulator's camera runs at 15 Hz and every suite was tuned there; the service's camera
+    defaults to 30 fps (camera.fps_hz). The same config flies the same courses at that rate: the
+    narrow box avoided, the wide one gone round by a detour (the memory's timed counts, such as
+    memory.guard_clear_after_s, mean the same time at either rate)."""
+    fast = apply_patch(CFG, {"sim": {"camera_rate_hz": float(CFG.camera.fps_hz)}})
+    assert fast.sim.camera_rate_hz == 30.0
+    narrow = fly(head_on_course(seed=1, box_north_m=4.0, box_width_m=0.6), fast, textures=bank)
+    assert narrow.outcome is Outcome.GOAL and narrow.min_clearance_m > 0.05, narrow.reason
+    assert narrow.frames == pytest.approx(narrow.time_s * 30.0, abs=2)
+    wide = fly(head_on_course(seed=1, box_north_m=4.0, box_width_m=1.4), fast, textures=bank)
+    assert wide.outcome is Outcome.GOAL and wide.detours >= 1 and wide.min_clearance_m > 0.15, wide.reason
+
+
 def test_log_shapes_and_units(head_on: FlightResult) -> None:
     log = head_on.log
     assert log is not None
