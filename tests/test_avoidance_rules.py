@@ -85,6 +85,24 @@ def test_rule7_preferred_vertical_side_when_both_free(side: str, sign: float) ->
     assert d.yaw == 0.0  # no yaw rule fired: 0 by the controller's choice
 
 
+@pytest.mark.parametrize("centre_m", [2.0, 1.8, 1.6, 1.5, 1.4])
+def test_an_overhead_block_is_gone_under_as_early_as_a_low_wall_is_gone_over(
+    ctl: AvoidanceController, centre_m: float
+) -> None:
+    """An overhead block reads in the up region as near as the centre, while the down region sees under
+    it; a low wall is the mirror. Between 0.75 and 2.25 m the up region is partly 'far' too, so at
+    weight 1 the preference rule R7 (up) fired as strongly as R2 (down) and cancelled it: no descent
+    from 2.25 m in and a brake at 1.5 m, where the low wall climbed from 2 m (PX4 SITL pitch-1 timed
+    out in every run r7-r13). R7's weight 0.5 leaves the tie-break to ties."""
+    block = ctl.decide(depths(center=centre_m, up=centre_m, up_left=centre_m, up_right=centre_m,
+                              left=centre_m, right=centre_m, down=3.0, down_left=3.0, down_right=3.0))
+    wall = ctl.decide(depths(center=centre_m, down=centre_m, down_left=centre_m, down_right=centre_m,
+                             left=centre_m, right=centre_m, up=6.0, up_left=6.0, up_right=6.0))
+    assert block.kind is not DecisionKind.BRAKE and block.pitch < -0.05, block.reason
+    assert wall.kind is not DecisionKind.BRAKE and wall.pitch > 0.1, wall.reason
+    assert next(r.weight for r in ControllerConfig().main_rules if r.name == "R7") == 0.5
+
+
 @pytest.mark.parametrize(("side", "sign"), [("right", 1.0), ("left", -1.0)])
 def test_tie_rule_takes_the_preferred_side(side: str, sign: float) -> None:
     # Paper Fig. 9c: ahead, above and below blocked, both sides free.

@@ -22,7 +22,12 @@ def test_paper_profile_is_the_papers_controller() -> None:
     # The paper's values are the same in both.
     assert cfg.controller.input_terms == default.controller.input_terms
     assert cfg.regions == default.regions
-    assert cfg.controller.main_rules == [r for r in default.controller.main_rules if not r.name.startswith("S")]
+    paper_rules = [r for r in default.controller.main_rules if not r.name.startswith("S")]
+    assert [(r.name, r.when, r.then) for r in cfg.controller.main_rules] == [(r.name, r.when, r.then) for r in paper_rules]
+    # The paper weighs every rule alike; the defaults weigh its preference R7 at 0.5 (a tie-break
+    # that must not cancel R2: test_avoidance_rules).
+    assert all(r.weight == 1.0 for r in cfg.controller.main_rules)
+    assert {r.name: r.weight for r in paper_rules if r.weight != 1.0} == {"R7": 0.5}
 
 
 def test_defaults_add_side_rules_and_course_hold() -> None:

@@ -120,8 +120,8 @@ def _default_pitch_terms() -> dict[str, OutputTerm]:
     }
 
 
-def _r(name: str, when: str, doc: str, **then: str) -> RuleConfig:
-    return RuleConfig(name=name, when=when, then=then, doc=doc)
+def _r(name: str, when: str, doc: str, weight: float = 1.0, **then: str) -> RuleConfig:
+    return RuleConfig(name=name, when=when, then=then, doc=doc, weight=weight)
 
 
 def _default_main_rules() -> list[RuleConfig]:
@@ -142,8 +142,14 @@ def _default_main_rules() -> list[RuleConfig]:
            yaw="{yaw_side}"),
         _r("R7", "center is near and {pitch_side} is far",
            "Paper rule 7 (preferred vertical): blocked ahead and the preferred vertical side is free: "
-           "go that way (same reading as rule 6).",
-           pitch="{pitch_side}"),
+           "go that way (same reading as rule 6). Weight 0.5 (not in the paper): a preference breaks "
+           "ties and must not cancel the rule that names the free side. An overhead block reads in "
+           "the up region as near as the centre, 'near' and 'far' 0.5 each at 1.5 m, so at weight 1 "
+           "this rule fired as strongly as R2 and the two cancelled: no descent from 2.25 m in, a "
+           "brake at 1.5 m (PX4 SITL pitch-1 timed out in every run r7-r13). At 0.5 it descends from "
+           "2 m, a low wall still climbs as before, and with both sides free up still wins at 2/3 "
+           "of the command (docs/history.md, 2026-11-27).",
+           weight=0.5, pitch="{pitch_side}"),
         _r("TIE", "center is near and up is near and down is near and left is far and right is far",
            "Tie rule (paper Fig. 9c): ahead, above and below blocked, both sides free: take the "
            "preferred side so the centroid never collapses to straight.",
