@@ -419,7 +419,8 @@ def _sk_simulation(cfg: ControllerConfig, rules: list[RuleConfig], mode: str) ->
             e = ants[cl.variable][cl.term]
             e = ~e if cl.negated else e
             expr = e if expr is None else (expr & e if ante.connective == "and" else expr | e)
-        then = [cons[out][cfg.substitute(term)] for out, term in r.then.items()]
+        # A rule's weight scales its activation in both (skfuzzy: a WeightedTerm, ``term % weight``).
+        then = [cons[out][cfg.substitute(term)] % r.weight for out, term in r.then.items()]
         sk_rules.append(ctrl.Rule(expr, then, label=r.name, and_func=np.fmin, or_func=np.fmax))
     sim = ctrl.ControlSystemSimulation(ctrl.ControlSystem(sk_rules), flush_after_run=10_000)
     return sim, sk_rules
@@ -458,7 +459,7 @@ def test_avoidance_system_agrees_with_skfuzzy_control(method: str, resolution: i
                 sim.input[name] = float(v)  # type: ignore[attr-defined]
         sim.output = {}  # type: ignore[attr-defined]  # a cache hit would only add to the last run's dict
         sim.compute()  # type: ignore[attr-defined]
-        sk_strengths = [float(rule.aggregate_firing[sim]) for rule in sk_rules]  # type: ignore[attr-defined]
+        sk_strengths = [float(rule.aggregate_firing[sim]) * r_.weight for rule, r_ in zip(sk_rules, rules)]  # type: ignore[attr-defined]
         np.testing.assert_allclose(r.strengths, sk_strengths, atol=1e-12)
         for out in ("yaw", "pitch"):
             if not r.fired[out]:
