@@ -28,10 +28,10 @@ def register(sub: argparse._SubParsersAction) -> None:
             "Fly a simulated course closed-loop with the real pipeline: rendered ZED frames -> 9 region "
             "depths -> fuzzy decision -> setpoints -> a simulated multicopter. The default course (pitch-1) "
             "puts a block across the way, too low to fly under at the start altitude: the vehicle slows, "
-            "brakes, looks round, then escapes downward, passes under it and reaches the goal. Prints the "
-            "decisions and the outcome, and writes the top-down and side-view plot and Fig. 10 overlay "
-            "frames of the moments that tell (the first avoid, the brake, the nearest, the last) to the "
-            "output directory."
+            "escapes downward, passes under it and reaches the goal. Prints the decisions and the "
+            "outcome, and writes the top-down and side-view plot and Fig. 10 overlay frames of the "
+            "moments that tell (the first avoid, a brake if any, the nearest, the last) to the output "
+            "directory."
         ),
     )
     p.add_argument("--out", type=Path, default=None, help=f"output directory (default ./{DEFAULT_OUT})")
