@@ -545,9 +545,9 @@ class ObstacleMemory:
         ``cfg.guard_clear_after_s`` no longer guards either. Returns how many points are left out
         now."""
         step_s = 0.0
-        if self._judged_t_s is not None and math.isfinite(t_s):
-            step_s = min(max(t_s - self._judged_t_s, 0.0), LONGEST_COUNTED_FRAME_S)
         if math.isfinite(t_s):
+            if self._judged_t_s is not None:
+                step_s = min(max(t_s - self._judged_t_s, 0.0), LONGEST_COUNTED_FRAME_S)
             self._judged_t_s = float(t_s)
         if cfg.map_clear_after_frames <= 0 or not self._keys.size:
             return 0
