@@ -434,6 +434,37 @@ def test_the_motion_brake_leans_against_flying_on_into_what_the_camera_reads_nea
     assert motion_brake(free, _depths(right=0.9), v, off) == free
 
 
+def test_nothing_in_a_setpoint_goes_forward_faster_than_the_centre_region_allows() -> None:
+    """PX4 SITL r14 corridor-8: looking round 0.4 m from a box with a wall 0.6 m behind, the memory's
+    push off the wall sent the vehicle forward at 0.5 m/s into the box the camera read. Whatever a
+    setpoint carries, its forward speed is at most what the vehicle can stop short of the centre's
+    reading in: (depth - motion_brake_clearance_m) / motion_brake_lag_s."""
+    from companion.config.memory import MemoryConfig
+
+    cmd = CommandConfig()
+    behind = np.array([[0.3, -1.0, 0.0, 1.0]])  # a remembered point 0.3 m straight behind, may push
+
+    def pushed(centre: float, c: CommandConfig = cmd) -> float:
+        return setpoint_for(
+            BRAKE, 0.1, c, region_depths_m=_depths(center=centre), guard_m=behind, guard_cfg=MemoryConfig(),
+            velocity_body_m_s=(0.0, 0.0),
+        ).forward_m_s
+
+    free = pushed(5.0)
+    assert free > 0.3  # the push off the wall, nothing ahead
+    assert pushed(0.8) == pytest.approx((0.8 - 0.5) / 0.85)
+    assert (0.8 - 0.5) / 0.85 < free
+    assert pushed(0.45) == 0.0  # inside the clearance: no forward motion at all
+    assert pushed(math.nan) == pytest.approx(free)  # unknown: the controller already counts it as near
+    assert pushed(0.45, cmd.model_copy(update={"motion_brake_clearance_m": 0.0})) == pytest.approx(free)  # off
+    # The controller's own forward speed is slower than this wherever the centre reads near, so a
+    # decision alone is never cut.
+    for centre in (0.6, 0.9, 1.2, 1.6, 2.0):
+        near = min(1.0, max(0.0, (2.25 - centre) / 1.5))
+        own = Decision(DecisionKind.AVOID, 0.3, 0.0, 1.0 + (cmd.avoid_speed_fraction - 1.0) * near, "turning")
+        assert setpoint_for(own, 0.1, cmd, region_depths_m=_depths(center=centre)) == setpoint_for(own, 0.1, cmd)
+
+
 def test_standoff_is_off_by_default_and_pushes_away_from_a_near_middle_row_region_when_on() -> None:
     """The stand-off closes the loop on the measured depth (a drifting velocity estimate carries the
     vehicle on into a wall it sees): every decision, the brake included, gets the push; unknown and

@@ -357,7 +357,9 @@ class CommandConfig(StrictModel):
             "that way and leans against the excess (0 = off). The fuzzy controller judges the way "
             "along the heading; a vehicle turning away from a cabinet still flew its old course at "
             "0.9 m/s, into what its right region read (kinematic office-4 and forest-6 with 0.14 m/s "
-            "drift: the last collisions of the suites)."
+            "drift: the last collisions of the suites). Whatever else a setpoint carries (the "
+            "memory's push, a hold's pull back) never goes forward faster than the centre region "
+            "allows by the same rule: PX4 SITL r14's corridor-8 was pushed into a box it read at 0.4 m."
         ),
     )
     motion_brake_lag_s: float = Field(

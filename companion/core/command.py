@@ -649,17 +649,38 @@ def _guarded(
     """``sp`` with the stand-off's push (:func:`standoff_push_m_s`, with ``region_depths_m`` and
     ``cmd``) added, braked for where the vehicle is actually going (:func:`motion_brake`), then the
     memory's guard applied (:func:`~companion.core.memory.apply_guard`), never faster toward a side
-    than the camera's reading of it allows (:func:`side_room_m_s`)."""
+    than the camera's reading of it allows (:func:`side_room_m_s`), and last never faster forward than
+    the vehicle can stop short of what the centre region reads (:func:`within_forward_room`)."""
     if cmd is not None:
         push_f, push_r = standoff_push_m_s(region_depths_m, cmd)
         if push_f != 0.0 or push_r != 0.0:
             sp = VelocitySetpoint(sp.forward_m_s + push_f, sp.right_m_s + push_r, sp.down_m_s, sp.yaw_rate_deg_s)
         sp = motion_brake(sp, region_depths_m, velocity_body_m_s, cmd)
-    if guard_m is None or cfg is None or len(guard_m) == 0:
+    if guard_m is not None and cfg is not None and len(guard_m) > 0:
+        room = side_room_m_s(region_depths_m, cmd)
+        forward, right = apply_guard(sp.forward_m_s, sp.right_m_s, guard_m, cfg, velocity_body_m_s, room)
+        sp = VelocitySetpoint(forward_m_s=forward, right_m_s=right, down_m_s=sp.down_m_s, yaw_rate_deg_s=sp.yaw_rate_deg_s)
+    return sp if cmd is None else within_forward_room(sp, region_depths_m, cmd)
+
+
+def within_forward_room(sp: VelocitySetpoint, region_depths_m: np.ndarray | None, cmd: CommandConfig) -> VelocitySetpoint:
+    """``sp`` with its forward speed at most ``max(0, (centre - motion_brake_clearance_m) /
+    motion_brake_lag_s)`` m/s, ``centre`` the centre region's depth (metres, from ``region_depths_m``,
+    float ``(9,)``): what the vehicle can stop short of. The controller's own forward speed is already
+    slower than this wherever the centre reads near; what it catches is the rest of a setpoint, which
+    does not look ahead: the memory's push away from a wall behind, a hold's pull back to its anchor
+    (PX4 SITL r14 corridor-8: looking round 0.4 m from a box, a wall 0.6 m behind it, the vehicle was
+    sent forward at 0.5 m/s into the box the camera read at 0.4 m). Unchanged when the motion brake is
+    off, without depths or where the centre cannot be read (the controller counts it as near)."""
+    if cmd.motion_brake_clearance_m <= 0.0 or region_depths_m is None or sp.forward_m_s <= 0.0:
         return sp
-    room = side_room_m_s(region_depths_m, cmd)
-    forward, right = apply_guard(sp.forward_m_s, sp.right_m_s, guard_m, cfg, velocity_body_m_s, room)
-    return VelocitySetpoint(forward_m_s=forward, right_m_s=right, down_m_s=sp.down_m_s, yaw_rate_deg_s=sp.yaw_rate_deg_s)
+    centre = float(np.asarray(region_depths_m, dtype=np.float64)[REGION_INDEX["center"]])
+    if not math.isfinite(centre):
+        return sp
+    allowed = max(0.0, (centre - cmd.motion_brake_clearance_m) / cmd.motion_brake_lag_s)
+    if sp.forward_m_s <= allowed:
+        return sp
+    return VelocitySetpoint(allowed, sp.right_m_s, sp.down_m_s, sp.yaw_rate_deg_s)
 
 
 #: The middle row's regions by bearing from the nose, degrees (a ~90° view in thirds): the centre
