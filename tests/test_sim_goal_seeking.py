@@ -457,12 +457,14 @@ def test_nothing_in_a_setpoint_goes_forward_faster_than_the_centre_region_allows
     assert pushed(0.45) == 0.0  # inside the clearance: no forward motion at all
     assert pushed(math.nan) == pytest.approx(free)  # unknown: the controller already counts it as near
     assert pushed(0.45, cmd.model_copy(update={"motion_brake_clearance_m": 0.0})) == pytest.approx(free)  # off
-    # The controller's own forward speed is slower than this wherever the centre reads near, so a
-    # decision alone is never cut.
+    # The controller's own forward speed is slower than this from 0.56 m out, so a decision alone is
+    # not cut there; nearer, its creep (avoid_speed_fraction of the cruise) stops.
     for centre in (0.6, 0.9, 1.2, 1.6, 2.0):
         near = min(1.0, max(0.0, (2.25 - centre) / 1.5))
         own = Decision(DecisionKind.AVOID, 0.3, 0.0, 1.0 + (cmd.avoid_speed_fraction - 1.0) * near, "turning")
         assert setpoint_for(own, 0.1, cmd, region_depths_m=_depths(center=centre)) == setpoint_for(own, 0.1, cmd)
+    creep = Decision(DecisionKind.AVOID, 0.3, 0.0, cmd.avoid_speed_fraction, "turning")
+    assert setpoint_for(creep, 0.1, cmd, region_depths_m=_depths(center=0.5)).forward_m_s == 0.0
 
 
 def test_standoff_is_off_by_default_and_pushes_away_from_a_near_middle_row_region_when_on() -> None:

@@ -667,8 +667,9 @@ def within_forward_room(sp: VelocitySetpoint, region_depths_m: np.ndarray | None
     """``sp`` with its forward speed at most ``max(0, (centre - motion_brake_clearance_m) /
     motion_brake_lag_s)`` m/s, ``centre`` the centre region's depth (metres, from ``region_depths_m``,
     float ``(9,)``): what the vehicle can stop short of. The controller's own forward speed is already
-    slower than this wherever the centre reads near; what it catches is the rest of a setpoint, which
-    does not look ahead: the memory's push away from a wall behind, a hold's pull back to its anchor
+    slower than this with the centre at 0.56 m or more (nearer, its creep of avoid_speed_fraction ·
+    cruise stops and it turns in place); what it catches is the rest of a setpoint, which does not
+    look ahead: the memory's push away from a wall behind, a hold's pull back to its anchor
     (PX4 SITL r14 corridor-8: looking round 0.4 m from a box, a wall 0.6 m behind it, the vehicle was
     sent forward at 0.5 m/s into the box the camera read at 0.4 m). Unchanged when the motion brake is
     off, without depths or where the centre cannot be read (the controller counts it as near)."""
