@@ -663,6 +663,13 @@ def _guarded(
     return sp if cmd is None else within_forward_room(sp, region_depths_m, cmd)
 
 
+def stoppable_speed_m_s(range_m: float, cmd: CommandConfig) -> float:
+    """The speed, m/s, at which the vehicle still stops short of something ``range_m`` metres away, less
+    ``cmd.motion_brake_clearance_m``, within ``cmd.motion_brake_lag_s``: ``max(0, (range -
+    clearance) / lag)`` (the motion brake's rule, and the forward room's)."""
+    return max(0.0, (range_m - cmd.motion_brake_clearance_m) / cmd.motion_brake_lag_s)
+
+
 def within_forward_room(sp: VelocitySetpoint, region_depths_m: np.ndarray | None, cmd: CommandConfig) -> VelocitySetpoint:
     """``sp`` with its forward speed at most ``max(0, (centre - motion_brake_clearance_m) /
     motion_brake_lag_s)`` m/s, ``centre`` the centre region's depth (metres, from ``region_depths_m``,
@@ -678,7 +685,7 @@ def within_forward_room(sp: VelocitySetpoint, region_depths_m: np.ndarray | None
     centre = float(np.asarray(region_depths_m, dtype=np.float64)[REGION_INDEX["center"]])
     if not math.isfinite(centre):
         return sp
-    allowed = max(0.0, (centre - cmd.motion_brake_clearance_m) / cmd.motion_brake_lag_s)
+    allowed = stoppable_speed_m_s(centre, cmd)
     if sp.forward_m_s <= allowed:
         return sp
     return VelocitySetpoint(allowed, sp.right_m_s, sp.down_m_s, sp.yaw_rate_deg_s)
@@ -728,7 +735,7 @@ def motion_brake(
     depth = float(np.asarray(region_depths_m, dtype=np.float64)[REGION_INDEX[name]])
     if not math.isfinite(depth):
         return sp
-    allowed = max(0.0, (depth / math.cos(bearing) - cmd.motion_brake_clearance_m) / cmd.motion_brake_lag_s)
+    allowed = stoppable_speed_m_s(depth / math.cos(bearing), cmd)
     if speed <= allowed:
         return sp
     uf, ur = vf / speed, vr / speed
