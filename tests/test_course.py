@@ -122,11 +122,36 @@ def test_no_setpoint_descends_through_the_floor_whatever_asks_for_it() -> None:
     assert CourseHold().setpoint(duck, 1.0, 0.05, CMD, position_ned_m=None, yaw_rad=0.0).down_m_s == pytest.approx(full)
 
 
+def test_the_floor_reckons_with_a_sink_the_autopilot_is_still_carrying() -> None:
+    """PX4 follows a velocity setpoint with a lag (command.motion_brake_lag_s): a descent of 0.46 m/s
+    stopped by the floor alone still sank on through it. The floor counts the measured sink over that
+    lag as height already lost: the same setpoint descends slower the faster the vehicle sinks, and a
+    sink that would carry it through the floor is met with a climb."""
+    from companion.core.command import FLOOR_GAIN_PER_S
+
+    duck = Decision(DecisionKind.AVOID, 0.0, -1.0, 0.3, "up near: duck")
+    lag = CMD.motion_brake_lag_s
+
+    def down(altitude_m: float, sink_m_s: float | None) -> float:
+        hold = _engaged()
+        velocity = None if sink_m_s is None else np.array([0.0, 0.0, sink_m_s])
+        return hold.setpoint(duck, 1.0, 0.05, CMD, position_ned_m=np.array([0.0, 0.0, -altitude_m]), yaw_rad=0.0,
+                             velocity_ned_m_s=velocity, region_depths_m=np.full(9, 5.0)).down_m_s
+
+    assert down(0.8, None) == pytest.approx(FLOOR_GAIN_PER_S * 0.3)
+    assert down(0.8, 0.1) == pytest.approx(FLOOR_GAIN_PER_S * (0.3 - 0.1 * lag))
+    assert down(0.8, -0.3) == pytest.approx(FLOOR_GAIN_PER_S * 0.3)  # a climb is no sink
+    assert down(0.8, 0.5) < 0.0  # 0.5 m/s for 0.85 s would take it 0.13 m under: climb
+    assert down(3.0, 0.5) == pytest.approx(CMD.max_vertical_speed_m_s)  # high up: the controller's own descent
+
+
 def test_below_the_floor_a_fresh_setpoint_climbs_back_and_a_stale_one_stays_zero() -> None:
     """PX4 in offboard velocity control holds a vertical speed, not a height: with 0.1 m/s of vertical
     drift the kinematic suite flew 4 vehicles into the ground under setpoints that asked for no
-    descent. Below the floor, a fresh decision's setpoint climbs back (the up region readable and
-    at least FLOOR_CLIMB_UP_CLEAR_M deep); a stale frame still gets zero velocity."""
+    descent. Below the floor, a fresh decision's setpoint climbs back unless the up region reads
+    nearer than FLOOR_CLIMB_UP_CLEAR_M; an unknown up region does not stop it (PX4 SITL r15's
+    office-2 sank into the ground in front of a plain wall whose up region read unknown). A stale
+    frame still gets zero velocity."""
     from companion.core.command import FLOOR_CLIMB_UP_CLEAR_M, FLOOR_GAIN_PER_S
     from companion.core.types import REGION_INDEX
 
@@ -145,7 +170,8 @@ def test_below_the_floor_a_fresh_setpoint_climbs_back_and_a_stale_one_stays_zero
     unknown_up = open_up.copy()
     unknown_up[REGION_INDEX["up"]] = np.nan
     assert sp(CLEAR, depths=near_up).down_m_s <= 0.0 and sp(CLEAR, depths=near_up).down_m_s > -climb
-    assert sp(TURN, depths=unknown_up).down_m_s == 0.0  # no climb into what cannot be read, no descent
+    assert sp(TURN, depths=unknown_up).down_m_s == pytest.approx(-climb)  # the ground is measured; the up region looks ahead
+    assert sp(TURN, depths=None).down_m_s == 0.0  # no regions at all: no climb, no descent
     stale = sp(CLEAR, age_s=CMD.stale_frame_timeout_s + 0.1)
     assert (stale.forward_m_s, stale.right_m_s, stale.down_m_s, stale.yaw_rate_deg_s) == (0.0, 0.0, 0.0, 0.0)
     off = CMD.model_copy(update={"min_altitude_m": 0.0})

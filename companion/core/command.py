@@ -753,10 +753,11 @@ def motion_brake(
 #: carry the vehicle through the floor.
 FLOOR_GAIN_PER_S = 2.0
 
-#: Below the floor, the climb back needs the up region to read at least this deep, metres (unknown
-#: blocks it): a climb of a few decimetres at most ``max_altitude_hold_speed_m_s``, so less than
-#: course hold's ``hold_clear_depth_m`` (2.25 m: an office's walls and ceiling kept a vehicle sinking
-#: under the floor from climbing back).
+#: Below the floor, the climb back is refused only where the up region reads nearer than this,
+#: metres. An unknown up region does not refuse it: the ground under the floor is measured (the
+#: altitude), the up region is what lies ahead and above, not overhead, and the climb goes no higher
+#: than the floor the user set. PX4 SITL r15's office-2 sank under the floor in front of a plain wall
+#: whose up region read unknown, and touched the ground.
 FLOOR_CLIMB_UP_CLEAR_M = 1.0
 
 
@@ -766,13 +767,16 @@ def above_floor(
     cmd: CommandConfig,
     region_depths_m: np.ndarray | None = None,
     climb_back: bool = False,
+    velocity_ned_m_s: np.ndarray | None = None,
 ) -> VelocitySetpoint:
     """``sp`` with its descent capped at ``FLOOR_GAIN_PER_S · (altitude - cmd.min_altitude_m)`` m/s
     (0 at or below the floor), the altitude being ``-down`` of ``position_ned_m`` (float ``(3,)`` NED
-    metres from the autopilot's local origin). With ``climb_back`` (a fresh decision's setpoint), below
-    the floor it climbs at ``FLOOR_GAIN_PER_S`` times the shortfall (at most
-    ``cmd.max_altitude_hold_speed_m_s``; a faster climb in ``sp`` is kept) while the up region of
-    ``region_depths_m`` (float ``(9,)`` metres, NaN unknown; None: not known, no climb) reads at least
+    metres from the autopilot's local origin), less what a sink of ``velocity_ned_m_s`` (float
+    ``(3,)`` NED m/s, or None) covers in ``cmd.motion_brake_lag_s``: the autopilot's lag otherwise
+    carries a fast descent through the floor. With ``climb_back`` (a fresh decision's setpoint), below
+    the floor (so reckoned) it climbs at ``FLOOR_GAIN_PER_S`` times the shortfall (at most
+    ``cmd.max_altitude_hold_speed_m_s``; a faster climb in ``sp`` is kept) unless the up region of
+    ``region_depths_m`` (float ``(9,)`` metres, NaN unknown; None: not known, no climb) reads nearer than
     :data:`FLOOR_CLIMB_UP_CLEAR_M`: PX4 in offboard velocity control holds a vertical speed, not a
     height, and drifts under a setpoint that asks for none (the kinematic suite with 0.1 m/s of
     vertical drift: 4 flights into the ground without it, none with it). Unchanged when off or
@@ -782,8 +786,17 @@ def above_floor(
     altitude = -float(np.asarray(position_ned_m, dtype=np.float64).reshape(-1)[2])
     if not math.isfinite(altitude):
         return sp
+    if velocity_ned_m_s is not None:
+        sink = float(np.asarray(velocity_ned_m_s, dtype=np.float64).reshape(-1)[2])
+        if math.isfinite(sink) and sink > 0.0:
+            altitude -= sink * cmd.motion_brake_lag_s
     short = cmd.min_altitude_m - altitude
-    if climb_back and short > 0.0 and region_depths_m is not None and _side_open(region_depths_m, "up", FLOOR_CLIMB_UP_CLEAR_M):
+    if (
+        climb_back
+        and short > 0.0
+        and region_depths_m is not None
+        and not _reads_near(region_depths_m, "up", FLOOR_CLIMB_UP_CLEAR_M)
+    ):
         climb = min(cmd.max_altitude_hold_speed_m_s, FLOOR_GAIN_PER_S * short)
         if sp.down_m_s > -climb:
             return VelocitySetpoint(sp.forward_m_s, sp.right_m_s, -climb, sp.yaw_rate_deg_s)
@@ -794,6 +807,13 @@ def above_floor(
     if sp.down_m_s <= limit:
         return sp
     return VelocitySetpoint(sp.forward_m_s, sp.right_m_s, limit, sp.yaw_rate_deg_s)
+
+
+def _reads_near(region_depths_m: np.ndarray, side: str, depth_m: float) -> bool:
+    """Whether region ``side`` of ``region_depths_m`` measured something nearer than ``depth_m``
+    (False for an unknown region)."""
+    depth = float(region_depths_m[REGION_INDEX[side]])
+    return math.isfinite(depth) and depth < depth_m
 
 
 #: Below ``memory.clearance_below_m`` over a remembered point, the vehicle climbs at this times the

@@ -324,7 +324,9 @@ class CourseHold:
             turning = command.anchor_ned_m is not None and sp.yaw_rate_deg_s != 0.0
             self._turn_sign = math.copysign(1.0, sp.yaw_rate_deg_s) if turning else 0.0
             sp = self._counter_unseen_closing(sp, now_s, yaw, cmd, fresh, guard_m, memory_cfg)
-            return self._vertical_limits(sp, now_s, cmd, position_ned_m, region_depths_m, obstacles, memory_cfg, fresh)
+            return self._vertical_limits(
+                sp, now_s, cmd, position_ned_m, velocity_ned_m_s, region_depths_m, obstacles, memory_cfg, fresh
+            )
         self._turn_sign = 0.0
         heading_error = line_offset = None
         if self.heading_rad is not None and yaw is not None:
@@ -357,7 +359,9 @@ class CourseHold:
             below_clear=below_clear,
         )
         sp = self._counter_unseen_closing(sp, now_s, yaw, cmd, fresh, guard_m, memory_cfg)
-        return self._vertical_limits(sp, now_s, cmd, position_ned_m, region_depths_m, obstacles, memory_cfg, fresh)
+        return self._vertical_limits(
+            sp, now_s, cmd, position_ned_m, velocity_ned_m_s, region_depths_m, obstacles, memory_cfg, fresh
+        )
 
     def _observe_closing(
         self,
@@ -416,6 +420,7 @@ class CourseHold:
         now_s: float,
         cmd: CommandConfig,
         position_ned_m: object,
+        velocity_ned_m_s: np.ndarray | None,
         region_depths_m: np.ndarray | None,
         obstacles: ObstacleMemory | None,
         memory_cfg: MemoryConfig | None,
@@ -423,12 +428,13 @@ class CourseHold:
     ) -> VelocitySetpoint:
         """Whatever drove ``sp``: a climb back to ``memory.clearance_below_m`` over what is remembered
         below (:func:`~companion.core.command.clear_of_below`), and the floor
-        (:func:`~companion.core.command.above_floor`); neither climbs on a stale frame's zero."""
+        (:func:`~companion.core.command.above_floor`, reckoned ahead by the measured sink
+        ``velocity_ned_m_s``); neither climbs on a stale frame's zero."""
         pos = finite_position(position_ned_m)
         if fresh and obstacles is not None and memory_cfg is not None and memory_cfg.clearance_below_m > 0.0 and pos is not None:
             gap = obstacles.gap_below_m(pos, now_s, memory_cfg, -cmd.min_altitude_m)
             sp = clear_of_below(sp, gap, region_depths_m, memory_cfg.clearance_below_m, cmd)
-        return above_floor(sp, position_ned_m, cmd, region_depths_m, climb_back=fresh)
+        return above_floor(sp, position_ned_m, cmd, region_depths_m, climb_back=fresh, velocity_ned_m_s=velocity_ned_m_s)
 
     def _plan(
         self,
