@@ -6,7 +6,6 @@ import math
 import tomllib
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from companion.config import load_config, parse_config
@@ -14,8 +13,7 @@ from companion.config.document import render_config_toml
 from companion.sim.courses import make_course
 from companion.sim.placement import CoursePlacement
 from companion.config import apply_patch
-from companion.sitl.flight import START_ALTITUDE_TOLERANCE_M, placement_at, placement_patch, sitl_config
-from companion.sitl.pilot import Pilot, Sample
+from companion.sitl.flight import placement_patch, sitl_config
 from companion.sitl.px4 import PX4_BUILD_ENV, Px4Ports, SitlError, find_px4_build
 
 
@@ -201,30 +199,3 @@ def test_the_floor_moves_with_the_course_ground() -> None:
     assert placement_patch(user, CoursePlacement((0.0, 0.0, 0.9), 0.0))["command"]["min_altitude_m"] == 0.01
     off = parse_config({"command": {"min_altitude_m": 0.0}})
     assert placement_patch(off, above)["command"]["min_altitude_m"] == 0.0
-
-
-def test_the_course_ground_is_the_ground_the_vehicle_took_off_from(caplog: pytest.LogCaptureFixture) -> None:
-    """PX4 SITL r15: a hover that had risen to 2.0-2.2 m put the course's ground (then the start
-    altitude below the hover) 0.5-0.7 m above PX4's, and office-2 was scored into it. Once the pilot
-    has taken off, the course's ground is the take-off ground, wherever the hover went; a hover far
-    from the course's start altitude is reported."""
-    course = make_course("office", 2)
-    start_alt = -float(course.start.position_ned_m[2])
-    pilot = Pilot("udpin://127.0.0.1:14550")
-
-    def hover_at(down_m: float) -> None:
-        pilot.samples.append(Sample(0.0, np.array([3.0, -1.0, down_m]), np.zeros(3), np.array([0.0, 0.0, 0.4]), 0.0, "HOLD"))
-
-    hover_at(-2.1)
-    before = placement_at(pilot, course)  # no take-off yet: the start altitude below the vehicle
-    assert before.origin_ned_m == pytest.approx((3.0, -1.0, -2.1 + start_alt))
-    pilot.takeoff_ground_down_m = 0.03
-    with caplog.at_level("WARNING", logger="companion.sitl.flight"):
-        placed = placement_at(pilot, course)
-    assert placed.origin_ned_m == pytest.approx((3.0, -1.0, 0.03)) and placed.yaw_rad == pytest.approx(0.4)
-    assert "hovering 2.13 m over the take-off ground" in caplog.text
-    caplog.clear()
-    hover_at(0.03 - start_alt - 0.5 * START_ALTITUDE_TOLERANCE_M)
-    with caplog.at_level("WARNING", logger="companion.sitl.flight"):
-        placement_at(pilot, course)
-    assert not caplog.text

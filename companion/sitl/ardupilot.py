@@ -369,7 +369,6 @@ class ArduPilotPilot(Pilot):
         """Position telemetry arriving (ArduPilot has booted and its EKF has an origin), and the
         vehicle on the ground and disarmed (landed if it was flying), the throttle down."""
         await self.wait_for("position telemetry (ArduPilot booted, EKF origin set)", lambda: bool(self.samples), timeout_s)
-        self.takeoff_ground_down_m = None
         if self.armed:
             if self.flight_mode in ("LOITER", "GUIDED", "BRAKE", "POSHOLD", "ALT_HOLD"):
                 self.sticks(CENTRED_STICKS_US[2])  # flying in a mode that reads the throttle: keep altitude
@@ -386,7 +385,6 @@ class ArduPilotPilot(Pilot):
         await self.wait_for("GUIDED", lambda: self.flight_mode == "GUIDED", 5.0)
         self.sticks(THROTTLE_DOWN_US)
         ground_down = float(self.latest().position_ned_m[2])
-        self.takeoff_ground_down_m = ground_down
         await self._until_accepted("arming", _MAV_CMD_COMPONENT_ARM_DISARM, 1.0, timeout_s=timeout_s, retry_s=2.0)
         await self.wait_for("armed", lambda: self.armed, 5.0)
         await self._until_accepted("take-off", _MAV_CMD_NAV_TAKEOFF, *([0.0] * 6), float(altitude_m), timeout_s=5.0)

@@ -7,9 +7,9 @@ A flight, as a user would fly it:
    pilot switches to LOITER);
 3. the service starts (``companion run``, camera ``sim`` rendering from the pose PX4 reports);
 4. once the hover is steady, the course is placed at the vehicle: its start at the vehicle's position,
-   its north axis along the vehicle's heading, its ground at the ground the vehicle took off from
+   its north axis along the vehicle's heading, its ground the start altitude below it
    (:class:`~companion.sim.placement.CoursePlacement`; a live ``set_config``), so the flight starts
-   at the course's start pose, at the height the take-off reached;
+   at the course's start pose;
 5. ``engage`` on the service's control socket; the service streams setpoints and enters offboard
    (ArduCopter: GUIDED);
 6. the autopilot's own position telemetry, in the course frame, is judged against the true geometry by the
@@ -209,33 +209,14 @@ class _Recorder:
         )
 
 
-#: A hover further than this from the course's start altitude over the take-off ground, metres, is
-#: reported (the flight then starts that much higher or lower in the course than it was drawn).
-START_ALTITUDE_TOLERANCE_M = 0.3
-
-
 def placement_at(pilot: Pilot, course: Course) -> CoursePlacement:
     """The course placed at the vehicle now: its start at the vehicle's position, its north along the
-    vehicle's heading, and its ground at the ground the vehicle took off from
-    (``pilot.takeoff_ground_down_m``), so that the ground the camera sees and the judge scores is the
-    simulator's own, where the autopilot would touch down. Before a take-off (None), the ground is
-    the course's start altitude below the vehicle, as if it hovered at exactly that height.
-
-    PX4 SITL r15 placed every course's ground the start altitude below wherever the hover was; one
-    hover had risen to 2.0-2.2 m, the simulated ground stood 0.5-0.7 m above PX4's, and office-2
-    was scored into it while sinking toward a floor the service kept over PX4's."""
+    vehicle's heading, its ground the course's start altitude below the vehicle (whatever height
+    PX4's estimator put the ground at), so that the flight starts at the course's start pose."""
     hover = pilot.latest()
     start_altitude_m = -float(course.start.position_ned_m[2])
     n, e, d = (float(x) for x in hover.position_ned_m)
-    ground = pilot.takeoff_ground_down_m
-    if ground is None:
-        return CoursePlacement((n, e, d + start_altitude_m), float(hover.attitude_rad[2]))
-    if abs((ground - d) - start_altitude_m) > START_ALTITUDE_TOLERANCE_M:
-        log.warning(
-            "%s: hovering %.2f m over the take-off ground; the course starts at %.2f m",
-            course.name, ground - d, start_altitude_m,
-        )
-    return CoursePlacement((n, e, ground), float(hover.attitude_rad[2]))
+    return CoursePlacement((n, e, d + start_altitude_m), float(hover.attitude_rad[2]))
 
 
 async def prepare_flight(
@@ -248,7 +229,7 @@ async def prepare_flight(
     service_url: str | None = None,
 ) -> ServiceProcess:
     """Steps 1 and 2 (ready, parameters, take-off); returns the service of step 4, not yet started
-    (its config has the course placed at the vehicle now; :func:`start_and_place` moves it)."""
+    (its config has the course placed where the vehicle hovers now; :func:`start_and_place` moves it)."""
     await pilot.make_ready()
     await pilot.set_params(PARAMS_BY_AUTOPILOT[pilot.AUTOPILOT])
     await pilot.take_off(-float(course.start.position_ned_m[2]))
@@ -272,10 +253,10 @@ def placement_patch(cfg: CompanionConfig, placement: CoursePlacement) -> dict[st
     same height over the course's ground as the user set over the take-off point.
 
     The course's ground lies ``placement.origin_ned_m[2]`` metres below the autopilot's local origin
-    (:func:`placement_at`: the take-off ground, a few centimetres from the origin), and the rendered
-    floor and the judge's are the course's. (When the ground was the start altitude below the hover,
-    it stood up to 0.7 m away from PX4's, and a floor left over the take-off point stood that much
-    nearer it: PX4 SITL, 2026-11-25.) 0 (off) stays off.
+    (:func:`placement_at`: wherever the hover put it, 0.17–0.19 m *above* PX4's take-off ground in
+    one flight), and the rendered floor and the judge's are the course's. Left at the take-off point,
+    a 0.5 m floor stood ~0.32 m over that ground, ~0.07 m over the collision sphere: PX4's lag carried
+    an office flight that far below it (PX4 SITL, 2026-11-25). 0 (off) stays off.
     """
     floor = cfg.command.min_altitude_m
     if floor > 0.0:

@@ -74,9 +74,6 @@ class Pilot:
         self.samples: list[Sample] = []
         self.mode_changes: list[tuple[float, str]] = []
         self.flight_mode = "UNKNOWN"
-        #: Local down of the ground the last take-off left (metres; None before one): the course's
-        #: ground goes there (:func:`~companion.sitl.flight.placement_at`).
-        self.takeoff_ground_down_m: float | None = None
         self.armed = False
         self.in_air = False
         self.armable = False
@@ -232,7 +229,6 @@ class Pilot:
         """Bring the vehicle to the ground, disarmed, armable: land it if flying, and leave a mode
         PX4 refuses to arm in (after an offboard-loss landing it stays in OFFBOARD) for Hold."""
         await self.wait_for("position telemetry", lambda: bool(self.samples), 20.0)
-        self.takeoff_ground_down_m = None
         if self.in_air or self.armed:
             await self.land(timeout_s)
         if self.flight_mode not in ("HOLD", "POSCTL", "ALTCTL", "MANUAL", "STABILIZED"):
@@ -244,7 +240,6 @@ class Pilot:
         """Arm, take off to ``altitude_m`` above the take-off point, and wait until PX4 has finished
         the take-off (it switches to Hold) and the vehicle is steady (:meth:`wait_steady`, 1 s)."""
         await self._do("the take-off altitude", lambda: self.action.set_takeoff_altitude(float(altitude_m)))
-        self.takeoff_ground_down_m = float(self.latest().position_ned_m[2])
         await self._do("arming", self.action.arm)
         await self._do("take-off", self.action.takeoff)
         await self.wait_for("take-off", lambda: self.flight_mode == "TAKEOFF", 10.0)
