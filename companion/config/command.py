@@ -261,10 +261,13 @@ class CommandConfig(StrictModel):
         description=(
             "Floor: no setpoint descends below this altitude above the autopilot's local origin "
             "(where its position estimate began: normally the take-off point on the ground), metres; "
-            "0 = off. Descending, the down speed is capped at 2/s times the height left above it, so "
-            "the vehicle's lag does not carry it through; below it (PX4 drifts vertically under a zero "
-            "vertical speed), every fresh setpoint climbs back at 2/s times the shortfall while the up "
-            "region reads at least 1 m. Unknown counts as near, and a plain ceiling "
+            "0 = off. Descending, the down speed is capped at 2/s times the height left above it, the "
+            "measured sink over motion_brake_lag_s counted as height already lost, so the vehicle's "
+            "lag does not carry it through; below it (PX4 drifts vertically under a zero vertical "
+            "speed), every fresh setpoint climbs back at 2/s times the shortfall unless the up region "
+            "measures nearer than 1 m (an unknown one does not stop the climb: PX4 SITL sank an office "
+            "flight under the floor in front of a plain wall until it touched the ground). Elsewhere "
+            "unknown counts as near, and a plain ceiling "
             "or sky the up regions cannot read sends the vehicle down: PX4 SITL flew an office flight "
             "into the floor that way. Above ground that rises from the take-off point it does not "
             "protect: the down regions do."
@@ -369,7 +372,8 @@ class CommandConfig(StrictModel):
         description=(
             "How long the autopilot takes to follow a new velocity setpoint, seconds (a first-order "
             "lag's time constant; PX4 SIH ~0.85 s): the motion brake allows a closing speed of "
-            "(range - motion_brake_clearance_m) / this."
+            "(range - motion_brake_clearance_m) / this, and the floor (min_altitude_m) counts a sink "
+            "over this as height already lost."
         ),
     )
     unseen_closing_range_m: float = Field(
