@@ -226,10 +226,11 @@ def test_a_door_just_wide_enough_hands_back_in_front_of_it() -> None:
     # A far wall 1 m ahead with a door 1.2 m wide centred 0.1 m off the vehicle: the way through keeps
     # 0.5 m from the jambs, less than clearance_m but more than squeeze_clearance_m: the brake's detour
     # hands straight back (the controller's brake and the guard still act on the way through). A door
-    # 0.7 m wide does not: the detour goes on.
-    assert DET.squeeze_clearance_m < 0.5 < DET.clearance_m
+    # 0.5 m wide (narrower than the vehicle with line_up_clearance_m either side) does not: the
+    # detour goes on.
+    assert DET.squeeze_clearance_m < 0.5 < DET.clearance_m and 2.0 * DET.line_up_clearance_m > 0.5
     pos = np.array([0.0, 0.0, -1.5])
-    for door, through in (((-0.5, 0.7), True), ((-0.35, 0.35), False)):
+    for door, through in (((-0.5, 0.7), True), ((-0.25, 0.25), False)):
         mem = _trusted_memory(np.concatenate([_wall(1.0, -4.0, door[0]), _wall(1.0, door[1], 4.0)]))
         p = DetourPlanner()
         t, began = 0.0, False
@@ -242,6 +243,86 @@ def test_a_door_just_wide_enough_hands_back_in_front_of_it() -> None:
             assert cmd is None and not p.active and "handed back" in p.reason
         else:
             assert cmd is not None and p.active
+
+
+def _door_memory(left_m: float, right_m: float) -> ObstacleMemory:
+    """A far wall 1 m north with a door between east ``left_m`` and ``right_m``."""
+    return _trusted_memory(np.concatenate([_wall(1.0, -4.0, left_m), _wall(1.0, right_m, 4.0)]))
+
+
+def test_line_up_offset_is_the_middle_of_the_nearest_opening_the_slide_reaches() -> None:
+    from companion.core.detour import line_up_offset_m
+
+    wall = np.concatenate([_wall(1.0, -4.0, -0.1), _wall(1.0, 0.75, 4.0)])  # a door -0.1..0.75 m east
+    # Free with 0.3 m from offsets 0.2 to 0.45: the middle, not the nearest end.
+    s = line_up_offset_m(wall, 0.0, 2.5, DET)
+    assert s == pytest.approx(0.325, abs=0.03)
+    # Beyond line_up_max_m: none; off: none.
+    far = np.concatenate([_wall(1.0, -4.0, 0.6), _wall(1.0, 1.5, 4.0)])
+    assert line_up_offset_m(far, 0.0, 2.5, DET) is None
+    assert line_up_offset_m(wall, 0.0, 2.5, DET.model_copy(update={"line_up_max_m": 0.0})) is None
+    # A post 0.1 m to the right, abreast: the slide cannot get there.
+    post = np.concatenate([wall, np.array([[0.0, 0.15]])])
+    assert line_up_offset_m(post, 0.0, 2.5, DET) is None
+    # Past a box's edge, with nothing beyond it for a metre: not an opening, no line-up.
+    box = _wall(1.0, -0.6, 0.1)
+    assert line_up_offset_m(box, 0.0, 2.5, DET) is None
+    assert line_up_offset_m(np.concatenate([box, _wall(1.0, 0.8, 4.0)]), 0.0, 2.5, DET) == pytest.approx(0.45, abs=0.03)
+
+
+def test_a_door_just_missed_lines_up_then_hands_back() -> None:
+    # The door's middle is 0.33 m east; from where the vehicle is, even squeeze_clearance_m's path
+    # grazes the left jamb. The detour slides east facing the goal (north) and hands back there.
+    mem = _door_memory(-0.1, 0.75)
+    pos = np.array([0.0, 0.0, -1.5])
+    p = DetourPlanner()
+    t, cmd = 0.0, None
+    while t < DET.trigger_after_s + 0.5 and p.phase is Phase.IDLE:
+        cmd = p.update(t, BRAKE, pos, 0.0, 0.0, 0.0, mem, MEM, DET, goal_distance_m=4.0)
+        t += 0.05
+    assert cmd is not None and cmd.phase is Phase.HANDBACK and "lining up" in p.reason
+    assert cmd.target_yaw_rad == pytest.approx(0.0)
+    assert cmd.anchor_ned_m[1] == pytest.approx(0.325, abs=0.03) and cmd.anchor_ned_m[0] == pytest.approx(0.0)
+    # Not there yet: it keeps sliding.
+    cmd = p.update(t, BRAKE, pos + [0.0, 0.1, 0.0], 0.0, 0.0, 0.0, mem, MEM, DET, goal_distance_m=4.0)
+    assert cmd is not None and cmd.phase is Phase.HANDBACK
+    # There: course hold flies on.
+    cmd = p.update(t + 0.1, CLEAR, pos + [0.0, 0.3, 0.0], 0.0, 0.0, 0.0, mem, MEM, DET, goal_distance_m=4.0)
+    assert cmd is None and not p.active and "lined up" in p.reason
+
+
+def test_a_line_up_the_drift_keeps_short_of_hands_back_after_the_settle_time() -> None:
+    mem = _door_memory(-0.1, 0.75)
+    pos = np.array([0.0, 0.0, -1.5])
+    p = DetourPlanner()
+    t = 0.0
+    while t < DET.trigger_after_s + 0.5 and p.phase is Phase.IDLE:
+        p.update(t, BRAKE, pos, 0.0, 0.0, 0.0, mem, MEM, DET, goal_distance_m=4.0)
+        t += 0.05
+    began = t
+    stuck = pos + [0.0, 0.15, 0.0]  # a drift holds it 0.18 m short
+    while t < began + 2.9:
+        assert p.update(t, CLEAR, stuck, 0.0, 0.0, 0.0, mem, MEM, DET, goal_distance_m=4.0) is not None
+        t += 0.1
+    assert p.update(began + 3.1, CLEAR, stuck, 0.0, 0.0, 0.0, mem, MEM, DET, goal_distance_m=4.0) is None
+    assert not p.active
+
+
+def test_without_line_up_a_door_just_missed_is_a_detour() -> None:
+    mem = _door_memory(-0.1, 0.75)
+    pos = np.array([0.0, 0.0, -1.5])
+    p = DetourPlanner()
+    cfg = DET.model_copy(update={"line_up_max_m": 0.0})
+    t, cmd = 0.0, None
+    while t < cfg.trigger_after_s + 0.5 and p.phase is Phase.IDLE:
+        cmd = p.update(t, BRAKE, pos, 0.0, 0.0, 0.0, mem, MEM, cfg, goal_distance_m=4.0)
+        t += 0.05
+    assert cmd is not None and cmd.phase is not Phase.HANDBACK and "lining up" not in p.reason
+
+
+def test_line_up_clearance_may_not_exceed_the_squeeze() -> None:
+    with pytest.raises(ValueError, match="line_up_clearance_m"):
+        DetourConfig(line_up_clearance_m=0.45)
 
 
 def test_a_climb_ends_a_detour_only_while_it_faces_the_goal() -> None:

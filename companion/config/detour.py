@@ -170,6 +170,30 @@ class DetourConfig(StrictModel):
             "plus 0.15 m (the controller and the guard still act)."
         ),
     )
+    line_up_max_m: float = Field(
+        default=0.5,
+        ge=0.0,
+        le=2.0,
+        description=(
+            "Lining up with an opening: when the goal direction is not free from where the vehicle "
+            "is, but the path parallel to it from a point at most this far to one side is (with "
+            "line_up_clearance_m), the vehicle slides there, facing the goal, and hands back, metres "
+            "(0 = off). A door just wide enough: the map's jambs, smeared inward, left no free "
+            "direction from anywhere but its middle, and the detour flew to and fro before it "
+            "(kinematic offices with drift, 8-34 s at the far wall)."
+        ),
+    )
+    line_up_clearance_m: float = Field(
+        default=0.3,
+        gt=0.0,
+        le=5.0,
+        description=(
+            "Lining up with an opening: the parallel path, and the slide to it, keep at least this "
+            "far from every trusted point, metres: the 0.25 m vehicle plus 0.05 m. After the "
+            "hand-back, course hold's gap centering, the guard and the controller's brake act on "
+            "the way through."
+        ),
+    )
     preferred_clearance_m: float = Field(
         default=0.8,
         gt=0.0,
@@ -292,5 +316,10 @@ class DetourConfig(StrictModel):
         if self.squeeze_clearance_m > self.clearance_m:
             raise ValueError(
                 f"squeeze_clearance_m ({self.squeeze_clearance_m}) must be at most clearance_m ({self.clearance_m})"
+            )
+        if self.line_up_clearance_m > self.squeeze_clearance_m:
+            raise ValueError(
+                f"line_up_clearance_m ({self.line_up_clearance_m}) must be at most squeeze_clearance_m "
+                f"({self.squeeze_clearance_m})"
             )
         return self

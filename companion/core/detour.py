@@ -13,6 +13,7 @@ Phases (:class:`Phase`)::
     idle ──braked trigger_after_s, or no progress trigger_no_progress_s──▶ scan
     scan ──turned to the goal ± scan_half_angle_deg (or scan_timeout_s)──▶ choose
     choose ──the goal direction free──▶ handback ──facing it──▶ idle (course hold)
+           ──a path parallel to it free a short slide aside──▶ handback (sliding there) ──▶ idle
            ──a free direction toward the goal──▶ fly (turning in place first) ──replan──▶ choose
            ──none──▶ dead end (a hold, reported)
 
@@ -26,7 +27,9 @@ Phases (:class:`Phase`)::
   ``max_angle_deg`` of the goal direction. A direction is *free* when no trusted point lies within
   ``clearance_m`` of the path along it out to ``radius_m`` (VFH+'s enlarged obstacles; a point already
   nearer than that blocks only a path that would close on it). The goal direction free: hand back.
-  Else a side (left or right of the goal) is kept for the whole detour, chosen as the side where a
+  Not free, but the path parallel to it from a point at most ``line_up_max_m`` to one side free with
+  ``line_up_clearance_m`` (a door whose jambs the map smeared inward): **line up**, sliding there
+  while facing the goal, and hand back. Else a side (left or right of the goal) is kept for the whole detour, chosen as the side where a
   shorter step square to the goal direction, on the map's free space, opens the way to the goal
   (within ``lookahead_m``: an opening, or the end of the wall: the shorter way round), then the
   free direction on that side nearest the goal,
@@ -37,7 +40,8 @@ Phases (:class:`Phase`)::
   ``speed_m_s`` (the controller's yaw and slowing still act), choosing again every
   ``replan_interval_s``; a brake for ``trigger_after_s`` along it closes that direction from here.
   Farther than ``max_distance_m`` from where it began, or longer than ``max_time_s``: a dead end.
-* **handback**: turn in place to the goal direction, then course hold flies on.
+* **handback**: turn in place to the goal direction (lining up: and slide to the opening's middle,
+  for at most ``_LINE_UP_SETTLE_S``), then course hold flies on.
 
 The layer remembers where it has been (a trail of positions) and which side it went round: a new
 detour that starts within ``side_memory_m`` of the last one's end goes round the same side, so the
@@ -100,6 +104,10 @@ _TRAIL_POINTS = 500
 _HYSTERESIS_DEG = 10.0
 #: What the reason says while a deferred histogram is awaited.
 _MAPPING = ": mapping the way round"
+#: Lining up with an opening: the slide has ended within this of its target, metres ...
+_LINE_UP_TOLERANCE_M = 0.1
+#: ... or after this long, seconds.
+_LINE_UP_SETTLE_S = 3.0
 #: A direction this near the heading has been seen (the camera's view is about ±45°, its left
 #: edge less): a detour toward it needs no look round first, degrees.
 _IN_VIEW_DEG = 30.0
@@ -155,6 +163,9 @@ class Histogram:
         through_m: how far a step sideways (square to the goal direction, on the map's free space)
             to the right and to the left opens the way to the goal, metres (inf: not within
             ``lookahead_m``): the shorter way round.
+        line_up_m: where to slide sideways (square to the goal direction, + right) so that the
+            path parallel to it is free (:func:`line_up_offset_m`), metres; None: not wanted (the
+            goal direction is free from here) or none within ``line_up_max_m``.
     """
 
     bearing_rad: np.ndarray
@@ -165,6 +176,7 @@ class Histogram:
     visited: np.ndarray
     goal_index: int
     through_m: dict[int, float]
+    line_up_m: float | None = None
 
 
 def _rays(dn: np.ndarray, de: np.ndarray, bearing: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -260,6 +272,7 @@ def polar_histogram(
     roomy = np.full(k, np.inf)
     tight = np.full(k, np.inf)
     through = {1: math.inf, -1: math.inf}
+    line_up = None
     if len(pts):
         dn, de = pts[:, 0], pts[:, 1]
         # A vehicle already nearer than the clearance to something may still fly a path that comes
@@ -275,13 +288,85 @@ def polar_histogram(
             tuple(max(0.0, min(c, nearest)) for c in (cfg.clearance_m, cfg.preferred_clearance_m, cfg.squeeze_clearance_m)),
         )
         through = _through(pts, goal_bearing_rad, goal_distance_m, cfg, max(0.0, min(cfg.clearance_m, nearest)), map_depth_m)
+        need = cfg.radius_m if goal_distance_m is None else min(cfg.radius_m, goal_distance_m)
+        if free[n] < need and tight[n] < need:
+            line_up = line_up_offset_m(pts, goal_bearing_rad, need, cfg, nearest)
     visited = np.zeros(k, dtype=bool)
     if trail_ne_m is not None and len(trail_ne_m):
         tr = np.asarray(trail_ne_m, dtype=np.float64).reshape(-1, 2)
         along, across = _rays(tr[:, 0], tr[:, 1], bearing)
         reach = cfg.min_free_m + cfg.visited_clearance_m
         visited = np.any((along > 0.3) & (along < reach) & (np.abs(across) < cfg.visited_clearance_m), axis=1)
-    return Histogram(bearing, offsets, free, roomy, tight, visited, n, through)
+    return Histogram(bearing, offsets, free, roomy, tight, visited, n, through, line_up)
+
+
+#: Lining up (:func:`line_up_offset_m`) tries sideways offsets this far apart, metres.
+_LINE_UP_STEP_M = 0.05
+
+
+def line_up_offset_m(
+    points_ne_m: np.ndarray, goal_bearing_rad: float, need_m: float, cfg: DetourConfig, nearest_m: float = math.inf
+) -> float | None:
+    """Where to slide, square to the goal direction, to pass an opening the goal direction itself
+    misses, metres (+ right of the goal direction); None: none, or lining up is off
+    (``cfg.line_up_max_m`` 0).
+
+    Sideways offsets every ``_LINE_UP_STEP_M`` within twice ``cfg.line_up_max_m`` are tried: from
+    each, is the path parallel to the goal direction clear of every point (float ``(N, 2)`` north,
+    east offsets from the vehicle, metres) by ``cfg.line_up_clearance_m`` for ``need_m``? A run of
+    such offsets closed at both ends within the range is an opening (a door, a gap between two
+    things), and its middle, if at most ``line_up_max_m`` off and reached by a slide that keeps the
+    clearance (less 5 cm than ``nearest_m``, the nearest point now, where the vehicle is nearer
+    than that already), is a place to slide to; the nearest such middle is the answer.
+
+    An opening, not the free side of one thing: a line-up past a cabinet's edge handed an office
+    flight back to course hold, which flew it along the far wall into a door jamb (kinematic,
+    drift). The middle, not the nearest end: the run's ends are where the path grazes the jambs'
+    smeared points, and the middle keeps the most room for the drift on the way through."""
+    reach = cfg.line_up_max_m
+    if reach <= 0.0:
+        return None
+    pts = np.asarray(points_ne_m, dtype=np.float64).reshape(-1, 2)
+    c = cfg.line_up_clearance_m
+    span = 2.0 * reach
+    # Points farther than the path and the slide can reach cannot stop either (see _through).
+    pts = pts[np.hypot(pts[:, 0], pts[:, 1]) <= need_m + span + 2.0 * c]
+    count = int(math.floor(span / _LINE_UP_STEP_M + 1e-9))
+    offsets = np.arange(-count, count + 1, dtype=np.float64) * _LINE_UP_STEP_M
+    cg, sg = math.cos(goal_bearing_rad), math.sin(goal_bearing_rad)
+    along = cg * pts[:, 0] + sg * pts[:, 1]
+    across = -sg * pts[:, 0] + cg * pts[:, 1]
+    # Each offset's parallel path at once (free_length_m's arithmetic, the across shifted by the
+    # offset); only points ahead and within reach of some offset's path count.
+    near = (along > 0.0) & (np.abs(across) < span + c)
+    a, x = along[near], across[near]
+    d = x[None, :] - offsets[:, None]
+    hit = np.where(np.abs(d) < c, np.maximum(a[None, :] - np.sqrt(np.maximum(c * c - d * d, 0.0)), 0.0), np.inf)
+    ok = (hit.min(axis=1) if a.size else np.full(offsets.size, np.inf)) >= need_m
+    if not ok.any():
+        return None
+    # How far the slide can go each way before it comes within the clearance of a point.
+    slide_c = max(0.0, min(c, nearest_m - _NEAR_MARGIN_M))
+    room = {}
+    for side in (1, -1):
+        along, across = _rays(pts[:, 0], pts[:, 1], np.array([goal_bearing_rad + side * 0.5 * math.pi]))
+        room[side] = float(free_length_m(along, across, slide_c)[0])
+    best: float | None = None
+    i = 0
+    while i < offsets.size:
+        if not ok[i]:
+            i += 1
+            continue
+        j = i
+        while j + 1 < offsets.size and ok[j + 1]:
+            j += 1
+        middle = float(0.5 * (offsets[i] + offsets[j]))
+        closed = i > 0 and j < offsets.size - 1
+        if closed and abs(middle) <= reach + 1e-9 and abs(middle) <= room[1 if middle >= 0.0 else -1] + 1e-9:
+            if best is None or abs(middle) < abs(best):
+                best = middle
+        i = j + 1
+    return best
 
 
 #: The side-step look-ahead (:func:`_through`) tries positions this far apart, metres.
@@ -397,11 +482,14 @@ def _close_vetoed(h: Histogram, pos: np.ndarray, vetoes) -> Histogram:
     if not vetoes:
         return h
     free, roomy, tight = h.free_m.copy(), h.roomy_m.copy(), h.tight_m.copy()
+    line_up = h.line_up_m
     for n, e, b in vetoes:
         if math.hypot(pos[0] - n, pos[1] - e) <= _VETO_RADIUS_M:
             closed = np.abs(np.array([wrap_pi(x - b) for x in h.bearing_rad])) <= _VETO_HALF_ANGLE_RAD
             free[closed] = roomy[closed] = tight[closed] = 0.0
-    return Histogram(h.bearing_rad, h.offset_rad, free, roomy, tight, h.visited, h.goal_index, h.through_m)
+            if closed[h.goal_index]:
+                line_up = None  # a brake on the goal direction here: no lining up to fly it again
+    return Histogram(h.bearing_rad, h.offset_rad, free, roomy, tight, h.visited, h.goal_index, h.through_m, line_up)
 
 
 def _frozen(a: np.ndarray | None) -> np.ndarray | None:
@@ -449,6 +537,7 @@ class DetourPlanner:
         self._goal_distance_m: float | None = None
         self._stall_mark: float | None = None
         self._course_down_m: float | None = None
+        self._line_up_since_s: float | None = None  # when a slide to line up with an opening began
         self._drop_request()
 
     def _drop_request(self) -> None:
@@ -563,7 +652,7 @@ class DetourPlanner:
         if self.phase is Phase.SCAN:
             return self._scan(now_s, pos, yaw_rad, goal_bearing_rad, memory, memory_cfg, cfg, prefer_right)
         if self.phase is Phase.HANDBACK:
-            return self._handback(pos, yaw_rad, goal_bearing_rad, cfg)
+            return self._handback(now_s, pos, yaw_rad, goal_bearing_rad, cfg)
         return self._fly(now_s, decision, pos, yaw_rad, goal_bearing_rad, memory, memory_cfg, cfg, prefer_right)
 
     # ------------------------------------------------------------------------------------ phases
@@ -648,7 +737,7 @@ class DetourPlanner:
         in_view = k is not None and abs(wrap_pi(h.bearing_rad[k] - yaw)) <= math.radians(_IN_VIEW_DEG)
         # A step on the favoured side already opens the way (the map saw where the obstacle ends).
         seen = k is not None and h.through_m[lean] <= cfg.no_look_round_step_m
-        if in_view or seen:
+        if in_view or seen or h.line_up_m is not None:
             # The way round is in view, or seen: no need to look round. (The same snapshot: a
             # second histogram now would be the same numbers.)
             self.phase = Phase.SCAN
@@ -736,7 +825,19 @@ class DetourPlanner:
             if self._anchor_ned_m is None:  # turning in place already: hold where that began
                 self._anchor_ned_m = pos.copy()
             self.reason = "the goal direction is free: turning to it"
-            return self._handback(pos, yaw, goal, cfg)
+            return self._handback(asked_s, pos, yaw, goal, cfg)
+        if h.line_up_m is not None:
+            # An opening the goal direction just misses (a door whose jambs the map smeared inward):
+            # slide to where the path parallel to it is free, facing the goal, and hand back there.
+            self.phase = Phase.HANDBACK
+            self._target_rad = goal
+            self._anchor_ned_m = pos.copy()
+            self._anchor_ned_m[0] -= h.line_up_m * math.sin(goal)
+            self._anchor_ned_m[1] += h.line_up_m * math.cos(goal)
+            self._line_up_since_s = asked_s
+            side = "right" if h.line_up_m > 0.0 else "left"
+            self.reason = f"lining up with an opening {abs(h.line_up_m):.2f} m to the {side}"
+            return self._handback(asked_s, pos, yaw, goal, cfg)
         flying = self.phase is Phase.FLY
         if self._side == 0:
             self._side = _pick_side(h, prefer_right, cfg)
@@ -857,9 +958,19 @@ class DetourPlanner:
         self._anchor_ned_m = None
         return DetourCommand(Phase.FLY, self._target_rad, None, self.reason)
 
-    def _handback(self, pos: np.ndarray, yaw: float, goal: float, cfg: DetourConfig) -> DetourCommand | None:
+    def _handback(self, now_s: float, pos: np.ndarray, yaw: float, goal: float, cfg: DetourConfig) -> DetourCommand | None:
         self._target_rad = goal
-        if abs(wrap_pi(goal - yaw)) <= math.radians(cfg.turn_in_place_deg):
+        facing = abs(wrap_pi(goal - yaw)) <= math.radians(cfg.turn_in_place_deg)
+        if facing and self._line_up_since_s is not None:
+            # Lining up: hand back once at the slide's end, or after _LINE_UP_SETTLE_S (the hold's
+            # pull, 1/s, leaves a drift of 0.14 m/s 0.14 m off; gap centering goes on from there).
+            assert self._anchor_ned_m is not None
+            off = math.hypot(pos[0] - self._anchor_ned_m[0], pos[1] - self._anchor_ned_m[1])
+            if off <= _LINE_UP_TOLERANCE_M or now_s - self._line_up_since_s >= _LINE_UP_SETTLE_S:
+                self._end(pos, "handed back to course hold: lined up with an opening toward the goal")
+                return None
+            return DetourCommand(Phase.HANDBACK, goal, self._anchor_ned_m, self.reason)
+        if facing:
             self._end(pos, "handed back to course hold: the goal direction is free")
             return None
         if self._anchor_ned_m is None:
