@@ -13,6 +13,7 @@ import threading
 from dataclasses import replace
 
 import numpy as np
+import pytest
 from peers.fakes import FakeLink
 from test_detour import BRAKE, CLEAR, DET, MEM, _trusted_memory, _wall
 
@@ -375,3 +376,20 @@ def test_a_failure_in_the_worker_is_logged_and_handed_to_the_supervisor(tmp_path
     records = [r for r in caplog.records if "detour histogram failed" in r.getMessage()]
     assert records and "request 5" in records[0].getMessage() and records[0].exc_info is not None
 
+
+
+def test_a_deferred_line_up_slides_from_where_the_histogram_was_seen() -> None:
+    # A door between -0.1 and 0.75 m east, 1 m ahead: its middle (for line_up_clearance_m) 0.33 m east
+    # of where the vehicle asked. It drifts 0.1 m west before the answer comes: the slide's end is
+    # still the door's middle, not 0.33 m east of where the vehicle is then.
+    mem = _trusted_memory(np.concatenate([_wall(1.0, -4.0, -0.1), _wall(1.0, 0.75, 4.0)]))
+    p = DetourPlanner(defer=True)
+    _, t = _trigger(p, mem)
+    answer = _answer(p)
+    assert answer.histogram is not None and answer.histogram.line_up_m is not None
+    moved = POS + np.array([0.0, -0.1, 0.0])
+    assert p.offer(answer)
+    cmd = p.update(t, BRAKE, moved, 0.0, 0.0, 0.0, mem, MEM, DET, goal_distance_m=6.0)
+    assert cmd is not None and cmd.phase is Phase.HANDBACK and "lining up" in p.reason
+    assert cmd.anchor_ned_m[1] == pytest.approx(answer.histogram.line_up_m, abs=1e-9)
+    assert cmd.anchor_ned_m[1] == pytest.approx(0.325, abs=0.03)

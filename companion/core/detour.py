@@ -729,9 +729,18 @@ class DetourPlanner:
         return self._begin_with(h, now_s, pos, yaw, goal, cfg, prefer_right)
 
     def _begin_with(
-        self, h: Histogram, now_s: float, pos: np.ndarray, yaw: float, goal: float, cfg: DetourConfig, prefer_right: bool
+        self,
+        h: Histogram,
+        now_s: float,
+        pos: np.ndarray,
+        yaw: float,
+        goal: float,
+        cfg: DetourConfig,
+        prefer_right: bool,
+        seen_from: np.ndarray | None = None,
     ) -> DetourCommand | None:
-        """A detour's start, with the histogram from where it began: choose at once, or look round."""
+        """A detour's start, with the histogram from where it began (``seen_from``, NED metres; None:
+        ``pos``): choose at once, or look round."""
         lean = self._side or _pick_side(h, prefer_right, cfg)
         k = _best(h, lean, cfg, None)
         in_view = k is not None and abs(wrap_pi(h.bearing_rad[k] - yaw)) <= math.radians(_IN_VIEW_DEG)
@@ -741,7 +750,7 @@ class DetourPlanner:
             # The way round is in view, or seen: no need to look round. (The same snapshot: a
             # second histogram now would be the same numbers.)
             self.phase = Phase.SCAN
-            return self._choose_with(h, now_s, pos, yaw, goal, cfg, prefer_right)
+            return self._choose_with(h, now_s, pos, yaw, goal, cfg, prefer_right, seen_from)
         self._start_scan(now_s, pos, yaw, goal, cfg, lean)
         return DetourCommand(Phase.SCAN, self._target_rad, self._anchor_ned_m, self.reason)
 
@@ -809,8 +818,10 @@ class DetourPlanner:
         goal: float,
         cfg: DetourConfig,
         prefer_right: bool,
+        seen_from: np.ndarray | None = None,
     ) -> DetourCommand | None:
-        """A choice from the histogram asked for at ``asked_s`` (seconds)."""
+        """A choice from the histogram asked for at ``asked_s`` (seconds) from ``seen_from`` (float
+        ``(3,)`` NED metres; None: ``pos``, where the vehicle is now)."""
         self._last_plan_s = asked_s
         gd = self._goal_distance_m
         need = cfg.radius_m if gd is None else min(cfg.radius_m, gd)
@@ -831,9 +842,11 @@ class DetourPlanner:
             # slide to where the path parallel to it is free, facing the goal, and hand back there.
             self.phase = Phase.HANDBACK
             self._target_rad = goal
-            self._anchor_ned_m = pos.copy()
-            self._anchor_ned_m[0] -= h.line_up_m * math.sin(goal)
-            self._anchor_ned_m[1] += h.line_up_m * math.cos(goal)
+            # The slide is measured from where the histogram was seen (deferred: a step or two ago).
+            self._anchor_ned_m = np.array(pos if seen_from is None else seen_from, dtype=np.float64)
+            self._anchor_ned_m[2] = pos[2]
+            self._anchor_ned_m[0] -= h.line_up_m * math.sin(h.bearing_rad[h.goal_index])
+            self._anchor_ned_m[1] += h.line_up_m * math.cos(h.bearing_rad[h.goal_index])
             self._line_up_since_s = asked_s
             side = "right" if h.line_up_m > 0.0 else "left"
             self.reason = f"lining up with an opening {abs(h.line_up_m):.2f} m to the {side}"
@@ -922,8 +935,8 @@ class DetourPlanner:
         h = _close_vetoed(result.histogram, request.position_ned_m, tuple(self._vetoes[len(request.vetoes) :]))
         if purpose == "begin":
             self.reason = self.reason.removesuffix(_MAPPING)  # the trigger's reason, as without the wait
-            return self._begin_with(h, now_s, pos, yaw, goal, cfg, prefer_right)
-        return self._choose_with(h, request.asked_s, pos, yaw, goal, cfg, prefer_right)
+            return self._begin_with(h, now_s, pos, yaw, goal, cfg, prefer_right, request.position_ned_m)
+        return self._choose_with(h, request.asked_s, pos, yaw, goal, cfg, prefer_right, request.position_ned_m)
 
     def _waiting(self, pos: np.ndarray, yaw: float, cfg: DetourConfig) -> DetourCommand:
         """While a histogram is awaited: in FLY, the direction chosen before (the controller's brake
