@@ -29,12 +29,12 @@ Phases (:class:`Phase`)::
   nearer than that blocks only a path that would close on it). The goal direction free: hand back.
   Not free, but the path parallel to it from a point at most ``line_up_max_m`` to one side free with
   ``line_up_clearance_m`` (a door whose jambs the map smeared inward): **line up**, sliding there
-  while facing the goal, and hand back. Else a side (left or right of the goal) is kept for the whole detour, chosen as the side where a
-  shorter step square to the goal direction, on the map's free space, opens the way to the goal
-  (within ``lookahead_m``: an opening, or the end of the wall: the shorter way round), then the
-  free direction on that side nearest the goal,
-  costing extra when it passes nearer than ``preferred_clearance_m`` to a point or back over the
-  vehicle's own trail (``visited_*``). No free direction on the side: the other side, once; on
+  while facing the goal, and hand back. Else a side (left or right of the goal) is kept for the
+  whole detour, chosen as the side where a shorter step square to the goal direction, on the map's
+  free space, opens the way to the goal (within ``lookahead_m``: an opening, or the end of the
+  wall: the shorter way round), then the free direction on that side nearest the goal, costing
+  extra when it passes nearer than ``preferred_clearance_m`` to a point or back over the vehicle's
+  own trail (``visited_*``). No free direction on the side: the other side, once; on
   neither: a **dead end**.
 * **fly**: face the direction (turning in place beyond ``turn_in_place_deg``), then fly it at
   ``speed_m_s`` (the controller's yaw and slowing still act), choosing again every
@@ -971,7 +971,9 @@ class DetourPlanner:
         self._anchor_ned_m = None
         return DetourCommand(Phase.FLY, self._target_rad, None, self.reason)
 
-    def _handback(self, now_s: float, pos: np.ndarray, yaw: float, goal: float, cfg: DetourConfig) -> DetourCommand | None:
+    def _handback(
+        self, now_s: float, pos: np.ndarray, yaw: float, goal: float, cfg: DetourConfig
+    ) -> DetourCommand | None:
         self._target_rad = goal
         facing = abs(wrap_pi(goal - yaw)) <= math.radians(cfg.turn_in_place_deg)
         if facing and self._line_up_since_s is not None:
