@@ -176,11 +176,12 @@ class DetourConfig(StrictModel):
         le=2.0,
         description=(
             "Lining up with an opening: when the goal direction is not free from where the vehicle "
-            "is, but the path parallel to it from a point at most this far to one side is (with "
-            "line_up_clearance_m), the vehicle slides there, facing the goal, and hands back, metres "
-            "(0 = off). A door just wide enough: the map's jambs, smeared inward, left no free "
-            "direction from anywhere but its middle, and the detour flew to and fro before it "
-            "(kinematic offices with drift, 8-34 s at the far wall)."
+            "is, but the path parallel to it is (with line_up_clearance_m) from an opening's middle "
+            "at most this far to one side (free offsets with points on both sides within twice "
+            "this: a door, not a box's free side), the vehicle slides there, facing the goal, and "
+            "hands back, metres (0 = off). A door just wide enough: the map's jambs, smeared inward, "
+            "left no free direction from anywhere but its middle, and the detour flew to and fro "
+            "before it (kinematic offices with drift, 8-34 s at the far wall)."
         ),
     )
     line_up_clearance_m: float = Field(
