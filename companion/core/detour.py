@@ -336,13 +336,12 @@ def line_up_offset_m(
     cg, sg = math.cos(goal_bearing_rad), math.sin(goal_bearing_rad)
     along = cg * pts[:, 0] + sg * pts[:, 1]
     across = -sg * pts[:, 0] + cg * pts[:, 1]
-    # Each offset's parallel path at once (free_length_m's arithmetic, the across shifted by the
-    # offset); only points ahead and within reach of some offset's path count.
+    # Each offset's parallel path at once: the same along, the across shifted by the offset; only
+    # points ahead and within reach of some offset's path count.
     near = (along > 0.0) & (np.abs(across) < span + c)
     a, x = along[near], across[near]
     d = x[None, :] - offsets[:, None]
-    hit = np.where(np.abs(d) < c, np.maximum(a[None, :] - np.sqrt(np.maximum(c * c - d * d, 0.0)), 0.0), np.inf)
-    ok = (hit.min(axis=1) if a.size else np.full(offsets.size, np.inf)) >= need_m
+    ok = free_length_m(np.broadcast_to(a, d.shape), d, c) >= need_m
     if not ok.any():
         return None
     # How far the slide can go each way before it comes within the clearance of a point.
