@@ -20,7 +20,8 @@ class Frame:
     """One capture.
 
     Attributes:
-        image: uint8 (H, 2W, 3) BGR side-by-side frame (left eye first).
+        image: uint8 (H, 2W, 3) BGR side-by-side frame (left eye first); from a UVC camera with
+            ``camera.pixels = "luma"``, its (H, 2W, 2) YUYV bytes (Y0 U Y1 V: ``[..., 0]`` is the grey).
         timestamp_s: capture time on the monotonic clock of the process that consumes it, seconds
             (the simulator uses simulated time).
         seq: capture sequence number, increasing by 1 per frame the source produced (a gap means

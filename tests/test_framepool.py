@@ -93,10 +93,12 @@ def test_the_camera_asks_for_its_own_shape_only() -> None:
 
 class _DecodingCapture:
     """cv2.VideoCapture's read([image]): decodes into ``image`` when it has the frame's shape and
-    type (as OpenCV does), else returns an array of its own."""
+    type (as OpenCV does), else returns an array of its own; BGR, or with ``CAP_PROP_CONVERT_RGB`` off
+    the driver's YUYV bytes, (H, W, 2) (as OpenCV's V4L2 backend gives them)."""
 
     def __init__(self, width: int, height: int) -> None:
-        self.props = {cv2.CAP_PROP_FRAME_WIDTH: width, cv2.CAP_PROP_FRAME_HEIGHT: height, cv2.CAP_PROP_FPS: 30.0}
+        self.props = {cv2.CAP_PROP_FRAME_WIDTH: width, cv2.CAP_PROP_FRAME_HEIGHT: height, cv2.CAP_PROP_FPS: 30.0,
+                      cv2.CAP_PROP_CONVERT_RGB: 1.0}
         self.value = 0
 
     def isOpened(self) -> bool:
@@ -112,8 +114,9 @@ class _DecodingCapture:
     def read(self, image: np.ndarray | None = None):
         self.value += 1
         h, w = int(self.props[cv2.CAP_PROP_FRAME_HEIGHT]), int(self.props[cv2.CAP_PROP_FRAME_WIDTH])
-        if image is None or image.shape != (h, w, 3) or image.dtype != np.uint8:
-            return True, np.full((h, w, 3), self.value, np.uint8)
+        shape = (h, w, 3 if self.props[cv2.CAP_PROP_CONVERT_RGB] else 2)
+        if image is None or image.shape != shape or image.dtype != np.uint8:
+            return True, np.full(shape, self.value, np.uint8)
         image[...] = self.value
         return True, image
 
@@ -121,12 +124,14 @@ class _DecodingCapture:
         pass
 
 
-def test_a_uvc_camera_decodes_into_the_pool_and_falls_back_when_it_is_empty() -> None:
+@pytest.mark.parametrize(("pixels", "channels"), [("luma", 2), ("bgr", 3)])
+def test_a_uvc_camera_decodes_into_the_pool_and_falls_back_when_it_is_empty(pixels: str, channels: int) -> None:
     cap = _DecodingCapture(2 * 8, 6)
-    cam = UvcCamera("/dev/video0", 8, 6, 30.0, model="sbs", capture_factory=lambda d: cap)
+    cam = UvcCamera("/dev/video0", 8, 6, 30.0, model="sbs", pixels=pixels, capture_factory=lambda d: cap)
     cam.open()
     plain = cam.read()  # no pool: memory of its own
-    buffers = [np.zeros((6, 16, 3), np.uint8) for _ in range(2)]
+    assert plain.image.shape == (6, 16, channels)
+    buffers = [np.zeros((6, 16, channels), np.uint8) for _ in range(2)]
     holder = FrameBuffers()
     holder.pool = FramePool(buffers)
     cam.frame_buffers = holder
@@ -157,8 +162,8 @@ def test_the_service_gives_the_camera_the_gpu_backends_pool_and_none_otherwise(t
         def __init__(self) -> None:
             self.asked: list[int] = []
 
-        def frame_pool(self, count: int) -> FramePool:
-            self.asked.append(count)
+        def frame_pool(self, count: int, channels: int = 3) -> FramePool:
+            self.asked.append((count, channels))
             return FramePool([np.zeros(SHAPE, np.uint8) for _ in range(count)])
 
     class _Pipeline:
@@ -167,9 +172,40 @@ def test_the_service_gives_the_camera_the_gpu_backends_pool_and_none_otherwise(t
 
     gpu = _Estimator()
     service._offer_frame_pool(_Pipeline(gpu), cfg)
-    assert gpu.asked == [cfg.gpu.camera_frame_buffers] and service._frame_buffers.acquire(SHAPE) is not None
+    assert gpu.asked == [(cfg.gpu.camera_frame_buffers, 3)] and service._frame_buffers.acquire(SHAPE) is not None
     off = cfg.model_copy(update={"gpu": cfg.gpu.model_copy(update={"camera_frame_buffers": 0})})
     service._offer_frame_pool(_Pipeline(gpu), off)
     assert service._frame_buffers.pool is None
     service._offer_frame_pool(_Pipeline(object()), cfg)  # a CPU estimator
     assert service._frame_buffers.pool is None
+
+
+def test_a_uvc_camera_takes_yuyv_bytes_only_where_the_driver_gives_yuyv(caplog: pytest.LogCaptureFixture) -> None:
+    cap = _DecodingCapture(2 * 8, 6)
+    cam = UvcCamera("/dev/video0", 8, 6, 30.0, model="sbs", fourcc="YUYV", capture_factory=lambda d: cap)
+    cam.open()
+    assert cap.props[cv2.CAP_PROP_CONVERT_RGB] == 0 and cam.read().image.shape == (6, 16, 2)
+
+    class _MjpgDriver(_DecodingCapture):  # a driver that settles on MJPG whatever it is asked
+        def get(self, prop: int) -> float:
+            return float(cv2.VideoWriter_fourcc(*"MJPG")) if prop == cv2.CAP_PROP_FOURCC else super().get(prop)
+
+    mjpg = _MjpgDriver(2 * 8, 6)
+    cam = UvcCamera("/dev/video0", 8, 6, 30.0, model="sbs", capture_factory=lambda d: mjpg)
+    with caplog.at_level("WARNING"):
+        cam.open()
+    assert "asked for YUYV but the driver gives 'MJPG'" in caplog.text
+    assert mjpg.props[cv2.CAP_PROP_CONVERT_RGB] == 1 and cam.read().image.shape == (6, 16, 3)
+
+
+def test_the_camera_config_says_how_many_bytes_a_pixel_its_frames_have() -> None:
+    from companion.config import CameraConfig
+    from companion.service.camera import frame_channels
+
+    zed = {"source": "uvc", "model": "zed", "width_px": 672, "height_px": 376}
+    assert frame_channels(CameraConfig(**zed)) == 2  # the default: YUYV taken as it comes
+    assert frame_channels(CameraConfig(**zed, pixels="bgr")) == 3
+    assert frame_channels(CameraConfig(**zed, fourcc="MJPG")) == 3
+    assert frame_channels(CameraConfig()) == 3  # the simulator renders BGR
+    pair = {"source": "uvc", "model": "pair", "device_right": "/dev/video2"}
+    assert frame_channels(CameraConfig(**pair)) == 3

@@ -384,6 +384,40 @@ def test_frames_decoded_into_the_frame_pool_are_read_in_place(zero_copy: bool, b
     _assert_regions_equal(est.estimate(plain).regions, cpu.estimate(plain).regions)
 
 
+@pytest.mark.parametrize("size", [(102, 67), (96, 40), (334, 211)])
+def test_grey_of_yuyv_is_its_luma(size: tuple[int, int]) -> None:
+    w, h = size
+    frame = np.random.default_rng(w).integers(0, 256, (h, 2 * w, 2), dtype=np.uint8)
+    est = _gpu(_cfg(D=16, b=5), w, h)
+    est.estimate(frame)
+    gl, gr = est.rectified_pair()
+    np.testing.assert_array_equal(gl, frame[:, :w, 0])
+    np.testing.assert_array_equal(gr, frame[:, w:, 0])
+
+
+@pytest.mark.parametrize("matcher", ["sad", "sgm"])
+def test_yuyv_frames_in_the_frame_pool_equal_the_cpu_reference(matcher: str) -> None:
+    # The camera's YUYV bytes, decoded straight into a 2-channel pool buffer and read in place:
+    # the same 9 depths as the CPU reference of the same bytes.
+    w, h = 320, 180
+    rng = np.random.default_rng(21)
+    cfg = _cfg(D=64, matcher=matcher)
+    est, cpu = _gpu(cfg, w, h), _cpu(cfg, w, h)
+    pool = est.frame_pool(2, channels=2)
+    for _ in range(3):
+        left, right = _textured_pair(h, w, rng)
+        frame = np.empty((h, 2 * w, 2), np.uint8)
+        frame[..., 0] = np.hstack([left, right])
+        frame[..., 1] = rng.integers(0, 256, (h, 2 * w), dtype=np.uint8)  # chroma: ignored
+        buf = pool.acquire()
+        assert buf is not None and buf.shape == (h, 2 * w, 2)
+        buf[...] = frame
+        assert est._in_place(buf) is not None
+        _assert_regions_equal(est.estimate(buf).regions, cpu.estimate(frame).regions)
+        _assert_regions_equal(est.estimate(frame).regions, cpu.estimate(frame).regions)  # a frame of its own
+        del buf
+
+
 def test_disparity_preview_is_the_block_maximum() -> None:
     w, h = 330, 190
     rng = np.random.default_rng(9)
@@ -447,7 +481,7 @@ def test_frame_validation_errors() -> None:
     bad = [
         np.zeros((h, 2 * w, 3), np.float32),  # dtype
         np.zeros((h, 2 * w + 1, 3), np.uint8),  # odd width
-        np.zeros((h, 2 * w, 2), np.uint8),  # channels
+        np.zeros((h, 2 * w, 5), np.uint8),  # channels
         np.zeros((h + 2, 2 * w, 3), np.uint8),  # size
         np.zeros((h, 2 * w + 2, 3), np.uint8),  # size
         np.zeros((0, 2 * w, 3), np.uint8),  # empty

@@ -56,6 +56,21 @@ def test_kernel_source_equals_the_reference(w: int, h: int, d: int, b: int, u: i
     np.testing.assert_array_equal(regions[9:], expected.valid_fraction)
 
 
+# 98 and 99: the last 4-pixel group of a row is partial (a YUYV eye is an even number of pixels wide)
+@pytest.mark.parametrize(("w", "channels"), [(100, 1), (100, 2), (100, 3), (100, 4), (98, 2), (99, 1), (99, 3), (99, 4)])
+def test_grey_kernel_source_equals_to_grey(w: int, channels: int) -> None:
+    from companion.core.stereo import split_side_by_side, to_grey
+    from companion.gpu.hostemu import HostKernels
+
+    h = 9
+    shape = (h, 2 * w, channels) if channels > 1 else (h, 2 * w)
+    frame = np.random.default_rng([w, channels]).integers(0, 256, shape, dtype=np.uint8)
+    gl, gr = HostKernels(w, h, 16, 5, 10, 3, [0, 3, 6, h], [0, w // 3, 2 * w // 3, w]).grey(frame)
+    left, right = split_side_by_side(frame)
+    np.testing.assert_array_equal(gl, to_grey(left))
+    np.testing.assert_array_equal(gr, to_grey(right))
+
+
 @pytest.mark.parametrize(
     ("w", "h", "d", "paths", "p1", "p2", "u", "lr", "median", "lanes", "prefetch"),
     [

@@ -8,7 +8,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from companion.core.stereo import GREY_COEFFS_Q15, check_pair, split_side_by_side, to_grey
+from companion.core.stereo import GREY_COEFFS_Q15, check_pair, split_side_by_side, to_bgr, to_grey
 from companion.errors import FrameError
 
 
@@ -60,7 +60,7 @@ def test_split_recombines_to_the_frame(h: int, w: int, ch: int | None) -> None:
         (np.zeros((4, 8, 3), np.uint16), ["uint8", "uint16"]),
         (np.zeros(8, np.uint8), ["(H, 2W", "(8,)"]),
         (np.zeros((2, 4, 8, 3), np.uint8), ["(H, 2W", "(2, 4, 8, 3)"]),
-        (np.zeros((4, 8, 2), np.uint8), ["(H, 2W, 3)", "(4, 8, 2)"]),
+        (np.zeros((4, 8, 5), np.uint8), ["(H, 2W, 3)", "(4, 8, 5)"]),
         (np.zeros((0, 8, 3), np.uint8), ["empty"]),
         (np.zeros((4, 0), np.uint8), ["empty"]),
     ],
@@ -117,6 +117,43 @@ def test_to_grey_on_side_by_side_views_with_out_buffer() -> None:
     np.testing.assert_array_equal(out_r, _grey_formula(frame[:, 64:]))
 
 
+def test_to_grey_of_yuyv_is_its_luma() -> None:
+    # A UVC camera's YUYV bytes undecoded (Y0 U Y1 V): the grey is the Y of each pixel, from either
+    # eye's view of a side-by-side frame, with or without an out buffer.
+    frame = np.random.default_rng(11).integers(0, 256, (6, 2 * 8, 2), dtype=np.uint8)
+    left, right = split_side_by_side(frame)
+    grey = to_grey(left)
+    assert grey.shape == (6, 8) and grey.flags.c_contiguous
+    np.testing.assert_array_equal(grey, frame[:, :8, 0])
+    out = np.empty((6, 8), np.uint8)
+    assert to_grey(right, out=out) is out
+    np.testing.assert_array_equal(out, frame[:, 8:, 0])
+    # The luma is what OpenCV's decoding keeps, up to its video-range stretch (255/219 about Y = 16).
+    flat = np.zeros((2, 4, 2), np.uint8)
+    flat[..., 0], flat[..., 1] = 126, 128  # grey: no chroma
+    decoded = cv2.cvtColor(to_bgr(flat), cv2.COLOR_BGR2GRAY)
+    assert abs(int(decoded[0, 0]) - round((126 - 16) * 255 / 219)) <= 1
+
+
+def test_yuyv_eyes_must_be_an_even_number_of_pixels_wide() -> None:
+    with pytest.raises(FrameError, match="odd number"):
+        split_side_by_side(np.zeros((4, 2 * 5, 2), np.uint8))
+
+
+def test_to_bgr_shows_every_frame_kind_in_colour() -> None:
+    bgr = np.random.default_rng(2).integers(0, 256, (4, 6, 3), dtype=np.uint8)
+    assert to_bgr(bgr) is bgr
+    assert to_bgr(bgr[..., 0]).shape == (4, 6, 3)
+    assert to_bgr(np.dstack([bgr, bgr[..., :1]])).shape == (4, 6, 3)
+    yuyv = np.zeros((4, 6, 2), np.uint8)
+    yuyv[..., 0], yuyv[..., 1] = 235, 128  # white in BT.601 video range
+    assert to_bgr(yuyv).min() >= 254
+    with pytest.raises(FrameError, match="YUYV of even width"):
+        to_bgr(np.zeros((4, 5, 2), np.uint8))
+    with pytest.raises(FrameError, match="uint8"):
+        to_bgr(np.zeros((4, 6, 3), np.float32))
+
+
 def test_to_grey_passes_grey_through() -> None:
     grey = np.random.default_rng(3).integers(0, 256, (10, 12), dtype=np.uint8)
     assert to_grey(grey) is grey
@@ -129,7 +166,7 @@ def test_to_grey_passes_grey_through() -> None:
     ("image", "out", "words"),
     [
         (np.zeros((4, 4, 3), np.float32), None, ["uint8", "float32"]),
-        (np.zeros((4, 4, 2), np.uint8), None, ["(H, W, 3)", "(4, 4, 2)"]),
+        (np.zeros((4, 4, 5), np.uint8), None, ["(H, W, 3)", "(4, 4, 5)"]),
         (np.zeros((0, 4, 3), np.uint8), None, ["empty"]),
         (np.zeros((4, 4, 3), np.uint8), np.zeros((4, 5), np.uint8), ["output buffer", "(4, 5)"]),
         (np.zeros((4, 4, 3), np.uint8), np.zeros((4, 4), np.float32), ["output buffer", "float32"]),

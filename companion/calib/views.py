@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from companion.core.stereo import to_bgr
 from companion.errors import CalibrationError, CameraError, InputError
 from companion.interfaces import CameraSource
 
@@ -231,7 +232,7 @@ def capture_views(
             break
         frame = camera.read()
         frames += 1
-        image = frame.image
+        image = to_bgr(frame.image)  # board detection and the saved views need BGR (or grey)
         half = image.shape[1] // 2
         left, right = image[:, :half], image[:, half:]
         pair = pair_views(f"live_{len(kept):03d}", detect_board(left, board), detect_board(right, board))

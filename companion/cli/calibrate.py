@@ -328,6 +328,7 @@ def _live_captures(args: argparse.Namespace) -> tuple[list[Any], list[float]]:
     import csv
 
     from companion.calib.views import StereoImage, open_camera, save_view
+    from companion.core.stereo import to_bgr
 
     if args.frames < 1:
         raise InputError(f"--frames must be >= 1, got {args.frames}")
@@ -346,7 +347,7 @@ def _live_captures(args: argparse.Namespace) -> tuple[list[Any], list[float]]:
             if metres is None:
                 break
             for j in range(args.frames):
-                frame = camera.read().image
+                frame = to_bgr(camera.read().image)  # saved views are for people too: BGR
                 half = frame.shape[1] // 2
                 left, right = frame[:, :half].copy(), frame[:, half:].copy()
                 if args.swap_eyes:

@@ -254,6 +254,7 @@ def _watch(args: argparse.Namespace) -> int:
 
 def _record(args: argparse.Namespace) -> int:
     from companion.config import load_config
+    from companion.core.stereo import to_bgr
     from companion.service.camera import make_camera
     from companion.service.recording import RecordingWriter
 
@@ -281,7 +282,8 @@ def _record(args: argparse.Namespace) -> int:
                 if t_end is not None and time.monotonic() >= t_end:
                     break
                 frame = camera.read()
-                writer.write(frame.image, frame.timestamp_s, frame.seq)
+                # a recording is for people and for replay: BGR (a YUYV camera's frame decoded)
+                writer.write(to_bgr(frame.image), frame.timestamp_s, frame.seq)
             n = writer.frames
     finally:
         camera.close()

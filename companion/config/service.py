@@ -105,6 +105,16 @@ class CameraConfig(StrictModel):
             "lists what a camera offers."
         ),
     )
+    pixels: Literal["luma", "bgr"] = Field(
+        default="luma",
+        description=(
+            "uvc, models zed and sbs, fourcc YUYV: luma: the camera's YUYV bytes are taken as they come "
+            "(OpenCV's CAP_PROP_CONVERT_RGB off) and their Y is the grey the pipeline matches: no colour "
+            "decoding on the CPU, 2 bytes a pixel to the GPU instead of 3; the preview, recordings and "
+            "calibration views decode colour for what they show. bgr: OpenCV decodes every frame to BGR "
+            "first. Other fourccs (MJPG) and model pair always decode to BGR."
+        ),
+    )
     pair_max_skew_ms: float = Field(
         default=8.0,
         gt=0.0,

@@ -371,12 +371,28 @@ def _opencv(size: BenchSize, calib: Path | None, frames: list[np.ndarray], warmu
         t1 = time.perf_counter()
         if i >= warmup:
             cpu_t.append((t1 - t0) * 1e3)
+    # A UVC camera's YUYV frame: what decoding it to BGR costs the host (camera.pixels bgr), and the
+    # CPU estimator on its bytes as they come (camera.pixels luma)
+    yuyv = [cv2.cvtColor(f, cv2.COLOR_BGR2YUV_YUYV) for f in frames]
+    decode_t, cpu_yuyv_t = [], []
+    for i in range(warmup + min(n, 100)):
+        y = yuyv[i % len(yuyv)]
+        t0 = time.perf_counter()
+        cv2.cvtColor(y, cv2.COLOR_YUV2BGR_YUYV)
+        t1 = time.perf_counter()
+        cpu.estimate(y)
+        t2 = time.perf_counter()
+        if i >= warmup:
+            decode_t.append((t1 - t0) * 1e3)
+            cpu_yuyv_t.append((t2 - t1) * 1e3)
     return {
         "threads": threads,
         "stereobm": stats_ms(bm_t),
         "grey_plus_stereobm": stats_ms(grey_bm_t),
         "stereosgbm": stats_ms(sgbm_t),
         "cpu_estimator_opencv_bm": stats_ms(cpu_t),
+        "yuyv_decode_to_bgr": stats_ms(decode_t),
+        "cpu_estimator_opencv_bm_yuyv": stats_ms(cpu_yuyv_t),
     }
 
 
@@ -497,6 +513,14 @@ def run_gpu_bench(args: argparse.Namespace, sizes: list[BenchSize]) -> dict[str,
         pool = e.frame_pool(3)
         whole["frame_in_pool_buffer"] = _time_in_place(e, frames, warmup, n, pool.acquire)
         e.close()
+        # the service's UVC path by default (camera.pixels luma): the camera's YUYV bytes in a pool buffer
+        import cv2
+
+        yuyv = [cv2.cvtColor(f, cv2.COLOR_BGR2YUV_YUYV) for f in frames]
+        e = CupyRegionEstimator(_cfg(size, calib, **opts), size.width_px, size.height_px)
+        pool = e.frame_pool(3, channels=2)
+        whole["yuyv_frame_in_pool_buffer"] = _time_in_place(e, yuyv, warmup, n, pool.acquire)
+        e.close()
         entry["whole_frame"] = whole
         entry["opencv"] = _opencv(size, calib, frames, warmup, n)
         gpu_med = whole["default"]["median_ms"]
@@ -535,7 +559,8 @@ def run_gpu_bench(args: argparse.Namespace, sizes: list[BenchSize]) -> dict[str,
             if k == "default":
                 continue
             rows.append([size.label, f"whole frame {k}", f"{v['median_ms']:.3f}", f"{v['p99_ms']:.3f}"])
-        for k in ("stereobm", "grey_plus_stereobm", "stereosgbm", "cpu_estimator_opencv_bm"):
+        for k in ("stereobm", "grey_plus_stereobm", "stereosgbm", "cpu_estimator_opencv_bm", "yuyv_decode_to_bgr",
+                  "cpu_estimator_opencv_bm_yuyv"):
             v = entry["opencv"][k]
             rows.append([size.label, f"cpu {k} ({entry['opencv']['threads']} thr)", f"{v['median_ms']:.3f}",
                          f"{v['p99_ms']:.3f}"])

@@ -10,7 +10,7 @@ event per band):
    frame written straight into :meth:`CupyRegionEstimator.frame_buffer`, or decoded by the camera
    into one of :meth:`CupyRegionEstimator.frame_pool`'s buffers, skips the host copy;
 2. the compute stream waits for band k's DMA, then ``grey_*`` converts its rows (OpenCV's
-   fixed-point formula, bit-exact), ``remap_linear`` rectifies the rows that depend only on rows
+   fixed-point formula, bit-exact; a YUYV frame's luma as it is), ``remap_linear`` rectifies the rows that depend only on rows
    uploaded so far (bit-exact with ``cv2.remap``; skipped for an ideal rig), and
    ``sad_fast_regions`` matches the disparity rows whose windows are complete, with the region
    histograms fused in; the last block of the last band turns the histograms into the 9 robust
@@ -201,7 +201,7 @@ class CupyRegionEstimator:
         self._module = cp.RawModule(code=defines + kernel_source(), options=("--std=c++17", "--fmad=false"))
         get = self._module.get_function
         self._k_grey = {
-            (1, False): get("grey_c1"), (3, False): get("grey_c3"), (4, False): get("grey_c4"),
+            (1, False): get("grey_c1"), (2, False): get("grey_c2"), (3, False): get("grey_c3"), (4, False): get("grey_c4"),
             (3, True): get("grey_c3_rgb"), (4, True): get("grey_c4_rgb"),
         }
         self._k_remap = get("remap_linear")
@@ -333,7 +333,7 @@ class CupyRegionEstimator:
         self._pool: FramePool | None = None
         self._pool_mem: list[Any] = []
         self._in_place_ptrs: dict[int, int] = {int(self._host_frame_mem.ptr): self._frame_dev_ptr}
-        self._frame_shapes = {self.frame_buffer(c).shape: c for c in (1, 3, 4)}  # shape -> channels
+        self._frame_shapes = {self.frame_buffer(c).shape: c for c in (1, 2, 3, 4)}  # shape -> channels
         self._kernel_frame_ptr = self._frame_dev_ptr  # where this frame's kernels read it
         self._graphs: dict[tuple[int, int, bool, bool, int], Any] = {}
         self._graph_ok = bool(self._gpu_cfg.use_cuda_graph) and not self._gpu_cfg.stage_timing
@@ -417,14 +417,15 @@ class CupyRegionEstimator:
     # public API
 
     def frame_buffer(self, channels: int = 3) -> np.ndarray:
-        """The pinned staging buffer as a writable uint8 ``(H, 2W, channels)`` array (``(H, 2W)`` for 1).
+        """The pinned staging buffer as a writable uint8 ``(H, 2W, channels)`` array (``(H, 2W)`` for 1;
+        2 is YUYV, the bytes a UVC camera sends, 3 BGR, 4 BGRA).
 
         A camera that decodes straight into this array (e.g. ``VideoCapture.read(image=buf)``) and
         passes it to :meth:`estimate` saves the host copy of the frame. Its content is overwritten by
         every :meth:`estimate` of another array.
         """
-        if channels not in (1, 3, 4):
-            raise ValueError(f"channels must be 1, 3 or 4, got {channels}")
+        if channels not in (1, 2, 3, 4):
+            raise ValueError(f"channels must be 1, 2, 3 or 4, got {channels}")
         shape = (self.height_px, 2 * self.width_px) + ((channels,) if channels > 1 else ())
         return self._host_frame[: math.prod(shape)].reshape(shape)
 
@@ -435,7 +436,7 @@ class CupyRegionEstimator:
         processed. Made once; later calls return the same pool (``count`` and ``channels`` of the first).
 
         Raises:
-            ValueError: ``count`` < 1, or ``channels`` not 1, 3 or 4.
+            ValueError: ``count`` < 1, or ``channels`` not 1, 2, 3 or 4.
         """
         if self._pool is not None:
             return self._pool
@@ -468,7 +469,8 @@ class CupyRegionEstimator:
         """9 raw region depths of one side-by-side frame.
 
         Args:
-            frame: uint8 ``(H, 2W, 3)`` BGR, ``(H, 2W, 4)`` BGRA or ``(H, 2W)`` grey, any strides.
+            frame: uint8 ``(H, 2W, 3)`` BGR, ``(H, 2W, 4)`` BGRA, ``(H, 2W, 2)`` YUYV (its luma is the
+                grey, as :func:`~companion.core.stereo.to_grey` takes it) or ``(H, 2W)`` grey, any strides.
             want_disparity: also return the disparity: float32 px, NaN invalid; downsampled by
                 ``gpu.disparity_preview_downsample`` (each cell the largest valid disparity of its
                 block), or at full resolution when that is 0 or 1.
@@ -641,7 +643,7 @@ class CupyRegionEstimator:
         ):
             # The caller's own pages are locked for this frame: DMA straight from them.
             return _Source(frame, staging, None, frame.ctypes.data, False, zero_copy, self._frame_dev_ptr)
-        if self._gpu_cfg.host_copy_engine == "opencv" and channels > 1:
+        if self._gpu_cfg.host_copy_engine == "opencv" and channels in (3, 4):
             import cv2
 
             code = cv2.COLOR_BGR2RGB if channels == 3 else cv2.COLOR_BGRA2RGBA

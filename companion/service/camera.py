@@ -3,7 +3,8 @@ side-by-side camera over V4L2, or a pair of V4L2 cameras), ``replay`` (a recordi
 renderer).
 
 Every ``read`` blocks in the capture thread and returns a :class:`~companion.interfaces.Frame` whose
-image is a uint8 (H, 2W, 3) BGR side-by-side frame, timestamped with ``clock()`` (the process's
+image is a uint8 (H, 2W, 3) BGR side-by-side frame (a UVC camera sending YUYV: its (H, 2W, 2) bytes
+as they come, with ``camera.pixels = "luma"``), timestamped with ``clock()`` (the process's
 monotonic clock, seconds) when it was read. A source never reuses an image array it has handed out
 unless that array is read-only (the consumer may still be processing it).
 """
@@ -28,6 +29,7 @@ from companion.sim.placement import CoursePlacement
 
 if TYPE_CHECKING:
     from companion.config import CompanionConfig
+    from companion.config.service import CameraConfig
     from companion.sim.render import Pose, Scene
 
 log = logging.getLogger(__name__)
@@ -42,12 +44,20 @@ class PoseUnavailable(CameraError):
     """The pose provider has no usable pose now (none received yet, or too old)."""
 
 
-def _check_frame(image: object, source: str, width_px: int, height_px: int) -> np.ndarray:
-    """A frame as the pipeline needs it, or a CameraError naming what is wrong with it."""
-    if not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
+def _check_frame(image: object, source: str, width_px: int, height_px: int, yuyv: bool = False) -> np.ndarray:
+    """A frame as the pipeline needs it, or a CameraError naming what is wrong with it.
+
+    ``yuyv``: the capture was asked for its bytes undecoded: a uint8 (H, 2W, 2) YUYV frame (one that
+    comes flat, (1, H·2W·2), is reshaped), or BGR where the backend decoded it anyway."""
+    if yuyv and isinstance(image, np.ndarray) and image.dtype == np.uint8 and image.ndim == 2 \
+            and image.shape[0] == 1 and image.size == height_px * 2 * width_px * 2:
+        image = image.reshape(height_px, 2 * width_px, 2)
+    channels = (2, 3) if yuyv else (3,)
+    if not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] not in channels:
         shape = getattr(image, "shape", None)
         dtype = getattr(image, "dtype", type(image).__name__)
-        raise CameraError(f"{source}: frame is {dtype} {shape}, expected uint8 (H, 2W, 3) BGR")
+        expected = "(H, 2W, 2) YUYV or (H, 2W, 3) BGR" if yuyv else "(H, 2W, 3) BGR"
+        raise CameraError(f"{source}: frame is {dtype} {shape}, expected uint8 {expected}")
     if image.shape[:2] != (height_px, 2 * width_px):
         raise CameraError(
             f"{source}: frame is {image.shape[1]}x{image.shape[0]}, expected side-by-side "
@@ -129,6 +139,12 @@ class UvcCamera:
     ``sbs``: any mode, checked only against what the driver actually gives. The mode is asked for
     with ``fourcc`` (YUYV for the ZED).
 
+    ``pixels`` ``luma`` (with YUYV): OpenCV hands over the driver's bytes undecoded
+    (``CAP_PROP_CONVERT_RGB`` off), a uint8 (H, 2W, 2) frame whose Y bytes are the grey the pipeline
+    matches: no colour decoding on the CPU, and 2 bytes a pixel for the GPU instead of 3. When the
+    driver settles on another format, or OpenCV will not hand the bytes over, the camera says so once
+    and decodes BGR. ``bgr``: every frame is decoded to BGR.
+
     :attr:`frame_buffers` (set by the service when the GPU backend offers pinned buffers,
     :mod:`companion.framepool`): each frame is decoded straight into one of them, so that the GPU reads
     it with no host copy; when none is free, or OpenCV would not decode into it, into memory of its own.
@@ -144,6 +160,7 @@ class UvcCamera:
         *,
         model: str = "zed",
         fourcc: str = "YUYV",
+        pixels: str = "luma",
         capture_factory: CaptureFactory = _v4l2_capture,
     ):
         self.name = f"uvc:{device}"
@@ -155,13 +172,18 @@ class UvcCamera:
         self.fourcc = fourcc
         self._factory = capture_factory
         self._clock = clock
+        self.pixels = pixels
         self._cap = None
         self._seq = 0
+        self._yuyv = False  # this capture hands over YUYV bytes (pixels "luma", and the driver agreed)
         self.frame_buffers: FrameBuffers | None = None
 
     @property
     def eye_size_px(self) -> tuple[int, int]:
         return (self.width_px, self.height_px)
+
+    def _wants_yuyv(self) -> bool:
+        return self.pixels == "luma" and self.fourcc.upper() == "YUYV"
 
     def open(self) -> None:
         self.close()
@@ -173,22 +195,24 @@ class UvcCamera:
         self._cap = _open_v4l2(
             self._factory, self.device, self.name, 2 * self.width_px, self.height_px, self.fps_hz, self.fourcc, hint
         )
-        log.info("%s: open at %dx%d@%g (%s, side by side)", self.name, 2 * self.width_px, self.height_px,
-                 self.fps_hz, self.fourcc)
+        self._yuyv = self._wants_yuyv() and _hand_over_yuyv(self._cap, self.name)
+        log.info("%s: open at %dx%d@%g (%s, side by side; %s)", self.name, 2 * self.width_px, self.height_px,
+                 self.fps_hz, self.fourcc, "its luma taken as it comes" if self._yuyv else "decoded to BGR")
 
     def read(self) -> Frame:
         cap = self._cap
         if cap is None:
             raise CameraError(f"{self.name}: not open")
         pool = self.frame_buffers
-        buf = pool.acquire((self.height_px, 2 * self.width_px, 3)) if pool is not None else None
+        shape = (self.height_px, 2 * self.width_px, 2 if self._yuyv else 3)
+        buf = pool.acquire(shape) if pool is not None else None
         ok, image = cap.read(buf) if buf is not None else cap.read()
         t = self._clock()
         if not ok or image is None:
             raise CameraError(f"{self.name}: no frame (camera unplugged or stalled)")
         # (OpenCV decodes into buf when its shape and type fit; else it returns an array of its own and
         # buf goes back to the pool when dropped here)
-        image = _check_frame(image, self.name, self.width_px, self.height_px)
+        image = _check_frame(image, self.name, self.width_px, self.height_px, yuyv=self._yuyv)
         self._seq += 1
         return Frame(image=image, timestamp_s=t, seq=self._seq)
 
@@ -196,6 +220,32 @@ class UvcCamera:
         cap, self._cap = self._cap, None
         if cap is not None:
             cap.release()
+
+
+def frame_channels(cam: CameraConfig) -> int:
+    """Bytes per pixel of the frames the configured camera will give: 2 for a UVC camera whose YUYV
+    bytes are taken as they come (``camera.pixels`` luma), else 3 (BGR). (Where the driver then
+    refuses YUYV, the camera decodes BGR after all and its frames go to the GPU through a host copy.)"""
+    yuyv = cam.source == "uvc" and cam.model != "pair" and cam.pixels == "luma" and cam.fourcc.upper() == "YUYV"
+    return 2 if yuyv else 3
+
+
+def _hand_over_yuyv(cap: object, name: str) -> bool:
+    """Ask an open capture for its YUYV bytes undecoded; False (and it decodes BGR, as before) when the
+    driver settled on another format or OpenCV refuses, said once in the log."""
+    import cv2
+
+    got = int(cap.get(cv2.CAP_PROP_FOURCC)) & 0xFFFFFFFF
+    if got != cv2.VideoWriter_fourcc(*"YUYV"):
+        text = "".join(chr((got >> (8 * i)) & 0xFF) for i in range(4)) if got else "no format"
+        log.warning("%s: asked for YUYV but the driver gives %r: decoding BGR (camera.pixels luma needs YUYV)",
+                    name, text)
+        return False
+    if not cap.set(cv2.CAP_PROP_CONVERT_RGB, 0) or cap.get(cv2.CAP_PROP_CONVERT_RGB) != 0:
+        cap.set(cv2.CAP_PROP_CONVERT_RGB, 1)
+        log.warning("%s: OpenCV will not hand over the YUYV bytes undecoded: decoding BGR", name)
+        return False
+    return True
 
 
 # ---------------------------------------------------------------------------------------------- pair
@@ -769,7 +819,7 @@ def make_camera(
                 cfg.calibration.ideal_baseline_m, cfg.calibration.ideal_hfov_deg,
             )
         return UvcCamera(cam.device, cam.width_px, cam.height_px, cam.fps_hz, clock=clock, model=cam.model,
-                         fourcc=cam.fourcc)
+                         fourcc=cam.fourcc, pixels=cam.pixels)
     if cam.source == "replay":
         assert cam.replay_path is not None  # the config validator guarantees it
         if not Path(cam.replay_path).exists():

@@ -344,9 +344,13 @@ class Service(ControlPlane, HealthReporter, PresencePlane):
     def _offer_frame_pool(self, pipeline: Any, cfg: CompanionConfig) -> None:
         """In the pipeline thread: the camera decodes into the estimator's pinned buffers, when it has
         them (the GPU backend) and ``gpu.camera_frame_buffers`` > 0; else into memory of its own."""
+        from companion.service.camera import frame_channels
+
         make_pool = getattr(pipeline.estimator, "frame_pool", None)
         count = cfg.gpu.camera_frame_buffers
-        self._frame_buffers.pool = make_pool(count) if make_pool is not None and count > 0 else None
+        self._frame_buffers.pool = (
+            make_pool(count, channels=frame_channels(cfg.camera)) if make_pool is not None and count > 0 else None
+        )
 
     def _build_pipeline(self, cfg: CompanionConfig) -> Any:
         from companion.backends import make_pipeline

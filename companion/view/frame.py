@@ -136,9 +136,10 @@ def render_preview(inp: PreviewInputs, width_px: int) -> np.ndarray:
         BGR uint8 ``(round(H * width_px / W), width_px, 3)`` for an eye of ``W`` x ``H``.
     """
     from companion.core.overlay import draw_overlay
-    from companion.core.stereo import split_side_by_side
+    from companion.core.stereo import split_side_by_side, to_bgr
 
     left, _ = split_side_by_side(inp.image)
+    left = to_bgr(left)  # a YUYV camera's eye decoded here, off the hot path
     eye_h, eye_w = left.shape[:2]
     k = width_px / eye_w
     height_px = max(1, int(round(eye_h * k)))

@@ -17,7 +17,7 @@ static void naive_thunk(void* p) { NaiveArgs* a = (NaiveArgs*)p; sad_naive(a->rl
 extern "C" void run_naive(const u8* rl, const u8* rr, short* disp, u32 uniq, u32 texmin, int gx, int gy, int bx) {
   NaiveArgs a{rl, rr, disp, uniq, texmin}; emu_launch({(unsigned)gx,(unsigned)gy,1},{(unsigned)bx,1,1}, naive_thunk, &a); }
 struct GreyArgs { const u8* f; u8* l; u8* r; int ch; int yoff; };
-static void grey_thunk(void* p) { GreyArgs* a = (GreyArgs*)p; if (a->ch == 1) grey_c1(a->f, a->l, a->r, a->yoff); else if (a->ch == 3) grey_c3(a->f, a->l, a->r, a->yoff); else if (a->ch == 4) grey_c4(a->f, a->l, a->r, a->yoff); else if (a->ch == 13) grey_c3_rgb(a->f, a->l, a->r, a->yoff); else grey_c4_rgb(a->f, a->l, a->r, a->yoff); }
+static void grey_thunk(void* p) { GreyArgs* a = (GreyArgs*)p; if (a->ch == 1) grey_c1(a->f, a->l, a->r, a->yoff); else if (a->ch == 2) grey_c2(a->f, a->l, a->r, a->yoff); else if (a->ch == 3) grey_c3(a->f, a->l, a->r, a->yoff); else if (a->ch == 4) grey_c4(a->f, a->l, a->r, a->yoff); else if (a->ch == 13) grey_c3_rgb(a->f, a->l, a->r, a->yoff); else grey_c4_rgb(a->f, a->l, a->r, a->yoff); }
 extern "C" void run_grey(int ch, const u8* f, u8* l, u8* r, int gx, int bx, int yoff, int rows) {
   GreyArgs a{f, l, r, ch, yoff}; emu_launch({(unsigned)gx,(unsigned)rows,2},{(unsigned)bx,1,1}, grey_thunk, &a); }
 struct RemapArgs { const u8 *rl, *rr; const float *a, *b, *c, *d; u8 *ol, *orr; int yoff; };

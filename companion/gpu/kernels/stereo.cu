@@ -49,13 +49,15 @@ __device__ __forceinline__ u32 grey_q15(u32 b, u32 g, u32 r) {
 }
 
 // ------------------------------------------------------------------------------------------------
-// 1. BGR (or BGRA, or grey) side-by-side frame -> two grey eye images.
+// 1. BGR (or BGRA, or grey, or YUYV) side-by-side frame -> two grey eye images.
 //
 // frame: uint8 (IMG_H, 2*IMG_W, CH), C-contiguous. out_l/out_r: uint8 rows of PITCH bytes.
 // Grid (ceil(IMG_W/4 / blockDim.x), rows, 2) from row y_off: one thread converts 4 consecutive pixels of one eye
 // row, so it stores one aligned 32-bit word (PITCH is a multiple of 16; bytes past IMG_W land in the
 // row padding, which holds no image data). SWAP: the staging copy swapped R and B (the host copied
 // the frame with OpenCV's parallel BGR->RGB shuffle), so the weights are applied in RGB order.
+// CH 2 is YUYV (Y0 U Y1 V): the grey is the luma byte of each pixel, as companion.core.stereo.to_grey
+// takes it.
 
 template <int CH, bool SWAP>
 __device__ __forceinline__ u32 grey_px(u32 c0, u32 c1, u32 c2) {
@@ -77,6 +79,10 @@ __device__ __forceinline__ void grey_body(const u8* __restrict__ frame, u8* __re
     const u32* s = (const u32*)src;
     if (CH == 1) {
       packed = s[0];
+    } else if (CH == 2) {
+      // bytes: Y0 U0 Y1 V0 | Y2 U2 Y3 V2
+      const u32 w0 = s[0], w1 = s[1];
+      packed = (w0 & 255u) | ((w0 >> 8) & 0xff00u) | ((w1 & 255u) << 16) | ((w1 << 8) & 0xff000000u);
     } else if (CH == 3) {
       const u32 w0 = s[0], w1 = s[1], w2 = s[2];
       // bytes: B0 G0 R0 B1 | G1 R1 B2 G2 | R2 B3 G3 R3
@@ -95,7 +101,7 @@ __device__ __forceinline__ void grey_body(const u8* __restrict__ frame, u8* __re
     for (int i = 0; i < 4; ++i) {
       if (x + i < IMG_W) {
         const u8* p = src + i * CH;
-        const u32 g = (CH == 1) ? (u32)p[0] : grey_px<CH, SWAP>(p[0], p[1], p[2]);
+        const u32 g = (CH <= 2) ? (u32)p[0] : grey_px<CH, SWAP>(p[0], p[1], p[2]);
         packed |= g << (8 * i);
       }
     }
@@ -105,6 +111,9 @@ __device__ __forceinline__ void grey_body(const u8* __restrict__ frame, u8* __re
 
 extern "C" __global__ void grey_c1(const u8* __restrict__ f, u8* __restrict__ l, u8* __restrict__ r, int y_off) {
   grey_body<1, false>(f, l, r, y_off);
+}
+extern "C" __global__ void grey_c2(const u8* __restrict__ f, u8* __restrict__ l, u8* __restrict__ r, int y_off) {
+  grey_body<2, false>(f, l, r, y_off);
 }
 extern "C" __global__ void grey_c3(const u8* __restrict__ f, u8* __restrict__ l, u8* __restrict__ r, int y_off) {
   grey_body<3, false>(f, l, r, y_off);
