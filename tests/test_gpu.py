@@ -567,6 +567,48 @@ def test_sgm_disparity_equals_reference_on_random_pairs(size: tuple[int, int], D
         np.testing.assert_array_equal(res.disparity, fixed_to_float(ref))
 
 
+def test_kernels_built_for_an_older_gpu_equal_the_reference(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # The kernels as NVRTC builds them for the oldest compute capability it still targets among a
+    # Jetson Nano's 5.3, a Xavier's 7.2 and Turing's 7.5 (CUDA 13 dropped everything before 7.5):
+    # PTX without the sm_80 warp minimum and the sm_90 DPX minima, compiled by the driver for this
+    # GPU. Every stage against the CPU reference: grey (BGR and YUYV), rectification, SGM with 4 and
+    # 8 paths, SAD, the region depths.
+    import cupy
+
+    from companion.errors import BackendError
+
+    compiler = cupy.cuda.compiler
+    if not hasattr(compiler, "_get_arch") or not hasattr(compiler, "_use_ptx"):
+        pytest.skip("this CuPy chooses the architecture differently")
+    monkeypatch.setattr(compiler, "_use_ptx", True)
+    w, h = 320, 180
+    rng = np.random.default_rng(53)
+    calib = _write_calibration(tmp_path, w, h)
+    frames = [_bgr_frame(h, w, rng)]
+    frames.append(cv2.cvtColor(frames[0], cv2.COLOR_BGR2YUV_YUYV))
+    for arch in ("53", "72", "75"):
+        monkeypatch.setattr(compiler, "_get_arch", lambda arch=arch: arch)
+        try:
+            _gpu(_cfg(D=16), w, h)
+        except BackendError as err:
+            assert "--gpu-architecture" in str(err)
+            continue
+        break
+    else:
+        pytest.fail("NVRTC built none of compute capability 5.3, 7.2 and 7.5")
+    for matcher, sgm in [("sgm", {}), ("sgm", {"sgm_paths": 8}), ("sad", {})]:
+        cfg = _cfg(D=64, matcher=matcher, sgm=sgm, calib=calib)
+        est, cpu = _gpu(cfg, w, h), _cpu(cfg, w, h)
+        kernels = [est._k_grey[(2, False)], *(est._k_sgm.values() if matcher == "sgm" else [])]
+        assert {int(k.attributes["ptx_version"]) for k in kernels} == {int(arch)}  # not this GPU's
+        for frame in frames:
+            res = est.estimate(frame, want_disparity=True)
+            exp = cpu.estimate(frame, want_disparity=True)
+            np.testing.assert_array_equal(res.disparity, exp.disparity, err_msg=f"{arch} {matcher} {sgm}")
+            _assert_regions_equal(res.regions, exp.regions)
+    print(f"kernels built for compute capability {arch[0]}.{arch[1]}")
+
+
 def test_sgm_ties_flat_and_periodic_patches() -> None:
     h, w = 60, 200
     rng = np.random.default_rng(5)
