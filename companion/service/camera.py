@@ -182,9 +182,6 @@ class UvcCamera:
     def eye_size_px(self) -> tuple[int, int]:
         return (self.width_px, self.height_px)
 
-    def _wants_yuyv(self) -> bool:
-        return self.pixels == "luma" and self.fourcc.upper() == "YUYV"
-
     def open(self) -> None:
         self.close()
         if self.model == "zed":
@@ -195,7 +192,7 @@ class UvcCamera:
         self._cap = _open_v4l2(
             self._factory, self.device, self.name, 2 * self.width_px, self.height_px, self.fps_hz, self.fourcc, hint
         )
-        self._yuyv = self._wants_yuyv() and _hand_over_yuyv(self._cap, self.name)
+        self._yuyv = _wants_yuyv(self.pixels, self.fourcc) and _hand_over_yuyv(self._cap, self.name)
         log.info("%s: open at %dx%d@%g (%s, side by side; %s)", self.name, 2 * self.width_px, self.height_px,
                  self.fps_hz, self.fourcc, "its luma taken as it comes" if self._yuyv else "decoded to BGR")
 
@@ -226,8 +223,13 @@ def frame_channels(cam: CameraConfig) -> int:
     """Bytes per pixel of the frames the configured camera will give: 2 for a UVC camera whose YUYV
     bytes are taken as they come (``camera.pixels`` luma), else 3 (BGR). (Where the driver then
     refuses YUYV, the camera decodes BGR after all and its frames go to the GPU through a host copy.)"""
-    yuyv = cam.source == "uvc" and cam.model != "pair" and cam.pixels == "luma" and cam.fourcc.upper() == "YUYV"
+    yuyv = cam.source == "uvc" and cam.model != "pair" and _wants_yuyv(cam.pixels, cam.fourcc)
     return 2 if yuyv else 3
+
+
+def _wants_yuyv(pixels: str, fourcc: str) -> bool:
+    """``camera.pixels`` asks for the YUYV bytes as they come, and the camera is asked for YUYV."""
+    return pixels == "luma" and fourcc.upper() == "YUYV"
 
 
 def _hand_over_yuyv(cap: object, name: str) -> bool:
