@@ -13,12 +13,17 @@ course line (the simulated camera's noise and eye gain mismatch, no flight), sco
 eval`` against the renderer's depth: density and bad-2 over the pixels, and per region the classes
 (near / far / unknown) from the output and from the ground truth: a **phantom** is a region the output
 calls near that the ground truth calls far; **unknown** one the output leaves unknown (which the
-controller treats as near) that the ground truth knows.
+controller treats as near) that the ground truth knows.  Then the obstacle memory's input, its
+blocks of nearest disparity (:func:`~companion.core.evaluation.memory_block_report`): the share too
+near, where they lie (a depth edge smeared onto what is behind it, a plain or a textured surface), and
+the share of near surfaces seen; with ``--block-erode-px 0,1,2``, also of the disparity eroded along
+rows first (``memory.block_erode_px``, under study).
 
 Usage::
 
     python tools/hard_surface_study.py --config C.toml [--suite standard] [--kinds office] [--workers 2]
     python tools/hard_surface_study.py --frames [--backends opencv-bm,reference] [--kinds office,doorway]
+        [--block-erode-px 0,1]
 
 Figures of 2026-11-23 are in docs/history.md ("Hard surfaces").
 """
@@ -104,11 +109,12 @@ def _frame_poses(kind: str, seed: int) -> list[tuple[float, float]]:
             (wall_n - 3.0, gap_e), (wall_n - 1.5, gap_e)]
 
 
-def _frames(args: tuple[str, int, dict, list[str]]) -> list[dict[str, object]]:
-    kind, seed, cfg_data, backends = args
+def _frames(args: tuple[str, int, dict, list[str], list[int]]) -> list[dict[str, object]]:
+    kind, seed, cfg_data, backends, erosions = args
     from companion.backends import make_estimator
     from companion.config import apply_patch, parse_config
-    from companion.core.evaluation import GroundTruthPair, disparity_metrics, region_report
+    from companion.core.evaluation import GroundTruthPair, disparity_metrics, memory_block_report, region_report
+    from companion.core.memory import erode_rows
     from companion.sim.camera import make_texture_bank
     from companion.sim.courses import make_course
     from companion.sim.loop import simulator_config
@@ -135,12 +141,18 @@ def _frames(args: tuple[str, int, dict, list[str]]) -> list[dict[str, object]]:
             disp = est.estimate(frame, want_disparity=True).disparity
             met = disparity_metrics(disp, gt, cfg.stereo.num_disparities)
             reg = region_report(disp, pair, cfg)
+            blocks = {
+                k: memory_block_report(erode_rows(disp, k), gt, cfg.memory.block_px,
+                                       geo.focal_baseline_px_m / cfg.memory.max_depth_m, left=pair.left)
+                for k in erosions
+            }
             rows.append({
                 "kind": kind, "backend": b, "density": met["density_matchable"], "bad2": met["bad2_matchable"],
                 "phantom": sum(r["class"] == "near" and r["gt_class"] == "far" for r in reg["regions"]),
                 "unknown": sum(r["class"] == "unknown" and r["gt_class"] != "unknown" for r in reg["regions"]),
                 "missed": sum(r["class"] == "far" and r["gt_class"] == "near" for r in reg["regions"]),
                 "decision_differs": reg["decision"]["kind"] != reg["gt_decision"]["kind"],
+                "blocks": blocks,
             })
     return rows
 
@@ -153,7 +165,8 @@ def frames_main(args: argparse.Namespace) -> int:
     seeds = range(args.seeds)
     data = cfg.model_dump(mode="json")
     with mp.get_context("spawn").Pool(args.workers) as pool:
-        out = pool.map(_frames, [(k, s, data, backends) for k in kinds for s in seeds], chunksize=1)
+        erosions = [int(x) for x in args.block_erode_px.split(",")]
+        out = pool.map(_frames, [(k, s, data, backends, erosions) for k in kinds for s in seeds], chunksize=1)
     rows = [r for part in out for r in part]
     print(f"seeds 0..{args.seeds - 1}; density and bad-2 over matchable pixels (mean of frames); regions of 9 per frame")
     print("kind      backend       frames  density  bad-2   phantom near  unknown  missed near  decision differs")
@@ -165,6 +178,19 @@ def frames_main(args: argparse.Namespace) -> int:
                   f"  {100 * np.nanmean([r['bad2'] for r in sel]):4.1f} %"
                   f"  {sum(r['phantom'] for r in sel):12d}  {sum(r['unknown'] for r in sel):7d}"
                   f"  {sum(r['missed'] for r in sel):11d}  {sum(r['decision_differs'] for r in sel):6d}")
+    print(f"\nthe memory's blocks ({cfg.memory.block_px} px, each its nearest disparity): too near = nearer than every "
+          f"surface in it by > 1 px; at a jump: within 6 px of a depth edge; plain: texture < 4 grey levels; "
+          f"seen: of the blocks with a surface nearer than {cfg.memory.max_depth_m} m, within 1 px")
+    print("kind      backend       erode  blocks/frame  too near  at a jump  plain  textured  near seen")
+    for kind in kinds:
+        for b in backends:
+            sel = [r for r in rows if r["kind"] == kind and r["backend"] == b]
+            for k in erosions:
+                t = {key: sum(r["blocks"][k][key] for r in sel) for key in sel[0]["blocks"][k]}
+                tn = max(t["too_near"], 1.0)
+                print(f"{kind:9s} {b:12s} ±{k} px  {t['blocks'] / len(sel):12.0f}  {100 * t['too_near'] / t['blocks']:6.1f} %"
+                      f"  {100 * t['too_near_at_jump'] / tn:7.0f} %  {100 * t['too_near_plain'] / tn:3.0f} %"
+                      f"  {100 * t['too_near_textured'] / tn:6.0f} %  {100 * t['near_seen'] / max(t['near'], 1.0):7.1f} %")
     return 0
 
 
@@ -177,6 +203,8 @@ def main() -> int:
     ap.add_argument("--frames", action="store_true", help="single frames from fixed poses (module doc)")
     ap.add_argument("--backends", default="opencv-bm,reference", help="--frames: backends to score")
     ap.add_argument("--seeds", type=int, default=9, help="--frames: seeds 0..N-1 of each kind")
+    ap.add_argument("--block-erode-px", default="0", help="--frames: also score the memory's blocks of the "
+                    "disparity eroded along rows by these ±px (comma-separated; 0 = as the backend gives it)")
     args = ap.parse_args()
     if args.frames:
         return frames_main(args)

@@ -42,6 +42,7 @@ from companion.config import CompanionConfig
 from companion.core.depth import disparity_to_depth
 from companion.core.fuzzy.avoidance import AvoidanceController
 from companion.core.geometry import StereoGeometry
+from companion.core.memory import block_max
 from companion.core.regions import reduce_regions, region_layout
 from companion.core.types import REGION_NAMES
 from companion.errors import InputError
@@ -385,6 +386,85 @@ def disparity_metrics(disparity: np.ndarray, gt: np.ndarray, num_disparities: in
         res[f"too_near_{label}"] = float((e[bad] > 0).mean()) if bad.any() else math.nan
     res["mean_abs_err_known"] = float(np.abs(err[out & known]).mean()) if (out & known).any() else math.nan
     return res
+
+
+def memory_block_report(
+    disparity: np.ndarray,
+    gt: np.ndarray,
+    block_px: int,
+    near_px: float,
+    left: np.ndarray | None = None,
+    jump_px: float = 1.0,
+    band_px: int = 6,
+    plain_grey: float = 4.0,
+) -> dict[str, float]:
+    """The obstacle memory's input (:func:`~companion.core.memory.block_max`: each block's nearest
+    disparity) from ``disparity`` against the same reduction of the ground truth.
+
+    A block is **too near** when its disparity exceeds the ground truth's largest in the block by more
+    than 1 px (nearer than every surface in it): what narrows a door on the detour layer's map. It lies
+    **at a jump** when it touches a pixel within ``band_px`` of a ground-truth disparity jump of more
+    than ``jump_px`` between neighbours (a foreground edge smeared onto what is behind it); else, with
+    ``left``, on a **plain** surface when the block's texture (mean ``|horizontal grey difference|``)
+    is below ``plain_grey``. A block whose ground truth is at least ``near_px`` (a surface near enough
+    to remember) is **seen** when the output is within 1 px of it or nearer.
+
+    Args:
+        disparity: float32 ``(H, W)`` output, px, NaN = none.
+        gt: float32 ``(H, W)`` ground truth, px, NaN = unknown.
+        block_px: the memory's block side, px.
+        near_px: ground-truth disparity of the farthest surface that counts as near, px.
+        left: uint8 ``(H, W)`` the left image, for the plain/textured split; None: no split.
+        jump_px, band_px, plain_grey: see above; px, px, grey levels.
+
+    Returns:
+        ``{"blocks", "too_near", "too_near_at_jump", "too_near_plain", "too_near_textured", "near",
+        "near_seen"}``, counts of blocks (the split of ``too_near`` off jumps is NaN without ``left``).
+    """
+    if disparity.shape != gt.shape:
+        raise ValueError(f"disparity {disparity.shape} and ground truth {gt.shape} differ in shape")
+    g = np.where(np.isfinite(gt), gt, np.nan).astype(np.float32)
+    jump = np.zeros(g.shape, np.uint8)
+    with np.errstate(invalid="ignore"):
+        jump[:, 1:] |= np.abs(np.diff(g, axis=1)) > jump_px
+        jump[1:, :] |= np.abs(np.diff(g, axis=0)) > jump_px
+    k = 2 * int(band_px) + 1
+    band = cv2.dilate(jump, np.ones((k, k), np.uint8)).astype(np.float32)
+    out_b = block_max(disparity, block_px)
+    gt_b = block_max(g, block_px)
+    at_jump = block_max(band, block_px) > 0
+    valid = np.isfinite(out_b)
+    with np.errstate(invalid="ignore"):
+        too_near = valid & (out_b > np.nan_to_num(gt_b, nan=-np.inf) + 1.0)
+        near = np.nan_to_num(gt_b, nan=-1.0) >= near_px
+        seen = near & (np.nan_to_num(out_b, nan=-np.inf) >= gt_b - 1.0)
+    res = {
+        "blocks": float(valid.sum()),
+        "too_near": float(too_near.sum()),
+        "too_near_at_jump": float((too_near & at_jump).sum()),
+        "too_near_plain": math.nan,
+        "too_near_textured": math.nan,
+        "near": float(near.sum()),
+        "near_seen": float(seen.sum()),
+    }
+    if left is not None:
+        diff = np.zeros(left.shape, np.float32)
+        diff[:, 1:] = np.abs(np.diff(left.astype(np.float32), axis=1))
+        plain = _block_mean(diff, block_px) < plain_grey
+        off = too_near & ~at_jump
+        res["too_near_plain"] = float((off & plain).sum())
+        res["too_near_textured"] = float((off & ~plain).sum())
+    return res
+
+
+def _block_mean(a: np.ndarray, b: int) -> np.ndarray:
+    """Mean of each ``b × b`` block of a float32 image (partial edge blocks: over the whole block, zeros
+    outside), float32 ``(ceil(H/b), ceil(W/b))``."""
+    h, w = a.shape
+    oh, ow = -(-h // b), -(-w // b)
+    pad = np.zeros((oh * b, ow * b), np.float32)
+    pad[:h, :w] = a
+    return pad.reshape(oh, b, ow, b).mean(axis=(1, 3), dtype=np.float64).astype(np.float32)
 
 
 def depth_from_disparity(disparity: np.ndarray, focal_baseline_px_m: float, doffs_px: float = 0.0) -> np.ndarray:
