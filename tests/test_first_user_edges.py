@@ -40,7 +40,7 @@ class _ScriptedEstimator:
         self.layout = region_layout(self.geometry, CompanionConfig().regions)
         self._centre = iter(centre_m)
 
-    def estimate(self, frame, want_disparity: bool = False, near_block_px: int = 0):
+    def estimate(self, frame, want_disparity: bool = False, near_block_px: int = 0, near_erode_px: int = 0):
         from companion.core.estimator import RegionEstimate
 
         depth = np.full(9, 5.0)

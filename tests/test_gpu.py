@@ -450,6 +450,30 @@ def test_memory_blocks_equal_the_cpu_reference(preview: int, block: int) -> None
     np.testing.assert_array_equal(res.near_blocks, block_max(_ref_float(left, right, cfg), block))
 
 
+@pytest.mark.parametrize("matcher", ["sad", "sgm"])
+@pytest.mark.parametrize(("preview", "block", "erode"), [(4, 4, 1), (4, 8, 2), (0, 4, 1)])
+def test_eroded_memory_blocks_equal_the_cpu_reference(matcher: str, preview: int, block: int, erode: int) -> None:
+    """With ``memory.block_erode_px``, ``near_blocks`` is :func:`block_max` of the reference disparity
+    eroded along rows, whether the device eroded and reduced it (preview factor) or the host did; the
+    preview itself is not eroded."""
+    from companion.core.memory import block_max
+
+    w, h = 330, 190
+    left, right = _textured_pair(h, w, np.random.default_rng(14))
+    cfg = _cfg(D=64, matcher=matcher, disparity_preview_downsample=preview)
+    cfg = cfg.model_copy(update={"memory": cfg.memory.model_copy(update={"block_px": block, "block_erode_px": erode})})
+    est = _gpu(cfg, w, h)
+    frame = _grey_frame(left, right)
+    res = est.estimate(frame, want_disparity=True, near_block_px=block, near_erode_px=erode)
+    ref = fixed_to_float(_sgm_ref(left, right, cfg)) if matcher == "sgm" else _ref_float(left, right, cfg)
+    np.testing.assert_array_equal(res.near_blocks, block_max(ref, block, erode))
+    f = max(preview, 1)
+    if f > 1:
+        np.testing.assert_array_equal(res.disparity, block_max(ref, f))
+    plain = est.estimate(frame, near_block_px=block)  # a reload that turns erosion off: its own graph
+    np.testing.assert_array_equal(plain.near_blocks, block_max(ref, block))
+
+
 def test_memory_block_size_must_suit_the_preview_factor() -> None:
     from companion.errors import ConfigError
 

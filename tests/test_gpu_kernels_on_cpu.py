@@ -71,6 +71,20 @@ def test_grey_kernel_source_equals_to_grey(w: int, channels: int) -> None:
     np.testing.assert_array_equal(gr, to_grey(right))
 
 
+# 4 px blocks as the memory's; 3 on 50 x 19: partial edge blocks; erosion reaching past a block and the image
+@pytest.mark.parametrize(("w", "h", "f", "k"), [(64, 20, 4, 1), (50, 19, 3, 2), (40, 9, 4, 4)])
+def test_memory_blocks_kernel_source_equals_block_max_of_the_eroded_disparity(w: int, h: int, f: int, k: int) -> None:
+    from companion.core.memory import block_max
+    from companion.gpu.hostemu import HostKernels
+
+    rng = np.random.default_rng([w, k])
+    disp = rng.integers(-1, 40, (h, w)).astype(np.int16)
+    disp[rng.random((h, w)) < 0.2] = -1  # invalid pixels: the smallest
+    out = HostKernels(w, h, 16, 5, 10, 3, [0, 3, 6, h], [0, w // 3, 2 * w // 3, w]).memory_blocks(disp, f, k)
+    ref = np.where(disp < 0, np.nan, disp).astype(np.float32)
+    np.testing.assert_array_equal(out, block_max(ref, f, k))
+
+
 @pytest.mark.parametrize(
     ("w", "h", "d", "paths", "p1", "p2", "u", "lr", "median", "lanes", "prefetch"),
     [

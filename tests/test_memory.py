@@ -66,6 +66,61 @@ def test_block_max_reuses_its_buffers_and_checks_the_shape() -> None:
         bm(np.ones((8, 9), np.float32))
 
 
+def test_eroded_blocks_drop_a_lone_spike_and_a_smeared_edge_but_keep_a_wide_surface() -> None:
+    """``erode_px`` = 1: a pixel counts only where its row neighbours are as near (NaN the smallest),
+    so a one-pixel spike and a one-pixel fringe smeared into the next block give no block their
+    depth; a 6 px post still does, and a 2 px one, narrower than the erosion's 3 px, is lost."""
+    d = np.full((4, 24), 5.0, np.float32)
+    d[:, 2] = 30.0  # a spike in block 0 (columns 0-3)
+    d[:, 12:18] = 20.0  # a post over blocks 3 and 4 (columns 12-17)
+    d[:, 11] = 20.0  # its fringe, smeared into block 2
+    d[1, 21] = np.nan  # an invalid pixel: its row neighbours become invalid; the block keeps its other rows
+    np.testing.assert_array_equal(block_max(d, 4)[0], [30.0, 5.0, 20.0, 20.0, 20.0, 5.0])
+    np.testing.assert_array_equal(block_max(d, 4, erode_px=1)[0], [5.0, 5.0, 5.0, 20.0, 20.0, 5.0])
+    d[:, 11:18] = 5.0
+    d[:, 12:14] = 20.0  # a 2 px post
+    np.testing.assert_array_equal(block_max(d, 4, erode_px=1)[0], [5.0, 5.0, 5.0, 5.0, 5.0, 5.0])
+    bm = BlockMax((4, 24), 4, erode_px=1)
+    assert bm(d) is bm(d) and bm.erode_px == 1
+    with pytest.raises(ValueError, match="erode_px"):
+        BlockMax((4, 24), 4, erode_px=-1)
+
+
+def test_the_memory_gets_eroded_blocks_from_the_cpu_estimator_when_configured() -> None:
+    """``memory.block_erode_px`` reaches the estimator: its ``near_blocks`` are those of the eroded
+    disparity, and a reload that changes only the memory section changes them on the next frame."""
+    from companion.backends import make_estimator
+    from companion.core.pipeline import Pipeline
+
+    cfg = parse_config({"stereo": {"backend": "reference"}})
+    w, h = 96, 48
+    rng = np.random.default_rng(5)
+    left = rng.integers(0, 256, (h, w), dtype=np.uint8)
+    right = np.roll(left, -6, axis=1)
+    frame = np.ascontiguousarray(np.hstack([left, right]))
+    seen: list[np.ndarray] = []
+    pipe = Pipeline(cfg, w, h, make_estimator=make_estimator)
+    inner = pipe.estimator
+
+    class _Spy:
+        geometry, layout, name = inner.geometry, inner.layout, inner.name
+
+        def estimate(self, frame, want_disparity=False, near_block_px=0, near_erode_px=0):  # type: ignore[no-untyped-def]
+            res = inner.estimate(frame, want_disparity=True, near_block_px=near_block_px, near_erode_px=near_erode_px)
+            seen.append((res.disparity, res.near_blocks.copy(), near_erode_px))
+            return res
+
+    pipe.estimator = _Spy()  # type: ignore[assignment]
+    pipe.process(frame, 0.0)
+    disp, blocks, k = seen[-1]
+    assert k == 0 and np.array_equal(blocks, block_max(disp, 4), equal_nan=True)
+    pipe.reconfigure(parse_config({"stereo": {"backend": "reference"}, "memory": {"block_erode_px": 2}}))
+    pipe.estimator = _Spy()  # type: ignore[assignment]
+    pipe.process(frame, 0.1)
+    disp, blocks, k = seen[-1]
+    assert k == 2 and np.array_equal(blocks, block_max(disp, 4, 2), equal_nan=True)
+
+
 def blocks_with(disparity_px: float | None, rows: slice = slice(6, 10), cols: slice = slice(26, 30)) -> np.ndarray:
     """A 16 x 32 block image (128 x 64 eye at 4 px): far background (1 px) and one near patch."""
     b = np.full((16, 32), 1.0, np.float32)

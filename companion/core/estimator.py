@@ -40,7 +40,8 @@ class RegionEstimate:
             estimator may return a downsampled image.
         near_blocks: when asked for with ``near_block_px``: float32 ``(ceil(H/b), ceil(W/b))`` the
             largest valid disparity of each ``b``-pixel block, pixels, NaN none
-            (:class:`~companion.core.memory.BlockMax`); a buffer valid until the next estimate.
+            (:class:`~companion.core.memory.BlockMax`, eroded by ``near_erode_px``); a buffer valid
+            until the next estimate.
         obstacle: the frame's OBSTACLE_DISTANCE bins (:mod:`companion.core.obstacle`), or None when
             ``obstacle_distance.send`` is off (or the backend does not compute them).
     """
@@ -59,9 +60,12 @@ class RegionEstimator(Protocol):
     geometry: StereoGeometry
     layout: RegionLayout
 
-    def estimate(self, frame: np.ndarray, want_disparity: bool = False, near_block_px: int = 0) -> RegionEstimate:
+    def estimate(
+        self, frame: np.ndarray, want_disparity: bool = False, near_block_px: int = 0, near_erode_px: int = 0
+    ) -> RegionEstimate:
         """``frame``: uint8 (H, 2W, 3) BGR or (H, 2W) grey side-by-side image; ``near_block_px`` > 0
-        also returns the block-maximum disparity (the obstacle memory's input)."""
+        also returns the block-maximum disparity (the obstacle memory's input), of the disparity
+        eroded along rows by ``near_erode_px`` (:class:`~companion.core.memory.BlockMax`)."""
         ...
 
 
@@ -96,7 +100,9 @@ class CpuRegionEstimator:
             else None
         )
 
-    def estimate(self, frame: np.ndarray, want_disparity: bool = False, near_block_px: int = 0) -> RegionEstimate:
+    def estimate(
+        self, frame: np.ndarray, want_disparity: bool = False, near_block_px: int = 0, near_erode_px: int = 0
+    ) -> RegionEstimate:
         clock = self._clock
         timings: dict[str, float] = {}
         t0 = clock()
@@ -115,8 +121,9 @@ class CpuRegionEstimator:
         regions = reduce_regions(depth, self.layout, self._regions_cfg)
         near = None
         if near_block_px > 0:
-            if self._block_max is None or self._block_max.block_px != near_block_px:
-                self._block_max = BlockMax(disp.shape, near_block_px)
+            bm = self._block_max
+            if bm is None or bm.block_px != near_block_px or bm.erode_px != near_erode_px:
+                self._block_max = BlockMax(disp.shape, near_block_px, near_erode_px)
             near = self._block_max(disp)
         t4 = clock()
         timings["regions_ms"] = (t4 - t3) * 1e3

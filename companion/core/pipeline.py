@@ -192,7 +192,12 @@ class Pipeline:
         if near is None:
             est = self.estimator.estimate(frame, want_disparity=want_disparity)
         else:
-            est = self.estimator.estimate(frame, want_disparity=want_disparity, near_block_px=near.cfg.block_px)
+            est = self.estimator.estimate(
+                frame,
+                want_disparity=want_disparity,
+                near_block_px=near.cfg.block_px,
+                near_erode_px=near.cfg.block_erode_px,
+            )
         t1 = clock()
         looked_up = self._lut.apply(est.regions.depth_m)
         median = median_filter(self._history, looked_up, self.config.lut.median_frames)

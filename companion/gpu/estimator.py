@@ -210,6 +210,7 @@ class CupyRegionEstimator:
         self._k_naive = get("sad_naive")
         self._k_regions = get("regions_from_disp")
         self._k_preview = get("preview_max")
+        self._k_memory = get("memory_max")
         if self.sgm_plan is not None:
             sp = self.sgm_plan
             self._sgm_module = cp.RawModule(
@@ -315,6 +316,10 @@ class CupyRegionEstimator:
             self._preview_dev = cp.empty((oh, ow), dtype=cp.float32)
             self._preview_host_mem = cp.cuda.alloc_pinned_memory(oh * ow * 4)
             self._preview_host = np.frombuffer(self._preview_host_mem, dtype=np.float32, count=oh * ow).reshape(oh, ow)
+            # The memory's eroded blocks (memory.block_erode_px, which a reload may switch on: always here).
+            self._memory_dev = cp.empty((oh, ow), dtype=cp.float32)
+            self._memory_host_mem = cp.cuda.alloc_pinned_memory(oh * ow * 4)
+            self._memory_host = np.frombuffer(self._memory_host_mem, dtype=np.float32, count=oh * ow).reshape(oh, ow)
         else:
             self._disp_host_mem = cp.cuda.alloc_pinned_memory(h * w * 2)
             self._disp_host = np.frombuffer(self._disp_host_mem, dtype=np.int16, count=h * w).reshape(h, w)
@@ -465,7 +470,9 @@ class CupyRegionEstimator:
         mapped = int(cp.cuda.runtime.pointerGetAttributes(mem.ptr).devicePointer) if zero_copy else 0
         return mem, array, mapped
 
-    def estimate(self, frame: np.ndarray, want_disparity: bool = False, near_block_px: int = 0) -> RegionEstimate:
+    def estimate(
+        self, frame: np.ndarray, want_disparity: bool = False, near_block_px: int = 0, near_erode_px: int = 0
+    ) -> RegionEstimate:
         """9 raw region depths of one side-by-side frame.
 
         Args:
@@ -478,6 +485,8 @@ class CupyRegionEstimator:
                 block of this many pixels (the obstacle memory's input; a multiple of the preview
                 factor, which the device computes); the CPU reference is
                 :func:`~companion.core.memory.block_max`.
+            near_erode_px: the memory's blocks of the disparity eroded along rows by this many pixels
+                (:class:`~companion.core.memory.BlockMax`; on the device with a preview).
 
         Returns:
             :class:`~companion.core.estimator.RegionEstimate` with ``timings_ms``: ``upload_ms`` (host
@@ -498,7 +507,7 @@ class CupyRegionEstimator:
             channels = in_place[0]
         timings: dict[str, float] = {}
         try:
-            return self._estimate(frame, channels, in_place, want_disparity, near_block_px, t0, timings)
+            return self._estimate(frame, channels, in_place, want_disparity, near_block_px, near_erode_px, t0, timings)
         finally:
             if self._registered:  # an error left the caller's frame page-locked: wait, then unlock
                 try:
@@ -516,12 +525,15 @@ class CupyRegionEstimator:
         in_place: tuple[int, int, int] | None,
         want_disparity: bool,
         near_block_px: int,
+        near_erode_px: int,
         t0: float,
         timings: dict[str, float],
     ) -> RegionEstimate:
         cp = self._cp
         # The memory's blocks come from the same device disparity and preview as an overlay's.
         want_device_disparity = want_disparity or near_block_px > 0
+        # The device erodes and reduces the memory's blocks where it reduces the preview's.
+        erode = int(near_erode_px) if near_block_px > 0 and self._preview_factor > 1 else 0
         clock = self._clock
         comp = self._stream
         try:
@@ -531,7 +543,7 @@ class CupyRegionEstimator:
                 ev = self._events
                 frame_graph = None
                 if self._frame_graph_ok and src.copy is None and not self._registered:
-                    frame_graph = self._frame_graph(src, channels, want_device_disparity)
+                    frame_graph = self._frame_graph(src, channels, want_device_disparity, erode)
                 if frame_graph is not None:
                     frame_graph.launch(comp)
                 else:
@@ -539,11 +551,11 @@ class CupyRegionEstimator:
                         self._upload_band(src, band, self._band_events[k])
                         comp.wait_event(self._band_events[k])
                         if ev:
-                            self._enqueue_band(k, channels, src.swapped, want_device_disparity, events=ev)
+                            self._enqueue_band(k, channels, src.swapped, want_device_disparity, erode, events=ev)
                         elif self._graph_ok:
-                            self._graph(k, channels, src.swapped, want_device_disparity).launch(comp)
+                            self._graph(k, channels, src.swapped, want_device_disparity, erode).launch(comp)
                         else:
-                            self._enqueue_band(k, channels, src.swapped, want_device_disparity)
+                            self._enqueue_band(k, channels, src.swapped, want_device_disparity, erode)
                 t1 = clock()
                 try:
                     comp.synchronize()
@@ -564,7 +576,7 @@ class CupyRegionEstimator:
         res = self._result
         regions = RegionDepths(depth_m=res[:N_REGIONS].copy(), valid_fraction=res[N_REGIONS:].copy())
         disparity = self._host_disparity() if want_disparity else None
-        near = self._near_blocks(near_block_px) if near_block_px > 0 else None
+        near = self._near_blocks(near_block_px, int(near_erode_px)) if near_block_px > 0 else None
         obstacle = None
         lay = self.obstacle_layout
         if lay is not None:
@@ -703,32 +715,32 @@ class CupyRegionEstimator:
             ptr, self._registered = self._registered, 0
             self._cp.cuda.runtime.hostUnregister(ptr)
 
-    def _graph(self, k: int, channels: int, swapped: bool, want_disparity: bool) -> Any:
-        key = (k, channels, swapped, want_disparity, self._kernel_frame_ptr)  # a pool buffer read in place: its own
+    def _graph(self, k: int, channels: int, swapped: bool, want_disparity: bool, erode: int) -> Any:
+        key = (k, channels, swapped, want_disparity, erode, self._kernel_frame_ptr)  # a pool buffer read in place: its own
         graph = self._graphs.get(key)
         if graph is None:
             stream = self._stream
             try:
                 stream.begin_capture()
                 try:
-                    self._enqueue_band(k, channels, swapped, want_disparity)
+                    self._enqueue_band(k, channels, swapped, want_disparity, erode)
                 finally:
                     graph = stream.end_capture()
             except Exception as err:  # capture unsupported here: plain launches from now on
                 log.warning("CUDA graph capture failed (%s); using plain kernel launches", err)
                 self._graph_ok = False
-                return _Direct(self, k, channels, swapped, want_disparity)
+                return _Direct(self, k, channels, swapped, want_disparity, erode)
             self._graphs[key] = graph
         return graph
 
-    def _frame_graph(self, src: _Source, channels: int, want_disparity: bool) -> Any | None:
+    def _frame_graph(self, src: _Source, channels: int, want_disparity: bool, erode: int) -> Any | None:
         """One CUDA graph for a whole frame read in place from a pinned buffer (the staging buffer, a
         pool buffer): every band's DMA on the copy stream's branch, every band's kernels on the compute
         branch after its DMA, as the per-band path queues them, so band k's kernels still overlap band
         k+1's DMA; one launch per frame instead of a copy, an event, a wait and a launch per band.
-        Captured on first use per (buffer, channels, order, disparity); None where capture fails (the
+        Captured on first use per (buffer, channels, order, disparity, erosion); None where capture fails (the
         per-band path then runs, from then on)."""
-        key = (channels, src.swapped, want_disparity, src.dma_ptr, src.kernel_ptr)
+        key = (channels, src.swapped, want_disparity, erode, src.dma_ptr, src.kernel_ptr)
         graph = self._frame_graphs.get(key)
         if graph is not None:
             return graph
@@ -741,7 +753,7 @@ class CupyRegionEstimator:
                 for k, band in enumerate(self._bands):
                     self._upload_band(src, band, self._band_events[k])
                     s.wait_event(self._band_events[k])
-                    self._enqueue_band(k, channels, src.swapped, want_disparity)
+                    self._enqueue_band(k, channels, src.swapped, want_disparity, erode)
             finally:
                 graph = s.end_capture()
         except Exception as err:  # capture of two streams unsupported here: per-band launches from now on
@@ -752,7 +764,13 @@ class CupyRegionEstimator:
         return graph
 
     def _enqueue_band(
-        self, k: int, channels: int, swapped: bool, want_disparity: bool, events: list[Any] | None = None
+        self,
+        k: int,
+        channels: int,
+        swapped: bool,
+        want_disparity: bool,
+        erode: int = 0,
+        events: list[Any] | None = None,
     ) -> None:
         """Queue band k's GPU work (module doc, step 2; step 3 after the last band) on the compute stream."""
         cp = self._cp
@@ -828,6 +846,16 @@ class CupyRegionEstimator:
                 cp.cuda.runtime.memcpyAsync(
                     self._preview_host_mem.ptr, self._preview_dev.data.ptr, oh * ow * 4, d2h, s.ptr
                 )
+                if erode:
+                    self._k_memory(
+                        (-(-ow // _EW_THREADS), oh), (_EW_THREADS,),
+                        (self._disp, self._memory_dev, np.int32(self._preview_factor), np.int32(ow), np.int32(oh),
+                         np.float32(1.0 / self.disparity_scale), np.int32(erode)),
+                        stream=s,
+                    )
+                    cp.cuda.runtime.memcpyAsync(
+                        self._memory_host_mem.ptr, self._memory_dev.data.ptr, oh * ow * 4, d2h, s.ptr
+                    )
             else:
                 cp.cuda.runtime.memcpyAsync(self._disp_host_mem.ptr, self._disp.data.ptr, h * w * 2, d2h, s.ptr)
         if events:
@@ -851,12 +879,13 @@ class CupyRegionEstimator:
                        lr_max, median, fb, pct, min_valid, max_depth),
                       stream=s)
 
-    def _near_blocks(self, block_px: int) -> np.ndarray:
+    def _near_blocks(self, block_px: int, erode_px: int) -> np.ndarray:
         f = self._preview_factor
         if f > 1:
             _check_block_px(block_px, f)
-            return self._preview_host if block_px == f else block_max(self._preview_host, block_px // f)
-        return block_max(self._host_disparity(), block_px)
+            src = self._memory_host if erode_px else self._preview_host
+            return src if block_px == f else block_max(src, block_px // f)
+        return block_max(self._host_disparity(), block_px, erode_px)
 
     def _host_disparity(self) -> np.ndarray:
         if self._preview_factor > 1:
@@ -961,8 +990,8 @@ class _CopyCrew:
 class _Direct:
     """Stands in for a graph when capture is unavailable: ``launch`` queues the kernels directly."""
 
-    def __init__(self, est: CupyRegionEstimator, k: int, channels: int, swapped: bool, want_disparity: bool):
-        self._est, self._args = est, (k, channels, swapped, want_disparity)
+    def __init__(self, est: CupyRegionEstimator, k: int, channels: int, swapped: bool, want_disparity: bool, erode: int):
+        self._est, self._args = est, (k, channels, swapped, want_disparity, erode)
 
     def launch(self, stream: Any) -> None:
         self._est._enqueue_band(*self._args)

@@ -179,6 +179,16 @@ class HostKernels:
         return out_l[:, : self.w], out_r[:, : self.w]
 
 
+    def memory_blocks(self, disparity: np.ndarray, factor: int, erode_px: int) -> np.ndarray:
+        """``memory_max`` of an int16 disparity image (``(H, W)``, -1 invalid): float32
+        ``(ceil(H/f), ceil(W/f))``, px, NaN none."""
+        d = np.ascontiguousarray(disparity, dtype=np.int16)
+        oh, ow = -(-self.h // factor), -(-self.w // factor)
+        out = np.full((oh, ow), -7.0, np.float32)
+        self._lib.run_memory(self._ptr(d), self._ptr(out), int(factor), ow, oh, int(erode_px), -(-ow // 32), 32)
+        return out
+
+
 class HostSgmKernels:
     """The SGM kernels (``sgm.cu``) of one (size, D, paths, region layout), compiled for the CPU.
 

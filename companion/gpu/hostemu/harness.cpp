@@ -28,3 +28,7 @@ struct PrevArgs { const short* d; float* o; int f, ow, oh; };
 static void prev_thunk(void* p) { PrevArgs* a = (PrevArgs*)p; preview_max(a->d, a->o, a->f, a->ow, a->oh, 1.0f); }
 extern "C" void run_preview(const short* d, float* o, int f, int ow, int oh, int gx, int bx) {
   PrevArgs a{d, o, f, ow, oh}; emu_launch({(unsigned)gx,(unsigned)oh,1},{(unsigned)bx,1,1}, prev_thunk, &a); }
+struct MemArgs { const short* d; float* o; int f, ow, oh, k; };
+static void mem_thunk(void* p) { MemArgs* a = (MemArgs*)p; memory_max(a->d, a->o, a->f, a->ow, a->oh, 1.0f, a->k); }
+extern "C" void run_memory(const short* d, float* o, int f, int ow, int oh, int k, int gx, int bx) {
+  MemArgs a{d, o, f, ow, oh, k}; emu_launch({(unsigned)gx,(unsigned)oh,1},{(unsigned)bx,1,1}, mem_thunk, &a); }

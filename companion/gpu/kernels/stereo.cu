@@ -651,3 +651,25 @@ extern "C" __global__ void preview_max(const short* __restrict__ disp, float* __
     for (int x = ox * f; x < min(ox * f + f, IMG_W); ++x) best = max(best, (int)disp[(size_t)y * IMG_W + x]);
   out[(size_t)oy * ow + ox] = best >= 0 ? (float)best * scale : nan_f32();
 }
+
+// ------------------------------------------------------------------------------------------------
+// 8. The obstacle memory's blocks with memory.block_erode_px = k > 0: as preview_max, but each pixel
+// first takes the smallest disparity of its row's pixels x - k .. x + k inside the image (-1, invalid,
+// the smallest). CPU reference: BlockMax(erode_px=k) in companion/core/memory.py.
+
+extern "C" __global__ void memory_max(const short* __restrict__ disp, float* __restrict__ out, int f, int ow,
+                                      int oh, float scale, int k) {
+  const int ox = blockIdx.x * blockDim.x + threadIdx.x;
+  const int oy = blockIdx.y;
+  if (ox >= ow || oy >= oh) return;
+  int best = -1;
+  for (int y = oy * f; y < min(oy * f + f, IMG_H); ++y) {
+    const short* row = disp + (size_t)y * IMG_W;
+    for (int x = ox * f; x < min(ox * f + f, IMG_W); ++x) {
+      int m = row[x];
+      for (int j = max(0, x - k); j <= min(IMG_W - 1, x + k); ++j) m = min(m, (int)row[j]);
+      best = max(best, m);
+    }
+  }
+  out[(size_t)oy * ow + ox] = best >= 0 ? (float)best * scale : nan_f32();
+}
