@@ -18,7 +18,10 @@ event per band):
 3. the 9 depths and 9 valid fractions (144 bytes) come back to a pinned host buffer; with
    ``obstacle_distance.send`` on, ``obstacle_bins`` (``kernels/obstacle.cu``, a column of blocks per 5° bin)
    first reduces the device disparity to OBSTACLE_DISTANCE's 72 bins (144 more bytes, in the same copy), exactly
-   :func:`companion.core.obstacle.reduce_obstacle_distance`.
+   :func:`companion.core.obstacle.reduce_obstacle_distance`; when the obstacle memory or an overlay
+   asks, ``preview_max`` reduces the disparity to blocks of ``gpu.disparity_preview_downsample`` px
+   (and, with ``memory.block_erode_px``, ``memory_max`` to the memory's eroded blocks) and they come
+   back too.
 
 With ``stereo.matcher = "sgm"`` (the default) the bands carry the upload, grey, rectification and
 ``sgm_census`` of the rows whose rows ±3 are rectified by then (so that it overlaps the later bands'
