@@ -13,7 +13,7 @@ course line (the simulated camera's noise and eye gain mismatch, no flight), sco
 eval`` against the renderer's depth: density and bad-2 over the pixels, and per region the classes
 (near / far / unknown) from the output and from the ground truth: a **phantom** is a region the output
 calls near that the ground truth calls far; **unknown** one the output leaves unknown (which the
-controller treats as near) that the ground truth knows.  Then the obstacle memory's input, its
+controller treats as near) that the ground truth knows. Then the obstacle memory's input, its
 blocks of nearest disparity (:func:`~companion.core.evaluation.memory_block_report`): the share too
 near, where they lie (a depth edge smeared onto what is behind it, a plain or a textured surface), and
 the share of near surfaces seen; with ``--block-erode-px 0,1,2``, also of the disparity eroded along
@@ -164,8 +164,8 @@ def frames_main(args: argparse.Namespace) -> int:
     backends = [b.strip() for b in args.backends.split(",") if b.strip()]
     seeds = range(args.seeds)
     data = cfg.model_dump(mode="json")
+    erosions = [int(x) for x in args.block_erode_px.split(",")]
     with mp.get_context("spawn").Pool(args.workers) as pool:
-        erosions = [int(x) for x in args.block_erode_px.split(",")]
         out = pool.map(_frames, [(k, s, data, backends, erosions) for k in kinds for s in seeds], chunksize=1)
     rows = [r for part in out for r in part]
     print(f"seeds 0..{args.seeds - 1}; density and bad-2 over matchable pixels (mean of frames); regions of 9 per frame")

@@ -178,7 +178,6 @@ class HostKernels:
         )
         return out_l[:, : self.w], out_r[:, : self.w]
 
-
     def memory_blocks(self, disparity: np.ndarray, factor: int, erode_px: int) -> np.ndarray:
         """``memory_max`` of an int16 disparity image (``(H, W)``, -1 invalid): float32
         ``(ceil(H/f), ceil(W/f))``, px, NaN none."""
