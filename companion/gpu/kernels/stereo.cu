@@ -641,15 +641,28 @@ extern "C" __global__ void regions_from_disp(const short* __restrict__ disp, u32
 // valid disparity of its f x f block (the nearest surface: the conservative summary) times `scale`
 // (1 for the SAD matcher's integer pixels, 1/16 for the SGM matcher's fixed point), NaN when none.
 
+// The block's largest disparity after each pixel took the smallest of its row's pixels x - k .. x + k
+// inside the image (k = 0: the pixel itself), times `scale`; NaN when none is valid (-1 is the smallest).
+__device__ __forceinline__ float eroded_block_max(const short* __restrict__ disp, int f, int ox, int oy,
+                                                  float scale, int k) {
+  int best = -1;
+  for (int y = oy * f; y < min(oy * f + f, IMG_H); ++y) {
+    const short* row = disp + (size_t)y * IMG_W;
+    for (int x = ox * f; x < min(ox * f + f, IMG_W); ++x) {
+      int m = row[x];
+      for (int j = max(0, x - k); j <= min(IMG_W - 1, x + k); ++j) m = min(m, (int)row[j]);
+      best = max(best, m);
+    }
+  }
+  return best >= 0 ? (float)best * scale : nan_f32();
+}
+
 extern "C" __global__ void preview_max(const short* __restrict__ disp, float* __restrict__ out, int f, int ow,
                                        int oh, float scale) {
   const int ox = blockIdx.x * blockDim.x + threadIdx.x;
   const int oy = blockIdx.y;
   if (ox >= ow || oy >= oh) return;
-  int best = -1;
-  for (int y = oy * f; y < min(oy * f + f, IMG_H); ++y)
-    for (int x = ox * f; x < min(ox * f + f, IMG_W); ++x) best = max(best, (int)disp[(size_t)y * IMG_W + x]);
-  out[(size_t)oy * ow + ox] = best >= 0 ? (float)best * scale : nan_f32();
+  out[(size_t)oy * ow + ox] = eroded_block_max(disp, f, ox, oy, scale, 0);
 }
 
 // ------------------------------------------------------------------------------------------------
@@ -662,14 +675,5 @@ extern "C" __global__ void memory_max(const short* __restrict__ disp, float* __r
   const int ox = blockIdx.x * blockDim.x + threadIdx.x;
   const int oy = blockIdx.y;
   if (ox >= ow || oy >= oh) return;
-  int best = -1;
-  for (int y = oy * f; y < min(oy * f + f, IMG_H); ++y) {
-    const short* row = disp + (size_t)y * IMG_W;
-    for (int x = ox * f; x < min(ox * f + f, IMG_W); ++x) {
-      int m = row[x];
-      for (int j = max(0, x - k); j <= min(IMG_W - 1, x + k); ++j) m = min(m, (int)row[j]);
-      best = max(best, m);
-    }
-  }
-  out[(size_t)oy * ow + ox] = best >= 0 ? (float)best * scale : nan_f32();
+  out[(size_t)oy * ow + ox] = eroded_block_max(disp, f, ox, oy, scale, k);
 }
