@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -50,6 +51,22 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--config", type=Path, help="TOML config (default: built-in defaults)")
     p.add_argument("--plot", type=Path, metavar="OUT.png", help="--course: write a top-down plot of the flight")
     p.add_argument("--side-view", action="store_true", help="--course: add the altitude profile to the plot")
+    p.add_argument(
+        "--trace",
+        type=Path,
+        metavar="OUT.csv",
+        help=(
+            "--course: write the flight's trace, one CSV row per setpoint: pose, velocity, what drove the "
+            "setpoint and the setpoint, the true clearance, the region depths and reason of the decision "
+            "applied, and the detour layer's phase and reason (docs/simulator.md)"
+        ),
+    )
+    p.add_argument(
+        "--trace-dir",
+        type=Path,
+        metavar="DIR",
+        help="--suite: write the trace (CSV) and the plot (PNG) of every flight that fails into DIR (made if missing)",
+    )
     p.add_argument("--realtime", action="store_true", help="--course: pace simulated time to the wall clock")
     add_view_options(p, "--course: ")
     p.add_argument("--workers", type=int, default=2, help="--suite: worker processes (default 2)")
@@ -72,9 +89,18 @@ def run(args: argparse.Namespace) -> int:
 
     cfg = load_config(args.config)
     if args.course is not None:
+        if args.trace_dir is not None:
+            raise InputError("--trace-dir goes with --suite; for one course, --trace OUT.csv")
         return _run_course(args, cfg)
-    if args.plot is not None or args.side_view or args.realtime or args.view or args.start is not None:
-        raise InputError("--plot, --side-view, --realtime, --view and --start go with --course, not --suite")
+    if (
+        args.plot is not None
+        or args.side_view
+        or args.realtime
+        or args.view
+        or args.start is not None
+        or args.trace is not None
+    ):
+        raise InputError("--plot, --side-view, --trace, --realtime, --view and --start go with --course, not --suite")
     if args.realizations < 1:
         raise InputError(f"--realizations must be >= 1, got {args.realizations}")
     if args.kinds is not None and not args.kinds.strip():
@@ -106,6 +132,7 @@ def _run_course(args: argparse.Namespace, cfg: Any) -> int:
     if args.start is not None:
         course = course.started_at(parse_start(args.start), cfg.sim.collision_radius_m)
     plot_path = _check_plot_path(args.plot) if args.plot is not None else None
+    trace_path = _check_trace_path(args.trace) if args.trace is not None else None
     bridge = None
     if args.view:
         from companion.view.simbridge import fly_with_view
@@ -119,6 +146,9 @@ def _run_course(args: argparse.Namespace, cfg: Any) -> int:
     if plot_path is not None:
         write_plot(result, plot_path, side_view=args.side_view)
         print(f"plot:          {plot_path}")
+    if trace_path is not None:
+        rows = write_trace_file(result, trace_path)
+        print(f"trace:         {trace_path} ({rows} rows)")
     if bridge is not None:
         finish_view(bridge, args.view_linger_s)
     return 0
@@ -184,6 +214,34 @@ def _check_plot_path(path: Path) -> Path:
     return path
 
 
+def _check_trace_path(path: Path) -> Path:
+    if not path.parent.is_dir():
+        raise InputError(f"{path.parent}: no such directory for the trace")
+    if path.is_dir():
+        raise InputError(f"{path}: the trace is a file (OUT.csv), not a directory")
+    return path
+
+
+def _trace_dir(path: Path) -> Path:
+    """``--trace-dir``, made if missing."""
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise InputError(f"{path}: cannot make the trace directory ({e.strerror or e})") from e
+    return path
+
+
+def write_trace_file(result: Any, path: Path) -> int:
+    """Write ``result``'s trace (:func:`companion.sim.trace.write_trace`); an unwritable file is an
+    :class:`InputError` naming it. Returns the rows written."""
+    from companion.sim.trace import write_trace
+
+    try:
+        return write_trace(result, path)
+    except OSError as e:
+        raise InputError(f"{path}: cannot write the trace ({e.strerror or e})") from e
+
+
 def write_plot(result: Any, path: Path, side_view: bool = False) -> None:
     """Draw the flight and write it to ``path`` (raises InputError if it cannot be written)."""
     import cv2
@@ -203,6 +261,7 @@ def _run_suite(args: argparse.Namespace, cfg: Any) -> int:
     courses = suite_courses(args.suite)
     if args.kinds is not None:
         courses = select_kinds(courses, args.kinds)
+    trace_dir = _trace_dir(args.trace_dir) if args.trace_dir is not None else None
     n = args.realizations
     first = cfg.sim.realization
     draws = f", realizations {first}-{first + n - 1}" if n > 1 else ""
@@ -214,10 +273,18 @@ def _run_suite(args: argparse.Namespace, cfg: Any) -> int:
         tag = f"r{r} " if n > 1 else ""
 
         def progress(done: int, total: int, result: Any, tag: str = tag) -> None:
-            print(f"{tag}[{done:3d}/{total}] {result.summary()}", flush=True)
+            note = ""
+            if trace_dir is not None and not result.success:
+                stem = trace_dir / f"{tag.strip() + '-' if tag else ''}{result.course.name}"
+                write_trace_file(result, stem.with_suffix(".csv"))
+                write_plot(result, stem.with_suffix(".png"), side_view=True)
+                note = f" (trace: {stem}.csv)"
+            print(f"{tag}[{done:3d}/{total}] {result.summary()}{note}", flush=True)
 
         drawn = cfg.model_copy(update={"sim": cfg.sim.model_copy(update={"realization": r})})
-        got = run_suite(drawn, courses, workers=args.workers, progress=progress)
+        got = run_suite(drawn, courses, workers=args.workers, keep_logs=trace_dir is not None, progress=progress)
+        if trace_dir is not None:  # written: the table needs no logs
+            got = [dataclasses.replace(x, log=None, frame_log=None) for x in got]
         per_draw.append((r, got))
         results.extend(got)
     wall = time.perf_counter() - t0

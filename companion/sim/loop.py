@@ -80,6 +80,11 @@ class FlightLog:
             (0 without a decision).
         setpoint: float64 ``(N, 4)`` forward m/s, right m/s, down m/s, yaw rate deg/s as sent.
         clearance_m: float64 ``(N,)`` ground-truth clearance (see :mod:`companion.sim.scoring`), metres.
+        frame_t_s: float64 ``(N,)`` capture time of the frame whose decision was applied (a row of
+            :class:`FrameLog`), seconds; NaN before the first.
+        planner: what course hold's planner was doing, per row: the detour layer's ``phase: reason``
+            while a detour is under way and on the row it ends, ``held: reason`` once the flight holds
+            (the progress watchdog, a dead end, the goal), else "".
     """
 
     t_s: np.ndarray
@@ -91,11 +96,15 @@ class FlightLog:
     decision_pitch: np.ndarray
     setpoint: np.ndarray
     clearance_m: np.ndarray
+    frame_t_s: np.ndarray
+    planner: tuple[str, ...]
 
     def equals(self, other: FlightLog) -> bool:
         """Exact equality of every array (determinism checks)."""
-        return all(
-            np.array_equal(getattr(self, f), getattr(other, f), equal_nan=True) for f in self.__dataclass_fields__
+        return self.planner == other.planner and all(
+            np.array_equal(getattr(self, f), getattr(other, f), equal_nan=True)
+            for f in self.__dataclass_fields__
+            if f != "planner"
         )
 
 
@@ -264,6 +273,8 @@ class _Rows:
         self.dpitch: list[float] = []
         self.sp: list[tuple[float, float, float, float]] = []
         self.clear: list[float] = []
+        self.frame_t: list[float] = []
+        self.planner: list[str] = []
 
 
 def fly(
@@ -356,6 +367,7 @@ def fly(
     sp = ZERO_SETPOINT
     kind = LogKind.NONE
     detouring = False
+    planner = ""
 
     def log_row(t: float) -> None:
         m = vehicle.model
@@ -369,6 +381,8 @@ def fly(
         rows.dpitch.append(d.pitch if d is not None else 0.0)
         rows.sp.append((sp.forward_m_s, sp.right_m_s, sp.down_m_s, sp.yaw_rate_deg_s))
         rows.clear.append(judge.clearance_m)
+        rows.frame_t.append(latest.timestamp_s if latest is not None else math.nan)
+        rows.planner.append(planner)
 
     while True:
         t = vehicle.time_s
@@ -446,6 +460,12 @@ def fly(
             )
             if hold.detour.active and not detouring:
                 detours += 1
+            if stalled:
+                planner = f"held: {hold_reason}"
+            elif hold.detour.active or detouring:  # under way, or the row it ended on (why it ended)
+                planner = f"{hold.detour.phase.value}: {hold.detour.reason}"
+            else:
+                planner = ""
             detouring = hold.detour.active
             if vehicle.in_offboard:
                 vehicle.set_setpoint(sp)
@@ -500,6 +520,8 @@ def fly(
         decision_pitch=np.asarray(rows.dpitch, dtype=np.float64),
         setpoint=np.asarray(rows.sp, dtype=np.float64).reshape(-1, 4),
         clearance_m=np.asarray(rows.clear, dtype=np.float64),
+        frame_t_s=np.asarray(rows.frame_t, dtype=np.float64),
+        planner=tuple(rows.planner),
     )
     frame_log = FrameLog(
         t_s=np.asarray(f_t, dtype=np.float64),

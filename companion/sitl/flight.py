@@ -158,7 +158,7 @@ class _Recorder:
             start_time_s=0.0,
             held_radius_m=HELD_RADIUS_M,
         )
-        self.rows: dict[str, list[Any]] = {k: [] for k in ("t", "pos", "vel", "att", "kind", "dyaw", "dpitch", "sp", "clear")}
+        self.rows: dict[str, list[Any]] = {k: [] for k in ("t", "pos", "vel", "att", "kind", "dyaw", "dpitch", "sp", "clear", "planner")}
         self.max_speed = 0.0
 
     def add(self, s: Sample, health: dict[str, Any] | None) -> Outcome | None:
@@ -192,6 +192,7 @@ class _Recorder:
         r["dpitch"].append(float(h.get("pitch") or 0.0))
         r["sp"].append(tuple(float(sp.get(k) or 0.0) for k in ("forward_m_s", "right_m_s", "down_m_s", "yaw_rate_deg_s")))
         r["clear"].append(self.judge.clearance_m)
+        r["planner"].append(_planner_text(state, h))
         return outcome
 
     def log(self) -> FlightLog:
@@ -206,7 +207,19 @@ class _Recorder:
             decision_pitch=np.asarray(r["dpitch"], dtype=np.float64),
             setpoint=np.asarray(r["sp"], dtype=np.float64).reshape(-1, 4),
             clearance_m=np.asarray(r["clear"], dtype=np.float64),
+            frame_t_s=np.full(len(r["t"]), math.nan),  # health gives the frame's age, not this clock's time
+            planner=tuple(r["planner"]),
         )
+
+
+def _planner_text(state: object, health: dict[str, Any]) -> str:
+    """:attr:`FlightLog.planner` from a health message: ``held: reason`` while paused, the detour
+    layer's ``phase: reason`` while it is not idle, else ""."""
+    if state == "paused":
+        return f"held: {health.get('reason') or ''}"
+    detour = (health.get("goal") or {}).get("detour") or {}
+    phase = detour.get("phase")
+    return "" if phase in (None, "idle") else f"{phase}: {detour.get('reason') or ''}"
 
 
 def placement_at(pilot: Pilot, course: Course) -> CoursePlacement:
