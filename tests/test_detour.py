@@ -73,6 +73,55 @@ def test_the_side_with_the_opening_is_the_shorter_way_round() -> None:
     assert mirrored.through_m[-1] < mirrored.through_m[1]
 
 
+def test_the_cone_from_the_detours_start_keeps_flying_along_the_wall_open() -> None:
+    """Flying west along a wall 0.6 m to the north, the goal point's bearing has turned 20 deg right of
+    where it lay when the detour began (north). Within max_angle_deg of it, every direction on the left
+    closes in on the wall; within max_angle_deg of the start's goal direction too, flying along it is
+    free, and it is the one chosen (detour.cone_from_start)."""
+    from companion.core.detour import _best
+
+    wall = _wall(0.6, -6.0, 6.0)
+    goal = math.radians(20.0)
+    now = polar_histogram(wall, goal, DET, MEM.map_depth_m)
+    assert _best(now, -1, DET, None) is None  # nothing free on the left: the side would be switched
+    both = polar_histogram(wall, goal, DET, MEM.map_depth_m, start_goal_rad=0.0)
+    # The directions now reach 100 deg left of north (120 of the goal), and the right is unchanged.
+    assert math.degrees(both.offset_rad[0]) == pytest.approx(-120.0)
+    assert math.degrees(both.offset_rad[-1]) == pytest.approx(DET.max_angle_deg)
+    assert both.offset_rad[both.goal_index] == 0.0 and both.bearing_rad[both.goal_index] == pytest.approx(goal)
+    # The directions both share: the same numbers, bit for bit.
+    shared = slice(both.goal_index - now.goal_index, both.goal_index - now.goal_index + now.offset_rad.size)
+    for a, b in ((now.free_m, both.free_m), (now.roomy_m, both.roomy_m), (now.tight_m, both.tight_m)):
+        assert np.array_equal(a, b[shared])
+    k = _best(both, -1, DET, None)
+    assert k is not None
+    heading = math.degrees(wrap_pi(both.bearing_rad[k]))
+    assert -100.0 - 1e-9 <= heading <= -90.0 + 1e-9  # along the wall or away from it, not into it
+
+
+def test_the_cone_from_the_start_never_passes_half_a_turn() -> None:
+    for start_deg, (lo, hi) in ((170.0, (-100.0, 175.0)), (-170.0, (-180.0, 100.0))):
+        h = polar_histogram(_wall(2.0, -3.0, 3.0), 0.0, DET, MEM.map_depth_m, start_goal_rad=math.radians(start_deg))
+        deg = np.degrees(h.offset_rad)
+        assert deg.min() == pytest.approx(lo) and deg.max() == pytest.approx(hi)
+        assert len({round(float(wrap_pi(b)), 9) for b in h.bearing_rad}) == h.bearing_rad.size  # no direction twice
+
+
+def test_the_planner_asks_for_the_cone_from_the_start_only_when_configured() -> None:
+    mem = _trusted_memory(_wall(2.5, -4.0, 4.0))
+    for on in (False, True):
+        cfg = DET.model_copy(update={"cone_from_start": on})
+        p = DetourPlanner(defer=True)
+        pos = np.array([0.0, 0.0, -1.5])
+        t = 0.0
+        while p.pending_request is None and t < 5.0:
+            p.update(t, BRAKE, pos, 0.0, 0.3, None, mem, MEM, cfg, True)
+            t += 0.05
+        request = p.pending_request
+        assert request is not None
+        assert request.start_goal_rad == (pytest.approx(0.3) if on else None)
+
+
 # ---------------------------------------------------------------------------------------------- planner
 
 

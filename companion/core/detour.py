@@ -257,14 +257,25 @@ def polar_histogram(
     map_depth_m: float,
     trail_ne_m: np.ndarray | None = None,
     goal_distance_m: float | None = None,
+    start_goal_rad: float | None = None,
 ) -> Histogram:
     """The candidate directions round the vehicle (:class:`Histogram`) from trusted map points
     (float ``(N, 2)`` north, east offsets from the vehicle, metres), the direction to the goal (and
     the distance to a goal point, None for the course) and, for ``visited``, the trail (float
-    ``(M, 2)`` offsets of where the vehicle has been, old enough to count)."""
+    ``(M, 2)`` offsets of where the vehicle has been, old enough to count).
+
+    The directions are every ``sector_deg`` within ``max_angle_deg`` of the goal direction and, with
+    ``start_goal_rad`` (radians from north: the goal direction when the detour began), within
+    ``max_angle_deg`` of that too, never more than half a turn either side of the goal direction."""
     step = math.radians(cfg.sector_deg)
     n = int(math.floor(cfg.max_angle_deg / cfg.sector_deg + 1e-9))
-    offsets = np.arange(-n, n + 1, dtype=np.float64) * step
+    lo, hi = -n, n
+    if start_goal_rad is not None and math.isfinite(start_goal_rad):
+        shift = int(round(wrap_pi(start_goal_rad - goal_bearing_rad) / step))
+        lo = max(min(lo, shift - n), -int(math.floor(180.0 / cfg.sector_deg + 1e-9)))
+        hi = min(max(hi, shift + n), int(math.ceil(180.0 / cfg.sector_deg - 1e-9)) - 1)
+    goal_index = -lo
+    offsets = np.arange(lo, hi + 1, dtype=np.float64) * step
     bearing = np.array([wrap_pi(goal_bearing_rad + o) for o in offsets])
     k = offsets.size
     pts = np.asarray(points_ne_m, dtype=np.float64).reshape(-1, 2)
@@ -284,12 +295,12 @@ def polar_histogram(
             bearing,
             goal_bearing_rad,
             step,
-            -n,
+            lo,
             tuple(max(0.0, min(c, nearest)) for c in (cfg.clearance_m, cfg.preferred_clearance_m, cfg.squeeze_clearance_m)),
         )
         through = _through(pts, goal_bearing_rad, goal_distance_m, cfg, max(0.0, min(cfg.clearance_m, nearest)), map_depth_m)
         need = cfg.radius_m if goal_distance_m is None else min(cfg.radius_m, goal_distance_m)
-        if free[n] < need and tight[n] < need:
+        if free[goal_index] < need and tight[goal_index] < need:
             line_up = line_up_offset_m(pts, goal_bearing_rad, need, cfg, nearest)
     visited = np.zeros(k, dtype=bool)
     if trail_ne_m is not None and len(trail_ne_m):
@@ -297,7 +308,7 @@ def polar_histogram(
         along, across = _rays(tr[:, 0], tr[:, 1], bearing)
         reach = cfg.min_free_m + cfg.visited_clearance_m
         visited = np.any((along > 0.3) & (along < reach) & (np.abs(across) < cfg.visited_clearance_m), axis=1)
-    return Histogram(bearing, offsets, free, roomy, tight, visited, n, through, line_up)
+    return Histogram(bearing, offsets, free, roomy, tight, visited, goal_index, through, line_up)
 
 
 #: Lining up (:func:`line_up_offset_m`) tries sideways offsets this far apart, metres.
@@ -438,6 +449,8 @@ class HistogramRequest:
         vetoes: ``(north m, east m, bearing rad)`` of each direction a brake closed, from where.
         map_depth_m: ``memory.map_depth_m``, metres.
         cfg: the ``[detour]`` config (frozen).
+        start_goal_rad: the goal direction when the detour began, radians from north, with
+            ``detour.cone_from_start`` (directions within ``max_angle_deg`` of it count too), else None.
     """
 
     seq: int
@@ -450,6 +463,7 @@ class HistogramRequest:
     vetoes: tuple[tuple[float, float, float], ...]
     map_depth_m: float
     cfg: DetourConfig
+    start_goal_rad: float | None = None
 
 
 @dataclass(frozen=True)
@@ -471,7 +485,9 @@ def compute_histogram(request: HistogramRequest) -> Histogram:
     """The histogram a request asks for (pure; any thread): :func:`polar_histogram` of its points,
     with the directions its vetoes close set to zero length."""
     r = request
-    h = polar_histogram(r.points_ne_m, r.goal_bearing_rad, r.cfg, r.map_depth_m, r.trail_ne_m, r.goal_distance_m)
+    h = polar_histogram(
+        r.points_ne_m, r.goal_bearing_rad, r.cfg, r.map_depth_m, r.trail_ne_m, r.goal_distance_m, r.start_goal_rad
+    )
     return _close_vetoed(h, r.position_ned_m, r.vetoes)
 
 
@@ -524,6 +540,7 @@ class DetourPlanner:
         self._progress_mark_s: float | None = None  # the stall already answered by a detour
         self._since_s = 0.0
         self._start_ned_m: np.ndarray | None = None
+        self._start_goal_rad: float | None = None  # the goal direction when the detour began
         self._anchor_ned_m: np.ndarray | None = None
         self._targets: list[float] = []
         self._target_rad: float | None = None
@@ -708,6 +725,7 @@ class DetourPlanner:
         """Start a detour: choose at once when the way round is in view, else look round first."""
         self._since_s = now_s
         self._start_ned_m = pos.copy()
+        self._start_goal_rad = goal
         self._switched = False
         self._vetoes = []
         self._scans = 0
@@ -1051,6 +1069,7 @@ class DetourPlanner:
             vetoes=tuple(self._vetoes),
             map_depth_m=float(memory_cfg.map_depth_m),
             cfg=cfg,
+            start_goal_rad=self._start_goal_rad if cfg.cone_from_start else None,
         )
 
     def _remember_trail(self, pos: np.ndarray, now_s: float, cfg: DetourConfig) -> None:
