@@ -122,6 +122,25 @@ def test_the_planner_asks_for_the_cone_from_the_start_only_when_configured() -> 
         assert request.start_goal_rad == (pytest.approx(0.3) if on else None)
 
 
+def test_an_opening_the_map_narrowed_opens_its_side_only_with_through_squeeze() -> None:
+    """A wall 1.5 m ahead (where the detour kind's vehicle brakes) with an opening 1.0 m wide on the map
+    (a 1.6 m opening whose jambs the SGM smeared inward) centred 3 m to the left, the wall going on
+    past the look-ahead to the right: with clearance_m (0.55) neither side opens the way, and the tie
+    goes to the preferred side; with squeeze_clearance_m (0.4) the opening's side does."""
+    from companion.core.detour import _pick_side
+
+    pts = np.concatenate([_wall(1.5, -8.0, -3.5), _wall(1.5, -2.5, 8.0)])
+    plain = polar_histogram(pts, 0.0, DET, MEM.map_depth_m, goal_distance_m=4.5)
+    assert math.isinf(plain.through_m[-1]) and math.isinf(plain.through_m[1])
+    assert _pick_side(plain, True, DET) == 1
+    squeeze = DET.model_copy(update={"through_squeeze": True})
+    h = polar_histogram(pts, 0.0, squeeze, MEM.map_depth_m, goal_distance_m=4.5)
+    assert h.through_m[-1] == pytest.approx(3.0) and math.isinf(h.through_m[1])
+    assert _pick_side(h, True, squeeze) == -1
+    # The directions themselves are judged as before.
+    assert np.array_equal(h.free_m, plain.free_m) and np.array_equal(h.tight_m, plain.tight_m)
+
+
 # ---------------------------------------------------------------------------------------------- planner
 
 

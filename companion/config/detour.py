@@ -223,6 +223,20 @@ class DetourConfig(StrictModel):
         le=180.0,
         description="What a direction nearer than preferred_clearance_m costs, in degrees off the goal.",
     )
+    through_squeeze: bool = Field(
+        default=False,
+        description=(
+            "Choosing a side: after a step square to the goal direction, the way to the goal counts as "
+            "open when its path keeps squeeze_clearance_m from every trusted point, not clearance_m "
+            "(off: clearance_m). The SGM smears an opening's jambs inward on the map, so a 1.6 m "
+            "opening can read too narrow for clearance_m on both sides of its path; neither side "
+            "then opens the way, and the tie goes to the preferred side. Kinematic detour-8 "
+            "(realization 0), detour-2 and detour-7 (realization 2), with 0.14 m/s drift and "
+            "memory.block_erode_px 1, went round the wall's far side and held after 45 s; with this "
+            "on, all three chose the opening's side and reached the goal. Off until measured on the "
+            "suites."
+        ),
+    )
     lookahead_m: float = Field(
         default=4.0,
         ge=0.0,

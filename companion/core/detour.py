@@ -393,10 +393,12 @@ def _through(
 ) -> dict[int, float]:
     """For each side (+1 right of the goal direction, -1 left): the shortest step square to the goal
     direction, along free space (``clearance_m``), after which the way to the goal keeps
-    ``clearance_m`` from every point for ``radius_m`` (or to the goal point); inf when none within
+    ``cfg.clearance_m`` (``cfg.squeeze_clearance_m`` with ``cfg.through_squeeze``) from every point
+    for ``radius_m`` (or to the goal point); inf when none within
     ``lookahead_m`` (at most 0.8 of the map's depth: beyond it the map has not seen a wall go on)."""
     out = {1: math.inf, -1: math.inf}
     reach = min(cfg.lookahead_m, 0.8 * map_depth_m)
+    way_m = cfg.squeeze_clearance_m if cfg.through_squeeze else cfg.clearance_m
     gn = gd = None
     if goal_distance_m is not None:
         gn, gd = goal_distance_m * math.cos(goal_bearing_rad), goal_distance_m * math.sin(goal_bearing_rad)
@@ -423,7 +425,7 @@ def _through(
             lo, hi = sorted((0.0, wrap_pi(goal_bearing_rad - b)))
             fan = b + np.arange(lo - math.radians(cfg.sector_deg), hi + math.radians(cfg.sector_deg) + 1e-9, math.radians(cfg.sector_deg))
             al, ac = _rays(q[:, 0], q[:, 1], fan)
-            if float(np.max(free_length_m(al, ac, cfg.clearance_m))) >= need:
+            if float(np.max(free_length_m(al, ac, way_m))) >= need:
                 out[side] = float(k)
                 break
     return out

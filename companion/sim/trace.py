@@ -45,9 +45,11 @@ COLUMNS: tuple[str, ...] = (
 
 def trace_rows(result: FlightResult) -> list[list[object]]:
     """The trace of ``result`` (which must carry its logs), one list per setpoint in :data:`COLUMNS`
-    order: numbers rounded to what the simulator resolves (mm, cm/s, 0.1°), angles in degrees from
-    north (clockwise), the region depths in metres with "" for unknown, the frame columns "" before
-    the first frame or without a frame log (a SITL flight).
+    order: numbers rounded to the millimetre (mm/s, 0.001 of the decision's outputs, 0.1° and
+    0.1 deg/s for angles and the yaw rate), angles in degrees from north (clockwise), the speed and
+    its bearing those of the velocity the vehicle reports (its autopilot tracks it; a simulated drift
+    moves the position besides), the region depths in metres with "" for unknown, the frame columns ""
+    before the first frame or without a frame log (a SITL flight).
 
     Raises:
         ValueError: the result was flown without logs (``run_suite(keep_logs=False)``).
