@@ -45,6 +45,9 @@ def test_one_course_prints_the_verdict_and_draws_the_plot(tmp_path: Path, capsys
         (["sim", "--course", "head-on", "--start=-50,0,1.5,0"], "outside head-on-0's bounds"),
         (["sim", "--suite", "quick", "--start", "1,0,1.5,0"], "go with --course"),
         (["sim", "--suite", "quick", "--realizations", "0"], "--realizations must be >= 1"),
+        (["sim", "--suite", "quick", "--trace", "x.csv"], "go with --course"),
+        (["sim", "--course", "doorway", "--trace-dir", "d"], "--trace-dir goes with --suite"),
+        (["sim", "--course", "doorway", "--trace", "/no/such/dir/x.csv"], "no such directory for the trace"),
     ],
 )
 def test_bad_input_is_one_line_and_exit_2(argv: list[str], message: str, capsys: pytest.CaptureFixture[str]) -> None:

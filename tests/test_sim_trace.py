@@ -59,8 +59,9 @@ def test_every_setpoint_is_a_row_joined_to_the_frame_its_decision_came_from(deto
 
 def test_the_planner_column_tells_the_detour_from_its_look_round_to_the_hand_back(detour_flight: FlightResult) -> None:
     assert detour_flight.outcome.value == "goal" and detour_flight.detours >= 1, detour_flight.reason
-    planner = [r[-1] for r in trace_rows(detour_flight)]
-    kinds = [r[7] for r in trace_rows(detour_flight)]
+    rows = trace_rows(detour_flight)
+    planner = [r[-1] for r in rows]
+    kinds = [r[7] for r in rows]
     phases = [p.split(":", 1)[0] for p in planner if p]
     # The phases in the order they came, each once in a row.
     order = [p for i, p in enumerate(phases) if i == 0 or p != phases[i - 1]]
@@ -126,20 +127,6 @@ def test_a_suite_writes_a_trace_and_a_plot_for_each_failed_flight_only(
     assert sorted(p.name for p in out.iterdir()) == ["doorway-1.csv", "doorway-1.png"]
     assert f"(trace: {out / 'doorway-1'}.csv)" in text
     assert float(_read(out / "doorway-1.csv")[-1]["t_s"]) == pytest.approx(2.0, abs=0.06)
-
-
-@pytest.mark.parametrize(
-    ("argv", "message"),
-    [
-        (["sim", "--suite", "quick", "--trace", "x.csv"], "go with --course"),
-        (["sim", "--course", "doorway", "--trace-dir", "d"], "--trace-dir goes with --suite"),
-        (["sim", "--course", "doorway", "--trace", "/no/such/dir/x.csv"], "no such directory for the trace"),
-    ],
-)
-def test_bad_trace_options_are_one_line_and_exit_2(argv: list[str], message: str, capsys: pytest.CaptureFixture[str]) -> None:
-    assert main(argv) == 2
-    err = capsys.readouterr().err.strip()
-    assert message in err and "\n" not in err
 
 
 def test_a_trace_dir_that_is_a_file_is_an_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -100,12 +100,13 @@ class FlightLog:
     planner: tuple[str, ...]
 
     def equals(self, other: FlightLog) -> bool:
-        """Exact equality of every array (determinism checks)."""
-        return self.planner == other.planner and all(
-            np.array_equal(getattr(self, f), getattr(other, f), equal_nan=True)
-            for f in self.__dataclass_fields__
-            if f != "planner"
-        )
+        """Exact equality of every field, arrays NaN for NaN (determinism checks)."""
+        return all(_same(getattr(self, f), getattr(other, f)) for f in self.__dataclass_fields__)
+
+
+def _same(a: object, b: object) -> bool:
+    """Exact equality of two log fields: tuples (text) as tuples, arrays with NaN equal to NaN."""
+    return a == b if isinstance(a, tuple) else bool(np.array_equal(a, b, equal_nan=True))
 
 
 @dataclass(frozen=True)
