@@ -122,6 +122,44 @@ def test_the_planner_asks_for_the_cone_from_the_start_only_when_configured() -> 
         assert request.start_goal_rad == (pytest.approx(0.3) if on else None)
 
 
+def test_the_cone_from_the_start_holds_only_near_where_the_detour_began() -> None:
+    """Flown out along the wall past detour.cone_from_start_max_m, the requests carry no start cone: a
+    side with no opening then closes as a dead end and the detour may switch sides, instead of following
+    the wall until max_time_s."""
+    from companion.core.detour import HistogramResult, compute_histogram
+
+    cfg = DET.model_copy(update={"cone_from_start": True, "cone_from_start_max_m": 4.0})
+    mem = _trusted_memory(_wall(2.5, -8.0, 3.0))  # its end 3 m to the right: a detour flies round the right
+    p = DetourPlanner(defer=True)
+    t, yaw = 0.0, 0.0
+    flying = False
+    for _ in range(600):  # brake, then turn as asked, answering each request at once, until it flies
+        req = p.pending_request
+        if req is not None:
+            assert req.start_goal_rad == pytest.approx(0.0)  # at the start: the cone
+            assert p.offer(HistogramResult(req.seq, compute_histogram(req)))
+        cmd = p.update(t, CLEAR if flying or p.active else BRAKE, np.array([0.0, 0.0, -1.5]), yaw, 0.0, None, mem, MEM, cfg, True)
+        t += 0.05
+        if cmd is not None and cmd.phase is Phase.FLY and cmd.anchor_ned_m is None:
+            flying = True
+            break
+        if cmd is not None and cmd.target_yaw_rad is not None:
+            yaw += max(-0.1, min(0.1, wrap_pi(cmd.target_yaw_rad - yaw)))
+    assert flying, p.reason
+    asked = {}
+    for east_m in (-3.9, -4.1):  # along the wall (the test moves the vehicle; the side does not matter)
+        pos = np.array([0.0, east_m, -1.5])
+        for _ in range(40):  # the next replan from there
+            p.update(t, CLEAR, pos, yaw, 0.0, None, mem, MEM, cfg, True)
+            t += 0.05
+            req = p.pending_request
+            if req is not None:
+                asked[east_m] = req.start_goal_rad
+                assert p.offer(HistogramResult(req.seq, compute_histogram(req)))
+                break
+    assert asked == {-3.9: pytest.approx(0.0), -4.1: None}
+
+
 def test_an_opening_the_map_narrowed_opens_its_side_only_with_through_squeeze() -> None:
     """A wall 1.5 m ahead (where the detour kind's vehicle brakes) with an opening 1.0 m wide on the map
     (a 1.6 m opening whose jambs the SGM smeared inward) centred 3 m to the left, the wall going on

@@ -125,6 +125,20 @@ class DetourConfig(StrictModel):
             "timed out). Off until measured on the suites."
         ),
     )
+    cone_from_start_max_m: float = Field(
+        default=4.0,
+        gt=0.0,
+        le=50.0,
+        description=(
+            "With cone_from_start, the start's directions count only while the vehicle is within this "
+            "far (horizontally) of where the detour began, metres; farther, only those within "
+            "max_angle_deg of the goal direction now, so a side with no opening can end as a dead end "
+            "and the detour switch sides. Unbounded, the wall's own direction stayed within the "
+            "start's cone: kinematic detour-8 (StereoBM and SGM, 0.14 m/s drift) flew 10 m along "
+            "the wall on the side without the opening and out of the course; at 4 m it switched "
+            "sides at 21 s (the detour kind's opening lies 3 m to a side)."
+        ),
+    )
     either_side_within_deg: float = Field(
         default=15.0,
         ge=0.0,

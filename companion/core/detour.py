@@ -452,7 +452,8 @@ class HistogramRequest:
         map_depth_m: ``memory.map_depth_m``, metres.
         cfg: the ``[detour]`` config (frozen).
         start_goal_rad: the goal direction when the detour began, radians from north, with
-            ``detour.cone_from_start`` (directions within ``max_angle_deg`` of it count too), else None.
+            ``detour.cone_from_start`` within ``cone_from_start_max_m`` of where it began (directions
+            within ``max_angle_deg`` of it count too), else None.
     """
 
     seq: int
@@ -1071,12 +1072,17 @@ class DetourPlanner:
             vetoes=tuple(self._vetoes),
             map_depth_m=float(memory_cfg.map_depth_m),
             cfg=cfg,
-            start_goal_rad=self._start_goal_rad if cfg.cone_from_start else None,
+            start_goal_rad=self._start_goal_rad if self._start_cone(pos, cfg) else None,
         )
 
     def _remember_trail(self, pos: np.ndarray, now_s: float, cfg: DetourConfig) -> None:
         if not self.trail or math.hypot(pos[0] - self.trail[-1][0], pos[1] - self.trail[-1][1]) >= cfg.visited_spacing_m:
             self.trail.append((float(pos[0]), float(pos[1]), float(now_s)))
+
+    def _start_cone(self, pos: np.ndarray, cfg: DetourConfig) -> bool:
+        """Whether the start's goal direction widens the histogram here (``cone_from_start``, within
+        ``cone_from_start_max_m`` of where the detour began)."""
+        return cfg.cone_from_start and self._distance_from_start_m(pos) <= cfg.cone_from_start_max_m
 
     def _distance_from_start_m(self, pos: np.ndarray) -> float:
         if self._start_ned_m is None:
