@@ -181,7 +181,8 @@ def test_set_config_live_restart_and_invalid(running) -> None:
     assert reply["result"]["changed"] == ["command"]
     assert reply["result"]["restart_required"] == ["camera.fps_hz"]
     scale = 0.5 / cfg.command.cruise_speed_m_s
-    assert wait_until(lambda: link.sent[-1].setpoint.forward_m_s == pytest.approx(scale * forward), 1.0)
+    # 5 s: a bound for a loaded machine (the test failed once beside PX4 SITL), not a speed goal
+    assert wait_until(lambda: link.sent[-1].setpoint.forward_m_s == pytest.approx(scale * forward), 5.0)
     got = client.call("get_config", section="camera")["result"]["config"]
     assert got["fps_hz"] == 15.0  # not applied until a restart
     version = client.call("status")["result"]["config_version"]

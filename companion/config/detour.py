@@ -122,7 +122,8 @@ class DetourConfig(StrictModel):
             "detour-2 with 0.14 m/s drift flew to 0.57 m of the wall beside its opening, found no "
             "direction free on its side and went round the other (a dead end after 45 s). A "
             "wider max_angle_deg (120) took it through but let the dead ends fly back out (8 of 27 "
-            "timed out). Off until measured on the suites."
+            "timed out). Off: with through_squeeze, StereoBM's detours with drift chose the wrong side "
+            "and followed its wall (docs/history.md, twenty-ninth session)."
         ),
     )
     cone_from_start_max_m: float = Field(
@@ -247,8 +248,10 @@ class DetourConfig(StrictModel):
             "then opens the way, and the tie goes to the preferred side. Kinematic detour-8 "
             "(realization 0), detour-2 and detour-7 (realization 2), with 0.14 m/s drift and "
             "memory.block_erode_px 1, went round the wall's far side and held after 45 s; with this "
-            "on, all three chose the opening's side and reached the goal. Off until measured on the "
-            "suites."
+            "on, all three chose the opening's side and reached the goal. Off: StereoBM's map is "
+            "sparse, a hole in a mapped wall then reads as a way through, and its detour kind with "
+            "drift fell from 25 to 24 of 27 (22 with cone_from_start as well); with the SGM both "
+            "options and the erosion gained 3 goals of 189 without drift and 9 with it."
         ),
     )
     lookahead_m: float = Field(
