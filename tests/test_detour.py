@@ -138,7 +138,7 @@ def test_the_cone_from_the_start_holds_only_near_where_the_detour_began() -> Non
         if req is not None:
             assert req.start_goal_rad == pytest.approx(0.0)  # at the start: the cone
             assert p.offer(HistogramResult(req.seq, compute_histogram(req)))
-        cmd = p.update(t, CLEAR if flying or p.active else BRAKE, np.array([0.0, 0.0, -1.5]), yaw, 0.0, None, mem, MEM, cfg, True)
+        cmd = p.update(t, CLEAR if p.active else BRAKE, np.array([0.0, 0.0, -1.5]), yaw, 0.0, None, mem, MEM, cfg, True)
         t += 0.05
         if cmd is not None and cmd.phase is Phase.FLY and cmd.anchor_ned_m is None:
             flying = True
