@@ -17,7 +17,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from types import MappingProxyType
 
-from companion.config import CompanionConfig
+from companion.config import CompanionConfig, for_backend
 from companion.core.estimator import Clock, CpuRegionEstimator, RegionEstimator
 from companion.core.pipeline import Pipeline
 from companion.errors import BackendError
@@ -84,6 +84,14 @@ def resolve_backend(cfg: CompanionConfig) -> str:
     return backend
 
 
+def flight_config(cfg: CompanionConfig) -> CompanionConfig:
+    """``cfg`` with its "auto" map options resolved for the backend it gets on this machine
+    (:func:`resolve_backend`, :func:`~companion.config.for_backend`): what the pipeline and the
+    supervisor fly with. ``stereo.backend`` itself stays as written (the estimator resolves it), so
+    a config compared with a later one shows only what the user changed."""
+    return for_backend(cfg, resolve_backend(cfg))
+
+
 def make_estimator(
     cfg: CompanionConfig, width_px: int, height_px: int, clock: Clock = time.perf_counter
 ) -> RegionEstimator:
@@ -106,5 +114,8 @@ def make_pipeline(
     clock: Clock = time.perf_counter,
 ) -> Pipeline:
     """A :class:`~companion.core.pipeline.Pipeline` whose estimator (built now, and again when a config
-    change needs a new one) comes from :func:`make_estimator`; ``estimator`` replaces the first one."""
-    return Pipeline(cfg, width_px, height_px, make_estimator=make_estimator, estimator=estimator, clock=clock)
+    change needs a new one) comes from :func:`make_estimator`; ``estimator`` replaces the first one.
+    It flies :func:`flight_config` of ``cfg`` and of every config its ``reconfigure`` gets."""
+    return Pipeline(
+        cfg, width_px, height_px, make_estimator=make_estimator, estimator=estimator, clock=clock, prepare=flight_config
+    )

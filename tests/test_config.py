@@ -185,3 +185,43 @@ def test_settings_that_work_badly_are_warnings(caplog: pytest.LogCaptureFixture)
 def test_a_calibration_that_cannot_be_loaded_is_left_to_the_estimator(tmp_path: Path) -> None:
     cfg = parse_config({"calibration": {"file": str(tmp_path / "missing.yaml")}, "stereo": {"num_disparities": 16}})
     assert cfg.stereo.num_disparities == 16  # not checked here: the estimator reports the missing file
+
+
+@pytest.mark.parametrize(
+    ("backend", "matcher", "dense"),
+    [
+        ("cupy", "sgm", True),
+        ("reference", "sgm", True),
+        ("reference", "sad", False),
+        ("opencv-bm", "sgm", False),
+        ("opencv-sgbm", "sgm", False),
+    ],
+)
+def test_the_auto_map_options_follow_the_matcher(backend: str, matcher: str, dense: bool) -> None:
+    """memory.block_erode_px, detour.cone_from_start and detour.through_squeeze default to "auto": 1 px
+    and on with the semi-global matcher's dense map, 0 and off with the others; set values stay."""
+    from companion.config import for_backend, semi_global_map
+
+    cfg = parse_config({"stereo": {"matcher": matcher}})
+    assert (cfg.memory.block_erode_px, cfg.detour.cone_from_start, cfg.detour.through_squeeze) == ("auto",) * 3
+    assert semi_global_map(cfg.stereo, backend) is dense
+    got = for_backend(cfg, backend)
+    assert (got.memory.block_erode_px, got.detour.cone_from_start, got.detour.through_squeeze) == (int(dense), dense, dense)
+    assert got.stereo.backend == cfg.stereo.backend  # the estimator resolves "auto" itself
+    assert for_backend(got, backend) is got  # nothing left to resolve
+    fixed = parse_config(
+        {"stereo": {"matcher": matcher}, "memory": {"block_erode_px": 2}, "detour": {"cone_from_start": not dense}}
+    )
+    got = for_backend(fixed, backend)
+    assert (got.memory.block_erode_px, got.detour.cone_from_start, got.detour.through_squeeze) == (2, not dense, dense)
+
+
+def test_the_auto_map_options_need_a_concrete_backend_and_name_their_field_when_wrong() -> None:
+    from companion.config import for_backend
+
+    with pytest.raises(ValueError, match="concrete stereo.backend"):
+        for_backend(CompanionConfig(), "auto")
+    with pytest.raises(ConfigError, match="memory.block_erode_px"):
+        parse_config({"memory": {"block_erode_px": "most"}})
+    with pytest.raises(ConfigError, match="memory.block_erode_px"):
+        parse_config({"memory": {"block_erode_px": 5}})

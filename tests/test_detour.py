@@ -109,7 +109,7 @@ def test_the_cone_from_the_start_never_passes_half_a_turn() -> None:
 
 def test_the_planner_asks_for_the_cone_from_the_start_only_when_configured() -> None:
     mem = _trusted_memory(_wall(2.5, -4.0, 4.0))
-    for on in (False, True):
+    for on in (False, True, "auto"):  # an unresolved auto is off (companion.config.for_backend)
         cfg = DET.model_copy(update={"cone_from_start": on})
         p = DetourPlanner(defer=True)
         pos = np.array([0.0, 0.0, -1.5])
@@ -119,7 +119,7 @@ def test_the_planner_asks_for_the_cone_from_the_start_only_when_configured() -> 
             t += 0.05
         request = p.pending_request
         assert request is not None
-        assert request.start_goal_rad == (pytest.approx(0.3) if on else None)
+        assert request.start_goal_rad == (pytest.approx(0.3) if on is True else None)
 
 
 def test_the_cone_from_the_start_holds_only_near_where_the_detour_began() -> None:
@@ -171,6 +171,9 @@ def test_an_opening_the_map_narrowed_opens_its_side_only_with_through_squeeze() 
     plain = polar_histogram(pts, 0.0, DET, MEM.map_depth_m, goal_distance_m=4.5)
     assert math.isinf(plain.through_m[-1]) and math.isinf(plain.through_m[1])
     assert _pick_side(plain, True, DET) == 1
+    for unresolved in ("auto", False):  # an unresolved auto is off (companion.config.for_backend)
+        off = DET.model_copy(update={"through_squeeze": unresolved})
+        assert np.array_equal(polar_histogram(pts, 0.0, off, MEM.map_depth_m, goal_distance_m=4.5).through_m, plain.through_m)
     squeeze = DET.model_copy(update={"through_squeeze": True})
     h = polar_histogram(pts, 0.0, squeeze, MEM.map_depth_m, goal_distance_m=4.5)
     assert h.through_m[-1] == pytest.approx(3.0) and math.isinf(h.through_m[1])

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from companion.config import CompanionConfig, apply_patch
+from companion.config import CompanionConfig, apply_patch, parse_config
 from companion.backends import make_pipeline
 from companion.core.estimator import CpuRegionEstimator
 from companion.core.regions import reduce_regions
@@ -117,6 +117,20 @@ def test_reconfigure_changes_the_next_decision_without_rebuilding_the_estimator(
     assert changed == ["controller"]
     assert pipeline.estimator is estimator
     assert (before.kind, round(before.yaw, 3)) != (after.kind, round(after.yaw, 3))
+
+
+def test_the_pipeline_flies_the_auto_map_options_resolved_on_every_config_it_gets() -> None:
+    """make_pipeline resolves memory.block_erode_px "auto" for the backend (the reference SGM: 1 px), on
+    the first config and on every reconfigure; a config that only differs in the controller changes only
+    the controller."""
+    cfg = parse_config({"stereo": {"backend": "reference", "matcher": "sgm"}})
+    pipeline = make_pipeline(cfg, W, H)
+    assert pipeline.config.memory.block_erode_px == 1 and pipeline.config.detour.through_squeeze is True
+    cfg = apply_patch(cfg, {"controller": {"defuzzification": "bisector"}})
+    assert pipeline.reconfigure(cfg) == ["controller"]
+    assert pipeline.config.memory.block_erode_px == 1
+    assert pipeline.reconfigure(apply_patch(cfg, {"memory": {"block_erode_px": 0}})) == ["memory"]
+    assert pipeline.config.memory.block_erode_px == 0
 
 
 def test_reconfigure_of_stereo_rebuilds_the_estimator() -> None:

@@ -469,3 +469,28 @@ def test_the_sim_scene_placement_applies_live_but_the_rest_of_the_camera_waits_f
     assert restart_required(old, new) == ["camera.fps_hz"]
     kept = keep_restart_fields(old, new)
     assert (kept.camera.sim_origin_north_m, kept.camera.sim_origin_yaw_deg, kept.camera.fps_hz) == (3.0, 45.0, 30.0)
+
+
+def test_the_auto_map_options_fly_as_the_backend_asks(running, tmp_path: Path) -> None:
+    """memory.block_erode_px, detour.cone_from_start and detour.through_squeeze are "auto" in the config
+    the service shows; the supervisor and the pipeline fly them resolved for the backend (StereoBM here:
+    off; the semi-global matcher: on), and a value set live replaces the resolved one."""
+    service, link, client, cfg = running
+    got = client.call("get_config", section="detour")["result"]["config"]
+    assert got["through_squeeze"] == "auto" and got["cone_from_start"] == "auto"
+    detour = service.supervisor.config.detour
+    assert detour.through_squeeze is False and detour.cone_from_start is False
+    assert wait_until(lambda: service._pipeline is not None, 5.0)
+    assert service._pipeline.config.memory.block_erode_px == 0
+    reply = client.call("set_config", patch={"detour": {"through_squeeze": True}, "memory": {"block_erode_px": 2}})
+    assert reply["ok"], reply
+    detour = service.supervisor.config.detour
+    assert detour.through_squeeze is True and detour.cone_from_start is False
+    assert service._pipeline.config.memory.block_erode_px == 2
+    assert client.call("get_config", section="detour")["result"]["config"]["cone_from_start"] == "auto"
+
+    sgm = service_config(tmp_path / "sgm", stereo={"backend": "reference", "matcher": "sgm"})
+    other = Service(sgm, camera=avoid_scene_camera(15.0), link=FakeLink(), install_signals=False, environ={})
+    assert other.supervisor.config.detour.through_squeeze is True
+    assert other.supervisor.config.detour.cone_from_start is True
+    assert other.supervisor.config.memory.block_erode_px == 1

@@ -14,7 +14,7 @@ import sys
 from collections.abc import Mapping
 from pathlib import Path
 from types import MappingProxyType
-from typing import Any
+from typing import Any, get_args
 
 from pydantic import Field, ValidationError, model_validator
 
@@ -29,6 +29,7 @@ from companion.config.core import (
     OutputTerm,
     RegionsConfig,
     RuleConfig,
+    StereoBackend,
     StereoConfig,
 )
 from companion.config.detour import DetourConfig
@@ -74,10 +75,12 @@ __all__ = [
     "ViewConfig",
     "apply_patch",
     "check_rig_config",
+    "for_backend",
     "load_bus_config",
     "load_config",
     "load_view_config",
     "parse_config",
+    "semi_global_map",
 ]
 
 
@@ -159,6 +162,48 @@ def parse_config(data: Mapping[str, Any], source: str = "config", *, check_rig: 
     if check_rig:
         check_rig_config(cfg, source)
     return cfg
+
+
+#: The backends whose matcher follows ``stereo.matcher`` (the OpenCV ones are their own matchers).
+_OWN_MATCHER_BACKENDS = ("cupy", "reference")
+
+
+def semi_global_map(stereo: StereoConfig, backend: str) -> bool:
+    """Whether ``backend`` (a concrete ``stereo.backend``, not "auto") with ``stereo`` makes the
+    semi-global matcher's dense map, the one the ``"auto"`` options of ``[memory]`` and ``[detour]``
+    were measured to help (:func:`for_backend`)."""
+    return backend in _OWN_MATCHER_BACKENDS and stereo.matcher == "sgm"
+
+
+def for_backend(cfg: CompanionConfig, backend: str) -> CompanionConfig:
+    """``cfg`` with ``memory.block_erode_px``, ``detour.cone_from_start`` and
+    ``detour.through_squeeze`` resolved where they are "auto": 1 px and on with the semi-global
+    matcher's dense map (:func:`semi_global_map`), 0 and off with any other. The same object when
+    nothing is "auto".
+
+    The map decides: the SGM smears depth edges onto what is behind them and fills plain walls, and
+    the three gained goals with it; StereoBM leaves holes, which they read as ways through. The
+    shell resolves once it knows the backend (``companion.backends.flight_config``); the core reads
+    an unresolved "auto" as off, the behaviour before the options existed.
+
+    Raises:
+        ValueError: ``backend`` is "auto" or names no backend.
+    """
+    if backend == "auto" or backend not in get_args(StereoBackend):
+        raise ValueError(f"for_backend needs a concrete stereo.backend, got {backend!r}")
+    dense = semi_global_map(cfg.stereo, backend)
+    memory: dict[str, Any] = {}
+    detour: dict[str, Any] = {}
+    if cfg.memory.block_erode_px == "auto":
+        memory["block_erode_px"] = 1 if dense else 0
+    for name in ("cone_from_start", "through_squeeze"):
+        if getattr(cfg.detour, name) == "auto":
+            detour[name] = dense
+    if not memory and not detour:
+        return cfg
+    return cfg.model_copy(
+        update={"memory": cfg.memory.model_copy(update=memory), "detour": cfg.detour.model_copy(update=detour)}
+    )
 
 
 def check_rig_config(cfg: CompanionConfig, source: str = "config") -> list[str]:

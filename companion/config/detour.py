@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Literal
+
 from pydantic import Field, model_validator
 
 from companion.config._base import StrictModel
@@ -112,19 +114,21 @@ class DetourConfig(StrictModel):
             "it; none free: a dead end. Above 90 allows a little back-tracking round a corner."
         ),
     )
-    cone_from_start: bool = Field(
-        default=False,
+    cone_from_start: bool | Literal["auto"] = Field(
+        default="auto",
         description=(
             "Directions within max_angle_deg of the goal direction as it was when the detour began "
-            "count as leading toward the goal too (off: only of the goal direction now). Flying along "
-            "a wall toward its end, the bearing to a goal point turns away from the way the vehicle "
-            "flies, and the directions left within max_angle_deg of it close in on the wall: kinematic "
-            "detour-2 with 0.14 m/s drift flew to 0.57 m of the wall beside its opening, found no "
-            "direction free on its side and went round the other (a dead end after 45 s). A "
-            "wider max_angle_deg (120) took it through but let the dead ends fly back out (8 of 27 "
-            "timed out). Off: alone it left StereoBM's drift suite as it was (177 goals of 189, two "
-            "detours traded places), and with through_squeeze StereoBM's detours with drift chose "
-            "the wrong side and followed its wall (docs/history.md, twenty-ninth session)."
+            "count as leading toward the goal too (false: only of the goal direction now; auto: true "
+            "with the semi-global matcher, as memory.block_erode_px). Flying along a wall toward its "
+            "end, the bearing to a goal point turns away from the way the vehicle flies, and the "
+            "directions left within max_angle_deg of it close in on the wall: kinematic detour-2 "
+            "with 0.14 m/s drift flew to 0.57 m of the wall beside its opening, found no direction "
+            "free on its side and went round the other (a dead end after 45 s). A wider "
+            "max_angle_deg (120) took it through but let the dead ends fly back out (8 of 27 timed "
+            "out). Alone it left StereoBM's drift suite as it was (177 goals of 189, two detours "
+            "traded places); with through_squeeze StereoBM's detours with drift chose the wrong side "
+            "and followed its wall (docs/history.md, twenty-ninth session), so auto leaves it off "
+            "there."
         ),
     )
     cone_from_start_max_m: float = Field(
@@ -239,20 +243,20 @@ class DetourConfig(StrictModel):
         le=180.0,
         description="What a direction nearer than preferred_clearance_m costs, in degrees off the goal.",
     )
-    through_squeeze: bool = Field(
-        default=False,
+    through_squeeze: bool | Literal["auto"] = Field(
+        default="auto",
         description=(
             "Choosing a side: after a step square to the goal direction, the way to the goal counts as "
             "open when its path keeps squeeze_clearance_m from every trusted point, not clearance_m "
-            "(off: clearance_m). The SGM smears an opening's jambs inward on the map, so a 1.6 m "
+            "(false: clearance_m; auto: true with the semi-global matcher, as "
+            "memory.block_erode_px). The SGM smears an opening's jambs inward on the map, so a 1.6 m "
             "opening can read too narrow for clearance_m on both sides of its path; neither side "
             "then opens the way, and the tie goes to the preferred side. Kinematic detour-8 "
             "(realization 0), detour-2 and detour-7 (realization 2), with 0.14 m/s drift and "
             "memory.block_erode_px 1, went round the wall's far side and held after 45 s; with this "
-            "on, all three chose the opening's side and reached the goal. Off: StereoBM's map is "
-            "sparse, a hole in a mapped wall then reads as a way through, and its detour kind with "
-            "drift fell from 25 to 24 of 27 (22 with cone_from_start as well); with the SGM both "
-            "options and the erosion gained 3 goals of 189 without drift and 9 with it."
+            "on, all three chose the opening's side and reached the goal. StereoBM's map is sparse, "
+            "a hole in a mapped wall then reads as a way through, and its detour kind with drift fell "
+            "from 25 to 24 of 27 (22 with cone_from_start as well), so auto leaves it off there."
         ),
     )
     lookahead_m: float = Field(

@@ -11,7 +11,7 @@ import json
 import math
 import textwrap
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Annotated, Any, get_args, get_origin
 
 from pydantic import BaseModel
 from pydantic.fields import FieldInfo
@@ -50,7 +50,10 @@ def _inline_table(d: dict[str, Any]) -> str:
 
 def _bounds(info: FieldInfo) -> str:
     parts = []
-    for m in info.metadata:
+    # A union such as ``Annotated[int, Field(ge=0)] | Literal["auto"]`` keeps its bounds on its member.
+    members = [m for arg in get_args(info.annotation) if get_origin(arg) is Annotated for m in get_args(arg)[1:]]
+    members = [x for m in members for x in (m.metadata if isinstance(m, FieldInfo) else [m])]
+    for m in [*info.metadata, *members]:
         for attr, sym in (("ge", ">="), ("gt", ">"), ("le", "<="), ("lt", "<"), ("multiple_of", "multiple of")):
             v = getattr(m, attr, None)
             if v is not None:

@@ -398,7 +398,7 @@ def _through(
     ``lookahead_m`` (at most 0.8 of the map's depth: beyond it the map has not seen a wall go on)."""
     out = {1: math.inf, -1: math.inf}
     reach = min(cfg.lookahead_m, 0.8 * map_depth_m)
-    way_m = cfg.squeeze_clearance_m if cfg.through_squeeze else cfg.clearance_m
+    way_m = cfg.squeeze_clearance_m if cfg.through_squeeze is True else cfg.clearance_m  # unresolved auto: off
     gn = gd = None
     if goal_distance_m is not None:
         gn, gd = goal_distance_m * math.cos(goal_bearing_rad), goal_distance_m * math.sin(goal_bearing_rad)
@@ -1082,7 +1082,8 @@ class DetourPlanner:
     def _start_cone(self, pos: np.ndarray, cfg: DetourConfig) -> bool:
         """Whether the start's goal direction widens the histogram here (``cone_from_start``, within
         ``cone_from_start_max_m`` of where the detour began)."""
-        return cfg.cone_from_start and self._distance_from_start_m(pos) <= cfg.cone_from_start_max_m
+        # an unresolved auto is off (companion.config.for_backend)
+        return cfg.cone_from_start is True and self._distance_from_start_m(pos) <= cfg.cone_from_start_max_m
 
     def _distance_from_start_m(self, pos: np.ndarray) -> float:
         if self._start_ned_m is None:
