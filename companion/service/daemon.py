@@ -47,7 +47,7 @@ from typing import TYPE_CHECKING, Any
 
 
 from companion import exitcodes
-from companion.backends import flight_config, resolve_backend
+from companion.backends import flight_config, make_pipeline, resolve_backend
 from companion.config import CompanionConfig, load_config
 from companion.core.supervisor import (
     Action,
@@ -354,8 +354,6 @@ class Service(ControlPlane, HealthReporter, PresencePlane):
         )
 
     def _build_pipeline(self, cfg: CompanionConfig) -> Any:
-        from companion.backends import make_pipeline
-
         pipeline = make_pipeline(cfg, cfg.camera.width_px, cfg.camera.height_px, clock=time.perf_counter)
         flown = pipeline.config
         log.info(
