@@ -324,6 +324,23 @@ def test_apply_guard_removes_motion_toward_the_point_and_pushes_away_capped() ->
     assert apply_guard(0.0, -0.3, left, only_stop) == pytest.approx((0.0, 0.0))
 
 
+def test_a_damped_push_drops_by_the_speed_already_moving_away_never_below_zero() -> None:
+    cfg = guard_cfg(guard_distance_m=0.6, guard_gain_per_s=3.0, max_guard_speed_m_s=0.8, guard_damping_fraction=1.0)
+    left = np.array([[0.4, 0.0, -1.0]])  # 0.4 m to the left: a push of 3·0.2 = 0.6 m/s to the right
+    assert apply_guard(0.0, 0.0, left, cfg, (0.0, 0.0)) == pytest.approx((0.0, 0.6))
+    assert apply_guard(0.0, 0.0, left, cfg, (0.0, 0.25)) == pytest.approx((0.0, 0.35))  # moving away at 0.25
+    assert apply_guard(0.0, 0.0, left, cfg, (0.0, 0.9)) == pytest.approx((0.0, 0.0))  # away faster: no push
+    assert apply_guard(0.0, 0.0, left, cfg, (0.5, 0.0)) == pytest.approx((0.0, 0.6))  # along it: undamped
+    assert apply_guard(0.0, 0.0, left, cfg) == pytest.approx((0.0, 0.6))  # velocity unknown: undamped
+    # Between a wall 0.4 m left and a box 0.4 m right, moving right at 0.3 m/s: the wall's push drops
+    # to 0.3, the box's stays 0.6 and its lean adds 0.5·0.3, so the command brakes the swing at 0.45
+    # m/s where undamped only the lean's 0.15 does.
+    both = np.array([[0.4, 0.0, -1.0], [0.4, 0.0, 1.0]])
+    assert apply_guard(0.0, 0.0, both, cfg, (0.0, 0.3)) == pytest.approx((0.0, -0.45))
+    undamped = cfg.model_copy(update={"guard_damping_fraction": 0.0})
+    assert apply_guard(0.0, 0.0, both, undamped, (0.0, 0.3)) == pytest.approx((0.0, -0.15))
+
+
 def test_apply_guard_leans_against_a_motion_that_still_closes_on_a_point_on_the_actual_path() -> None:
     """PX4 follows a setpoint ~0.85 s late: a command already turned away still leaves the vehicle
     closing on what it was flying at; the command then moves away at counter_velocity_fraction times

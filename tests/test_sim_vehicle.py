@@ -242,3 +242,26 @@ def test_sim_camera_is_a_camera_source() -> None:
         cam.read()
     cam.close()
     cam.close()
+
+
+def test_an_acceleration_lag_makes_the_velocity_second_order_overshooting_a_little() -> None:
+    # Velocity loop 0.56 s and tilt 0.25 s: damping ratio 0.5·sqrt(0.56/0.25) = 0.75, about 3 % over.
+    first = VehicleModel(VehicleParams(velocity_time_constant_s=0.56, max_horizontal_accel_m_s2=100.0), Pose.at(0, 0, 2))
+    second = VehicleModel(
+        VehicleParams(velocity_time_constant_s=0.56, acceleration_time_constant_s=0.25, max_horizontal_accel_m_s2=100.0),
+        Pose.at(0, 0, 2),
+    )
+    for m in (first, second):
+        m.command(VelocitySetpoint(right_m_s=1.0))
+    a, b = _run(first, 4.0), _run(second, 4.0)
+    # It starts later (it must tilt first) ...
+    assert b[39][1][1] < 0.75 * a[39][1][1]
+    # ... overshoots where the first-order lag never does, and settles on the setpoint.
+    assert max(v[1] for _, v, _ in a) <= 1.0 + 1e-9
+    assert 1.01 < max(v[1] for _, v, _ in b) < 1.1
+    assert b[-1][1][1] == pytest.approx(1.0, abs=0.01)
+
+
+def test_acceleration_time_constant_must_not_be_negative() -> None:
+    with pytest.raises(ValueError, match="acceleration_time_constant_s"):
+        VehicleParams(acceleration_time_constant_s=-0.1)

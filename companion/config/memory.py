@@ -196,6 +196,19 @@ class MemoryConfig(StrictModel):
     max_guard_speed_m_s: float = Field(
         default=0.5, ge=0.0, le=2.0, description="The largest speed the push commands, m/s."
     )
+    guard_damping_fraction: float = Field(
+        default=0.0,
+        ge=0.0,
+        le=2.0,
+        description=(
+            "The push away from a point drops by this fraction of the speed the vehicle already moves "
+            "away from it (its measured velocity; never below zero), dimensionless; 0 = off. Between "
+            "two points on opposite sides the push alone is a spring, and the autopilot's lag (~0.85 s "
+            "with PX4) makes it ring: PX4 SITL with guard_gain_per_s 3 and max_guard_speed_m_s 0.8 swung "
+            "between a wall and a box 1 m apart until it touched (corridor-8). Damping trades the "
+            "push's stiffness against a steady motion for that."
+        ),
+    )
     counter_velocity_fraction: float = Field(
         default=0.5,
         ge=0.0,

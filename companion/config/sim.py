@@ -78,6 +78,18 @@ class SimConfig(StrictModel):
             "PX4 SITL (SIH quadrotor, default MPC gains: 0.8-0.9 s); a crisp racer is nearer 0.3."
         ),
     )
+    acceleration_time_constant_s: float = Field(
+        default=0.0,
+        ge=0.0,
+        le=2.0,
+        description=(
+            "First-order lag between the acceleration the velocity loop asks for and the one the "
+            "vehicle gets (a multicopter must tilt first), seconds; 0 = none, the velocity is a pure "
+            "first-order lag (velocity_time_constant_s). With a lag here the response is second order "
+            "and overshoots a little, as PX4's cascade of velocity and attitude loops does: a guard "
+            "that pushes from both sides rings with it where a first-order lag stays calm."
+        ),
+    )
     max_horizontal_accel_m_s2: float = Field(
         default=3.0, gt=0.0, le=30.0, description="Horizontal acceleration limit of the vehicle, m/s²."
     )

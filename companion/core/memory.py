@@ -943,6 +943,9 @@ def apply_guard(
     leaning against the motion stops it in about a third of the distance a zero command would (a
     first-order lag). The lean and the push together are capped at ``max_guard_speed_m_s``: a
     vehicle shoved sideways flies into what the camera does not see either (kinematic forest-4).
+    With ``guard_damping_fraction`` > 0 each point's push drops by that fraction of the speed the
+    vehicle already moves away from it (never below zero): the push alone, between points on
+    opposite sides, is a spring that rings against the lag.
 
     ``side_room_m_s`` ((left, right) m/s, :func:`~companion.core.command.side_room_m_s`: how fast the
     memory may move the vehicle toward each side the camera reads near; None = no limit): neither a
@@ -975,7 +978,12 @@ def apply_guard(
                     toward = 0.0
                 away -= max(0.0, cfg.counter_velocity_fraction * closing + toward) * u
         if push:
-            away -= cfg.guard_gain_per_s * max(0.0, cfg.guard_distance_m - dist) * u
+            push_m_s = cfg.guard_gain_per_s * max(0.0, cfg.guard_distance_m - dist)
+            if w is not None and cfg.guard_damping_fraction > 0.0:
+                # Damped: less push while the vehicle already moves away, so that it does not ring
+                # between points on opposite sides against the autopilot's lag.
+                push_m_s = max(0.0, push_m_s - cfg.guard_damping_fraction * max(0.0, -float(w @ u)))
+            away -= push_m_s * u
     n = float(np.hypot(away[0], away[1]))
     if n > cfg.max_guard_speed_m_s > 0.0:
         away *= cfg.max_guard_speed_m_s / n

@@ -42,6 +42,8 @@ class VehicleParams:
 
     Attributes:
         velocity_time_constant_s: first-order lag of the velocity, seconds (> 0).
+        acceleration_time_constant_s: first-order lag of the acceleration behind the one the
+            velocity lag asks for (the tilt a multicopter needs first), seconds (>= 0; 0 = none).
         max_horizontal_accel_m_s2: limit on the norm of the horizontal acceleration, m/s² (> 0).
         max_vertical_accel_m_s2: limit on the vertical acceleration, m/s² (> 0).
         yaw_rate_time_constant_s: first-order lag of the yaw rate, seconds (> 0).
@@ -58,6 +60,7 @@ class VehicleParams:
     """
 
     velocity_time_constant_s: float = 0.3
+    acceleration_time_constant_s: float = 0.0
     max_horizontal_accel_m_s2: float = 3.0
     max_vertical_accel_m_s2: float = 2.0
     yaw_rate_time_constant_s: float = 0.15
@@ -83,7 +86,7 @@ class VehicleParams:
             v = float(getattr(self, name))
             if not (v > 0.0 and math.isfinite(v)):
                 raise ValueError(f"VehicleParams.{name} must be finite and > 0, got {v}")
-        for name in ("drift_speed_m_s", "vertical_drift_speed_m_s"):
+        for name in ("drift_speed_m_s", "vertical_drift_speed_m_s", "acceleration_time_constant_s"):
             v = float(getattr(self, name))
             if not (v >= 0.0 and math.isfinite(v)):
                 raise ValueError(f"VehicleParams.{name} must be finite and >= 0, got {v}")
@@ -154,6 +157,9 @@ class VehicleModel:
         if ah > p.max_horizontal_accel_m_s2:
             acc[:2] *= p.max_horizontal_accel_m_s2 / ah
         acc[2] = min(p.max_vertical_accel_m_s2, max(-p.max_vertical_accel_m_s2, acc[2]))
+        if p.acceleration_time_constant_s > 0.0:
+            # The vehicle gets the asked-for acceleration only as fast as it tilts.
+            acc = self.accel_ned_m_s2 + (acc - self.accel_ned_m_s2) * -math.expm1(-dt_s / p.acceleration_time_constant_s)
         v_new = v + acc * dt_s
         self.position_ned_m = self.position_ned_m + 0.5 * (v + v_new) * dt_s
         if p.drift_speed_m_s > 0.0 or p.vertical_drift_speed_m_s > 0.0:
