@@ -205,8 +205,9 @@ class MemoryConfig(StrictModel):
             "away from it (its measured velocity; never below zero), dimensionless; 0 = off. Between "
             "two points on opposite sides the push alone is a spring, and the autopilot's lag (~0.85 s "
             "with PX4) makes it ring: PX4 SITL with guard_gain_per_s 3 and max_guard_speed_m_s 0.8 swung "
-            "between a wall and a box 1 m apart until it touched (corridor-8). Damping trades the "
-            "push's stiffness against a steady motion for that."
+            "between a wall and a box 1 m apart until it touched (corridor-8). Damping 1 stopped that "
+            "ringing in the simulator, but costs stiffness where the position drifts unseen (the "
+            "estimate says the vehicle moves away), and no damped guard beat the defaults there."
         ),
     )
     counter_velocity_fraction: float = Field(

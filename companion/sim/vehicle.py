@@ -42,7 +42,7 @@ class VehicleParams:
 
     Attributes:
         velocity_time_constant_s: first-order lag of the velocity, seconds (> 0).
-        acceleration_time_constant_s: first-order lag of the acceleration behind the one the
+        acceleration_time_constant_s: first-order lag of the acceleration (all three axes) behind the one the
             velocity lag asks for (the tilt a multicopter needs first), seconds (>= 0; 0 = none).
         max_horizontal_accel_m_s2: limit on the norm of the horizontal acceleration, m/s² (> 0).
         max_vertical_accel_m_s2: limit on the vertical acceleration, m/s² (> 0).
