@@ -159,7 +159,8 @@ class VehicleModel:
         acc[2] = min(p.max_vertical_accel_m_s2, max(-p.max_vertical_accel_m_s2, acc[2]))
         if p.acceleration_time_constant_s > 0.0:
             # The vehicle gets the asked-for acceleration only as fast as it tilts.
-            acc = self.accel_ned_m_s2 + (acc - self.accel_ned_m_s2) * -math.expm1(-dt_s / p.acceleration_time_constant_s)
+            ka = -math.expm1(-dt_s / p.acceleration_time_constant_s)
+            acc = self.accel_ned_m_s2 + (acc - self.accel_ned_m_s2) * ka
         v_new = v + acc * dt_s
         self.position_ned_m = self.position_ned_m + 0.5 * (v + v_new) * dt_s
         if p.drift_speed_m_s > 0.0 or p.vertical_drift_speed_m_s > 0.0:
