@@ -1010,5 +1010,6 @@ def test_the_memory_status_says_how_many_points_the_detour_map_leaves_out() -> N
     # layer's map leaves out (seen past: tests/test_memory.py).
     sup = Supervisor(default_config())
     assert sup.memory_status() == {
-        "points": 0, "guarding": 0, "seen_past": 0, "guard_cleared": 0, "unseen_drift_m_s": 0.0
+        "points": 0, "guarding": 0, "seen_past": 0, "guard_cleared": 0, "unseen_drift_m_s": 0.0,
+        "track_counter_m_s": 0.0,
     }

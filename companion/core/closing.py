@@ -30,6 +30,13 @@ if TYPE_CHECKING:
 #: The centre region's half-width as a fraction of its depth (one third of an ~85 deg view: +-14 deg,
 #: tan = 0.25): how far to the side a point of it can be, for the yaw rate's share of its depth change.
 _CENTRE_HALF_WIDTH_PER_M = 0.25
+#: Unexplained motion below this is none, m/s, and more is counted less this: the trapezoid over the
+#: reported samples differs from the autopilot's own integration by ~1e-4 m/s where nothing drifts,
+#: and a still world must leave every setpoint as it was (the closed loop amplifies any nudge).
+TRACK_DEADBAND_M_S = 0.02
+#: One sample's position moving more than this beyond what the reported velocity explains, metres,
+#: is an estimator's reset (a GPS jump, a new origin), not motion: the window starts again there.
+TRACK_RESET_STEP_M = 0.25
 #: Samples kept (frames; setpoint calls): the longest window (2 s) at up to 120 a second (the service
 #: sends a setpoint per frame besides its 20 Hz stream).
 _CAPACITY = 256
@@ -185,3 +192,63 @@ class ClosingWatch:
         if unseen < cmd.unseen_closing_min_m_s or closing < cmd.unseen_closing_min_m_s:
             return 0.0
         return min(unseen, cmd.max_unseen_closing_counter_m_s)
+
+
+class TrackWatch:
+    """The motion of the reported position that the reported velocity does not explain, m/s.
+
+    The obstacle memory, the course's line and the camera's rendered world in the simulators all
+    live in the position the autopilot reports; the guard's distances to remembered points change
+    at the rate that position moves. PX4 SITL's position moved 0.12 m/s (median over 1 s windows;
+    95th percentile 0.28 m/s) otherwise than the velocity it reported (r28's health logs, steady
+    flight or not), and the kinematic simulator's drift is of that kind. So the guard and the motion
+    brake can use the reported velocity plus this (``command.track_velocity_window_s``). Pure: time
+    is passed in, nothing allocated per sample."""
+
+    def __init__(self) -> None:
+        self._rows = _Ring(5)  # time s, north m, east m, north m/s, east m/s
+
+    def reset(self) -> None:
+        """Forget every sample (a new engagement)."""
+        self._rows.clear()
+
+    def observe(self, now_s: float, position_ned_m: np.ndarray | None, velocity_ned_m_s: np.ndarray | None) -> None:
+        """The reported position (float ``(3,)`` NED metres) and velocity (float ``(3,)`` NED m/s) at
+        ``now_s`` seconds; a missing or non-finite one, or a time not after the last, is not kept."""
+        if position_ned_m is None or velocity_ned_m_s is None or not math.isfinite(now_s):
+            return
+        p = np.asarray(position_ned_m, dtype=np.float64).reshape(-1)
+        v = np.asarray(velocity_ned_m_s, dtype=np.float64).reshape(-1)
+        if p.size < 2 or v.size < 2 or not (np.all(np.isfinite(p[:2])) and np.all(np.isfinite(v[:2]))):
+            return
+        last = self._rows.last()
+        if last is not None and now_s <= last[0]:
+            return
+        if last is not None:
+            step = p[:2] - last[1:3] - 0.5 * (v[:2] + last[3:5]) * (now_s - last[0])
+            if float(np.hypot(step[0], step[1])) > TRACK_RESET_STEP_M:
+                self._rows.clear()
+        self._rows.push(float(now_s), float(p[0]), float(p[1]), float(v[0]), float(v[1]))
+
+    def unexplained_m_s(self, now_s: float, window_s: float, max_m_s: float) -> np.ndarray | None:
+        """float ``(2,)`` north, east m/s: over the samples of the last ``window_s`` seconds before
+        ``now_s``, the position's change less the reported velocity's integral (trapezoid), per second,
+        shortened by :data:`TRACK_DEADBAND_M_S` and at most ``max_m_s`` long; None with fewer than 3
+        samples since the window began or the position last jumped (:data:`TRACK_RESET_STEP_M`),
+        spanning under half the window, or within the dead band."""
+        if window_s <= 0.0:
+            return None
+        rows = self._rows.since(now_s - window_s)
+        if len(rows) < 3:
+            return None
+        t = rows[:, 0]
+        span = float(t[-1] - t[0])
+        if span < 0.5 * window_s:
+            return None
+        dt = np.diff(t)[:, None]
+        integral = np.sum(0.5 * (rows[1:, 3:5] + rows[:-1, 3:5]) * dt, axis=0)
+        unexplained = (rows[-1, 1:3] - rows[0, 1:3] - integral) / span
+        norm = float(np.hypot(unexplained[0], unexplained[1]))
+        if norm <= TRACK_DEADBAND_M_S:
+            return None
+        return unexplained * (min(norm - TRACK_DEADBAND_M_S, max_m_s) / norm)

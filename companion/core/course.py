@@ -50,8 +50,9 @@ from companion.core.command import (
     is_straight_clear,
     line_offset_m,
     setpoint_for,
+    stoppable_speed_m_s,
 )
-from companion.core.closing import ClosingWatch
+from companion.core.closing import ClosingWatch, TrackWatch
 from companion.core.detour import DetourPlanner, Phase
 from companion.core.frames import finite_position
 from companion.core.goal import COURSE, Goal, GoalSpec, resolve_goal
@@ -96,6 +97,11 @@ class CourseHold:
         self.detour = DetourPlanner(defer=defer_histogram)
         #: The camera's check on the velocity estimate (``command.unseen_closing_range_m``).
         self.closing = ClosingWatch()
+        #: The reported position's motion the reported velocity does not explain
+        #: (``command.track_velocity_window_s``).
+        self.track = TrackWatch()
+        #: The unexplained motion the last setpoint countered, m/s (0: none), for the health message.
+        self.track_counter_m_s = 0.0
         #: The unseen drift the last setpoint countered, m/s (0: none), for the health message.
         self.unseen_drift_m_s = 0.0
         self._engaged_at: tuple[np.ndarray | None, float | None] = (None, None)
@@ -118,6 +124,7 @@ class CourseHold:
         self.brake.reset()
         self.overhead.reset()
         self.closing.reset()
+        self.track.reset()
         self.set_goal(goal, position_ned_m, heading_rad)
 
     def set_goal(self, goal: GoalSpec, position_ned_m: object, heading_rad: float | None) -> None:
@@ -271,6 +278,12 @@ class CourseHold:
             and since_last_frame_s <= cmd.stale_frame_timeout_s
         )
         self._observe_closing(decision, now_s, since_last_frame_s, region_depths_m, yaw, velocity_ned_m_s, cmd)
+        self.track.observe(now_s, position_ned_m, velocity_ned_m_s)
+        unexplained = self.track.unexplained_m_s(now_s, cmd.track_velocity_window_s, cmd.max_track_counter_m_s)
+        moving = velocity_ned_m_s
+        if unexplained is not None and velocity_ned_m_s is not None:
+            moving = np.asarray(velocity_ned_m_s, dtype=np.float64).reshape(-1).copy()
+            moving[:2] += unexplained  # how the vehicle moves in the frame the memory lives in
         command = None
         if planning and fresh and self.holding_reason is None:
             command = self._plan(decision, now_s, cmd, position_ned_m, yaw, obstacles, memory_cfg, detour_cfg, prefer_right)
@@ -311,7 +324,7 @@ class CourseHold:
                 brake_heading_error_rad=self.brake.heading_error_rad(yaw),
                 guard_m=guard_m,
                 guard_cfg=memory_cfg,
-                velocity_body_m_s=horizontal_velocity_body_m_s(velocity_ned_m_s, yaw),
+                velocity_body_m_s=horizontal_velocity_body_m_s(moving, yaw),
                 region_depths_m=region_depths_m,
                 turn_sign=self._turn_sign,
                 altitude_error_m=altitude_error,
@@ -323,7 +336,7 @@ class CourseHold:
             )
             turning = command.anchor_ned_m is not None and sp.yaw_rate_deg_s != 0.0
             self._turn_sign = math.copysign(1.0, sp.yaw_rate_deg_s) if turning else 0.0
-            sp = self._counter_unseen_closing(sp, now_s, yaw, cmd, fresh, guard_m, memory_cfg)
+            sp = self._counter_drift(sp, decision, now_s, yaw, cmd, fresh, guard_m, memory_cfg, unexplained, region_depths_m)
             return self._vertical_limits(
                 sp, now_s, cmd, position_ned_m, velocity_ned_m_s, region_depths_m, obstacles, memory_cfg, fresh
             )
@@ -353,12 +366,12 @@ class CourseHold:
             guard_m=guard_m,
             guard_cfg=memory_cfg,
             remembered_sides=remembered_sides,
-            velocity_body_m_s=horizontal_velocity_body_m_s(velocity_ned_m_s, yaw),
+            velocity_body_m_s=horizontal_velocity_body_m_s(moving, yaw),
             gap=gap,
             path_ahead_m=path_ahead_m,
             below_clear=below_clear,
         )
-        sp = self._counter_unseen_closing(sp, now_s, yaw, cmd, fresh, guard_m, memory_cfg)
+        sp = self._counter_drift(sp, decision, now_s, yaw, cmd, fresh, guard_m, memory_cfg, unexplained, region_depths_m)
         return self._vertical_limits(
             sp, now_s, cmd, position_ned_m, velocity_ned_m_s, region_depths_m, obstacles, memory_cfg, fresh
         )
@@ -383,36 +396,69 @@ class CourseHold:
         centre = float(np.asarray(region_depths_m, dtype=np.float64)[REGION_INDEX["center"]])
         self.closing.observe_frame(now_s - since_last_frame_s, centre, yaw, cmd)
 
-    def _counter_unseen_closing(
+    def _counter_drift(
         self,
         sp: VelocitySetpoint,
+        decision: Decision | None,
         now_s: float,
         yaw: float | None,
         cmd: CommandConfig,
         fresh: bool,
         guard_m: np.ndarray | None,
         memory_cfg: MemoryConfig | None,
+        unexplained_ned_m_s: np.ndarray | None,
+        region_depths_m: np.ndarray | None,
     ) -> VelocitySetpoint:
-        """``sp`` less the drift the camera sees and the estimate does not (the vehicle flies the
-        setpoint plus the drift), in the body frame at ``yaw``; a stale frame's zero stays zero. The
-        counter backs away from what the camera sees, toward what it does not: the guard's slide
-        past a remembered point on the path (``guard_m``, no push again) applies to the result."""
+        """``sp`` less the drift the estimate does not show (the vehicle flies the setpoint plus the
+        drift), in the body frame at ``yaw``: ``command.track_counter_fraction`` of the reported
+        position's unexplained motion (``unexplained_ned_m_s``, north and east m/s, or None), and the
+        unseen closing the camera sees beyond it. A stale frame's zero stays zero. The counter backs
+        away from what the camera sees, toward what it does not: the guard's slide past a remembered
+        point on the path (``guard_m``, no push again) applies to the result. Forward it adds nothing
+        while ``decision`` brakes or the centre of ``region_depths_m`` cannot be read, and never more
+        than the vehicle can stop short of what the centre reads (:func:`stoppable_speed_m_s`): the
+        brake is absolute, and the unexplained motion may be the estimate's, not the vehicle's."""
         self.unseen_drift_m_s = 0.0
-        if not fresh or yaw is None or cmd.unseen_closing_range_m <= 0.0:
+        self.track_counter_m_s = 0.0
+        if not fresh or yaw is None:
             return sp
-        drift = self.closing.drift(now_s, cmd)
-        if drift is None:
+        forward, right = sp.forward_m_s, sp.right_m_s
+        countered = (0.0, 0.0)  # the track's counter, body forward and right m/s
+        if unexplained_ned_m_s is not None and cmd.track_counter_fraction > 0.0:
+            body = horizontal_velocity_body_m_s(cmd.track_counter_fraction * unexplained_ned_m_s, yaw)
+            if body is not None:
+                countered = body
+                forward -= body[0]
+                right -= body[1]
+                self.track_counter_m_s = float(math.hypot(body[0], body[1]))
+        drift = self.closing.drift(now_s, cmd) if cmd.unseen_closing_range_m > 0.0 else None
+        if drift is not None:
+            speed, heading = drift
+            off = heading - yaw  # positive: the drift points to the right of the nose
+            # What the track's counter already took off along the drift's heading is not taken twice.
+            speed = max(0.0, speed - (countered[0] * math.cos(off) + countered[1] * math.sin(off)))
+            self.unseen_drift_m_s = speed
+            forward -= speed * math.cos(off)
+            right -= speed * math.sin(off)
+        if forward > sp.forward_m_s:
+            forward = min(forward, max(sp.forward_m_s, self._forward_room_m_s(decision, region_depths_m, cmd)))
+        if forward == sp.forward_m_s and right == sp.right_m_s:
             return sp
-        speed, heading = drift
-        self.unseen_drift_m_s = speed
-        off = heading - yaw  # positive: the drift points to the right of the nose
-        forward = sp.forward_m_s - speed * math.cos(off)
-        right = sp.right_m_s - speed * math.sin(off)
         if guard_m is not None and memory_cfg is not None and len(guard_m):
             slide_only = np.array(guard_m, dtype=np.float64).reshape(len(guard_m), -1)[:, :3]
             slide_only = np.column_stack([slide_only, np.zeros(len(slide_only))])
             forward, right = apply_guard(forward, right, slide_only, memory_cfg)
         return replace(sp, forward_m_s=forward, right_m_s=right)
+
+    @staticmethod
+    def _forward_room_m_s(decision: Decision | None, region_depths_m: np.ndarray | None, cmd: CommandConfig) -> float:
+        """How fast a counter may send the vehicle forward, m/s: not at all while ``decision`` brakes
+        or the centre region's depth (``region_depths_m``, float ``(9,)`` metres) is unknown, else
+        what it can stop short of."""
+        if decision is None or decision.kind is DecisionKind.BRAKE or region_depths_m is None:
+            return 0.0
+        centre = float(np.asarray(region_depths_m, dtype=np.float64)[REGION_INDEX["center"]])
+        return stoppable_speed_m_s(centre, cmd) if math.isfinite(centre) else 0.0
 
     @staticmethod
     def _vertical_limits(

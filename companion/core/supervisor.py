@@ -388,13 +388,16 @@ class Supervisor:
         (:meth:`~companion.core.memory.ObstacleMemory.see_through`), ``guard_cleared``: how many no
         longer guard either (seen past for ``memory.guard_clear_after_s`` in a row),
         ``unseen_drift_m_s``: the drift toward what the centre sees that the velocity estimate does
-        not show, which the last setpoint countered (0: none; ``command.unseen_closing_range_m``)."""
+        not show, which the last setpoint countered (0: none; ``command.unseen_closing_range_m``),
+        ``track_counter_m_s``: the motion of the reported position its reported velocity does not
+        explain, which the last setpoint countered (0: none; ``command.track_counter_fraction``)."""
         return {
             "points": len(self._m.obstacles),
             "guarding": self._m.guarding,
             "seen_past": self._m.obstacles.seen_past_count(self._cfg.memory),
             "guard_cleared": self._m.obstacles.guard_cleared_count(self._cfg.memory),
             "unseen_drift_m_s": self._m.course.unseen_drift_m_s,
+            "track_counter_m_s": self._m.course.track_counter_m_s,
         }
 
     def reconfigure(self, cfg: SupervisorConfig) -> None:
