@@ -232,7 +232,8 @@ class TrackWatch:
 
     def unexplained_m_s(self, now_s: float, window_s: float, max_m_s: float) -> np.ndarray | None:
         """float ``(2,)`` north, east m/s: over the samples of the last ``window_s`` seconds before
-        ``now_s``, the position's change less the reported velocity's integral (trapezoid), per second,
+        ``now_s``, the position's change less the reported velocity's integral (trapezoid), per second
+        (a least-squares slope over the samples),
         shortened by :data:`TRACK_DEADBAND_M_S` and at most ``max_m_s`` long; None with fewer than 3
         samples since the window began or the position last jumped (:data:`TRACK_RESET_STEP_M`),
         spanning under half the window, or within the dead band."""
@@ -245,9 +246,13 @@ class TrackWatch:
         span = float(t[-1] - t[0])
         if span < 0.5 * window_s:
             return None
-        dt = np.diff(t)[:, None]
-        integral = np.sum(0.5 * (rows[1:, 3:5] + rows[:-1, 3:5]) * dt, axis=0)
-        unexplained = (rows[-1, 1:3] - rows[0, 1:3] - integral) / span
+        # The position less the velocity's running integral (trapezoid) is what the velocity does not
+        # explain; its slope, fitted over every sample rather than read from the two ends, is the
+        # unexplained motion: telemetry timed by its arrival jitters by tens of milliseconds.
+        integral = np.concatenate([[[0.0, 0.0]], np.cumsum(0.5 * (rows[1:, 3:5] + rows[:-1, 3:5]) * np.diff(t)[:, None], axis=0)])
+        d = rows[:, 1:3] - integral
+        tc = t - t.mean()
+        unexplained = (tc @ (d - d.mean(axis=0))) / float(tc @ tc)
         norm = float(np.hypot(unexplained[0], unexplained[1]))
         if norm <= TRACK_DEADBAND_M_S:
             return None

@@ -240,6 +240,7 @@ class CourseHold:
         position_ned_m: np.ndarray | None,
         yaw_rad: float | None,
         velocity_ned_m_s: np.ndarray | None = None,
+        position_time_s: float | None = None,
         region_depths_m: np.ndarray | None = None,
         guard_m: np.ndarray | None = None,
         remembered_sides: tuple[bool, bool] | None = None,
@@ -260,6 +261,9 @@ class CourseHold:
             position_ned_m: float ``(3,)`` NED metres now, or None.
             yaw_rad: heading now, radians, or None.
             velocity_ned_m_s: float ``(3,)`` NED m/s now, or None (the guard's lean needs it).
+            position_time_s: when the autopilot's position and velocity arrived, seconds on
+                ``now_s``'s clock (None: ``now_s``); the track counter's samples are timed by it, so
+                that telemetry older than the call does not read as motion.
             region_depths_m: float ``(9,)`` refined region depths, metres, NaN unknown, or None.
             guard_m, remembered_sides, gap, path_ahead_m: the obstacle memory's inputs
                 (:meth:`~companion.core.memory.ObstacleMemory.hold_inputs`), or None (memory off).
@@ -278,7 +282,7 @@ class CourseHold:
             and since_last_frame_s <= cmd.stale_frame_timeout_s
         )
         self._observe_closing(decision, now_s, since_last_frame_s, region_depths_m, yaw, velocity_ned_m_s, cmd)
-        self.track.observe(now_s, position_ned_m, velocity_ned_m_s)
+        self.track.observe(now_s if position_time_s is None else position_time_s, position_ned_m, velocity_ned_m_s)
         unexplained = self.track.unexplained_m_s(now_s, cmd.track_velocity_window_s, cmd.max_track_counter_m_s)
         moving = velocity_ned_m_s
         if unexplained is not None and velocity_ned_m_s is not None:

@@ -898,6 +898,7 @@ class Supervisor:
             position_ned_m=v.position_ned_m,
             yaw_rad=heading_now,
             velocity_ned_m_s=v.velocity_ned_m_s,
+            position_time_s=v.position_timestamp_s,
             region_depths_m=getattr(refined, "depth_m", None),
             guard_m=guard,
             remembered_sides=sides,
