@@ -203,7 +203,7 @@ class TrackWatch:
     95th percentile 0.28 m/s) otherwise than the velocity it reported (r28's health logs, steady
     flight or not), and the kinematic simulator's drift is of that kind. So the guard and the motion
     brake can use the reported velocity plus this (``command.track_velocity_window_s``). Pure: time
-    is passed in, nothing allocated per sample."""
+    is passed in; the samples live in a fixed ring."""
 
     def __init__(self) -> None:
         self._rows = _Ring(5)  # time s, north m, east m, north m/s, east m/s
@@ -233,8 +233,8 @@ class TrackWatch:
     def unexplained_m_s(self, now_s: float, window_s: float, max_m_s: float) -> np.ndarray | None:
         """float ``(2,)`` north, east m/s: over the samples of the last ``window_s`` seconds before
         ``now_s``, the position's change less the reported velocity's integral (trapezoid), per second
-        (a least-squares slope over the samples),
-        shortened by :data:`TRACK_DEADBAND_M_S` and at most ``max_m_s`` long; None with fewer than 3
+        (a least-squares slope over the samples), shortened by :data:`TRACK_DEADBAND_M_S` and at most
+        ``max_m_s`` long; None with fewer than 3
         samples since the window began or the position last jumped (:data:`TRACK_RESET_STEP_M`),
         spanning under half the window, or within the dead band."""
         if window_s <= 0.0:
