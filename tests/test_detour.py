@@ -452,6 +452,28 @@ def test_a_climb_ends_a_detour_only_while_it_faces_the_goal() -> None:
             assert cmd is not None and p.active
 
 
+def test_a_descent_at_the_floor_is_no_escape_under() -> None:
+    # Kinematic office-2: at the floor (command.min_altitude_m) in front of a fence that reaches the
+    # ground, the controller still asked to descend; taken for an escape under, it ended every look
+    # round as it faced the goal. At the floor it is none; above it, it still is.
+    dive = Decision(DecisionKind.AVOID, yaw=0.0, pitch=-0.6, speed_fraction=0.5, reason="down")
+    floor = -CMD.min_altitude_m
+    for altitude_m, ends in ((CMD.min_altitude_m + 0.05, False), (CMD.min_altitude_m + 1.0, True)):
+        mem = _trusted_memory(_wall(2.5, -8.0, 8.0), altitude_m=altitude_m)
+        pos = np.array([0.0, 0.0, -altitude_m])
+        p = DetourPlanner()
+        cmd, t = None, 0.0
+        while t < DET.trigger_after_s + 0.5 and not p.active:
+            cmd = p.update(t, BRAKE, pos, 0.0, 0.0, 0.0, mem, MEM, DET, goal_distance_m=6.0, floor_down_m=floor)
+            t += 0.05
+        assert cmd is not None and p.active
+        cmd = p.update(t, dive, pos, 0.0, 0.0, 0.0, mem, MEM, DET, goal_distance_m=6.0, floor_down_m=floor)
+        if ends:
+            assert cmd is None and not p.active and "escapes over or under" in p.reason
+        else:
+            assert cmd is not None and p.active
+
+
 def test_the_direction_flown_keeps_its_place_only_while_it_is_one_of_the_histograms() -> None:
     # Hovering or turning in place (the same goal bearing), a direction costing a few degrees less
     # does not take over (hysteresis), one costing far less does. In flight the goal's bearing turns
@@ -917,6 +939,22 @@ def test_the_map_holds_what_blocks_at_the_vehicles_height_and_at_the_course_heig
     assert low_wall.map_points(climbed, 0.2, MEM, 5.0, course).shape == (1, 2)  # not over it yet
     over = np.array([0.0, 0.0, -2.0])
     assert low_wall.map_points(over, 0.2, MEM, 5.0, course).shape == (0, 2)
+
+
+def test_far_off_the_course_altitude_the_map_is_the_vehicles_own_band() -> None:
+    # Kinematic office-2: the controller took the vehicle 1 m under its course, to the floor, in front
+    # of a fence. The two height bands shared nothing, the map came back empty, and every detour
+    # handed straight back into the brake. Past height_band_m off the course, the vehicle's band decides.
+    fence = _trusted_points(_at(_wall(1.0, -1.0, 1.0), 0.5))
+    course = -1.5
+    assert MEM.height_band_m < 1.0
+    at_floor = np.array([0.0, 0.0, -0.5])
+    assert fence.map_points(at_floor, 0.2, MEM, 5.0, course).shape[0] == fence.map_points(at_floor, 0.2, MEM, 5.0).shape[0] > 0
+    # Within the band of the course, what the vehicle clears at the course height is passed, as before.
+    near_course = np.array([0.0, 0.0, -(1.5 - MEM.height_band_m)])
+    low = _trusted_points(_at(_wall(1.0, -1.0, 1.0), 1.5 - 1.5 * MEM.height_band_m))
+    assert low.map_points(near_course, 0.2, MEM, 5.0).shape[0] > 0
+    assert low.map_points(near_course, 0.2, MEM, 5.0, course).shape == (0, 2)
 
 
 def test_a_detour_maps_at_the_course_altitude_too() -> None:

@@ -528,6 +528,7 @@ class CourseHold:
             stall_mark_m=self.progress.mark_m,
             course_down_m=None if self.altitude_m is None else -self.altitude_m,
             regressing=self.progress.regressing,
+            floor_down_m=-cmd.min_altitude_m if cmd.min_altitude_m > 0.0 else None,
         )
         if command is not None and command.phase is Phase.DEAD_END:
             self.holding_reason = (

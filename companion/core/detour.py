@@ -89,6 +89,10 @@ VERTICAL_ESCAPE = 0.2
 #: (a cabinet, a fence's top) says nothing of the way to the goal, and ending the detour there sent
 #: the vehicle back to the brake that began it (office and forest timeouts), degrees.
 _ESCAPE_FACING_DEG = 30.0
+#: Within this of the floor (``command.min_altitude_m``) a descending AVOID is no escape under: the
+#: floor stops it (kinematic office-2: 1 m under its course at the floor in front of a fence that
+#: reaches the ground, the controller's "down" ended every look round facing the goal), metres.
+FLOOR_MARGIN_M = 0.2
 #: A scan target counts as reached within this, radians.
 _SCAN_TOLERANCE_RAD = math.radians(6.0)
 #: Nearer than the clearance to something, a path may come no nearer to anything than this less
@@ -557,6 +561,7 @@ class DetourPlanner:
         self._stall_mark: float | None = None
         self._course_down_m: float | None = None
         self._line_up_since_s: float | None = None  # when a slide to line up with an opening began
+        self._at_floor = False  # within FLOOR_MARGIN_M of command.min_altitude_m
         self._drop_request()
 
     def _drop_request(self) -> None:
@@ -613,6 +618,7 @@ class DetourPlanner:
         stall_mark_m: float | None = None,
         course_down_m: float | None = None,
         regressing: bool = False,
+        floor_down_m: float | None = None,
     ) -> DetourCommand | None:
         """Advance to ``now_s`` (seconds) with the decision in force (fresh), the vehicle's position
         (float ``(3,)`` NED metres) and heading (radians), the direction to the goal from here
@@ -625,7 +631,8 @@ class DetourPlanner:
         (the map holds only points in the height band of it and of the vehicle's,
         :meth:`~companion.core.memory.ObstacleMemory.map_points`; None: the vehicle's alone);
         ``regressing``: the vehicle is flying back from its goal
-        (:attr:`~companion.core.command.ProgressWatch.regressing`)."""
+        (:attr:`~companion.core.command.ProgressWatch.regressing`); ``floor_down_m``: NED down of
+        ``command.min_altitude_m``, metres (None: no floor), where a descent is no escape."""
         self._goal_distance_m = goal_distance_m
         self._course_down_m = course_down_m
         self._stall_mark = stall_mark_m
@@ -643,6 +650,7 @@ class DetourPlanner:
                 self.reason = "detour abandoned: position or heading unknown"
             return None
         self._remember_trail(pos, now_s, cfg)
+        self._at_floor = floor_down_m is not None and pos[2] >= floor_down_m - FLOOR_MARGIN_M
         if self.phase is Phase.DEAD_END:
             return DetourCommand(Phase.DEAD_END, None, self._anchor_ned_m, self.reason)
         if self._stall_mark is None or self._count_mark is None or abs(self._stall_mark - self._count_mark) > 1e-6:
@@ -659,7 +667,7 @@ class DetourPlanner:
             self._count += 1
             return self._begin(now_s, pos, yaw_rad, goal_bearing_rad, memory, memory_cfg, cfg, prefer_right)
         facing_goal = abs(wrap_pi(yaw_rad - goal_bearing_rad)) <= math.radians(_ESCAPE_FACING_DEG)
-        if _vertical_escape(decision) and facing_goal:
+        if _vertical_escape(decision, self._at_floor) and facing_goal:
             self._end(pos, "the controller escapes over or under: no detour")
             return None
         elif now_s - self._since_s > cfg.max_time_s and self.phase is not Phase.HANDBACK:
@@ -687,7 +695,7 @@ class DetourPlanner:
         regressing: bool = False,
     ) -> bool:
         braking = decision is not None and decision.kind is DecisionKind.BRAKE
-        if not braking or _vertical_escape(decision):
+        if not braking or _vertical_escape(decision, self._at_floor):
             self._blocked_since_s = None
         elif self._blocked_since_s is None:
             self._blocked_since_s = now_s
@@ -1148,10 +1156,13 @@ def _best(
     return k
 
 
-def _vertical_escape(decision: Decision | None) -> bool:
+def _vertical_escape(decision: Decision | None, at_floor: bool = False) -> bool:
+    """Whether ``decision`` escapes over or under (:data:`VERTICAL_ESCAPE`). ``at_floor``: the vehicle
+    is within :data:`FLOOR_MARGIN_M` of ``command.min_altitude_m``, where a descent is no escape."""
     return (
         decision is not None
         and decision.kind is DecisionKind.AVOID
         and abs(decision.pitch) >= VERTICAL_ESCAPE
         and abs(decision.pitch) > abs(decision.yaw)
+        and not (at_floor and decision.pitch < 0.0)
     )

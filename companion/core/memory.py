@@ -683,14 +683,19 @@ class ObstacleMemory:
         only points within the band of that altitude too. A point the vehicle clears at one of the
         two heights is passed there: a door's lintel 0.2 m over a vehicle that has climbed 0.4 m
         (PX4 SITL office-2: held at the door as a dead end), or a low wall's top under one that
-        has climbed over it."""
+        has climbed over it. Only while the vehicle is within ``height_band_m`` of that altitude
+        (the two bands share at least half their height): farther off, the bands share little or
+        nothing, and their common points would be an empty map. The vehicle's own band then
+        decides: what is at its height now is what it would hit (kinematic office-2: 1 m under its
+        course in front of a fence, the map was empty and every detour handed straight back into
+        the brake)."""
         pos = np.asarray(position_ned_m, dtype=np.float64).reshape(-1)
         if pos.shape != (3,) or not np.all(np.isfinite(pos)):
             return None
         keep = ((now_s - self._t) <= cfg.duration_s) & ~self._seen_past(cfg)
         rel = self._pts[keep] - pos
         near = (np.abs(rel[:, 2]) <= cfg.height_band_m) & (np.hypot(rel[:, 0], rel[:, 1]) < radius_m)
-        if course_down_m is not None and math.isfinite(course_down_m):
+        if course_down_m is not None and math.isfinite(course_down_m) and abs(pos[2] - course_down_m) <= cfg.height_band_m:
             near &= np.abs(rel[:, 2] + (pos[2] - course_down_m)) <= cfg.height_band_m
         rel = rel[near]
         trusted = self.trusted(rel + pos, cfg)
