@@ -561,7 +561,6 @@ class DetourPlanner:
         self._stall_mark: float | None = None
         self._course_down_m: float | None = None
         self._line_up_since_s: float | None = None  # when a slide to line up with an opening began
-        self._at_floor = False  # within FLOOR_MARGIN_M of command.min_altitude_m
         self._drop_request()
 
     def _drop_request(self) -> None:
@@ -650,13 +649,13 @@ class DetourPlanner:
                 self.reason = "detour abandoned: position or heading unknown"
             return None
         self._remember_trail(pos, now_s, cfg)
-        self._at_floor = floor_down_m is not None and pos[2] >= floor_down_m - FLOOR_MARGIN_M
+        at_floor = floor_down_m is not None and pos[2] >= floor_down_m - FLOOR_MARGIN_M
         if self.phase is Phase.DEAD_END:
             return DetourCommand(Phase.DEAD_END, None, self._anchor_ned_m, self.reason)
         if self._stall_mark is None or self._count_mark is None or abs(self._stall_mark - self._count_mark) > 1e-6:
             self._count_mark, self._count = self._stall_mark, 0  # progress since: count afresh
         if self.phase is Phase.IDLE:
-            if not self._triggered(now_s, decision, yaw_rad, goal_bearing_rad, stalled_for_s, cfg, regressing):
+            if not self._triggered(now_s, decision, yaw_rad, goal_bearing_rad, stalled_for_s, cfg, regressing, at_floor):
                 return None
             if self._count >= cfg.max_detours_without_progress:
                 self.reason = (
@@ -667,7 +666,7 @@ class DetourPlanner:
             self._count += 1
             return self._begin(now_s, pos, yaw_rad, goal_bearing_rad, memory, memory_cfg, cfg, prefer_right)
         facing_goal = abs(wrap_pi(yaw_rad - goal_bearing_rad)) <= math.radians(_ESCAPE_FACING_DEG)
-        if _vertical_escape(decision, self._at_floor) and facing_goal:
+        if _vertical_escape(decision, at_floor) and facing_goal:
             self._end(pos, "the controller escapes over or under: no detour")
             return None
         elif now_s - self._since_s > cfg.max_time_s and self.phase is not Phase.HANDBACK:
@@ -693,9 +692,10 @@ class DetourPlanner:
         stalled_for_s: float | None,
         cfg: DetourConfig,
         regressing: bool = False,
+        at_floor: bool = False,
     ) -> bool:
         braking = decision is not None and decision.kind is DecisionKind.BRAKE
-        if not braking or _vertical_escape(decision, self._at_floor):
+        if not braking or _vertical_escape(decision, at_floor):
             self._blocked_since_s = None
         elif self._blocked_since_s is None:
             self._blocked_since_s = now_s
