@@ -174,3 +174,33 @@ def test_the_counter_adds_no_forward_motion_toward_what_brakes_or_reads_near():
     assert last(on, clear, math.nan).forward_m_s <= max(0.0, last(off, clear, math.nan).forward_m_s) + 1e-9
     # far from anything the counter does its work: forward more than without it
     assert last(on, clear, 5.0).forward_m_s > last(off, clear, 5.0).forward_m_s + 0.2
+
+
+def test_a_false_point_across_the_counter_never_cancels_the_push_away_from_a_wall():
+    """Braked beside a wall remembered 0.4 m to the right (it may push), a point that may not push
+    0.45 m to the left (a false match), the position moving right at 0.3 m/s. The counter's slide
+    past the left point takes the counter back, never the guard's push away from the wall: sliding
+    the sum took both, and the drift carried the vehicle into the wall (PX4 SITL r32, office-1 and
+    office-3)."""
+    cfg = parse_config({})
+    on, off = cfg.command, parse_config(OFF).command
+    guard = np.array([[0.4, 0.0, 1.0, 1.0], [0.45, 0.0, -1.0, 0.0]])  # distance, unit forward, right, may push
+
+    def last(cmd):
+        hold = CourseHold()
+        hold.engage(np.array([0.0, 0.0, -1.5]), 0.0)
+        sp = VelocitySetpoint()
+        for k in range(20):
+            t = k / RATE_HZ
+            p = np.array([0.0, 0.3 * t, -1.5])
+            hold.observe(BRAKE, t, p)
+            sp = hold.setpoint(
+                BRAKE, t, 0.0, cmd, position_ned_m=p, yaw_rad=0.0, velocity_ned_m_s=np.zeros(3),
+                region_depths_m=np.full(9, 3.0), guard_m=guard, memory_cfg=cfg.memory,
+            )
+        return sp, hold.track_counter_m_s
+
+    (sp, counter), (sp_off, _) = last(on), last(off)
+    assert counter > 0.2  # the counter is on, and slid away by the left point
+    assert sp_off.right_m_s < -0.1  # the guard pushes away from the wall on the right
+    assert sp.right_m_s <= sp_off.right_m_s + 1e-9

@@ -418,22 +418,26 @@ class CourseHold:
         position's unexplained motion (``unexplained_ned_m_s``, north and east m/s, or None), and the
         unseen closing the camera sees beyond it. A stale frame's zero stays zero. The counter backs
         away from what the camera sees, toward what it does not: the guard's slide past a remembered
-        point on the path (``guard_m``, no push again) applies to the result. Forward it adds nothing
-        while ``decision`` brakes or the centre of ``region_depths_m`` cannot be read, and never more
-        than the vehicle can stop short of what the centre reads (:func:`stoppable_speed_m_s`): the
-        brake is absolute, and the unexplained motion may be the estimate's, not the vehicle's."""
+        point on the counter's own path (``guard_m``, no push again) applies to the counter alone.
+        ``sp`` has had the guard already (its push and lean away from a remembered wall included);
+        sliding the sum again took that push off too: a point on the far side of a push (a false
+        near point that may not push) cancelled both the push away from the wall and the counter, and
+        the drift carried the vehicle into the wall (PX4 SITL r32, office-1 and office-3).
+        Forward the counter adds nothing while ``decision`` brakes or the centre of
+        ``region_depths_m`` cannot be read, and never more than the vehicle can stop short of what
+        the centre reads (:func:`stoppable_speed_m_s`): the brake is absolute, and the unexplained
+        motion may be the estimate's, not the vehicle's."""
         self.unseen_drift_m_s = 0.0
         self.track_counter_m_s = 0.0
         if not fresh or yaw is None:
             return sp
-        forward, right = sp.forward_m_s, sp.right_m_s
+        counter = np.zeros(2)  # what the counters add, body forward and right m/s
         countered = (0.0, 0.0)  # the track's counter, body forward and right m/s
         if unexplained_ned_m_s is not None and cmd.track_counter_fraction > 0.0:
             body = horizontal_velocity_body_m_s(cmd.track_counter_fraction * unexplained_ned_m_s, yaw)
             if body is not None:
                 countered = body
-                forward -= body[0]
-                right -= body[1]
+                counter -= body
                 self.track_counter_m_s = float(math.hypot(body[0], body[1]))
         drift = self.closing.drift(now_s, cmd) if cmd.unseen_closing_range_m > 0.0 else None
         if drift is not None:
@@ -442,16 +446,18 @@ class CourseHold:
             # What the track's counter already took off along the drift's heading is not taken twice.
             speed = max(0.0, speed - (countered[0] * math.cos(off) + countered[1] * math.sin(off)))
             self.unseen_drift_m_s = speed
-            forward -= speed * math.cos(off)
-            right -= speed * math.sin(off)
-        if forward > sp.forward_m_s:
-            forward = min(forward, max(sp.forward_m_s, self._forward_room_m_s(decision, region_depths_m, cmd)))
-        if forward == sp.forward_m_s and right == sp.right_m_s:
+            counter -= (speed * math.cos(off), speed * math.sin(off))
+        if not np.any(counter):
             return sp
         if guard_m is not None and memory_cfg is not None and len(guard_m):
             slide_only = np.array(guard_m, dtype=np.float64).reshape(len(guard_m), -1)[:, :3]
             slide_only = np.column_stack([slide_only, np.zeros(len(slide_only))])
-            forward, right = apply_guard(forward, right, slide_only, memory_cfg)
+            counter[:] = apply_guard(float(counter[0]), float(counter[1]), slide_only, memory_cfg)
+        forward, right = sp.forward_m_s + float(counter[0]), sp.right_m_s + float(counter[1])
+        if forward > sp.forward_m_s:
+            forward = min(forward, max(sp.forward_m_s, self._forward_room_m_s(decision, region_depths_m, cmd)))
+        if forward == sp.forward_m_s and right == sp.right_m_s:
+            return sp
         return replace(sp, forward_m_s=forward, right_m_s=right)
 
     @staticmethod
