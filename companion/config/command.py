@@ -473,7 +473,9 @@ class CommandConfig(StrictModel):
             "as asked, sideways too, where the camera's own check (unseen_closing_range_m) sees only "
             "motion toward the centre (0 = none); forward it adds nothing while the frame brakes or "
             "the centre cannot be read, and never more than the vehicle can stop short of what the "
-            "centre reads. With 0.14 m/s of simulated drift it took the kinematic standard suite from "
+            "centre reads. A remembered point on the counter's path slides the counter alone, never the "
+            "guard's push away from a wall (PX4 SITL r32: two side-wall collisions). With 0.14 m/s of "
+            "simulated drift it took the kinematic standard suite from "
             "177 goals of 189 and 2 collisions to 185 and none (StereoBM), and from 175 and 1 to "
             "181-184 and 0-1 (cupy, earlier versions of it) (2026-11-29)."
         ),
