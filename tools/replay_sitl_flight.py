@@ -6,7 +6,8 @@ its health log (``WORKDIR/service/health.jsonl``, ~10 records a second) keeps th
 velocity and the setpoint the service sent. The service's camera renders the course from that pose
 (``camera.sim_world = "course"``), so the frames can be rendered again. For every record this tool
 
-* renders the course at the logged pose (the config's noise and seed), runs the pipeline and puts
+* renders the course at the logged pose with the service's own sim camera (its rig, noise and
+  seed: :func:`~companion.service.camera.sim_camera_from_config`), runs the pipeline and puts
   the frame's near points in an obstacle memory from that pose, as the supervisor does;
 * once the log says ``engaged``, steps a course hold (:class:`~companion.core.course.CourseHold`,
   engaged at that record's pose with the logged goal) with the replayed decision and the logged
@@ -40,14 +41,13 @@ import numpy as np
 from companion.backends import make_pipeline
 from companion.config import load_config
 from companion.core.course import CourseHold
-from companion.core.geometry import StereoGeometry
 from companion.core.goal import GoalSpec
 from companion.core.memory import ObstacleMemory
 from companion.core.types import REGION_INDEX, VelocitySetpoint
-from companion.service.camera import placement_fields, sim_scene_from_config
+from companion.service.camera import placement_fields, sim_camera_from_config
 from companion.sim.courses import make_course
 from companion.sim.placement import CoursePlacement
-from companion.sim.render import Photometry, Pose, StereoRenderer
+from companion.sim.render import Pose
 
 
 def _goal(record: dict[str, Any]) -> GoalSpec:
@@ -82,13 +82,11 @@ def replay(workdir: Path, t_from: float, t_to: float, show_guard: bool) -> int:
     data["camera"].update(placement_fields(placement))
     cfg = type(cfg).model_validate(data)
 
-    cam = cfg.camera
-    geometry = StereoGeometry.ideal(cam.width_px, cam.height_px, cfg.calibration.ideal_hfov_deg, cfg.calibration.ideal_baseline_m)
-    seed = cam.sim_course_seed  # the service's sim camera's (service/camera.py sim_camera_from_config)
-    renderer = StereoRenderer(geometry, sim_scene_from_config(cfg), seed=seed)
-    noise = Photometry(noise_std=cam.sim_noise_grey) if cam.sim_noise_grey > 0 else None
-    rng = np.random.default_rng(seed)
-    pipeline = make_pipeline(cfg, cam.width_px, cam.height_px)
+    # The service's own sim camera (its rig, scene, noise and seed), fed the logged pose and time.
+    now: list[Any] = [None, 0.0]  # the pose in the course and the time of the record being replayed
+    camera = sim_camera_from_config(cfg, pose_provider=lambda: (now[0], now[1]), clock=lambda: now[1])
+    camera.open()
+    pipeline = make_pipeline(cfg, cfg.camera.width_px, cfg.camera.height_px)
     memory = ObstacleMemory()
     hold = CourseHold(defer_histogram=False)
     engaged = False
@@ -103,8 +101,8 @@ def replay(workdir: Path, t_from: float, t_to: float, show_guard: bool) -> int:
         pos = np.asarray(v["position_ned_m"], dtype=np.float64)
         att = np.asarray(v["attitude_rad"], dtype=np.float64)
         vel = np.asarray(v["velocity_ned_m_s"], dtype=np.float64) if v.get("velocity_ned_m_s") else None
-        image = renderer.render_side_by_side(placement.pose_in_course(pos, att), left=noise, right=noise, rng=rng)
-        res = pipeline.process(image, r["time_s"])
+        now[:] = [placement.pose_in_course(pos, att), r["time_s"]]
+        res = pipeline.process(camera.read().image, r["time_s"])
         if res.near_points_cam_m is not None:
             seen_from = Pose((float(pos[0]), float(pos[1]), float(pos[2])), float(att[2]), float(att[1]), float(att[0]))
             memory.add_frame(res.near_points_cam_m, seen_from, r["time_s"], cfg.memory, res.far_view)
