@@ -160,17 +160,19 @@ def test_the_cone_from_the_start_holds_only_near_where_the_detour_began() -> Non
     assert asked == {-3.9: pytest.approx(0.0), -4.1: None}
 
 
-def test_an_opening_the_map_narrowed_opens_its_side_only_with_through_squeeze() -> None:
+def test_an_opening_the_map_narrowed_opens_its_side_as_a_closed_opening() -> None:
     """A wall 1.5 m ahead (where the detour kind's vehicle brakes) with an opening 1.0 m wide on the map
-    (a 1.6 m opening whose jambs the SGM smeared inward) centred 3 m to the left, the wall going on
-    past the look-ahead to the right: with clearance_m (0.55) neither side opens the way, and the tie
-    goes to the preferred side; with squeeze_clearance_m (0.4) the opening's side does."""
+    (a 1.6 m opening whose jambs the matcher smeared inward) centred 3 m to the left, the wall going on
+    past the look-ahead to the right: with clearance_m (0.55) no step opens the way
+    (``through_m``), but the opening, closed at both ends, is found with squeeze_clearance_m (0.4),
+    its middle 3 m to the left, and the side choice takes it; ``through_squeeze`` opens it as a step too."""
     from companion.core.detour import _pick_side
 
     pts = np.concatenate([_wall(1.5, -8.0, -3.5), _wall(1.5, -2.5, 8.0)])
     plain = polar_histogram(pts, 0.0, DET, MEM.map_depth_m, goal_distance_m=4.5)
     assert math.isinf(plain.through_m[-1]) and math.isinf(plain.through_m[1])
-    assert _pick_side(plain, True, DET) == 1
+    assert plain.opening_m[-1] == pytest.approx(3.0, abs=0.05) and math.isinf(plain.opening_m[1])
+    assert _pick_side(plain, True, DET) == -1
     for unresolved in ("auto", False):  # an unresolved auto is off (companion.config.for_backend)
         off = DET.model_copy(update={"through_squeeze": unresolved})
         assert np.array_equal(polar_histogram(pts, 0.0, off, MEM.map_depth_m, goal_distance_m=4.5).through_m, plain.through_m)
@@ -180,6 +182,25 @@ def test_an_opening_the_map_narrowed_opens_its_side_only_with_through_squeeze() 
     assert _pick_side(h, True, squeeze) == -1
     # The directions themselves are judged as before.
     assert np.array_equal(h.free_m, plain.free_m) and np.array_equal(h.tight_m, plain.tight_m)
+
+
+def test_where_the_map_stops_seeing_a_wall_loses_to_a_mapped_opening() -> None:
+    """Kinematic detour-0 with StereoBM (realization 4, no drift; 0 and 2 with drift): after the look
+    round the wall 1.1 m ahead is mapped out to 2.1 m right and from 3.2 m right on (its 1.57 m
+    opening read 1.1 m wide), and to the left only out to 2.8 m, where the look round stopped
+    measuring it at a grazing angle. The left's "end" is unseen, not free: the side choice goes
+    right, through the opening closed at both ends, not left past where the map ends (a dead end
+    after 45 s there)."""
+    from companion.core.detour import _pick_side
+
+    pts = np.concatenate([_wall(1.1, -2.8, 2.1), _wall(1.1, 3.2, 4.3)])
+    h = polar_histogram(pts, 0.0, DET, MEM.map_depth_m, goal_distance_m=5.3)
+    assert math.isinf(h.through_m[1]) and h.through_m[-1] <= 4.0  # the 0.5 m steps: only the left
+    assert h.opening_m[1] == pytest.approx(2.65, abs=0.05) and math.isinf(h.opening_m[-1])
+    assert _pick_side(h, False, DET) == 1
+    # An opening open at its far end is no closed opening: the wall's end is the through step's.
+    end = polar_histogram(_wall(1.1, -2.8, 2.1), 0.0, DET, MEM.map_depth_m, goal_distance_m=5.3)
+    assert math.isinf(end.opening_m[1]) and math.isinf(end.opening_m[-1])
 
 
 # ---------------------------------------------------------------------------------------------- planner
