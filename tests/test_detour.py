@@ -203,6 +203,24 @@ def test_where_the_map_stops_seeing_a_wall_loses_to_a_mapped_opening() -> None:
     assert math.isinf(end.opening_m[1]) and math.isinf(end.opening_m[-1])
 
 
+def test_an_opening_with_no_direction_toward_it_does_not_choose_the_side() -> None:
+    """PX4 SITL corridor-0 (r35): a gap between a box and the wall beside it, closed at both ends, but
+    no direction on its side free for min_free_m (the wall 0.6 m off that side, the box in front).
+    Choosing that side spent the detour's one switch at once, and the next replan was a dead end: the
+    gap must not choose the side; the side with a free direction is chosen."""
+    from companion.core.detour import _pick_side
+
+    box = _wall(1.0, -0.45, 1.5)  # in front, reaching past the right
+    left_wall = np.stack([np.arange(-1.0, 4.0, 0.1), np.full(50, -1.6)], axis=1)  # a gap 1.15 m wide
+    pts = np.concatenate([box, left_wall])
+    h = polar_histogram(pts, 0.0, DET, MEM.map_depth_m, goal_distance_m=10.0)
+    assert h.opening_m[-1] < 1.5  # the gap is there, closed at both ends
+    left = (np.sign(h.offset_rad) < 0) & (h.free_m >= DET.min_free_m)
+    right = (np.sign(h.offset_rad) > 0) & (h.free_m >= DET.min_free_m)
+    assert not left.any() and right.any()
+    assert _pick_side(h, False, DET) == 1
+
+
 # ---------------------------------------------------------------------------------------------- planner
 
 

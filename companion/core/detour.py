@@ -1172,21 +1172,25 @@ class DetourPlanner:
 def _pick_side(h: Histogram, prefer_right: bool, cfg: DetourConfig, openings: bool = True) -> int:
     """+1 (right of the goal) or -1: the side where a shorter step square to the goal direction opens
     the way to it (:attr:`Histogram.through_m`: an opening, or the end of the wall; and, with
-    ``openings``, :attr:`Histogram.opening_m`: the middle of an opening closed at both ends); when neither
+    ``openings``, :attr:`Histogram.opening_m`: the middle of an opening closed at both ends, on a
+    side with a free direction); when neither
     does within the look-ahead, the side with the free direction nearest the goal; a tie goes to the
     preferred side."""
-    if openings:
-        r, left = (min(h.through_m[side], h.opening_m[side]) for side in (1, -1))
-    else:
-        r, left = h.through_m[1], h.through_m[-1]
-    if not (math.isinf(r) and math.isinf(left)) and abs(r - left) > 0.5 * _THROUGH_STEP_M:
-        return 1 if r < left else -1
     angle = np.abs(h.offset_rad)
     usable = h.free_m >= cfg.min_free_m
     best: dict[int, float] = {}
     for side in (1, -1):
         a = angle[(np.sign(h.offset_rad) == side) & usable]
         best[side] = float(a.min()) if a.size else math.inf
+    step = dict(h.through_m)
+    if openings:
+        # An opening counts only where its side has a direction to fly now: choosing a side with none
+        # spends the detour's one switch at once (PX4 SITL corridor-0: a gap between a box and the
+        # wall beside it, no direction free toward it; the switch spent, the next replan a dead end).
+        step = {side: min(step[side], h.opening_m[side] if math.isfinite(best[side]) else math.inf) for side in (1, -1)}
+    r, left = step[1], step[-1]
+    if not (math.isinf(r) and math.isinf(left)) and abs(r - left) > 0.5 * _THROUGH_STEP_M:
+        return 1 if r < left else -1
     if abs(best[1] - best[-1]) > 0.5 * math.radians(cfg.sector_deg):
         return 1 if best[1] < best[-1] else -1
     return 1 if prefer_right else -1
