@@ -133,6 +133,13 @@ def test_after_a_look_round_it_keeps_turning_in_place_while_the_histogram_is_com
         cmd = p.update(t, BRAKE, POS, yaw, 0.0, 0.0, mem, MEM, DET, goal_distance_m=6.0)
         t += 0.05
         if p.pending_request is not None:
+            if p.reason.startswith("looking round"):
+                # Facing the goal mid-way: a look at the map (the wall still blocks it: look on),
+                # meanwhile facing the goal where the look began.
+                assert cmd.phase is Phase.SCAN and np.array_equal(cmd.anchor_ned_m, anchor)
+                assert cmd.target_yaw_rad == pytest.approx(0.0)
+                assert p.offer(_answer(p))
+                continue
             break
     assert p.pending_request is not None
     assert p.reason == "looked round: mapping the way round"

@@ -21,7 +21,9 @@ Phases (:class:`Phase`)::
   ``scan_half_angle_deg``, the nearer side first, at ``turn_rate_deg_s``: the camera fills the memory.
   None when the way round is already in view (within ``_IN_VIEW_DEG`` of the heading), or seen: on
   the side the memory favours, a sideways step of at most ``no_look_round_step_m`` opens the way (a
-  box's end, seen on the approach); then it chooses at once.
+  box's end, seen on the approach); then it chooses at once. Facing the goal direction with turns
+  still to go, it looks at the map once: the goal direction free, or an opening to line up with,
+  hands back at once (the rest of the look would not change that choice).
 * **choose**: the polar histogram of the memory's *trusted* points (:meth:`ObstacleMemory.map_points
   <companion.core.memory.ObstacleMemory.map_points>`) round the vehicle, every ``sector_deg`` within
   ``max_angle_deg`` of the goal direction. A direction is *free* when no trusted point lies within
@@ -604,6 +606,7 @@ class DetourPlanner:
         self._last_end: tuple[float, float, int] | None = None  # where the last detour ended, its side
         self._count_mark: float | None = None  # the progress mark the detours are counted at
         self._count = 0  # detours begun since the vehicle last made progress
+        self._escape_tried = False  # since then, a vertical escape has ended a detour
         self.reset()
 
     def reset(self) -> None:
@@ -624,6 +627,7 @@ class DetourPlanner:
         self._brake_since_s: float | None = None
         self._vetoes: list[tuple[float, float, float]] = []  # (north, east, bearing) closed by a brake
         self._scans = 0
+        self._scan_goal_rad: float | None = None  # the goal direction the look round's turns are laid from
         self._goal_distance_m: float | None = None
         self._stall_mark: float | None = None
         self._course_down_m: float | None = None
@@ -633,7 +637,7 @@ class DetourPlanner:
     def _drop_request(self) -> None:
         """Forget the histogram asked for (deferred): a result for it is dropped when offered."""
         self._request: HistogramRequest | None = None
-        self._awaiting: str | None = None  # what the histogram is for: "begin" or "choose"
+        self._awaiting: str | None = None  # what the histogram is for: "begin", "peek" or "choose"
         self._answer: HistogramResult | None = None
 
     @property
@@ -721,6 +725,7 @@ class DetourPlanner:
             return DetourCommand(Phase.DEAD_END, None, self._anchor_ned_m, self.reason)
         if self._stall_mark is None or self._count_mark is None or abs(self._stall_mark - self._count_mark) > 1e-6:
             self._count_mark, self._count = self._stall_mark, 0  # progress since: count afresh
+            self._escape_tried = False
         if self.phase is Phase.IDLE:
             if not self._triggered(now_s, decision, yaw_rad, goal_bearing_rad, stalled_for_s, cfg, regressing, at_floor):
                 return None
@@ -733,8 +738,13 @@ class DetourPlanner:
             self._count += 1
             return self._begin(now_s, pos, yaw_rad, goal_bearing_rad, memory, memory_cfg, cfg, prefer_right)
         facing_goal = abs(wrap_pi(yaw_rad - goal_bearing_rad)) <= math.radians(_ESCAPE_FACING_DEG)
-        if _vertical_escape(decision, at_floor) and facing_goal:
+        # Once per stall: an escape that ended a detour and brought no progress has been tried. A
+        # see-through fence down to the floor kept the controller diving toward it, and each dive
+        # cut a look round short (kinematic office-8 with drift: two look rounds ended so, 20 s).
+        tried = self._escape_tried and self._count_mark is not None
+        if _vertical_escape(decision, at_floor) and facing_goal and not tried:
             self._end(pos, "the controller escapes over or under: no detour")
+            self._escape_tried = True
             return None
         elif now_s - self._since_s > cfg.max_time_s and self.phase is not Phase.HANDBACK:
             return self._dead_end(pos, f"no way round within {cfg.max_time_s:g} s (detour.max_time_s)")
@@ -860,6 +870,7 @@ class DetourPlanner:
         self._scan_since_s = now_s
         self._anchor_ned_m = pos.copy()
         half = math.radians(cfg.scan_half_angle_deg)
+        self._scan_goal_rad = goal
         a, b = wrap_pi(goal - half), wrap_pi(goal + half)
         # Through the goal direction: every turn under 180 degrees, so it goes the way meant.
         self._targets = [a, goal, b] if lean > 0 else [b, goal, a]
@@ -879,14 +890,46 @@ class DetourPlanner:
         cfg: DetourConfig,
         prefer_right: bool,
     ) -> DetourCommand | None:
+        peek = False
         while self._targets and abs(wrap_pi(self._targets[0] - yaw)) <= _SCAN_TOLERANCE_RAD:
-            self._targets.pop(0)
+            reached = self._targets.pop(0)
             self._turn_sign = 0
+            peek = bool(self._targets) and reached == self._scan_goal_rad
+        if peek and now_s - self._scan_since_s <= cfg.scan_timeout_s:
+            # Facing the goal with turns still to go: if the way to it is free, or an opening lines
+            # up with it, the rest of the look round would change nothing of that choice (kinematic
+            # office-2: a four-turn look in a door's mouth, 8.5 s, that ended lining up with it).
+            h = self._histogram(now_s, pos, goal, memory, memory_cfg, cfg, "peek")
+            if h is None:
+                return self._waiting(pos, yaw, cfg)
+            chosen = self._peek_with(h, now_s, pos, yaw, goal, cfg, prefer_right)
+            if chosen is not None:
+                return chosen
         if self._targets and now_s - self._scan_since_s <= cfg.scan_timeout_s:
             self._target_rad = self._targets[0]
             self.reason = f"looking round ({len(self._targets)} turn{'s' if len(self._targets) > 1 else ''} to go)"
             return DetourCommand(Phase.SCAN, self._target_rad, self._anchor_ned_m, self.reason)
         return self._choose(now_s, pos, yaw, goal, memory, memory_cfg, cfg, prefer_right)
+
+    def _peek_with(
+        self,
+        h: Histogram,
+        asked_s: float,
+        pos: np.ndarray,
+        yaw: float,
+        goal: float,
+        cfg: DetourConfig,
+        prefer_right: bool,
+        seen_from: np.ndarray | None = None,
+    ) -> DetourCommand | None:
+        """Mid look round, facing the goal: hand back (:meth:`_choose_with`) when the goal direction is
+        free or an opening lines up with it; None: look on."""
+        gd = self._goal_distance_m
+        need = cfg.radius_m if gd is None else min(cfg.radius_m, gd)
+        free = h.free_m[h.goal_index] >= need or h.tight_m[h.goal_index] >= need
+        if not free and h.line_up_m is None:
+            return None
+        return self._choose_with(h, asked_s, pos, yaw, goal, cfg, prefer_right, seen_from)
 
     def _choose(
         self,
@@ -1034,6 +1077,13 @@ class DetourPlanner:
         if purpose == "begin":
             self.reason = self.reason.removesuffix(_MAPPING)  # the trigger's reason, as without the wait
             return self._begin_with(h, now_s, pos, yaw, goal, cfg, prefer_right, request.position_ned_m)
+        if purpose == "peek":
+            chosen = self._peek_with(h, request.asked_s, pos, yaw, goal, cfg, prefer_right, request.position_ned_m)
+            if chosen is not None or not self._targets:
+                return chosen if chosen is not None else self._waiting(pos, yaw, cfg)
+            self._target_rad = self._targets[0]  # look on: the next turn
+            self.reason = f"looking round ({len(self._targets)} turn{'s' if len(self._targets) > 1 else ''} to go)"
+            return DetourCommand(Phase.SCAN, self._target_rad, self._anchor_ned_m, self.reason)
         return self._choose_with(h, request.asked_s, pos, yaw, goal, cfg, prefer_right, request.position_ned_m)
 
     def _waiting(self, pos: np.ndarray, yaw: float, cfg: DetourConfig) -> DetourCommand:
@@ -1119,7 +1169,7 @@ class DetourPlanner:
         purpose: str,
     ) -> Histogram | None:
         """The histogram from here now; deferred: None, and the request is left for the caller
-        (:attr:`pending_request`), for ``purpose`` ("begin" or "choose")."""
+        (:attr:`pending_request`), for ``purpose`` ("begin", "peek" or "choose")."""
         request = self._request_for(now_s, pos, goal, memory, memory_cfg, cfg)
         if not self.defer:
             return compute_histogram(request)
