@@ -928,3 +928,20 @@ def test_seeing_past_is_off_with_zero_frames_and_near_cells_make_the_frame_view(
     assert CLEAR_WINDOW_BLOCKS >= 1
     with pytest.raises(ValueError, match="must be"):
         near.far_view(np.zeros((3, 3), np.float32), VIEW)
+
+
+def test_a_pose_from_telemetry_is_none_unless_both_parts_are_three_finite_numbers() -> None:
+    """The supervisor and the flight replay tool read the vehicle's pose from the link's position
+    (NED metres) and attitude (roll, pitch, yaw radians): missing, malformed or non-finite gives None,
+    never a pose the memory would place points from."""
+    pose = Pose.from_telemetry([1.0, 2.0, -1.5], (0.1, -0.2, 0.3))
+    assert pose == Pose((1.0, 2.0, -1.5), 0.3, -0.2, 0.1)
+    for position, attitude in (
+        (None, (0.0, 0.0, 0.0)),
+        ((0.0, 0.0, -1.0), None),
+        ((0.0, 0.0), (0.0, 0.0, 0.0)),
+        ((0.0, 0.0, float("nan")), (0.0, 0.0, 0.0)),
+        ((0.0, 0.0, -1.0), (0.0, float("inf"), 0.0)),
+        ("abc", (0.0, 0.0, 0.0)),
+    ):
+        assert Pose.from_telemetry(position, attitude) is None

@@ -43,11 +43,11 @@ from companion.config import load_config
 from companion.core.course import CourseHold
 from companion.core.goal import GoalSpec
 from companion.core.memory import ObstacleMemory
+from companion.core.pose import Pose
 from companion.core.types import REGION_INDEX, VelocitySetpoint
 from companion.service.camera import placement_fields, sim_camera_from_config
 from companion.sim.courses import make_course
 from companion.sim.placement import CoursePlacement
-from companion.sim.render import Pose
 
 
 def _goal(record: dict[str, Any]) -> GoalSpec:
@@ -104,8 +104,9 @@ def replay(workdir: Path, t_from: float, t_to: float, show_guard: bool) -> int:
         now[:] = [placement.pose_in_course(pos, att), r["time_s"]]
         res = pipeline.process(camera.read().image, r["time_s"])
         if res.near_points_cam_m is not None:
-            seen_from = Pose((float(pos[0]), float(pos[1]), float(pos[2])), float(att[2]), float(att[1]), float(att[0]))
-            memory.add_frame(res.near_points_cam_m, seen_from, r["time_s"], cfg.memory, res.far_view)
+            seen_from = Pose.from_telemetry(pos, att)
+            if seen_from is not None:
+                memory.add_frame(res.near_points_cam_m, seen_from, r["time_s"], cfg.memory, res.far_view)
         if r["state"] == "engaged" and not engaged:
             engaged = True
             hold.engage(pos, float(att[2]), _goal(r))

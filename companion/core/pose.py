@@ -49,6 +49,22 @@ class Pose:
             object.__setattr__(self, name, value)
 
     @classmethod
+    def from_telemetry(cls, position_ned_m: object, attitude_rad: object) -> Pose | None:
+        """The pose from an autopilot's position (NED metres, 3 numbers) and attitude (roll, pitch,
+        yaw radians, 3 numbers), as the vehicle link reports them; None when either is missing,
+        not 3 numbers or not finite."""
+        if position_ned_m is None or attitude_rad is None:
+            return None
+        try:
+            p = np.asarray(position_ned_m, dtype=np.float64).reshape(3)
+            a = np.asarray(attitude_rad, dtype=np.float64).reshape(3)
+        except (TypeError, ValueError):
+            return None
+        if not (np.all(np.isfinite(p)) and np.all(np.isfinite(a))):
+            return None
+        return cls((float(p[0]), float(p[1]), float(p[2])), float(a[2]), float(a[1]), float(a[0]))
+
+    @classmethod
     def at(
         cls,
         north_m: float,

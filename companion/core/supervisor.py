@@ -926,16 +926,7 @@ class Supervisor:
 
 def _pose_of(v: VehicleState) -> Pose | None:
     """The vehicle's pose when its position and attitude are known and finite."""
-    if v.position_ned_m is None or v.attitude_rad is None:
-        return None
-    try:
-        p = np.asarray(v.position_ned_m, dtype=np.float64).reshape(3)
-        a = np.asarray(v.attitude_rad, dtype=np.float64).reshape(3)
-    except (TypeError, ValueError):
-        return None
-    if not (np.all(np.isfinite(p)) and np.all(np.isfinite(a))):
-        return None
-    return Pose((float(p[0]), float(p[1]), float(p[2])), float(a[2]), float(a[1]), float(a[0]))
+    return Pose.from_telemetry(v.position_ned_m, v.attitude_rad)
 
 
 def _finite_or_none(values: object, index: int) -> float | None:
