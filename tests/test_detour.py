@@ -513,41 +513,6 @@ def test_a_descent_at_the_floor_is_no_escape_under() -> None:
             assert cmd is not None and p.active
 
 
-def test_an_escape_ends_one_detour_per_stall() -> None:
-    """Kinematic office-8 with drift (the `cupy` matcher): in front of a see-through fence that
-    reaches the floor the controller dived, and each dive, facing the goal, was taken for the way
-    under and ended a look round (two of them, 20 s), though the first had brought no progress. Once
-    an escape has ended a detour, a later one at the same progress mark runs on; progress makes the
-    escape count again."""
-    dive = Decision(DecisionKind.AVOID, yaw=0.0, pitch=-0.6, speed_fraction=0.5, reason="down")
-    mem = _trusted_memory(_wall(2.5, -8.0, 8.0))
-    pos = np.array([0.0, 0.0, -1.5])
-    p = DetourPlanner()
-    t = 0.0
-
-    def detour(mark_m: float) -> None:
-        nonlocal t
-        began = t
-        while not p.active and t < began + 3.0:
-            p.update(t, BRAKE, pos, 0.0, 0.0, 0.0, mem, MEM, DET, goal_distance_m=6.0, stall_mark_m=mark_m)
-            t += 0.05
-        assert p.active
-
-    def dive_ends(mark_m: float) -> bool:
-        nonlocal t
-        cmd = p.update(t, dive, pos, 0.0, 0.0, 0.0, mem, MEM, DET, goal_distance_m=6.0, stall_mark_m=mark_m)
-        t += 0.05
-        return cmd is None and not p.active and "escapes over or under" in p.reason
-
-    detour(0.0)
-    assert dive_ends(0.0)  # the first: the way under may be free
-    detour(0.0)
-    assert not dive_ends(0.0) and p.active  # tried, no progress since: the look round goes on
-    p.reset()
-    detour(1.0)  # progress: a new place, a new escape
-    assert dive_ends(1.0)
-
-
 def test_a_look_round_that_faces_a_free_goal_direction_hands_back_there() -> None:
     """Kinematic office-2 (the SGM, no drift): in a door's mouth a four-turn look round (8.5 s) ended
     lining up with the door it had faced half-way. Mid-look, facing the goal with turns to go, the

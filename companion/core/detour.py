@@ -606,7 +606,6 @@ class DetourPlanner:
         self._last_end: tuple[float, float, int] | None = None  # where the last detour ended, its side
         self._count_mark: float | None = None  # the progress mark the detours are counted at
         self._count = 0  # detours begun since the vehicle last made progress
-        self._escape_tried = False  # since then, a vertical escape has ended a detour
         self.reset()
 
     def reset(self) -> None:
@@ -725,7 +724,6 @@ class DetourPlanner:
             return DetourCommand(Phase.DEAD_END, None, self._anchor_ned_m, self.reason)
         if self._stall_mark is None or self._count_mark is None or abs(self._stall_mark - self._count_mark) > 1e-6:
             self._count_mark, self._count = self._stall_mark, 0  # progress since: count afresh
-            self._escape_tried = False
         if self.phase is Phase.IDLE:
             if not self._triggered(now_s, decision, yaw_rad, goal_bearing_rad, stalled_for_s, cfg, regressing, at_floor):
                 return None
@@ -738,13 +736,8 @@ class DetourPlanner:
             self._count += 1
             return self._begin(now_s, pos, yaw_rad, goal_bearing_rad, memory, memory_cfg, cfg, prefer_right)
         facing_goal = abs(wrap_pi(yaw_rad - goal_bearing_rad)) <= math.radians(_ESCAPE_FACING_DEG)
-        # Once per stall: an escape that ended a detour and brought no progress has been tried. A
-        # see-through fence down to the floor kept the controller diving toward it, and each dive
-        # cut a look round short (kinematic office-8 with drift: two look rounds ended so, 20 s).
-        tried = self._escape_tried and self._count_mark is not None
-        if _vertical_escape(decision, at_floor) and facing_goal and not tried:
+        if _vertical_escape(decision, at_floor) and facing_goal:
             self._end(pos, "the controller escapes over or under: no detour")
-            self._escape_tried = True
             return None
         elif now_s - self._since_s > cfg.max_time_s and self.phase is not Phase.HANDBACK:
             return self._dead_end(pos, f"no way round within {cfg.max_time_s:g} s (detour.max_time_s)")
