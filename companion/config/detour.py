@@ -199,8 +199,10 @@ class DetourConfig(StrictModel):
         description=(
             "Along a detour, on the side chosen, when no direction keeps clearance_m (an opening just "
             "wide enough, seen with its jambs' depth noise), one keeping this much still goes on, and "
-            "the goal direction keeping this much is enough to hand back, metres: the 0.25 m vehicle "
-            "plus 0.15 m (the controller and the guard still act)."
+            "the goal direction keeping this much is enough to hand back, and after a look round an "
+            "opening the map closes at both ends whose path keeps this much chooses its side "
+            "(lookahead_m), metres: the 0.25 m vehicle plus 0.15 m (the controller and the guard "
+            "still act)."
         ),
     )
     line_up_max_m: float = Field(
@@ -267,7 +269,11 @@ class DetourConfig(StrictModel):
             "Choosing a side (left or right of the goal): the side where a step square to the goal "
             "direction, on the map's free space, opens the way to the goal soonest is the shorter way "
             "round (an opening, or the end of the wall); steps up to this long are tried (at most 0.8 "
-            "memory.map_depth_m), metres; 0 = choose by the free direction nearest the goal only."
+            "memory.map_depth_m), metres; 0 = choose by the free direction nearest the goal only. "
+            "After a look round, the middle of an opening the map closes at both ends (free with "
+            "squeeze_clearance_m, found in 5 cm steps, on a side with a free direction) counts as "
+            "such a step too: a wall's end where the look stopped measuring it is unseen, not free "
+            "(kinematic detour kind, StereoBM: a 1.57 m opening read 1.0-1.25 m wide)."
         ),
     )
     speed_m_s: float = Field(
