@@ -203,6 +203,39 @@ def test_where_the_map_stops_seeing_a_wall_loses_to_a_mapped_opening() -> None:
     assert math.isinf(end.opening_m[1]) and math.isinf(end.opening_m[-1])
 
 
+def test_closed_openings_mark_each_points_interval_as_judging_every_path_would() -> None:
+    """closed_openings_m marks the interval of offsets each point blocks instead of judging every
+    (offset, point) pair with free_length_m; on random maps both give the same openings."""
+    from companion.core.detour import _OPENING_STEP_M, _rays, closed_openings_m
+
+    def judged(pts: np.ndarray, goal: float, need: float) -> dict[int, float]:
+        c, count = DET.squeeze_clearance_m, int(math.floor(min(DET.lookahead_m, 0.8 * 5.0) / _OPENING_STEP_M + 1e-9))
+        along, across = _rays(pts[:, 0], pts[:, 1], np.array([goal]))
+        out = {1: math.inf, -1: math.inf}
+        for side in (1, -1):
+            offsets = side * np.arange(1, count + 1) * _OPENING_STEP_M
+            ok = free_length_m(np.broadcast_to(along, (count, pts.shape[0])), across - offsets[:, None], c) >= need
+            blocked = np.flatnonzero(~ok)
+            for i in blocked:
+                if i + 1 < count and ok[i + 1]:
+                    later = blocked[blocked > i]
+                    if later.size:
+                        out[side] = 0.5 * (abs(offsets[i + 1]) + abs(offsets[later[0] - 1]))
+                    break
+        return out
+
+    rng = np.random.default_rng(7)
+    found = 0
+    for _ in range(100):
+        n = int(rng.integers(1, 300))
+        pts = np.stack([rng.uniform(-1.0, 4.0, n), rng.uniform(-5.0, 5.0, n)], axis=1)
+        goal, need = float(rng.uniform(-math.pi, math.pi)), float(rng.uniform(0.5, 3.0))
+        want = judged(pts, goal, need)
+        assert closed_openings_m(pts, goal, need, DET, 0.0, 5.0) == pytest.approx(want)
+        found += sum(math.isfinite(v) for v in want.values())
+    assert found > 20  # the maps do have openings
+
+
 def test_an_opening_with_no_direction_toward_it_does_not_choose_the_side() -> None:
     """PX4 SITL corridor-0 (r35): a gap between a box and the wall beside it, closed at both ends, but
     no direction on its side free for min_free_m (the wall 0.6 m off that side, the box in front).

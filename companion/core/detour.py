@@ -483,10 +483,21 @@ def closed_openings_m(
     # Only points ahead, within reach of some offset's path, can block one.
     near = (along > 0.0) & (along < need_m + c) & (np.abs(across) < reach + c)
     a, x = along[near], across[near]
+    # A point (along a, across x) stops the path at offset o short of need_m exactly when
+    # |x - o| < w: w = c where a < need_m (free_length_m's hit is at most a), else
+    # sqrt(c² - (a - need_m)²) (the hit a - sqrt(c² - (x - o)²) < need_m). So each point blocks one
+    # interval of offsets, marked in O(points + offsets) instead of judging every (offset, point).
+    w = np.where(a < need_m, c, np.sqrt(np.maximum(c * c - (a - need_m) ** 2, 0.0)))
     for side in (1, -1):
         offsets = side * np.arange(1, count + 1, dtype=np.float64) * _OPENING_STEP_M
-        d = x[None, :] - offsets[:, None]
-        ok = free_length_m(np.broadcast_to(a, d.shape), d, c) >= need_m
+        xs = side * x  # the side's offsets are k·step, k = 1..count
+        lo = np.maximum(np.floor((xs - w) / _OPENING_STEP_M).astype(np.int64) + 1, 1)
+        hi = np.minimum(np.ceil((xs + w) / _OPENING_STEP_M).astype(np.int64) - 1, count)
+        keep = (hi >= lo) & (w > 0.0)
+        edges = np.zeros(count + 2, dtype=np.int64)
+        np.add.at(edges, lo[keep], 1)
+        np.add.at(edges, hi[keep] + 1, -1)
+        ok = np.cumsum(edges)[1 : count + 1] == 0
         side_along, side_across = _rays(pts[:, 0], pts[:, 1], np.array([goal_bearing_rad + side * 0.5 * math.pi]))
         room = float(free_length_m(side_along, side_across, slide_clearance_m)[0])
         blocked = np.flatnonzero(~ok)
