@@ -548,9 +548,9 @@ def test_a_descent_at_the_floor_is_no_escape_under() -> None:
 
 def test_a_look_round_that_faces_a_free_goal_direction_hands_back_there() -> None:
     """Kinematic office-2 (the SGM, no drift): in a door's mouth a four-turn look round (8.5 s) ended
-    lining up with the door it had faced half-way. Mid-look, facing the goal with turns to go, the
-    planner looks at the map once: the way to the goal free there, it hands back at once; still
-    blocked, it looks on."""
+    lining up with the door it had faced at its first turn. Mid-look, facing the goal with turns to
+    go (here the middle turn), the planner looks at the map once: the way to the goal free there, it
+    hands back at once; still blocked, it looks on."""
     pos = np.array([0.0, 0.0, -1.5])
     wall = _wall(1.5, -8.0, 8.0)
     door = np.concatenate([_wall(1.5, -8.0, -0.65), _wall(1.5, 0.65, 8.0)])
