@@ -910,10 +910,21 @@ class DetourPlanner:
             if chosen is not None:
                 return chosen
         if self._targets and now_s - self._scan_since_s <= cfg.scan_timeout_s:
-            self._target_rad = self._targets[0]
-            self.reason = f"looking round ({len(self._targets)} turn{'s' if len(self._targets) > 1 else ''} to go)"
-            return DetourCommand(Phase.SCAN, self._target_rad, self._anchor_ned_m, self.reason)
+            return self._next_turn()
         return self._choose(now_s, pos, yaw, goal, memory, memory_cfg, cfg, prefer_right)
+
+    def _next_turn(self) -> DetourCommand:
+        """Look on: turn in place to the look round's next target (there is one)."""
+        self._target_rad = self._targets[0]
+        self.reason = f"looking round ({len(self._targets)} turn{'s' if len(self._targets) > 1 else ''} to go)"
+        return DetourCommand(Phase.SCAN, self._target_rad, self._anchor_ned_m, self.reason)
+
+    def _goal_free(self, h: Histogram, cfg: DetourConfig) -> bool:
+        """Whether the goal direction is free far enough to hand back: ``radius_m`` (or to the goal
+        point) with ``clearance_m``, or with ``squeeze_clearance_m`` (a door just wide enough)."""
+        gd = self._goal_distance_m
+        need = cfg.radius_m if gd is None else min(cfg.radius_m, gd)
+        return bool(h.free_m[h.goal_index] >= need or h.tight_m[h.goal_index] >= need)
 
     def _peek_with(
         self,
@@ -928,10 +939,7 @@ class DetourPlanner:
     ) -> DetourCommand | None:
         """Mid look round, facing the goal: hand back (:meth:`_choose_with`) when the goal direction is
         free or an opening lines up with it; None: look on."""
-        gd = self._goal_distance_m
-        need = cfg.radius_m if gd is None else min(cfg.radius_m, gd)
-        free = h.free_m[h.goal_index] >= need or h.tight_m[h.goal_index] >= need
-        if not free and h.line_up_m is None:
+        if not self._goal_free(h, cfg) and h.line_up_m is None:
             return None
         return self._choose_with(h, asked_s, pos, yaw, goal, cfg, prefer_right, seen_from)
 
@@ -968,14 +976,12 @@ class DetourPlanner:
         """A choice from the histogram asked for at ``asked_s`` (seconds) from ``seen_from`` (float
         ``(3,)`` NED metres; None: ``pos``, where the vehicle is now)."""
         self._last_plan_s = asked_s
-        gd = self._goal_distance_m
-        need = cfg.radius_m if gd is None else min(cfg.radius_m, gd)
         # The goal direction free with squeeze_clearance_m is enough to hand back: a door just wide
         # enough for the vehicle (the office's 1.1-1.4 m, 0.55-0.7 m each side of its centre line) is
         # free with clearance_m only within a few centimetres of that line, and a detour that
         # waited for it flew to and fro along the wall past the door. The controller's brake and the
         # guard still act on the way through.
-        if h.free_m[h.goal_index] >= need or h.tight_m[h.goal_index] >= need:
+        if self._goal_free(h, cfg):
             self.phase = Phase.HANDBACK
             self._target_rad = goal
             if self._anchor_ned_m is None:  # turning in place already: hold where that began
@@ -1085,9 +1091,7 @@ class DetourPlanner:
             chosen = self._peek_with(h, request.asked_s, pos, yaw, goal, cfg, prefer_right, request.position_ned_m)
             if chosen is not None or not self._targets:
                 return chosen if chosen is not None else self._waiting(pos, yaw, cfg)
-            self._target_rad = self._targets[0]  # look on: the next turn
-            self.reason = f"looking round ({len(self._targets)} turn{'s' if len(self._targets) > 1 else ''} to go)"
-            return DetourCommand(Phase.SCAN, self._target_rad, self._anchor_ned_m, self.reason)
+            return self._next_turn()
         return self._choose_with(h, request.asked_s, pos, yaw, goal, cfg, prefer_right, request.position_ned_m)
 
     def _waiting(self, pos: np.ndarray, yaw: float, cfg: DetourConfig) -> DetourCommand:
