@@ -575,6 +575,84 @@ def test_a_look_round_that_faces_a_free_goal_direction_hands_back_there() -> Non
             assert "the goal direction is free" not in p.reason and left == 1  # the whole look round
 
 
+AVOID = Decision(DecisionKind.AVOID, yaw=0.3, pitch=0.0, speed_fraction=0.6, reason="escape by S1")
+
+
+def _door_ahead_of(east_m: float = 0.0) -> np.ndarray:
+    """A wall 1.3 m north of the origin with a door 1.4 m wide centred ``east_m`` east."""
+    return np.concatenate([_wall(1.3, -8.0, east_m - 0.7), _wall(1.3, east_m + 0.7, 8.0)])
+
+
+def test_facing_along_a_wall_past_a_door_the_passing_look_turns_into_it() -> None:
+    """Kinematic office-6 (StereoBM): the side rules turned the vehicle along its door's wall and it
+    flew across the door's mouth, the goal 90 deg to its left; the CLEAR decisions kept turning, so
+    course hold waited, and the vehicle braked at the far wall. No detour under way, facing
+    passing_away_deg or more from the goal, the planner looks at the map in passing: the way to the
+    goal free through the door, it turns to it where it is (a handback); a wall without a door, a
+    heading nearer the goal, a brake, or the look turned off leave course hold flying."""
+    pos = np.array([0.0, 0.0, -1.5])
+    east = math.radians(90.0)
+    door, wall = _trusted_memory(_door_ahead_of()), _trusted_memory(_wall(1.3, -8.0, 8.0))
+    cmd = DetourPlanner().update(0.0, AVOID, pos, east, 0.0, None, door, MEM, DET)
+    assert cmd is not None and cmd.phase is Phase.HANDBACK and cmd.target_yaw_rad == 0.0
+    assert "in passing, the goal direction is free" in cmd.reason
+    assert cmd.anchor_ned_m is not None and np.allclose(cmd.anchor_ned_m, pos)  # turns in place there
+    off = DET.model_copy(update={"passing_away_deg": 0.0})
+    for mem, decision, yaw, cfg in (
+        (wall, AVOID, east, DET),
+        (door, AVOID, math.radians(50.0), DET),  # within passing_away_deg (60) of the goal
+        (door, BRAKE, east, DET),
+        (door, AVOID, east, off),
+    ):
+        p = DetourPlanner()
+        assert p.update(0.0, decision, pos, yaw, 0.0, None, mem, MEM, cfg) is None and p.phase is Phase.IDLE
+
+
+def test_a_door_just_beside_the_line_is_lined_up_with_in_passing() -> None:
+    """A door's middle 0.4 m to the right of the vehicle, passed facing west (its jamb closes the way
+    straight to the goal): the passing look slides to the door's middle, facing the goal, as a
+    detour's line-up does."""
+    pos = np.array([0.0, 0.0, -1.5])
+    cmd = DetourPlanner().update(0.0, AVOID, pos, math.radians(-90.0), 0.0, None, _trusted_memory(_door_ahead_of(0.4)), MEM, DET)
+    assert cmd is not None and cmd.phase is Phase.HANDBACK and "in passing, lining up" in cmd.reason
+    assert cmd.anchor_ned_m is not None and cmd.anchor_ned_m[1] == pytest.approx(0.4)  # the slide's end
+
+
+def test_the_passing_look_waits_its_interval_and_once_handed_back_its_spacing() -> None:
+    """Deferred (the service): the look asks for a histogram and course hold flies on until it comes;
+    a blocked answer asks again only passing_interval_s later. Handed back, no look is made again
+    until the vehicle is passing_spacing_m from there: the controller that turned it away from a
+    goal direction the map calls free would turn it away again, and it would turn to and fro on the
+    spot."""
+    from companion.core.detour import HistogramResult, compute_histogram
+
+    east = math.radians(90.0)
+    p = DetourPlanner(defer=True)
+    wall = _trusted_memory(_wall(1.3, -8.0, 8.0))
+    pos = np.array([0.0, 0.0, -1.5])
+    asked = []
+    for k in range(25):  # 1.2 s along the wall, blocked: a look every passing_interval_s (0.5 s)
+        t = k / 20
+        assert p.update(t, AVOID, pos, east, 0.0, None, wall, MEM, DET) is None
+        req = p.pending_request
+        if req is not None:
+            asked.append(round(t, 2))
+            assert p.offer(HistogramResult(req.seq, compute_histogram(req)))
+    assert asked == [0.0, 0.5, 1.0]
+    door = _trusted_memory(_door_ahead_of())
+    t = 2.0
+    assert p.update(t, AVOID, pos, east, 0.0, None, door, MEM, DET) is None  # asked; flies on meanwhile
+    req = p.pending_request
+    assert req is not None and p.offer(HistogramResult(req.seq, compute_histogram(req)))
+    cmd = p.update(t + 0.05, AVOID, pos, east, 0.0, None, door, MEM, DET)
+    assert cmd is not None and cmd.phase is Phase.HANDBACK and "in passing" in cmd.reason
+    assert p.update(t + 0.1, AVOID, pos, 0.0, 0.0, None, door, MEM, DET) is None and p.phase is Phase.IDLE  # faced it
+    for step, (east_m, looks) in enumerate(((0.5, False), (DET.passing_spacing_m + 0.05, True))):
+        here = np.array([0.0, east_m, -1.5])
+        p.update(t + 1.0 + step, AVOID, here, east, 0.0, None, door, MEM, DET)
+        assert (p.pending_request is not None) is looks
+
+
 def test_the_direction_flown_keeps_its_place_only_while_it_is_one_of_the_histograms() -> None:
     # Hovering or turning in place (the same goal bearing), a direction costing a few degrees less
     # does not take over (hysteresis), one costing far less does. In flight the goal's bearing turns

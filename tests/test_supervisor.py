@@ -912,9 +912,13 @@ def test_course_hold_waits_while_a_clear_decision_still_turns() -> None:
 
 
 def test_a_clear_decision_that_only_climbs_lets_course_hold_turn_back() -> None:
+    """(The detour layer, off here, would turn a vehicle facing this far from its goal back on its own:
+    its passing look, with nothing on the map.)"""
     import numpy as np
 
-    h = _engaged_at([0.0, 0.0, -1.5])
+    from companion.config.detour import DetourConfig
+
+    h = _engaged_at([0.0, 0.0, -1.5], cfg=default_config(detour=DetourConfig(trigger_after_s=0.0)))
     h.vehicle = replace(h.vehicle, attitude_rad=np.array([0.0, 0.0, math.radians(-120.0)]))  # facing away
     h.frame = Result(h.now, Decision(DecisionKind.CLEAR, yaw=0.0, pitch=0.2, speed_fraction=1.0, reason="ground"))
     cmd = h.cfg.command

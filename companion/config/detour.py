@@ -63,6 +63,35 @@ class DetourConfig(StrictModel):
             "decisions flew it back 1.5 m, and the watchdog held 16 s after engaging, no detour begun."
         ),
     )
+    passing_away_deg: float = Field(
+        default=60.0,
+        ge=0.0,
+        le=180.0,
+        description=(
+            "No detour under way, facing at least this many degrees away from the goal direction on a "
+            "decision that is no brake (the controller steering along a wall, across a door's mouth, "
+            "round a fence's end), look at the map in passing: the goal direction free, or an opening "
+            "to line up with it, hands back there as a detour's choice would, degrees; 0 = off. "
+            "Kinematic office-6 flew across its door's mouth parallel to the wall: the side rules kept "
+            "the CLEAR decisions turning, so course hold never turned it in."
+        ),
+    )
+    passing_interval_s: float = Field(
+        default=0.5,
+        gt=0.0,
+        le=60.0,
+        description="The passing look (passing_away_deg) looks at the map at most this often, seconds.",
+    )
+    passing_spacing_m: float = Field(
+        default=1.0,
+        ge=0.0,
+        le=100.0,
+        description=(
+            "After a passing look has handed back, the next one waits until the vehicle is this far "
+            "from where it was, metres: turned to a goal direction the controller turns it away from "
+            "again, it does not turn back and forth on the spot."
+        ),
+    )
     scan_half_angle_deg: float = Field(
         default=90.0,
         ge=0.0,

@@ -16,6 +16,8 @@ Phases (:class:`Phase`)::
            ──a path parallel to it free a short slide aside──▶ handback (sliding there) ──▶ idle
            ──a free direction toward the goal──▶ fly (turning in place first) ──replan──▶ choose
            ──none──▶ dead end (a hold, reported)
+    idle ──facing passing_away_deg or more from the goal, the goal direction free or an opening
+           lined up with it on the map──▶ handback (a passing look)
 
 * **scan**: turn in place (holding the position where it began) to the goal direction minus and plus
   ``scan_half_angle_deg``, the nearer side first, at ``turn_rate_deg_s``: the camera fills the memory.
@@ -44,6 +46,12 @@ Phases (:class:`Phase`)::
   Farther than ``max_distance_m`` from where it began, or longer than ``max_time_s``: a dead end.
 * **handback**: turn in place to the goal direction (lining up: and slide to the opening's middle,
   for at most ``_LINE_UP_SETTLE_S``), then course hold flies on.
+* **passing look** (no detour under way): while the controller has the vehicle facing
+  ``passing_away_deg`` or more from the goal direction (steering it along a wall, across a door's
+  mouth, round a fence's end), the map is looked at every ``passing_interval_s``; the goal direction
+  free, or an opening to line up with it, hands back there as a detour's choice would (turn to it,
+  or slide and turn), once per ``passing_spacing_m`` flown. The side rules keep an office's CLEAR
+  decisions turning, so course hold never got to turn the vehicle into the door it was passing.
 
 The layer remembers where it has been (a trail of positions) and which side it went round: a new
 detour that starts within ``side_memory_m`` of the last one's end goes round the same side, so the
@@ -617,6 +625,8 @@ class DetourPlanner:
         self._last_end: tuple[float, float, int] | None = None  # where the last detour ended, its side
         self._count_mark: float | None = None  # the progress mark the detours are counted at
         self._count = 0  # detours begun since the vehicle last made progress
+        self._passing_asked_s = -math.inf  # when the map was last looked at in passing
+        self._passing_from: tuple[float, float] | None = None  # where the last passing look handed back
         self.reset()
 
     def reset(self) -> None:
@@ -647,7 +657,7 @@ class DetourPlanner:
     def _drop_request(self) -> None:
         """Forget the histogram asked for (deferred): a result for it is dropped when offered."""
         self._request: HistogramRequest | None = None
-        self._awaiting: str | None = None  # what the histogram is for: "begin", "peek" or "choose"
+        self._awaiting: str | None = None  # what it is for: "begin", "peek", "choose" or "passing"
         self._answer: HistogramResult | None = None
 
     @property
@@ -737,7 +747,7 @@ class DetourPlanner:
             self._count_mark, self._count = self._stall_mark, 0  # progress since: count afresh
         if self.phase is Phase.IDLE:
             if not self._triggered(now_s, decision, yaw_rad, goal_bearing_rad, stalled_for_s, cfg, regressing, at_floor):
-                return None
+                return self._passing(now_s, decision, pos, yaw_rad, goal_bearing_rad, memory, memory_cfg, cfg, prefer_right)
             if self._count >= cfg.max_detours_without_progress:
                 self.reason = (
                     f"{self.reason}, but {self._count} detours have brought no progress "
@@ -815,13 +825,7 @@ class DetourPlanner:
         prefer_right: bool,
     ) -> DetourCommand | None:
         """Start a detour: choose at once when the way round is in view, else look round first."""
-        self._since_s = now_s
-        self._start_ned_m = pos.copy()
-        self._start_goal_rad = goal
-        self._switched = False
-        self._vetoes = []
-        self._scans = 0
-        self._side = 0
+        self._start_detour(now_s, pos, goal)
         if self._last_end is not None and cfg.side_memory_m > 0.0:
             n, e, side = self._last_end
             if math.hypot(pos[0] - n, pos[1] - e) <= cfg.side_memory_m:
@@ -836,6 +840,17 @@ class DetourPlanner:
             self.reason = f"{self.reason}{_MAPPING}"
             return DetourCommand(Phase.SCAN, None, self._anchor_ned_m, self.reason)
         return self._begin_with(h, now_s, pos, yaw, goal, cfg, prefer_right)
+
+    def _start_detour(self, now_s: float, pos: np.ndarray, goal: float) -> None:
+        """A detour's bookkeeping from its start at ``now_s`` (seconds), ``pos`` (NED metres), with
+        the goal direction ``goal`` (radians): no side, switch, vetoes or look round yet."""
+        self._since_s = now_s
+        self._start_ned_m = pos.copy()
+        self._start_goal_rad = goal
+        self._switched = False
+        self._vetoes = []
+        self._scans = 0
+        self._side = 0
 
     def _begin_with(
         self,
@@ -865,6 +880,79 @@ class DetourPlanner:
             return self._choose_with(h, now_s, pos, yaw, goal, cfg, prefer_right, seen_from)
         self._start_scan(now_s, pos, yaw, goal, cfg, lean)
         return DetourCommand(Phase.SCAN, self._target_rad, self._anchor_ned_m, self.reason)
+
+    def _passing(
+        self,
+        now_s: float,
+        decision: Decision | None,
+        pos: np.ndarray,
+        yaw: float,
+        goal: float,
+        memory: ObstacleMemory,
+        memory_cfg: MemoryConfig,
+        cfg: DetourConfig,
+        prefer_right: bool,
+    ) -> DetourCommand | None:
+        """No detour under way: the passing look (module doc). None: course hold flies on (also while
+        a deferred histogram is awaited)."""
+        if self._awaiting == "passing":
+            if self._answer is None:
+                return None
+            request, result = self._request, self._answer
+            self._drop_request()
+            assert request is not None
+            if result.histogram is None:
+                # Nothing to see by: the vehicle flies on as without the look; health says why.
+                self.reason = f"passing look: the histogram could not be computed ({result.error or 'no reason given'})"
+                return None
+            return self._passing_with(result.histogram, request.asked_s, pos, yaw, goal, cfg, prefer_right, request.position_ned_m)
+        if not self._passing_due(now_s, decision, pos, yaw, goal, cfg):
+            return None
+        self._passing_asked_s = now_s
+        h = self._histogram(now_s, pos, goal, memory, memory_cfg, cfg, "passing")
+        if h is None:
+            return None
+        return self._passing_with(h, now_s, pos, yaw, goal, cfg, prefer_right)
+
+    def _passing_due(
+        self, now_s: float, decision: Decision | None, pos: np.ndarray, yaw: float, goal: float, cfg: DetourConfig
+    ) -> bool:
+        """Whether to look at the map in passing now: on, a fresh decision that is no brake, facing
+        ``passing_away_deg`` or more from the goal, ``passing_interval_s`` since the last look, and
+        ``passing_spacing_m`` from where the last one handed back."""
+        if cfg.passing_away_deg <= 0.0 or decision is None or decision.kind is DecisionKind.BRAKE:
+            return False
+        if abs(wrap_pi(yaw - goal)) < math.radians(cfg.passing_away_deg):
+            return False
+        if now_s - self._passing_asked_s < cfg.passing_interval_s:
+            return False
+        last = self._passing_from
+        return last is None or math.hypot(pos[0] - last[0], pos[1] - last[1]) >= cfg.passing_spacing_m
+
+    def _passing_with(
+        self,
+        h: Histogram,
+        asked_s: float,
+        pos: np.ndarray,
+        yaw: float,
+        goal: float,
+        cfg: DetourConfig,
+        prefer_right: bool,
+        seen_from: np.ndarray | None = None,
+    ) -> DetourCommand | None:
+        """The passing look's answer, from the histogram asked for at ``asked_s`` from ``seen_from``:
+        the goal direction free or an opening lined up with it: hand back there (:meth:`_choose_with`),
+        as a detour begun here; else None (course hold flies on)."""
+        if not self._goal_free(h, cfg) and h.line_up_m is None:
+            return None
+        where = pos if seen_from is None else seen_from
+        self._passing_from = (float(where[0]), float(where[1]))
+        self._start_detour(asked_s, pos, goal)
+        self._anchor_ned_m = None
+        self.phase = Phase.SCAN  # choosing, as after a look round
+        command = self._choose_with(h, asked_s, pos, yaw, goal, cfg, prefer_right, seen_from)
+        self.reason = f"in passing, {self.reason}"
+        return None if command is None else dataclasses.replace(command, reason=self.reason)
 
     def _start_scan(self, now_s: float, pos: np.ndarray, yaw: float, goal: float, cfg: DetourConfig, lean: int) -> None:
         """Look round: first to the side away from ``lean`` (the side the memory already favours),
@@ -1177,7 +1265,7 @@ class DetourPlanner:
         purpose: str,
     ) -> Histogram | None:
         """The histogram from here now; deferred: None, and the request is left for the caller
-        (:attr:`pending_request`), for ``purpose`` ("begin", "peek" or "choose")."""
+        (:attr:`pending_request`), for ``purpose`` ("begin", "peek", "choose" or "passing")."""
         request = self._request_for(now_s, pos, goal, memory, memory_cfg, cfg)
         if not self.defer:
             return compute_histogram(request)
