@@ -653,6 +653,21 @@ def test_the_passing_look_waits_its_interval_and_once_handed_back_its_spacing() 
         assert (p.pending_request is not None) is looks
 
 
+def test_a_passing_look_whose_histogram_failed_says_so_and_flies_on() -> None:
+    """The worker could not compute the passing look's histogram: course hold flies on as without the
+    look (no hand-back on nothing), and the reason health shows names the failure."""
+    from companion.core.detour import HistogramResult
+
+    p = DetourPlanner(defer=True)
+    pos = np.array([0.0, 0.0, -1.5])
+    door = _trusted_memory(_door_ahead_of())
+    assert p.update(0.0, AVOID, pos, math.radians(90.0), 0.0, None, door, MEM, DET) is None
+    req = p.pending_request
+    assert req is not None and p.offer(HistogramResult(req.seq, None, "MemoryError: out of memory"))
+    assert p.update(0.05, AVOID, pos, math.radians(90.0), 0.0, None, door, MEM, DET) is None
+    assert p.phase is Phase.IDLE and "passing look" in p.reason and "MemoryError: out of memory" in p.reason
+
+
 def test_the_direction_flown_keeps_its_place_only_while_it_is_one_of_the_histograms() -> None:
     # Hovering or turning in place (the same goal bearing), a direction costing a few degrees less
     # does not take over (hysteresis), one costing far less does. In flight the goal's bearing turns
