@@ -943,12 +943,12 @@ class DetourPlanner:
         """The passing look's answer, from the histogram asked for at ``asked_s`` from ``seen_from``:
         the goal direction free or an opening lined up with it: hand back there (:meth:`_choose_with`),
         as a detour begun here; else None (course hold flies on)."""
-        if not self._goal_free(h, cfg) and h.line_up_m is None:
+        if not self._can_hand_back(h, cfg):
             return None
         where = pos if seen_from is None else seen_from
         self._passing_from = (float(where[0]), float(where[1]))
         self._start_detour(asked_s, pos, goal)
-        self._anchor_ned_m = None
+        self._anchor_ned_m = None  # idle after detour.trigger_after_s was set to 0 keeps an old one
         self.phase = Phase.SCAN  # choosing, as after a look round
         command = self._choose_with(h, asked_s, pos, yaw, goal, cfg, prefer_right, seen_from)
         self.reason = f"in passing, {self.reason}"
@@ -1014,6 +1014,11 @@ class DetourPlanner:
         need = cfg.radius_m if gd is None else min(cfg.radius_m, gd)
         return bool(h.free_m[h.goal_index] >= need or h.tight_m[h.goal_index] >= need)
 
+    def _can_hand_back(self, h: Histogram, cfg: DetourConfig) -> bool:
+        """Whether a choice from ``h`` hands back (:meth:`_choose_with`): the goal direction free, or
+        an opening to line up with it (the mid-look check's and the passing look's test)."""
+        return self._goal_free(h, cfg) or h.line_up_m is not None
+
     def _peek_with(
         self,
         h: Histogram,
@@ -1027,7 +1032,7 @@ class DetourPlanner:
     ) -> DetourCommand | None:
         """Mid look round, facing the goal: hand back (:meth:`_choose_with`) when the goal direction is
         free or an opening lines up with it; None: look on."""
-        if not self._goal_free(h, cfg) and h.line_up_m is None:
+        if not self._can_hand_back(h, cfg):
             return None
         return self._choose_with(h, asked_s, pos, yaw, goal, cfg, prefer_right, seen_from)
 
