@@ -668,6 +668,47 @@ def test_a_passing_look_whose_histogram_failed_says_so_and_flies_on() -> None:
     assert p.phase is Phase.IDLE and "passing look" in p.reason and "MemoryError: out of memory" in p.reason
 
 
+def _fence_pocket() -> np.ndarray:
+    """A fence 1.3 m north of the origin from 1 m west (its free end) to 1.7 m east, where a wall
+    running north-south closes the pocket between them (kinematic office-8: a fence from the right
+    wall, its free end near the line)."""
+    side = np.stack([np.arange(-3.0, 1.3 + 1e-9, 0.1), np.full(44, 1.7)], axis=1)
+    return np.concatenate([_wall(1.3, -1.0, 1.7), side])
+
+
+def test_heading_into_a_fence_pocket_the_passing_look_turns_back_round_its_free_end() -> None:
+    """Kinematic office-8 (``cupy``, drift): in front of a fence, right of its free end, the side rules
+    turned the vehicle right along the bars into the pocket the right wall closes, and it spent
+    20-35 s there before a brake began a detour. The passing look finds the goal direction closed,
+    no way to it on the side the vehicle heads along, and one past the free end on the other: it
+    begins a detour round that side at once. Heading toward the free end, with the look's turning
+    back off, or with the detours without progress spent, course hold flies on."""
+    pos = np.array([0.0, 0.0, -1.5])
+    pocket = _trusted_memory(_fence_pocket())
+    p = DetourPlanner()
+    cmd = p.update(0.0, AVOID, pos, math.radians(90.0), 0.0, None, pocket, MEM, DET)
+    assert cmd is not None and cmd.phase is Phase.FLY and cmd.target_yaw_rad is not None
+    assert -math.radians(DET.max_angle_deg) <= cmd.target_yaw_rad < 0.0  # round the left, past the free end
+    assert cmd.reason.startswith("in passing, no way through on the right: round the left")
+    assert cmd.anchor_ned_m is not None and np.allclose(cmd.anchor_ned_m, pos)  # turns in place first
+    assert p.active and p.status()["side"] == "left"
+    off = DET.model_copy(update={"passing_turn_back": False})
+    for yaw_deg, cfg in ((-90.0, DET), (90.0, off)):
+        q = DetourPlanner()
+        assert q.update(0.0, AVOID, pos, math.radians(yaw_deg), 0.0, None, pocket, MEM, cfg) is None
+        assert q.phase is Phase.IDLE
+    # It counts as a detour: with max_detours_without_progress (here 1) begun at one stall, the next
+    # look, 1.1 m on (passing_spacing_m), leaves the watchdog to decide.
+    one = DET.model_copy(update={"max_detours_without_progress": 1})
+    back = np.array([-1.1, 0.0, -1.5])
+    q = DetourPlanner()
+    for t, here, turns in ((0.0, pos, True), (1.0, back, False)):
+        q.reset()
+        cmd = q.update(t, AVOID, here, math.radians(90.0), 0.0, None, pocket, MEM, one, stall_mark_m=0.0)
+        assert (cmd is not None) is turns
+    assert DetourPlanner().update(1.0, AVOID, back, math.radians(90.0), 0.0, None, pocket, MEM, one) is not None
+
+
 def test_the_direction_flown_keeps_its_place_only_while_it_is_one_of_the_histograms() -> None:
     # Hovering or turning in place (the same goal bearing), a direction costing a few degrees less
     # does not take over (hysteresis), one costing far less does. In flight the goal's bearing turns

@@ -92,6 +92,17 @@ class DetourConfig(StrictModel):
             "again, it does not turn back and forth on the spot."
         ),
     )
+    passing_turn_back: bool = Field(
+        default=True,
+        description=(
+            "The passing look (passing_away_deg) with the goal direction closed: when the side the "
+            "vehicle heads along opens no way to the goal within lookahead_m and the other side does "
+            "(and has a free direction), begin a detour round that side there. Kinematic office-8 "
+            "(cupy, 0.14 m/s drift): the side rules flew the vehicle along a fence into the pocket "
+            "the room's wall closes, 20-35 s lost there; the standard suite's offices went from 25 "
+            "to 26 of 27, every suite gaining or keeping its goals (2026-11-29)."
+        ),
+    )
     scan_half_angle_deg: float = Field(
         default=90.0,
         ge=0.0,

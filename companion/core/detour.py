@@ -18,6 +18,8 @@ Phases (:class:`Phase`)::
            ──none──▶ dead end (a hold, reported)
     idle ──facing passing_away_deg or more from the goal, the goal direction free or an opening
            lined up with it on the map──▶ handback (a passing look)
+         ──... the goal direction closed, no way through on the side headed along, one on the
+           other──▶ fly round the other side (a passing look's turn back)
 
 * **scan**: turn in place (holding the position where it began) to the goal direction minus and plus
   ``scan_half_angle_deg``, the nearer side first, at ``turn_rate_deg_s``: the camera fills the memory.
@@ -52,6 +54,11 @@ Phases (:class:`Phase`)::
   free, or an opening to line up with it, hands back there as a detour's choice would (turn to it,
   or slide and turn), once per ``passing_spacing_m`` flown. The side rules keep an office's CLEAR
   decisions turning, so course hold never got to turn the vehicle into the door it was passing.
+  With the goal direction closed, when the side the vehicle heads along opens no way to the goal
+  within ``lookahead_m`` (:attr:`Histogram.through_m`: a fence's pocket, a wall going on) and the
+  other side does and has a free direction, it begins a detour round that side there
+  (``passing_turn_back``; it counts toward ``max_detours_without_progress``): the side rules had
+  flown the vehicle along a fence into the pocket the room's wall closes, 20-35 s lost there.
 
 The layer remembers where it has been (a trail of positions) and which side it went round: a new
 detour that starts within ``side_memory_m`` of the last one's end goes round the same side, so the
@@ -942,17 +949,37 @@ class DetourPlanner:
     ) -> DetourCommand | None:
         """The passing look's answer, from the histogram asked for at ``asked_s`` from ``seen_from``:
         the goal direction free or an opening lined up with it: hand back there (:meth:`_choose_with`),
-        as a detour begun here; else None (course hold flies on)."""
+        as a detour begun here; closed, with the way through on the other side only
+        (:meth:`_way_back_side`): a detour round that side; else None (course hold flies on)."""
+        back_side = 0
         if not self._can_hand_back(h, cfg):
-            return None
+            back_side = self._way_back_side(h, yaw, goal, cfg)
+            if back_side == 0:
+                return None
         where = pos if seen_from is None else seen_from
         self._passing_from = (float(where[0]), float(where[1]))
         self._start_detour(asked_s, pos, goal)
         self._anchor_ned_m = None  # idle after detour.trigger_after_s was set to 0 keeps an old one
         self.phase = Phase.SCAN  # choosing, as after a look round
+        if back_side != 0:
+            self._count += 1
+            self._side = back_side
         command = self._choose_with(h, asked_s, pos, yaw, goal, cfg, prefer_right, seen_from)
-        self.reason = f"in passing, {self.reason}"
+        closed = f"no way through on the {'left' if back_side > 0 else 'right'}: " if back_side else ""
+        self.reason = f"in passing, {closed}{self.reason}"
         return None if command is None else dataclasses.replace(command, reason=self.reason)
+
+    def _way_back_side(self, h: Histogram, yaw: float, goal: float, cfg: DetourConfig) -> int:
+        """The passing look with the goal direction closed: the side (+1 right of the goal, -1 left)
+        to turn back to, when the vehicle heads along a side whose step square to the goal opens no
+        way within ``lookahead_m`` (a fence's pocket, a wall going on) while the other side's does
+        and has a free direction; else 0 (course hold flies on)."""
+        if not cfg.passing_turn_back or self._count >= cfg.max_detours_without_progress:
+            return 0
+        heading = 1 if wrap_pi(yaw - goal) > 0.0 else -1
+        if math.isfinite(h.through_m[heading]) or not math.isfinite(h.through_m[-heading]):
+            return 0
+        return -heading if _best(h, -heading, cfg, None) is not None else 0
 
     def _start_scan(self, now_s: float, pos: np.ndarray, yaw: float, goal: float, cfg: DetourConfig, lean: int) -> None:
         """Look round: first to the side away from ``lean`` (the side the memory already favours),
