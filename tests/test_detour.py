@@ -672,8 +672,8 @@ def _fence_pocket() -> np.ndarray:
     """A fence 1.3 m north of the origin from 1 m west (its free end) to 1.7 m east, where a wall
     running north-south closes the pocket between them (kinematic office-8: a fence from the right
     wall, its free end near the line)."""
-    side = np.stack([np.arange(-3.0, 1.3 + 1e-9, 0.1), np.full(44, 1.7)], axis=1)
-    return np.concatenate([_wall(1.3, -1.0, 1.7), side])
+    north = np.arange(-3.0, 1.3 + 1e-9, 0.1)
+    return np.concatenate([_wall(1.3, -1.0, 1.7), np.stack([north, np.full_like(north, 1.7)], axis=1)])
 
 
 def test_heading_into_a_fence_pocket_the_passing_look_turns_back_round_its_free_end() -> None:
