@@ -527,10 +527,13 @@ def test_a_climb_ends_a_detour_only_while_it_faces_the_goal() -> None:
 def test_a_descent_at_the_floor_is_no_escape_under() -> None:
     # Kinematic office-2: at the floor (command.min_altitude_m) in front of a fence that reaches the
     # ground, the controller still asked to descend; taken for an escape under, it ended every look
-    # round as it faced the goal. At the floor it is none; above it, it still is.
+    # round as it faced the goal. Office-4 with drift: 0.45 m over the floor, a "down" read through a
+    # fence's bars ended a detour, and the vehicle sank to the floor. Within FLOOR_MARGIN_M of the
+    # floor it is none; above that, it still is.
     dive = Decision(DecisionKind.AVOID, yaw=0.0, pitch=-0.6, speed_fraction=0.5, reason="down")
     floor = -CMD.min_altitude_m
-    for altitude_m, ends in ((CMD.min_altitude_m + 0.05, False), (CMD.min_altitude_m + 1.0, True)):
+    for above_floor_m, ends in ((0.05, False), (0.45, False), (1.0, True)):
+        altitude_m = CMD.min_altitude_m + above_floor_m
         mem = _trusted_memory(_wall(2.5, -8.0, 8.0), altitude_m=altitude_m)
         pos = np.array([0.0, 0.0, -altitude_m])
         p = DetourPlanner()

@@ -108,9 +108,12 @@ VERTICAL_ESCAPE = 0.2
 #: the vehicle back to the brake that began it (office and forest timeouts), degrees.
 _ESCAPE_FACING_DEG = 30.0
 #: Within this of the floor (``command.min_altitude_m``) a descending AVOID is no escape under: the
-#: floor stops it (kinematic office-2: 1 m under its course at the floor in front of a fence that
-#: reaches the ground, the controller's "down" ended every look round facing the goal), metres.
-FLOOR_MARGIN_M = 0.2
+#: floor stops it before it passes under anything (kinematic office-2: 1 m under its course at the
+#: floor in front of a fence that reaches the ground, the controller's "down" ended every look round
+#: facing the goal; office-4 with drift, 0.45 m over the floor at a fence's free end: a "down" read
+#: through the bars ended the second detour, and the vehicle sank to the floor there until the
+#: watchdog held), metres.
+FLOOR_MARGIN_M = 0.5
 #: A scan target counts as reached within this, radians.
 _SCAN_TOLERANCE_RAD = math.radians(6.0)
 #: Nearer than the clearance to something, a path may come no nearer to anything than this less
