@@ -51,6 +51,7 @@ FORMATS: Final[Mapping[str, str]] = {
     "asl": "ASL/EuRoC sensor.yaml files",
     "ros": "ROS camera_info YAML files",
     "opencv": "an OpenCV stereo calibration",
+    "rosbag": "a rosbag's camera_info topics",
 }
 
 _KALIBR_DISTORTION: Final[Mapping[str, str]] = {"radtan": "pinhole", "equidistant": "fisheye", "equi": "fisheye", "none": "pinhole"}

@@ -28,7 +28,10 @@ def register(csub: argparse._SubParsersAction) -> None:
             "nearest depth the configured disparities measure, the rectified size."
         ),
     )
-    p.add_argument("files", type=Path, nargs="+", metavar="FILE", help="one file, or two (left eye's first)")
+    p.add_argument(
+        "files", type=Path, nargs="+", metavar="FILE",
+        help="one file, or two (left eye's first); or a recorded flight (an ASL folder, a rosbag) for its own calibration",
+    )
     p.add_argument("--out", type=Path, required=True, help="the calibration file to write: .yaml, .yml, .xml, .json or .npz")
     p.add_argument("--config", type=Path, help="TOML config: stereo.num_disparities and calibration.rectify_alpha for the rig printed")
     p.add_argument("--write-config", action="store_true", help="also set calibration.file = OUT in --config")
@@ -80,8 +83,27 @@ def rig_summary(calib: Any, cfg: Any) -> dict[str, Any]:
     }
 
 
+def _import(args: argparse.Namespace) -> Any:
+    """The files' calibration; a recorded flight's own (an ASL folder's sensor.yaml files, a bag's
+    camera_info topics) when the one path given is a recording."""
+    from companion.calib.importers import ImportedCalibration, import_calibration
+    from companion.errors import CalibrationError
+    from companion.recorded.sequence import is_sequence, open_sequence
+
+    if len(args.files) == 1 and is_sequence(args.files[0]):
+        seq = open_sequence(args.files[0])
+        calib = seq.calibration()
+        if calib is None:
+            where = "mav0/cam0/sensor.yaml and mav0/cam1/sensor.yaml" if seq.kind == "asl" else (
+                f"camera_info topics beside {seq.topics[0]} and {seq.topics[1]}"
+            )
+            raise CalibrationError(f"{args.files[0]}: the recording holds no calibration (no {where})")
+        return ImportedCalibration(calib, "asl" if seq.kind == "asl" else "rosbag", (args.files[0],))
+    return import_calibration(args.files, image_size=_parse_size(args.image_size), t_units=args.t_units)
+
+
 def run(args: argparse.Namespace) -> int:
-    from companion.calib.importers import FORMATS, import_calibration
+    from companion.calib.importers import FORMATS
     from companion.config import load_config
     from companion.core.calibration import OPENCV_CALIBRATION_SUFFIXES, save_calibration
 
@@ -93,7 +115,7 @@ def run(args: argparse.Namespace) -> int:
     if len(args.files) > 2:
         raise InputError(f"give one or two calibration files, not {len(args.files)}")
     cfg = load_config(args.config)
-    imported = import_calibration(args.files, image_size=_parse_size(args.image_size), t_units=args.t_units)
+    imported = _import(args)
     calib = imported.calibration
     rig = rig_summary(calib, cfg)  # before writing: a rig that cannot be rectified is not written
     if rig["baseline_m"] > 2.0:
