@@ -118,17 +118,23 @@ class RecordedCamera:
         """
         import cv2
 
+        from companion.errors import FrameError
         from companion.recorded.sequence import side_by_side
 
-        pair = self._next_pair()
-        h, w = pair.left.shape[:2]
-        if (w, h) != (self.width_px, self.height_px):
-            raise CameraError(
-                f"{self.name}: the recording's eyes are {w}x{h}, but camera.width_px x height_px is "
-                f"{self.width_px}x{self.height_px}",
-                ended=True,
-            )
-        image = side_by_side(pair.left, pair.right)
+        while True:
+            pair = self._next_pair()
+            h, w = pair.left.shape[:2]
+            if (w, h) != (self.width_px, self.height_px):
+                raise CameraError(
+                    f"{self.name}: the recording's eyes are {w}x{h}, but camera.width_px x height_px is "
+                    f"{self.width_px}x{self.height_px}",
+                    ended=True,
+                )
+            try:
+                image = side_by_side(pair.left, pair.right)
+                break
+            except FrameError as err:  # one bad pair is skipped, as a camera drops a frame
+                log.warning("%s: pair %d skipped: %s", self.name, pair.index, err)
         if image.ndim == 2:
             image = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
         self._wait_for(pair.timestamp_ns)

@@ -205,6 +205,7 @@ def replay_sequence(
     prev_kind: str | None = None
     bar = _Progress(progress, sequence.frame_count if limit is None else min(limit, sequence.frame_count))
     wall0 = clock()
+    pairs = None
     try:
         records = records_path.open("w", encoding="utf-8", newline="")
         health = health_path.open("w", encoding="utf-8")
@@ -215,7 +216,8 @@ def replay_sequence(
         writer = csv.DictWriter(records, fieldnames=_CSV_FIELDS) if fmt == "csv" else None
         if writer is not None:
             writer.writeheader()
-        for pair in sequence.pairs():
+        pairs = sequence.pairs()
+        for pair in pairs:
             if limit is not None and summary.frames >= limit:
                 break
             try:
@@ -330,6 +332,8 @@ def replay_sequence(
             t_last_ns = pair.timestamp_ns
             bar.update(summary.frames, kind, clock())
     finally:
+        if pairs is not None:
+            pairs.close()  # a replay stopped early (limit, an error) still closes the bag
         bar.close()
         records.close()
         health.close()
