@@ -243,3 +243,18 @@ def test_a_bag_without_the_rosbags_library_says_how_to_get_it(tmp_path: Path, mo
     monkeypatch.setattr(builtins, "__import__", no_rosbags)
     with pytest.raises(InputError, match=r"pip install 'companion\[recorded\]'"):
         open_sequence(tmp_path / "x.bag")
+
+
+def test_a_progress_bar_runs_on_a_terminal_only(flight: Flight, tmp_path: Path) -> None:
+    import io
+
+    class Terminal(io.StringIO):
+        def isatty(self) -> bool:
+            return True
+
+    folder = write_asl(tmp_path / "flight", flight)
+    tty, pipe = Terminal(), io.StringIO()
+    replay_sequence(open_sequence(folder), CompanionConfig(), tmp_path / "a", limit=4, progress=tty)
+    replay_sequence(open_sequence(folder), CompanionConfig(), tmp_path / "b", limit=4, progress=pipe)
+    assert "4/4" in tty.getvalue() and tty.getvalue().endswith("\n")
+    assert pipe.getvalue() == ""
