@@ -10,6 +10,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from calib_data import Rig
+from companion.core.calibration import Rectifier, StereoCalibration
 from companion.core.geometry import StereoGeometry
 from companion.sim.render import Box, Pose, Scene, StereoRenderer
 
@@ -38,35 +40,73 @@ class Flight:
     centre_depth_m: list[float]
 
 
-def render_flight(n: int = 12, start_m: float = 0.0, speed_m_s: float = 1.0, seed: int = 3) -> Flight:
-    """``n`` frames at 20 Hz, flying north at ``speed_m_s`` toward a textured wall at :data:`WALL_M`."""
+def render_flight(
+    n: int = 12, start_m: float = 0.0, speed_m_s: float = 1.0, seed: int = 3, rig: Rig | None = None
+) -> Flight:
+    """``n`` frames at 20 Hz, flying north at ``speed_m_s`` toward a textured wall at :data:`WALL_M`.
+
+    With ``rig``, the frames are what that raw rig's eyes see (its lens distortion and the rotation
+    between its eyes): the scene is rendered by the rig's rectified geometry and each raw pixel takes
+    the rectified pixel its ray falls on (``cv2.undistortPoints`` with the rectification); ``centre_depth_m``
+    is then the rectified image's centre."""
     scene = Scene(obstacles=(Box.on_ground(WALL_M + 0.05, 0.0, (0.1, 6.0, 4.0)),), ground=True)
-    renderer = StereoRenderer(GEOMETRY, scene, seed=seed)
+    maps = None
+    geometry = GEOMETRY
+    if rig is not None:
+        rect = Rectifier(StereoCalibration(rig.K1, rig.D1, rig.K2, rig.D2, rig.R, rig.T, rig.image_size))
+        geometry = rect.geometry
+        w, h = rig.image_size
+        grid = np.stack(np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64)), axis=-1).reshape(-1, 1, 2)
+        maps = []
+        for K, D, Rr, P in ((rig.K1, rig.D1, rect.R1, rect.P1), (rig.K2, rig.D2, rect.R2, rect.P2)):
+            m = cv2.undistortPoints(grid, K, D, R=Rr, P=P).reshape(h, w, 2).astype(np.float32)
+            maps.append((m[..., 0], m[..., 1]))
+    renderer = StereoRenderer(geometry, scene, seed=seed)
     left, right, times, depth = [], [], [], []
     for i in range(n):
         north = start_m + speed_m_s * i * PERIOD_NS / 1e9
         r = renderer.render(Pose.at(north, 0.0, 1.5))
-        left.append(cv2.cvtColor(r.left_bgr, cv2.COLOR_BGR2GRAY))
-        right.append(cv2.cvtColor(r.right_bgr, cv2.COLOR_BGR2GRAY))
+        eyes = [cv2.cvtColor(r.left_bgr, cv2.COLOR_BGR2GRAY), cv2.cvtColor(r.right_bgr, cv2.COLOR_BGR2GRAY)]
+        if maps is not None:
+            eyes = [cv2.remap(e, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE) for e, (mx, my) in zip(eyes, maps)]
+        left.append(eyes[0])
+        right.append(eyes[1])
         times.append(T0_NS + i * PERIOD_NS)
-        h, w = r.depth_m.shape
-        depth.append(float(r.depth_m[h // 2, w // 2]))
+        hh, ww = r.depth_m.shape
+        depth.append(float(r.depth_m[hh // 2, ww // 2]))
     return Flight(left, right, times, depth)
 
 
-def _k(geometry: StereoGeometry) -> list[float]:
-    g = geometry
-    return [g.focal_px, g.focal_px, g.cx_px, g.cy_px]
+def distorted_rig() -> Rig:
+    """A raw rig of :data:`GEOMETRY`'s size and baseline: unequal eyes, radial-tangential distortion
+    as strong as the EuRoC MAV's, a degree between the eyes."""
+    K1 = np.array([[165.0, 0.0, 158.0], [0.0, 164.0, 102.0], [0.0, 0.0, 1.0]])
+    K2 = np.array([[163.5, 0.0, 162.0], [0.0, 163.0, 98.5], [0.0, 0.0, 1.0]])
+    D1 = np.array([-0.28, 0.074, 2e-4, 1.8e-5])
+    D2 = np.array([-0.27, 0.072, -1e-4, -3.6e-5])
+    R = cv2.Rodrigues(np.array([0.004, -0.015, 0.003]))[0]
+    T = np.array([-GEOMETRY.baseline_m, 0.0005, -0.0008])
+    return Rig(K1, D1, K2, D2, R, T, (GEOMETRY.width_px, GEOMETRY.height_px))
 
 
 def write_asl(
-    folder: Path, flight: Flight, *, drop_right: tuple[int, ...] = (), skip: tuple[int, ...] = (), sensor_yaml: bool = True
+    folder: Path, flight: Flight, *, drop_right: tuple[int, ...] = (), skip: tuple[int, ...] = (), sensor_yaml: bool = True,
+    rig: Rig | None = None,
 ) -> Path:
     """``folder/mav0/cam0`` and ``cam1`` as the EuRoC datasets hold them: ``data.csv``, ``data/<ns>.png``,
-    ``sensor.yaml`` (the rendered rig: no distortion, cam1 :data:`GEOMETRY`'s baseline to the right).
-    ``drop_right``: frames whose right image is left out (unmatched); ``skip``: frames left out of both
-    (a gap). Returns ``folder``."""
-    b = GEOMETRY.baseline_m
+    ``sensor.yaml`` (the rendered rig: no distortion, cam1 :data:`GEOMETRY`'s baseline to the right; or
+    ``rig``, with cam0 as the body frame). ``drop_right``: frames whose right image is left out
+    (unmatched); ``skip``: frames left out of both (a gap). Returns ``folder``."""
+    if rig is None:
+        g = GEOMETRY
+        K = np.array([[g.focal_px, 0.0, g.cx_px], [0.0, g.focal_px, g.cy_px], [0.0, 0.0, 1.0]])
+        rig = Rig(K, np.zeros(4), K, np.zeros(4), np.eye(3), np.array([-g.baseline_m, 0.0, 0.0]), (g.width_px, g.height_px))
+    # X_1 = [R T] X_0 and the body frame is cam0's: T_B0 = I, T_B1 = [R T]^-1.
+    m = np.eye(4)
+    m[:3, :3], m[:3, 3] = rig.R, rig.T
+    t_bs = {"cam0": np.eye(4), "cam1": np.linalg.inv(m)}
+    intrinsics = {"cam0": rig.K1, "cam1": rig.K2}
+    distortion = {"cam0": rig.D1, "cam1": rig.D2}
     for cam, images in (("cam0", flight.left), ("cam1", flight.right)):
         data = folder / "mav0" / cam / "data"
         data.mkdir(parents=True, exist_ok=True)
@@ -78,8 +118,8 @@ def write_asl(
             rows.append(f"{t},{t}.png")
         (folder / "mav0" / cam / "data.csv").write_text("\n".join(rows) + "\n", encoding="utf-8")
         if sensor_yaml:
-            x = 0.0 if cam == "cam0" else b
-            tbs = [1.0, 0.0, 0.0, x, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0]
+            tbs = t_bs[cam].reshape(-1).tolist()
+            K = intrinsics[cam]
             (folder / "mav0" / cam / "sensor.yaml").write_text(
                 "%YAML:1.0\n"
                 "sensor_type: camera\n"
@@ -89,9 +129,9 @@ def write_asl(
                 "rate_hz: 20\n"
                 f"resolution: [{GEOMETRY.width_px}, {GEOMETRY.height_px}]\n"
                 "camera_model: pinhole\n"
-                f"intrinsics: [{', '.join(repr(v) for v in _k(GEOMETRY))}] #fu, fv, cu, cv\n"
+                f"intrinsics: [{float(K[0, 0])!r}, {float(K[1, 1])!r}, {float(K[0, 2])!r}, {float(K[1, 2])!r}] #fu, fv, cu, cv\n"
                 "distortion_model: radial-tangential\n"
-                "distortion_coefficients: [0.0, 0.0, 0.0, 0.0]\n",
+                f"distortion_coefficients: [{', '.join(repr(float(v)) for v in distortion[cam])}]\n",
                 encoding="utf-8",
             )
     return folder
