@@ -174,7 +174,7 @@ def replay_sequence(
         from companion.backends import make_pipeline as _make
 
         make_pipeline = _make
-    out_dir = Path(out_dir).expanduser()
+    out_dir = Path(out_dir).expanduser().resolve()  # the run's config.toml names its calibration.yaml by this
     preview_dir = out_dir / "preview"
     try:
         preview_dir.mkdir(parents=True, exist_ok=True)
