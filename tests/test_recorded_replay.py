@@ -274,3 +274,19 @@ def test_a_raw_distorted_rig_is_rectified_from_its_sensor_yaml(tmp_path: Path) -
         wall = [r["regions_m"][k] for k in ("up_left", "up", "up_right", "left", "center", "right")]
         assert all(d == pytest.approx(truth, rel=0.06) for d in wall), (wall, truth)
         assert (max(wall) - min(wall)) / truth < 0.04, (wall, truth)
+
+
+def test_a_uvc_config_replays_and_its_run_config_is_the_replay_camera(flight: Flight, tmp_path: Path) -> None:
+    """A flight config (a ZED over UVC) replays a recording of another size; the run's config.toml is
+    that config with the recording as its camera, which the service can run."""
+    from companion.config import load_config
+
+    folder = write_asl(tmp_path / "flight", flight)
+    cfg = apply_patch(CompanionConfig(), {"camera": {"source": "uvc", "model": "zed"}})
+    bag = write_bag(tmp_path / "bag", flight)
+    for path in (folder, bag):
+        out = tmp_path / f"out-{path.name}"
+        replay_sequence(open_sequence(path), cfg, out, limit=2)
+        run = load_config(out / "config.toml").camera
+        assert (run.source, run.replay_path, run.width_px, run.height_px) == ("replay", path.resolve(), 320, 200)
+    assert (run.replay_left_topic, run.replay_right_topic) == ("/zed/left/image_rect_gray", "/zed/right/image_rect_gray")

@@ -227,7 +227,14 @@ def replay_sequence(
                 continue
             h, w = pair.left.shape[:2]
             if pipeline is None:
-                patch: dict[str, Any] = {"camera": {"width_px": w, "height_px": h}}
+                # The run's config is that of the service replaying this recording (its config.toml runs it).
+                camera: dict[str, Any] = {
+                    "source": "replay", "replay_path": str(Path(sequence.path).resolve()), "width_px": w, "height_px": h,
+                    "replay_max_skew_ms": sequence.max_skew_ns / 1e6,
+                }
+                if sequence.kind == "rosbag":
+                    camera["replay_left_topic"], camera["replay_right_topic"] = sequence.topics
+                patch: dict[str, Any] = {"camera": camera}
                 if calib_file is not None:
                     patch["calibration"] = {"file": str(calib_file)}
                 cfg = apply_patch(cfg, patch)
