@@ -261,3 +261,16 @@ def test_wrong_files_get_one_line(tmp_path: Path, capsys) -> None:
     mm = write_opencv(tmp_path / "cv", Rig(rig.K1, rig.D1, rig.K2, rig.D2, rig.R, rig.T * 1000, rig.image_size))
     assert "--t-units mm" in _one_line_error(capsys, ["calibrate", "import", str(mm[0]), "--out", out])
     assert main(["calibrate", "import", str(mm[0]), "--out", out, "--t-units", "mm"]) == 0
+
+
+def test_opencv_yaml_without_its_header_is_read_and_its_errors_name_the_line(tmp_path: Path, capsys) -> None:
+    rig = generic_rig()
+    (tmp_path / "cv").mkdir()
+    (written,) = write_opencv(tmp_path / "cv", rig)
+    bare = tmp_path / "bare.yaml"
+    bare.write_text(written.read_text().split("\n", 1)[1])  # without "%YAML:1.0"
+    assert_same_rig(import_calibration([bare]).calibration, rig)
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("M1: !!opencv-matrix\n  rows: 3\n cols: 3\n")
+    err = _one_line_error(capsys, ["calibrate", "import", str(bad), "--out", str(tmp_path / "c.yaml")])
+    assert "not a valid OpenCV file (line 3:" in err

@@ -112,20 +112,26 @@ def _filestorage_document(path: Path, text: str | None) -> dict[str, Any]:
     """Every top-level key of an OpenCV FileStorage file: matrices as arrays, sequences as lists."""
     import cv2
 
+    added = 0  # lines put before the file's own, for the line numbers of OpenCV's messages
     try:
         if text is not None:
             # FileStorage needs its own %YAML:1.0 header; a file written without it is read from memory.
-            body = text if text.lstrip().startswith("%YAML") else "%YAML:1.0\n---\n" + text
+            stripped = text.lstrip()
+            if stripped.startswith("%YAML"):
+                body = text
+            else:
+                head = "%YAML:1.0\n" + ("" if stripped.startswith("---") else "---\n")
+                body, added = head + text, head.count("\n")
             fs = cv2.FileStorage(body, cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_MEMORY)
         else:
             fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
     except (cv2.error, SystemError) as exc:
         cause = exc.__cause__ if isinstance(exc, SystemError) and exc.__cause__ is not None else exc
-        last = [ln for ln in str(cause).strip().splitlines() if ln.strip()]
-        raise CalibrationError(
-            f"cannot parse {path}: not a valid OpenCV file ({last[-1].strip()[:160] if last else 'unknown error'})",
-            path=str(path),
-        ) from None
+        lines = [ln.strip() for ln in str(cause).strip().splitlines() if ln.strip()]
+        last = lines[-1] if lines else "unknown error"
+        m = re.search(r"\((\d+)\):\s*(.+?)'?\s*$", last)
+        why = f"line {int(m.group(1)) - added}: {m.group(2)}" if m is not None else last[:160]
+        raise CalibrationError(f"cannot parse {path}: not a valid OpenCV file ({why})", path=str(path)) from None
     try:
         if not fs.isOpened():
             raise CalibrationError(f"cannot parse {path}: cv2.FileStorage cannot open it", path=str(path))
