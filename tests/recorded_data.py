@@ -179,8 +179,10 @@ def write_bag(
             data = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
         elif encoding == "rgb8":
             data = cv2.cvtColor(image, cv2.COLOR_GRAY2RGB)
+        if encoding == "mono16":
+            data = (image.astype(np.uint16) * 256).view(np.uint8)
         h, w = image.shape
-        ch = 1 if encoding == "mono8" else 3
+        ch = {"mono8": 1, "mono16": 2}.get(encoding, 3)
         return Image(header=header(t), height=h, width=w, encoding=encoding, is_bigendian=0, step=w * ch, data=np.ascontiguousarray(data).reshape(-1))
 
     def info_msg(eye: int, t: int) -> object:

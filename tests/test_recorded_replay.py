@@ -175,6 +175,10 @@ def test_wrong_sequences_get_one_line(flight: Flight, tmp_path: Path, capsys) ->
     assert "no topic /zed/left/nothing" in err
     err = _one_line_error(capsys, ["process", "--sequence", str(bag), "--out", out, "--left-topic", "/zed/left/camera_info", "--right-topic", "/zed/right/image_rect_gray"])
     assert "not sensor_msgs/Image" in err
+    deep = write_bag(tmp_path / "deep", Flight(flight.left[:2], flight.right[:2], flight.times_ns[:2], flight.centre_depth_m[:2]), encoding="mono16")
+    err = _one_line_error(capsys, ["process", "--sequence", str(deep), "--out", out])
+    assert "no stereo pair could be processed (0 pairs, 2 undecodable frames skipped)" in err
+    assert "image encoding 'mono16' is not one the replay reads" in err
 
 
 def test_the_service_camera_source_reads_a_recorded_flight(flight: Flight, tmp_path: Path) -> None:

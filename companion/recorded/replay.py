@@ -350,7 +350,10 @@ def replay_sequence(
     sequence.report.finish()
     summary.sequence = sequence.report.summary()
     if summary.frames == 0:
-        raise InputError(f"{sequence.name}: no stereo pair could be processed ({summary.sequence})")
+        first = (sequence.report.bad_frames or summary.skipped or [""])[0]
+        raise InputError(
+            f"{sequence.name}: no stereo pair could be processed ({summary.sequence})" + (f"; the first: {first}" if first else "")
+        )
     summary.decisions = dict(sorted(decisions.items()))
     summary.recorded_s = (t_last_ns - (t_first_ns or t_last_ns)) / 1e9
     summary.pipeline_ms = {"median": float(np.median(totals_ms)), "p99": float(np.percentile(totals_ms, 99))}
