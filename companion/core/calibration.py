@@ -628,7 +628,9 @@ class Rectifier:
     """Rectification of one calibrated rig at one resolution; maps are computed once, at construction.
 
     Built with ``cv2.stereoRectify(..., flags=CALIB_ZERO_DISPARITY, alpha=alpha)`` (output size = input
-    size) and ``cv2.initUndistortRectifyMap(..., CV_32FC1)``. Each rectified pixel ``(u, v)`` of the
+    size) and ``cv2.initUndistortRectifyMap(..., CV_32FC1)`` (for a ``fisheye`` calibration their
+    ``cv2.fisheye`` twins, with ``alpha`` clipped to [0, 1] as the balance and the whole image as the valid
+    rectangle). Each rectified pixel ``(u, v)`` of the
     left eye takes the raw left image sampled at ``(map_left_x[v, u], map_left_y[v, u])`` with
     bilinear interpolation and a constant 0 border (likewise for the right eye);
     :func:`remap_linear_reference` states the exact arithmetic, which a GPU kernel can reproduce.
