@@ -27,7 +27,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     """Add ``calibrate`` and its two sub-commands."""
     p = sub.add_parser(
         "calibrate",
-        help="calibrate a stereo rig (stereo), or measure the paper's depth look-up table (lut)",
+        help="calibrate a stereo rig (stereo), import a rig's calibration (import), or measure the depth table (lut)",
         description=(
             "stereo: calibrate a stereo camera from views of a chessboard or ChArUco board and write the "
             "calibration file the service reads (calibration.file). lut: measure the depth the pipeline "
@@ -94,6 +94,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     lut.add_argument("--no-extend", action="store_true", help="do not extend the table to 0.2 and 40 m by the end points' ratio")
     lut.add_argument("--json", action="store_true", help="print the result as JSON")
     lut.set_defaults(func=_lut)
+
+    from companion.cli import calibrate_import
+
+    calibrate_import.register(csub)
 
 
 # ------------------------------------------------------------------------------------------------ helpers

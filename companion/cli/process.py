@@ -24,11 +24,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--sbs", type=Path, metavar="FRAME", help="side-by-side frame (left | right), e.g. a ZED capture")
     src.add_argument("--left", type=Path, metavar="L", help="left image (with --right)")
+    src.add_argument(
+        "--sequence", type=Path, metavar="PATH", help="a recorded flight: an ASL/EuRoC folder or a rosbag (see --out)"
+    )
     p.add_argument("--right", type=Path, metavar="R", help="right image (with --left)")
     p.add_argument("--calib", type=Path, help="calibration file (ZED SN*.conf or OpenCV yaml/npz); overrides the config's")
     p.add_argument("--config", type=Path, help="TOML config (default: built-in defaults)")
     p.add_argument("--backend", help="override stereo.backend (auto, opencv-bm, opencv-sgbm, reference, cupy)")
     p.add_argument("--overlay", type=Path, metavar="OUT.png", help="also draw the regions, depths and command arrow")
+    from companion.recorded.cli import add_sequence_arguments
+
+    add_sequence_arguments(p)
     p.set_defaults(func=run)
 
 
@@ -82,6 +88,10 @@ def run(args: argparse.Namespace) -> int:
         patch["stereo"] = {"backend": args.backend}
     if patch:
         cfg = apply_patch(cfg, patch)
+    if args.sequence is not None:
+        from companion.recorded.cli import run_sequence
+
+        return run_sequence(args, cfg)
     frame = load_frame(args)
     left, right = split_side_by_side(frame)
     height, width = left.shape[:2]

@@ -145,7 +145,32 @@ class CameraConfig(StrictModel):
         default=None,
         description=(
             "replay: a recording written by `companion record`: a folder of PNG frames with "
-            "timestamps.csv, or a video file (.mkv/.avi) with <file>.timestamps.csv beside it."
+            "timestamps.csv, or a video file (.mkv/.avi) with <file>.timestamps.csv beside it; or a "
+            "recorded flight of another tool: an ASL/EuRoC folder (mav0/cam0, mav0/cam1), a ROS 1 .bag or a "
+            "ROS 2 bag (its folder, or the .db3/.mcap in it; needs `pip install 'companion[recorded]'`). "
+            "width_px and height_px must be the recording's eye size."
+        ),
+    )
+    replay_left_topic: str | None = Field(
+        default=None,
+        min_length=1,
+        max_length=300,
+        description=(
+            "replay of a rosbag: the left eye's image topic (sensor_msgs/Image or CompressedImage); unset = "
+            "the topic with left, cam0 or infra1 in its name that has a right, cam1 or infra2 twin."
+        ),
+    )
+    replay_right_topic: str | None = Field(
+        default=None, min_length=1, max_length=300, description="replay of a rosbag: the right eye's image topic (with replay_left_topic)."
+    )
+    replay_max_skew_ms: float = Field(
+        default=5.0,
+        gt=0.0,
+        le=1000.0,
+        description=(
+            "replay of an ASL folder or a rosbag: a left and a right frame whose timestamps differ by more than "
+            "this are not a pair (the eyes would see the scene at two moments), milliseconds; the frame left "
+            "without a partner is skipped."
         ),
     )
     replay_rate_hz: float | None = Field(
@@ -248,6 +273,8 @@ class CameraConfig(StrictModel):
                 )
         if self.source == "replay" and self.replay_path is None:
             raise ValueError("source = 'replay' needs replay_path (a recording from `companion record`)")
+        if (self.replay_left_topic is None) != (self.replay_right_topic is None):
+            raise ValueError("replay_left_topic and replay_right_topic go together: set both or neither")
         return self
 
 

@@ -40,6 +40,7 @@ from companion.errors import CalibrationError, FrameError
 __all__ = [
     "OPENCV_CALIBRATION_SUFFIXES",
     "ZED_RESOLUTIONS",
+    "LENS_MODELS",
     "AnyRectifier",
     "IdentityRectifier",
     "Rectifier",
@@ -60,6 +61,9 @@ ZED_RESOLUTIONS: Final[Mapping[str, tuple[int, int]]] = MappingProxyType(
 )
 
 OPENCV_CALIBRATION_SUFFIXES: Final[tuple[str, ...]] = (".yaml", ".yml", ".xml", ".json", ".npz")
+
+#: Lens models the rectifier handles: OpenCV's pinhole (radial-tangential) and its fisheye (equidistant).
+LENS_MODELS: Final[tuple[str, ...]] = ("pinhole", "fisheye")
 
 # Distortion vector lengths OpenCV's pinhole model accepts.
 _DIST_LENGTHS: Final[frozenset[int]] = frozenset({4, 5, 8, 12, 14})
@@ -91,6 +95,9 @@ class StereoCalibration:
             ``(3,)``, METRES; ``T[0] ≈ -baseline`` for a left/right rig.
         image_size: one eye's raw image size ``(width, height)``, pixels.
         source: where the calibration came from (file and section), for messages.
+        model: the lens model: ``"pinhole"`` (OpenCV's radial-tangential family, D of 4 to 14
+            coefficients) or ``"fisheye"`` (the equidistant model of ``cv2.fisheye``, Kalibr's
+            ``equidistant``: D is ``k1 k2 k3 k4``).
 
     The arrays are stored as read-only float64 copies.
 
@@ -107,9 +114,17 @@ class StereoCalibration:
     T: np.ndarray
     image_size: tuple[int, int]
     source: str = "<memory>"
+    model: str = "pinhole"
 
     def __post_init__(self) -> None:
         src = self.source
+        if self.model not in LENS_MODELS:
+            raise CalibrationError(
+                f"calibration {src}: distortion_model {self.model!r} is not one the pipeline rectifies "
+                f"({', '.join(LENS_MODELS)})",
+                source=src,
+                key="distortion_model",
+            )
 
         def arr(name: str, value: Any, shape: tuple[int, ...] | None) -> np.ndarray:
             try:
@@ -118,6 +133,12 @@ class StereoCalibration:
                 raise CalibrationError(f"calibration {src}: {name} is not numeric ({exc})", source=src, key=name) from None
             if shape is None:
                 a = a.reshape(-1)
+                if self.model == "fisheye" and a.size != 4:
+                    raise CalibrationError(
+                        f"calibration {src}: {name} has {a.size} coefficients; the fisheye model takes 4 (k1..k4)",
+                        source=src,
+                        key=name,
+                    )
                 if a.size not in _DIST_LENGTHS:
                     raise CalibrationError(
                         f"calibration {src}: {name} has {a.size} coefficients; OpenCV takes 4, 5, 8, 12 or 14",
@@ -485,6 +506,9 @@ def load_opencv_calibration(path: str | Path) -> StereoCalibration:
     as produced by ``cv2.stereoCalibrate`` (``X_r = R X_l + T``) and ``image_size`` ``[width, height]``
     or ``image_width`` + ``image_height``.
 
+    ``distortion_model: fisheye`` (optional; default ``pinhole``) marks an equidistant lens
+    (``cv2.fisheye``, D = k1..k4).
+
     Units of T: metres, unless the file has ``T_units: mm`` (millimetres, e.g. a board measured in
     mm); ``T_units: m`` is also accepted, anything else is an error.
 
@@ -528,6 +552,7 @@ def load_opencv_calibration(path: str | Path) -> StereoCalibration:
         T = np.asarray(values["T"], dtype=np.float64) * _T_UNIT_SCALE[unit]
     except (TypeError, ValueError):
         raise CalibrationError(f"calibration {path}: T is not numeric", path=str(path), key="T") from None
+    model = str(values.get("distortion_model", "pinhole")).strip().lower()
     return StereoCalibration(
         K1=values["K1"],
         D1=values["D1"],
@@ -537,6 +562,7 @@ def load_opencv_calibration(path: str | Path) -> StereoCalibration:
         T=T,
         image_size=_image_size_from(values, path),
         source=str(path),
+        model=model,
     )
 
 
@@ -602,7 +628,9 @@ class Rectifier:
     """Rectification of one calibrated rig at one resolution; maps are computed once, at construction.
 
     Built with ``cv2.stereoRectify(..., flags=CALIB_ZERO_DISPARITY, alpha=alpha)`` (output size = input
-    size) and ``cv2.initUndistortRectifyMap(..., CV_32FC1)``. Each rectified pixel ``(u, v)`` of the
+    size) and ``cv2.initUndistortRectifyMap(..., CV_32FC1)`` (for a ``fisheye`` calibration their
+    ``cv2.fisheye`` twins, with ``alpha`` clipped to [0, 1] as the balance and the whole image as the valid
+    rectangle). Each rectified pixel ``(u, v)`` of the
     left eye takes the raw left image sampled at ``(map_left_x[v, u], map_left_y[v, u])`` with
     bilinear interpolation and a constant 0 border (likewise for the right eye);
     :func:`remap_linear_reference` states the exact arithmetic, which a GPU kernel can reproduce.
@@ -643,18 +671,36 @@ class Rectifier:
     def __post_init__(self) -> None:
         c = self.calibration
         size = c.image_size
-        R1, R2, P1, P2, Q, roi1, roi2 = cv2.stereoRectify(
-            c.K1,
-            c.D1,
-            c.K2,
-            c.D2,
-            size,
-            c.R,
-            c.T.reshape(3, 1),  # OpenCV 5 wants a column vector here
-            flags=cv2.CALIB_ZERO_DISPARITY,
-            alpha=float(self.alpha),
-            newImageSize=size,
-        )
+        if c.model == "fisheye":
+            # cv2.fisheye has no valid-pixel rectangle; its balance plays alpha's part (0: no black
+            # border, 1: every source pixel), and OpenCV's own choice (-1) is taken as 0.
+            R1, R2, P1, P2, Q = cv2.fisheye.stereoRectify(
+                c.K1,
+                c.D1.reshape(4, 1),
+                c.K2,
+                c.D2.reshape(4, 1),
+                size,
+                c.R,
+                c.T.reshape(3, 1),
+                cv2.CALIB_ZERO_DISPARITY,
+                newImageSize=size,
+                balance=min(1.0, max(0.0, float(self.alpha))),
+                fov_scale=1.0,
+            )
+            roi1 = roi2 = (0, 0, size[0], size[1])
+        else:
+            R1, R2, P1, P2, Q, roi1, roi2 = cv2.stereoRectify(
+                c.K1,
+                c.D1,
+                c.K2,
+                c.D2,
+                size,
+                c.R,
+                c.T.reshape(3, 1),  # OpenCV 5 wants a column vector here
+                flags=cv2.CALIB_ZERO_DISPARITY,
+                alpha=float(self.alpha),
+                newImageSize=size,
+            )
         f = float(P1[0, 0])
         tx, ty = float(P2[0, 3]), float(P2[1, 3])
         if abs(ty) > abs(tx):
@@ -669,8 +715,12 @@ class Rectifier:
                 "are the eyes swapped or the sign of T flipped?",
                 source=c.source,
             )
-        mlx, mly = cv2.initUndistortRectifyMap(c.K1, c.D1, R1, P1, size, cv2.CV_32FC1)
-        mrx, mry = cv2.initUndistortRectifyMap(c.K2, c.D2, R2, P2, size, cv2.CV_32FC1)
+        if c.model == "fisheye":
+            mlx, mly = cv2.fisheye.initUndistortRectifyMap(c.K1, c.D1.reshape(4, 1), R1, P1, size, cv2.CV_32FC1)
+            mrx, mry = cv2.fisheye.initUndistortRectifyMap(c.K2, c.D2.reshape(4, 1), R2, P2, size, cv2.CV_32FC1)
+        else:
+            mlx, mly = cv2.initUndistortRectifyMap(c.K1, c.D1, R1, P1, size, cv2.CV_32FC1)
+            mrx, mry = cv2.initUndistortRectifyMap(c.K2, c.D2, R2, P2, size, cv2.CV_32FC1)
         geometry = StereoGeometry(
             width_px=size[0],
             height_px=size[1],
@@ -884,8 +934,10 @@ def save_calibration(calib: StereoCalibration, path: str | Path, metadata: Mappi
         )
     arrays = {"K1": calib.K1, "D1": calib.D1, "K2": calib.K2, "D2": calib.D2, "R": calib.R, "T": calib.T}
     meta: dict[str, Any] = {"T_units": "m"}
+    if calib.model != "pinhole":
+        meta["distortion_model"] = calib.model
     for key, value in (metadata or {}).items():
-        if key in arrays or key in ("image_size", "T_units"):
+        if key in arrays or key in ("image_size", "T_units", "distortion_model"):
             raise CalibrationError(f"calibration {path}: metadata may not be called {key!r}", path=str(path))
         if isinstance(value, bool) or not isinstance(value, (int, float, str)):
             raise CalibrationError(f"calibration {path}: metadata {key!r} must be a number or a string", path=str(path))

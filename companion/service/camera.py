@@ -826,6 +826,16 @@ def make_camera(
         assert cam.replay_path is not None  # the config validator guarantees it
         if not Path(cam.replay_path).exists():
             raise CameraError(f"replay:{cam.replay_path}: no such recording (camera.replay_path)")
+        from companion.recorded.sequence import is_sequence
+
+        if is_sequence(cam.replay_path):
+            from companion.recorded.camera import RecordedCamera
+
+            return RecordedCamera(
+                cam.replay_path, cam.width_px, cam.height_px, rate_hz=cam.replay_rate_hz, loop=cam.replay_loop,
+                left_topic=cam.replay_left_topic, right_topic=cam.replay_right_topic,
+                max_skew_ms=cam.replay_max_skew_ms, clock=clock,
+            )
         return ReplayCamera(
             cam.replay_path,
             cam.width_px,

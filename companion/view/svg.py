@@ -16,6 +16,7 @@ KIND_COLOUR = {"clear": "#2e9e44", "avoid": "#e89a00", "brake": "#d93025"}
 STATE_COLOUR = {
     "engaged": "#2e9e44", "override": "#57b86a", "engaging": "#e8c100", "paused": "#e89a00",
     "degraded": "#d93025", "failsafe": "#8b0000", "passive": "#9aa3ad", "disengaged": "#5a6675",
+    "replay": "#1f5fd1",
 }
 
 
