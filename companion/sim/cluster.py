@@ -24,6 +24,7 @@ import contextlib
 import dataclasses
 import importlib.util
 import logging
+import re
 import sys
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
@@ -281,7 +282,7 @@ class TuneSpec:
     seed: int = 0
 
 
-def _trial(params: dict[str, Any], *, base_data: dict[str, Any], settings: tuple[Setting, ...],
+def flight_trial(params: dict[str, Any], *, base_data: dict[str, Any], settings: tuple[Setting, ...],
            courses: tuple[tuple[str, int], ...], time_weight_per_s: float) -> None:
     """One Ray Tune trial: validate the candidate whole, fly it on every course, report its score."""
     from ray import tune
@@ -310,6 +311,7 @@ def run_tune(
     address: str | None = None,
     num_cpus: int | None = None,
     verbose: int = 1,
+    callbacks: Sequence[Any] = (),
 ) -> tuple[list[dict[str, Any]], bool]:
     """Run (or resume) the search of ``spec`` with its experiment under ``storage``.
 
@@ -321,6 +323,8 @@ def run_tune(
             False needs no experiment there yet.
         address, num_cpus: where Ray runs (:func:`ray_session`).
         verbose: Ray Tune's console output (0 silent, 1 status, 2 per trial).
+        callbacks: Ray Tune callbacks (:class:`ray.tune.Callback`) of a new experiment; a resumed one
+            keeps those it was started with.
 
     Returns:
         One row per trial that reported (``trial`` id, the setting values under their paths, and the
@@ -344,7 +348,7 @@ def run_tune(
         raise InputError(f"{path}: a tune is already here; --resume to go on with it, or another --out")
     trainable = tune.with_resources(
         tune.with_parameters(
-            _trial,
+            flight_trial,
             base_data=spec.base.model_dump(mode="json"),
             settings=spec.settings,
             courses=spec.courses,
@@ -374,6 +378,7 @@ def run_tune(
                     name=_EXPERIMENT,
                     verbose=verbose,
                     failure_config=tune.FailureConfig(max_failures=FLIGHT_RETRIES),
+                    callbacks=list(callbacks),
                 ),
             )
         grid = tuner.fit()
@@ -387,12 +392,12 @@ _EXPERIMENT = "experiment"
 
 
 def _rows(grid: Any, settings: Sequence[Setting]) -> list[dict[str, Any]]:
-    """One row per trial of ``grid`` (a ResultGrid), in the order the trials were made (their ids count up)."""
+    """One row per trial of ``grid`` (a ResultGrid), in the order the trials were made."""
     rows = []
     for result in grid:
         metrics = result.metrics or {}
         config = result.config or {}
-        row: dict[str, Any] = {"trial": str(metrics.get("trial_id", ""))}
+        row: dict[str, Any] = {"trial": _trial_number(result.path, str(metrics.get("trial_id", "")))}
         for s in settings:
             if s.key in config:
                 row[s.path] = s.cast(config[s.key])
@@ -401,5 +406,12 @@ def _rows(grid: Any, settings: Sequence[Setting]) -> list[dict[str, Any]]:
                 row[f.name] = metrics[f.name]
         row["status"] = "TERMINATED" if result.error is None and "score" in metrics else "ERROR"
         rows.append(row)
-    rows.sort(key=lambda r: r["trial"].rsplit("_", 1)[-1])
+    rows.sort(key=lambda r: r["trial"])
     return rows
+
+
+def _trial_number(path: str | None, trial_id: str) -> int:
+    """The trial's number, counting from 1 in the order Tune made them (its folder is named
+    ``<trainable>_<trial id>_<number>_<settings>_<date>``); 0 when the folder does not say."""
+    m = re.search(re.escape(trial_id) + r"_(\d+)_", Path(path or "").name) if trial_id else None
+    return int(m.group(1)) if m else 0

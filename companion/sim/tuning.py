@@ -450,11 +450,10 @@ def write_report(rows: Sequence[Mapping[str, Any]], settings: Sequence[Setting],
             w.writerow([r.get("trial", ""), *(r.get(p, "") for p in paths), *(r.get(c, "") for c in _COLUMNS),
                         r.get("problem", "")])
     header = ["trial", *paths, "score", "success %", "goal %", "collisions", "mean time to goal s", "flights"]
-    lines = [f"# {title}", "", f"{len(rows)} trials; the first flies the base config's values.", ""]
+    lines = [f"# {title}", "", f"{len(rows)} trials, best first; trial 1 flies the base config's values.", ""]
     lines += ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    first = rows[0].get("trial") if rows else None
     for r in sorted(rows, key=lambda r: -r.get("score", INVALID_SCORE)):
-        tag = " (base)" if r.get("trial") == first else ""
+        tag = " (base)" if r.get("trial") == 1 else ""
         cells = [f"{r.get('trial', '')}{tag}", *(_fmt(r.get(p)) for p in paths), _fmt(r.get("score")),
                  _fmt(r.get("success_pct")), _fmt(r.get("goal_pct")), str(r.get("collisions", "")),
                  _fmt(r.get("mean_goal_time_s")), str(r.get("flights", ""))]
@@ -501,10 +500,11 @@ def _plots(rows: Sequence[Mapping[str, Any]], settings: Sequence[Setting], out: 
     fig.savefig(settings_png, dpi=100)
     plt.close(fig)
     fig, ax = plt.subplots(figsize=(6.0, 3.5))
-    scores = [r.get("score", INVALID_SCORE) for r in rows]
+    numbers = [r["trial"] for r in flown]
+    scores = [r["score"] for r in flown]
     best = [max(scores[: i + 1]) for i in range(len(scores))]
-    ax.plot(range(1, len(rows) + 1), scores, "o", label="trial")
-    ax.plot(range(1, len(rows) + 1), best, "-", label="best so far")
+    ax.plot(numbers, scores, "o", label="trial (refused ones not shown)")
+    ax.plot(numbers, best, "-", label="best so far")
     ax.set_xlabel("trial")
     ax.set_ylabel("score")
     ax.legend(fontsize=7)
