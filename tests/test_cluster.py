@@ -160,7 +160,7 @@ def test_the_report_lists_every_trial_best_first(tmp_path: Path) -> None:
     assert {f.name for f in files} == {"trials.csv", "report.md", "settings.png", "progress.png"}
     report = (tmp_path / "report.md").read_text()
     assert report.index("| 1 (base)") < report.index("| 2 ") < report.index("| 3 ")
-    assert "Refused by the config models" in report
+    assert "Not scored (refused by the config models, or failed)" in report
     assert best_row(rows) is rows[0]  # a collision never wins, however fast
 
 

@@ -181,7 +181,7 @@ def fly_suite(
             kind, seed = courses[index]
             try:
                 result = ray.get(ready[0])
-            except (ray.exceptions.RayError, Exception) as err:  # the flight's error, after its retry
+            except Exception as err:  # the flight's own error or its worker's death, after its retry: reported
                 failures[index] = FlightFailure(kind, int(seed), _one_line(err))
                 log.debug("flight %s-%s failed after %d tries: %s", kind, seed, 1 + FLIGHT_RETRIES, failures[index].error)
                 done += 1
@@ -327,9 +327,10 @@ def run_tune(
             keeps those it was started with.
 
     Returns:
-        One row per trial that reported (``trial`` id, the setting values under their paths, and the
-        :class:`~companion.sim.tuning.TrialScore` fields), in the order the trials were made, and whether
-        every trial of ``spec.trials`` finished (False: stopped early; resume to go on).
+        One row per trial that finished or failed (``trial``: its number from 1, the setting values under
+        their paths, and the :class:`~companion.sim.tuning.TrialScore` fields; a failed trial's
+        ``problem`` says why), in the order the trials were made, and whether every trial of
+        ``spec.trials`` has its row (False: stopped early; resume to go on).
 
     Raises:
         InputError: Ray is missing or unreachable, ``resume`` without an experiment in ``storage`` or an
@@ -381,10 +382,8 @@ def run_tune(
                     callbacks=list(callbacks),
                 ),
             )
-        grid = tuner.fit()
-        rows = _rows(grid, spec.settings)
-    finished = sum(r["status"] == "TERMINATED" for r in rows)
-    return [r for r in rows if "score" in r], finished >= spec.trials
+        rows = _rows(tuner.fit(), spec.settings)
+    return rows, len(rows) >= spec.trials
 
 
 #: The experiment's folder under the tune's storage.
@@ -392,26 +391,29 @@ _EXPERIMENT = "experiment"
 
 
 def _rows(grid: Any, settings: Sequence[Setting]) -> list[dict[str, Any]]:
-    """One row per trial of ``grid`` (a ResultGrid), in the order the trials were made."""
+    """One row per trial of ``grid`` (a ResultGrid) that finished or failed, in the order the trials were
+    made; a trial that failed on every try is a row of :meth:`TrialScore.invalid` saying why. Trials not
+    finished (a stopped run) have no row."""
     rows = []
     for result in grid:
         metrics = result.metrics or {}
+        if "score" in metrics:
+            score = {f.name: metrics[f.name] for f in dataclasses.fields(TrialScore)}
+        elif result.error is not None:
+            score = dataclasses.asdict(TrialScore.invalid(f"the trial failed twice: {_one_line(result.error)}"))
+        else:
+            continue
         config = result.config or {}
-        row: dict[str, Any] = {"trial": _trial_number(result.path, str(metrics.get("trial_id", "")))}
-        for s in settings:
-            if s.key in config:
-                row[s.path] = s.cast(config[s.key])
-        for f in dataclasses.fields(TrialScore):
-            if f.name in metrics:
-                row[f.name] = metrics[f.name]
-        row["status"] = "TERMINATED" if result.error is None and "score" in metrics else "ERROR"
+        row: dict[str, Any] = {"trial": _trial_number(result.path)}
+        row.update({s.path: s.cast(config[s.key]) for s in settings if s.key in config})
+        row.update(score)
         rows.append(row)
     rows.sort(key=lambda r: r["trial"])
     return rows
 
 
-def _trial_number(path: str | None, trial_id: str) -> int:
+def _trial_number(path: str | None) -> int:
     """The trial's number, counting from 1 in the order Tune made them (its folder is named
-    ``<trainable>_<trial id>_<number>_<settings>_<date>``); 0 when the folder does not say."""
-    m = re.search(re.escape(trial_id) + r"_(\d+)_", Path(path or "").name) if trial_id else None
+    ``flight_trial_<trial id>_<number>_<settings>_<date>``); 0 when the folder does not say."""
+    m = re.match(re.escape(flight_trial.__name__) + r"_[0-9a-f]+_(\d+)_", Path(path or "").name)
     return int(m.group(1)) if m else 0

@@ -460,7 +460,7 @@ def write_report(rows: Sequence[Mapping[str, Any]], settings: Sequence[Setting],
         lines.append("| " + " | ".join(cells) + " |")
     refused = [r for r in rows if r.get("problem")]
     if refused:
-        lines += ["", "Refused by the config models (not flown):", ""]
+        lines += ["", "Not scored (refused by the config models, or failed):", ""]
         lines += [f"* {r.get('trial', '')}: {r['problem']}" for r in refused]
     written[1].write_text("\n".join(lines) + "\n", encoding="utf-8")
     written += _plots(rows, settings, out)
