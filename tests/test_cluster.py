@@ -248,3 +248,14 @@ def test_a_tune_stopped_by_ctrl_c_resumes_and_writes_its_best_settings(tmp_path:
     values = {s.path: best[s.path] for s in settings}
     text = fragment_toml(best_patch(cfg, values))
     assert apply_patch(cfg, tomllib.loads(text)) == with_settings(cfg, values)
+
+
+def test_ray_is_imported_only_when_asked_for() -> None:
+    import subprocess
+
+    code = (
+        "import sys; from companion.cli import build_parser; build_parser(); import companion.sim.suite, "
+        "companion.sim.tuning; sys.exit(sorted(m for m in ('ray', 'optuna', 'tqdm') if m in sys.modules) != [])"
+    )
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    assert subprocess.run([sys.executable, "-c", code], env=env, timeout=120).returncode == 0

@@ -5,9 +5,13 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from companion import exitcodes
 from companion.errors import InputError
+
+if TYPE_CHECKING:
+    from companion.sim.cluster import TuneSpec
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -133,22 +137,20 @@ def run(args: argparse.Namespace) -> int:
     return exitcodes.OK
 
 
-def _check_same_search(path: Path, spec: object, resume: bool) -> None:
+def _check_same_search(path: Path, spec: TuneSpec, resume: bool) -> None:
     """Keep what a tune searches beside its experiment; a resume must search the same (settings,
     ranges, courses, trials, seed, score, base config), else its trials would not compare."""
     import dataclasses
     import json
 
-    from companion.sim.cluster import TuneSpec
-
-    assert isinstance(spec, TuneSpec)
+    from companion.sim.cluster import EXPERIMENT_DIR
     data = {f.name: getattr(spec, f.name) for f in dataclasses.fields(spec) if f.name != "base"}
     data["settings"] = [dataclasses.asdict(s) for s in spec.settings]
     data["courses"] = [list(c) for c in spec.courses]
     data["base"] = spec.base.model_dump(mode="json")
     text = json.dumps(data, indent=1, sort_keys=True)
     if not resume:
-        if path.exists():
+        if (path.parent / EXPERIMENT_DIR).exists():
             raise InputError(f"{path.parent}: a tune is already here; --resume to go on with it, or another --out")
         path.write_text(text, encoding="utf-8")
         return

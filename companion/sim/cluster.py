@@ -42,6 +42,9 @@ log = logging.getLogger(__name__)
 #: The line that says how to get Ray when it is missing.
 INSTALL_HINT = "Ray is not installed: pip install 'companion[cluster]' (ray[tune], optuna, tqdm)"
 
+#: The experiment's folder under a tune's storage (``--out``).
+EXPERIMENT_DIR = "experiment"
+
 #: How often a flight is tried again after it raised (on any node) before it is reported.
 FLIGHT_RETRIES = 1
 
@@ -283,7 +286,7 @@ class TuneSpec:
 
 
 def flight_trial(params: dict[str, Any], *, base_data: dict[str, Any], settings: tuple[Setting, ...],
-           courses: tuple[tuple[str, int], ...], time_weight_per_s: float) -> None:
+                 courses: tuple[tuple[str, int], ...], time_weight_per_s: float) -> None:
     """One Ray Tune trial: validate the candidate whole, fly it on every course, report its score."""
     from ray import tune
 
@@ -341,7 +344,7 @@ def run_tune(
     from ray.tune.search.optuna import OptunaSearch
 
     storage = storage.expanduser().resolve()
-    path = storage / _EXPERIMENT
+    path = storage / EXPERIMENT_DIR
     exists = tune.Tuner.can_restore(str(path)) if path.exists() else False
     if resume and not exists:
         raise InputError(f"{path}: no tune to resume here")
@@ -376,7 +379,7 @@ def run_tune(
                 tune_config=tune.TuneConfig(search_alg=search, num_samples=spec.trials),
                 run_config=tune.RunConfig(
                     storage_path=str(storage),
-                    name=_EXPERIMENT,
+                    name=EXPERIMENT_DIR,
                     verbose=verbose,
                     failure_config=tune.FailureConfig(max_failures=FLIGHT_RETRIES),
                     callbacks=list(callbacks),
@@ -384,10 +387,6 @@ def run_tune(
             )
         rows = _rows(tuner.fit(), spec.settings)
     return rows, len(rows) >= spec.trials
-
-
-#: The experiment's folder under the tune's storage.
-_EXPERIMENT = "experiment"
 
 
 def _rows(grid: Any, settings: Sequence[Setting]) -> list[dict[str, Any]]:
