@@ -176,6 +176,27 @@ def test_without_ray_the_suite_says_how_to_install_it(
         assert "pip install 'companion[cluster]'" in err and "\n" not in err
 
 
+@needs_ray
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["x=2:1"], "low 2 is above high 1"),
+        (["command.cruise_speed_m_s=3:4"], "inside the safety envelope"),
+        ([], "name at least one setting"),
+        (["command.cruise_speed_m_s=0.5:1", "--trials", "0"], "--trials must be >= 1"),
+        (["command.cruise_speed_m_s=0.5:1", "--kinds", "maze"], "unknown course kind 'maze'"),
+        (["command.cruise_speed_m_s=0.5:1", "--resume"], "no tune to resume here"),
+    ],
+)
+def test_tune_input_errors_are_one_line_and_exit_2(
+    argv: list[str], message: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Each is refused before any Ray starts."""
+    assert main(["tune", *argv, "--suite", "quick", "--out", str(tmp_path / "t")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert message in err and "\n" not in err
+
+
 def test_ray_goes_with_a_suite(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["sim", "--course", "doorway", "--ray"]) == 2
     assert "--ray goes with --suite" in capsys.readouterr().err
