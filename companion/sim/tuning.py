@@ -192,7 +192,9 @@ def _field_bounds(info: FieldInfo | None) -> tuple[float, float, bool, bool]:
     lo, hi, lo_open, hi_open = -math.inf, math.inf, False, False
     if info is None:
         return lo, hi, lo_open, hi_open
+    # A union such as ``Annotated[int, Field(ge=0)] | Literal["auto"]`` keeps its bounds on its member.
     members = [m for arg in get_args(info.annotation) for m in getattr(arg, "__metadata__", ())]
+    members = [x for m in members for x in (m.metadata if isinstance(m, FieldInfo) else [m])]
     for m in [*info.metadata, *members]:
         for attr, is_low, is_open in (("ge", True, False), ("gt", True, True), ("le", False, False), ("lt", False, True)):
             v = getattr(m, attr, None)
