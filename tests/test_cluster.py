@@ -146,6 +146,25 @@ def test_the_best_settings_fragment_loads_with_the_config_models() -> None:
     assert apply_patch(cfg, parse_assignments(shlex.split(line)[3:])) == with_settings(cfg, values)
 
 
+def test_a_collision_ranks_a_candidate_below_every_one_without() -> None:
+    from types import SimpleNamespace
+
+    from companion.sim.scoring import Outcome
+    from companion.sim.tuning import score_flights
+
+    def flight(name: str, outcome: Outcome, time_s: float) -> Any:
+        success = outcome in (Outcome.GOAL, Outcome.HELD)
+        return SimpleNamespace(course=SimpleNamespace(name=name), outcome=outcome, success=success, time_s=time_s)
+
+    slow = score_flights([flight("a-0", Outcome.GOAL, 40.0), flight("b-0", Outcome.TIMEOUT, 90.0)])
+    assert (slow.success_pct, slow.goal_pct, slow.collisions, slow.mean_goal_time_s) == (50.0, 50.0, 0, 40.0)
+    assert slow.score == pytest.approx(50.0 - 0.1 * 40.0) and slow.failed == "b-0: timeout"
+    fast = score_flights([flight("a-0", Outcome.GOAL, 10.0), flight("b-0", Outcome.COLLISION, 5.0)])
+    assert fast.score == -1.0 < slow.score
+    faster = score_flights([flight("a-0", Outcome.GOAL, 20.0), flight("b-0", Outcome.GOAL, 20.0)])
+    assert faster.score == pytest.approx(100.0 - 2.0) and faster.score > slow.score
+
+
 def test_the_report_lists_every_trial_best_first(tmp_path: Path) -> None:
     (setting,) = resolve_settings(CompanionConfig(), [("command.cruise_speed_m_s", 0.5, 1.5)])
     rows: list[dict[str, Any]] = [

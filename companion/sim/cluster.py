@@ -397,7 +397,7 @@ def _rows(grid: Any, settings: Sequence[Setting]) -> list[dict[str, Any]]:
     for result in grid:
         metrics = result.metrics or {}
         if "score" in metrics:
-            score = {f.name: metrics[f.name] for f in dataclasses.fields(TrialScore)}
+            score = {f.name: metrics.get(f.name, f.default) for f in dataclasses.fields(TrialScore)}
         elif result.error is not None:
             score = dataclasses.asdict(TrialScore.invalid(f"the trial failed twice: {_one_line(result.error)}"))
         else:

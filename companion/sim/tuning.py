@@ -382,6 +382,7 @@ class TrialScore:
         collisions: flights that ended in a collision.
         mean_goal_time_s: mean simulated time of the flights that reached the goal, seconds (0: none did).
         flights: flights flown (0: the candidate was refused).
+        failed: the courses that were no success, each ``name: outcome``, comma-separated.
         problem: why the candidate was refused, one line; "" when it flew.
     """
 
@@ -391,12 +392,13 @@ class TrialScore:
     collisions: int
     mean_goal_time_s: float
     flights: int
+    failed: str = ""
     problem: str = ""
 
     @classmethod
     def invalid(cls, problem: str) -> TrialScore:
         """A candidate the config models refuse: :data:`INVALID_SCORE`, nothing flown."""
-        return cls(INVALID_SCORE, 0.0, 0.0, 0, 0.0, 0, problem)
+        return cls(INVALID_SCORE, 0.0, 0.0, 0, 0.0, 0, "", problem)
 
 
 def score_flights(results: Sequence[Any], time_weight_per_s: float = 0.1) -> TrialScore:
@@ -421,10 +423,11 @@ def score_flights(results: Sequence[Any], time_weight_per_s: float = 0.1) -> Tri
         collisions=collisions,
         mean_goal_time_s=mean_goal_time_s,
         flights=n,
+        failed=", ".join(f"{r.course.name}: {r.outcome.value}" for r in results if not r.success),
     )
 
 
-_COLUMNS = ("score", "success_pct", "goal_pct", "collisions", "mean_goal_time_s", "flights")
+_COLUMNS = ("score", "success_pct", "goal_pct", "collisions", "mean_goal_time_s", "flights", "failed")
 
 
 def best_row(rows: Sequence[Mapping[str, Any]]) -> Mapping[str, Any] | None:
@@ -451,14 +454,15 @@ def write_report(rows: Sequence[Mapping[str, Any]], settings: Sequence[Setting],
         for r in rows:
             w.writerow([r.get("trial", ""), *(r.get(p, "") for p in paths), *(r.get(c, "") for c in _COLUMNS),
                         r.get("problem", "")])
-    header = ["trial", *paths, "score", "success %", "goal %", "collisions", "mean time to goal s", "flights"]
+    header = ["trial", *paths, "score", "success %", "goal %", "collisions", "mean time to goal s", "flights",
+              "not a success"]
     lines = [f"# {title}", "", f"{len(rows)} trials, best first; trial 1 flies the base config's values.", ""]
     lines += ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for r in sorted(rows, key=lambda r: -r.get("score", INVALID_SCORE)):
         tag = " (base)" if r.get("trial") == 1 else ""
         cells = [f"{r.get('trial', '')}{tag}", *(_fmt(r.get(p)) for p in paths), _fmt(r.get("score")),
                  _fmt(r.get("success_pct")), _fmt(r.get("goal_pct")), str(r.get("collisions", "")),
-                 _fmt(r.get("mean_goal_time_s")), str(r.get("flights", ""))]
+                 _fmt(r.get("mean_goal_time_s")), str(r.get("flights", "")), str(r.get("failed", ""))]
         lines.append("| " + " | ".join(cells) + " |")
     refused = [r for r in rows if r.get("problem")]
     if refused:
