@@ -17,7 +17,7 @@ from companion import __version__, exitcodes
 from companion.errors import CompanionError
 
 #: Modules under ``companion.cli`` that contribute sub-commands, in help order.
-_COMMAND_MODULES = ("demo", "process", "calibrate", "eval", "sim", "sitl", "bench", "service", "view")
+_COMMAND_MODULES = ("demo", "process", "calibrate", "eval", "sim", "tune", "sitl", "bench", "service", "view")
 
 log = logging.getLogger("companion")
 

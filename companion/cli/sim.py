@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import sys
 import time
 from pathlib import Path
 from typing import Any
 
+from companion import exitcodes
 from companion.errors import InputError
 
 
@@ -69,7 +71,21 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--realtime", action="store_true", help="--course: pace simulated time to the wall clock")
     add_view_options(p, "--course: ")
-    p.add_argument("--workers", type=int, default=2, help="--suite: worker processes (default 2)")
+    p.add_argument(
+        "--workers", type=int, default=2,
+        help="--suite: worker processes (default 2); with --ray and no address, the CPUs of the Ray started here",
+    )
+    p.add_argument(
+        "--ray",
+        nargs="?",
+        const="",
+        metavar="ADDRESS",
+        help=(
+            "--suite: fly on Ray (pip install 'companion[cluster]'): alone, a Ray started here for the run; "
+            "'auto' or ray://HOST:10001, an existing cluster (docs/cluster.md). A flight that fails is tried "
+            "once more, then reported with its course"
+        ),
+    )
     p.add_argument(
         "--realizations",
         type=int,
@@ -91,6 +107,8 @@ def run(args: argparse.Namespace) -> int:
     if args.course is not None:
         if args.trace_dir is not None:
             raise InputError("--trace-dir goes with --suite; for one course, --trace OUT.csv")
+        if args.ray is not None:
+            raise InputError("--ray goes with --suite")
         return _run_course(args, cfg)
     if (
         args.plot is not None
@@ -252,48 +270,76 @@ def write_plot(result: Any, path: Path, side_view: bool = False) -> None:
         raise InputError(f"{path}: cannot write the plot")
 
 
+def courses_of(args: argparse.Namespace) -> tuple[tuple[str, int], ...]:
+    """The ``(kind, seed)`` courses of ``--suite`` and ``--kinds``."""
+    from companion.sim.suite import select_kinds, suite_courses
+
+    courses = suite_courses(args.suite)
+    return select_kinds(courses, args.kinds) if args.kinds is not None else courses
+
+
 def _run_suite(args: argparse.Namespace, cfg: Any) -> int:
     from companion.bench import machine_description
-    from companion.sim.suite import realization_line, run_suite, select_kinds, suite_courses, suite_table
+    from companion.sim.suite import realization_line, run_suite, suite_table
 
     if args.workers < 1:
         raise InputError(f"--workers must be >= 1, got {args.workers}")
-    courses = suite_courses(args.suite)
-    if args.kinds is not None:
-        courses = select_kinds(courses, args.kinds)
-    trace_dir = _trace_dir(args.trace_dir) if args.trace_dir is not None else None
+    courses = courses_of(args)
     n = args.realizations
+    on_ray = None
+    if args.ray is not None:
+        from companion.sim.cluster import SuiteOnRay  # Ray's module only when asked for
+
+        on_ray = SuiteOnRay(len(courses) * n, args.ray or None, args.workers)
+    trace_dir = _trace_dir(args.trace_dir) if args.trace_dir is not None else None
     first = cfg.sim.realization
     draws = f", realizations {first}-{first + n - 1}" if n > 1 else ""
-    print(f"suite {args.suite}: {len(courses) * n} flights{draws} on {args.workers} worker(s); {machine_description()}")
+    where = (f"{args.workers} worker(s)" if on_ray is None
+             else f"Ray at {args.ray}" if args.ray else f"a local Ray of {args.workers} CPU(s)")
+    print(f"suite {args.suite}: {len(courses) * n} flights{draws} on {where}; {machine_description()}")
     t0 = time.perf_counter()
     results: list[Any] = []
     per_draw: list[tuple[int, list[Any]]] = []
-    for r in range(first, first + n):
-        tag = f"r{r} " if n > 1 else ""
+    with on_ray if on_ray is not None else contextlib.nullcontext():
+        for r in range(first, first + n):
+            tag = f"r{r} " if n > 1 else ""
 
-        def progress(done: int, total: int, result: Any, tag: str = tag) -> None:
-            note = ""
-            if trace_dir is not None and not result.success:
-                stem = trace_dir / f"{tag.strip() + '-' if tag else ''}{result.course.name}"
-                write_trace_file(result, stem.with_suffix(".csv"))
-                write_plot(result, stem.with_suffix(".png"), side_view=True)
-                note = f" (trace: {stem}.csv)"
-            print(f"{tag}[{done:3d}/{total}] {result.summary()}{note}", flush=True)
+            def progress(done: int, total: int, result: Any, tag: str = tag) -> None:
+                note = ""
+                if trace_dir is not None and not result.success:
+                    stem = trace_dir / f"{tag.strip() + '-' if tag else ''}{result.course.name}"
+                    write_trace_file(result, stem.with_suffix(".csv"))
+                    write_plot(result, stem.with_suffix(".png"), side_view=True)
+                    note = f" (trace: {stem}.csv)"
+                print(f"{tag}[{done:3d}/{total}] {result.summary()}{note}", flush=True)
 
-        drawn = cfg.model_copy(update={"sim": cfg.sim.model_copy(update={"realization": r})})
-        got = run_suite(drawn, courses, workers=args.workers, keep_logs=trace_dir is not None, progress=progress)
-        if trace_dir is not None:  # written: the table needs no logs
-            got = [dataclasses.replace(x, log=None, frame_log=None) for x in got]
-        per_draw.append((r, got))
-        results.extend(got)
+            def failed(done: int, total: int, failure: Any, tag: str = tag) -> None:
+                print(f"{tag}[{done:3d}/{total}] {failure.line()} (FAILED, tried twice)", flush=True)
+
+            drawn = cfg.model_copy(update={"sim": cfg.sim.model_copy(update={"realization": r})})
+            keep = trace_dir is not None
+            if on_ray is None:
+                got = run_suite(drawn, courses, workers=args.workers, keep_logs=keep, progress=progress)
+            else:
+                got = on_ray.fly(drawn, courses, keep_logs=keep, progress=progress, failed=failed)
+            if trace_dir is not None:  # written: the table needs no logs
+                got = [dataclasses.replace(x, log=None, frame_log=None) for x in got]
+            per_draw.append((r, got))
+            results.extend(got)
     wall = time.perf_counter() - t0
     print()
-    print(suite_table(results))
+    if results:
+        print(suite_table(results))
     if n > 1:
         print()
         for r, got in per_draw:
             print(realization_line(r, got))
     print(f"\nsuite wall time {wall:.0f} s ({sum(r.time_s for r in results):.0f} s simulated)")
+    if on_ray is not None and on_ray.failures:
+        print(f"{len(on_ray.failures)} flight(s) failed twice and are not in the table:")
+        for failure in on_ray.failures:
+            print(f"  {failure.line()}")
+        sys.stdout.flush()
+        return exitcodes.INTERNAL_ERROR
     sys.stdout.flush()
     return 0

@@ -59,7 +59,9 @@ def single_thread_config(cfg: CompanionConfig) -> CompanionConfig:
     return cfg.model_copy(update={"stereo": cfg.stereo.model_copy(update={"cpu_threads": 1})})
 
 
-def _fly_one(kind: str, seed: int, cfg: CompanionConfig, bank: Any, keep_logs: bool) -> FlightResult:
+def fly_one(kind: str, seed: int, cfg: CompanionConfig, bank: Any, keep_logs: bool) -> FlightResult:
+    """Fly course ``kind``-``seed`` with ``cfg`` and the texture bank ``bank``; without ``keep_logs`` the
+    result drops its per-step logs."""
     from companion.sim.courses import make_course
     from companion.sim.loop import fly
 
@@ -81,7 +83,7 @@ def _worker(cfg_data: dict[str, Any], keep_logs: bool, tasks: Any, results: Any)
             return
         index, kind, seed = task
         try:
-            results.put((index, _fly_one(kind, seed, cfg, bank, keep_logs), None))
+            results.put((index, fly_one(kind, seed, cfg, bank, keep_logs), None))
         except Exception as err:  # reported to the parent, which raises it
             results.put((index, None, f"{kind}-{seed}: {type(err).__name__}: {err}"))
 
@@ -116,7 +118,7 @@ def run_suite(
         bank = make_texture_bank()
         try:
             for i, (kind, seed) in enumerate(courses):
-                out[i] = _fly_one(kind, seed, cfg, bank, keep_logs)
+                out[i] = fly_one(kind, seed, cfg, bank, keep_logs)
                 if progress is not None:
                     progress(i + 1, total, out[i])
         finally:

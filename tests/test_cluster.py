@@ -1,0 +1,301 @@
+"""Suites and the tuner on Ray (``companion sim --ray``, ``companion tune``).
+
+The Ray tests start a Ray of 2 CPUs on this machine and shut it down in a ``finally``; none depends on
+how fast the machine is (a tune is stopped by its own first finished trial, not by a clock).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import signal
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from companion.cli import main
+from companion.config import CompanionConfig, apply_patch
+from companion.errors import ConfigError, InputError
+from companion.sim.suite import SUITES, run_suite, select_kinds
+from companion.sim.tuning import (
+    INVALID_SCORE,
+    best_patch,
+    best_row,
+    ctl_set_command,
+    fragment_toml,
+    load_space_file,
+    parse_setting,
+    resolve_settings,
+    with_settings,
+    write_report,
+)
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+needs_ray = pytest.mark.skipif(
+    importlib.util.find_spec("ray") is None or importlib.util.find_spec("optuna") is None,
+    reason="Ray and Optuna are not installed (pip install 'companion[cluster]')",
+)
+
+
+@pytest.fixture
+def ray_shutdown() -> Iterator[None]:
+    """Whatever a test did with Ray, no Ray is left running after it."""
+    try:
+        yield
+    finally:
+        import ray
+
+        ray.shutdown()
+
+
+# --- settings, scores, fragment: no Ray ---------------------------------------------------------------
+
+
+def test_a_setting_is_a_dotted_path_and_a_range() -> None:
+    assert parse_setting("command.cruise_speed_m_s=0.5:1.5") == ("command.cruise_speed_m_s", 0.5, 1.5)
+    for bad in ("command.cruise_speed_m_s", "command.cruise_speed_m_s=1.5", "x=a:b", "x=2:1", "x=nan:1"):
+        with pytest.raises(InputError):
+            parse_setting(bad)
+
+
+def test_ranges_are_clipped_to_the_field_bounds_and_the_envelope() -> None:
+    cfg = CompanionConfig()
+    speed, weight, breakpoint_, resolution = resolve_settings(
+        cfg,
+        [
+            ("command.cruise_speed_m_s", 0.5, 9.0),  # envelope.max_horizontal_speed_m_s = 2
+            ("controller.main_rules.R7.weight", 0.2, 3.0),  # a rule by its name; weight <= 1
+            ("controller.input_terms.near.params_m.1", 1.8, 2.6),  # a breakpoint: no bounds of its own
+            ("controller.output_resolution", 10, 500),  # an integer >= 21
+        ],
+    )
+    assert (speed.low, speed.high, speed.start) == (0.5, cfg.envelope.max_horizontal_speed_m_s, cfg.command.cruise_speed_m_s)
+    assert (weight.low, weight.high, weight.start) == (0.2, 1.0, 0.5)
+    assert (breakpoint_.low, breakpoint_.high, breakpoint_.start) == (1.8, 2.6, 2.25)
+    assert (resolution.low, resolution.high, resolution.integer) == (21, 500, True)
+    # A tighter envelope bounds the search tighter: the envelope of the config searched.
+    tight = apply_patch(cfg, {"envelope": {"max_horizontal_speed_m_s": 1.0}})
+    (clipped,) = resolve_settings(tight, [("command.cruise_speed_m_s", 0.5, 9.0)])
+    assert clipped.high == 1.0
+
+
+@pytest.mark.parametrize(
+    ("path", "lo", "hi", "message"),
+    [
+        ("command.no_such_m", 0, 1, "not a setting here"),
+        ("controller.main_rules.R99.weight", 0, 1, "no 'R99' here"),
+        ("controller.preferred_yaw_side", 0, 1, "not a number"),
+        ("envelope.max_horizontal_speed_m_s", 1, 3, "not searched"),
+        ("command.cruise_speed_m_s", 3, 5, "inside the safety envelope"),
+        ("controller.main_rules.R7.weight", 2, 3, "outside the field's bounds"),
+    ],
+)
+def test_a_setting_that_cannot_be_searched_is_refused(path: str, lo: float, hi: float, message: str) -> None:
+    with pytest.raises(InputError, match=message):
+        resolve_settings(CompanionConfig(), [(path, lo, hi)])
+
+
+def test_a_candidate_is_validated_whole_before_it_flies() -> None:
+    cfg = CompanionConfig()
+    ok = with_settings(cfg, {"controller.main_rules.R7.weight": 0.8, "command.cruise_speed_m_s": 1.1})
+    assert ok.controller.main_rules[6].weight == 0.8 and ok.command.cruise_speed_m_s == 1.1
+    # "near" falling to 0 at 0.5 m, before it starts falling (0.75 m): not a membership function.
+    with pytest.raises(ConfigError, match="non-decreasing"):
+        with_settings(cfg, {"controller.input_terms.near.params_m.1": 0.5})
+
+
+def test_the_space_file_reads_toml_and_yaml(tmp_path: Path) -> None:
+    toml_file = tmp_path / "space.toml"
+    toml_file.write_text(
+        '"command.cruise_speed_m_s" = [0.5, 1.5]\n[controller.main_rules.R7]\nweight = { low = 0.2, high = 1.0 }\n'
+    )
+    yaml_file = tmp_path / "space.yaml"
+    yaml_file.write_text("command.cruise_speed_m_s: [0.5, 1.5]\ncontroller.main_rules.R7.weight: {low: 0.2, high: 1.0}\n")
+    want = [("command.cruise_speed_m_s", 0.5, 1.5), ("controller.main_rules.R7.weight", 0.2, 1.0)]
+    assert load_space_file(toml_file) == want
+    assert load_space_file(yaml_file) == want
+    (tmp_path / "bad.toml").write_text('"command.cruise_speed_m_s" = 1.5\n')
+    with pytest.raises(InputError, match=r"expected \[LOW, HIGH\]"):
+        load_space_file(tmp_path / "bad.toml")
+
+
+def test_the_best_settings_fragment_loads_with_the_config_models() -> None:
+    cfg = CompanionConfig()
+    values = {
+        "command.cruise_speed_m_s": 1.2,
+        "controller.main_rules.R7.weight": 0.7,
+        "controller.input_terms.near.params_m.1": 2.4,
+    }
+    patch = best_patch(cfg, values)
+    # A value inside a list carries the list: a config's lists are replaced, not merged.
+    assert set(patch) == {"command.cruise_speed_m_s", "controller.main_rules", "controller.input_terms.near.params_m"}
+    text = fragment_toml(patch, ["the best of 3 trials"])
+    assert apply_patch(cfg, tomllib.loads(text)) == with_settings(cfg, values)
+    from companion.service.client import parse_assignments
+
+    line = ctl_set_command(patch)
+    import shlex
+
+    assert apply_patch(cfg, parse_assignments(shlex.split(line)[3:])) == with_settings(cfg, values)
+
+
+def test_a_collision_ranks_a_candidate_below_every_one_without() -> None:
+    from types import SimpleNamespace
+
+    from companion.sim.scoring import Outcome
+    from companion.sim.tuning import score_flights
+
+    def flight(name: str, outcome: Outcome, time_s: float) -> Any:
+        success = outcome in (Outcome.GOAL, Outcome.HELD)
+        return SimpleNamespace(course=SimpleNamespace(name=name), outcome=outcome, success=success, time_s=time_s)
+
+    slow = score_flights([flight("a-0", Outcome.GOAL, 40.0), flight("b-0", Outcome.TIMEOUT, 90.0)])
+    assert (slow.success_pct, slow.goal_pct, slow.collisions, slow.mean_goal_time_s) == (50.0, 50.0, 0, 40.0)
+    assert slow.score == pytest.approx(50.0 - 0.1 * 40.0) and slow.failed == "b-0: timeout"
+    fast = score_flights([flight("a-0", Outcome.GOAL, 10.0), flight("b-0", Outcome.COLLISION, 5.0)])
+    assert fast.score == -1.0 < slow.score
+    faster = score_flights([flight("a-0", Outcome.GOAL, 20.0), flight("b-0", Outcome.GOAL, 20.0)])
+    assert faster.score == pytest.approx(100.0 - 2.0) and faster.score > slow.score
+
+
+def test_the_report_lists_every_trial_best_first(tmp_path: Path) -> None:
+    (setting,) = resolve_settings(CompanionConfig(), [("command.cruise_speed_m_s", 0.5, 1.5)])
+    rows: list[dict[str, Any]] = [
+        {"trial": 1, "command.cruise_speed_m_s": 0.7, "score": 90.0, "success_pct": 100.0, "goal_pct": 100.0,
+         "collisions": 0, "mean_goal_time_s": 100.0, "flights": 2, "problem": ""},
+        {"trial": 2, "command.cruise_speed_m_s": 1.5, "score": -1.0, "success_pct": 50.0, "goal_pct": 50.0,
+         "collisions": 1, "mean_goal_time_s": 10.0, "flights": 2, "problem": ""},
+        {"trial": 3, "command.cruise_speed_m_s": 1.0, "score": INVALID_SCORE, "success_pct": 0.0, "goal_pct": 0.0,
+         "collisions": 0, "mean_goal_time_s": 0.0, "flights": 0, "problem": "candidate: invalid config: ..."},
+    ]
+    files = write_report(rows, [setting], tmp_path, "a tune")
+    assert {f.name for f in files} == {"trials.csv", "report.md", "settings.png", "progress.png"}
+    report = (tmp_path / "report.md").read_text()
+    assert report.index("| 1 (base)") < report.index("| 2 ") < report.index("| 3 ")
+    assert "Not scored (refused by the config models, or failed)" in report
+    assert best_row(rows) is rows[0]  # a collision never wins, however fast
+
+
+def test_without_ray_the_suite_says_how_to_install_it(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "ray" else real(name, *a))
+    for argv in (["sim", "--suite", "quick", "--ray"], ["tune", "command.cruise_speed_m_s=0.5:1", "--suite", "quick",
+                                                       "--out", "x"]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip()
+        assert "pip install 'companion[cluster]'" in err and "\n" not in err
+
+
+@needs_ray
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["x=2:1"], "low 2 is above high 1"),
+        (["command.cruise_speed_m_s=3:4"], "inside the safety envelope"),
+        ([], "name at least one setting"),
+        (["command.cruise_speed_m_s=0.5:1", "--trials", "0"], "--trials must be >= 1"),
+        (["command.cruise_speed_m_s=0.5:1", "--kinds", "maze"], "unknown course kind 'maze'"),
+        (["command.cruise_speed_m_s=0.5:1", "--resume"], "no tune to resume here"),
+    ],
+)
+def test_tune_input_errors_are_one_line_and_exit_2(
+    argv: list[str], message: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Each is refused before any Ray starts."""
+    assert main(["tune", *argv, "--suite", "quick", "--out", str(tmp_path / "t")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert message in err and "\n" not in err
+
+
+def test_ray_goes_with_a_suite(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["sim", "--course", "doorway", "--ray"]) == 2
+    assert "--ray goes with --suite" in capsys.readouterr().err
+
+
+# --- on Ray --------------------------------------------------------------------------------------------
+
+
+@needs_ray
+@pytest.mark.slow
+def test_a_suite_on_ray_gives_the_local_pools_verdicts(ray_shutdown: None) -> None:
+    """Flights are deterministic: the same courses give the same results on Ray as on the local pool, and a
+    flight that raises is reported with its course, the others still flown."""
+    from companion.sim.cluster import fly_suite, ray_session
+
+    cfg = CompanionConfig()
+    courses = select_kinds(SUITES["quick"], "pitch")
+    assert len(courses) == 2
+    pool = run_suite(cfg, courses, workers=2)
+    seen: list[str] = []
+    with ray_session(None, num_cpus=2):
+        on_ray, failures = fly_suite(
+            cfg, [*courses, ("maze", 0)], progress=lambda done, total, r: seen.append(r.course.name)
+        )
+    assert on_ray == pool
+    assert [(r.outcome, r.time_s, r.min_clearance_m) for r in on_ray] == [
+        (r.outcome, r.time_s, r.min_clearance_m) for r in pool
+    ]
+    assert sorted(seen) == sorted(r.course.name for r in pool)
+    assert [(f.kind, f.seed) for f in failures] == [("maze", 0)]
+    assert "unknown course 'maze'" in failures[0].line() and failures[0].line().startswith("maze-0: ")
+
+
+def _ctrl_c_after_first_trial() -> Any:
+    """A Ray Tune callback that presses Ctrl-C (SIGINT to this process) when the experiment's first trial
+    finishes; a resumed experiment, which already has a finished trial, is let run."""
+    from ray.tune import Callback
+
+    class CtrlC(Callback):
+        def on_trial_complete(self, iteration: int, trials: list[Any], trial: Any, **info: Any) -> None:
+            if not any(t is not trial and t.status == "TERMINATED" for t in trials):
+                os.kill(os.getpid(), signal.SIGINT)
+
+    return CtrlC()
+
+
+@needs_ray
+@pytest.mark.slow
+def test_a_tune_stopped_by_ctrl_c_resumes_and_writes_its_best_settings(tmp_path: Path, ray_shutdown: None) -> None:
+    from companion.sim.cluster import TuneSpec, run_tune
+
+    cfg = CompanionConfig()
+    settings = resolve_settings(cfg, [("command.cruise_speed_m_s", 0.5, 1.2), ("controller.main_rules.R7.weight", 0.3, 1.0)])
+    spec = TuneSpec(base=cfg, settings=settings, courses=(("pitch", 0),), trials=3, seed=1)
+    storage = tmp_path / "tune"
+    rows, complete = run_tune(spec, storage, num_cpus=2, verbose=0, callbacks=[_ctrl_c_after_first_trial()])
+    assert not complete and 1 <= len(rows) < 3
+    with pytest.raises(InputError, match="already here"):
+        run_tune(spec, storage, num_cpus=2, verbose=0)
+    rows, complete = run_tune(spec, storage, resume=True, num_cpus=2, verbose=0)
+    assert complete
+    assert [r["trial"] for r in rows] == [1, 2, 3]
+    first = rows[0]
+    assert (first["command.cruise_speed_m_s"], first["controller.main_rules.R7.weight"]) == (0.7, 0.5)  # the base
+    for r in rows:
+        assert 0.5 <= r["command.cruise_speed_m_s"] <= 1.2 and 0.3 <= r["controller.main_rules.R7.weight"] <= 1.0
+        assert r["flights"] == 1 and r["problem"] == ""
+    best = best_row(rows)
+    assert best is not None and best["score"] >= first["score"]
+    values = {s.path: best[s.path] for s in settings}
+    text = fragment_toml(best_patch(cfg, values))
+    assert apply_patch(cfg, tomllib.loads(text)) == with_settings(cfg, values)
+
+
+def test_ray_is_imported_only_when_asked_for() -> None:
+    import subprocess
+
+    code = (
+        "import sys; from companion.cli import build_parser; build_parser(); import companion.sim.suite, "
+        "companion.sim.tuning; sys.exit(sorted(m for m in ('ray', 'optuna', 'tqdm') if m in sys.modules) != [])"
+    )
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    assert subprocess.run([sys.executable, "-c", code], env=env, timeout=120).returncode == 0
