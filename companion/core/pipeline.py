@@ -68,6 +68,8 @@ class FrameResult:
             frames' measurements, so it is not marked.)
         stand_in: bool ``(9,)``: True where ``refined`` is 0 m standing in for an unknown in the median
             window (unknown counts as near): not a depth at all, to be shown as unknown.
+        near_blocks: with the obstacle memory on: float32 ``(ceil(H/b), ceil(W/b))`` the largest valid
+            disparity of each ``memory.block_px`` block (px, NaN none): the local planner's map input.
         obstacle: the frame's OBSTACLE_DISTANCE bins (:class:`~companion.core.obstacle.ObstacleDistance`),
             or None when ``obstacle_distance.send`` is off or the estimator computes none.
     """
@@ -85,6 +87,7 @@ class FrameResult:
     filtered: np.ndarray | None = None
     stand_in: np.ndarray | None = None
     obstacle: ObstacleDistance | None = None
+    near_blocks: np.ndarray | None = None
 
     def shown_depths_m(self) -> np.ndarray:
         """float64 ``(9,)``: ``refined`` with the median's stand-ins for unknown made NaN (unknown): the
@@ -252,4 +255,5 @@ class Pipeline:
             filtered=filtered,
             stand_in=stand_in,
             obstacle=getattr(est, "obstacle", None),
+            near_blocks=est.near_blocks,
         )

@@ -22,6 +22,7 @@ keeps pace with the wall clock (the only place that reads a clock for anything b
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import math
 import time
@@ -38,6 +39,7 @@ from companion.core.course import CourseHold
 from companion.core.goal import GoalSpec
 from companion.core.memory import ObstacleMemory
 from companion.core.pipeline import FrameResult, Pipeline
+from companion.core.planner.stack import LocalStack
 from companion.core.types import ZERO_SETPOINT, DecisionKind, VelocitySetpoint
 from companion.errors import CameraError
 from companion.interfaces import Frame
@@ -350,6 +352,9 @@ def fly(
         north, east, _ = course.goal_point_ned_m
         goal = GoalSpec(kind="point", north_m=north, east_m=east)
     hold.engage(course.start.position_ned_m, course.start.yaw_rad, goal)
+    local = LocalStack(cfg) if cfg.planner.kind == "local" else None  # the local planner instead of the rules
+    if local is not None:
+        local.engage(np.asarray(course.start.position_ned_m), course.start.yaw_rad, goal)
     stalled = False  # the progress watchdog (or a dead end) fired: the service pauses; here the flight holds
     hold_reason = ""
     detours = 0
@@ -398,6 +403,8 @@ def fly(
             else:
                 p0 = clock()
                 res = pipeline.process(frame.image, frame.timestamp_s, want_disparity=want_disparity)
+                if local is not None and res.near_blocks is not None:  # the estimator reuses its buffer
+                    res = dataclasses.replace(res, near_blocks=res.near_blocks.copy())
                 p1 = clock()
                 render_ms.append((p0 - r0) * 1e3)
                 pipe_ms.append((p1 - p0) * 1e3)
@@ -414,6 +421,8 @@ def fly(
                     on_frame(frame, res)
         while pending and pending[0][0] <= t + _EPS_S:
             _, latest, seen_from = pending.popleft()
+            if local is not None and latest.near_blocks is not None:
+                local.add_frame(latest.near_blocks, pipeline.geometry, cfg.memory.block_px, seen_from, latest.timestamp_s)
             if memory is not None and latest.near_points_cam_m is not None:
                 memory.add_frame(latest.near_points_cam_m, seen_from, latest.timestamp_s, cfg.memory, latest.far_view)
                 if audit is not None and len(f_t) % 5 == 0:
@@ -428,19 +437,28 @@ def fly(
             decision = latest.decision if latest is not None else None
             m = vehicle.model
             hold.observe(decision, latest.timestamp_s if latest is not None else None, m.position_ned_m)
-            if not stalled and hold.no_progress(m.position_ned_m, t, cmd):
+            if local is None and not stalled and hold.no_progress(m.position_ned_m, t, cmd):
                 stalled = True
                 hold_reason = f"progress watchdog ({hold.progress.why})"
-            if not stalled and hold.holding_reason is not None:
+            if local is None and not stalled and hold.holding_reason is not None:
                 stalled = True
                 hold_reason = hold.holding_reason
             if stalled and decision is not None:
                 decision = NO_PROGRESS_HOLD
+            if local is not None:
+                step = local.step(t, age, decision, latest.refined.depth_m if latest is not None else None,
+                                  m.position_ned_m, m.velocity_ned_m_s, m.yaw_rad)
+                sp = step.setpoint
+                if not stalled and local.holding_reason is not None:
+                    stalled, hold_reason = True, local.holding_reason
+                planner = f"{step.plan.mode.value}: {step.plan.reason}"
+                detours += int(step.plan.mode.value == "detour" and not detouring)
+                detouring = step.plan.mode.value == "detour"
             guard = sides = gap = ahead = None
-            if memory is not None:
+            if local is None and memory is not None:
                 view = latest.view_limits if latest is not None else None
                 guard, sides, gap, ahead = memory.hold_inputs(m.position_ned_m, m.yaw_rad, t, cfg.memory, view)
-            sp = hold.setpoint(
+            sp = sp if local is not None else hold.setpoint(
                 decision,
                 t,
                 age if latest is not None else math.inf,
@@ -459,15 +477,16 @@ def fly(
                 prefer_right=prefer_right,
                 planning=not stalled,
             )
-            if hold.detour.active and not detouring:
-                detours += 1
-            if stalled:
-                planner = f"held: {hold_reason}"
-            elif hold.detour.active or detouring:  # under way, or the row it ended on (why it ended)
-                planner = f"{hold.detour.phase.value}: {hold.detour.reason}"
-            else:
-                planner = ""
-            detouring = hold.detour.active
+            if local is None:
+                if hold.detour.active and not detouring:
+                    detours += 1
+                if stalled:
+                    planner = f"held: {hold_reason}"
+                elif hold.detour.active or detouring:  # under way, or the row it ended on (why it ended)
+                    planner = f"{hold.detour.phase.value}: {hold.detour.reason}"
+                else:
+                    planner = ""
+                detouring = hold.detour.active
             if vehicle.in_offboard:
                 vehicle.set_setpoint(sp)
                 if decision is None:
