@@ -45,14 +45,14 @@ class PlannerConfig(StrictModel):
         ),
     )
     latency_s: float = Field(
-        default=0.45,
+        default=1.0,
         ge=0.0,
         le=3.0,
         description=(
             "Time from a surface entering the camera's view to the vehicle starting to brake for it, "
             "s: a frame period, the pipeline's processing time and the autopilot's velocity "
-            "response (its lag before it decelerates at full rate). The speed law flies this long at "
-            "the commanded speed before braking."
+            "response (a first-order lag follows a falling setpoint its time constant late: PX4 "
+            "about 0.85 s). The speed law flies this long at the commanded speed before braking."
         ),
     )
     stop_margin_m: float = Field(
@@ -139,17 +139,18 @@ class PlannerConfig(StrictModel):
         le=100.0,
         description="Cost weight of the turn away from the goal's direction (per half turn).",
     )
-    weight_progress: float = Field(
-        default=1.5,
+    weight_time: float = Field(
+        default=1.0,
         ge=0.0,
         le=100.0,
         description=(
-            "Cost weight of the distance to the goal left after flying a candidate's free length "
-            "(per map range): prefers directions that get closer, round an obstacle rather than at it."
+            "Cost weight of the time to the goal along a candidate (its free length at the speed law's "
+            "speed, then the rest at cruise), per time to fly the map range at cruise: prefers the "
+            "way that gets there soonest, round an obstacle rather than crawling at it."
         ),
     )
     weight_clearance: float = Field(
-        default=1.0,
+        default=0.5,
         ge=0.0,
         le=100.0,
         description="Cost weight of a short free length (1 at none, 0 at the map range).",
@@ -222,10 +223,13 @@ class PlannerConfig(StrictModel):
         description="Lowest altitude above the local origin the planner descends to, m (the ground's margin).",
     )
     ceiling_m: float = Field(
-        default=6.0,
+        default=3.0,
         gt=0.0,
         le=500.0,
-        description="Highest altitude above the local origin the planner climbs to, m.",
+        description=(
+            "Highest altitude above the local origin the planner climbs to, m: a room's ceiling, and "
+            "a wall this high is no way over (a closed pocket is held, not climbed out of)."
+        ),
     )
 
     @model_validator(mode="after")

@@ -359,7 +359,8 @@ def fly(
     hold_reason = ""
     detours = 0
     audit: dict[str, int] | None = {} if audit_memory else None
-    memory = ObstacleMemory() if cfg.memory.duration_s > 0.0 else None
+    # The rules' obstacle memory; the local planner keeps its own map.
+    memory = ObstacleMemory() if cfg.memory.duration_s > 0.0 and cfg.planner.kind == "rules" else None
     prefer_right = cfg.controller.preferred_yaw_side == "right"
     judge = Judge(
         course,

@@ -33,6 +33,9 @@ from companion.core.types import Decision, DecisionKind
 
 #: Climbs per yaw: -max, -max/2, 0, +max/2, +max.
 N_CLIMBS = 5
+#: Added to the speed law's speed in the time term, m/s: a direction with no room to fly costs
+#: length / this seconds, much but finite, so that it stays comparable.
+CREEP_M_S = 0.2
 #: Side of the cells of the visited-places memory, metres.
 VISITED_CELL_M = 0.5
 #: The visited-places term looks this far along a candidate, metres.
@@ -137,6 +140,7 @@ def costs(
     yaw: np.ndarray,
     climb: np.ndarray,
     hoped_m: np.ndarray,
+    blocked: np.ndarray,
     goal_yaw: float,
     goal_climb: float,
     goal_dist_m: float,
@@ -148,27 +152,33 @@ def costs(
     """The one cost of each candidate (float64 ``(K,)``; lower is better): the weighted sum of
 
     * goal: turn from the goal's direction (yaw and climb, per half turn);
-    * progress: distance to the goal left after flying the candidate's hoped-for length, less the
-      least that can be left, per map range;
+    * time: the time to the goal along the candidate: its hoped-for length at the speed law's speed
+      on it (plus :data:`CREEP_M_S`, so that a short length costs much but not infinitely), then the
+      distance left at cruise, or where the length ends at a surface (``blocked``) at that same speed; less the least possible, per time to fly the map range at cruise. One
+      term for progress and for room: a way that must crawl is slow, a way round may be quicker;
     * clearance: 1 - hoped-for length / map range;
     * smooth: change from the last chosen direction (per half turn);
     * fuzzy: difference from the fuzzy controller's steer (per half turn);
     * visited: seconds already spent where the candidate leads (at most 1).
     """
     r = cfg.map_range_m
+    cruise = cfg.cruise_speed_m_s
     goal = (_angle_diff(yaw, goal_yaw) + np.abs(climb - goal_climb)) / math.pi
     reach = np.minimum(hoped_m, goal_dist_m)
     # Distance left, in the plane of the candidate: law of cosines on the horizontal part.
     dh = reach * np.cos(climb)
     ang = _angle_diff(yaw, goal_yaw)
     left = np.sqrt(np.maximum(goal_dist_m**2 + dh**2 - 2.0 * goal_dist_m * dh * np.cos(ang), 0.0))
-    progress = (left - max(goal_dist_m - r, 0.0)) / r
+    v = speed_law(hoped_m, cfg) + CREEP_M_S
+    # A way that ends at a surface leads no farther at its own speed: the rest is costed at it too.
+    t_go = np.where(blocked, (reach + left) / v, reach / v + left / cruise)
+    time = (t_go - goal_dist_m / cruise) / (r / cruise)
     clearance = 1.0 - np.minimum(hoped_m, r) / r
     smooth = 0.0 if prev is None else (_angle_diff(yaw, prev[0]) + np.abs(climb - prev[1])) / math.pi
     steer = 0.0 if fuzzy is None else (_angle_diff(yaw, fuzzy[0]) + np.abs(climb - fuzzy[1])) / math.pi
     return (
         cfg.weight_goal * goal
-        + cfg.weight_progress * progress
+        + cfg.weight_time * time
         + cfg.weight_clearance * clearance
         + cfg.weight_smooth * smooth
         + cfg.weight_fuzzy * steer
@@ -281,7 +291,7 @@ class LocalPlanner:
         hoped = np.where(hopeful, np.maximum(free, 0.5 * cfg.map_range_m), free)
         look_pts = pos + dirs * np.minimum(hoped, VISITED_LOOKAHEAD_M)[:, None]
         visited = self._visited_at(look_pts)
-        c = costs(yaw, climb, hoped, goal_yaw, goal_climb, goal_dist, self._prev, fuzzy, visited, cfg)
+        c = costs(yaw, climb, hoped, blocked & (free < goal_dist), goal_yaw, goal_climb, goal_dist, self._prev, fuzzy, visited, cfg)
         # A candidate that cannot move a cube's length is out, unless hoped for.
         c = np.where((hoped < lmap.voxel_m) , np.inf, c)
         table = np.stack([yaw, climb, free, hoped, c], axis=1)

@@ -41,6 +41,8 @@ CLAMP_LOG_ODDS = (-1.0, 2.5)
 RAY_SPACING_PX = 8
 #: The grid reaches this much beyond the map range round the vehicle, m, so that it rolls rarely.
 ROLL_SLACK_M = 2.0
+#: The layers' ageing is evaluated in steps of this, seconds (a tenth of the shortest memory is enough).
+AGE_STEP_S = 0.25
 #: Half height of the grid round the vehicle, m.
 HALF_HEIGHT_M = 2.6
 
@@ -84,11 +86,15 @@ class LocalMap:
         self.hit_t = np.full(self.shape, -np.inf, dtype=np.float32)
         self.free_t = np.full(self.shape, -np.inf, dtype=np.float32)
         self.origin = None  # int64 (3,): world cube index of grid cube (0, 0, 0); None before the first use
-        self._inflated: np.ndarray | None = None  # bool shape: occupied, inflated by the radius
-        self._inflated_t = -math.inf
+        self._version = 0  # bumped by every change of the evidence
+        self._cache_key: tuple[int, float] | None = None
+        self._cache: tuple[np.ndarray, np.ndarray, np.ndarray] = ()  # type: ignore[assignment]
         self._rays: dict[tuple, np.ndarray] = {}
         self._scratch = np.zeros(self.shape, dtype=bool)
         self.now_s = -math.inf
+        g = np.arange(-radius_m, radius_m + 1e-9, 0.5 * voxel_m)
+        body = np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1).reshape(-1, 3)
+        self._body = body[np.linalg.norm(body, axis=1) <= radius_m]  # (B, 3) offsets inside the body, m
 
     # -- the grid round the vehicle ------------------------------------------------------------
     def _cube(self, ned_m: np.ndarray) -> np.ndarray:
@@ -110,7 +116,7 @@ class LocalMap:
         for arr, fill in ((self.log_odds, 0.0), (self.hit_t, -np.inf), (self.free_t, -np.inf)):
             _shift_fill(arr, -shift, fill)
         self.origin = want
-        self._inflated = None
+        self._version += 1
 
     def _index(self, ned_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Flat grid indices (int64 ``(...)``) of points ``ned_m`` (float ``(..., 3)``) and whether
@@ -184,37 +190,42 @@ class LocalMap:
         self.free_t.reshape(-1)[f_idx] = t
         lo[h_idx] = np.minimum(lo[h_idx] + HIT_LOG_ODDS, CLAMP_LOG_ODDS[1])
         self.hit_t.reshape(-1)[h_idx] = t
-        self._inflated = None
+        self._version += 1
 
     def mark_body_free(self, position_ned_m: np.ndarray, t_s: float) -> None:
         """The cubes the vehicle's body is in are free (it is there), seen at ``t_s``."""
         self.now_s = max(self.now_s, float(t_s))
         self.centre_on(np.asarray(position_ned_m))
-        r = self.radius_m
-        g = np.arange(-r, r + 1e-9, self.voxel_m * 0.5)
-        off = np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1).reshape(-1, 3)
-        off = off[np.linalg.norm(off, axis=1) <= r]
-        idx, inside = self._index(np.asarray(position_ned_m, dtype=np.float64) + off)
+        idx, inside = self._index(np.asarray(position_ned_m, dtype=np.float64) + self._body)
         idx = idx[inside]
         occ = self.occupied().reshape(-1)[idx]
         self.free_t.reshape(-1)[idx[~occ]] = np.float32(t_s)
+        self.seen_free().reshape(-1)[idx[~occ]] = True  # the cached layer, patched in place
 
     # -- queries -------------------------------------------------------------------------------------
+    def _layers(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(occupied, seen free, inflated) for the map as it is now, computed once per change."""
+        # Evidence ages in whole steps of AGE_STEP_S: the layers are recomputed per frame, not per tick.
+        key = (self._version, math.floor(self.now_s / AGE_STEP_S))
+        if self._cache_key != key:
+            occ = (self.log_odds > OCCUPIED_LOG_ODDS) & (self.hit_t >= self.now_s - self.occupied_memory_s)
+            free = (self.free_t >= self.now_s - self.free_memory_s) & (self.log_odds <= OCCUPIED_LOG_ODDS)
+            n = int(math.ceil(self.radius_m / self.voxel_m - 1e-9))
+            self._cache = (occ, free, _dilate(occ, n))
+            self._cache_key = key
+        return self._cache
+
     def occupied(self) -> np.ndarray:
         """bool grid shape: cubes with a surface (enough hits, the last within occupied_memory_s)."""
-        return (self.log_odds > OCCUPIED_LOG_ODDS) & (self.hit_t >= self.now_s - self.occupied_memory_s)
+        return self._layers()[0]
 
     def seen_free(self) -> np.ndarray:
         """bool grid shape: cubes seen free within free_memory_s and not occupied."""
-        return (self.free_t >= self.now_s - self.free_memory_s) & (self.log_odds <= OCCUPIED_LOG_ODDS)
+        return self._layers()[1]
 
     def inflated(self) -> np.ndarray:
         """bool grid shape: within the vehicle's radius (rounded up to whole cubes) of an occupied cube."""
-        if self._inflated is None or self._inflated_t != self.now_s:
-            n = int(math.ceil(self.radius_m / self.voxel_m - 1e-9))
-            self._inflated = _dilate(self.occupied(), n)
-            self._inflated_t = self.now_s
-        return self._inflated
+        return self._layers()[2]
 
     def free_lengths(self, start_ned_m: np.ndarray, directions: np.ndarray, horizon_m: float | None = None) -> FreeLengths:
         """How far the centre may fly from ``start_ned_m`` (float ``(3,)`` NED m) along each of

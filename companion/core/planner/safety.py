@@ -117,6 +117,11 @@ def speed_law_limit(sp: VelocitySetpoint, ctx: SafetyContext) -> VelocitySetpoin
     if ms > MOVING_M_S:
         u = m / ms
         cap = float(speed_law(ctx.free_along(u), ctx.planner))
+        if ms > cap:
+            # Faster than it can stop from: a lagging vehicle (first order, time constant within the
+            # latency) decelerates at a only when the setpoint is a·t below its speed.
+            p = ctx.planner
+            cap = max(0.0, min(cap, ms - p.braking_accel_m_s2 * p.latency_s))
         along = float(v @ u)
         if along > cap:
             v = v - (along - cap) * u
