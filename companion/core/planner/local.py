@@ -147,6 +147,7 @@ def costs(
     prev: tuple[float, float] | None,
     fuzzy: tuple[float, float] | None,
     visited: np.ndarray,
+    motion: tuple[float, float, float] | None,
     cfg: PlannerConfig,
 ) -> np.ndarray:
     """The one cost of each candidate (float64 ``(K,)``; lower is better): the weighted sum of
@@ -157,7 +158,9 @@ def costs(
       distance left at cruise, or where the length ends at a surface (``blocked``) at that same speed; less the least possible, per time to fly the map range at cruise. One
       term for progress and for room: a way that must crawl is slow, a way round may be quicker;
     * clearance: 1 - hoped-for length / map range;
-    * smooth: change from the last chosen direction (per half turn);
+    * smooth: change from the last chosen direction, plus change from the direction of motion in
+      proportion to the speed over cruise (per half turn): a lagging vehicle turns its velocity slowly,
+      the faster the wider;
     * fuzzy: difference from the fuzzy controller's steer (per half turn);
     * visited: seconds already spent where the candidate leads (at most 1).
     """
@@ -175,6 +178,8 @@ def costs(
     time = (t_go - goal_dist_m / cruise) / (r / cruise)
     clearance = 1.0 - np.minimum(hoped_m, r) / r
     smooth = 0.0 if prev is None else (_angle_diff(yaw, prev[0]) + np.abs(climb - prev[1])) / math.pi
+    if motion is not None:  # momentum: turning the velocity costs in proportion to the speed
+        smooth = smooth + motion[2] / cruise * (_angle_diff(yaw, motion[0]) + np.abs(climb - motion[1])) / math.pi
     steer = 0.0 if fuzzy is None else (_angle_diff(yaw, fuzzy[0]) + np.abs(climb - fuzzy[1])) / math.pi
     return (
         cfg.weight_goal * goal
@@ -291,7 +296,12 @@ class LocalPlanner:
         hoped = np.where(hopeful, np.maximum(free, 0.5 * cfg.map_range_m), free)
         look_pts = pos + dirs * np.minimum(hoped, VISITED_LOOKAHEAD_M)[:, None]
         visited = self._visited_at(look_pts)
-        c = costs(yaw, climb, hoped, blocked & (free < goal_dist), goal_yaw, goal_climb, goal_dist, self._prev, fuzzy, visited, cfg)
+        v = np.asarray(snap.velocity_ned_m_s, dtype=np.float64)
+        sp = float(np.linalg.norm(v))
+        motion = None
+        if sp > 0.3:
+            motion = (math.atan2(v[1], v[0]), math.asin(max(-1.0, min(1.0, -v[2] / sp))), min(sp, cfg.cruise_speed_m_s))
+        c = costs(yaw, climb, hoped, blocked & (free < goal_dist), goal_yaw, goal_climb, goal_dist, self._prev, fuzzy, visited, motion, cfg)
         # A candidate that cannot move a cube's length is out, unless hoped for.
         c = np.where((hoped < lmap.voxel_m) , np.inf, c)
         table = np.stack([yaw, climb, free, hoped, c], axis=1)
