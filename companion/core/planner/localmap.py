@@ -209,7 +209,9 @@ class LocalMap:
         key = (self._version, math.floor(self.now_s / AGE_STEP_S))
         if self._cache_key != key:
             occ = (self.log_odds > OCCUPIED_LOG_ODDS) & (self.hit_t >= self.now_s - self.occupied_memory_s)
-            free = (self.free_t >= self.now_s - self.free_memory_s) & (self.log_odds <= OCCUPIED_LOG_ODDS)
+            free = self.free_t >= self.now_s - self.free_memory_s
+            # The rays are up to a cube apart at the range: a cube beside one seen free counts as seen.
+            free = _dilate(free, 1) & (self.log_odds <= OCCUPIED_LOG_ODDS) & ~occ
             n = int(math.ceil(self.radius_m / self.voxel_m - 1e-9))
             self._cache = (occ, free, _dilate(occ, n))
             self._cache_key = key
