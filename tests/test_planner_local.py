@@ -275,3 +275,46 @@ def test_the_stack_flies_a_course_goal_and_needs_the_envelope_raised() -> None:
     assert step.setpoint.forward_m_s > 0.5
     with pytest.raises(ValueError, match="planner.cruise_speed_m_s"):
         CompanionConfig.model_validate({"planner": {"kind": "local"}})
+
+
+def test_the_service_flies_the_local_stack_when_planner_kind_is_local() -> None:
+    """The supervisor's engaged step runs the local stack: frames enter its map from the pose at
+    capture, and the setpoint is the stack's (forward into space seen free; zero before any is seen)."""
+    from dataclasses import dataclass, replace
+
+    from companion.core.supervisor import Engage, State, Supervisor, SupervisorConfig
+    from companion.interfaces import VehicleState
+
+    @dataclass(frozen=True)
+    class Seen:
+        timestamp_s: float
+        decision: Decision
+        near_points_cam_m: object
+        near_blocks: object
+        geometry: object
+        refined: object = None
+
+    cfg = CompanionConfig.model_validate({"planner": {"kind": "local"}, "envelope": {"max_horizontal_speed_m_s": 4.0}})
+    sup = Supervisor(SupervisorConfig.from_config(cfg))
+    clear = Decision(DecisionKind.CLEAR, 0.0, 0.0, 1.0, "clear")
+    at = np.array([0.0, 0.0, -1.5])
+    v = VehicleState(connected=True, armed=True, flight_mode="POSCTL", in_offboard=False,
+                     position_ned_m=at, velocity_ned_m_s=np.zeros(3), attitude_rad=np.zeros(3), position_timestamp_s=0.0)
+    now = 0.0
+    blind = Seen(now, clear, np.empty((0, 3)), np.full(BLOCKS, np.nan, dtype=np.float32), GEOM)
+    out = sup.step(now, blind, v, [Engage()], camera_ok=True)
+    for _ in range(12):
+        now += 0.05
+        v = replace(v, position_timestamp_s=now)
+        out = sup.step(now, replace(blind, timestamp_s=now - 0.02), v, [], camera_ok=True)
+    v = replace(v, flight_mode="OFFBOARD", in_offboard=True)
+    now += 0.05
+    out = sup.step(now, replace(blind, timestamp_s=now - 0.02), v, [], camera_ok=True)
+    assert out.state is State.ENGAGED
+    assert out.setpoint is not None and out.setpoint.forward_m_s == 0.0  # nothing seen free: no motion
+    for _ in range(4):
+        now += 0.05
+        v = replace(v, position_timestamp_s=now)
+        seen = Seen(now - 0.01, clear, np.empty((0, 3)), _wall_blocks(30.0), GEOM)
+        out = sup.step(now, seen, v, [], camera_ok=True)
+    assert out.setpoint is not None and out.setpoint.forward_m_s > 0.5

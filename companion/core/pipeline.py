@@ -70,6 +70,7 @@ class FrameResult:
             window (unknown counts as near): not a depth at all, to be shown as unknown.
         near_blocks: with the obstacle memory on: float32 ``(ceil(H/b), ceil(W/b))`` the largest valid
             disparity of each ``memory.block_px`` block (px, NaN none): the local planner's map input.
+        geometry: the rectified rig the frame was seen with (the rays of ``near_blocks``).
         obstacle: the frame's OBSTACLE_DISTANCE bins (:class:`~companion.core.obstacle.ObstacleDistance`),
             or None when ``obstacle_distance.send`` is off or the estimator computes none.
     """
@@ -88,6 +89,7 @@ class FrameResult:
     stand_in: np.ndarray | None = None
     obstacle: ObstacleDistance | None = None
     near_blocks: np.ndarray | None = None
+    geometry: StereoGeometry | None = None
 
     def shown_depths_m(self) -> np.ndarray:
         """float64 ``(9,)``: ``refined`` with the median's stand-ins for unknown made NaN (unknown): the
@@ -256,4 +258,5 @@ class Pipeline:
             stand_in=stand_in,
             obstacle=getattr(est, "obstacle", None),
             near_blocks=est.near_blocks,
+            geometry=self.estimator.geometry,
         )

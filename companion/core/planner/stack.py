@@ -7,10 +7,10 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from companion.config import CompanionConfig
 from companion.core.geometry import StereoGeometry
 from companion.core.goal import GoalSpec, resolve_goal
 from companion.core.planner.local import LocalPlanner, Mode, Plan, Snapshot
@@ -18,6 +18,9 @@ from companion.core.planner.localmap import LocalMap
 from companion.core.planner.safety import SafetyContext, apply_chain, from_ned
 from companion.core.pose import Pose
 from companion.core.types import REGION_INDEX, Decision, VelocitySetpoint
+
+if TYPE_CHECKING:
+    from companion.config import CompanionConfig
 
 #: A course goal (no point) is flown as a point this far along the heading at engagement, metres.
 COURSE_POINT_M = 1000.0
