@@ -225,7 +225,9 @@ def test_stale_frames_give_zero_velocity() -> None:
 
 
 def test_holding_is_zero_and_the_fuzzy_brake_caps_forward_speed_by_the_centre_depth() -> None:
-    assert brake_hold(FAST, _ctx(holding=True)) == ZERO_SETPOINT
+    assert brake_hold(ZERO_SETPOINT, _ctx(holding=True)) == ZERO_SETPOINT
+    held = brake_hold(FAST, _ctx(holding=True))  # the way back to the held point: slow, no turn
+    assert held.forward_m_s == pytest.approx(0.5) and held.yaw_rate_deg_s == 0.0
     brake = Decision(DecisionKind.BRAKE, 0.0, 0.0, 0.0, "brake")
     capped = brake_hold(FAST, _ctx(decision=brake, centre_depth_m=1.5))
     assert capped.forward_m_s == pytest.approx(speed_law(1.5, PlannerConfig()))

@@ -36,6 +36,9 @@ N_CLIMBS = 5
 #: Added to the speed law's speed in the time term, m/s: a direction with no room to fly costs
 #: length / this seconds, much but finite, so that it stays comparable.
 CREEP_M_S = 0.2
+#: Holding, the velocity back to the held point per metre away, 1/s, and at most, m/s.
+HOLD_GAIN_PER_S = 1.0
+HOLD_MAX_M_S = 0.5
 #: Side of the cells of the visited-places memory, metres.
 VISITED_CELL_M = 0.5
 #: The visited-places term looks this far along a candidate, metres.
@@ -225,6 +228,7 @@ class LocalPlanner:
         self._visited: dict[tuple[int, int], float] = {}
         self._last_t: float | None = None
         self._closed_since: float | None = None
+        self._held_at: np.ndarray | None = None
 
     def _bin(self, yaw: np.ndarray | float) -> np.ndarray:
         n = len(self._yaw_off)
@@ -253,7 +257,7 @@ class LocalPlanner:
         self._remember(snap)
         pos = np.asarray(snap.position_ned_m, dtype=np.float64)
         if self.mode is Mode.HOLD:
-            return self._hold(self.reason)
+            return self._hold(self.reason, pos)
         # The goal: a point, or (none) the fuzzy controller's steer from the heading.
         d = snap.decision
         fuzzy = None
@@ -270,7 +274,7 @@ class LocalPlanner:
             if goal_dist < ARRIVED_M:
                 self.mode = TRANSITIONS[(self.mode, "arrived")]
                 self.reason = "arrived at the goal"
-                return self._hold(self.reason)
+                return self._hold(self.reason, pos)
             goal_yaw = math.atan2(g[1] - pos[1], g[0] - pos[0])
             # Back to the goal's altitude over a few metres, within the candidates' climbs.
             lim = math.radians(cfg.max_climb_deg)
@@ -317,7 +321,7 @@ class LocalPlanner:
                     f"dead end: no direction within {cfg.dead_end_cone_deg:.0f} deg of the goal is free for "
                     f"{cfg.dead_end_free_m:.1f} m"
                 )
-                return self._hold(self.reason)
+                return self._hold(self.reason, pos)
         else:
             self._closed_since = None
         if not np.any(np.isfinite(c)):
@@ -341,8 +345,16 @@ class LocalPlanner:
         )
         return Plan(self.mode, vel, rate, u, float(free[i]), self.reason, table)
 
-    def _hold(self, reason: str) -> Plan:
-        return Plan(Mode.HOLD, np.zeros(3), 0.0, np.zeros(3), 0.0, reason)
+    def _hold(self, reason: str, pos: np.ndarray) -> Plan:
+        """Hold the point where the hold began: back toward it at HOLD_GAIN_PER_S times the distance
+        (the position estimate's drift moves a vehicle that is only told zero velocity)."""
+        if self._held_at is None:
+            self._held_at = pos.copy()
+        back = -HOLD_GAIN_PER_S * (pos - self._held_at)
+        n = float(np.linalg.norm(back))
+        if n > HOLD_MAX_M_S:
+            back *= HOLD_MAX_M_S / n
+        return Plan(Mode.HOLD, back, 0.0, np.zeros(3), 0.0, reason)
 
     def _stop(self, reason: str) -> Plan:
         self.reason = reason

@@ -2,7 +2,8 @@
 their order written once (:data:`CHAIN`).
 
 1. :func:`stale_to_zero`: no frame newer than ``command.stale_frame_timeout_s``: zero velocity;
-2. :func:`brake_hold`: holding (a dead end, the goal): zero; the fuzzy controller brakes (the centre near
+2. :func:`brake_hold`: holding (a dead end, the goal): no turn, and no faster than the slow way back
+   to the held point; the fuzzy controller brakes (the centre near
    with no escape): no faster toward the centre than the speed law allows on the centre's depth
    (unknown counts as 0 m);
 3. :func:`speed_law_limit`: the commanded velocity, and the component of it along the way the vehicle
@@ -25,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from companion.config.planner import PlannerConfig
-from companion.core.planner.local import speed_law
+from companion.core.planner.local import HOLD_MAX_M_S, speed_law
 from companion.core.types import ZERO_SETPOINT, Decision, DecisionKind, VelocitySetpoint
 
 #: Below this speed the vehicle's motion has no direction worth checking, m/s.
@@ -90,10 +91,13 @@ def stale_to_zero(sp: VelocitySetpoint, ctx: SafetyContext) -> VelocitySetpoint:
 
 
 def brake_hold(sp: VelocitySetpoint, ctx: SafetyContext) -> VelocitySetpoint:
-    """Zero while holding; under the fuzzy controller's brake, the forward speed within the speed law
-    on the centre region's depth (unknown: 0 m)."""
+    """While holding, no turn and at most :data:`HOLD_MAX_M_S` (the planner's way back to the held
+    point); under the fuzzy controller's brake, the forward speed within the speed law on the centre
+    region's depth (unknown: 0 m)."""
     if ctx.holding:
-        return ZERO_SETPOINT
+        n = math.sqrt(sp.forward_m_s**2 + sp.right_m_s**2 + sp.down_m_s**2)
+        k = 1.0 if n <= HOLD_MAX_M_S else HOLD_MAX_M_S / n
+        return VelocitySetpoint(sp.forward_m_s * k, sp.right_m_s * k, sp.down_m_s * k, 0.0)
     d = ctx.decision
     if d is not None and d.kind is DecisionKind.BRAKE:
         depth = ctx.centre_depth_m if math.isfinite(ctx.centre_depth_m) else 0.0
