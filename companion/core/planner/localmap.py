@@ -178,8 +178,8 @@ class LocalMap:
         s = np.arange(0.5 * step, self.range_m, step)
         end = np.minimum(dist, self.range_m) - self.voxel_m
         take = s[None, :] < end[:, None]
-        pts = origin + unit_ned[:, None, :] * s[None, :, None]
-        f_idx, f_in = self._index(pts[take])
+        ray, k = np.nonzero(take)  # only the samples short of each ray's surface
+        f_idx, f_in = self._index(origin + unit_ned[ray] * s[k, None])
         f_idx = f_idx[f_in]
         mark = self._scratch.reshape(-1)
         mark[h_idx] = True  # a cube hit in this frame is not passed in it
