@@ -22,7 +22,6 @@ keeps pace with the wall clock (the only place that reads a clock for anything b
 
 from __future__ import annotations
 
-import dataclasses
 import enum
 import math
 import time
@@ -404,8 +403,6 @@ def fly(
             else:
                 p0 = clock()
                 res = pipeline.process(frame.image, frame.timestamp_s, want_disparity=want_disparity)
-                if local is not None and res.near_blocks is not None:  # the estimator reuses its buffer
-                    res = dataclasses.replace(res, near_blocks=res.near_blocks.copy())
                 p1 = clock()
                 render_ms.append((p0 - r0) * 1e3)
                 pipe_ms.append((p1 - p0) * 1e3)
