@@ -13,7 +13,9 @@ Timing (all simulated; deterministic for a course and config):
   frame older than ``command.stale_frame_timeout_s`` gives zero velocity; older than
   ``command.failsafe_timeout_s`` the vehicle is switched to HOLD. Course hold is the service's own
   bookkeeping (:class:`~companion.core.course.CourseHold`, the course being the start pose), fed the
-  same clock as on the vehicle: a decision's timers run from its frame's capture time.
+  same clock as on the vehicle: a decision's timers run from its frame's capture time. With
+  ``planner.kind`` "local" the local stack (:class:`~companion.core.planner.stack.LocalStack`) takes
+  the place of course hold and the rules: each applied frame enters its map from the pose at capture.
 
 Events due at the same instant run in the order camera, decision, setpoint, physics. The flight ends
 on the first outcome (:mod:`companion.sim.scoring`). ``realtime=True`` sleeps so that simulated time
