@@ -36,6 +36,7 @@ from companion.config.detour import DetourConfig
 from companion.config.envelope import EnvelopeConfig, envelope_violations
 from companion.config.gpu import GpuConfig
 from companion.config.obstacle import ObstacleDistanceConfig
+from companion.config.planner import PlannerConfig
 from companion.config.service import (
     BusConfig,
     CameraConfig,
@@ -95,6 +96,7 @@ class CompanionConfig(StrictModel):
     command: CommandConfig = Field(default_factory=CommandConfig)
     memory: MemoryConfig = Field(default_factory=MemoryConfig)
     detour: DetourConfig = Field(default_factory=DetourConfig)
+    planner: PlannerConfig = Field(default_factory=PlannerConfig)
     obstacle_distance: ObstacleDistanceConfig = Field(default_factory=ObstacleDistanceConfig)
     camera: CameraConfig = Field(default_factory=CameraConfig)
     vehicle: VehicleConfig = Field(default_factory=VehicleConfig)

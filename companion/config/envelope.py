@@ -145,6 +145,10 @@ def envelope_violations(cfg: CompanionConfig) -> list[str]:
         ("detour.turn_rate_deg_s", cfg.detour.turn_rate_deg_s),
     ):
         above(field, value, "max_yaw_rate_deg_s", e.max_yaw_rate_deg_s)
+    if cfg.planner.kind == "local":
+        above("planner.cruise_speed_m_s", cfg.planner.cruise_speed_m_s, "max_horizontal_speed_m_s", e.max_horizontal_speed_m_s)
+        above("planner.max_vertical_speed_m_s", cfg.planner.max_vertical_speed_m_s, "max_vertical_speed_m_s", e.max_vertical_speed_m_s)
+        above("planner.max_yaw_rate_deg_s", cfg.planner.max_yaw_rate_deg_s, "max_yaw_rate_deg_s", e.max_yaw_rate_deg_s)
     above("command.stale_frame_timeout_s", c.stale_frame_timeout_s, "max_stale_frame_timeout_s", e.max_stale_frame_timeout_s)
     above("command.failsafe_timeout_s", c.failsafe_timeout_s, "max_failsafe_timeout_s", e.max_failsafe_timeout_s)
     above("service.override_max_duration_s", s.override_max_duration_s, "max_override_duration_s", e.max_override_duration_s)

@@ -281,6 +281,15 @@ class CameraConfig(StrictModel):
 class VehicleConfig(StrictModel):
     """The autopilot link (MAVSDK) and how the service enters and leaves offboard."""
 
+    radius_m: float = Field(
+        default=0.25,
+        gt=0.0,
+        le=5.0,
+        description=(
+            "Radius of a sphere round the vehicle's centre that holds the whole airframe, props "
+            "included, m: the local planner keeps every surface outside it (docs/planner.md)."
+        ),
+    )
     connection: str = Field(
         default="udpin://0.0.0.0:14540",
         min_length=1,

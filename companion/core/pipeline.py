@@ -68,6 +68,10 @@ class FrameResult:
             frames' measurements, so it is not marked.)
         stand_in: bool ``(9,)``: True where ``refined`` is 0 m standing in for an unknown in the median
             window (unknown counts as near): not a depth at all, to be shown as unknown.
+        near_blocks: with the obstacle memory on and ``planner.kind`` "local": float32 ``(ceil(H/b),
+            ceil(W/b))`` the largest valid disparity of each ``memory.block_px`` block (px, NaN none), a
+            copy: the local planner's map input; else None.
+        geometry: the rectified rig the frame was seen with (the rays of ``near_blocks``).
         obstacle: the frame's OBSTACLE_DISTANCE bins (:class:`~companion.core.obstacle.ObstacleDistance`),
             or None when ``obstacle_distance.send`` is off or the estimator computes none.
     """
@@ -85,6 +89,8 @@ class FrameResult:
     filtered: np.ndarray | None = None
     stand_in: np.ndarray | None = None
     obstacle: ObstacleDistance | None = None
+    near_blocks: np.ndarray | None = None
+    geometry: StereoGeometry | None = None
 
     def shown_depths_m(self) -> np.ndarray:
         """float64 ``(9,)``: ``refined`` with the median's stand-ins for unknown made NaN (unknown): the
@@ -252,4 +258,7 @@ class Pipeline:
             filtered=filtered,
             stand_in=stand_in,
             obstacle=getattr(est, "obstacle", None),
+            # The estimator reuses its block buffer for the next frame: the local planner gets its own.
+            near_blocks=est.near_blocks.copy() if est.near_blocks is not None and self.config.planner.kind == "local" else None,
+            geometry=self.estimator.geometry,
         )

@@ -75,6 +75,7 @@ from companion.core.course import CourseHold
 from companion.core.detour import HistogramRequest, HistogramResult
 from companion.core.goal import COURSE, GoalSpec
 from companion.core.memory import ObstacleMemory, ViewLimits
+from companion.core.planner.stack import LocalStack
 from companion.core.pose import Pose
 from companion.core.types import ZERO_SETPOINT, Decision, DecisionKind, VelocitySetpoint
 
@@ -241,6 +242,7 @@ class SupervisorConfig:
     memory: MemoryConfig = field(default_factory=MemoryConfig)
     detour: DetourConfig = field(default_factory=DetourConfig)
     prefer_right: bool = True  # a detour's tie goes right (controller.preferred_yaw_side)
+    local: CompanionConfig | None = None  # planner.kind "local": the whole config the local stack flies by
 
     @classmethod
     def from_config(cls, cfg: CompanionConfig) -> SupervisorConfig:
@@ -259,6 +261,7 @@ class SupervisorConfig:
             memory=cfg.memory,
             detour=cfg.detour,
             prefer_right=cfg.controller.preferred_yaw_side == "right",
+            local=cfg if cfg.planner.kind == "local" else None,
         )
 
 
@@ -306,6 +309,7 @@ class _Memory:
     last_frame_s: float | None = None  # capture time of the newest frame put in the memory
     view_limits: ViewLimits | None = None  # what the rig measures, from the frames
     guarding: int = 0  # remembered points (one per sector) that shaped the last engaged setpoint
+    local: LocalStack | None = None  # the local planner's map and state for the flight under way
     actions: list[Action] = field(default_factory=list)
 
 
@@ -489,6 +493,9 @@ class Supervisor:
         if abs(t_seen - latest.timestamp_s) <= _POSE_MATCH_S:
             # With the viewpoint, so that the memory can trust points seen from two places (detours).
             m.obstacles.add_frame(points, seen_from, latest.timestamp_s, self._cfg.memory, getattr(latest, "far_view", None))
+            blocks, geometry = getattr(latest, "near_blocks", None), getattr(latest, "geometry", None)
+            if m.local is not None and blocks is not None and geometry is not None:
+                m.local.add_frame(blocks, geometry, self._cfg.memory.block_px, seen_from, latest.timestamp_s)
 
     def _commanding(self) -> bool:
         m = self._m
@@ -564,6 +571,7 @@ class Supervisor:
                 m.stalled = False
                 # Course hold (when its gains are set) steers back to the heading, line and altitude of now.
                 m.course.engage(v.position_ned_m, _finite_or_none(v.attitude_rad, 2), m.goal)
+                self._engage_local(v, m.goal)
                 self._set(State.ENGAGED, "engaged: avoiding obstacles")
         elif m.leaving is not None and v.in_offboard and m.leaving.start_sent_s is not None:
             m.owns_offboard = True  # the start we asked for took effect after all: ours to leave
@@ -589,6 +597,7 @@ class Supervisor:
                 m.override = None
                 m.by_switch = True
                 m.course.engage(v.position_ned_m, _finite_or_none(v.attitude_rad, 2))
+                self._engage_local(v, COURSE)
                 self._set(State.ENGAGED, _ENGAGED_BY_SWITCH)
             else:
                 # Switched while the service cannot fly: stop streaming so that the autopilot's own
@@ -884,6 +893,16 @@ class Supervisor:
         decision = NO_PROGRESS_HOLD if hold else latest.decision
         heading_now = _finite_or_none(v.attitude_rad, 2)
         refined = getattr(latest, "refined", None)
+        if m.local is not None:
+            # The local planner (planner.kind "local"): its safety chain ends the setpoint. Without a
+            # position, velocity and heading there is no plan: zero velocity.
+            if hold or heading_now is None or v.position_ned_m is None or v.velocity_ned_m_s is None:
+                return ZERO_SETPOINT
+            step = m.local.step(
+                now_s, age_s, decision, getattr(refined, "depth_m", None),
+                np.asarray(v.position_ned_m, dtype=np.float64), np.asarray(v.velocity_ned_m_s, dtype=np.float64), heading_now,
+            )
+            return step.setpoint
         guard = sides = gap = ahead = None
         if self._cfg.memory.duration_s > 0.0 and v.position_ned_m is not None and heading_now is not None:
             guard, sides, gap, ahead = m.obstacles.hold_inputs(
@@ -910,6 +929,16 @@ class Supervisor:
             prefer_right=self._cfg.prefer_right,
             planning=not hold,
         )
+
+    def _engage_local(self, v: VehicleState, goal: GoalSpec) -> None:
+        """A new local stack for the flight that begins (planner.kind "local"), from the pose now."""
+        cfg = self._cfg.local
+        heading = _finite_or_none(v.attitude_rad, 2)
+        if cfg is None or v.position_ned_m is None or heading is None:
+            self._m.local = None if cfg is None else self._m.local
+            return
+        self._m.local = LocalStack(cfg)
+        self._m.local.engage(np.asarray(v.position_ned_m, dtype=np.float64), heading, goal)
 
     def _override_setpoint(self, o: Override, latest: FrameOutcome | None) -> VelocitySetpoint:
         cmd = self._cfg.command

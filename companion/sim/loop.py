@@ -13,7 +13,9 @@ Timing (all simulated; deterministic for a course and config):
   frame older than ``command.stale_frame_timeout_s`` gives zero velocity; older than
   ``command.failsafe_timeout_s`` the vehicle is switched to HOLD. Course hold is the service's own
   bookkeeping (:class:`~companion.core.course.CourseHold`, the course being the start pose), fed the
-  same clock as on the vehicle: a decision's timers run from its frame's capture time.
+  same clock as on the vehicle: a decision's timers run from its frame's capture time. With
+  ``planner.kind`` "local" the local stack (:class:`~companion.core.planner.stack.LocalStack`) takes
+  the place of course hold and the rules: each applied frame enters its map from the pose at capture.
 
 Events due at the same instant run in the order camera, decision, setpoint, physics. The flight ends
 on the first outcome (:mod:`companion.sim.scoring`). ``realtime=True`` sleeps so that simulated time
@@ -38,6 +40,7 @@ from companion.core.course import CourseHold
 from companion.core.goal import GoalSpec
 from companion.core.memory import ObstacleMemory
 from companion.core.pipeline import FrameResult, Pipeline
+from companion.core.planner.stack import LocalStack
 from companion.core.types import ZERO_SETPOINT, DecisionKind, VelocitySetpoint
 from companion.errors import CameraError
 from companion.interfaces import Frame
@@ -350,11 +353,15 @@ def fly(
         north, east, _ = course.goal_point_ned_m
         goal = GoalSpec(kind="point", north_m=north, east_m=east)
     hold.engage(course.start.position_ned_m, course.start.yaw_rad, goal)
+    local = LocalStack(cfg) if cfg.planner.kind == "local" else None  # the local planner instead of the rules
+    if local is not None:
+        local.engage(np.asarray(course.start.position_ned_m), course.start.yaw_rad, goal)
     stalled = False  # the progress watchdog (or a dead end) fired: the service pauses; here the flight holds
     hold_reason = ""
     detours = 0
     audit: dict[str, int] | None = {} if audit_memory else None
-    memory = ObstacleMemory() if cfg.memory.duration_s > 0.0 else None
+    # The rules' obstacle memory; the local planner keeps its own map.
+    memory = ObstacleMemory() if cfg.memory.duration_s > 0.0 and cfg.planner.kind == "rules" else None
     prefer_right = cfg.controller.preferred_yaw_side == "right"
     judge = Judge(
         course,
@@ -414,6 +421,8 @@ def fly(
                     on_frame(frame, res)
         while pending and pending[0][0] <= t + _EPS_S:
             _, latest, seen_from = pending.popleft()
+            if local is not None and latest.near_blocks is not None:
+                local.add_frame(latest.near_blocks, pipeline.geometry, cfg.memory.block_px, seen_from, latest.timestamp_s)
             if memory is not None and latest.near_points_cam_m is not None:
                 memory.add_frame(latest.near_points_cam_m, seen_from, latest.timestamp_s, cfg.memory, latest.far_view)
                 if audit is not None and len(f_t) % 5 == 0:
@@ -428,19 +437,28 @@ def fly(
             decision = latest.decision if latest is not None else None
             m = vehicle.model
             hold.observe(decision, latest.timestamp_s if latest is not None else None, m.position_ned_m)
-            if not stalled and hold.no_progress(m.position_ned_m, t, cmd):
+            if local is None and not stalled and hold.no_progress(m.position_ned_m, t, cmd):
                 stalled = True
                 hold_reason = f"progress watchdog ({hold.progress.why})"
-            if not stalled and hold.holding_reason is not None:
+            if local is None and not stalled and hold.holding_reason is not None:
                 stalled = True
                 hold_reason = hold.holding_reason
             if stalled and decision is not None:
                 decision = NO_PROGRESS_HOLD
+            if local is not None:
+                step = local.step(t, age, decision, latest.refined.depth_m if latest is not None else None,
+                                  m.position_ned_m, m.velocity_ned_m_s, m.yaw_rad)
+                sp = step.setpoint
+                if not stalled and local.holding_reason is not None:
+                    stalled, hold_reason = True, local.holding_reason
+                planner = f"{step.plan.mode.value}: {step.plan.reason}"
+                detours += int(step.plan.mode.value == "detour" and not detouring)
+                detouring = step.plan.mode.value == "detour"
             guard = sides = gap = ahead = None
-            if memory is not None:
+            if local is None and memory is not None:
                 view = latest.view_limits if latest is not None else None
                 guard, sides, gap, ahead = memory.hold_inputs(m.position_ned_m, m.yaw_rad, t, cfg.memory, view)
-            sp = hold.setpoint(
+            sp = sp if local is not None else hold.setpoint(
                 decision,
                 t,
                 age if latest is not None else math.inf,
@@ -459,15 +477,16 @@ def fly(
                 prefer_right=prefer_right,
                 planning=not stalled,
             )
-            if hold.detour.active and not detouring:
-                detours += 1
-            if stalled:
-                planner = f"held: {hold_reason}"
-            elif hold.detour.active or detouring:  # under way, or the row it ended on (why it ended)
-                planner = f"{hold.detour.phase.value}: {hold.detour.reason}"
-            else:
-                planner = ""
-            detouring = hold.detour.active
+            if local is None:
+                if hold.detour.active and not detouring:
+                    detours += 1
+                if stalled:
+                    planner = f"held: {hold_reason}"
+                elif hold.detour.active or detouring:  # under way, or the row it ended on (why it ended)
+                    planner = f"{hold.detour.phase.value}: {hold.detour.reason}"
+                else:
+                    planner = ""
+                detouring = hold.detour.active
             if vehicle.in_offboard:
                 vehicle.set_setpoint(sp)
                 if decision is None:

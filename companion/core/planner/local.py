@@ -1,0 +1,361 @@
+"""One planner on the local map: candidate directions scored by one cost function, a stopping-distance
+speed law, and explicit modes (pure; time is passed in). docs/planner.md explains it with a figure.
+
+Each tick (:meth:`LocalPlanner.plan`) takes one frozen :class:`Snapshot` and the map, and:
+
+1. lays out candidate directions all round in yaw (``yaw_step_deg``) × five climbs (±``max_climb_deg``);
+2. asks the map how far each is free (:meth:`~companion.core.planner.localmap.LocalMap.free_lengths`:
+   seen free, the surfaces inflated by the vehicle's radius), cut where it would leave the band
+   between floor and ceiling;
+3. scores each by ONE cost (:func:`costs`), a weighted sum of named terms: turn from the goal's
+   direction, distance to the goal left after flying the candidate's length, shortness of that length,
+   change from the last choice, difference from the fuzzy controller's steer, and places already
+   flown through. A direction the camera has not looked along lately and that ends in unknown space is
+   scored on a *hoped-for* length (half the map range): the planner turns to look there, and the speed
+   law (which uses only what was seen free) does not fly there before it has looked. Plan hopeful, fly
+   on what was seen;
+4. flies the cheapest at the speed law's speed (:func:`speed_law`), turning the camera toward it;
+5. names the mode (:data:`TRANSITIONS`): cruise, avoid, detour, or hold (a dead end or the goal; held
+   until the operator commands again).
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from companion.config.planner import PlannerConfig
+from companion.core.planner.localmap import LocalMap
+from companion.core.types import Decision, DecisionKind
+
+#: Climbs per yaw: -max, -max/2, 0, +max/2, +max.
+N_CLIMBS = 5
+#: Added to the speed law's speed in the time term, m/s: a direction with no room to fly costs
+#: length / this seconds, much but finite, so that it stays comparable.
+CREEP_M_S = 0.2
+#: Holding, the velocity back to the held point per metre away, 1/s, and at most, m/s.
+HOLD_GAIN_PER_S = 1.0
+HOLD_MAX_M_S = 0.5
+#: Side of the cells of the visited-places memory, metres.
+VISITED_CELL_M = 0.5
+#: The visited-places term looks this far along a candidate, metres.
+VISITED_LOOKAHEAD_M = 1.5
+#: Heading error to yaw rate, 1/s (a first-order turn toward the chosen direction).
+YAW_GAIN_PER_S = 2.0
+#: Arrived at a point goal within this, metres (horizontal).
+ARRIVED_M = 0.5
+#: A dead end is declared once it has been seen closed this long, seconds (one frame can be wrong).
+DEAD_END_CONFIRM_S = 0.5
+
+
+class Mode(str, enum.Enum):
+    """What the planner is doing."""
+
+    CRUISE = "cruise"  #: flying at the goal, or within 15° of it
+    AVOID = "avoid"  #: steering round something, within 60° of the goal's direction
+    DETOUR = "detour"  #: farther off the goal's direction, or turning to look
+    HOLD = "hold"  #: a dead end, or the goal reached: zero velocity until the operator commands
+
+
+#: The one transition table: (mode now, event) -> next mode. Events (:func:`event_of`): "direct",
+#: "steer", "round", "dead_end", "arrived". HOLD is left only by a new engagement (:meth:`LocalPlanner.engage`).
+TRANSITIONS: dict[tuple[Mode, str], Mode] = {
+    **{(m, "direct"): Mode.CRUISE for m in (Mode.CRUISE, Mode.AVOID, Mode.DETOUR)},
+    **{(m, "steer"): Mode.AVOID for m in (Mode.CRUISE, Mode.AVOID, Mode.DETOUR)},
+    **{(m, "round"): Mode.DETOUR for m in (Mode.CRUISE, Mode.AVOID, Mode.DETOUR)},
+    **{(m, "dead_end"): Mode.HOLD for m in Mode},
+    **{(m, "arrived"): Mode.HOLD for m in Mode},
+    **{(Mode.HOLD, e): Mode.HOLD for e in ("direct", "steer", "round")},
+}
+
+
+def speed_law(free_m: np.ndarray | float, cfg: PlannerConfig) -> np.ndarray | float:
+    """The fastest speed that can still stop within ``free_m`` less ``stop_margin_m``: the root of
+    ``v·t + v²/(2a) = d`` with ``t`` the latency and ``a`` the braking, capped at cruise, m/s (float or
+    float64 array like ``free_m``)."""
+    a, t = cfg.braking_accel_m_s2, cfg.latency_s
+    d = np.maximum(np.asarray(free_m, dtype=np.float64) - cfg.stop_margin_m, 0.0)
+    v = a * (-t + np.sqrt(t * t + 2.0 * d / a))
+    out = np.minimum(v, cfg.cruise_speed_m_s)
+    return float(out) if np.ndim(out) == 0 else out
+
+
+@dataclass(frozen=True)
+class Snapshot:
+    """What one tick sees (frozen).
+
+    Attributes:
+        now_s: time, seconds.
+        position_ned_m, velocity_ned_m_s: float ``(3,)`` NED metres and m/s.
+        yaw_rad: heading, radians clockwise from north.
+        goal_ned_m: float ``(3,)`` the point to reach (its down is the altitude to keep), or None (the
+            paper's flight: the fuzzy controller is the whole policy).
+        decision: the newest fuzzy decision, or None before the first.
+        view_half_rad: half the camera's horizontal view, radians (what counts as looked at).
+    """
+
+    now_s: float
+    position_ned_m: np.ndarray
+    velocity_ned_m_s: np.ndarray
+    yaw_rad: float
+    goal_ned_m: np.ndarray | None
+    decision: Decision | None
+    view_half_rad: float = math.radians(40.0)
+
+
+@dataclass(frozen=True)
+class Plan:
+    """A tick's answer.
+
+    Attributes:
+        mode: :class:`Mode`.
+        velocity_ned_m_s: float64 ``(3,)`` the velocity to fly, NED m/s.
+        yaw_rate_deg_s: the turn, deg/s (positive clockwise).
+        direction_ned: float64 ``(3,)`` unit, the chosen direction.
+        free_m: the seen-free length along it, metres.
+        reason: one line.
+        candidates: float64 ``(K, 5)`` yaw rad, climb rad, free m, hoped-for m, cost (for plots).
+    """
+
+    mode: Mode
+    velocity_ned_m_s: np.ndarray
+    yaw_rate_deg_s: float
+    direction_ned: np.ndarray
+    free_m: float
+    reason: str
+    candidates: np.ndarray = field(repr=False, default_factory=lambda: np.zeros((0, 5)))
+
+
+def _angle_diff(a: np.ndarray | float, b: np.ndarray | float) -> np.ndarray:
+    return np.abs((np.asarray(a) - np.asarray(b) + math.pi) % (2.0 * math.pi) - math.pi)
+
+
+def directions(yaw_rad: np.ndarray, climb_rad: np.ndarray) -> np.ndarray:
+    """Unit NED vectors float64 ``(K, 3)`` of yaws and climbs (radians, climb positive up)."""
+    c = np.cos(climb_rad)
+    return np.stack([c * np.cos(yaw_rad), c * np.sin(yaw_rad), -np.sin(climb_rad)], axis=-1)
+
+
+def costs(
+    yaw: np.ndarray,
+    climb: np.ndarray,
+    hoped_m: np.ndarray,
+    blocked: np.ndarray,
+    goal_yaw: float,
+    goal_climb: float,
+    goal_dist_m: float,
+    prev: tuple[float, float] | None,
+    fuzzy: tuple[float, float] | None,
+    visited: np.ndarray,
+    motion: tuple[float, float, float] | None,
+    cfg: PlannerConfig,
+) -> np.ndarray:
+    """The one cost of each candidate (float64 ``(K,)``; lower is better): the weighted sum of
+
+    * goal: turn from the goal's direction (yaw and climb, per half turn);
+    * time: the time to the goal along the candidate: its hoped-for length at the speed law's speed
+      on it (plus :data:`CREEP_M_S`, so that a short length costs much but not infinitely), then the
+      distance left at cruise, or where the length ends at a surface (``blocked``) at that same speed; less the least possible, per time to fly the map range at cruise. One
+      term for progress and for room: a way that must crawl is slow, a way round may be quicker;
+    * clearance: 1 - hoped-for length / map range;
+    * smooth: change from the last chosen direction, plus change from the direction of motion in
+      proportion to the speed over cruise (per half turn): a lagging vehicle turns its velocity slowly,
+      the faster the wider;
+    * fuzzy: difference from the fuzzy controller's steer (per half turn);
+    * visited: seconds already spent where the candidate leads (at most 1).
+    """
+    r = cfg.map_range_m
+    cruise = cfg.cruise_speed_m_s
+    goal = (_angle_diff(yaw, goal_yaw) + np.abs(climb - goal_climb)) / math.pi
+    reach = np.minimum(hoped_m, goal_dist_m)
+    # Distance left, in the plane of the candidate: law of cosines on the horizontal part.
+    dh = reach * np.cos(climb)
+    ang = _angle_diff(yaw, goal_yaw)
+    left = np.sqrt(np.maximum(goal_dist_m**2 + dh**2 - 2.0 * goal_dist_m * dh * np.cos(ang), 0.0))
+    v = speed_law(hoped_m, cfg) + CREEP_M_S
+    # A way that ends at a surface leads no farther at its own speed: the rest is costed at it too.
+    t_go = np.where(blocked, (reach + left) / v, reach / v + left / cruise)
+    time = (t_go - goal_dist_m / cruise) / (r / cruise)
+    clearance = 1.0 - np.minimum(hoped_m, r) / r
+    smooth = 0.0 if prev is None else (_angle_diff(yaw, prev[0]) + np.abs(climb - prev[1])) / math.pi
+    if motion is not None:  # momentum: turning the velocity costs in proportion to the speed
+        smooth = smooth + motion[2] / cruise * (_angle_diff(yaw, motion[0]) + np.abs(climb - motion[1])) / math.pi
+    steer = 0.0 if fuzzy is None else (_angle_diff(yaw, fuzzy[0]) + np.abs(climb - fuzzy[1])) / math.pi
+    return (
+        cfg.weight_goal * goal
+        + cfg.weight_time * time
+        + cfg.weight_clearance * clearance
+        + cfg.weight_smooth * smooth
+        + cfg.weight_fuzzy * steer
+        + cfg.weight_visited * np.minimum(visited, 1.0)
+    )
+
+
+def event_of(turn_from_goal_rad: float, looking: bool) -> str:
+    """The event a choice is: "direct" within 15° of the goal, "steer" within 60°, else "round"
+    (and "round" while turning to look)."""
+    if looking or turn_from_goal_rad > math.radians(60.0):
+        return "round"
+    return "direct" if turn_from_goal_rad <= math.radians(15.0) else "steer"
+
+
+class LocalPlanner:
+    """The planner's state for one flight: the mode, the last choice, where the camera looked and
+    when, and the places flown through.
+
+    Args:
+        cfg: the planner section.
+        radius_m: the vehicle's radius, metres.
+    """
+
+    def __init__(self, cfg: PlannerConfig, radius_m: float):
+        self.cfg = cfg
+        self.radius_m = float(radius_m)
+        n_yaw = max(4, int(round(360.0 / cfg.yaw_step_deg)))
+        self._yaw_off = np.arange(n_yaw) * (2.0 * math.pi / n_yaw)
+        self._climbs = np.linspace(-1.0, 1.0, N_CLIMBS) * math.radians(cfg.max_climb_deg)
+        self.engage()
+
+    def engage(self) -> None:
+        """Start a flight: forget the mode, the choice, the looks and the places."""
+        self.mode = Mode.CRUISE
+        self.reason = ""
+        self._prev: tuple[float, float] | None = None
+        self._looked_t = np.full(len(self._yaw_off), -np.inf)  # per absolute yaw bin
+        self._visited: dict[tuple[int, int], float] = {}
+        self._last_t: float | None = None
+        self._closed_since: float | None = None
+        self._held_at: np.ndarray | None = None
+
+    def _bin(self, yaw: np.ndarray | float) -> np.ndarray:
+        n = len(self._yaw_off)
+        return np.round(np.asarray(yaw) % (2.0 * math.pi) / (2.0 * math.pi / n)).astype(np.int64) % n
+
+    def _remember(self, snap: Snapshot) -> None:
+        """Where the camera looks now and where the vehicle is (the visited places)."""
+        n = len(self._yaw_off)
+        bins = self._yaw_off
+        looked = _angle_diff(bins, snap.yaw_rad) <= snap.view_half_rad
+        self._looked_t[looked] = snap.now_s
+        dt = 0.0 if self._last_t is None else max(0.0, min(snap.now_s - self._last_t, 0.5))
+        self._last_t = snap.now_s
+        p = snap.position_ned_m
+        key = (int(math.floor(p[0] / VISITED_CELL_M)), int(math.floor(p[1] / VISITED_CELL_M)))
+        self._visited[key] = self._visited.get(key, 0.0) + dt
+        del n
+
+    def _visited_at(self, points: np.ndarray) -> np.ndarray:
+        keys = np.floor(points[:, :2] / VISITED_CELL_M).astype(np.int64)
+        return np.array([self._visited.get((int(a), int(b)), 0.0) for a, b in keys])
+
+    def plan(self, snap: Snapshot, lmap: LocalMap) -> Plan:
+        """One tick (see the module doc)."""
+        cfg = self.cfg
+        self._remember(snap)
+        pos = np.asarray(snap.position_ned_m, dtype=np.float64)
+        if self.mode is Mode.HOLD:
+            return self._hold(self.reason, pos)
+        # The goal: a point, or (none) the fuzzy controller's steer from the heading.
+        d = snap.decision
+        fuzzy = None
+        if d is not None and d.kind is not DecisionKind.BRAKE:
+            fuzzy = (snap.yaw_rad + d.yaw * math.radians(cfg.fuzzy_yaw_deg), d.pitch * math.radians(cfg.max_climb_deg))
+        if snap.goal_ned_m is None:
+            if fuzzy is None:
+                return self._stop("the fuzzy controller brakes (no goal: it is the whole policy)")
+            goal_yaw, goal_dist = fuzzy[0], cfg.map_range_m
+            goal_climb = fuzzy[1]
+        else:
+            g = np.asarray(snap.goal_ned_m, dtype=np.float64)
+            goal_dist = math.hypot(g[0] - pos[0], g[1] - pos[1])
+            if goal_dist < ARRIVED_M:
+                self.mode = TRANSITIONS[(self.mode, "arrived")]
+                self.reason = "arrived at the goal"
+                return self._hold(self.reason, pos)
+            goal_yaw = math.atan2(g[1] - pos[1], g[0] - pos[0])
+            # Back to the goal's altitude over a few metres, within the candidates' climbs.
+            lim = math.radians(cfg.max_climb_deg)
+            goal_climb = max(-lim, min(lim, math.atan2(pos[2] - g[2], max(goal_dist, 3.0))))
+        yaw = (goal_yaw + self._yaw_off)[:, None] * np.ones((1, N_CLIMBS))
+        climb = np.ones((len(self._yaw_off), 1)) * self._climbs[None, :]
+        yaw, climb = yaw.reshape(-1), climb.reshape(-1)
+        dirs = directions(yaw, climb)
+        fl = lmap.free_lengths(pos, dirs)
+        free = fl.length_m.copy()
+        # The band between floor and ceiling bounds a climb's length like a surface does.
+        alt = -pos[2]
+        vz = -dirs[:, 2]  # climb rate per metre flown
+        with np.errstate(divide="ignore", invalid="ignore"):
+            to_band = np.where(vz > 1e-6, (cfg.ceiling_m - alt) / vz, np.where(vz < -1e-6, (alt - cfg.floor_m) / -vz, np.inf))
+        to_band = np.maximum(to_band, 0.0)
+        band_cut = to_band < free
+        free = np.minimum(free, to_band)
+        blocked = fl.blocked | band_cut
+        # Hoped-for length: unknown space not looked at lately is worth a look.
+        unlooked = snap.now_s - self._looked_t[self._bin(yaw)] > cfg.look_memory_s
+        hopeful = unlooked & ~blocked & ~fl.horizon
+        hoped = np.where(hopeful, np.maximum(free, 0.5 * cfg.map_range_m), free)
+        look_pts = pos + dirs * np.minimum(hoped, VISITED_LOOKAHEAD_M)[:, None]
+        visited = self._visited_at(look_pts)
+        v = np.asarray(snap.velocity_ned_m_s, dtype=np.float64)
+        sp = float(np.linalg.norm(v))
+        motion = None
+        if sp > 0.3:
+            motion = (math.atan2(v[1], v[0]), math.asin(max(-1.0, min(1.0, -v[2] / sp))), min(sp, cfg.cruise_speed_m_s))
+        c = costs(yaw, climb, hoped, blocked & (free < goal_dist), goal_yaw, goal_climb, goal_dist, self._prev, fuzzy, visited, motion, cfg)
+        # A candidate that cannot move a cube's length is out, unless hoped for.
+        c = np.where((hoped < lmap.voxel_m) , np.inf, c)
+        table = np.stack([yaw, climb, free, hoped, c], axis=1)
+        # A dead end: every direction within the cone of the goal's is closed short by surfaces seen.
+        in_cone = _angle_diff(yaw, goal_yaw) <= math.radians(cfg.dead_end_cone_deg)
+        closed = in_cone & (free < cfg.dead_end_free_m) & (blocked | ~unlooked)
+        if snap.goal_ned_m is not None and np.all(closed[in_cone]):
+            if self._closed_since is None:
+                self._closed_since = snap.now_s
+            if snap.now_s - self._closed_since >= DEAD_END_CONFIRM_S:
+                self.mode = TRANSITIONS[(self.mode, "dead_end")]
+                self.reason = (
+                    f"dead end: no direction within {cfg.dead_end_cone_deg:.0f} deg of the goal is free for "
+                    f"{cfg.dead_end_free_m:.1f} m"
+                )
+                return self._hold(self.reason, pos)
+        else:
+            self._closed_since = None
+        if not np.any(np.isfinite(c)):
+            return self._stop("no direction free for a cube's length")
+        i = int(np.argmin(c))
+        self._prev = (float(yaw[i]), float(climb[i]))
+        speed = float(speed_law(free[i], cfg))
+        u = dirs[i]
+        vel = u * speed
+        vmax = cfg.max_vertical_speed_m_s
+        if abs(vel[2]) > vmax:
+            vel = vel * (vmax / abs(vel[2]))
+        err = float((yaw[i] - snap.yaw_rad + math.pi) % (2.0 * math.pi) - math.pi)
+        rate = max(-cfg.max_yaw_rate_deg_s, min(cfg.max_yaw_rate_deg_s, math.degrees(YAW_GAIN_PER_S * err)))
+        looking = bool(hopeful[i]) and free[i] < cfg.dead_end_free_m
+        turn = float(_angle_diff(yaw[i], goal_yaw))
+        self.mode = TRANSITIONS[(self.mode, event_of(turn, looking))]
+        self.reason = (
+            f"{'looking' if looking else 'flying'} {math.degrees(turn):.0f} deg off the goal, climb "
+            f"{math.degrees(climb[i]):.0f} deg, {free[i]:.1f} m seen free, {speed:.1f} m/s"
+        )
+        return Plan(self.mode, vel, rate, u, float(free[i]), self.reason, table)
+
+    def _hold(self, reason: str, pos: np.ndarray) -> Plan:
+        """Hold the point where the hold began: back toward it at HOLD_GAIN_PER_S times the distance
+        (the position estimate's drift moves a vehicle that is only told zero velocity)."""
+        if self._held_at is None:
+            self._held_at = pos.copy()
+        back = -HOLD_GAIN_PER_S * (pos - self._held_at)
+        n = float(np.linalg.norm(back))
+        if n > HOLD_MAX_M_S:
+            back *= HOLD_MAX_M_S / n
+        return Plan(Mode.HOLD, back, 0.0, np.zeros(3), 0.0, reason)
+
+    def _stop(self, reason: str) -> Plan:
+        self.reason = reason
+        return Plan(self.mode, np.zeros(3), 0.0, np.zeros(3), 0.0, reason)

@@ -1,0 +1,171 @@
+"""The safety filters after the planner: each a pure ``(setpoint, context) -> setpoint`` function, and
+their order written once (:data:`CHAIN`).
+
+1. :func:`stale_to_zero`: no frame newer than ``command.stale_frame_timeout_s``: zero velocity;
+2. :func:`brake_hold`: holding (a dead end, the goal): no turn, and no faster than the slow way back
+   to the held point; the fuzzy controller brakes (the centre near
+   with no escape): no faster toward the centre than the speed law allows on the centre's depth
+   (unknown counts as 0 m);
+3. :func:`speed_law_limit`: the commanded velocity, and the component of it along the way the vehicle
+   is actually moving (the autopilot follows late), no faster than the speed law on the free length
+   the map sees along each;
+4. :func:`floor_ceiling`: no descent below the floor nor climb above the ceiling, slowing on the last
+   metre;
+5. :func:`envelope`: the horizontal and vertical speed and the yaw rate within the safety envelope.
+
+Setpoints are body-frame (FRD) :class:`~companion.core.types.VelocitySetpoint`; the context's yaw turns
+them into NED where a filter needs it.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from companion.config.planner import PlannerConfig
+from companion.core.planner.local import HOLD_MAX_M_S, speed_law
+from companion.core.types import ZERO_SETPOINT, Decision, DecisionKind, VelocitySetpoint
+
+#: Below this speed the vehicle's motion has no direction worth checking, m/s.
+MOVING_M_S = 0.3
+#: Within this of the floor or ceiling a climb or descent slows in proportion, metres.
+BAND_SLOW_M = 1.0
+
+
+@dataclass(frozen=True)
+class SafetyContext:
+    """What the filters know of the tick (frozen).
+
+    Attributes:
+        frame_age_s: age of the newest frame's decision, seconds (inf: none yet).
+        stale_after_s: ``command.stale_frame_timeout_s``.
+        holding: the planner holds (a dead end, the goal).
+        decision: the newest fuzzy decision, or None.
+        centre_depth_m: the centre region's depth, metres (NaN unknown).
+        yaw_rad: heading, radians.
+        altitude_m: altitude above the local origin, metres.
+        velocity_ned_m_s: float ``(3,)`` the vehicle's velocity, NED m/s.
+        free_along: the map's seen-free length (metres) along a unit NED direction (float ``(3,)``).
+        planner: the planner section (speed law, floor, ceiling).
+        max_horizontal_m_s, max_vertical_m_s, max_yaw_rate_deg_s: the safety envelope.
+    """
+
+    frame_age_s: float
+    stale_after_s: float
+    holding: bool
+    decision: Decision | None
+    centre_depth_m: float
+    yaw_rad: float
+    altitude_m: float
+    velocity_ned_m_s: np.ndarray
+    free_along: Callable[[np.ndarray], float]
+    planner: PlannerConfig
+    max_horizontal_m_s: float
+    max_vertical_m_s: float
+    max_yaw_rate_deg_s: float
+
+
+def to_ned(sp: VelocitySetpoint, yaw_rad: float) -> np.ndarray:
+    """float64 ``(3,)`` NED velocity of a body-frame setpoint at heading ``yaw_rad``."""
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    return np.array([c * sp.forward_m_s - s * sp.right_m_s, s * sp.forward_m_s + c * sp.right_m_s, sp.down_m_s])
+
+
+def from_ned(v: np.ndarray, yaw_rad: float, yaw_rate_deg_s: float) -> VelocitySetpoint:
+    """The body-frame setpoint of NED velocity ``v`` (float ``(3,)`` m/s) at heading ``yaw_rad``."""
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    return VelocitySetpoint(
+        forward_m_s=float(c * v[0] + s * v[1]),
+        right_m_s=float(-s * v[0] + c * v[1]),
+        down_m_s=float(v[2]),
+        yaw_rate_deg_s=float(yaw_rate_deg_s),
+    )
+
+
+def stale_to_zero(sp: VelocitySetpoint, ctx: SafetyContext) -> VelocitySetpoint:
+    """Zero velocity without a frame newer than the stale timeout."""
+    return ZERO_SETPOINT if not ctx.frame_age_s <= ctx.stale_after_s else sp
+
+
+def brake_hold(sp: VelocitySetpoint, ctx: SafetyContext) -> VelocitySetpoint:
+    """While holding, no turn and at most :data:`HOLD_MAX_M_S` (the planner's way back to the held
+    point); under the fuzzy controller's brake, the forward speed within the speed law on the centre
+    region's depth (unknown: 0 m)."""
+    if ctx.holding:
+        n = math.sqrt(sp.forward_m_s**2 + sp.right_m_s**2 + sp.down_m_s**2)
+        k = 1.0 if n <= HOLD_MAX_M_S else HOLD_MAX_M_S / n
+        return VelocitySetpoint(sp.forward_m_s * k, sp.right_m_s * k, sp.down_m_s * k, 0.0)
+    d = ctx.decision
+    if d is not None and d.kind is DecisionKind.BRAKE:
+        depth = ctx.centre_depth_m if math.isfinite(ctx.centre_depth_m) else 0.0
+        cap = float(speed_law(depth, ctx.planner))
+        if sp.forward_m_s > cap:
+            return VelocitySetpoint(cap, sp.right_m_s, sp.down_m_s, sp.yaw_rate_deg_s)
+    return sp
+
+
+def speed_law_limit(sp: VelocitySetpoint, ctx: SafetyContext) -> VelocitySetpoint:
+    """The commanded speed within the speed law on the free length along it, and its component along
+    the vehicle's motion within the speed law on the free length along that."""
+    v = to_ned(sp, ctx.yaw_rad)
+    speed = float(np.linalg.norm(v))
+    if speed > 1e-9:
+        cap = float(speed_law(ctx.free_along(v / speed), ctx.planner))
+        if speed > cap:
+            v = v * (cap / speed)
+    m = np.asarray(ctx.velocity_ned_m_s, dtype=np.float64)
+    ms = float(np.linalg.norm(m))
+    if ms > MOVING_M_S:
+        u = m / ms
+        cap = float(speed_law(ctx.free_along(u), ctx.planner))
+        if ms > cap:
+            # Faster than it can stop from: a lagging vehicle (first order, time constant within the
+            # latency) decelerates at a only when the setpoint is a·t below its speed.
+            p = ctx.planner
+            cap = max(0.0, min(cap, ms - p.braking_accel_m_s2 * p.latency_s))
+        along = float(v @ u)
+        if along > cap:
+            v = v - (along - cap) * u
+    return from_ned(v, ctx.yaw_rad, sp.yaw_rate_deg_s)
+
+
+def floor_ceiling(sp: VelocitySetpoint, ctx: SafetyContext) -> VelocitySetpoint:
+    """No descent below the floor nor climb above the ceiling; within :data:`BAND_SLOW_M` of either,
+    the speed toward it in proportion to the distance left."""
+    p = ctx.planner
+    down = sp.down_m_s
+    vmax = ctx.max_vertical_m_s
+    if down > 0.0:
+        down = min(down, vmax * max(0.0, ctx.altitude_m - p.floor_m) / BAND_SLOW_M)
+    elif down < 0.0:
+        down = max(down, -vmax * max(0.0, p.ceiling_m - ctx.altitude_m) / BAND_SLOW_M)
+    return sp if down == sp.down_m_s else VelocitySetpoint(sp.forward_m_s, sp.right_m_s, down, sp.yaw_rate_deg_s)
+
+
+def envelope(sp: VelocitySetpoint, ctx: SafetyContext) -> VelocitySetpoint:
+    """Horizontal speed, vertical speed and yaw rate within the safety envelope."""
+    h = math.hypot(sp.forward_m_s, sp.right_m_s)
+    k = 1.0 if h <= ctx.max_horizontal_m_s else ctx.max_horizontal_m_s / h
+    vz = max(-ctx.max_vertical_m_s, min(ctx.max_vertical_m_s, sp.down_m_s))
+    r = max(-ctx.max_yaw_rate_deg_s, min(ctx.max_yaw_rate_deg_s, sp.yaw_rate_deg_s))
+    return VelocitySetpoint(sp.forward_m_s * k, sp.right_m_s * k, vz, r)
+
+
+#: The order, written once: the first filters may zero what the later ones would only trim.
+CHAIN: tuple[Callable[[VelocitySetpoint, SafetyContext], VelocitySetpoint], ...] = (
+    stale_to_zero,
+    brake_hold,
+    speed_law_limit,
+    floor_ceiling,
+    envelope,
+)
+
+
+def apply_chain(sp: VelocitySetpoint, ctx: SafetyContext) -> VelocitySetpoint:
+    """``sp`` through every filter of :data:`CHAIN`, in order."""
+    for f in CHAIN:
+        sp = f(sp, ctx)
+    return sp

@@ -1,0 +1,117 @@
+"""The local stack for one flight: the map, the planner and the safety chain, fed one frame and one tick
+at a time (pure; time is passed in). The simulator's loop and the service's control step both use it
+when ``planner.kind`` is "local".
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from companion.core.geometry import StereoGeometry
+from companion.core.goal import GoalSpec, resolve_goal
+from companion.core.planner.local import LocalPlanner, Mode, Plan, Snapshot
+from companion.core.planner.localmap import LocalMap
+from companion.core.planner.safety import SafetyContext, apply_chain, from_ned
+from companion.core.pose import Pose
+from companion.core.types import REGION_INDEX, Decision, VelocitySetpoint
+
+if TYPE_CHECKING:
+    from companion.config import CompanionConfig
+
+#: A course goal (no point) is flown as a point this far along the heading at engagement, metres.
+COURSE_POINT_M = 1000.0
+
+
+@dataclass(frozen=True)
+class StackStep:
+    """One tick's outcome: the setpoint after the safety chain and the plan it came from."""
+
+    setpoint: VelocitySetpoint
+    plan: Plan
+
+
+class LocalStack:
+    """Map, planner and safety chain for one flight.
+
+    Args:
+        cfg: the whole configuration (``planner``, ``vehicle.radius_m``, ``command`` timeouts, ``envelope``).
+    """
+
+    def __init__(self, cfg: CompanionConfig):
+        self.cfg = cfg
+        p = cfg.planner
+        self.map = LocalMap(p.voxel_m, p.map_range_m, cfg.vehicle.radius_m, p.occupied_memory_s, p.free_memory_s)
+        self.planner = LocalPlanner(p, cfg.vehicle.radius_m)
+        self.goal_ned_m: np.ndarray | None = None
+        self.view_half_rad = math.radians(40.0)
+
+    def engage(self, position_ned_m: np.ndarray, yaw_rad: float, goal: GoalSpec | None) -> None:
+        """Start a flight at ``position_ned_m`` (float ``(3,)`` NED m) heading ``yaw_rad`` toward ``goal``
+        (None: no goal, the fuzzy controller is the whole policy; the course: a point far along the
+        heading, at the altitude now)."""
+        pos = np.asarray(position_ned_m, dtype=np.float64)
+        self.planner.engage()
+        if goal is None:
+            self.goal_ned_m = None
+            return
+        g = resolve_goal(goal, pos, yaw_rad)
+        if g.point_ned_m is None:
+            self.goal_ned_m = pos + COURSE_POINT_M * np.array([math.cos(yaw_rad), math.sin(yaw_rad), 0.0])
+        else:
+            self.goal_ned_m = np.array([g.point_ned_m[0], g.point_ned_m[1], pos[2]])
+
+    @property
+    def holding_reason(self) -> str | None:
+        """Why the planner holds (a dead end, the goal), or None."""
+        return self.planner.reason if self.planner.mode is Mode.HOLD else None
+
+    def add_frame(self, blocks: np.ndarray, geometry: StereoGeometry, block_px: int, seen_from: Pose, t_s: float) -> None:
+        """A frame's block image (float32 ``(rows, cols)`` px, NaN none) seen from ``seen_from`` at its
+        capture time ``t_s`` into the map; its horizontal view sets what counts as looked at."""
+        self.map.integrate(blocks, geometry, block_px, seen_from, t_s)
+        self.view_half_rad = math.atan(0.5 * geometry.width_px / geometry.focal_px) * 0.9
+
+    def step(
+        self,
+        now_s: float,
+        frame_age_s: float,
+        decision: Decision | None,
+        region_depths_m: np.ndarray | None,
+        position_ned_m: np.ndarray,
+        velocity_ned_m_s: np.ndarray,
+        yaw_rad: float,
+    ) -> StackStep:
+        """One control tick: plan on the map, then the safety chain."""
+        pos = np.asarray(position_ned_m, dtype=np.float64)
+        vel = np.asarray(velocity_ned_m_s, dtype=np.float64)
+        self.map.mark_body_free(pos, now_s)
+        snap = Snapshot(now_s, pos, vel, float(yaw_rad), self.goal_ned_m, decision, self.view_half_rad)
+        plan = self.planner.plan(snap, self.map)
+        sp = from_ned(plan.velocity_ned_m_s, yaw_rad, plan.yaw_rate_deg_s)
+        centre = math.nan if region_depths_m is None else float(region_depths_m[REGION_INDEX["center"]])
+        env = self.cfg.envelope
+        lmap = self.map
+
+        def free_along(u: np.ndarray) -> float:
+            return float(lmap.free_lengths(pos, np.asarray(u, dtype=np.float64)[None, :]).length_m[0])
+
+        ctx = SafetyContext(
+            frame_age_s=frame_age_s,
+            stale_after_s=self.cfg.command.stale_frame_timeout_s,
+            holding=plan.mode is Mode.HOLD,
+            decision=decision,
+            centre_depth_m=centre,
+            yaw_rad=float(yaw_rad),
+            altitude_m=float(-pos[2]),
+            velocity_ned_m_s=vel,
+            free_along=free_along,
+            planner=self.cfg.planner,
+            max_horizontal_m_s=env.max_horizontal_speed_m_s,
+            max_vertical_m_s=min(env.max_vertical_speed_m_s, self.cfg.planner.max_vertical_speed_m_s),
+            max_yaw_rate_deg_s=min(env.max_yaw_rate_deg_s, self.cfg.planner.max_yaw_rate_deg_s),
+        )
+        return StackStep(apply_chain(sp, ctx), plan)

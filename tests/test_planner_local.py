@@ -1,0 +1,322 @@
+"""The local planner: its map (rays clear, unknown is near), the speed law, the cost's choice, the
+dead end held, the fuzzy controller as a term and as the whole policy, and the safety chain."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from companion.config import CompanionConfig
+from companion.config.controller import ControllerConfig
+from companion.config.planner import PlannerConfig
+from companion.core.fuzzy.avoidance import AvoidanceController
+from companion.core.geometry import StereoGeometry
+from companion.core.planner.local import TRANSITIONS, LocalPlanner, Mode, Snapshot, speed_law
+from companion.core.planner.localmap import LocalMap
+from companion.core.planner.safety import (
+    CHAIN,
+    SafetyContext,
+    apply_chain,
+    brake_hold,
+    envelope,
+    floor_ceiling,
+    speed_law_limit,
+    stale_to_zero,
+)
+from companion.core.planner.stack import LocalStack
+from companion.core.pose import Pose
+from companion.core.types import ZERO_SETPOINT, Decision, DecisionKind, VelocitySetpoint
+
+GEOM = StereoGeometry.ideal(336, 188, 90.0, 0.12)
+BLOCK_PX = 4
+BLOCKS = (47, 84)
+
+
+def _wall_blocks(depth_m: float, cols: slice = slice(None)) -> np.ndarray:
+    """A block image of a wall across the view at ``depth_m`` (px disparity), in columns ``cols``."""
+    b = np.full(BLOCKS, np.nan, dtype=np.float32)
+    b[:, cols] = GEOM.focal_baseline_px_m / depth_m
+    return b
+
+
+def _map() -> LocalMap:
+    return LocalMap(voxel_m=0.15, range_m=8.0, radius_m=0.25, occupied_memory_s=20.0, free_memory_s=6.0)
+
+
+def _see(m: LocalMap, blocks: np.ndarray, frames: int = 3, pose: Pose | None = None) -> None:
+    pose = pose or Pose.at(0.0, 0.0, 1.5)
+    for k in range(frames):
+        m.integrate(blocks, GEOM, BLOCK_PX, pose, 0.1 * k)
+
+
+NORTH = np.array([[1.0, 0.0, 0.0]])
+EAST = np.array([[0.0, 1.0, 0.0]])
+
+
+def test_a_wall_ahead_bounds_the_free_length_at_the_radius() -> None:
+    m = _map()
+    _see(m, _wall_blocks(4.0))
+    fl = m.free_lengths(np.array([0.0, 0.0, -1.5]), NORTH)
+    # The wall's face at 4 m, less the radius rounded up to whole cubes and a cube of sampling.
+    assert 3.2 <= fl.length_m[0] <= 3.85
+    assert fl.blocked[0]
+
+
+def test_unknown_is_near_a_side_never_looked_at_is_not_free() -> None:
+    m = _map()
+    _see(m, _wall_blocks(6.0))
+    fl = m.free_lengths(np.array([0.0, 0.0, -1.5]), EAST)
+    assert fl.length_m[0] < 0.5  # east is outside the camera's view: not seen free
+    assert not fl.blocked[0]
+
+
+def test_a_plain_wall_with_no_valid_block_stays_unknown() -> None:
+    m = _map()
+    _see(m, np.full(BLOCKS, np.nan, dtype=np.float32))
+    fl = m.free_lengths(np.array([0.0, 0.0, -1.5]), NORTH)
+    assert fl.length_m[0] < 0.5 and not fl.blocked[0]
+
+
+def test_one_false_match_is_not_an_obstacle_and_is_cleared_by_seeing_through() -> None:
+    m = _map()
+    m.integrate(_wall_blocks(2.0), GEOM, BLOCK_PX, Pose.at(0.0, 0.0, 1.5), 0.0)  # one frame only
+    far = _wall_blocks(7.5)
+    for k in range(1, 4):
+        m.integrate(far, GEOM, BLOCK_PX, Pose.at(0.0, 0.0, 1.5), 0.1 * k)
+    fl = m.free_lengths(np.array([0.0, 0.0, -1.5]), NORTH)
+    assert fl.length_m[0] > 5.0
+
+
+def test_the_map_rolls_with_the_vehicle_and_keeps_what_it_saw() -> None:
+    m = _map()
+    _see(m, _wall_blocks(6.0))
+    m.centre_on(np.array([5.0, 0.0, -1.5]))  # a quarter of the grid: it rolls
+    fl = m.free_lengths(np.array([4.0, 0.0, -1.5]), NORTH)
+    assert fl.blocked[0] and fl.length_m[0] < 2.0
+
+
+def test_speed_law_is_the_exact_stopping_solution() -> None:
+    cfg = PlannerConfig(cruise_speed_m_s=20.0)
+    a, t, margin = cfg.braking_accel_m_s2, cfg.latency_s, cfg.stop_margin_m
+    for d in (0.5, 1.0, 3.0, 8.0):
+        v = speed_law(d, cfg)
+        assert v * t + v * v / (2.0 * a) == pytest.approx(max(d - margin, 0.0), abs=1e-9)
+    assert speed_law(0.1, cfg) == 0.0
+    assert speed_law(100.0, PlannerConfig(cruise_speed_m_s=3.0)) == 3.0
+
+
+def _snap(**kw: object) -> Snapshot:
+    base = dict(
+        now_s=1.0,
+        position_ned_m=np.array([0.0, 0.0, -1.5]),
+        velocity_ned_m_s=np.zeros(3),
+        yaw_rad=0.0,
+        goal_ned_m=np.array([20.0, 0.0, -1.5]),
+        decision=Decision(DecisionKind.CLEAR, 0.0, 0.0, 1.0, "clear"),
+    )
+    base.update(kw)
+    return Snapshot(**base)  # type: ignore[arg-type]
+
+
+def test_open_space_flies_at_the_goal_at_the_speed_the_free_length_allows() -> None:
+    m = _map()
+    _see(m, _wall_blocks(30.0))  # everything ahead seen free to the range
+    p = LocalPlanner(PlannerConfig(), 0.25)
+    plan = p.plan(_snap(), m)
+    assert plan.mode is Mode.CRUISE
+    assert plan.velocity_ned_m_s[0] > 0.5 and abs(plan.velocity_ned_m_s[1]) < 0.5 * plan.velocity_ned_m_s[0]
+    assert np.linalg.norm(plan.velocity_ned_m_s) == pytest.approx(speed_law(plan.free_m, p.cfg))
+
+
+def test_a_wall_across_the_way_turns_the_planner_to_look_round() -> None:
+    m = _map()
+    _see(m, _wall_blocks(1.2))
+    p = LocalPlanner(PlannerConfig(), 0.25)
+    plan = p.plan(_snap(), m)
+    assert plan.mode is Mode.DETOUR
+    assert abs(plan.yaw_rate_deg_s) > 30.0  # turning the camera toward a side not yet looked at
+    assert np.linalg.norm(plan.velocity_ned_m_s) < 1.0  # slow: only what was seen free counts
+
+
+def test_a_closed_pocket_is_held_once_looked_round() -> None:
+    m = _map()
+    p = LocalPlanner(PlannerConfig(), 0.25)
+    # Look round a pocket: walls at 1 m in every direction the camera turns to.
+    plan = None
+    for k in range(50):
+        yaw = math.radians(-120.0 + 6.0 * k)
+        pose = Pose.at(0.0, 0.0, 1.5, yaw_rad=yaw)
+        m.integrate(_wall_blocks(1.0), GEOM, BLOCK_PX, pose, 0.05 * k)
+        plan = p.plan(_snap(now_s=0.05 * k, yaw_rad=yaw), m)
+    assert plan is not None and plan.mode is Mode.HOLD and "dead end" in plan.reason
+    # Held: it stays held whatever comes next (only a new engagement leaves it).
+    assert p.plan(_snap(now_s=5.0), m).mode is Mode.HOLD
+    assert all(TRANSITIONS[(Mode.HOLD, e)] is Mode.HOLD for e in ("direct", "steer", "round"))
+
+
+def test_without_a_goal_the_fuzzy_controller_is_the_whole_policy() -> None:
+    m = _map()
+    _see(m, _wall_blocks(30.0))
+    p = LocalPlanner(PlannerConfig(), 0.25)
+    right = p.plan(_snap(goal_ned_m=None, decision=Decision(DecisionKind.AVOID, 0.8, 0.0, 0.5, "avoid")), m)
+    p.engage()
+    left = p.plan(_snap(goal_ned_m=None, decision=Decision(DecisionKind.AVOID, -0.8, 0.0, 0.5, "avoid")), m)
+    assert right.yaw_rate_deg_s > 0.0 > left.yaw_rate_deg_s
+    p.engage()
+    brake = p.plan(_snap(goal_ned_m=None, decision=Decision(DecisionKind.BRAKE, 0.0, 0.0, 0.0, "brake")), m)
+    assert np.all(brake.velocity_ned_m_s == 0.0)
+
+
+def test_membership_functions_reloaded_change_the_flight() -> None:
+    """The paper's controller stays in the loop: a reload of its membership functions changes its
+    decision for the same region depths, and with it the planner's choice."""
+    depths = np.array([4.0, 1.6, 4.0, 4.0, 1.6, 4.0, 4.0, 4.0, 4.0])
+    base = CompanionConfig()
+    d1 = AvoidanceController(base.controller, base.command).decide(depths)
+    # Every depth term's breakpoints halved (a live reload): 1.6 m now reads as far.
+    terms = {
+        n: t.model_copy(update={"params_m": tuple(0.5 * v for v in t.params_m)})
+        for n, t in base.controller.input_terms.items()
+    }
+    reloaded = ControllerConfig.model_validate({**base.controller.model_dump(), "input_terms": {n: t.model_dump() for n, t in terms.items()}})
+    d2 = AvoidanceController(reloaded, base.command).decide(depths)
+    assert (d1.kind, round(d1.yaw, 3), round(d1.pitch, 3)) != (d2.kind, round(d2.yaw, 3), round(d2.pitch, 3))
+    m = _map()
+    _see(m, _wall_blocks(30.0))
+    plans = []
+    for d in (d1, d2):
+        p = LocalPlanner(PlannerConfig(), 0.25)
+        plans.append(p.plan(_snap(goal_ned_m=None, decision=d), m))
+    assert not np.allclose(plans[0].velocity_ned_m_s, plans[1].velocity_ned_m_s) or plans[0].yaw_rate_deg_s != plans[1].yaw_rate_deg_s
+
+
+# -- the safety chain --------------------------------------------------------------------------------
+
+
+def _ctx(**kw: object) -> SafetyContext:
+    base = dict(
+        frame_age_s=0.05,
+        stale_after_s=0.5,
+        holding=False,
+        decision=Decision(DecisionKind.CLEAR, 0.0, 0.0, 1.0, "clear"),
+        centre_depth_m=10.0,
+        yaw_rad=0.0,
+        altitude_m=1.5,
+        velocity_ned_m_s=np.zeros(3),
+        free_along=lambda u: 8.0,
+        planner=PlannerConfig(),
+        max_horizontal_m_s=4.0,
+        max_vertical_m_s=1.0,
+        max_yaw_rate_deg_s=90.0,
+    )
+    base.update(kw)
+    return SafetyContext(**base)  # type: ignore[arg-type]
+
+
+FAST = VelocitySetpoint(3.0, 0.0, 0.0, 10.0)
+
+
+def test_stale_frames_give_zero_velocity() -> None:
+    assert stale_to_zero(FAST, _ctx(frame_age_s=0.6)) == ZERO_SETPOINT
+    assert stale_to_zero(FAST, _ctx(frame_age_s=math.inf)) == ZERO_SETPOINT
+    assert stale_to_zero(FAST, _ctx()) == FAST
+
+
+def test_holding_is_zero_and_the_fuzzy_brake_caps_forward_speed_by_the_centre_depth() -> None:
+    assert brake_hold(ZERO_SETPOINT, _ctx(holding=True)) == ZERO_SETPOINT
+    held = brake_hold(FAST, _ctx(holding=True))  # the way back to the held point: slow, no turn
+    assert held.forward_m_s == pytest.approx(0.5) and held.yaw_rate_deg_s == 0.0
+    brake = Decision(DecisionKind.BRAKE, 0.0, 0.0, 0.0, "brake")
+    capped = brake_hold(FAST, _ctx(decision=brake, centre_depth_m=1.5))
+    assert capped.forward_m_s == pytest.approx(speed_law(1.5, PlannerConfig()))
+    assert brake_hold(FAST, _ctx(decision=brake, centre_depth_m=math.nan)).forward_m_s == 0.0  # unknown is near
+
+
+def test_speed_law_limits_the_command_and_brakes_the_motion() -> None:
+    short = speed_law_limit(FAST, _ctx(free_along=lambda u: 1.5))
+    assert short.forward_m_s == pytest.approx(speed_law(1.5, PlannerConfig()))
+    # Moving north at 3 m/s toward a wall 2 m off, commanded east: the north component brakes.
+    moving = _ctx(velocity_ned_m_s=np.array([3.0, 0.0, 0.0]), free_along=lambda u: 2.0 if u[0] > 0.9 else 8.0)
+    out = speed_law_limit(VelocitySetpoint(2.5, 2.0, 0.0, 0.0), moving)
+    cfg = PlannerConfig()
+    # Faster than it can stop from: the setpoint is a·t below the speed, so that it decelerates at a.
+    assert out.forward_m_s <= 3.0 - cfg.braking_accel_m_s2 * cfg.latency_s + 1e-9
+    assert out.right_m_s > 1.5  # the sideways part stays (within cruise)
+
+
+def test_floor_and_ceiling_stop_descent_and_climb() -> None:
+    down = VelocitySetpoint(0.0, 0.0, 1.0, 0.0)
+    up = VelocitySetpoint(0.0, 0.0, -1.0, 0.0)
+    assert floor_ceiling(down, _ctx(altitude_m=0.5)).down_m_s == 0.0
+    assert floor_ceiling(up, _ctx(altitude_m=3.0)).down_m_s == 0.0
+    assert floor_ceiling(down, _ctx(altitude_m=2.0)).down_m_s == 1.0
+
+
+def test_envelope_bounds_speed_and_rate() -> None:
+    out = envelope(VelocitySetpoint(6.0, 0.0, 3.0, 400.0), _ctx())
+    assert out.forward_m_s == pytest.approx(4.0) and out.down_m_s == 1.0 and out.yaw_rate_deg_s == 90.0
+
+
+def test_the_chain_order_is_written_once() -> None:
+    assert [f.__name__ for f in CHAIN] == ["stale_to_zero", "brake_hold", "speed_law_limit", "floor_ceiling", "envelope"]
+    assert apply_chain(FAST, _ctx(frame_age_s=9.0)) == ZERO_SETPOINT
+
+
+def test_the_stack_flies_a_course_goal_and_needs_the_envelope_raised() -> None:
+    cfg = CompanionConfig.model_validate(
+        {"planner": {"kind": "local"}, "envelope": {"max_horizontal_speed_m_s": 4.0}}
+    )
+    stack = LocalStack(cfg)
+    stack.engage(np.array([0.0, 0.0, -1.5]), 0.0, None)
+    for k in range(3):
+        stack.add_frame(_wall_blocks(30.0), GEOM, BLOCK_PX, Pose.at(0.0, 0.0, 1.5), 0.1 * k)
+    step = stack.step(0.3, 0.05, Decision(DecisionKind.CLEAR, 0.0, 0.0, 1.0, "clear"), np.full(9, 10.0),
+                      np.array([0.0, 0.0, -1.5]), np.zeros(3), 0.0)
+    assert step.setpoint.forward_m_s > 0.5
+    with pytest.raises(ValueError, match="planner.cruise_speed_m_s"):
+        CompanionConfig.model_validate({"planner": {"kind": "local"}})
+
+
+def test_the_service_flies_the_local_stack_when_planner_kind_is_local() -> None:
+    """The supervisor's engaged step runs the local stack: frames enter its map from the pose at
+    capture, and the setpoint is the stack's (forward into space seen free; zero before any is seen)."""
+    from dataclasses import dataclass, replace
+
+    from companion.core.supervisor import Engage, State, Supervisor, SupervisorConfig
+    from companion.interfaces import VehicleState
+
+    @dataclass(frozen=True)
+    class Seen:
+        timestamp_s: float
+        decision: Decision
+        near_points_cam_m: object
+        near_blocks: object
+        geometry: object
+        refined: object = None
+
+    cfg = CompanionConfig.model_validate({"planner": {"kind": "local"}, "envelope": {"max_horizontal_speed_m_s": 4.0}})
+    sup = Supervisor(SupervisorConfig.from_config(cfg))
+    clear = Decision(DecisionKind.CLEAR, 0.0, 0.0, 1.0, "clear")
+    at = np.array([0.0, 0.0, -1.5])
+    v = VehicleState(connected=True, armed=True, flight_mode="POSCTL", in_offboard=False,
+                     position_ned_m=at, velocity_ned_m_s=np.zeros(3), attitude_rad=np.zeros(3), position_timestamp_s=0.0)
+    now = 0.0
+    blind = Seen(now, clear, np.empty((0, 3)), np.full(BLOCKS, np.nan, dtype=np.float32), GEOM)
+    out = sup.step(now, blind, v, [Engage()], camera_ok=True)
+    for _ in range(12):
+        now += 0.05
+        v = replace(v, position_timestamp_s=now)
+        out = sup.step(now, replace(blind, timestamp_s=now - 0.02), v, [], camera_ok=True)
+    v = replace(v, flight_mode="OFFBOARD", in_offboard=True)
+    now += 0.05
+    out = sup.step(now, replace(blind, timestamp_s=now - 0.02), v, [], camera_ok=True)
+    assert out.state is State.ENGAGED
+    assert out.setpoint is not None and out.setpoint.forward_m_s == 0.0  # nothing seen free: no motion
+    for _ in range(4):
+        now += 0.05
+        v = replace(v, position_timestamp_s=now)
+        seen = Seen(now - 0.01, clear, np.empty((0, 3)), _wall_blocks(30.0), GEOM)
+        out = sup.step(now, seen, v, [], camera_ok=True)
+    assert out.setpoint is not None and out.setpoint.forward_m_s > 0.5
