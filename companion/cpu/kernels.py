@@ -72,154 +72,188 @@ def _popcount(v):  # pragma: no cover - compiled
     return (v * np.uint64(0x0101010101010101)) >> np.uint64(56)
 
 
-@nb.njit(**_JIT)
-def _path(prev, pi, cur, ci, crow, x, srow, add, first, p1, p2):  # pragma: no cover - compiled
-    """One pixel of a path (rule 3), added into (``add``) or written to the sums.
+@nb.njit(**_JIT, inline="always")
+def _path(p, c, cx, out, base, mode, m, nc, first, p1, p2):  # pragma: no cover - compiled
+    """One pixel of a path (rule 3) and its share of the sums; returns the new path costs' minimum.
 
-    ``prev[pi]`` holds the path costs of the pixel before (padded int16 row of ``D + 2``; unused when
-    ``first``: the path starts here, ``Lr = C``); ``cur[ci]`` receives this pixel's; ``crow[x]`` and
-    ``srow[x]`` are this pixel's uint8 costs and uint16 sums.
+    ``p``: the path costs of the pixel before (int16 ``(D + 2,)``, padded), whose minimum is ``m``
+    (unused when ``first``: the path starts here, ``Lr = C``); ``c`` receives this pixel's; ``cx``:
+    its uint8 costs; ``nc``: its included disparities. ``mode`` 0: ``out = Lr``; 1: ``out += Lr``;
+    2: ``out = base + Lr`` (uint16 ``(D,)``). One loop with the minimum kept as it goes, inlined:
+    the form the compiler vectorises best.
     """
-    D = crow.shape[1]
-    nc = min(x, D - 1) + 1
+    D = cx.shape[0]
+    mn = np.int16(INF)
     if first:
         for d in range(nc):
-            v = np.int16(crow[x, d])
-            cur[ci, d + 1] = v
-            if add:
-                srow[x, d] += np.uint16(v)
+            v = np.int16(cx[d])
+            c[d + 1] = v
+            mn = min(mn, v)
+            if mode == 0:
+                out[d] = np.uint16(v)
+            elif mode == 1:
+                out[d] += np.uint16(v)
             else:
-                srow[x, d] = np.uint16(v)
+                out[d] = base[d] + np.uint16(v)
     else:
-        m = prev[pi, 1]
-        for d in range(2, D + 1):
-            m = min(m, prev[pi, d])
         mp2 = np.int16(m + p2)
-        for d in range(nc):
-            v = min(min(prev[pi, d + 1], mp2), min(np.int16(prev[pi, d] + p1), np.int16(prev[pi, d + 2] + p1)))
-            v = np.int16(np.int16(crow[x, d]) + v - m)
-            cur[ci, d + 1] = v
-            if add:
-                srow[x, d] += np.uint16(v)
-            else:
-                srow[x, d] = np.uint16(v)
+        if mode == 0:
+            for d in range(nc):
+                v = min(min(p[d + 1], mp2), min(np.int16(p[d] + p1), np.int16(p[d + 2] + p1)))
+                v = np.int16(np.int16(cx[d]) + v - m)
+                c[d + 1] = v
+                mn = min(mn, v)
+                out[d] = np.uint16(v)
+        elif mode == 1:
+            for d in range(nc):
+                v = min(min(p[d + 1], mp2), min(np.int16(p[d] + p1), np.int16(p[d + 2] + p1)))
+                v = np.int16(np.int16(cx[d]) + v - m)
+                c[d + 1] = v
+                mn = min(mn, v)
+                out[d] += np.uint16(v)
+        else:
+            for d in range(nc):
+                v = min(min(p[d + 1], mp2), min(np.int16(p[d] + p1), np.int16(p[d + 2] + p1)))
+                v = np.int16(np.int16(cx[d]) + v - m)
+                c[d + 1] = v
+                mn = min(mn, v)
+                out[d] = base[d] + np.uint16(v)
     for d in range(nc, D):
-        cur[ci, d + 1] = INF
+        c[d + 1] = INF
+    return mn
+
+
+@nb.njit(**_JIT)
+def _select_row(srow, keys, best_right, d_bits, u, lr_max_diff, out):  # pragma: no cover - compiled
+    """Rules 5-9 for one row: ``srow`` uint16 ``(W, D)`` the sums ``S``, into int16 ``out`` ``(W,)``.
+
+    Each argmin with ties to the largest ``d`` is a plain minimum of the key ``256·S + 255 - d``
+    (``S`` < 2^16, ``d`` < 256), which the compiler vectorises; ``key >> 8`` is ``S``. ``keys``:
+    uint32 ``(W, D)`` and ``best_right`` uint32 ``(W,)`` scratch; ``d_bits``: uint32 ``255 - d``.
+    """
+    w, D = srow.shape
+    none = np.uint32(0xFFFFFFFF)
+    for x in range(w):
+        sx = srow[x]
+        kx = keys[x]
+        for d in range(D):
+            kx[d] = (np.uint32(sx[d]) << np.uint32(8)) | d_bits[d]
+    if lr_max_diff >= 0:
+        # dR(xr) = argmin_d S(y, xr + d, d): every included (x, d) offers itself to xr = x - d
+        best_right[:] = none
+        for x in range(w):
+            kx = keys[x]
+            for d in range(min(x, D - 1) + 1):
+                # an unsigned index: no negative-index check, so the loop vectorises
+                j = np.uint64(x) - np.uint64(d)
+                best_right[j] = min(best_right[j], kx[d])
+    for x in range(w):
+        kx = keys[x]
+        nc = min(x, D - 1) + 1
+        best = none
+        for d in range(nc):
+            best = min(best, kx[d])
+        ds = 255 - np.int64(best & np.uint32(255))
+        c1 = np.int64(best >> np.uint32(8))
+        if ds >= 1 and ds + 1 < nc:
+            c0 = np.int64(kx[ds - 1] >> np.uint32(8))
+            c2 = np.int64(kx[ds + 1] >> np.uint32(8))
+            den = c0 + c2 - 2 * c1
+            off = (16 * (c0 - c2) + den) // (2 * den)
+        else:
+            off = 0
+        v = 16 * ds + off
+        m2 = none
+        for d in range(0, ds - 1):
+            m2 = min(m2, kx[d])
+        for d in range(ds + 2, nc):
+            m2 = min(m2, kx[d])
+        reject = m2 != none and 100 * np.int64(m2 >> np.uint32(8)) <= (100 + u) * c1
+        if lr_max_diff >= 0:
+            d_back = 255 - np.int64(best_right[x - ds] & np.uint32(255))
+            if abs(ds - d_back) > lr_max_diff:
+                reject = True
+        out[x] = -1 if reject else v
 
 
 @nb.njit(**_JIT, parallel=True)
-def aggregate(cl, cr, sums, p1, p2, paths, cost_buf, row_buf, col_buf):  # pragma: no cover - compiled
-    """Rules 2-4 in two halves that run side by side: half 0 walks the rows downwards with the paths
-    that come from the left and from above (``(1, 0)``, ``(0, 1)``, and with 8 paths ``(1, 1)``,
-    ``(-1, 1)``), half 1 upwards with the others; each writes its own partial sums, so the two never
-    wait for each other and the cost volume is never stored (each half computes a row's costs when
-    it reaches it).
+def match(cl, cr, sums, p1, p2, paths, u, lr_max_diff, out, phase, scratch_cost, scratch_rows, scratch_cols,
+          scratch_mins, scratch_sums, scratch_keys, scratch_right, d_bits):  # pragma: no cover - compiled
+    """Rules 2-9 in two halves that run side by side, in two phases (two calls, ``phase`` 0 then 1).
+
+    Half 0 walks the rows downwards with the paths that come from the left and from above
+    (``(1, 0)``, ``(0, 1)``, and with 8 paths ``(1, 1)``, ``(-1, 1)``), half 1 upwards with the
+    others; each computes a row's costs when it reaches it (the cost volume is never stored). In
+    phase 0 half 0 covers the upper rows ``[0, H // 2)`` and half 1 the lower ``[H // 2, H)``, each
+    writing its partial sums into ``sums``. In phase 1 each continues into the other's rows, adds
+    its partial sums to the other's and, the row's ``S`` now complete, selects its disparities
+    into ``out`` at once: every sum is written once and read once, and no half waits for the other
+    within a phase.
 
     Args:
         cl, cr: uint64 ``(H, W)`` censuses of the left and right images.
-        sums: uint16 ``(2, H, W, D)``: each half's partial sums ``S``; the entries of excluded
-            disparities are undefined.
-        p1, p2: the penalties; paths: 4 or 8.
-        cost_buf: uint8 ``(2, W, D)`` scratch: each half's cost row.
-        row_buf: int16 ``(2, W, D + 2)`` scratch: each half's horizontal path costs along a row.
-        col_buf: int16 ``(2, 3, 2, W, D + 2)`` scratch: each half's previous and current row of its
-            vertical and two diagonal paths.
+        sums: uint16 ``(H, W, D)``: phase 0's partial sums (excluded disparities: undefined).
+        p1, p2: the penalties; paths: 4 or 8; u, lr_max_diff: rules 6 and 9.
+        out: int16 ``(H, W)`` disparity × 16, -1 invalid (written in phase 1).
+        scratch_*: per half: uint8 ``(2, W, D)`` a cost row; int16 ``(2, 2, D + 2)`` the horizontal
+            path's costs at the pixel before and this one; int16 ``(2, P, 2, W, D + 2)`` and
+            ``(2, P, 2, W)`` the previous and current row of the vertical (and, P = 3, the two
+            diagonal) paths and their minima (kept from phase 0 to phase 1); uint16
+            ``(2, W, D)`` a row of complete sums; uint32 ``(2, W, D)`` and ``(2, W)`` the selection's
+            keys. d_bits: uint32 ``(D,)``, ``255 - d``.
     """
-    _, h, w, D = sums.shape
+    h, w, D = sums.shape
+    mid = h // 2
+    n_col = 1 if paths == 4 else 3
     for half in nb.prange(2):
-        crow = cost_buf[half]
-        hbuf = row_buf[half]
-        hbuf[:, 0] = INF
-        hbuf[:, D + 1] = INF
-        vbufs = col_buf[half]
-        vbufs[:, :, :, 0] = INF
-        vbufs[:, :, :, D + 1] = INF
-        for i in range(h):
+        crow = scratch_cost[half]
+        hbuf = scratch_rows[half]
+        vbufs = scratch_cols[half]
+        vmins = scratch_mins[half]
+        full = scratch_sums[half]
+        if phase == 0:
+            hbuf[:, 0] = INF
+            hbuf[:, D + 1] = INF
+            vbufs[:, :, :, 0] = INF
+            vbufs[:, :, :, D + 1] = INF
+        # step i of this half's walk: half 0 at row i, half 1 at row h - 1 - i
+        if half == 0:
+            i0, i1 = (0, mid) if phase == 0 else (mid, h)
+        else:
+            i0, i1 = (0, h - mid) if phase == 0 else (h - mid, h)
+        mode = 0 if phase == 0 else 2
+        for i in range(i0, i1):
             y = i if half == 0 else h - 1 - i
-            srow = sums[half, y]
+            srow = sums[y]
+            dst = srow if phase == 0 else full
             left = cl[y]
             right = cr[y]
             for x in range(w):
                 a = left[x]
-                nc = min(x, D - 1) + 1
                 cx = crow[x]
-                for d in range(nc):
+                for d in range(min(x, D - 1) + 1):
                     cx[d] = _popcount(a ^ right[np.uint64(x) - np.uint64(d)])
-            # horizontal: from the left (half 0) or from the right (half 1); sets the sums
-            if half == 0:
-                for x in range(w):
-                    _path(hbuf, x - 1, hbuf, x, crow, x, srow, False, x == 0, p1, p2)
-            else:
-                for x in range(w - 1, -1, -1):
-                    _path(hbuf, x + 1, hbuf, x, crow, x, srow, False, x == w - 1, p1, p2)
+            # horizontal: from the left (half 0) or from the right (half 1)
+            m = np.int16(0)
+            for j in range(w):
+                x = j if half == 0 else w - 1 - j
+                m = _path(hbuf[(j + 1) & 1], hbuf[j & 1], crow[x], dst[x], srow[x], mode, m,
+                          min(x, D - 1) + 1, j == 0, p1, p2)
             # vertical (and diagonal): continue the path of the row before, in walking order
-            n_col = 1 if paths == 4 else 3
             for k in range(n_col):
                 prev = vbufs[k, (i + 1) & 1]
                 cur = vbufs[k, i & 1]
+                prev_min = vmins[k, (i + 1) & 1]
+                cur_min = vmins[k, i & 1]
                 dx = 0 if k == 0 else (1 if k == 1 else -1)
                 for x in range(w):
                     xp = x - dx
                     first = i == 0 or xp < 0 or xp >= w
-                    _path(prev, xp, cur, x, crow, x, srow, True, first, p1, p2)
-
-
-@nb.njit(**_JIT, parallel=True)
-def select_rows(sums, u, lr_max_diff, out, right_buf):  # pragma: no cover - compiled
-    """Rules 5-9 on the summed costs (``sums``: uint16 ``(2, H, W, D)``, the two halves of
-    :func:`aggregate`, whose sum is ``S``), into int16 ``out`` ``(H, W)`` (disparity × 16, -1
-    invalid).
-
-    Each argmin with ties to the largest ``d`` is a plain minimum of the key ``256·S + 255 - d``
-    (``S`` < 2^16, ``d`` < 256), which the compiler vectorises. ``right_buf``: int32 ``(T, W)``
-    scratch (the right disparities' keys of one row per chunk of rows).
-    """
-    _, h, w, D = sums.shape
-    n_chunks = right_buf.shape[0]
-    big = np.int32(1 << 30)
-    for t in nb.prange(n_chunks):
-        best_right = right_buf[t]
-        for y in range(t * h // n_chunks, (t + 1) * h // n_chunks):
-            s0 = sums[0, y]
-            s1 = sums[1, y]
-            if lr_max_diff >= 0:
-                # dR(xr) = argmin_d S(y, xr + d, d): every included (x, d) offers itself to xr = x - d
-                for xr in range(w):
-                    best_right[xr] = big
-                for x in range(w):
-                    a0 = s0[x]
-                    a1 = s1[x]
-                    for d in range(min(x, D - 1) + 1):
-                        key = ((np.int32(a0[d]) + np.int32(a1[d])) << 8) | np.int32(255 - d)
-                        # an unsigned index: no negative-index check, so the loop vectorises
-                        j = np.uint64(x) - np.uint64(d)
-                        best_right[j] = min(best_right[j], key)
-            for x in range(w):
-                nc = min(x, D - 1) + 1
-                best = big
-                for d in range(nc):
-                    best = min(best, ((np.int32(s0[x, d]) + np.int32(s1[x, d])) << 8) | np.int32(255 - d))
-                ds = 255 - (best & 255)
-                c1 = np.int64(best >> 8)
-                if ds >= 1 and ds + 1 < nc:
-                    c0 = np.int64(s0[x, ds - 1]) + np.int64(s1[x, ds - 1])
-                    c2 = np.int64(s0[x, ds + 1]) + np.int64(s1[x, ds + 1])
-                    den = c0 + c2 - 2 * c1
-                    off = (16 * (c0 - c2) + den) // (2 * den)
-                else:
-                    off = 0
-                v = 16 * ds + off
-                m2 = big
-                for d in range(0, ds - 1):
-                    m2 = min(m2, (np.int32(s0[x, d]) + np.int32(s1[x, d])))
-                for d in range(ds + 2, nc):
-                    m2 = min(m2, (np.int32(s0[x, d]) + np.int32(s1[x, d])))
-                reject = m2 < big and 100 * np.int64(m2) <= (100 + u) * c1
-                if lr_max_diff >= 0:
-                    d_back = 255 - (best_right[x - ds] & 255)
-                    if abs(ds - d_back) > lr_max_diff:
-                        reject = True
-                out[y, x] = -1 if reject else v
+                    xq = x if first else xp
+                    cur_min[x] = _path(prev[xq], cur[x], crow[x], dst[x], srow[x], 1, prev_min[xq],
+                                       min(x, D - 1) + 1, first, p1, p2)
+            if phase == 1:
+                _select_row(full, scratch_keys[half], scratch_right[half], d_bits, u, lr_max_diff, out[y])
 
 
 @nb.njit(**_JIT, parallel=True)

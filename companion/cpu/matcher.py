@@ -74,11 +74,17 @@ class CpuSgmMatcher:
         self._census_l = np.empty((h, w), np.uint64)
         self._census_r = np.empty((h, w), np.uint64)
         self._planes = np.empty((chunks, 8, w), np.uint8)
-        self._sums = np.empty((2, h, w, D), np.uint16)
-        self._cost_rows = np.empty((2, w, D), np.uint8)
-        self._path_rows = np.empty((2, w, D + 2), np.int16)
-        self._path_cols = np.empty((2, 3 if self.paths == 8 else 1, 2, w, D + 2), np.int16)
-        self._right = np.empty((chunks, w), np.int32)
+        self._sums = np.empty((h, w, D), np.uint16)
+        self._scratch = (
+            np.empty((2, w, D), np.uint8),
+            np.empty((2, 2, D + 2), np.int16),
+            np.empty((2, 3 if self.paths == 8 else 1, 2, w, D + 2), np.int16),
+            np.empty((2, 3 if self.paths == 8 else 1, 2, w), np.int16),
+            np.empty((2, w, D), np.uint16),
+            np.empty((2, w, D), np.uint32),
+            np.empty((2, w), np.uint32),
+            (255 - np.arange(D)).astype(np.uint32),
+        )
         self._med = np.empty((chunks, 9, w), np.int16)
         self._raw = np.empty((h, w), np.int16)
         self._fixed = np.empty((h, w), np.int16)
@@ -93,11 +99,11 @@ class CpuSgmMatcher:
         self._numba.set_num_threads(self.threads)
         k.census_9x7(left, self._census_l, self._planes)
         k.census_9x7(right, self._census_r, self._planes)
-        k.aggregate(
-            self._census_l, self._census_r, self._sums, self.p1, self.p2, self.paths,
-            self._cost_rows, self._path_rows, self._path_cols,
-        )
-        k.select_rows(self._sums, self.uniqueness_ratio_pct, self.lr_max_diff_px, self._raw, self._right)
+        for phase in (0, 1):
+            k.match(
+                self._census_l, self._census_r, self._sums, self.p1, self.p2, self.paths,
+                self.uniqueness_ratio_pct, self.lr_max_diff_px, self._raw, phase, *self._scratch,
+            )
         k.median_to_float(self._raw, self.median, self._fixed, out, self._med)
 
     def _check(self, left: np.ndarray, right: np.ndarray) -> None:
