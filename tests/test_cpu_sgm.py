@@ -3,8 +3,7 @@ bit: disparities, region depths and OBSTACLE_DISTANCE, on the pairs the referenc
 tests use (odd sizes, odd and wide disparity counts, flat patches with tied sums, both path sets, every
 post-processing switch); and ``auto`` picks it only where it keeps the camera's rate.
 
-The kernels compile once per test session, into the session's temporary folder (images are small, so
-the reference is quick).
+The kernels compile once, into pytest's cache folder (images are small, so the reference is quick).
 """
 
 from __future__ import annotations
@@ -25,14 +24,17 @@ pytest.importorskip("numba")
 
 
 @pytest.fixture(scope="module", autouse=True)
-def _numba_cache(tmp_path_factory: pytest.TempPathFactory) -> None:
-    """Numba's cache in a temporary folder: the tests leave nothing in the user's cache."""
+def _numba_cache(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> None:
+    """Numba's cache in pytest's own cache folder (so the kernels compile once per checkout, not once
+    per session), or a temporary folder without it: the tests leave nothing in the user's cache."""
     import numba
 
     from companion.cpu import load_kernels
 
+    cache = getattr(request.config, "cache", None)
+    folder = cache.mkdir("companion-numba") if cache is not None else tmp_path_factory.mktemp("numba-cache")
     old = numba.config.CACHE_DIR
-    numba.config.CACHE_DIR = str(tmp_path_factory.mktemp("numba-cache"))
+    numba.config.CACHE_DIR = str(folder)
     try:
         load_kernels()  # binds the cache location of the kernels for this process
     finally:

@@ -124,49 +124,60 @@ def _path(p, c, cx, out, base, mode, m, nc, first, p1, p2):  # pragma: no cover 
 
 
 @nb.njit(**_JIT)
-def _select_row(srow, keys, best_right, d_bits, u, lr_max_diff, out):  # pragma: no cover - compiled
+def _select_row(srow, keys, best, d_bits, u, lr_max_diff, out):  # pragma: no cover - compiled
     """Rules 5-9 for one row: ``srow`` uint16 ``(W, D)`` the sums ``S``, into int16 ``out`` ``(W,)``.
 
     Each argmin with ties to the largest ``d`` is a plain minimum of the key ``256·S + 255 - d``
-    (``S`` < 2^16, ``d`` < 256), which the compiler vectorises; ``key >> 8`` is ``S``. ``keys``:
-    uint32 ``(W, D)`` and ``best_right`` uint32 ``(W,)`` scratch; ``d_bits``: uint32 ``255 - d``.
+    (``S`` < 2^16, ``d`` < 256), which the compiler vectorises; ``key >> 8`` is ``S``; an excluded
+    disparity's key is the largest value. ``keys``: uint32 ``(W, D)`` and ``best`` uint32 ``(2, W)``
+    scratch (each column's left and right winner); ``d_bits``: uint32 ``255 - d``.
     """
     w, D = srow.shape
     none = np.uint32(0xFFFFFFFF)
+    best_left = best[0]
+    best_right = best[1]
     for x in range(w):
         sx = srow[x]
         kx = keys[x]
+        nc = min(x, D - 1) + 1
+        b = none
         for d in range(D):
-            kx[d] = (np.uint32(sx[d]) << np.uint32(8)) | d_bits[d]
+            key = (np.uint32(sx[d]) << np.uint32(8)) | d_bits[d]
+            key = key if d < nc else none
+            kx[d] = key
+            b = min(b, key)
+        best_left[x] = b
     if lr_max_diff >= 0:
         # dR(xr) = argmin_d S(y, xr + d, d): every included (x, d) offers itself to xr = x - d
         best_right[:] = none
         for x in range(w):
             kx = keys[x]
-            for d in range(min(x, D - 1) + 1):
+            nc = min(x, D - 1) + 1
+            br = best_right[x + 1 - nc : x + 1]
+            for j in range(nc):
                 # an unsigned index: no negative-index check, so the loop vectorises
-                j = np.uint64(x) - np.uint64(d)
-                best_right[j] = min(best_right[j], kx[d])
+                br[j] = min(br[j], kx[np.uint64(nc - 1) - np.uint64(j)])
     for x in range(w):
         kx = keys[x]
         nc = min(x, D - 1) + 1
-        best = none
-        for d in range(nc):
-            best = min(best, kx[d])
-        ds = 255 - np.int64(best & np.uint32(255))
-        c1 = np.int64(best >> np.uint32(8))
+        b = best_left[x]
+        ds = 255 - np.int64(b & np.uint32(255))
+        c1 = np.int64(b >> np.uint32(8))
         if ds >= 1 and ds + 1 < nc:
             c0 = np.int64(kx[ds - 1] >> np.uint32(8))
             c2 = np.int64(kx[ds + 1] >> np.uint32(8))
             den = c0 + c2 - 2 * c1
-            off = (16 * (c0 - c2) + den) // (2 * den)
+            # floor division in float64: exact here (|numerator|, |denominator| < 2^20, so a
+            # quotient that is not an integer lies at least 2^-20 from one), and cheaper than idiv
+            off = np.int64(np.floor(np.float64(16 * (c0 - c2) + den) / np.float64(2 * den)))
         else:
             off = 0
         v = 16 * ds + off
+        # uniqueness: the smallest sum 2 or more away (the winner and its neighbours taken out)
+        for d in range(max(ds - 1, 0), min(ds + 2, D)):
+            kx[d] = none
         m2 = none
-        for d in range(0, ds - 1):
-            m2 = min(m2, kx[d])
-        for d in range(ds + 2, nc):
+        for d in range(D):
             m2 = min(m2, kx[d])
         reject = m2 != none and 100 * np.int64(m2 >> np.uint32(8)) <= (100 + u) * c1
         if lr_max_diff >= 0:
@@ -199,8 +210,8 @@ def match(cl, cr, sums, p1, p2, paths, u, lr_max_diff, out, phase, scratch_cost,
             path's costs at the pixel before and this one; int16 ``(2, P, 2, W, D + 2)`` and
             ``(2, P, 2, W)`` the previous and current row of the vertical (and, P = 3, the two
             diagonal) paths and their minima (kept from phase 0 to phase 1); uint16
-            ``(2, W, D)`` a row of complete sums; uint32 ``(2, W, D)`` and ``(2, W)`` the selection's
-            keys. d_bits: uint32 ``(D,)``, ``255 - d``.
+            ``(2, W, D)`` a row of complete sums; uint32 ``(2, W, D)`` and ``(2, 2, W)`` the
+            selection's keys and winners. d_bits: uint32 ``(D,)``, ``255 - d``.
     """
     h, w, D = sums.shape
     mid = h // 2
@@ -262,8 +273,9 @@ def median_to_float(disp, median, fixed, out, med_buf):  # pragma: no cover - co
     (disparity × 16, -1 invalid) and float32 ``out`` pixels, NaN where invalid.
 
     The lower median of the valid values: the nine neighbours (invalid or outside: 32767, above every
-    valid value) sorted by a network of compare-exchanges along whole rows, then the element
-    ``(n - 1) // 2`` of the ``n`` valid ones. ``med_buf``: int16 ``(T, 9, W)`` scratch.
+    valid value) sorted by an odd-even transposition network (nine rounds of compare-exchanges, as
+    straight-line code the compiler vectorises across columns), then the element ``(n - 1) // 2`` of
+    the ``n`` valid ones. ``med_buf``: int16 ``(T, 3, W + 2)`` scratch: three rows padded with 32767.
     """
     h, w = disp.shape
     n_chunks = med_buf.shape[0]
@@ -271,45 +283,79 @@ def median_to_float(disp, median, fixed, out, med_buf):  # pragma: no cover - co
     nan = np.float32(np.nan)
     big = np.int16(32767)
     for t in nb.prange(n_chunks):
-        v9 = med_buf[t]
+        rows = med_buf[t]
         for y in range(t * h // n_chunks, (t + 1) * h // n_chunks):
+            fr = fixed[y]
+            src = disp[y]
             if median:
-                k = 0
-                for i in range(-1, 2):
-                    yy = y + i
-                    for j in range(-1, 2):
-                        r = v9[k]
-                        if 0 <= yy < h:
-                            src = disp[yy]
-                            for x in range(max(0, -j), min(w, w - j)):
-                                q = src[x + j]
-                                r[x] = q if q >= 0 else big
-                            if j < 0:
-                                r[0] = big
-                            elif j > 0:
-                                r[w - 1] = big
-                        else:
-                            r[:] = big
-                        k += 1
-                # odd-even transposition sort: 9 rounds of neighbour compare-exchanges
-                for rnd in range(9):
-                    for a in range(rnd & 1, 8, 2):
-                        ra = v9[a]
-                        rb = v9[a + 1]
+                for k in range(3):
+                    yy = y + k - 1
+                    r = rows[k]
+                    r[0] = big
+                    r[w + 1] = big
+                    if 0 <= yy < h:
+                        s_row = disp[yy]
+                        inner = r[1 : w + 1]
                         for x in range(w):
-                            lo = min(ra[x], rb[x])
-                            rb[x] = max(ra[x], rb[x])
-                            ra[x] = lo
+                            q = s_row[x]
+                            inner[x] = q if q >= 0 else big
+                    else:
+                        r[:] = big
+                r0 = rows[0]
+                r1 = rows[1]
+                r2 = rows[2]
+                for x in range(w):
+                    v0, v1, v2 = r0[x], r0[x + 1], r0[x + 2]
+                    v3, v4, v5 = r1[x], r1[x + 1], r1[x + 2]
+                    v6, v7, v8 = r2[x], r2[x + 1], r2[x + 2]
+                    n = (
+                        np.int16(v0 != big) + np.int16(v1 != big) + np.int16(v2 != big)
+                        + np.int16(v3 != big) + np.int16(v4 != big) + np.int16(v5 != big)
+                        + np.int16(v6 != big) + np.int16(v7 != big) + np.int16(v8 != big)
+                    )
+                    v0, v1 = min(v0, v1), max(v0, v1)
+                    v2, v3 = min(v2, v3), max(v2, v3)
+                    v4, v5 = min(v4, v5), max(v4, v5)
+                    v6, v7 = min(v6, v7), max(v6, v7)
+                    v1, v2 = min(v1, v2), max(v1, v2)
+                    v3, v4 = min(v3, v4), max(v3, v4)
+                    v5, v6 = min(v5, v6), max(v5, v6)
+                    v7, v8 = min(v7, v8), max(v7, v8)
+                    v0, v1 = min(v0, v1), max(v0, v1)
+                    v2, v3 = min(v2, v3), max(v2, v3)
+                    v4, v5 = min(v4, v5), max(v4, v5)
+                    v6, v7 = min(v6, v7), max(v6, v7)
+                    v1, v2 = min(v1, v2), max(v1, v2)
+                    v3, v4 = min(v3, v4), max(v3, v4)
+                    v5, v6 = min(v5, v6), max(v5, v6)
+                    v7, v8 = min(v7, v8), max(v7, v8)
+                    v0, v1 = min(v0, v1), max(v0, v1)
+                    v2, v3 = min(v2, v3), max(v2, v3)
+                    v4, v5 = min(v4, v5), max(v4, v5)
+                    v6, v7 = min(v6, v7), max(v6, v7)
+                    v1, v2 = min(v1, v2), max(v1, v2)
+                    v3, v4 = min(v3, v4), max(v3, v4)
+                    v5, v6 = min(v5, v6), max(v5, v6)
+                    v7, v8 = min(v7, v8), max(v7, v8)
+                    v0, v1 = min(v0, v1), max(v0, v1)
+                    v2, v3 = min(v2, v3), max(v2, v3)
+                    v4, v5 = min(v4, v5), max(v4, v5)
+                    v6, v7 = min(v6, v7), max(v6, v7)
+                    v1, v2 = min(v1, v2), max(v1, v2)
+                    v3, v4 = min(v3, v4), max(v3, v4)
+                    v5, v6 = min(v5, v6), max(v5, v6)
+                    v7, v8 = min(v7, v8), max(v7, v8)
+                    v0, v1 = min(v0, v1), max(v0, v1)
+                    v2, v3 = min(v2, v3), max(v2, v3)
+                    v4, v5 = min(v4, v5), max(v4, v5)
+                    v6, v7 = min(v6, v7), max(v6, v7)
+                    k = (n - 1) >> 1  # at most 4
+                    m = v0 if k == 0 else (v1 if k == 1 else (v2 if k == 2 else (v3 if k == 3 else v4)))
+                    fr[x] = m if src[x] >= 0 else np.int16(-1)
+            else:
+                for x in range(w):
+                    fr[x] = src[x]
+            orow = out[y]
             for x in range(w):
-                v = disp[y, x]
-                if v < 0:
-                    fixed[y, x] = -1
-                    out[y, x] = nan
-                    continue
-                if median:
-                    n = 0
-                    for k in range(9):
-                        n += v9[k, x] != big
-                    v = v9[(n - 1) // 2, x]
-                fixed[y, x] = v
-                out[y, x] = np.float32(v) * scale
+                v = fr[x]
+                orow[x] = nan if v < 0 else np.float32(v) * scale

@@ -82,10 +82,10 @@ class CpuSgmMatcher:
             np.empty((2, 3 if self.paths == 8 else 1, 2, w), np.int16),
             np.empty((2, w, D), np.uint16),
             np.empty((2, w, D), np.uint32),
-            np.empty((2, w), np.uint32),
+            np.empty((2, 2, w), np.uint32),
             (255 - np.arange(D)).astype(np.uint32),
         )
-        self._med = np.empty((chunks, 9, w), np.int16)
+        self._med = np.empty((chunks, 3, w + 2), np.int16)
         self._raw = np.empty((h, w), np.int16)
         self._fixed = np.empty((h, w), np.int16)
         self._out = np.empty((h, w), np.float32)
