@@ -141,11 +141,12 @@ def _select_row(srow, keys, best, d_bits, u, lr_max_diff, out):  # pragma: no co
         kx = keys[x]
         nc = min(x, D - 1) + 1
         b = none
-        for d in range(D):
+        for d in range(nc):
             key = (np.uint32(sx[d]) << np.uint32(8)) | d_bits[d]
-            key = key if d < nc else none
             kx[d] = key
             b = min(b, key)
+        for d in range(nc, D):
+            kx[d] = none
         best_left[x] = b
     if lr_max_diff >= 0:
         # dR(xr) = argmin_d S(y, xr + d, d): every included (x, d) offers itself to xr = x - d
