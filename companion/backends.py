@@ -57,14 +57,20 @@ def _cpu_sgm(cfg: CompanionConfig, width_px: int, height_px: int, clock: Clock) 
     return CpuRegionEstimator(cfg, width_px, height_px, clock=clock, matcher=matcher)
 
 
+#: Threads the cpu-sgm engine's path aggregation (most of its work) runs on at most: two halves.
+CPU_SGM_MAX_THREADS = 2
+
+
 def cpu_sgm_keeps_rate(cfg: CompanionConfig, cores: int) -> bool:
     """Whether ``cpu-sgm`` keeps the camera's frame rate with ``cores`` CPU cores: camera pixels ×
     disparities × frames per second at most ``stereo.cpu_sgm_cells_per_core_s`` per thread it may
-    use (``stereo.cpu_threads``, 0 = ``cores``). Pure: the caller counts the cores."""
+    use (``stereo.cpu_threads``, 0 = ``cores``; at most :data:`CPU_SGM_MAX_THREADS`). Pure: the
+    caller counts the cores."""
     st, cam = cfg.stereo, cfg.camera
     threads = min(st.cpu_threads, cores) if st.cpu_threads > 0 else cores
+    threads = max(1, min(threads, CPU_SGM_MAX_THREADS))
     work = cam.width_px * cam.height_px * st.num_disparities * cam.fps_hz
-    return st.cpu_sgm_cells_per_core_s > 0 and work <= st.cpu_sgm_cells_per_core_s * max(1, threads)
+    return st.cpu_sgm_cells_per_core_s > 0 and work <= st.cpu_sgm_cells_per_core_s * threads
 
 
 def _cores() -> int:

@@ -165,7 +165,8 @@ class StereoConfig(StrictModel):
         description=(
             "auto without CUDA: how much census + SGM matching one CPU core does per second, in pixels "
             "times disparities. auto picks cpu-sgm when camera width x height x num_disparities x "
-            "camera.fps_hz is at most this times the threads it may use (cpu_threads, 0 = all cores), "
+            "camera.fps_hz is at most this times the threads it may use (cpu_threads, 0 = all cores; at "
+            "most 2, the halves its paths run in), "
             "i.e. when it keeps the camera's frame rate with a quarter of each frame's time left for the "
             "rest of the pipeline; else opencv-bm. 0 = never."
         ),
