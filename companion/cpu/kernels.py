@@ -189,25 +189,26 @@ def _select_row(srow, keys, best, d_bits, u, lr_max_diff, out):  # pragma: no co
 
 
 @nb.njit(**_JIT, parallel=True)
-def match(cl, cr, sums, p1, p2, paths, u, lr_max_diff, out, phase, scratch_cost, scratch_rows, scratch_cols,
+def match(cl, cr, cost, sums, p1, p2, paths, u, lr_max_diff, out, phase, scratch_rows, scratch_cols,
           scratch_mins, scratch_sums, scratch_keys, scratch_right, d_bits):  # pragma: no cover - compiled
     """Rules 2-9 in two halves that run side by side, in two phases (two calls, ``phase`` 0 then 1).
 
     Half 0 walks the rows downwards with the paths that come from the left and from above
     (``(1, 0)``, ``(0, 1)``, and with 8 paths ``(1, 1)``, ``(-1, 1)``), half 1 upwards with the
-    others; each computes a row's costs when it reaches it (the cost volume is never stored). In
-    phase 0 half 0 covers the upper rows ``[0, H // 2)`` and half 1 the lower ``[H // 2, H)``, each
-    writing its partial sums into ``sums``. In phase 1 each continues into the other's rows, adds
+    others. In phase 0 half 0 covers the upper rows ``[0, H // 2)`` and half 1 the lower ``[H // 2, H)``, each
+    computing its rows' costs into ``cost`` and writing its partial sums into ``sums``. In phase 1 each continues into the other's rows, adds
     its partial sums to the other's and, the row's ``S`` now complete, selects its disparities
     into ``out`` at once: every sum is written once and read once, and no half waits for the other
     within a phase.
 
     Args:
         cl, cr: uint64 ``(H, W)`` censuses of the left and right images.
+        cost: uint8 ``(H, W, D)``: rule 2's costs (phase 0 writes them, phase 1 reads them;
+            excluded disparities: undefined).
         sums: uint16 ``(H, W, D)``: phase 0's partial sums (excluded disparities: undefined).
         p1, p2: the penalties; paths: 4 or 8; u, lr_max_diff: rules 6 and 9.
         out: int16 ``(H, W)`` disparity × 16, -1 invalid (written in phase 1).
-        scratch_*: per half: uint8 ``(2, W, D)`` a cost row; int16 ``(2, 2, D + 2)`` the horizontal
+        scratch_*: per half: int16 ``(2, 2, D + 2)`` the horizontal
             path's costs at the pixel before and this one; int16 ``(2, P, 2, W, D + 2)`` and
             ``(2, P, 2, W)`` the previous and current row of the vertical (and, P = 3, the two
             diagonal) paths and their minima (kept from phase 0 to phase 1); uint16
@@ -218,7 +219,6 @@ def match(cl, cr, sums, p1, p2, paths, u, lr_max_diff, out, phase, scratch_cost,
     mid = h // 2
     n_col = 1 if paths == 4 else 3
     for half in nb.prange(2):
-        crow = scratch_cost[half]
         hbuf = scratch_rows[half]
         vbufs = scratch_cols[half]
         vmins = scratch_mins[half]
@@ -238,13 +238,17 @@ def match(cl, cr, sums, p1, p2, paths, u, lr_max_diff, out, phase, scratch_cost,
             y = i if half == 0 else h - 1 - i
             srow = sums[y]
             dst = srow if phase == 0 else full
-            left = cl[y]
-            right = cr[y]
-            for x in range(w):
-                a = left[x]
-                cx = crow[x]
-                for d in range(min(x, D - 1) + 1):
-                    cx[d] = _popcount(a ^ right[np.uint64(x) - np.uint64(d)])
+            # the row's costs: computed in phase 0 by the half that reaches the row first, kept for
+            # the other half in phase 1
+            crow = cost[y]
+            if phase == 0:
+                left = cl[y]
+                right = cr[y]
+                for x in range(w):
+                    a = left[x]
+                    cx = crow[x]
+                    for d in range(min(x, D - 1) + 1):
+                        cx[d] = _popcount(a ^ right[np.uint64(x) - np.uint64(d)])
             # horizontal: from the left (half 0) or from the right (half 1)
             m = np.int16(0)
             for j in range(w):

@@ -18,7 +18,7 @@ class CpuSgmMatcher:
     :class:`~companion.core.disparity.sgm.SgmReferenceMatcher` bit for bit.
 
     Built once per eye size: the kernels compile (or load from the cache) here, and every buffer is
-    allocated here (about 3 bytes per pixel and disparity: 48 MB at 672×376×64), so :meth:`compute`
+    allocated here (about 3 bytes per pixel and disparity: 49 MB at 672×376×64), so :meth:`compute`
     allocates nothing.
 
     Args:
@@ -75,8 +75,8 @@ class CpuSgmMatcher:
         self._census_r = np.empty((h, w), np.uint64)
         self._planes = np.empty((chunks, 8, w), np.uint8)
         self._sums = np.empty((h, w, D), np.uint16)
+        self._cost = np.empty((h, w, D), np.uint8)
         self._scratch = (
-            np.empty((2, w, D), np.uint8),
             np.empty((2, 2, D + 2), np.int16),
             np.empty((2, 3 if self.paths == 8 else 1, 2, w, D + 2), np.int16),
             np.empty((2, 3 if self.paths == 8 else 1, 2, w), np.int16),
@@ -101,7 +101,7 @@ class CpuSgmMatcher:
         k.census_9x7(right, self._census_r, self._planes)
         for phase in (0, 1):
             k.match(
-                self._census_l, self._census_r, self._sums, self.p1, self.p2, self.paths,
+                self._census_l, self._census_r, self._cost, self._sums, self.p1, self.p2, self.paths,
                 self.uniqueness_ratio_pct, self.lr_max_diff_px, self._raw, phase, *self._scratch,
             )
         k.median_to_float(self._raw, self.median, self._fixed, out, self._med)
