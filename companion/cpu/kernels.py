@@ -22,45 +22,40 @@ INF = 1 << 12
 _JIT = dict(cache=True, nogil=True, error_model="numpy", boundscheck=False)
 
 
-@nb.njit(**_JIT, parallel=True)
-def census_9x7(image, out, planes):  # pragma: no cover - compiled
-    """Rule 1: uint8 ``(H, W)`` -> uint64 ``(H, W)`` into ``out``; a neighbour outside gives 0.
+@nb.njit(**_JIT)
+def _census_row(image, y, out, planes):  # pragma: no cover - compiled
+    """Rule 1 for row ``y`` of uint8 ``image`` ``(H, W)``: uint64 ``out`` ``(W,)``; a neighbour
+    outside the image gives 0.
 
-    One neighbour offset at a time along a whole row into eight byte planes (bit ``k`` of the census
-    is bit ``k % 8`` of plane ``k // 8``), so that the compiler compares 32 columns at once; the
-    planes are then joined into the 64-bit censuses. ``planes``: uint8 ``(T, 8, W)`` scratch, one set
-    per chunk of rows.
+    One neighbour offset at a time along the whole row into eight byte planes (bit ``k`` of the
+    census is bit ``k % 8`` of plane ``k // 8``), so that the compiler compares 32 columns at once;
+    the planes are then joined into the 64-bit censuses. ``planes``: uint8 ``(8, W)`` scratch.
     """
     h, w = image.shape
-    n_chunks = planes.shape[0]
-    for t in nb.prange(n_chunks):
-        pl = planes[t]
-        for y in range(t * h // n_chunks, (t + 1) * h // n_chunks):
-            centre = image[y]
-            pl[:, :] = 0
-            k = 0
-            for i in range(-3, 4):
-                yy = y + i
-                for j in range(-4, 5):
-                    if i == 0 and j == 0:
-                        continue
-                    if 0 <= yy < h:
-                        # 0-based loops over views: the compiler vectorises them (no index checks)
-                        lo = max(0, -j)
-                        hi = min(w, w - j)
-                        plane = pl[k >> 3, lo:hi]
-                        nbr = image[yy, lo + j : hi + j]
-                        c = centre[lo:hi]
-                        bit = np.uint8(1 << (k & 7))
-                        for x in range(hi - lo):
-                            plane[x] |= bit if nbr[x] < c[x] else np.uint8(0)
-                    k += 1
-            row = out[y]
-            for x in range(w):
-                v = np.uint64(0)
-                for b in range(8):
-                    v |= np.uint64(pl[b, x]) << np.uint64(8 * b)
-                row[x] = v
+    centre = image[y]
+    planes[:, :] = 0
+    k = 0
+    for i in range(-3, 4):
+        yy = y + i
+        for j in range(-4, 5):
+            if i == 0 and j == 0:
+                continue
+            if 0 <= yy < h:
+                # 0-based loops over views: the compiler vectorises them (no index checks)
+                lo = max(0, -j)
+                hi = min(w, w - j)
+                plane = planes[k >> 3, lo:hi]
+                nbr = image[yy, lo + j : hi + j]
+                c = centre[lo:hi]
+                bit = np.uint8(1 << (k & 7))
+                for x in range(hi - lo):
+                    plane[x] |= bit if nbr[x] < c[x] else np.uint8(0)
+            k += 1
+    for x in range(w):
+        v = np.uint64(0)
+        for b in range(8):
+            v |= np.uint64(planes[b, x]) << np.uint64(8 * b)
+        out[x] = v
 
 
 @nb.njit(**_JIT)
@@ -189,25 +184,28 @@ def _select_row(srow, keys, best, d_bits, u, lr_max_diff, out):  # pragma: no co
 
 
 @nb.njit(**_JIT, parallel=True)
-def match(cl, cr, cost, sums, p1, p2, paths, u, lr_max_diff, out, phase, scratch_rows, scratch_cols,
+def match(left_image, right_image, cost, sums, p1, p2, paths, u, lr_max_diff, out, phase, census, planes,
+          scratch_rows, scratch_cols,
           scratch_mins, scratch_sums, scratch_keys, scratch_right, d_bits):  # pragma: no cover - compiled
-    """Rules 2-9 in two halves that run side by side, in two phases (two calls, ``phase`` 0 then 1).
+    """Rules 1-9 in two halves that run side by side, in two phases (two calls, ``phase`` 0 then 1).
 
     Half 0 walks the rows downwards with the paths that come from the left and from above
     (``(1, 0)``, ``(0, 1)``, and with 8 paths ``(1, 1)``, ``(-1, 1)``), half 1 upwards with the
     others. In phase 0 half 0 covers the upper rows ``[0, H // 2)`` and half 1 the lower ``[H // 2, H)``, each
-    computing its rows' costs into ``cost`` and writing its partial sums into ``sums``. In phase 1 each continues into the other's rows, adds
+    computing its rows' censuses and costs into ``cost`` and writing its partial sums into ``sums``. In phase 1 each continues into the other's rows, adds
     its partial sums to the other's and, the row's ``S`` now complete, selects its disparities
     into ``out`` at once: every sum is written once and read once, and no half waits for the other
     within a phase.
 
     Args:
-        cl, cr: uint64 ``(H, W)`` censuses of the left and right images.
+        left_image, right_image: uint8 ``(H, W)`` rectified grey images.
         cost: uint8 ``(H, W, D)``: rule 2's costs (phase 0 writes them, phase 1 reads them;
             excluded disparities: undefined).
         sums: uint16 ``(H, W, D)``: phase 0's partial sums (excluded disparities: undefined).
         p1, p2: the penalties; paths: 4 or 8; u, lr_max_diff: rules 6 and 9.
         out: int16 ``(H, W)`` disparity × 16, -1 invalid (written in phase 1).
+        census, planes: per half: uint64 ``(2, 2, W)`` a row's left and right censuses and uint8
+            ``(2, 8, W)`` their byte planes (:func:`_census_row`).
         scratch_*: per half: int16 ``(2, 2, D + 2)`` the horizontal
             path's costs at the pixel before and this one; int16 ``(2, P, 2, W, D + 2)`` and
             ``(2, P, 2, W)`` the previous and current row of the vertical (and, P = 3, the two
@@ -242,8 +240,10 @@ def match(cl, cr, cost, sums, p1, p2, paths, u, lr_max_diff, out, phase, scratch
             # the other half in phase 1
             crow = cost[y]
             if phase == 0:
-                left = cl[y]
-                right = cr[y]
+                left = census[half, 0]
+                right = census[half, 1]
+                _census_row(left_image, y, left, planes[half])
+                _census_row(right_image, y, right, planes[half])
                 for x in range(w):
                     a = left[x]
                     cx = crow[x]

@@ -71,9 +71,8 @@ class CpuSgmMatcher:
         h, w = self.shape
         # Chunks of rows per parallel loop: a few per thread, so that a slow thread is caught up.
         chunks = max(1, min(h, 4 * self.threads))
-        self._census_l = np.empty((h, w), np.uint64)
-        self._census_r = np.empty((h, w), np.uint64)
-        self._planes = np.empty((chunks, 8, w), np.uint8)
+        self._census = np.empty((2, 2, w), np.uint64)
+        self._planes = np.empty((2, 8, w), np.uint8)
         self._sums = np.empty((h, w, D), np.uint16)
         self._cost = np.empty((h, w, D), np.uint8)
         self._scratch = (
@@ -97,12 +96,10 @@ class CpuSgmMatcher:
         k = self._k
         # Numba's thread count is per calling thread: set it on the thread that matches.
         self._numba.set_num_threads(self.threads)
-        k.census_9x7(left, self._census_l, self._planes)
-        k.census_9x7(right, self._census_r, self._planes)
         for phase in (0, 1):
             k.match(
-                self._census_l, self._census_r, self._cost, self._sums, self.p1, self.p2, self.paths,
-                self.uniqueness_ratio_pct, self.lr_max_diff_px, self._raw, phase, *self._scratch,
+                left, right, self._cost, self._sums, self.p1, self.p2, self.paths, self.uniqueness_ratio_pct,
+                self.lr_max_diff_px, self._raw, phase, self._census, self._planes, *self._scratch,
             )
         k.median_to_float(self._raw, self.median, self._fixed, out, self._med)
 
