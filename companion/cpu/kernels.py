@@ -1,4 +1,6 @@
-r"""The census + SGM rules of :mod:`companion.core.disparity.sgm` as Numba kernels (threaded over rows).
+r"""The census + SGM rules of :mod:`companion.core.disparity.sgm` as Numba kernels: :func:`match` (the
+census, the costs, the paths in two halves side by side, the selection) and :func:`median_to_float`
+(rows in parallel).
 
 Import through :func:`companion.cpu.load_kernels`, which points Numba's on-disk cache at a writable
 directory first: the decorators below bind their cache location when this module is imported.
@@ -185,8 +187,8 @@ def _select_row(srow, keys, best, d_bits, u, lr_max_diff, out):  # pragma: no co
 
 @nb.njit(**_JIT, parallel=True)
 def match(left_image, right_image, cost, sums, p1, p2, paths, u, lr_max_diff, out, phase, census, planes,
-          scratch_rows, scratch_cols,
-          scratch_mins, scratch_sums, scratch_keys, scratch_right, d_bits):  # pragma: no cover - compiled
+          scratch_rows, scratch_cols, scratch_mins, scratch_sums, scratch_keys, scratch_right,
+          d_bits):  # pragma: no cover - compiled
     """Rules 1-9 in two halves that run side by side, in two phases (two calls, ``phase`` 0 then 1).
 
     Half 0 walks the rows downwards with the paths that come from the left and from above

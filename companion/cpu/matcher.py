@@ -15,7 +15,8 @@ log = logging.getLogger(__name__)
 
 class CpuSgmMatcher:
     """Census + SGM + left-right check on the CPU, equal to
-    :class:`~companion.core.disparity.sgm.SgmReferenceMatcher` bit for bit.
+    :class:`~companion.core.disparity.sgm.SgmReferenceMatcher` bit for bit (how it runs:
+    :func:`companion.cpu.kernels.match`; docs/gpu.md).
 
     Built once per eye size: the kernels compile (or load from the cache) here, and every buffer is
     allocated here (about 3 bytes per pixel and disparity: 49 MB at 672×376×64), so :meth:`compute`
@@ -69,7 +70,7 @@ class CpuSgmMatcher:
         self.lr_max_diff_px = int(lr_max_diff_px)
         self.median = bool(median)
         h, w = self.shape
-        # Chunks of rows per parallel loop: a few per thread, so that a slow thread is caught up.
+        # Chunks of rows for the median's parallel loop: a few per thread, so that a slow one is caught up.
         chunks = max(1, min(h, 4 * self.threads))
         self._census = np.empty((2, 2, w), np.uint64)
         self._planes = np.empty((2, 8, w), np.uint8)
