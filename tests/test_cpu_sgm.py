@@ -230,3 +230,16 @@ def test_auto_picks_cpu_sgm_where_it_keeps_the_camera_rate(
     assert backends.resolve_backend(never) == "opencv-bm"
     explicit = cfg.model_copy(update={"stereo": cfg.stereo.model_copy(update={"backend": "opencv-bm"})})
     assert backends.resolve_backend(explicit) == "opencv-bm"
+
+
+def test_an_unwritable_cache_folder_is_one_line_naming_it(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    import numba
+
+    from companion.cpu import load_kernels
+
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    monkeypatch.setattr(numba.config, "CACHE_DIR", "")
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(blocker / "numba"))
+    with pytest.raises(BackendError, match="cache folder .*NUMBA_CACHE_DIR"):
+        load_kernels()

@@ -12,6 +12,7 @@ from pathlib import Path
 from types import ModuleType
 
 from companion.cpu.matcher import CpuSgmMatcher
+from companion.errors import BackendError
 
 __all__ = ["CpuSgmMatcher", "cache_dir", "load_kernels"]
 
@@ -29,11 +30,30 @@ def cache_dir() -> Path:
 
 def load_kernels() -> ModuleType:
     """Import Numba and :mod:`companion.cpu.kernels` with the cache pointed at :func:`cache_dir`
-    (the kernels bind their cache location when their module is first imported)."""
+    (the kernels bind their cache location when their module is first imported).
+
+    Raises:
+        BackendError: the cache folder cannot be created or written.
+    """
     import numba
 
     if not numba.config.CACHE_DIR:
-        numba.config.CACHE_DIR = str(cache_dir())
+        folder = cache_dir()
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            raise BackendError(
+                f"cpu-sgm: cannot create the compiled kernels' cache folder {folder} ({err.strerror}); "
+                "set NUMBA_CACHE_DIR to a writable folder",
+                backend="cpu-sgm",
+            ) from None
+        if not os.access(folder, os.W_OK):
+            raise BackendError(
+                f"cpu-sgm: the compiled kernels' cache folder {folder} is not writable; set NUMBA_CACHE_DIR "
+                "to a writable folder",
+                backend="cpu-sgm",
+            )
+        numba.config.CACHE_DIR = str(folder)
     from companion.cpu import kernels
 
     return kernels
