@@ -35,6 +35,10 @@ def load_kernels() -> ModuleType:
     Raises:
         BackendError: the cache folder cannot be created or written.
     """
+    # Numba's OpenMP workers wait for the next frame asleep, not spinning: a spinning worker takes a
+    # core from the rest of the pipeline (OpenCV's threads, the service) on a small machine, and made
+    # a frame several times slower there. Read when Numba's thread pool starts; the user's choice stays.
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     import numba
 
     if not numba.config.CACHE_DIR:
