@@ -210,9 +210,9 @@ def test_the_backend_makes_the_dense_map_and_refuses_the_core_factory() -> None:
     ("cores", "threads", "fps", "keeps"),
     [
         (2, 0, 30.0, False),  # 672x376x64 at 30 fps: 485 M px·disparities per second for 2 cores
-        (8, 0, 30.0, False),  # its paths run in two halves: more cores do not count
-        (2, 0, 15.0, True),
-        (2, 1, 15.0, False),  # cpu_threads caps the cores it may use
+        (8, 0, 15.0, False),  # its paths run in two halves: more cores do not count
+        (2, 0, 7.5, True),
+        (2, 1, 7.5, False),  # cpu_threads caps the cores it may use
         (1, 0, 5.0, True),
     ],
 )

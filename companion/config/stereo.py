@@ -159,7 +159,7 @@ class StereoConfig(StrictModel):
         description="Worker threads of the CPU backends (OpenCV's, and cpu-sgm's); 0 = all cores.",
     )
     cpu_sgm_cells_per_core_s: float = Field(
-        default=150e6,
+        default=100e6,
         ge=0.0,
         le=1e12,
         description=(
