@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import importlib.util
 import logging
+import os
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -40,6 +41,43 @@ def cuda_available() -> bool:
 
 def _cpu(cfg: CompanionConfig, width_px: int, height_px: int, clock: Clock) -> RegionEstimator:
     return CpuRegionEstimator(cfg, width_px, height_px, clock=clock)
+
+
+def _cpu_sgm(cfg: CompanionConfig, width_px: int, height_px: int, clock: Clock) -> RegionEstimator:
+    if importlib.util.find_spec("numba") is None:
+        raise BackendError("stereo.backend = 'cpu-sgm' needs Numba (pip install numba); or use 'auto'")
+    from companion.cpu import CpuSgmMatcher  # imported only when asked for: it loads Numba
+
+    st = cfg.stereo
+    matcher = CpuSgmMatcher(
+        width_px, height_px, st.num_disparities, p1=st.sgm_p1, p2=st.sgm_p2, paths=st.sgm_paths,
+        uniqueness_ratio_pct=st.sgm_uniqueness_ratio_pct, lr_max_diff_px=st.sgm_lr_max_diff_px,
+        median=st.sgm_median, threads=st.cpu_threads,
+    )
+    return CpuRegionEstimator(cfg, width_px, height_px, clock=clock, matcher=matcher)
+
+
+#: Threads the cpu-sgm engine's path aggregation (most of its work) runs on at most: two halves.
+CPU_SGM_MAX_THREADS = 2
+
+
+def cpu_sgm_keeps_rate(cfg: CompanionConfig, cores: int) -> bool:
+    """Whether ``cpu-sgm`` keeps the camera's frame rate with ``cores`` CPU cores: camera pixels ×
+    disparities × frames per second at most ``stereo.cpu_sgm_cells_per_core_s`` per thread it may
+    use (``stereo.cpu_threads``, 0 = ``cores``; at most :data:`CPU_SGM_MAX_THREADS`). Pure: the
+    caller counts the cores."""
+    st, cam = cfg.stereo, cfg.camera
+    threads = min(st.cpu_threads, cores) if st.cpu_threads > 0 else cores
+    threads = max(1, min(threads, CPU_SGM_MAX_THREADS))
+    work = cam.width_px * cam.height_px * st.num_disparities * cam.fps_hz
+    return st.cpu_sgm_cells_per_core_s > 0 and work <= st.cpu_sgm_cells_per_core_s * threads
+
+
+def _cores() -> int:
+    """CPU cores this process may run on."""
+    if hasattr(os, "sched_getaffinity"):
+        return len(os.sched_getaffinity(0))
+    return os.cpu_count() or 1
 
 
 def _cupy(cfg: CompanionConfig, width_px: int, height_px: int, clock: Clock) -> RegionEstimator:
@@ -72,15 +110,22 @@ BACKENDS: Mapping[str, Backend] = MappingProxyType(
         "opencv-sgbm": Backend("opencv-sgbm", _cpu),
         "reference": Backend("reference", _cpu),
         "cupy": Backend("cupy", _cupy, needs_gpu=True),
+        "cpu-sgm": Backend("cpu-sgm", _cpu_sgm),
     }
 )
 
 
 def resolve_backend(cfg: CompanionConfig) -> str:
-    """The backend ``cfg.stereo.backend`` means on this machine ("auto" → cupy or opencv-bm)."""
+    """The backend ``cfg.stereo.backend`` means on this machine: "auto" → cupy with a CUDA device,
+    else cpu-sgm where Numba is installed and it keeps the camera's rate (:func:`cpu_sgm_keeps_rate`),
+    else opencv-bm. The same answer for the same config on the same machine (no timing)."""
     backend = cfg.stereo.backend
     if backend == "auto":
-        return "cupy" if cuda_available() else "opencv-bm"
+        if cuda_available():
+            return "cupy"
+        if importlib.util.find_spec("numba") is not None and cpu_sgm_keeps_rate(cfg, _cores()):
+            return "cpu-sgm"
+        return "opencv-bm"
     return backend
 
 

@@ -12,7 +12,7 @@ from pathlib import Path
 CORE = Path(__file__).resolve().parent.parent / "companion" / "core"
 FORBIDDEN = ("asyncio", "zmq", "mavsdk")
 #: Packages of the shell and the backends: the core may import none of them.
-OUTSIDE_CORE = ("companion.gpu", "companion.sim", "companion.service", "companion.sitl", "companion.cli", "companion.backends")
+OUTSIDE_CORE = ("companion.gpu", "companion.cpu", "companion.sim", "companion.service", "companion.sitl", "companion.cli", "companion.backends")
 
 
 def _modules(path: Path) -> set[str]:

@@ -26,7 +26,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--backend",
         default="opencv-bm",
-        choices=["opencv-bm", "opencv-sgbm", "reference", "cupy"],
+        choices=["opencv-bm", "opencv-sgbm", "reference", "cupy", "cpu-sgm"],
         help="disparity backend to time (default opencv-bm)",
     )
     p.add_argument(
@@ -92,6 +92,10 @@ def run(args: argparse.Namespace) -> int:
         from companion.service.bench import run_e2e_bench
 
         report = run_e2e_bench(args, sizes)
+    elif args.backend == "cpu-sgm":
+        from companion.cpu.bench import run_cpu_sgm_bench
+
+        report = run_cpu_sgm_bench(args, sizes if args.sizes else None)
     elif args.backend == "cupy":
         from companion.gpu.bench import run_gpu_bench
 

@@ -41,7 +41,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--doffs-px", type=float, default=None, help="principal point offset between the eyes, px")
     p.add_argument("--scale", type=float, default=1.0, help="evaluate at this scale, e.g. 0.5 (default 1)")
     p.add_argument("--config", type=Path, help="TOML config (default: built-in defaults)")
-    p.add_argument("--backend", help="override stereo.backend (auto, opencv-bm, opencv-sgbm, reference, cupy)")
+    p.add_argument("--backend", help="override stereo.backend (auto, opencv-bm, opencv-sgbm, reference, cupy, cpu-sgm)")
     p.add_argument("--matcher", choices=["sgm", "sad"], help="override stereo.matcher (reference, cupy)")
     p.add_argument("--sgm-paths", type=int, choices=[4, 8], help="override stereo.sgm_paths")
     p.add_argument(
@@ -130,6 +130,8 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
     backend = est.name
     if backend in ("reference", "cupy"):
         backend += f" ({st.matcher}" + (f", {st.sgm_paths} paths)" if st.matcher == "sgm" else ")")
+    elif backend == "cpu-sgm":
+        backend += f" (sgm, {st.sgm_paths} paths)"
     return {
         "pair": pair.name,
         "size": [w, h],

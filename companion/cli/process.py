@@ -30,7 +30,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--right", type=Path, metavar="R", help="right image (with --left)")
     p.add_argument("--calib", type=Path, help="calibration file (ZED SN*.conf or OpenCV yaml/npz); overrides the config's")
     p.add_argument("--config", type=Path, help="TOML config (default: built-in defaults)")
-    p.add_argument("--backend", help="override stereo.backend (auto, opencv-bm, opencv-sgbm, reference, cupy)")
+    p.add_argument("--backend", help="override stereo.backend (auto, opencv-bm, opencv-sgbm, reference, cupy, cpu-sgm)")
     p.add_argument("--overlay", type=Path, metavar="OUT.png", help="also draw the regions, depths and command arrow")
     from companion.recorded.cli import add_sequence_arguments
 

@@ -174,7 +174,7 @@ def semi_global_map(stereo: StereoConfig, backend: str) -> bool:
     """Whether ``backend`` (a concrete ``stereo.backend``, not "auto") with ``stereo`` makes the
     semi-global matcher's dense map, the one the ``"auto"`` options of ``[memory]`` and ``[detour]``
     were measured to help (:func:`for_backend`)."""
-    return backend in _OWN_MATCHER_BACKENDS and stereo.matcher == "sgm"
+    return backend == "cpu-sgm" or (backend in _OWN_MATCHER_BACKENDS and stereo.matcher == "sgm")
 
 
 def for_backend(cfg: CompanionConfig, backend: str) -> CompanionConfig:

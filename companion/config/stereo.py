@@ -8,7 +8,7 @@ from pydantic import Field, field_validator, model_validator
 
 from companion.config._base import StrictModel
 
-StereoBackend = Literal["auto", "opencv-bm", "opencv-sgbm", "reference", "cupy"]
+StereoBackend = Literal["auto", "opencv-bm", "opencv-sgbm", "reference", "cupy", "cpu-sgm"]
 StereoMatcher = Literal["sgm", "sad"]
 
 
@@ -18,10 +18,13 @@ class StereoConfig(StrictModel):
     backend: StereoBackend = Field(
         default="auto",
         description=(
-            "Disparity backend. auto: cupy when a CUDA device and CuPy are present, else opencv-bm. "
+            "Disparity backend. auto: cupy when a CUDA device and CuPy are present, else cpu-sgm where it "
+            "keeps the camera's frame rate (cpu_sgm_cells_per_core_s), else opencv-bm. "
             "opencv-bm: OpenCV StereoBM on the CPU (fast). opencv-sgbm: OpenCV StereoSGBM (better, "
             "slower). reference: the exact NumPy matcher that `matcher` names, the oracle the GPU must "
-            "equal bit for bit (slow: seconds per frame). cupy: the CUDA kernels, same rules as reference."
+            "equal bit for bit (slow: seconds per frame). cupy: the CUDA kernels, same rules as reference. "
+            "cpu-sgm: the census + SGM rules of reference compiled for the CPU (Numba), equal to it bit "
+            "for bit, threaded over cpu_threads."
         ),
     )
     matcher: StereoMatcher = Field(
@@ -32,7 +35,7 @@ class StereoConfig(StrictModel):
             "sub-pixel, a left-right check and a 3x3 median (every column matched, with the "
             "disparities it allows). sad: SAD block matching (block_size_px, uniqueness_ratio_pct, "
             "texture_threshold_grey; the leftmost num_disparities + block_size_px/2 columns are never "
-            "matched). The OpenCV backends ignore it."
+            "matched). The OpenCV backends ignore it; cpu-sgm is always sgm."
         ),
     )
     num_disparities: int = Field(
@@ -153,7 +156,20 @@ class StereoConfig(StrictModel):
         default=0,
         ge=0,
         le=256,
-        description="OpenCV worker threads for the CPU backends; 0 = all cores.",
+        description="Worker threads of the CPU backends (OpenCV's, and cpu-sgm's); 0 = all cores.",
+    )
+    cpu_sgm_cells_per_core_s: float = Field(
+        default=100e6,
+        ge=0.0,
+        le=1e12,
+        description=(
+            "auto without CUDA: how much census + SGM matching one CPU core does per second, in pixels "
+            "times disparities. auto picks cpu-sgm when camera width x height x num_disparities x "
+            "camera.fps_hz is at most this times the threads it may use (cpu_threads, 0 = all cores; at "
+            "most 2, the halves its paths run in), "
+            "i.e. when it keeps the camera's frame rate with a quarter of each frame's time left for the "
+            "rest of the pipeline; else opencv-bm. 0 = never."
+        ),
     )
     sgm_paths: Literal[4, 8] = Field(
         default=4,

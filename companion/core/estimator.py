@@ -18,7 +18,7 @@ import numpy as np
 from companion.config import CompanionConfig
 from companion.core.calibration import make_rectifier
 from companion.core.depth import disparity_to_depth
-from companion.core.disparity import make_cpu_matcher
+from companion.core.disparity import DisparityMatcher, make_cpu_matcher
 from companion.core.geometry import StereoGeometry
 from companion.core.memory import BlockMax
 from companion.core.obstacle import ObstacleDistance, obstacle_layout, reduce_obstacle_distance
@@ -70,20 +70,32 @@ class RegionEstimator(Protocol):
 
 
 class CpuRegionEstimator:
-    """The CPU path: OpenCV StereoBM/SGBM or the exact NumPy reference.
+    """The CPU path: OpenCV StereoBM/SGBM, the exact NumPy reference, or a matcher given to it (the
+    compiled census + SGM engine of ``companion.cpu``, plugged in by :mod:`companion.backends`).
 
     Built once per (config, resolution): the rectification maps, the matcher and every per-frame
     buffer are allocated here, so :meth:`estimate` allocates nothing large.
+
+    Args:
+        matcher: the disparity matcher to use, built for ``width_px`` × ``height_px``; None = the
+            one :func:`~companion.core.disparity.make_cpu_matcher` builds for ``cfg.stereo``.
     """
 
-    def __init__(self, cfg: CompanionConfig, width_px: int, height_px: int, clock: Clock = time.perf_counter):
+    def __init__(
+        self,
+        cfg: CompanionConfig,
+        width_px: int,
+        height_px: int,
+        clock: Clock = time.perf_counter,
+        matcher: DisparityMatcher | None = None,
+    ):
         self.width_px = width_px
         self.height_px = height_px
         self._clock = clock
         self._regions_cfg = cfg.regions
         self._rectifier = make_rectifier(cfg.calibration, width_px, height_px)
         self.geometry: StereoGeometry = self._rectifier.geometry
-        self._matcher = make_cpu_matcher(cfg.stereo)
+        self._matcher = make_cpu_matcher(cfg.stereo) if matcher is None else matcher
         self.name = self._matcher.name
         self.layout: RegionLayout = region_layout(self.geometry, cfg.regions)
         shape = (height_px, width_px)

@@ -52,7 +52,9 @@ def _block_matcher(st: StereoConfig) -> str | None:
         return "always"
     if st.backend in ("reference", "cupy"):
         return "always" if st.matcher == "sad" else None
-    return "fallback"  # auto: cupy on a GPU, opencv-bm without one
+    if st.backend == "cpu-sgm":
+        return None
+    return "fallback"  # auto: cupy on a GPU, cpu-sgm or opencv-bm without one
 
 
 def _near_edges_m(ctrl: ControllerConfig) -> tuple[float, float] | None:

@@ -71,6 +71,7 @@ CacheDirectory=companion
 ConfigurationDirectory=companion
 Environment=PYTHONUNBUFFERED=1
 Environment=CUPY_CACHE_DIR=/var/cache/companion/cupy
+Environment=NUMBA_CACHE_DIR=/var/cache/companion/numba
 
 # Hardening. Devices: the ZED (V4L2), the flight controller's serial port, the GPU; nothing else.
 NoNewPrivileges=yes

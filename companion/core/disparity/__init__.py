@@ -52,6 +52,12 @@ def make_cpu_matcher(cfg: StereoConfig) -> DisparityMatcher:
             "build it with the GPU backend, or choose opencv-bm, opencv-sgbm or reference",
             backend=backend,
         )
+    if backend == "cpu-sgm":
+        raise BackendError(
+            "stereo.backend 'cpu-sgm' is the compiled engine (companion.cpu, built by companion.backends), "
+            "not a matcher of the core; choose opencv-bm, opencv-sgbm or reference here",
+            backend=backend,
+        )
     if backend == "reference" and cfg.matcher == "sgm":
         return SgmReferenceMatcher(
             cfg.num_disparities,

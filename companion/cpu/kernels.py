@@ -1,0 +1,368 @@
+r"""The census + SGM rules of :mod:`companion.core.disparity.sgm` as Numba kernels: :func:`match` (the
+census, the costs, the paths in two halves side by side, the selection) and :func:`median_to_float`
+(rows in parallel).
+
+Import through :func:`companion.cpu.load_kernels`, which points Numba's on-disk cache at a writable
+directory first: the decorators below bind their cache location when this module is imported.
+Nothing here compiles at import; each kernel compiles (or loads from the cache) at its first call,
+which :class:`companion.cpu.CpuSgmMatcher` makes when it is built.
+
+Every kernel writes into buffers its caller preallocated and allocates nothing. Path costs live in
+int16 rows of ``D + 2`` entries: entry ``d + 1`` is disparity ``d``, and entries ``0`` and ``D + 1``
+are sentinels at :data:`INF`, so that a path step reads its ``d - 1`` and ``d + 1`` neighbours without
+a branch; an excluded disparity (``d > x``) is also :data:`INF`, which is the reference's "absent".
+"""
+
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+
+#: "Absent": larger than any path cost + P1 + P2 (as the reference's), small enough for int16 sums.
+INF = 1 << 12
+
+_JIT = dict(cache=True, nogil=True, error_model="numpy", boundscheck=False)
+
+
+@nb.njit(**_JIT)
+def _census_row(image, y, out, planes):  # pragma: no cover - compiled
+    """Rule 1 for row ``y`` of uint8 ``image`` ``(H, W)``: uint64 ``out`` ``(W,)``; a neighbour
+    outside the image gives 0.
+
+    One neighbour offset at a time along the whole row into eight byte planes (bit ``k`` of the
+    census is bit ``k % 8`` of plane ``k // 8``), so that the compiler compares 32 columns at once;
+    the planes are then joined into the 64-bit censuses. ``planes``: uint8 ``(8, W)`` scratch.
+    """
+    h, w = image.shape
+    centre = image[y]
+    planes[:, :] = 0
+    k = 0
+    for i in range(-3, 4):
+        yy = y + i
+        for j in range(-4, 5):
+            if i == 0 and j == 0:
+                continue
+            if 0 <= yy < h:
+                # 0-based loops over views: the compiler vectorises them (no index checks)
+                lo = max(0, -j)
+                hi = min(w, w - j)
+                plane = planes[k >> 3, lo:hi]
+                nbr = image[yy, lo + j : hi + j]
+                c = centre[lo:hi]
+                bit = np.uint8(1 << (k & 7))
+                for x in range(hi - lo):
+                    plane[x] |= bit if nbr[x] < c[x] else np.uint8(0)
+            k += 1
+    for x in range(w):
+        v = np.uint64(0)
+        for b in range(8):
+            v |= np.uint64(planes[b, x]) << np.uint64(8 * b)
+        out[x] = v
+
+
+@nb.njit(**_JIT)
+def _popcount(v):  # pragma: no cover - compiled
+    # the compiler recognises this pattern as a population count and vectorises it
+    v = v - ((v >> np.uint64(1)) & np.uint64(0x5555555555555555))
+    v = (v & np.uint64(0x3333333333333333)) + ((v >> np.uint64(2)) & np.uint64(0x3333333333333333))
+    v = (v + (v >> np.uint64(4))) & np.uint64(0x0F0F0F0F0F0F0F0F)
+    return (v * np.uint64(0x0101010101010101)) >> np.uint64(56)
+
+
+@nb.njit(**_JIT, inline="always")
+def _path(p, c, cx, out, base, mode, m, nc, first, p1, p2):  # pragma: no cover - compiled
+    """One pixel of a path (rule 3) and its share of the sums; returns the new path costs' minimum.
+
+    ``p``: the path costs of the pixel before (int16 ``(D + 2,)``, padded), whose minimum is ``m``
+    (unused when ``first``: the path starts here, ``Lr = C``); ``c`` receives this pixel's; ``cx``:
+    its uint8 costs; ``nc``: its included disparities. ``mode`` 0: ``out = Lr``; 1: ``out += Lr``;
+    2: ``out = base + Lr`` (uint16 ``(D,)``). One loop with the minimum kept as it goes, inlined:
+    the form the compiler vectorises best.
+    """
+    D = cx.shape[0]
+    mn = np.int16(INF)
+    if first:
+        for d in range(nc):
+            v = np.int16(cx[d])
+            c[d + 1] = v
+            mn = min(mn, v)
+            if mode == 0:
+                out[d] = np.uint16(v)
+            elif mode == 1:
+                out[d] += np.uint16(v)
+            else:
+                out[d] = base[d] + np.uint16(v)
+    else:
+        mp2 = np.int16(m + p2)
+        if mode == 0:
+            for d in range(nc):
+                v = min(min(p[d + 1], mp2), min(np.int16(p[d] + p1), np.int16(p[d + 2] + p1)))
+                v = np.int16(np.int16(cx[d]) + v - m)
+                c[d + 1] = v
+                mn = min(mn, v)
+                out[d] = np.uint16(v)
+        elif mode == 1:
+            for d in range(nc):
+                v = min(min(p[d + 1], mp2), min(np.int16(p[d] + p1), np.int16(p[d + 2] + p1)))
+                v = np.int16(np.int16(cx[d]) + v - m)
+                c[d + 1] = v
+                mn = min(mn, v)
+                out[d] += np.uint16(v)
+        else:
+            for d in range(nc):
+                v = min(min(p[d + 1], mp2), min(np.int16(p[d] + p1), np.int16(p[d + 2] + p1)))
+                v = np.int16(np.int16(cx[d]) + v - m)
+                c[d + 1] = v
+                mn = min(mn, v)
+                out[d] = base[d] + np.uint16(v)
+    for d in range(nc, D):
+        c[d + 1] = INF
+    return mn
+
+
+@nb.njit(**_JIT)
+def _select_row(srow, keys, best, d_bits, u, lr_max_diff, out):  # pragma: no cover - compiled
+    """Rules 5-9 for one row: ``srow`` uint16 ``(W, D)`` the sums ``S``, into int16 ``out`` ``(W,)``.
+
+    Each argmin with ties to the largest ``d`` is a plain minimum of the key ``256·S + 255 - d``
+    (``S`` < 2^16, ``d`` < 256), which the compiler vectorises; ``key >> 8`` is ``S``; an excluded
+    disparity's key is the largest value. ``keys``: uint32 ``(W, D)`` and ``best`` uint32 ``(2, W)``
+    scratch (each column's left and right winner); ``d_bits``: uint32 ``255 - d``.
+    """
+    w, D = srow.shape
+    none = np.uint32(0xFFFFFFFF)
+    best_left = best[0]
+    best_right = best[1]
+    for x in range(w):
+        sx = srow[x]
+        kx = keys[x]
+        nc = min(x, D - 1) + 1
+        b = none
+        for d in range(nc):
+            key = (np.uint32(sx[d]) << np.uint32(8)) | d_bits[d]
+            kx[d] = key
+            b = min(b, key)
+        for d in range(nc, D):
+            kx[d] = none
+        best_left[x] = b
+    if lr_max_diff >= 0:
+        # dR(xr) = argmin_d S(y, xr + d, d): every included (x, d) offers itself to xr = x - d
+        best_right[:] = none
+        for x in range(w):
+            kx = keys[x]
+            nc = min(x, D - 1) + 1
+            br = best_right[x + 1 - nc : x + 1]
+            for j in range(nc):
+                # an unsigned index: no negative-index check, so the loop vectorises
+                br[j] = min(br[j], kx[np.uint64(nc - 1) - np.uint64(j)])
+    for x in range(w):
+        kx = keys[x]
+        nc = min(x, D - 1) + 1
+        b = best_left[x]
+        ds = 255 - np.int64(b & np.uint32(255))
+        c1 = np.int64(b >> np.uint32(8))
+        if ds >= 1 and ds + 1 < nc:
+            c0 = np.int64(kx[ds - 1] >> np.uint32(8))
+            c2 = np.int64(kx[ds + 1] >> np.uint32(8))
+            den = c0 + c2 - 2 * c1
+            # floor division in float64: exact here (|numerator|, |denominator| < 2^20, so a
+            # quotient that is not an integer lies at least 2^-20 from one), and cheaper than idiv
+            off = np.int64(np.floor(np.float64(16 * (c0 - c2) + den) / np.float64(2 * den)))
+        else:
+            off = 0
+        v = 16 * ds + off
+        # uniqueness: the smallest sum 2 or more away (the winner and its neighbours taken out)
+        for d in range(max(ds - 1, 0), min(ds + 2, D)):
+            kx[d] = none
+        m2 = none
+        for d in range(D):
+            m2 = min(m2, kx[d])
+        reject = m2 != none and 100 * np.int64(m2 >> np.uint32(8)) <= (100 + u) * c1
+        if lr_max_diff >= 0:
+            d_back = 255 - np.int64(best_right[x - ds] & np.uint32(255))
+            if abs(ds - d_back) > lr_max_diff:
+                reject = True
+        out[x] = -1 if reject else v
+
+
+@nb.njit(**_JIT, parallel=True)
+def match(left_image, right_image, cost, sums, p1, p2, paths, u, lr_max_diff, out, phase, census, planes,
+          scratch_rows, scratch_cols, scratch_mins, scratch_sums, scratch_keys, scratch_right,
+          d_bits):  # pragma: no cover - compiled
+    """Rules 1-9 in two halves that run side by side, in two phases (two calls, ``phase`` 0 then 1).
+
+    Half 0 walks the rows downwards with the paths that come from the left and from above
+    (``(1, 0)``, ``(0, 1)``, and with 8 paths ``(1, 1)``, ``(-1, 1)``), half 1 upwards with the
+    others. In phase 0 half 0 covers the upper rows ``[0, H // 2)`` and half 1 the lower ``[H // 2, H)``, each
+    computing its rows' censuses and costs into ``cost`` and writing its partial sums into ``sums``. In phase 1 each continues into the other's rows, adds
+    its partial sums to the other's and, the row's ``S`` now complete, selects its disparities
+    into ``out`` at once: every sum is written once and read once, and no half waits for the other
+    within a phase.
+
+    Args:
+        left_image, right_image: uint8 ``(H, W)`` rectified grey images.
+        cost: uint8 ``(H, W, D)``: rule 2's costs (phase 0 writes them, phase 1 reads them;
+            excluded disparities: undefined).
+        sums: uint16 ``(H, W, D)``: phase 0's partial sums (excluded disparities: undefined).
+        p1, p2: the penalties; paths: 4 or 8; u, lr_max_diff: rules 6 and 9.
+        out: int16 ``(H, W)`` disparity × 16, -1 invalid (written in phase 1).
+        census, planes: per half: uint64 ``(2, 2, W)`` a row's left and right censuses and uint8
+            ``(2, 8, W)`` their byte planes (:func:`_census_row`).
+        scratch_*: per half: int16 ``(2, 2, D + 2)`` the horizontal
+            path's costs at the pixel before and this one; int16 ``(2, P, 2, W, D + 2)`` and
+            ``(2, P, 2, W)`` the previous and current row of the vertical (and, P = 3, the two
+            diagonal) paths and their minima (kept from phase 0 to phase 1); uint16
+            ``(2, W, D)`` a row of complete sums; uint32 ``(2, W, D)`` and ``(2, 2, W)`` the
+            selection's keys and winners. d_bits: uint32 ``(D,)``, ``255 - d``.
+    """
+    h, w, D = sums.shape
+    mid = h // 2
+    n_col = 1 if paths == 4 else 3
+    for half in nb.prange(2):
+        hbuf = scratch_rows[half]
+        vbufs = scratch_cols[half]
+        vmins = scratch_mins[half]
+        full = scratch_sums[half]
+        if phase == 0:
+            hbuf[:, 0] = INF
+            hbuf[:, D + 1] = INF
+            vbufs[:, :, :, 0] = INF
+            vbufs[:, :, :, D + 1] = INF
+        # step i of this half's walk: half 0 at row i, half 1 at row h - 1 - i
+        if half == 0:
+            i0, i1 = (0, mid) if phase == 0 else (mid, h)
+        else:
+            i0, i1 = (0, h - mid) if phase == 0 else (h - mid, h)
+        mode = 0 if phase == 0 else 2
+        for i in range(i0, i1):
+            y = i if half == 0 else h - 1 - i
+            srow = sums[y]
+            dst = srow if phase == 0 else full
+            # the row's costs: computed in phase 0 by the half that reaches the row first, kept for
+            # the other half in phase 1
+            crow = cost[y]
+            if phase == 0:
+                left = census[half, 0]
+                right = census[half, 1]
+                _census_row(left_image, y, left, planes[half])
+                _census_row(right_image, y, right, planes[half])
+                for x in range(w):
+                    a = left[x]
+                    cx = crow[x]
+                    for d in range(min(x, D - 1) + 1):
+                        cx[d] = _popcount(a ^ right[np.uint64(x) - np.uint64(d)])
+            # horizontal: from the left (half 0) or from the right (half 1)
+            m = np.int16(0)
+            for j in range(w):
+                x = j if half == 0 else w - 1 - j
+                m = _path(hbuf[(j + 1) & 1], hbuf[j & 1], crow[x], dst[x], srow[x], mode, m,
+                          min(x, D - 1) + 1, j == 0, p1, p2)
+            # vertical (and diagonal): continue the path of the row before, in walking order
+            for k in range(n_col):
+                prev = vbufs[k, (i + 1) & 1]
+                cur = vbufs[k, i & 1]
+                prev_min = vmins[k, (i + 1) & 1]
+                cur_min = vmins[k, i & 1]
+                dx = 0 if k == 0 else (1 if k == 1 else -1)
+                for x in range(w):
+                    xp = x - dx
+                    first = i == 0 or xp < 0 or xp >= w
+                    xq = x if first else xp
+                    cur_min[x] = _path(prev[xq], cur[x], crow[x], dst[x], srow[x], 1, prev_min[xq],
+                                       min(x, D - 1) + 1, first, p1, p2)
+            if phase == 1:
+                _select_row(full, scratch_keys[half], scratch_right[half], d_bits, u, lr_max_diff, out[y])
+
+
+@nb.njit(**_JIT, parallel=True)
+def median_to_float(disp, median, fixed, out, med_buf):  # pragma: no cover - compiled
+    """Rule 10 (when ``median``) and the conversion: int16 ``disp`` ``(H, W)`` -> int16 ``fixed``
+    (disparity × 16, -1 invalid) and float32 ``out`` pixels, NaN where invalid.
+
+    The lower median of the valid values: the nine neighbours (invalid or outside: 32767, above every
+    valid value) sorted by an odd-even transposition network (nine rounds of compare-exchanges, as
+    straight-line code the compiler vectorises across columns), then the element ``(n - 1) // 2`` of
+    the ``n`` valid ones. ``med_buf``: int16 ``(T, 3, W + 2)`` scratch: three rows padded with 32767.
+    """
+    h, w = disp.shape
+    n_chunks = med_buf.shape[0]
+    scale = np.float32(1.0 / 16.0)
+    nan = np.float32(np.nan)
+    big = np.int16(32767)
+    for t in nb.prange(n_chunks):
+        rows = med_buf[t]
+        for y in range(t * h // n_chunks, (t + 1) * h // n_chunks):
+            fr = fixed[y]
+            src = disp[y]
+            if median:
+                for k in range(3):
+                    yy = y + k - 1
+                    r = rows[k]
+                    r[0] = big
+                    r[w + 1] = big
+                    if 0 <= yy < h:
+                        s_row = disp[yy]
+                        inner = r[1 : w + 1]
+                        for x in range(w):
+                            q = s_row[x]
+                            inner[x] = q if q >= 0 else big
+                    else:
+                        r[:] = big
+                r0 = rows[0]
+                r1 = rows[1]
+                r2 = rows[2]
+                for x in range(w):
+                    v0, v1, v2 = r0[x], r0[x + 1], r0[x + 2]
+                    v3, v4, v5 = r1[x], r1[x + 1], r1[x + 2]
+                    v6, v7, v8 = r2[x], r2[x + 1], r2[x + 2]
+                    n = (
+                        np.int16(v0 != big) + np.int16(v1 != big) + np.int16(v2 != big)
+                        + np.int16(v3 != big) + np.int16(v4 != big) + np.int16(v5 != big)
+                        + np.int16(v6 != big) + np.int16(v7 != big) + np.int16(v8 != big)
+                    )
+                    v0, v1 = min(v0, v1), max(v0, v1)
+                    v2, v3 = min(v2, v3), max(v2, v3)
+                    v4, v5 = min(v4, v5), max(v4, v5)
+                    v6, v7 = min(v6, v7), max(v6, v7)
+                    v1, v2 = min(v1, v2), max(v1, v2)
+                    v3, v4 = min(v3, v4), max(v3, v4)
+                    v5, v6 = min(v5, v6), max(v5, v6)
+                    v7, v8 = min(v7, v8), max(v7, v8)
+                    v0, v1 = min(v0, v1), max(v0, v1)
+                    v2, v3 = min(v2, v3), max(v2, v3)
+                    v4, v5 = min(v4, v5), max(v4, v5)
+                    v6, v7 = min(v6, v7), max(v6, v7)
+                    v1, v2 = min(v1, v2), max(v1, v2)
+                    v3, v4 = min(v3, v4), max(v3, v4)
+                    v5, v6 = min(v5, v6), max(v5, v6)
+                    v7, v8 = min(v7, v8), max(v7, v8)
+                    v0, v1 = min(v0, v1), max(v0, v1)
+                    v2, v3 = min(v2, v3), max(v2, v3)
+                    v4, v5 = min(v4, v5), max(v4, v5)
+                    v6, v7 = min(v6, v7), max(v6, v7)
+                    v1, v2 = min(v1, v2), max(v1, v2)
+                    v3, v4 = min(v3, v4), max(v3, v4)
+                    v5, v6 = min(v5, v6), max(v5, v6)
+                    v7, v8 = min(v7, v8), max(v7, v8)
+                    v0, v1 = min(v0, v1), max(v0, v1)
+                    v2, v3 = min(v2, v3), max(v2, v3)
+                    v4, v5 = min(v4, v5), max(v4, v5)
+                    v6, v7 = min(v6, v7), max(v6, v7)
+                    v1, v2 = min(v1, v2), max(v1, v2)
+                    v3, v4 = min(v3, v4), max(v3, v4)
+                    v5, v6 = min(v5, v6), max(v5, v6)
+                    v7, v8 = min(v7, v8), max(v7, v8)
+                    v0, v1 = min(v0, v1), max(v0, v1)
+                    v2, v3 = min(v2, v3), max(v2, v3)
+                    v4, v5 = min(v4, v5), max(v4, v5)
+                    v6, v7 = min(v6, v7), max(v6, v7)
+                    k = (n - 1) >> 1  # at most 4
+                    m = v0 if k == 0 else (v1 if k == 1 else (v2 if k == 2 else (v3 if k == 3 else v4)))
+                    fr[x] = m if src[x] >= 0 else np.int16(-1)
+            else:
+                for x in range(w):
+                    fr[x] = src[x]
+            orow = out[y]
+            for x in range(w):
+                v = fr[x]
+                orow[x] = nan if v < 0 else np.float32(v) * scale

@@ -1,0 +1,128 @@
+""":class:`CpuSgmMatcher`: the census + SGM matcher behind the common matcher contract, on the CPU."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from companion.core.disparity.base import check_grey_pair, check_out
+from companion.core.disparity.sgm import check_sgm_params
+from companion.errors import FrameError
+
+log = logging.getLogger(__name__)
+
+
+class CpuSgmMatcher:
+    """Census + SGM + left-right check on the CPU, equal to
+    :class:`~companion.core.disparity.sgm.SgmReferenceMatcher` bit for bit (how it runs:
+    :func:`companion.cpu.kernels.match`; docs/gpu.md).
+
+    Built once per eye size: the kernels compile (or load from the cache) here, and every buffer is
+    allocated here (about 3 bytes per pixel and disparity: 49 MB at 672×376×64), so :meth:`compute`
+    allocates nothing.
+
+    Args:
+        width_px, height_px: the rectified image size the matcher is built for.
+        num_disparities: ``D`` in ``[2, 256]``.
+        p1, p2, paths, uniqueness_ratio_pct, lr_max_diff_px, median: see
+            :func:`~companion.core.disparity.sgm.sgm_match`.
+        threads: worker threads, 0 = all Numba threads (``NUMBA_NUM_THREADS``, by default every
+            core); more than Numba has are clamped.
+
+    Raises:
+        ValueError: a parameter outside the rules.
+    """
+
+    name = "cpu-sgm"
+
+    def __init__(
+        self,
+        width_px: int,
+        height_px: int,
+        num_disparities: int,
+        *,
+        p1: int,
+        p2: int,
+        paths: int = 4,
+        uniqueness_ratio_pct: int = 10,
+        lr_max_diff_px: int = 1,
+        median: bool = True,
+        threads: int = 0,
+    ) -> None:
+        check_sgm_params(num_disparities, p1, p2, paths, uniqueness_ratio_pct, lr_max_diff_px)
+        if width_px < 1 or height_px < 1:
+            raise ValueError(f"image size must be at least 1x1 px, got {width_px}x{height_px}")
+        from companion.cpu import load_kernels  # Numba only when the engine is built
+
+        import numba
+
+        self._k = load_kernels()
+        self._numba = numba
+        available = int(numba.config.NUMBA_NUM_THREADS)
+        self.threads = available if threads <= 0 else min(int(threads), available)
+        if 0 < threads and threads > available:
+            log.info("cpu-sgm: %d threads asked for, Numba has %d (NUMBA_NUM_THREADS)", threads, available)
+        self.shape = (int(height_px), int(width_px))
+        self.num_disparities = D = int(num_disparities)
+        self.p1, self.p2, self.paths = int(p1), int(p2), int(paths)
+        self.uniqueness_ratio_pct = int(uniqueness_ratio_pct)
+        self.lr_max_diff_px = int(lr_max_diff_px)
+        self.median = bool(median)
+        h, w = self.shape
+        # Chunks of rows for the median's parallel loop: a few per thread, so that a slow one is caught up.
+        chunks = max(1, min(h, 4 * self.threads))
+        self._census = np.empty((2, 2, w), np.uint64)
+        self._planes = np.empty((2, 8, w), np.uint8)
+        self._sums = np.empty((h, w, D), np.uint16)
+        self._cost = np.empty((h, w, D), np.uint8)
+        self._scratch = (
+            np.empty((2, 2, D + 2), np.int16),
+            np.empty((2, 3 if self.paths == 8 else 1, 2, w, D + 2), np.int16),
+            np.empty((2, 3 if self.paths == 8 else 1, 2, w), np.int16),
+            np.empty((2, w, D), np.uint16),
+            np.empty((2, w, D), np.uint32),
+            np.empty((2, 2, w), np.uint32),
+            (255 - np.arange(D)).astype(np.uint32),
+        )
+        self._med = np.empty((chunks, 3, w + 2), np.int16)
+        self._raw = np.empty((h, w), np.int16)
+        self._fixed = np.empty((h, w), np.int16)
+        self._out = np.empty((h, w), np.float32)
+        # Compile (or load the cached machine code) now, not on the first frame.
+        zeros = np.zeros((h, w), np.uint8)
+        self._run(zeros, zeros, self._out)
+
+    def _run(self, left: np.ndarray, right: np.ndarray, out: np.ndarray) -> None:
+        k = self._k
+        # Numba's thread count is per calling thread: set it on the thread that matches.
+        self._numba.set_num_threads(self.threads)
+        for phase in (0, 1):
+            k.match(
+                left, right, self._cost, self._sums, self.p1, self.p2, self.paths, self.uniqueness_ratio_pct,
+                self.lr_max_diff_px, self._raw, phase, self._census, self._planes, *self._scratch,
+            )
+        k.median_to_float(self._raw, self.median, self._fixed, out, self._med)
+
+    def _check(self, left: np.ndarray, right: np.ndarray) -> None:
+        shape = check_grey_pair(left, right)
+        if shape != self.shape:
+            raise FrameError(f"cpu-sgm matcher built for {self.shape[1]}x{self.shape[0]} px, got {shape[1]}x{shape[0]}")
+
+    def compute_fixed(self, left: np.ndarray, right: np.ndarray) -> np.ndarray:
+        """int16 ``(H, W)`` disparity × 16, ``-1`` invalid: a new array (the reference's output)."""
+        self._check(left, right)
+        self._run(np.ascontiguousarray(left), np.ascontiguousarray(right), self._out)
+        return self._fixed.copy()
+
+    def compute(self, left: np.ndarray, right: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """float32 ``(H, W)`` disparity, px, NaN where invalid (``out`` when given, else a buffer of the
+        matcher's, overwritten by the next call)."""
+        self._check(left, right)
+        if out is not None:
+            out = check_out(out, self.shape)
+        else:
+            out = self._out
+        self._run(left if left.flags.c_contiguous else np.ascontiguousarray(left),
+                  right if right.flags.c_contiguous else np.ascontiguousarray(right), out)
+        return out
