@@ -200,7 +200,7 @@ def test_request_budgets_answer_a_flooding_client_and_spare_the_others(tmp_path:
         assert status["control"]["rate_limited"] >= len(limited)
         other.close()
         flooder.close(0)
-        ctx.term()
+        ctx.destroy(linger=0)
 
 
 def test_connections_beyond_the_limit_are_refused(tmp_path: Path) -> None:
@@ -236,7 +236,7 @@ def test_connections_beyond_the_limit_are_refused(tmp_path: Path) -> None:
         again = Client(service.bus.control_endpoint)
         assert again.call("ping")["ok"]
         again.close()
-        ctx.term()
+        ctx.destroy(linger=0)
 
 
 def test_a_client_beyond_the_limit_gets_an_error_not_a_hang(tmp_path: Path) -> None:
@@ -295,7 +295,7 @@ def _try_to_engage(endpoint: str) -> str:
     s.send(b'{"cmd": "engage"}')
     raw = "answered" if s.poll(1500) else "no reply"
     s.close(0)
-    ctx.term()
+    ctx.destroy(linger=0)
     try:
         ControlClient(endpoint, timeout_s=1.0).close()
         client = "ControlClient: connected"

@@ -102,7 +102,7 @@ def test_preview_only_while_watched_at_the_rate_asked_for(tmp_path: Path) -> Non
             if sub.poll(100):
                 got.append(unpack(sub.recv_multipart()))
         sub.close(0)
-        ctx.term()
+        ctx.destroy(linger=0)
         # 4 Hz for 2.5 s (the first frame as soon as the subscription arrives): about 10, never 15 fps.
         assert 7 <= len(got) <= 13, len(got)
         header, jpeg = got[-1]
@@ -287,7 +287,7 @@ def test_review_of_a_bounded_recording_and_of_a_sitl_workdir(tmp_path: Path) -> 
     time.sleep(0.3)
     recorder.close()
     pub.close(0)
-    ctx.term()
+    ctx.destroy(linger=0)
     size = (run / "health.jsonl").stat().st_size
     assert 0 < size <= 4000 and recorder.health_lines == len((run / "health.jsonl").read_text().splitlines()) < 30
 

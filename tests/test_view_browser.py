@@ -48,7 +48,7 @@ class HealthLog:
         self._stop.set()
         self._thread.join(2.0)
         self._sock.close(0)
-        self._ctx.term()
+        self._ctx.destroy(linger=0)
 
 
 def _page(driver) -> dict:

@@ -80,7 +80,7 @@ def test_the_service_flies_and_previews_on_yuyv_frames(tmp_path: Path) -> None:
                     got.append(unpack(sub.recv_multipart()))
         finally:
             sub.close(0)
-            ctx.term()
+            ctx.destroy(linger=0)
         assert got, "no preview of a YUYV frame within 10 s"
         header, jpeg = got[0]
         assert header["decision"] == "avoid" and jpeg[:2] == b"\xff\xd8"

@@ -138,11 +138,12 @@ def _endpoint_options(p: argparse.ArgumentParser, control: bool) -> None:
 
 def _endpoint(args: argparse.Namespace, control: bool) -> str:
     from companion.config.service import AUTO_ENDPOINT
-    from companion.service.runtime import find_socket
+    from companion.service.runtime import find_socket, validate_endpoint, validate_timeout
 
     which = "control" if control else "health"
+    validate_timeout(args.timeout_s)
     if args.endpoint:
-        return args.endpoint
+        return validate_endpoint(args.endpoint, "--endpoint")
     if args.config is not None:
         from companion.config import load_bus_config
 
@@ -224,18 +225,21 @@ def _watch(args: argparse.Namespace) -> int:
     endpoint = _endpoint(args, control=False)
     check_ipc_access(endpoint)
     ctx = zmq.Context()
-    sock = ctx.socket(zmq.SUB)
-    sock.setsockopt(zmq.LINGER, 0)
-    for name, value in (curve or {}).items():
-        setattr(sock, name, value)
-    sock.setsockopt(zmq.SUBSCRIBE, b"")
-    sock.connect(endpoint)
     seen = 0
     interactive = sys.stdout.isatty() and not args.json
     try:
+        sock = ctx.socket(zmq.SUB)
+        sock.setsockopt(zmq.LINGER, 0)
+        for name, value in (curve or {}).items():
+            setattr(sock, name, value)
+        sock.setsockopt(zmq.SUBSCRIBE, b"")
+        try:
+            sock.connect(endpoint)
+        except zmq.ZMQError as err:
+            raise ClientError(f"cannot connect to {endpoint}: {err}") from None
         while args.count <= 0 or seen < args.count:
             if not sock.poll(int(args.timeout_s * 1000)):
-                raise ClientError(f"no health message from {endpoint} within {args.timeout_s:g} s (is the service running?)")
+                raise ClientError(f"no health message from {endpoint} within {args.timeout_s:g} s: no running service there?")
             message = json.loads(sock.recv())
             seen += 1
             if args.json:
@@ -247,8 +251,7 @@ def _watch(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         pass
     finally:
-        sock.close(0)
-        ctx.term()
+        ctx.destroy(linger=0)
     return exitcodes.OK
 
 

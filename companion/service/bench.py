@@ -181,7 +181,7 @@ def measure_e2e(
                 sub.recv_multipart()
                 previews[0] += 1
         sub.close(0)
-        ctx.term()
+        ctx.destroy(linger=0)
 
     watcher = threading.Thread(target=watch, name="e2e-viewer", daemon=True)
     if mode != "off":

@@ -19,6 +19,7 @@ import numpy as np
 from companion.core.types import REGION_NAMES, VelocitySetpoint
 from companion.service import protocol
 from companion.service.aio import wait_event
+from companion.view.frame import thresholds_m
 
 log = logging.getLogger(__name__)
 
@@ -149,6 +150,8 @@ class HealthReporter:
             "last_error": self._last_error,
             "control": self._control_status(),
             "mavlink": self.presence_status(),
+            "thresholds_m": thresholds_m(self.config),
+            "preview": self.view.publisher.status() if self.view is not None and self.view.publisher is not None else None,
         }
 
     def _control_status(self) -> dict[str, int] | None:

@@ -165,7 +165,7 @@ class SimViewBridge:
             self._pub.close(0)
             self._pub = None
         if self._ctx is not None:
-            self._ctx.term()
+            self._ctx.destroy(linger=0)
             self._ctx = None
 
     # ------------------------------------------------------------------ the health message
@@ -190,8 +190,12 @@ class SimViewBridge:
     def _health(self, step: Any) -> dict[str, Any]:
         from companion.core.types import REGION_NAMES
 
+        from companion.view.frame import thresholds_m
+
         res = step.result
         decision = res.decision if res is not None else None
+        publisher = self.publisher
+        preview = publisher.status() if publisher is not None else {"published": 0, "errors": 0, "failing": None}
         recent = [t for t in self._frames[-64:] if step.t_s - t <= 1.0]
         sp = step.setpoint
         engaged = self._state == "engaged" and step.in_offboard
@@ -252,7 +256,9 @@ class SimViewBridge:
             "dropped_frames": 0,
             "processed_twice": 0,
             "frame_errors": 0,
-            "last_error": None,
+            "last_error": preview["failing"] and f"preview: {preview['failing']}",
+            "thresholds_m": thresholds_m(self.cfg),
+            "preview": preview,
         }
 
 

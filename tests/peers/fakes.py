@@ -251,7 +251,7 @@ class Client:
         self.sock.close(0)
         if self.sub is not None:
             self.sub.close(0)
-        self.ctx.term()
+        self.ctx.destroy(linger=0)
 
 
 def avoid_scene_camera(fps_hz: float = 15.0, width_px: int = 672, height_px: int = 376):

@@ -209,12 +209,16 @@ function applyViewStatus(s) {
   view.viewStatus = s;
   if (!s) return;
   const banner = $("banner");
-  if (s.health_age_s === null) { banner.hidden = false; banner.textContent = "No health message from the service yet: is it running? (companion view follows its health socket)"; }
+  if (s.health_age_s === null) { banner.hidden = false; banner.textContent = `No running service: no health message from ${s.health_endpoint || "its health socket"} yet. Start it (companion run); this page follows it once it runs.`; }
   else if (s.health_age_s > 2) { banner.hidden = false; banner.textContent = `No health message from the service for ${s.health_age_s.toFixed(0)} s: the service may have stopped.`; }
   else banner.hidden = true;
   const age = s.preview_age_s;
-  setText("preview-info", age === null ? "no picture yet (the service publishes one only while someone watches)"
-    : `${fmt(s.preview_fps, 1)} pictures/s, newest ${fmt(age * 1000, 0)} ms ago` + (s.preview_encode_ms ? `, drawn in ${fmt(s.preview_encode_ms, 1)} ms` : ""));
+  const failing = view.health && view.health.preview ? view.health.preview.failing : null;
+  let info = age === null ? "no picture yet (the service draws one only while someone watches; the first takes a few seconds)"
+    : `${fmt(s.preview_fps, 1)} pictures/s, newest ${fmt(age * 1000, 0)} ms ago` + (s.preview_encode_ms ? `, drawn in ${fmt(s.preview_encode_ms, 1)} ms` : "");
+  if (failing) info = `no new picture: ${failing}` + (age === null ? "" : ` (the last one ${fmt(age, 0)} s ago)`);
+  setText("preview-info", info);
+  $("preview-info").className = failing ? "err" : "";
 }
 
 // ------------------------------------------------------------------------------------------ preview
