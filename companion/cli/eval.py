@@ -163,7 +163,7 @@ def print_report(r: dict[str, Any]) -> None:
     )
     for kind in ("errors", "warnings"):
         for msg in r["rig_check"][kind]:
-            print(f"config check ({kind[:-1]}, not applied here): {msg}")
+            print(f"rig check: {kind[:-1]}: {msg} (reported, not applied: eval scores any rig)")
     print(f"backend: {r['backend']}, {r['run_s'] * 1e3:.1f} ms for the frame")
     for label in ("known", "matchable"):
         print(

@@ -35,6 +35,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _read_image(path: Path) -> Any:
     import cv2
 
+    if path.is_dir():
+        raise InputError(f"{path}: a folder, not an image file (give one image: a PNG or JPEG)")
     if not path.is_file():
         raise InputError(f"{path}: no such file")
     image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
@@ -72,6 +74,7 @@ def run(args: argparse.Namespace) -> int:
     from companion.core.command import setpoint_for
     from companion.core.overlay import draw_overlay
     from companion.backends import make_pipeline
+    from companion.core.rig_check import check_rig, near_unmeasurable, rig_check_lines
     from companion.core.stereo import split_side_by_side
 
     cfg = load_config(args.config)
@@ -81,11 +84,13 @@ def run(args: argparse.Namespace) -> int:
     if args.backend is not None:
         patch["stereo"] = {"backend": args.backend}
     if patch:
-        cfg = apply_patch(cfg, patch)
+        # checked below against the rig this frame is really seen with (the file's, at the frame's size)
+        cfg = apply_patch(cfg, patch, check_rig=False)
     frame = load_frame(args)
     left, right = split_side_by_side(frame)
     height, width = left.shape[:2]
     pipeline = make_pipeline(cfg, width, height)
+    rig = check_rig(pipeline.geometry, cfg.stereo, cfg.regions, cfg.controller)
     result = pipeline.process(frame, timestamp_s=0.0, want_disparity=args.overlay is not None)
     setpoint = setpoint_for(result.decision, since_last_frame_s=0.0, cmd=cfg.command)
     g = pipeline.geometry
@@ -111,7 +116,18 @@ def run(args: argparse.Namespace) -> int:
             "yaw_rate_deg_s": round(setpoint.yaw_rate_deg_s, 4),
         },
         "timings_ms": {k: round(v, 3) for k, v in result.timings_ms.items()},
+        "min_measurable_depth_m": round(rig.nearest_depth_m, 3),
+        "rig_check": {"errors": list(rig.errors), "warnings": list(rig.warnings)},
     }
+    blind = near_unmeasurable(rig, cfg.controller)
+    if blind:
+        # What the pipeline cannot know: a surface nearer than the nearest measurable depth is out of
+        # the disparity search, so it reads unknown or (a false match) far. A "far" region or a "clear"
+        # decision says nothing about what is nearer than that.
+        out["near_unmeasurable"] = True
+        out["far_regions_unverified"] = [
+            name for name, d in out["regions_m"].items() if d is not None and d >= rig.nearest_depth_m
+        ]
     if args.overlay is not None:
         import cv2
 
@@ -144,6 +160,15 @@ def run(args: argparse.Namespace) -> int:
             f"taken as already rectified by an ideal rig ({cfg.calibration.ideal_baseline_m:g} m baseline, "
             f"{cfg.calibration.ideal_hfov_deg:g} deg horizontal field of view); a real camera's depths are off by "
             "as much as it differs. A ZED: pass its SN<serial>.conf; another camera: `companion calibrate stereo`.",
+            file=sys.stderr,
+        )
+    for line in rig_check_lines(rig):
+        print(f"companion process: {line}", file=sys.stderr)
+    if blind and result.decision.kind.value == "clear":
+        print(
+            f"companion process: warning: the decision is clear, but this rig measures nothing nearer than "
+            f"{rig.nearest_depth_m:.2f} m: an obstacle nearer than that would not be seen (more "
+            "stereo.num_disparities, or a shorter baseline)",
             file=sys.stderr,
         )
     json.dump(out, sys.stdout, indent=2)
