@@ -111,3 +111,34 @@ def test_view_without_a_service_says_so_in_the_terminal() -> None:
     finally:
         proc.terminate()
         proc.wait(30)
+
+
+def test_bench_says_what_it_is_doing(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["bench", "--frames", "1", "--warmup", "0", "--sizes", "160x120:16", "--no-rectify"]) == 0
+    err = capsys.readouterr().err
+    assert "companion bench: 160x120/16: timing 0 + 1 frames..." in err and "the renderer" in err
+
+
+def test_an_unexpected_error_is_one_line_without_a_traceback(monkeypatch, capsys: pytest.CaptureFixture[str]) -> None:
+    import companion.cli.process as process
+
+    def boom(args):
+        raise RuntimeError("something no one foresaw")
+
+    monkeypatch.setattr(process, "run", boom)
+    from companion.cli import build_parser
+
+    parser = build_parser()
+    args = parser.parse_args(["process", "--sbs", "x.png"])
+    assert args.func is boom or True  # set_defaults captured the original: call through main below
+    monkeypatch.setattr("companion.cli.build_parser", lambda: _parser_with(parser, boom))
+    assert main(["process", "--sbs", "x.png"]) == exitcodes.INTERNAL_ERROR
+    err = capsys.readouterr().err
+    assert "internal error: RuntimeError: something no one foresaw" in err and "Traceback" not in err
+    assert len(err.strip().splitlines()) == 1
+
+
+def _parser_with(parser, func):
+    for action in parser._subparsers._group_actions:  # noqa: SLF001
+        action.choices["process"].set_defaults(func=func)
+    return parser

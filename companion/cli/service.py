@@ -77,6 +77,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     _endpoint_options(p, control=False)
     p.add_argument("--json", action="store_true", help="print each message as one JSON line instead")
+    p.add_argument("--verbose", action="store_true", help="also the controller's reason (rules, memberships)")
     p.add_argument("--count", type=int, default=0, help="exit after this many messages (default: run until Ctrl-C)")
     p.add_argument("--timeout-s", type=float, default=5.0, help="give up when no message comes for this long (default 5)")
     p.set_defaults(func=_watch)
@@ -245,7 +246,7 @@ def _watch(args: argparse.Namespace) -> int:
             if args.json:
                 print(json.dumps(message), flush=True)
             else:
-                screen = render_health(message)
+                screen = render_health(message, verbose=args.verbose)
                 # Clear the screen on a terminal; separate the screens with a blank line otherwise.
                 print(("\x1b[H\x1b[2J" if interactive else "\n") + screen, flush=True)
     except KeyboardInterrupt:

@@ -172,8 +172,20 @@ def _fmt(value: Any, unit: str = "", digits: int = 2) -> str:
     return f"{value}{unit}"
 
 
-def render_health(h: dict[str, Any]) -> str:
-    """A health message as a small terminal screen."""
+def _words(h: dict[str, Any], dec: dict[str, Any]) -> str:
+    """The decision in a pilot's words: the service's own, else made from the message."""
+    if dec.get("words"):
+        return str(dec["words"])
+    if not dec:
+        return "no decision yet"
+    from companion.core.words import decision_words
+
+    return decision_words(dec.get("kind"), h.get("yaw") or 0.0, h.get("pitch") or 0.0, h.get("regions_m"),
+                          dec.get("speed_fraction"))
+
+
+def render_health(h: dict[str, Any], verbose: bool = False) -> str:
+    """A health message as a small terminal screen (``verbose``: with the controller's reason)."""
     r = h.get("regions_m") or {}
     filtered = h.get("regions_filtered") or {}
     # "~": the value came out of the release filter: a blend, no frame's measurement.
@@ -194,8 +206,8 @@ def render_health(h: dict[str, Any]) -> str:
         f"  {cell('up_left')} {cell('up')} {cell('up_right')}",
         f"  {cell('left')} {cell('center')} {cell('right')}",
         f"  {cell('down_left')} {cell('down')} {cell('down_right')}",
-        f"decision {dec.get('kind', '--')}  yaw {_fmt(h.get('yaw'))}  pitch {_fmt(h.get('pitch'))}  "
-        f"({dec.get('reason', '')})",
+        f"decision {dec.get('kind', '--')}: {_words(h, dec)}  yaw {_fmt(h.get('yaw'))}  pitch {_fmt(h.get('pitch'))}"
+        + (f"  [{dec.get('reason', '')}]" if verbose else ""),
         f"setpoint fwd {_fmt(sp.get('forward_m_s'), ' m/s')}  down {_fmt(sp.get('down_m_s'), ' m/s')}  "
         f"yaw rate {_fmt(sp.get('yaw_rate_deg_s'), ' deg/s', 1)}",
         f"camera {cam.get('source')} {cam.get('status')} {_fmt(cam.get('fps'), ' fps', 1)}  "

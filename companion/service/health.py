@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from companion.core.types import REGION_NAMES, VelocitySetpoint
+from companion.core.words import decision_words
 from companion.service import protocol
 from companion.service.aio import wait_event
 from companion.view.frame import thresholds_m
@@ -108,6 +109,8 @@ class HealthReporter:
                     "kind": decision.kind.value,
                     "speed_fraction": decision.speed_fraction,
                     "reason": decision.reason,
+                    "words": decision_words(decision.kind, decision.yaw, decision.pitch, result.refined.depth_m,
+                                            decision.speed_fraction),
                 }
                 if decision is not None
                 else None

@@ -190,6 +190,7 @@ class SimViewBridge:
     def _health(self, step: Any) -> dict[str, Any]:
         from companion.core.types import REGION_NAMES
 
+        from companion.core.words import decision_words
         from companion.view.frame import thresholds_m
 
         res = step.result
@@ -221,7 +222,9 @@ class SimViewBridge:
             "yaw": decision.yaw if decision is not None else None,
             "pitch": decision.pitch if decision is not None else None,
             "decision": (
-                {"kind": decision.kind.value, "speed_fraction": decision.speed_fraction, "reason": decision.reason}
+                {"kind": decision.kind.value, "speed_fraction": decision.speed_fraction, "reason": decision.reason,
+                 "words": decision_words(decision.kind, decision.yaw, decision.pitch, res.refined.depth_m,
+                                         decision.speed_fraction)}
                 if decision is not None
                 else None
             ),

@@ -179,7 +179,9 @@ function applyHealth(h) {
   drawStick(h);
   const d = h.decision || {};
   setText("decision", d.kind ? d.kind.toUpperCase() + (typeof d.speed_fraction === "number" ? ` (speed ${fmt(d.speed_fraction)})` : "") : "–");
-  setText("decision-reason", d.reason || "");
+  // the pilot's words; the controller's reason (rules, memberships) on hover, for tuning
+  setText("decision-reason", d.words || d.reason || "");
+  $("decision-reason").title = d.words ? (d.reason || "") : "";
   setText("yaw", signed(h.yaw) + (typeof h.yaw === "number" ? (h.yaw > 0.02 ? "  right" : h.yaw < -0.02 ? "  left" : "") : ""));
   setText("pitch", signed(h.pitch) + (typeof h.pitch === "number" ? (h.pitch > 0.02 ? "  up" : h.pitch < -0.02 ? "  down" : "") : ""));
   const sp = h.setpoint || {};
@@ -267,7 +269,11 @@ async function onButton(ev) {
     });
     const reply = await resp.json();
     if (reply.ok) { msg.className = "small ok"; msg.textContent = `${cmd}: ${(reply.result && reply.result.message) || "ok"}`; }
-    else { msg.className = "small err"; msg.textContent = `${cmd} refused: ${(reply.error && reply.error.message) || resp.status}`; }
+    else {
+      // the service's message already says "engage refused: ..."; a message of its own gets the prefix
+      const text = String((reply.error && reply.error.message) || resp.status);
+      msg.className = "small err"; msg.textContent = text.startsWith(`${cmd} refused`) ? text : `${cmd} refused: ${text}`;
+    }
   } catch (err) {
     msg.className = "small err"; msg.textContent = `${cmd}: no answer from the view (${err})`;
   }
