@@ -17,8 +17,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="run the pipeline on one stereo frame; print region depths, yaw, pitch and the decision as JSON",
         description=(
             "Run the whole pipeline on one stereo frame (a ZED side-by-side image, or a left/right pair) "
-            "and print JSON: the 9 region depths in metres (null = unknown), yaw, pitch, the decision, "
-            "the setpoint it gives and per-stage timings."
+            "and print JSON: the 9 region depths in metres (null = unknown), yaw, pitch, the decision and "
+            "what it means in words, the setpoint it gives, per-stage timings, and the nearest depth the "
+            "rig can measure (min_measurable_depth_m). Try it on the repository's sample: "
+            "--sbs samples/frame.jpg --calib samples/frame-calib.yaml."
         ),
     )
     src = p.add_mutually_exclusive_group(required=True)
@@ -29,6 +31,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--config", type=Path, help="TOML config (default: built-in defaults)")
     p.add_argument("--backend", help="override stereo.backend (auto, opencv-bm, opencv-sgbm, reference, cupy)")
     p.add_argument("--overlay", type=Path, metavar="OUT.png", help="also draw the regions, depths and command arrow")
+    p.add_argument("--verbose", action="store_true", help="also the controller's reason and its rules' strengths")
     p.set_defaults(func=run)
 
 
@@ -75,6 +78,7 @@ def run(args: argparse.Namespace) -> int:
     from companion.core.overlay import draw_overlay
     from companion.backends import make_pipeline
     from companion.core.rig_check import check_rig, near_unmeasurable, rig_check_lines
+    from companion.core.words import decision_words
     from companion.core.stereo import split_side_by_side
 
     cfg = load_config(args.config)
@@ -105,10 +109,12 @@ def run(args: argparse.Namespace) -> int:
             k: round(float(v), 4) for k, v in zip(result.raw.as_dict(), result.raw.valid_fraction)
         },
         "decision": result.decision.kind.value,
-        "reason": result.decision.reason,
+        "words": decision_words(
+            result.decision.kind, result.decision.yaw, result.decision.pitch, result.refined.depth_m,
+            result.decision.speed_fraction,
+        ),
         "yaw": round(result.decision.yaw, 4),
         "pitch": round(result.decision.pitch, 4),
-        "rules": {k: round(v, 4) for k, v in result.decision.rule_strengths.items()},
         "setpoint": {
             "forward_m_s": round(setpoint.forward_m_s, 4),
             "right_m_s": round(setpoint.right_m_s, 4),
@@ -117,6 +123,11 @@ def run(args: argparse.Namespace) -> int:
         },
         "timings_ms": {k: round(v, 3) for k, v in result.timings_ms.items()},
         "min_measurable_depth_m": round(rig.nearest_depth_m, 3),
+        **(
+            {"reason": result.decision.reason,
+             "rules": {k: round(v, 4) for k, v in result.decision.rule_strengths.items()}}
+            if args.verbose else {}
+        ),
         "rig_check": {"errors": list(rig.errors), "warnings": list(rig.warnings)},
     }
     blind = near_unmeasurable(rig, cfg.controller)
