@@ -61,8 +61,6 @@ def decision_words(
         if ahead is None:
             return "stopping: no way round"
         return f"stopping: obstacle {_metres(ahead)} ahead and no way round"
-    if k == "clear":
-        return "clear ahead" + (f" ({_metres(ahead)})" if ahead is not None else "")
     moves = []
     if yaw >= TURN_WORDS_THRESHOLD:
         moves.append("turning right")
@@ -72,6 +70,8 @@ def decision_words(
         moves.append("climbing")
     elif pitch <= -TURN_WORDS_THRESHOLD:
         moves.append("descending")
+    if k == "clear":  # clear, yet steering: course hold, a detour's way, a descent back to altitude
+        return "clear ahead" + (f" ({_metres(ahead)})" if ahead is not None else "") + (f", {' and '.join(moves)}" if moves else "")
     if not moves:
         moves.append("straight on")
     if speed_fraction is not None and speed_fraction < 0.99:
