@@ -142,3 +142,21 @@ def _parser_with(parser, func):
     for action in parser._subparsers._group_actions:  # noqa: SLF001
         action.choices["process"].set_defaults(func=func)
     return parser
+
+
+def test_sim_help_lists_every_course_it_flies(capsys: pytest.CaptureFixture[str]) -> None:
+    from companion.sim.courses import COURSE_KINDS
+
+    with pytest.raises(SystemExit):
+        main(["sim", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    for kind in (*COURSE_KINDS, "head-on", "wall"):
+        assert kind in text, kind
+
+
+def test_view_help_names_the_sockets_it_really_follows(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        main(["view", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "5560" not in text and "5561" not in text and "5562" not in text
+    assert "$XDG_RUNTIME_DIR/companion" in text

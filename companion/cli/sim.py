@@ -29,7 +29,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     what.add_argument(
         "--course",
         metavar="KIND",
-        help="course kind: corridor, doorway, forest, pitch, side, deadend, office, detour",
+        help=(
+            "course kind: corridor, doorway, forest, pitch, side, deadend, office, detour (the suite's), "
+            "head-on (one box ahead), wall (a 30 m wall across)"
+        ),
     )
     what.add_argument("--suite", metavar="NAME", help="a suite of courses: standard (72 flights) or quick (16)")
     p.add_argument(
