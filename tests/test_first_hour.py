@@ -160,3 +160,19 @@ def test_view_help_names_the_sockets_it_really_follows(capsys: pytest.CaptureFix
     text = " ".join(capsys.readouterr().out.split())
     assert "5560" not in text and "5561" not in text and "5562" not in text
     assert "$XDG_RUNTIME_DIR/companion" in text
+
+
+def test_sim_and_demo_check_the_rig_they_fly_in_the_words_every_tool_uses(tmp_path: Path, capsys) -> None:
+    from companion.config import CompanionConfig
+    from companion.sim.loop import simulated_rig_check_lines
+
+    few = CompanionConfig().model_copy(update={"stereo": CompanionConfig().stereo.model_copy(update={"num_disparities": 16})})
+    lines = simulated_rig_check_lines(few)
+    sim = few.sim
+    assert lines and all(line.startswith("rig check: ") for line in lines)
+    assert f"{sim.eye_width_px}x{sim.eye_height_px} px" in lines[0] and "the nearest depth this rig can measure" in lines[0]
+    config = tmp_path / "few.toml"
+    config.write_text("[stereo]\nnum_disparities = 32\n[calibration]\nideal_baseline_m = 0.2\n")
+    assert main(["sim", "--course", "no-such-course", "--config", str(config)]) == exitcodes.BAD_INPUT
+    err = capsys.readouterr().err
+    assert "companion sim: rig check: " in err and "unknown course" in err

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -133,6 +134,10 @@ def run(args: argparse.Namespace) -> int:
     except OSError as err:
         raise InputError(f"{out_dir}: cannot create the output directory: {err.strerror or err}") from None
     cfg = load_config(args.config)
+    from companion.sim.loop import simulated_rig_check_lines
+
+    for line in simulated_rig_check_lines(cfg):  # the simulated rig's, not the camera's
+        print(f"companion demo: {line}", file=sys.stderr)
     course = make_course(args.course, args.seed)
     sim = cfg.sim
     geometry = StereoGeometry.ideal(

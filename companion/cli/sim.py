@@ -91,6 +91,10 @@ def run(args: argparse.Namespace) -> int:
     from companion.config import load_config
 
     cfg = load_config(args.config)
+    from companion.sim.loop import simulated_rig_check_lines
+
+    for line in simulated_rig_check_lines(cfg):  # the simulated rig's, not the camera's
+        print(f"companion sim: {line}", file=sys.stderr)
     if args.course is not None:
         if args.trace_dir is not None:
             raise InputError("--trace-dir goes with --suite; for one course, --trace OUT.csv")
