@@ -100,6 +100,7 @@ class PreviewPublisher:
         self.last_encode_ms: float | None = None  # the worker's drawing and encoding of the last preview
         self._worker = PreviewWorker()
         self.failing: str | None = None  # why the last preview failed; None once one succeeds
+        self._warm_up = False
         self._error_log = LogBackoff(first_interval_s=5.0, max_interval_s=120.0)
 
     # ------------------------------------------------------------------ any thread
@@ -119,8 +120,12 @@ class PreviewPublisher:
     def subscribed(self) -> bool:
         return bool(self._topics)
 
-    def start(self) -> None:
+    def start(self, warm_up: bool = False) -> None:
+        """Bind the socket and start the thread; ``warm_up``: start the drawing worker at once (a viewer
+        is sure to come: ``demo --view``), else on the first preview a viewer asks for."""
         import zmq
+
+        self._warm_up = warm_up
 
         self._ctx = zmq.Context()
         sock = self._ctx.socket(zmq.XPUB)
@@ -192,6 +197,13 @@ class PreviewPublisher:
             os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 10)
         except (AttributeError, OSError):
             log.debug("preview: could not lower this thread's priority")
+        if self._warm_up:
+            from companion.service.preview_worker import PreviewWorkerError
+
+            try:
+                self._worker.warm_up()
+            except PreviewWorkerError as err:
+                log.warning("preview: %s (tried again on the first preview)", err)
         next_due_s = 0.0
         while not self._stop.is_set():
             try:

@@ -216,6 +216,17 @@ class PreviewWorker:
                 raise PreviewWorkerError(f"preview worker: not started within {self.startup_timeout_s:g} s")
         raise PreviewWorkerStarting("preview worker: stopping while it started")
 
+    def warm_up(self) -> None:
+        """Start the worker now and wait until it is ready (a caller that knows a viewer is coming:
+        the first picture then needs no start-up).
+
+        Raises:
+            PreviewWorkerError: it could not start.
+        """
+        proc = self._ensure_started()
+        if not self._ready:
+            self._wait_ready(proc)
+
     def cancel(self) -> None:
         """End a wait for the worker's start-up (another thread is stopping the preview)."""
         self._cancelled = True
@@ -323,15 +334,16 @@ def main() -> int:
     # Ctrl+C in a terminal reaches the whole process group: the service decides, and the child ends
     # when the service closes its input (no traceback of its own).
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    try:
-        os.nice(max(0, WORKER_NICE - os.nice(0)))
-    except OSError:
-        log.debug("could not lower the priority")
+    # The imports first, at the service's priority: at nice 10 beside busy processes they took a minute.
     import cv2
 
     import companion.view.frame  # noqa: F401  (the imports are the start-up: done before the ready byte)
 
     cv2.setNumThreads(1)
+    try:
+        os.nice(max(0, WORKER_NICE - os.nice(0)))
+    except OSError:
+        log.debug("could not lower the priority")
     sys.stdout.buffer.write(_READY)
     sys.stdout.buffer.flush()
     serve(sys.stdin.buffer, sys.stdout.buffer)

@@ -82,7 +82,7 @@ class SimViewBridge:
         self._pub.bind("tcp://127.0.0.1:*")
         health_endpoint = self._pub.getsockopt_string(zmq.LAST_ENDPOINT)
         self.publisher = PreviewPublisher(lambda: self.cfg.view, "tcp://127.0.0.1:*", clock=time.monotonic)
-        self.publisher.start()
+        self.publisher.start(warm_up=True)  # the page is about to watch: no start-up before its first picture
         cmd = [
             sys.executable, "-m", "companion", "view", "--no-control",
             "--health-endpoint", health_endpoint, "--preview-endpoint", self.publisher.endpoint,
