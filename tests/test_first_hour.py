@@ -176,3 +176,14 @@ def test_sim_and_demo_check_the_rig_they_fly_in_the_words_every_tool_uses(tmp_pa
     assert main(["sim", "--course", "no-such-course", "--config", str(config)]) == exitcodes.BAD_INPUT
     err = capsys.readouterr().err
     assert "companion sim: rig check: " in err and "unknown course" in err
+
+
+def test_eval_given_a_folder_as_an_image_says_so(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    import cv2
+    import numpy as np
+
+    cv2.imwrite(str(tmp_path / "r.png"), np.zeros((20, 40), np.uint8))
+    np.save(tmp_path / "d.npy", np.ones((20, 40), np.float32))
+    code = main(["eval", "--left", str(tmp_path), "--right", str(tmp_path / "r.png"), "--gt-disparity", str(tmp_path / "d.npy")])
+    err = capsys.readouterr().err
+    assert code == exitcodes.BAD_INPUT and "a folder, not an image file" in err and len(err.strip().splitlines()) == 1

@@ -168,6 +168,8 @@ def read_middlebury_calib(path: str | Path) -> dict[str, Any]:
 
 
 def _read_grey(path: Path) -> np.ndarray:
+    if path.is_dir():
+        raise InputError(f"{path}: a folder, not an image file (for a Middlebury folder: --middlebury)")
     if not path.is_file():
         raise InputError(f"{path}: no such file")
     img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
