@@ -201,7 +201,9 @@ def test_the_demo_s_page_shows_pictures_beside_two_busy_loops(tmp_path: Path) ->
         with Browser() as browser:
             d = browser.driver
             d.get(url)
-            assert wait_until(lambda: _page(d)["previews"] >= 5, 180.0), (_page(d), "".join(lines[-20:]))
+            ok = wait_until(lambda: _page(d)["previews"] >= 5, 180.0)
+            said = [line.strip()[-160:] for line in lines if "preview" in line]
+            assert ok, (_page(d)["previews"], d.find_element("id", "preview-info").text, said[-12:])
             page = _page(d)
             # the thresholds come with the health messages: the bars are coloured against them
             assert "near ≤ 0.75 m" in page["thresholds"], page["thresholds"]

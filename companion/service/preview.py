@@ -7,7 +7,7 @@ Threads (each with its own synchronous ZeroMQ context; none runs on the event lo
                                                                 a subscriber exists)
                                                                    │ pipe ▲ JPEG
                                                                    ▼      │
-                                                               preview worker process (nice 10):
+                                                               preview worker process (nice 5):
                                                                draw + JPEG (preview_worker.py)
     health PUB ──▶ FlightRecorder thread ◀── preview XPUB     (health.jsonl + preview/*.jpg, bounded)
 
@@ -20,7 +20,7 @@ and encoding happen in a child process (:mod:`companion.service.preview_worker`:
 the flight loop, the lowest CPU priority); the publisher's thread only writes the frame into its pipe
 and reads the JPEG back. A frame offered while it is busy replaces the waiting one (never a queue),
 and a send that would block is dropped (``dropped`` counts them). The worker's start-up (its imports)
-is not part of a preview's deadline; a worker that fails or hangs (5 s on one preview) is killed,
+is not part of a preview's deadline; a worker that fails or hangs (10 s on one preview) is killed,
 reported in ``last_error`` and health's ``preview.failing`` (the page shows it), and started again on
 a later preview.
 

@@ -5,7 +5,7 @@ holds the GIL in short bursts, and every burst can delay the pipeline and the co
 service's threads. In a child process the flight loop shares nothing with it but the CPU, and the child
 runs below the flight loop's priority (nice :data:`WORKER_NICE`) with one OpenCV thread, so the scheduler
 serves the flight loop first, yet still gets enough of a busy machine to draw a few previews a second
-(at nice 19 it would get about 1.5 % of a core beside two busy processes: no picture at all). What the service's preview thread still does per preview: write the frame and the disparity into
+(at nice 19 it got about 1.5 % of a core beside two busy processes: no picture at all). What the service's preview thread still does per preview: write the frame and the disparity into
 a pipe (the kernel copies; the GIL is released) and read back the JPEG.
 
 Protocol (private, both ends are this module): once its imports are done the child writes one byte
@@ -43,9 +43,11 @@ _REPLY_HEADER = struct.Struct("<I")
 _MAX_REPLY_BYTES = 64 << 20
 #: What the child writes once it is ready for jobs.
 _READY = b"R"
-#: The child's niceness: below the service (0), above idle work (19 starves it on a busy machine:
-#: nice 10 weighs about 7x more than 19 in the Linux scheduler, and still 10x less than the flight loop).
-WORKER_NICE = 10
+#: The child's niceness: below the service (0), far above idle work. Its demand is small (a few ms a
+#: preview), so it takes only what it needs; the priority matters when the cores are contended: at nice
+#: 19 (weight 15 against 1024 for nice 0) two busy loops left it about 1.5 % of a core, no picture at
+#: all; at nice 5 (weight 335) it still gets its few per cent, and the flight loop 3x more than it.
+WORKER_NICE = 5
 
 
 class PreviewWorkerError(CompanionError):
@@ -90,7 +92,7 @@ class PreviewWorker:
 
     def __init__(
         self,
-        timeout_s: float = 5.0,
+        timeout_s: float = 10.0,
         restart_after_s: float = 2.0,
         command: list[str] | None = None,
         startup_timeout_s: float = 60.0,
@@ -334,7 +336,7 @@ def main() -> int:
     # Ctrl+C in a terminal reaches the whole process group: the service decides, and the child ends
     # when the service closes its input (no traceback of its own).
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    # The imports first, at the service's priority: at nice 10 beside busy processes they took a minute.
+    # The imports first, at the service's priority: at a lower one beside busy processes they took a minute.
     import cv2
 
     import companion.view.frame  # noqa: F401  (the imports are the start-up: done before the ready byte)
