@@ -53,6 +53,8 @@ def test_sighup_reload_and_sigterm_clean_shutdown_on_the_wire(tmp_path: Path) ->
                 proc.kill()
             notify.close()
         assert rc == exitcodes.OK, err[-3000:]
+        # a clean exit leaves no socket file behind (a client would take it for a running service)
+        assert [n for n in ("h.sock", "c.sock", "p.sock") if (tmp_path / n).exists()] == []
         assert "cruise_speed_m_s" in err and "reload rejected" in err  # the bad reload named the field
         holds = [c for c in peer.commands_since(t_term) if c.mode == "HOLD"]
         assert len(holds) == 1 and peer.mode == "HOLD"

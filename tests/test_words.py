@@ -61,3 +61,14 @@ def test_watch_shows_the_words_and_the_reason_only_with_verbose() -> None:
                       "words": "obstacle 0.9 m ahead, turning right"}, "yaw": 0.5, "pitch": 0.0}
     assert "turning right" in render_health(h) and "R2" not in render_health(h)
     assert "escape by R2" in render_health(h, verbose=True)
+
+
+def test_a_refused_change_reads_as_one_plain_sentence() -> None:
+    from companion.core.words import error_words
+
+    assert error_words("patch: invalid config: command.cruise_speed_m_s: Input should be greater than or equal to 0 (got -1)") == (
+        "the change was refused (nothing changed): command.cruise_speed_m_s: Input should be greater than or equal to 0 (got -1)"
+    )
+    assert error_words("engage refused: vehicle is disarmed (the service never arms it)") == (
+        "engage refused: vehicle is disarmed (the service never arms it)"
+    )

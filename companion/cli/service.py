@@ -191,8 +191,13 @@ def _ctl(args: argparse.Namespace) -> int:
     if reply.get("ok"):
         print(json.dumps(reply.get("result"), indent=2))
         return exitcodes.OK
+    from companion.core.words import error_words
+
     err = reply.get("error") or {}
-    print(f"companion ctl {c}: {err.get('type', 'error')}: {err.get('message', reply)}", file=sys.stderr)
+    message = str(err.get("message", reply))
+    # the pilot's words; the error's type (ConfigError, ProtocolError...) only with --log-level DEBUG
+    kind = f"{err.get('type', 'error')}: " if args.log_level == "DEBUG" else ""
+    print(f"companion ctl {c}: {kind}{error_words(message)}", file=sys.stderr)
     return exitcodes.INTERNAL_ERROR if err.get("type") == "InternalError" else exitcodes.BAD_INPUT
 
 

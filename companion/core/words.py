@@ -78,3 +78,20 @@ def decision_words(
         moves.append("slowing")
     seen = f"obstacle {_metres(ahead)} ahead" if ahead is not None else "cannot see ahead clearly"
     return f"{seen}, {' and '.join(moves[:2])}" + (", slowing" if "slowing" in moves[2:] else "")
+
+
+#: A control reply's error prefixes as the config module writes them, and the words a pilot reads.
+_ERROR_PREFIXES = (
+    ("patch: invalid config: ", "the change was refused (nothing changed): "),
+    ("patch: rig check: error: ", "the change was refused (nothing changed): the rig cannot work with it: "),
+    ("patch: ", "the change was refused (nothing changed): "),
+)
+
+
+def error_words(message: str) -> str:
+    """A control reply's error message in plain words ("patch: invalid config: X" -> "the change was
+    refused (nothing changed): X"); other messages as they are."""
+    for prefix, words in _ERROR_PREFIXES:
+        if message.startswith(prefix):
+            return words + message[len(prefix):]
+    return message

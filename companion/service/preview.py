@@ -116,6 +116,17 @@ class PreviewPublisher:
             self._slot = _Offer(frame, result, pipeline)
             self._cond.notify()
 
+    def warm_up(self) -> None:
+        """Start the drawing worker now, in the caller's thread, and wait until it is ready; only while
+        nobody watches (the preview thread uses the worker only for a viewer).
+
+        Raises:
+            PreviewWorkerError: it could not start.
+        """
+        if self.subscribed:
+            return
+        self._worker.warm_up()
+
     @property
     def subscribed(self) -> bool:
         return bool(self._topics)
