@@ -187,3 +187,10 @@ def test_eval_given_a_folder_as_an_image_says_so(tmp_path: Path, capsys: pytest.
     code = main(["eval", "--left", str(tmp_path), "--right", str(tmp_path / "r.png"), "--gt-disparity", str(tmp_path / "d.npy")])
     err = capsys.readouterr().err
     assert code == exitcodes.BAD_INPUT and "a folder, not an image file" in err and len(err.strip().splitlines()) == 1
+
+
+def test_the_overlay_labels_use_the_legend_s_three_colours() -> None:
+    from companion.core.overlay import _FAR, _MID, _NEAR, _depth_colour
+
+    colours = {_depth_colour(d, 0.75, 2.25) for d in (0.1, 0.75, 0.8, 1.0, 1.5, 2.2, 2.25, 9.0, float("nan"))}
+    assert colours == {_NEAR, _MID, _FAR}

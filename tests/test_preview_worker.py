@@ -128,3 +128,18 @@ def test_ctrl_c_in_the_terminal_leaves_the_worker_to_the_service(inputs: Preview
         assert worker.render(inputs, 160, 60)[0][:2] == b"\xff\xd8" and worker.pid == pid
     finally:
         worker.close()
+
+
+def test_a_worker_whose_service_goes_while_it_starts_ends_without_a_traceback() -> None:
+    import subprocess
+
+    proc = subprocess.Popen([sys.executable, "-m", "companion.service.preview_worker"],
+                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    assert proc.stdout is not None and proc.stdin is not None
+    proc.stdout.close()  # the service is gone before the worker is ready
+    proc.stdin.close()
+    assert proc.stderr is not None
+    err = proc.stderr.read()
+    proc.wait(120)
+    proc.stderr.close()
+    assert proc.returncode == 0 and b"Traceback" not in err, err.decode()

@@ -331,7 +331,8 @@ def serve(stdin: Any, stdout: Any) -> None:
 
 
 def main() -> int:
-    """``python -m companion.service.preview_worker``: the child. Lowest priority, one OpenCV thread."""
+    """``python -m companion.service.preview_worker``: the child. Below the service's priority, one
+    OpenCV thread."""
     logging.basicConfig(level=logging.WARNING, stream=sys.stderr, format="preview worker: %(levelname)s %(message)s")
     # Ctrl+C in a terminal reaches the whole process group: the service decides, and the child ends
     # when the service closes its input (no traceback of its own).
@@ -346,9 +347,14 @@ def main() -> int:
         os.nice(max(0, WORKER_NICE - os.nice(0)))
     except OSError:
         log.debug("could not lower the priority")
-    sys.stdout.buffer.write(_READY)
-    sys.stdout.buffer.flush()
-    serve(sys.stdin.buffer, sys.stdout.buffer)
+    try:
+        sys.stdout.buffer.write(_READY)
+        sys.stdout.buffer.flush()
+        serve(sys.stdin.buffer, sys.stdout.buffer)
+    except BrokenPipeError:
+        # The service stopped (or gave up on this worker) while it started or drew: nothing to say.
+        # Python's own advice: point stdout at /dev/null so that the flush at exit does not fail again.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
     return 0
 
 
