@@ -70,8 +70,9 @@ def test_a_hung_worker_costs_its_caller_at_most_the_timeout(inputs: PreviewInput
 def test_a_slow_start_up_is_outside_the_deadline_of_a_preview(inputs: PreviewInputs) -> None:
     """A busy laptop took 1.2-2.9 s to import the worker's modules; with the start-up inside the 2 s
     deadline of a preview the worker was killed again and again and the page never got a picture."""
-    slow = [sys.executable, "-c", "import time; time.sleep(1.5); from companion.service.preview_worker import main; main()"]
-    worker = PreviewWorker(timeout_s=0.5, command=slow)
+    # a start-up longer than a preview's deadline (5 s: one preview, generous on a loaded machine)
+    slow = [sys.executable, "-c", "import time; time.sleep(6.0); from companion.service.preview_worker import main; main()"]
+    worker = PreviewWorker(timeout_s=5.0, command=slow)
     try:
         assert worker.render(inputs, 160, 60)[0][:2] == b"\xff\xd8"
         assert worker.starts == 1
