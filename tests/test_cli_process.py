@@ -121,3 +121,35 @@ def test_console_script_exit_code_and_stderr(tmp_path) -> None:
     )
     assert proc.returncode == 2
     assert proc.stderr.strip().count("\n") == 0 and "not a readable image" in proc.stderr
+
+
+def test_a_rig_that_cannot_measure_the_near_threshold_is_said_with_its_own_numbers(rendered, tmp_path, capsys) -> None:
+    """A real pair (f 995 px, baseline 0.193 m, 64 disparities: nothing nearer than about 3 m is
+    measurable) gave "clear" with a motorcycle 2.2 m ahead, exit 0 and no word; the service refuses
+    that rig, and ``eval`` warned. ``process`` now says so, with the file's focal, not the default rig's."""
+    calib = tmp_path / "long-baseline.npz"
+    K = np.array([[995.0, 0.0, 336.0], [0.0, 995.0, 188.0], [0.0, 0.0, 1.0]])
+    np.savez(calib, K1=K, D1=np.zeros(5), K2=K, D2=np.zeros(5), R=np.eye(3), T=np.array([-0.193, 0.0, 0.0]),
+             image_size=np.array([672, 376]))
+    code, out, err = _run(capsys, "--sbs", str(rendered["sbs"]), "--calib", str(calib))
+    assert code == 0
+    doc = json.loads(out)
+    assert doc["min_measurable_depth_m"] == pytest.approx(995.0 * 0.193 / 63, rel=0.01)
+    assert doc["near_unmeasurable"] is True and doc["rig_check"]["errors"]
+    assert "rig check: error:" in err and "f = 995 px" in err and "f = 336 px" not in err
+    assert "Traceback" not in err
+    if doc["decision"] == "clear":
+        assert "would not be seen" in err
+    # far regions are flagged: nothing nearer than the limit could have been measured
+    assert set(doc["far_regions_unverified"]) <= set(doc["regions_m"])
+
+
+def test_the_default_rig_reports_its_nearest_measurable_depth(rendered, capsys) -> None:
+    code, out, _ = _run(capsys, "--sbs", str(rendered["sbs"]))
+    doc = json.loads(out)
+    assert code == 0 and 0.0 < doc["min_measurable_depth_m"] < 0.75 and "near_unmeasurable" not in doc
+
+
+def test_a_folder_given_as_an_image_is_named_as_one(tmp_path, capsys) -> None:
+    code, _, err = _run(capsys, "--left", str(tmp_path), "--right", str(tmp_path))
+    assert code == 2 and "a folder, not an image file" in err and len(err.strip().splitlines()) == 1

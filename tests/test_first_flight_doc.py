@@ -1,8 +1,8 @@
 """docs/first-flight.md: every command in it is run here or by CI, or needs hardware/PX4 and parses.
 
-Fenced blocks are tagged: ``bash run`` blocks run, in order, in one scratch folder that first gets what
-a camera would have captured (board views in ``calib_views/``, target captures in ``lut_captures/``,
-rendered from a known rig); ``bash sitl`` and ``bash hardware`` blocks need PX4 SITL or the vehicle, and
+Fenced blocks are tagged: ``bash run`` blocks run, in order, in one scratch folder that holds a copy of
+the repository's ``samples/`` (board views and target captures of a known rig, rendered by
+``tools/gen-samples.py``); ``bash sitl`` and ``bash hardware`` blocks need PX4 SITL or the vehicle, and
 each ``companion`` command line in them must parse; ``bash ci`` is CI's own line; ``nsh`` is PX4's shell.
 """
 
@@ -18,7 +18,6 @@ from pathlib import Path
 
 import pytest
 
-from calib_data import generic_rig, write_rig_lut_captures, write_stereo_views
 from companion.cli import build_parser
 from companion.config import load_config
 from companion.core.calibration import load_calibration
@@ -93,9 +92,9 @@ def test_every_block_is_tagged_and_every_companion_command_parses() -> None:
 
 
 def test_the_run_blocks_run_in_order(tmp_path: Path) -> None:
-    rig = generic_rig()
-    write_stereo_views(tmp_path / "calib_views", rig)
-    write_rig_lut_captures(tmp_path / "lut_captures", rig)
+    import shutil
+
+    shutil.copytree(ROOT / "samples", tmp_path / "samples")
     # `companion` as this interpreter runs it, however the package was installed.
     bin_dir = tmp_path / ".bin"
     bin_dir.mkdir()

@@ -45,7 +45,8 @@ def test_ctl_commands(service: Service, capsys) -> None:
     assert "command.cruise_speed_m_s" in capsys.readouterr().err
     assert main(_ctl(service, "override", "--yaw", "0.5", "--duration", "2")) == 2
     assert "not engaged" in capsys.readouterr().err
-    assert main(_ctl(service, "engage")) == 0
+    # engage as an operator would on a loaded machine: again while frames are not fresh yet
+    assert wait_until(lambda: main(_ctl(service, "engage")) == 0 or service.supervisor.engaged, 60.0, poll_s=0.5)
     assert wait_until(lambda: service.supervisor.engaged, 3.0)
     capsys.readouterr()
     assert main(_ctl(service, "override", "--yaw", "0.5", "--speed", "0.2", "--duration", "0.5")) == 0

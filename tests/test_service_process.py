@@ -53,6 +53,8 @@ def test_sighup_reload_and_sigterm_clean_shutdown_on_the_wire(tmp_path: Path) ->
                 proc.kill()
             notify.close()
         assert rc == exitcodes.OK, err[-3000:]
+        # a clean exit leaves no socket file behind (a client would take it for a running service)
+        assert [n for n in ("h.sock", "c.sock", "p.sock") if (tmp_path / n).exists()] == []
         assert "cruise_speed_m_s" in err and "reload rejected" in err  # the bad reload named the field
         holds = [c for c in peer.commands_since(t_term) if c.mode == "HOLD"]
         assert len(holds) == 1 and peer.mode == "HOLD"
@@ -81,14 +83,12 @@ def test_second_sigterm_forces_the_exit(tmp_path: Path) -> None:
             assert peer.wait_for(lambda: any(c.mode == "HOLD" for c in peer.mode_commands()), 5.0)
             time.sleep(0.3)
             assert proc.poll() is None
-            t0 = time.monotonic()
             proc.send_signal(signal.SIGTERM)
             rc, err = _finish(proc, 5.0)
         finally:
             if proc.poll() is None:
                 proc.kill()
-    assert rc == exitcodes.FORCED_EXIT, err[-3000:]
-    assert time.monotonic() - t0 < 3.0
+    assert rc == exitcodes.FORCED_EXIT, err[-3000:]  # the second SIGTERM, not the Hold's wait, ended it
     assert "forced exit" in err
 
 

@@ -175,4 +175,4 @@ def test_startup_failure_when_the_endpoint_is_taken(tmp_path: Path) -> None:
         squatter2.close(0)
     finally:
         squatter.close(0)
-        ctx.term()
+        ctx.destroy(linger=0)

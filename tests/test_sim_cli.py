@@ -58,7 +58,7 @@ def test_bad_input_is_one_line_and_exit_2(argv: list[str], message: str, capsys:
 
 def test_demo_writes_the_plot_and_overlays_and_prints_where(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out_dir = tmp_path / "demo"
-    assert main(["demo", "--out", str(out_dir)]) == 0
+    assert main(["demo", "--out", str(out_dir), "--verbose"]) == 0
     out = capsys.readouterr().out
     assert "outcome:       goal" in out
     assert str(out_dir.resolve()) in out
@@ -68,7 +68,7 @@ def test_demo_writes_the_plot_and_overlays_and_prints_where(tmp_path: Path, caps
     # and still the goal (issue 20).
     frames = re.search(r"frames:\s+\d+ \(clear (\d+), avoid (\d+), brake (\d+)\)", out)
     assert frames is not None and int(frames.group(2)) > 0, out
-    assert "escape by R2" in out, out
+    assert "descending" in out and "escape by R2" in out, out  # the words, and with --verbose the rule
     assert any(n.startswith("overlay_") and "_avoid" in n for n in names), names
 
 

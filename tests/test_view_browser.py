@@ -48,7 +48,7 @@ class HealthLog:
         self._stop.set()
         self._thread.join(2.0)
         self._sock.close(0)
-        self._ctx.term()
+        self._ctx.destroy(linger=0)
 
 
 def _page(driver) -> dict:
@@ -107,10 +107,9 @@ def test_the_page_shows_the_running_service_and_engages_the_px4_peer(flying_serv
         # The preview is live: two screenshots of it a second apart differ, and frames keep coming.
         first = screenshot_png(d, "preview")
         n0 = _page(d)["previews"]
-        time.sleep(1.0)
+        assert wait_until(lambda: _page(d)["previews"] >= n0 + 4, 60.0), _page(d)  # frames keep coming
         second = screenshot_png(d, "preview")
         assert first != second
-        assert _page(d)["previews"] >= n0 + 4  # 8 Hz asked for, 15 fps camera
         save(shots / "preview_1.png", first)
         save(shots / "preview_2.png", second)
 
@@ -170,3 +169,55 @@ def test_the_page_on_a_phone_and_a_read_only_view(tmp_path: Path) -> None:
         assert not d.find_element("id", "engage").is_enabled()
         assert "Read-only" in d.find_element("id", "control-message").text
         save(Path(os.environ.get(SHOTS_ENV) or tmp_path) / "page_phone.png", d.get_screenshot_as_png())
+
+
+def test_the_demo_s_page_shows_pictures_beside_two_busy_loops(tmp_path: Path) -> None:
+    """On a 2-core laptop with other work running, ``demo --view`` showed a black box ("no picture
+    yet") while someone watched, and every region bar stayed amber: the preview worker at nice 19 got
+    almost no CPU and its start-up counted against its 2 s deadline; the page took its thresholds from
+    the pictures. Here two busy loops take both cores while the page must show pictures."""
+    import signal
+    import subprocess
+    import sys
+
+    hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(2)]
+    demo = None
+    try:
+        demo = subprocess.Popen(
+            [sys.executable, "-m", "companion", "demo", "--view", "--view-port", "0", "--view-linger-s", "120",
+             "--out", str(tmp_path / "demo")],
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        )
+        lines: list[str] = []
+
+        def read() -> None:
+            assert demo is not None and demo.stdout is not None
+            for line in demo.stdout:
+                lines.append(line)
+
+        threading.Thread(target=read, daemon=True).start()
+        assert wait_until(lambda: any("view:          open " in line for line in lines), 120.0), "".join(lines)
+        url = next(line for line in lines if "view:          open " in line).split("open ", 1)[1].strip()
+        with Browser() as browser:
+            d = browser.driver
+            d.get(url)
+            ok = wait_until(lambda: _page(d)["previews"] >= 5, 180.0)
+            said = [line.strip()[-160:] for line in lines if "preview" in line]
+            assert ok, (_page(d)["previews"], d.find_element("id", "preview-info").text, said[-12:])
+            page = _page(d)
+            # the thresholds come with the health messages: the bars are coloured against them
+            assert "near ≤ 0.75 m" in page["thresholds"], page["thresholds"]
+            info = d.find_element("id", "preview-info").text
+            assert "no new picture" not in info, info
+            save(Path(os.environ.get(SHOTS_ENV) or tmp_path) / "demo_view_loaded.png", d.get_screenshot_as_png())
+    finally:
+        for hog in hogs:
+            hog.kill()
+            hog.wait()
+        if demo is not None and demo.poll() is None:
+            demo.send_signal(signal.SIGINT)
+            try:
+                demo.wait(30)
+            except subprocess.TimeoutExpired:
+                demo.kill()
+                demo.wait()

@@ -74,14 +74,14 @@ def test_the_service_flies_and_previews_on_yuyv_frames(tmp_path: Path) -> None:
         sub.connect(cfg.view.preview_endpoint)
         try:
             got = []
-            deadline = time.monotonic() + 10.0
+            deadline = time.monotonic() + 120.0  # generous: the preview worker starts on a busy machine
             while not got and time.monotonic() < deadline:
                 if sub.poll(100):
                     got.append(unpack(sub.recv_multipart()))
         finally:
             sub.close(0)
-            ctx.term()
-        assert got, "no preview of a YUYV frame within 10 s"
+            ctx.destroy(linger=0)
+        assert got, "no preview of a YUYV frame"
         header, jpeg = got[0]
         assert header["decision"] == "avoid" and jpeg[:2] == b"\xff\xd8"
         assert service._latest.result.decision.kind.name == "AVOID"

@@ -2,7 +2,9 @@
 
 Sub-command modules import their heavy dependencies (OpenCV, CuPy, MAVSDK, ZeroMQ) inside the command
 function, so ``companion --help`` and light commands start fast. A :class:`~companion.errors.CompanionError`
-becomes one line on stderr and exit code 2; nothing a user typed produces a traceback.
+becomes one line on stderr and exit code 2, and so does an OSError (a file, socket or device given); any
+other exception is a bug: one line and exit code 1, its traceback only with ``--log-level DEBUG``.
+Nothing a user typed produces a traceback.
 """
 
 from __future__ import annotations
@@ -56,6 +58,18 @@ def main(argv: Sequence[str] | None = None) -> int:
         return exitcodes.BAD_INPUT
     except KeyboardInterrupt:
         return exitcodes.FORCED_EXIT
+    except OSError as err:  # a file, a socket or a device the command was given: the user's to fix
+        where = f"{err.filename}: " if getattr(err, "filename", None) else ""
+        print(f"companion {args.command}: error: {where}{err.strerror or err}", file=sys.stderr)
+        return exitcodes.BAD_INPUT
+    except Exception as err:  # a bug: one line for the user, the traceback in the log at DEBUG
+        log.debug("companion %s failed", args.command, exc_info=True)
+        print(
+            f"companion {args.command}: internal error: {type(err).__name__}: {err} "
+            "(--log-level DEBUG shows where; please report it)",
+            file=sys.stderr,
+        )
+        return exitcodes.INTERNAL_ERROR
 
 
 if __name__ == "__main__":  # pragma: no cover

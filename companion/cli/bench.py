@@ -107,6 +107,11 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _progress(what: str) -> None:
+    """One line on stderr before each step (a bench runs for minutes; stdout keeps the figures)."""
+    print(f"companion bench: {what}...", file=sys.stderr, flush=True)
+
+
 def run_cpu_bench(args: argparse.Namespace, sizes: list[Any]) -> dict[str, Any]:
     """Time the CPU pipeline per stage at each size; print a table; return the figures."""
     import tempfile
@@ -150,7 +155,9 @@ def _run_cpu_bench(args: argparse.Namespace, sizes: list[Any], tmp: Path) -> dic
                 ),
             }
         )
+        _progress(f"{size.label}: rendering the frames")
         _, frames = rendered_frames(size, n=min(32, args.frames + args.warmup))
+        _progress(f"{size.label}: timing {args.warmup} + {args.frames} frames")
         pipeline = make_pipeline(cfg, size.width_px, size.height_px)
         per_stage: dict[str, list[float]] = {}
         for i in range(args.warmup + args.frames):
@@ -162,8 +169,10 @@ def _run_cpu_bench(args: argparse.Namespace, sizes: list[Any], tmp: Path) -> dic
         report["sizes"][size.label] = stats
         for stage, s in stats.items():
             rows.append([size.label, stage.removesuffix("_ms"), f"{s['median_ms']:.3f}", f"{s['p99_ms']:.3f}"])
+    _progress("the fuzzy controller: 5000 decisions")
     fuzzy = bench_fuzzy(5000)
     report["fuzzy_us"] = fuzzy
+    _progress("the renderer: 200 stereo pairs")
     render = bench_render(200)
     report["render_672x376_ms"] = render
     print(format_table(rows, ["size/disp", "stage", "median ms", "p99 ms"]))

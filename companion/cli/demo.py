@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -38,6 +39,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--course", default=DEMO_COURSE[0], help=f"course kind (default {DEMO_COURSE[0]})")
     p.add_argument("--seed", type=int, default=DEMO_COURSE[1], help=f"course seed (default {DEMO_COURSE[1]})")
     p.add_argument("--config", type=Path, help="TOML config (default: built-in defaults)")
+    p.add_argument("--verbose", action="store_true", help="also the controller's reasons (rules, memberships) per decision")
     from companion.cli.sim import add_view_options
 
     add_view_options(p)
@@ -132,6 +134,10 @@ def run(args: argparse.Namespace) -> int:
     except OSError as err:
         raise InputError(f"{out_dir}: cannot create the output directory: {err.strerror or err}") from None
     cfg = load_config(args.config)
+    from companion.sim.loop import simulated_rig_check_lines
+
+    for line in simulated_rig_check_lines(cfg):  # the simulated rig's, not the camera's
+        print(f"companion demo: {line}", file=sys.stderr)
     course = make_course(args.course, args.seed)
     sim = cfg.sim
     geometry = StereoGeometry.ideal(
@@ -157,7 +163,9 @@ def run(args: argparse.Namespace) -> int:
     # The decisions as they changed (frame by frame: what the pipeline concluded and why).
     fl = result.frame_log
     assert fl is not None
-    print("\n  time   north   east   alt  decision  yaw    pitch  reason")
+    from companion.core.words import decision_words
+
+    print("\n  time   north   east   alt  decision  yaw    pitch  what it does" + ("  [the controller's reason]" if args.verbose else ""))
     prev = None
     for i in range(len(fl.t_s)):
         key = (int(fl.kind[i]), fl.reason[i].split(" (")[0].split(":")[0])
@@ -166,7 +174,9 @@ def run(args: argparse.Namespace) -> int:
         prev = key
         n, e, z = fl.position_ned_m[i]
         print(f"{fl.t_s[i]:6.2f}s {n:6.2f} {e:+6.2f} {-z:5.2f}  {LogKind(int(fl.kind[i])).name.lower():8s} "
-              f"{fl.yaw[i]:+.2f}  {fl.pitch[i]:+.2f}  {fl.reason[i]}")
+              f"{fl.yaw[i]:+.2f}  {fl.pitch[i]:+.2f}  "
+              f"{decision_words(LogKind(int(fl.kind[i])).name, fl.yaw[i], fl.pitch[i], fl.region_depths_m[i])}"
+              + (f"  [{fl.reason[i]}]" if args.verbose else ""))
     print()
     for line in describe_flight(result):
         print(line)

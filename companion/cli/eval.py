@@ -32,8 +32,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     src.add_argument("--left", type=Path, metavar="L", help="left image (with --right and a ground truth)")
     p.add_argument("--right", type=Path, metavar="R", help="right image")
     gt = p.add_mutually_exclusive_group()
-    gt.add_argument("--gt-disparity", type=Path, metavar="F", help="left-view disparity: .pfm, .png or .npy, px")
-    gt.add_argument("--gt-depth", type=Path, metavar="F", help="left-view depth: .pfm or .npy in m, 16-bit .png in mm")
+    gt.add_argument("--gt-disparity", type=Path, metavar="F", help="left-view disparity: .pfm, .png, .npy or .npz, px")
+    gt.add_argument("--gt-depth", type=Path, metavar="F", help="left-view depth: .pfm, .npy or .npz in m, 16-bit .png in mm")
     p.add_argument("--gt-png-scale", type=float, default=1.0, help="PNG disparity units per pixel (default 1)")
     p.add_argument("--calib", type=Path, help="Middlebury calib.txt for explicit files (focal, baseline, doffs)")
     p.add_argument("--focal-px", type=float, help="focal length, px (overrides the calibration or the assumption)")
@@ -165,7 +165,7 @@ def print_report(r: dict[str, Any]) -> None:
     )
     for kind in ("errors", "warnings"):
         for msg in r["rig_check"][kind]:
-            print(f"config check ({kind[:-1]}, not applied here): {msg}")
+            print(f"rig check: {kind[:-1]}: {msg} (reported, not applied: eval scores any rig)")
     print(f"backend: {r['backend']}, {r['run_s'] * 1e3:.1f} ms for the frame")
     for label in ("known", "matchable"):
         print(

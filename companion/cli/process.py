@@ -17,8 +17,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="run the pipeline on one stereo frame; print region depths, yaw, pitch and the decision as JSON",
         description=(
             "Run the whole pipeline on one stereo frame (a ZED side-by-side image, or a left/right pair) "
-            "and print JSON: the 9 region depths in metres (null = unknown), yaw, pitch, the decision, "
-            "the setpoint it gives and per-stage timings."
+            "and print JSON: the 9 region depths in metres (null = unknown), yaw, pitch, the decision and "
+            "what it means in words, the setpoint it gives, per-stage timings, and the nearest depth the "
+            "rig can measure (min_measurable_depth_m). Try it on the repository's sample: "
+            "--sbs samples/frame.jpg --calib samples/frame-calib.yaml."
         ),
     )
     src = p.add_mutually_exclusive_group(required=True)
@@ -32,6 +34,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--config", type=Path, help="TOML config (default: built-in defaults)")
     p.add_argument("--backend", help="override stereo.backend (auto, opencv-bm, opencv-sgbm, reference, cupy, cpu-sgm)")
     p.add_argument("--overlay", type=Path, metavar="OUT.png", help="also draw the regions, depths and command arrow")
+    p.add_argument("--verbose", action="store_true", help="also the controller's reason and its rules' strengths")
     from companion.recorded.cli import add_sequence_arguments
 
     add_sequence_arguments(p)
@@ -41,6 +44,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _read_image(path: Path) -> Any:
     import cv2
 
+    if path.is_dir():
+        raise InputError(f"{path}: a folder, not an image file (give one image: a PNG or JPEG)")
     if not path.is_file():
         raise InputError(f"{path}: no such file")
     image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
@@ -78,6 +83,8 @@ def run(args: argparse.Namespace) -> int:
     from companion.core.command import setpoint_for
     from companion.core.overlay import draw_overlay
     from companion.backends import make_pipeline
+    from companion.core.rig_check import check_rig, near_unmeasurable, rig_check_lines
+    from companion.core.words import decision_words
     from companion.core.stereo import split_side_by_side
 
     cfg = load_config(args.config)
@@ -87,7 +94,8 @@ def run(args: argparse.Namespace) -> int:
     if args.backend is not None:
         patch["stereo"] = {"backend": args.backend}
     if patch:
-        cfg = apply_patch(cfg, patch)
+        # checked below against the rig this frame is really seen with (the file's, at the frame's size)
+        cfg = apply_patch(cfg, patch, check_rig=False)
     if args.sequence is not None:
         from companion.recorded.cli import run_sequence
 
@@ -96,6 +104,7 @@ def run(args: argparse.Namespace) -> int:
     left, right = split_side_by_side(frame)
     height, width = left.shape[:2]
     pipeline = make_pipeline(cfg, width, height)
+    rig = check_rig(pipeline.geometry, cfg.stereo, cfg.regions, cfg.controller)
     result = pipeline.process(frame, timestamp_s=0.0, want_disparity=args.overlay is not None)
     setpoint = setpoint_for(result.decision, since_last_frame_s=0.0, cmd=cfg.command)
     g = pipeline.geometry
@@ -110,10 +119,12 @@ def run(args: argparse.Namespace) -> int:
             k: round(float(v), 4) for k, v in zip(result.raw.as_dict(), result.raw.valid_fraction)
         },
         "decision": result.decision.kind.value,
-        "reason": result.decision.reason,
+        "words": decision_words(
+            result.decision.kind, result.decision.yaw, result.decision.pitch, result.refined.depth_m,
+            result.decision.speed_fraction,
+        ),
         "yaw": round(result.decision.yaw, 4),
         "pitch": round(result.decision.pitch, 4),
-        "rules": {k: round(v, 4) for k, v in result.decision.rule_strengths.items()},
         "setpoint": {
             "forward_m_s": round(setpoint.forward_m_s, 4),
             "right_m_s": round(setpoint.right_m_s, 4),
@@ -121,7 +132,23 @@ def run(args: argparse.Namespace) -> int:
             "yaw_rate_deg_s": round(setpoint.yaw_rate_deg_s, 4),
         },
         "timings_ms": {k: round(v, 3) for k, v in result.timings_ms.items()},
+        "min_measurable_depth_m": round(rig.nearest_depth_m, 3),
+        **(
+            {"reason": result.decision.reason,
+             "rules": {k: round(v, 4) for k, v in result.decision.rule_strengths.items()}}
+            if args.verbose else {}
+        ),
+        "rig_check": {"errors": list(rig.errors), "warnings": list(rig.warnings)},
     }
+    blind = near_unmeasurable(rig, cfg.controller)
+    if blind:
+        # What the pipeline cannot know: a surface nearer than the nearest measurable depth is out of
+        # the disparity search, so it reads unknown or (a false match) far. A "far" region or a "clear"
+        # decision says nothing about what is nearer than that.
+        out["near_unmeasurable"] = True
+        out["far_regions_unverified"] = [
+            name for name, d in out["regions_m"].items() if d is not None and d >= rig.nearest_depth_m
+        ]
     if args.overlay is not None:
         import cv2
 
@@ -154,6 +181,15 @@ def run(args: argparse.Namespace) -> int:
             f"taken as already rectified by an ideal rig ({cfg.calibration.ideal_baseline_m:g} m baseline, "
             f"{cfg.calibration.ideal_hfov_deg:g} deg horizontal field of view); a real camera's depths are off by "
             "as much as it differs. A ZED: pass its SN<serial>.conf; another camera: `companion calibrate stereo`.",
+            file=sys.stderr,
+        )
+    for line in rig_check_lines(rig):
+        print(f"companion process: {line}", file=sys.stderr)
+    if blind and result.decision.kind.value == "clear":
+        print(
+            f"companion process: warning: the decision is clear, but this rig measures nothing nearer than "
+            f"{rig.nearest_depth_m:.2f} m: an obstacle nearer than that would not be seen (more "
+            "stereo.num_disparities, or a shorter baseline)",
             file=sys.stderr,
         )
     json.dump(out, sys.stdout, indent=2)

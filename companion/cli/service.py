@@ -77,6 +77,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     _endpoint_options(p, control=False)
     p.add_argument("--json", action="store_true", help="print each message as one JSON line instead")
+    p.add_argument("--verbose", action="store_true", help="also the controller's reason (rules, memberships)")
     p.add_argument("--count", type=int, default=0, help="exit after this many messages (default: run until Ctrl-C)")
     p.add_argument("--timeout-s", type=float, default=5.0, help="give up when no message comes for this long (default 5)")
     p.set_defaults(func=_watch)
@@ -138,11 +139,12 @@ def _endpoint_options(p: argparse.ArgumentParser, control: bool) -> None:
 
 def _endpoint(args: argparse.Namespace, control: bool) -> str:
     from companion.config.service import AUTO_ENDPOINT
-    from companion.service.runtime import find_socket
+    from companion.service.runtime import find_socket, validate_endpoint, validate_timeout
 
     which = "control" if control else "health"
+    validate_timeout(args.timeout_s)
     if args.endpoint:
-        return args.endpoint
+        return validate_endpoint(args.endpoint, "--endpoint")
     if args.config is not None:
         from companion.config import load_bus_config
 
@@ -189,8 +191,13 @@ def _ctl(args: argparse.Namespace) -> int:
     if reply.get("ok"):
         print(json.dumps(reply.get("result"), indent=2))
         return exitcodes.OK
+    from companion.core.words import error_words
+
     err = reply.get("error") or {}
-    print(f"companion ctl {c}: {err.get('type', 'error')}: {err.get('message', reply)}", file=sys.stderr)
+    message = str(err.get("message", reply))
+    # the pilot's words; the error's type (ConfigError, ProtocolError...) only with --log-level DEBUG
+    kind = f"{err.get('type', 'error')}: " if args.log_level == "DEBUG" else ""
+    print(f"companion ctl {c}: {kind}{error_words(message)}", file=sys.stderr)
     return exitcodes.INTERNAL_ERROR if err.get("type") == "InternalError" else exitcodes.BAD_INPUT
 
 
@@ -224,31 +231,33 @@ def _watch(args: argparse.Namespace) -> int:
     endpoint = _endpoint(args, control=False)
     check_ipc_access(endpoint)
     ctx = zmq.Context()
-    sock = ctx.socket(zmq.SUB)
-    sock.setsockopt(zmq.LINGER, 0)
-    for name, value in (curve or {}).items():
-        setattr(sock, name, value)
-    sock.setsockopt(zmq.SUBSCRIBE, b"")
-    sock.connect(endpoint)
     seen = 0
     interactive = sys.stdout.isatty() and not args.json
     try:
+        sock = ctx.socket(zmq.SUB)
+        sock.setsockopt(zmq.LINGER, 0)
+        for name, value in (curve or {}).items():
+            setattr(sock, name, value)
+        sock.setsockopt(zmq.SUBSCRIBE, b"")
+        try:
+            sock.connect(endpoint)
+        except zmq.ZMQError as err:
+            raise ClientError(f"cannot connect to {endpoint}: {err}") from None
         while args.count <= 0 or seen < args.count:
             if not sock.poll(int(args.timeout_s * 1000)):
-                raise ClientError(f"no health message from {endpoint} within {args.timeout_s:g} s (is the service running?)")
+                raise ClientError(f"no health message from {endpoint} within {args.timeout_s:g} s: no running service there?")
             message = json.loads(sock.recv())
             seen += 1
             if args.json:
                 print(json.dumps(message), flush=True)
             else:
-                screen = render_health(message)
+                screen = render_health(message, verbose=args.verbose)
                 # Clear the screen on a terminal; separate the screens with a blank line otherwise.
                 print(("\x1b[H\x1b[2J" if interactive else "\n") + screen, flush=True)
     except KeyboardInterrupt:
         pass
     finally:
-        sock.close(0)
-        ctx.term()
+        ctx.destroy(linger=0)
     return exitcodes.OK
 
 

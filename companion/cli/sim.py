@@ -31,7 +31,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     what.add_argument(
         "--course",
         metavar="KIND",
-        help="course kind: corridor, doorway, forest, pitch, side, deadend, office, detour",
+        help=(
+            "course kind: corridor, doorway, forest, pitch, side, deadend, office, detour (the suite's), "
+            "head-on (one box ahead), wall (a 30 m wall across)"
+        ),
     )
     what.add_argument("--suite", metavar="NAME", help="a suite of courses: standard (72 flights) or quick (16)")
     p.add_argument(
@@ -104,6 +107,10 @@ def run(args: argparse.Namespace) -> int:
     from companion.config import load_config
 
     cfg = load_config(args.config)
+    from companion.sim.loop import simulated_rig_check_lines
+
+    for line in simulated_rig_check_lines(cfg):  # the simulated rig's, not the camera's
+        print(f"companion sim: {line}", file=sys.stderr)
     if args.course is not None:
         if args.trace_dir is not None:
             raise InputError("--trace-dir goes with --suite; for one course, --trace OUT.csv")

@@ -31,9 +31,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         ),
     )
     p.add_argument("--config", type=Path, help="read the endpoints (and nothing else) from this config")
-    p.add_argument("--health-endpoint", help="the service's health socket (default: from --config, else tcp://127.0.0.1:5560)")
-    p.add_argument("--preview-endpoint", help="the service's preview socket (default: from --config, else tcp://127.0.0.1:5562)")
-    p.add_argument("--control-endpoint", help="the service's control socket (default: from --config, else tcp://127.0.0.1:5561)")
+    p.add_argument("--health-endpoint", help="the service's health socket (default: from --config, else the running service's socket in /run/companion or $XDG_RUNTIME_DIR/companion)")
+    p.add_argument("--preview-endpoint", help="the service's preview socket (default: from --config, else the running service's socket in /run/companion or $XDG_RUNTIME_DIR/companion)")
+    p.add_argument("--control-endpoint", help="the service's control socket (default: from --config, else the running service's socket in /run/companion or $XDG_RUNTIME_DIR/companion)")
     p.add_argument("--no-control", action="store_true", help="read-only: no buttons, no control socket")
     p.add_argument("--server-key", type=Path, help="CURVE: the server's public certificate (.key)")
     p.add_argument("--client-key", type=Path, help="CURVE: your secret certificate (.key_secret)")
@@ -64,7 +64,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _endpoints(args: argparse.Namespace) -> tuple[str, str | None, str | None]:
     """(health, preview, control) endpoints: the flags, else the --config file's ([bus] and [view] only;
     the rest may be invalid), else the running service's sockets (:func:`~companion.service.runtime.find_socket`)."""
-    from companion.service.runtime import expected_socket
+    from companion.service.runtime import expected_socket, validate_endpoint
 
     health = preview = control = "auto"
     if args.config is not None:
@@ -76,7 +76,7 @@ def _endpoints(args: argparse.Namespace) -> tuple[str, str | None, str | None]:
 
     def local(endpoint: str | None, which: str, given: str | None, wanted: bool = True) -> str | None:
         if given:
-            return given
+            return validate_endpoint(given, f"--{which}-endpoint")
         if endpoint is None or not wanted:
             return None
         if endpoint == "auto":
@@ -90,6 +90,24 @@ def _endpoints(args: argparse.Namespace) -> tuple[str, str | None, str | None]:
         local(preview, "preview", args.preview_endpoint),
         local(control, "control", args.control_endpoint, wanted=not args.no_control),
     )
+
+
+def _service_there(endpoint: str) -> bool:
+    """False when ``endpoint`` is a socket file that does not exist or that no service listens on
+    (other endpoints: True; ZeroMQ cannot tell before a message arrives)."""
+    from companion.errors import ConfigError
+    from companion.service.runtime import check_listening, socket_path
+
+    path = socket_path(endpoint)
+    if path is None:
+        return True
+    if not path.exists():
+        return False
+    try:
+        check_listening(endpoint)
+    except ConfigError:
+        return False
+    return True
 
 
 def read_token(token_file: Path | None) -> str | None:
@@ -144,6 +162,9 @@ def _view(args: argparse.Namespace) -> int:
                   + ("" if control else " (read-only)"), flush=True)
             for url in urls:
                 print(f"companion view: open {url}", flush=True)
+            if not _service_there(health):
+                print(f"companion view: no running service at {health} yet: the page says so, and follows it once it starts",
+                      flush=True)
             if made_up:
                 print(f"companion view: the token was made up for this run (set ${TOKEN_ENV} or --token-file to keep one)", flush=True)
 

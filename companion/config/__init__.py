@@ -233,10 +233,10 @@ def check_rig_config(cfg: CompanionConfig, source: str = "config") -> list[str]:
         logging.getLogger(__name__).debug("%s: rig not checked (calibration not loadable here: %s)", source, err)
         return []
     result = check_rig(geometry, cfg.stereo, cfg.regions, cfg.controller)
-    if result.errors:
-        raise ConfigError(f"{source}: " + "; ".join(result.errors), source=source)
+    if result.errors:  # in the words every tool prints (rig_check_lines)
+        raise ConfigError(f"{source}: rig check: error: " + "; ".join(result.errors), source=source)
     for w in result.warnings:
-        logging.getLogger(__name__).warning("%s: %s", source, w)
+        logging.getLogger(__name__).warning("%s: rig check: warning: %s", source, w)
     return list(result.warnings)
 
 

@@ -168,6 +168,8 @@ def read_middlebury_calib(path: str | Path) -> dict[str, Any]:
 
 
 def _read_grey(path: Path) -> np.ndarray:
+    if path.is_dir():
+        raise InputError(f"{path}: a folder, not an image file (for a Middlebury folder: --middlebury)")
     if not path.is_file():
         raise InputError(f"{path}: no such file")
     img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
@@ -176,19 +178,50 @@ def _read_grey(path: Path) -> np.ndarray:
     return img
 
 
+def _load_numpy(path: Path, what: str) -> np.ndarray:
+    """A 2-D array from ``.npy``, or from an ``.npz`` holding one array (or one named ``what``).
+
+    Raises:
+        InputError: not readable by NumPy, pickled objects, several arrays and none named ``what``, or
+            not 2-D.
+    """
+    try:
+        loaded = np.load(path, allow_pickle=False)
+    except (ValueError, OSError, EOFError) as err:
+        raise InputError(f"{path}: not a NumPy {what} array ({err})") from None
+    if isinstance(loaded, np.ndarray):
+        arr = loaded
+    else:
+        with loaded:
+            names = list(loaded.files)
+            if what in names:
+                arr = loaded[what]
+            elif len(names) == 1:
+                arr = loaded[names[0]]
+            else:
+                raise InputError(f"{path}: an .npz of {len(names)} arrays ({', '.join(names)}); name the {what} one '{what}'")
+    if arr.ndim != 2 or arr.dtype.kind not in "iuf":
+        raise InputError(f"{path}: a {what} must be one 2-D array of numbers, got {arr.dtype} {arr.shape}")
+    return arr.astype(np.float32)
+
+
 def _read_disparity(path: Path, png_scale: float) -> np.ndarray:
-    """Disparity file -> float32 px, NaN unknown (PFM: inf/NaN/<= 0; PNG: 0; .npy: NaN/<= 0)."""
+    """Disparity file -> float32 px, NaN unknown (PFM: inf/NaN/<= 0; PNG: 0; .npy/.npz: NaN/<= 0)."""
+    if path.is_dir():
+        raise InputError(f"{path}: a folder, not a disparity file (PFM, PNG, .npy or .npz)")
     if not path.is_file():
         raise InputError(f"{path}: no such file")
     suffix = path.suffix.lower()
     if suffix == ".pfm":
         d = read_pfm(path)
-    elif suffix == ".npy":
-        d = np.load(path).astype(np.float32)
+    elif suffix in (".npy", ".npz"):
+        d = _load_numpy(path, "disparity")
     else:
         raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
         if raw is None or raw.ndim != 2:
-            raise InputError(f"{path}: not a one-channel disparity image")
+            raise InputError(
+                f"{path}: not a disparity file eval reads (a one-channel PNG, PFM, .npy or .npz of disparities in px)"
+            )
         d = raw.astype(np.float32) / np.float32(png_scale)
     d = d.astype(np.float32)
     d[~np.isfinite(d) | (d <= 0)] = np.nan
@@ -202,8 +235,8 @@ def _read_depth(path: Path, png_mm: bool) -> np.ndarray:
     suffix = path.suffix.lower()
     if suffix == ".pfm":
         z = read_pfm(path)
-    elif suffix == ".npy":
-        z = np.load(path).astype(np.float32)
+    elif suffix in (".npy", ".npz"):
+        z = _load_numpy(path, "depth")
     else:
         raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
         if raw is None or raw.ndim != 2:

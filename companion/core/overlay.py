@@ -22,20 +22,20 @@ _DECISION_COLOUR = {  # BGR
     DecisionKind.BRAKE: (40, 40, 230),
 }
 _NEAR = (40, 40, 230)
-_MID = (60, 120, 155)  # the amber half-way between near and far
+_MID = (0, 160, 230)  # amber: between near and far
 _FAR = (80, 200, 80)
 _BOX = (20, 20, 20)
 _TEXT = (235, 235, 235)
 
 
 def _depth_colour(depth_m: float, near_m: float, far_m: float) -> tuple[int, int, int]:
-    """Red when near (or unknown), green when far, amber between (BGR)."""
+    """Red when near (or unknown), green when far, amber between (BGR): the legend's three swatches and
+    the view's bars, exactly (a gradient matched no swatch)."""
     if not np.isfinite(depth_m) or depth_m <= near_m:
         return _NEAR
     if depth_m >= far_m:
         return _FAR
-    t = (depth_m - near_m) / (far_m - near_m)
-    return (int(40 + 40 * t), int(40 + 160 * t), int(230 - 150 * t))
+    return _MID
 
 
 def _text_size(text: str, font_scale: float, thick: int) -> tuple[int, int, int]:

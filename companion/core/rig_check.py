@@ -45,6 +45,21 @@ class RigCheck:
     warnings: tuple[str, ...]
 
 
+def rig_check_lines(result: RigCheck) -> list[str]:
+    """The check's findings as every tool prints them (``process``, ``eval``, ``sim``, ``demo``, the
+    service's log), one line each: ``rig check: error: ...`` / ``rig check: warning: ...``."""
+    return [f"rig check: error: {m}" for m in result.errors] + [f"rig check: warning: {m}" for m in result.warnings]
+
+
+def near_unmeasurable(result: RigCheck, controller: ControllerConfig) -> bool:
+    """True when the rig cannot measure down to where the controller's 'near' is full: an obstacle
+    nearer than :attr:`RigCheck.nearest_depth_m` has a disparity beyond the search, so it reads unknown,
+    or (a false match at a smaller disparity) farther than it is; a region that reads far or clear
+    then says nothing about what is nearer."""
+    edges = _near_edges_m(controller)
+    return edges is not None and result.nearest_depth_m > edges[0]
+
+
 def _block_matcher(st: StereoConfig) -> str | None:
     """``"always"`` for a backend with the never-matched left band, ``"fallback"`` for auto (the CPU
     fallback opencv-bm has it), None for the SGM matcher."""

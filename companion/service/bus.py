@@ -29,7 +29,7 @@ from zmq.auth.thread import ThreadAuthenticator
 
 from companion.config import BusConfig
 from companion.errors import ConfigError
-from companion.service.runtime import resolve_endpoint, restrict_socket
+from companion.service.runtime import remove_socket, resolve_endpoint, restrict_socket
 
 log = logging.getLogger(__name__)
 
@@ -103,6 +103,7 @@ class Bus:
         self.health_endpoint = cfg.health_endpoint
         self.control_endpoint = cfg.control_endpoint
         self._publish_lock = threading.Lock()
+        self._bound: list[str] = []  # the endpoints this bus bound (their socket files go on close)
 
     def open(self) -> None:
         self.ctx = zmq.Context()
@@ -159,6 +160,7 @@ class Bus:
         except zmq.ZMQError as err:
             sock.close(linger=0)
             raise ConfigError(f"{field} {endpoint!r}: cannot bind: {err}") from None
+        self._bound.append(sock.getsockopt_string(zmq.LAST_ENDPOINT))
         return sock
 
     def publish(self, payload: bytes) -> None:
@@ -183,8 +185,11 @@ class Bus:
             self.gatekeeper.stop()
             self.gatekeeper = None
         if self.ctx is not None:
-            self.ctx.term()
+            self.ctx.destroy(linger=0)
             self.ctx = None
+        for endpoint in self._bound:  # a file left behind would look like a running service to a client
+            remove_socket(endpoint)
+        self._bound = []
 
     def stats(self) -> dict[str, Any]:
         """The gatekeeper's counts, for health (live control connections, refused handshakes)."""

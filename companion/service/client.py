@@ -17,7 +17,8 @@ from typing import Any
 
 import zmq
 
-from companion.errors import CompanionError, InputError
+from companion.errors import CompanionError, ConfigError, InputError
+from companion.service.runtime import check_listening, validate_endpoint, validate_timeout
 
 
 class ClientError(CompanionError):
@@ -49,10 +50,10 @@ def curve_client_options(server_key: Path | None, client_key: Path | None) -> di
 
 def check_ipc_access(endpoint: str) -> None:
     """For an ``ipc://`` endpoint whose socket file exists: raise ClientError when this user may not
-    open it (ZeroMQ would only retry in silence).
+    open it, or when no service listens on it (ZeroMQ would only retry in silence).
 
     Raises:
-        ClientError: permission denied, naming the file and what to do.
+        ClientError: permission denied or no running service, naming the file and what to do.
     """
     if not endpoint.startswith("ipc://") or endpoint.startswith("ipc://@"):
         return
@@ -66,12 +67,18 @@ def check_ipc_access(endpoint: str) -> None:
             f"{path}: permission denied: only the service's user and the members of its group (companion) "
             "may use it (sudo usermod -aG companion $USER, then log in again)"
         )
+    try:
+        check_listening(endpoint)
+    except ConfigError as err:
+        raise ClientError(str(err)) from None
 
 
 class ControlClient:
     """One DEALER connection to the control socket; ``call`` sends a request and waits for its reply."""
 
     def __init__(self, endpoint: str, timeout_s: float = 3.0, curve: dict[str, bytes] | None = None) -> None:
+        validate_endpoint(endpoint, "endpoint")
+        validate_timeout(timeout_s)
         check_ipc_access(endpoint)
         self.endpoint = endpoint
         self.timeout_s = timeout_s
@@ -83,7 +90,11 @@ class ControlClient:
         self._sock.setsockopt(zmq.SNDTIMEO, max(1, int(timeout_s * 1000)))
         for name, value in (curve or {}).items():
             setattr(self._sock, name, value)
-        self._sock.connect(endpoint)
+        try:
+            self._sock.connect(endpoint)
+        except zmq.ZMQError as err:
+            self.close()
+            raise ClientError(f"cannot connect to {endpoint}: {err}") from None
         self._next_id = 1
 
     def __enter__(self) -> ControlClient:
@@ -106,8 +117,8 @@ class ControlClient:
             self._sock.send(json.dumps(request).encode("utf-8"))
         except zmq.Again:
             raise ClientError(
-                f"could not send to {self.endpoint} within {self.timeout_s:g} s (is the service running? "
-                "did it refuse the connection: bus.max_connections, CURVE keys?)"
+                f"could not send to {self.endpoint} within {self.timeout_s:g} s: no running service there, "
+                "or it refused the connection (bus.max_connections, CURVE keys)"
             ) from None
         deadline_ms = int(self.timeout_s * 1000)
         while self._sock.poll(deadline_ms):
@@ -115,12 +126,12 @@ class ControlClient:
             if reply.get("id") == request["id"]:
                 return reply
         raise ClientError(
-            f"no reply from {self.endpoint} within {self.timeout_s:g} s (is the service running? CURVE keys?)"
+            f"no reply from {self.endpoint} within {self.timeout_s:g} s: no running service there, "
+            "or it refused the connection (CURVE keys)"
         )
 
     def close(self) -> None:
-        self._sock.close(0)
-        self._ctx.term()
+        self._ctx.destroy(linger=0)
 
 
 def parse_assignments(items: list[str]) -> dict[str, Any]:
@@ -161,8 +172,20 @@ def _fmt(value: Any, unit: str = "", digits: int = 2) -> str:
     return f"{value}{unit}"
 
 
-def render_health(h: dict[str, Any]) -> str:
-    """A health message as a small terminal screen."""
+def _words(h: dict[str, Any], dec: dict[str, Any]) -> str:
+    """The decision in a pilot's words: the service's own, else made from the message."""
+    if dec.get("words"):
+        return str(dec["words"])
+    if not dec:
+        return "no decision yet"
+    from companion.core.words import decision_words
+
+    return decision_words(dec.get("kind"), h.get("yaw") or 0.0, h.get("pitch") or 0.0, h.get("regions_m"),
+                          dec.get("speed_fraction"))
+
+
+def render_health(h: dict[str, Any], verbose: bool = False) -> str:
+    """A health message as a small terminal screen (``verbose``: with the controller's reason)."""
     r = h.get("regions_m") or {}
     filtered = h.get("regions_filtered") or {}
     # "~": the value came out of the release filter: a blend, no frame's measurement.
@@ -183,8 +206,8 @@ def render_health(h: dict[str, Any]) -> str:
         f"  {cell('up_left')} {cell('up')} {cell('up_right')}",
         f"  {cell('left')} {cell('center')} {cell('right')}",
         f"  {cell('down_left')} {cell('down')} {cell('down_right')}",
-        f"decision {dec.get('kind', '--')}  yaw {_fmt(h.get('yaw'))}  pitch {_fmt(h.get('pitch'))}  "
-        f"({dec.get('reason', '')})",
+        f"decision {dec.get('kind', '--')}: {_words(h, dec)}  yaw {_fmt(h.get('yaw'))}  pitch {_fmt(h.get('pitch'))}"
+        + (f"  [{dec.get('reason', '')}]" if verbose else ""),
         f"setpoint fwd {_fmt(sp.get('forward_m_s'), ' m/s')}  down {_fmt(sp.get('down_m_s'), ' m/s')}  "
         f"yaw rate {_fmt(sp.get('yaw_rate_deg_s'), ' deg/s', 1)}",
         f"camera {cam.get('source')} {cam.get('status')} {_fmt(cam.get('fps'), ' fps', 1)}  "

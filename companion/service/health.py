@@ -17,8 +17,10 @@ from typing import Any
 import numpy as np
 
 from companion.core.types import REGION_NAMES, VelocitySetpoint
+from companion.core.words import decision_words
 from companion.service import protocol
 from companion.service.aio import wait_event
+from companion.view.frame import thresholds_m
 
 log = logging.getLogger(__name__)
 
@@ -107,6 +109,8 @@ class HealthReporter:
                     "kind": decision.kind.value,
                     "speed_fraction": decision.speed_fraction,
                     "reason": decision.reason,
+                    "words": decision_words(decision.kind, decision.yaw, decision.pitch, result.refined.depth_m,
+                                            decision.speed_fraction),
                 }
                 if decision is not None
                 else None
@@ -149,6 +153,8 @@ class HealthReporter:
             "last_error": self._last_error,
             "control": self._control_status(),
             "mavlink": self.presence_status(),
+            "thresholds_m": thresholds_m(self.config),
+            "preview": self.view.publisher.status() if self.view is not None and self.view.publisher is not None else None,
         }
 
     def _control_status(self) -> dict[str, int] | None:

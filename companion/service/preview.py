@@ -7,7 +7,7 @@ Threads (each with its own synchronous ZeroMQ context; none runs on the event lo
                                                                 a subscriber exists)
                                                                    │ pipe ▲ JPEG
                                                                    ▼      │
-                                                               preview worker process (nice 19):
+                                                               preview worker process (nice 5):
                                                                draw + JPEG (preview_worker.py)
     health PUB ──▶ FlightRecorder thread ◀── preview XPUB     (health.jsonl + preview/*.jpg, bounded)
 
@@ -19,8 +19,10 @@ that one frame (the CPU backend copies it, the GPU backend downloads it downsamp
 and encoding happen in a child process (:mod:`companion.service.preview_worker`: no GIL shared with
 the flight loop, the lowest CPU priority); the publisher's thread only writes the frame into its pipe
 and reads the JPEG back. A frame offered while it is busy replaces the waiting one (never a queue),
-and a send that would block is dropped (``dropped`` counts them). A worker that fails or hangs (2 s)
-is killed, reported in ``last_error``, and started again on a later preview.
+and a send that would block is dropped (``dropped`` counts them). The worker's start-up (its imports)
+is not part of a preview's deadline; a worker that fails or hangs (10 s on one preview) is killed,
+reported in ``last_error`` and health's ``preview.failing`` (the page shows it), and started again on
+a later preview.
 
 ZeroMQ's XPUB socket reports subscriptions: the publisher knows whether anyone listens without any
 request. A viewer that hangs or dies costs nothing: its queue is bounded (``SNDHWM``) and the send
@@ -40,8 +42,9 @@ from pathlib import Path
 from typing import Any
 
 from companion.errors import ConfigError
+from companion.service.backoff import LogBackoff
 from companion.service.preview_worker import PreviewWorker
-from companion.service.runtime import resolve_endpoint, restrict_socket
+from companion.service.runtime import remove_socket, resolve_endpoint, restrict_socket
 
 log = logging.getLogger(__name__)
 
@@ -96,6 +99,9 @@ class PreviewPublisher:
         self.errors = 0
         self.last_encode_ms: float | None = None  # the worker's drawing and encoding of the last preview
         self._worker = PreviewWorker()
+        self.failing: str | None = None  # why the last preview failed; None once one succeeds
+        self._warm_up = False
+        self._error_log = LogBackoff(first_interval_s=5.0, max_interval_s=120.0)
 
     # ------------------------------------------------------------------ any thread
 
@@ -110,12 +116,27 @@ class PreviewPublisher:
             self._slot = _Offer(frame, result, pipeline)
             self._cond.notify()
 
+    def warm_up(self) -> None:
+        """Start the drawing worker now, in the caller's thread, and wait until it is ready; only while
+        nobody watches (the preview thread uses the worker only for a viewer).
+
+        Raises:
+            PreviewWorkerError: it could not start.
+        """
+        if self.subscribed:
+            return
+        self._worker.warm_up()
+
     @property
     def subscribed(self) -> bool:
         return bool(self._topics)
 
-    def start(self) -> None:
+    def start(self, warm_up: bool = False) -> None:
+        """Bind the socket and start the thread; ``warm_up``: start the drawing worker at once (a viewer
+        is sure to come: ``demo --view``), else on the first preview a viewer asks for."""
         import zmq
+
+        self._warm_up = warm_up
 
         self._ctx = zmq.Context()
         sock = self._ctx.socket(zmq.XPUB)
@@ -127,7 +148,7 @@ class PreviewPublisher:
             restrict_socket(self.endpoint)  # the camera's view is the service's group's, like the controls
         except (zmq.ZMQError, ConfigError) as err:
             sock.close(0)
-            self._ctx.term()
+            self._ctx.destroy(linger=0)
             self._ctx = None
             raise ConfigError(f"view.preview_endpoint {self.endpoint!r}: cannot bind: {err}") from None
         self._sock = sock
@@ -138,6 +159,7 @@ class PreviewPublisher:
     def close(self, timeout_s: float = 2.0) -> None:
         """Stop the thread and close the socket. Safe twice."""
         self._stop.set()
+        self._worker.cancel()
         self._want = False
         with self._cond:
             self._cond.notify()
@@ -150,8 +172,9 @@ class PreviewPublisher:
         if self._sock is not None:
             self._sock.close(0)
             self._sock = None
+            remove_socket(self.endpoint)  # a file left behind would look like a running service
         if self._ctx is not None:
-            self._ctx.term()
+            self._ctx.destroy(linger=0)
             self._ctx = None
 
     # ------------------------------------------------------------------ the thread
@@ -185,6 +208,13 @@ class PreviewPublisher:
             os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 10)
         except (AttributeError, OSError):
             log.debug("preview: could not lower this thread's priority")
+        if self._warm_up:
+            from companion.service.preview_worker import PreviewWorkerError
+
+            try:
+                self._worker.warm_up()
+            except PreviewWorkerError as err:
+                log.warning("preview: %s (tried again on the first preview)", err)
         next_due_s = 0.0
         while not self._stop.is_set():
             try:
@@ -216,24 +246,25 @@ class PreviewPublisher:
     def _publish(self, offer: _Offer, cfg: Any) -> None:
         import zmq
 
-        from companion.service.preview_worker import PreviewWorkerError
+        from companion.service.preview_worker import PreviewWorkerError, PreviewWorkerStarting
         from companion.view.frame import near_far_m, pack
 
         try:
             jpeg, encode_ms, height_px, width_px = self._worker.render(
                 _inputs(offer), cfg.preview_width_px, cfg.preview_jpeg_quality
             )
+        except PreviewWorkerStarting:
+            return  # stopping while the worker started: nothing went wrong
         except PreviewWorkerError as err:  # the worker is restarted later; the service flies on
-            self.errors += 1
-            log.error("preview: frame %s: %s", getattr(offer.frame, "seq", "?"), err)
-            self._report(f"preview: {err}")
+            self._failed(offer, str(err))
             return
         except Exception as err:  # a bug here must not stop the preview thread (nor anything else)
-            self.errors += 1
-            log.exception("preview: frame %s failed", getattr(offer.frame, "seq", "?"))
-            self._report(f"preview: {type(err).__name__}: {err}")
+            log.debug("preview: frame %s failed", getattr(offer.frame, "seq", "?"), exc_info=True)
+            self._failed(offer, f"{type(err).__name__}: {err}")
             return
         self.last_encode_ms = encode_ms
+        self.failing = None
+        self._error_log.reset()
         result = offer.result
         near_m, far_m = near_far_m(offer.pipeline.config)
         header = {
@@ -258,6 +289,21 @@ class PreviewPublisher:
         except zmq.ZMQError as err:
             if not self._stop.is_set():
                 self._report(f"preview: send failed: {err}")
+
+    def _failed(self, offer: _Offer, message: str) -> None:
+        """A preview that failed: counted, shown (health's ``preview.failing`` and ``last_error``), and
+        logged less and less often while it goes on (a failing worker is not a flood of log lines)."""
+        self.errors += 1
+        self.failing = message
+        if self._error_log.due(self._clock()):
+            more = f" ({self._error_log.suppressed} more since the last line)" if self._error_log.suppressed else ""
+            log.error("preview: frame %s: %s%s", getattr(offer.frame, "seq", "?"), message, more)
+        self._report(f"preview: {message}")
+
+    def status(self) -> dict[str, Any]:
+        """For the health message: previews published and failed, and why the last one failed (None
+        once a preview succeeds again)."""
+        return {"published": self.published, "errors": self.errors, "failing": self.failing}
 
     def _report(self, message: str) -> None:
         try:
@@ -384,7 +430,7 @@ class FlightRecorder:
             self._thread.join(timeout_s)
             self._thread = None
         if self._ctx is not None:
-            self._ctx.term()
+            self._ctx.destroy(linger=0)
             self._ctx = None
 
     def _write_bytes(self, path: Path, data: bytes) -> None:
@@ -461,6 +507,21 @@ class FlightRecorder:
             index.write(line)
         self.bytes_written += len(line)
         self.preview_frames += 1
+
+    def _failed(self, offer: _Offer, message: str) -> None:
+        """A preview that failed: counted, shown (health's ``preview.failing`` and ``last_error``), and
+        logged less and less often while it goes on (a failing worker is not a flood of log lines)."""
+        self.errors += 1
+        self.failing = message
+        if self._error_log.due(self._clock()):
+            more = f" ({self._error_log.suppressed} more since the last line)" if self._error_log.suppressed else ""
+            log.error("preview: frame %s: %s%s", getattr(offer.frame, "seq", "?"), message, more)
+        self._report(f"preview: {message}")
+
+    def status(self) -> dict[str, Any]:
+        """For the health message: previews published and failed, and why the last one failed (None
+        once a preview succeeds again)."""
+        return {"published": self.published, "errors": self.errors, "failing": self.failing}
 
     def _report(self, message: str) -> None:
         try:

@@ -3,11 +3,14 @@
 Why a process and not the preview thread: the drawing (NumPy on the disparity, the overlay's Python)
 holds the GIL in short bursts, and every burst can delay the pipeline and the control loop in the
 service's threads. In a child process the flight loop shares nothing with it but the CPU, and the child
-runs at the lowest priority (nice 19) with one OpenCV thread, so the scheduler serves the flight loop
-first. What the service's preview thread still does per preview: write the frame and the disparity into
+runs below the flight loop's priority (nice :data:`WORKER_NICE`) with one OpenCV thread, so the scheduler
+serves the flight loop first, yet still gets enough of a busy machine to draw a few previews a second
+(at nice 19 it got about 1.5 % of a core beside two busy processes: no picture at all). What the service's preview thread still does per preview: write the frame and the disparity into
 a pipe (the kernel copies; the GIL is released) and read back the JPEG.
 
-Protocol (private, both ends are this module): the parent writes ``<III`` (lengths of a pickled
+Protocol (private, both ends are this module): once its imports are done the child writes one byte
+(:data:`_READY`), so a start-up slowed by a busy machine never counts against a preview's deadline; the
+parent then writes ``<III`` (lengths of a pickled
 :class:`_Job`, the frame's bytes, the disparity's bytes) followed by the three; the child answers
 ``<I`` and a pickled :class:`_Reply`. The child exits when its input closes (the service stopped or
 died), so it never outlives the service.
@@ -38,11 +41,22 @@ _JOB_HEADER = struct.Struct("<III")
 _REPLY_HEADER = struct.Struct("<I")
 #: The largest reply accepted (a JPEG preview is tens of kB), bytes.
 _MAX_REPLY_BYTES = 64 << 20
+#: What the child writes once it is ready for jobs.
+_READY = b"R"
+#: The child's niceness: below the service (0), far above idle work. Its demand is small (a few ms a
+#: preview), so it takes only what it needs; the priority matters when the cores are contended: at nice
+#: 19 (weight 15 against 1024 for nice 0) two busy loops left it about 1.5 % of a core, no picture at
+#: all; at nice 5 (weight 335) it still gets its few per cent, and the flight loop 3x more than it.
+WORKER_NICE = 5
 
 
 class PreviewWorkerError(CompanionError):
     """The preview worker failed, hung or could not start; the message says which (it is restarted on
     a later preview)."""
+
+
+class PreviewWorkerStarting(PreviewWorkerError):
+    """The worker is still starting (importing): this preview is skipped; not a failure."""
 
 
 @dataclass(frozen=True)
@@ -67,15 +81,27 @@ class PreviewWorker:
     """Draws and encodes previews in a child process (started on the first :meth:`render`).
 
     Args:
-        timeout_s: the longest one preview may take (writing, drawing, reading back), seconds; a worker
-            that takes longer is killed.
+        timeout_s: the longest one preview may take once the worker is ready (writing, drawing, reading
+            back), seconds; a worker that takes longer is killed.
+        startup_timeout_s: the longest the worker's start-up (its imports) may take, seconds; a preview
+            asked for meanwhile is skipped (:class:`PreviewWorkerStarting`), not an error.
         restart_after_s: after a failure, no new worker is started for this long, seconds (a worker
             that crashes at once is not restarted five times a second).
         command: the child's command line (default: this Python, ``-m companion.service.preview_worker``).
     """
 
-    def __init__(self, timeout_s: float = 2.0, restart_after_s: float = 2.0, command: list[str] | None = None) -> None:
+    def __init__(
+        self,
+        timeout_s: float = 10.0,
+        restart_after_s: float = 2.0,
+        command: list[str] | None = None,
+        startup_timeout_s: float = 60.0,
+    ) -> None:
         self.timeout_s = float(timeout_s)
+        self.startup_timeout_s = float(startup_timeout_s)
+        self._started_at = 0.0
+        self._ready = False
+        self._cancelled = False
         self.restart_after_s = float(restart_after_s)
         self._command = command or [sys.executable, "-m", __name__]
         self._proc: subprocess.Popen[bytes] | None = None
@@ -107,6 +133,8 @@ class PreviewWorker:
         meta = pickle.dumps(job, protocol=pickle.HIGHEST_PROTOCOL)
         parts = [meta, memoryview(image).cast("B"), memoryview(disparity).cast("B") if disparity is not None else b""]
         proc = self._ensure_started()
+        if not self._ready:
+            self._wait_ready(proc)
         deadline = time.monotonic() + self.timeout_s
         try:
             self._write(proc, [_JOB_HEADER.pack(*(len(p) for p in parts)), *parts], deadline)
@@ -165,9 +193,45 @@ class PreviewWorker:
         assert proc.stdin is not None and proc.stdout is not None
         os.set_blocking(proc.stdin.fileno(), False)
         self._proc = proc
+        self._ready = False
+        self._started_at = time.monotonic()
         self.starts += 1
         log.info("preview worker started (pid %d)", proc.pid)
         return proc
+
+    def _wait_ready(self, proc: subprocess.Popen[bytes]) -> None:
+        """Wait for the child's ready byte (its imports), at most ``startup_timeout_s``; :meth:`cancel`
+        ends the wait (:class:`PreviewWorkerStarting`)."""
+        assert proc.stdout is not None
+        fd = proc.stdout.fileno()
+        while not self._cancelled:
+            ready, _, _ = select.select([fd], [], [], 0.1)
+            if ready:
+                if os.read(fd, 1) == _READY:
+                    self._ready = True
+                    log.info("preview worker ready after %.1f s", time.monotonic() - self._started_at)
+                    return
+                self._fail()
+                raise PreviewWorkerError(f"preview worker exited while starting (code {proc.poll()})")
+            if time.monotonic() - self._started_at > self.startup_timeout_s:
+                self._fail()
+                raise PreviewWorkerError(f"preview worker: not started within {self.startup_timeout_s:g} s")
+        raise PreviewWorkerStarting("preview worker: stopping while it started")
+
+    def warm_up(self) -> None:
+        """Start the worker now and wait until it is ready (a caller that knows a viewer is coming:
+        the first picture then needs no start-up).
+
+        Raises:
+            PreviewWorkerError: it could not start.
+        """
+        proc = self._ensure_started()
+        if not self._ready:
+            self._wait_ready(proc)
+
+    def cancel(self) -> None:
+        """End a wait for the worker's start-up (another thread is stopping the preview)."""
+        self._cancelled = True
 
     def _fail(self) -> None:
         """Stop a worker that failed; a new one may start after ``restart_after_s``."""
@@ -267,19 +331,30 @@ def serve(stdin: Any, stdout: Any) -> None:
 
 
 def main() -> int:
-    """``python -m companion.service.preview_worker``: the child. Lowest priority, one OpenCV thread."""
+    """``python -m companion.service.preview_worker``: the child. Below the service's priority, one
+    OpenCV thread."""
     logging.basicConfig(level=logging.WARNING, stream=sys.stderr, format="preview worker: %(levelname)s %(message)s")
     # Ctrl+C in a terminal reaches the whole process group: the service decides, and the child ends
     # when the service closes its input (no traceback of its own).
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    try:
-        os.nice(19)
-    except OSError:
-        log.debug("could not lower the priority")
+    # The imports first, at the service's priority: at a lower one beside busy processes they took a minute.
     import cv2
 
+    import companion.view.frame  # noqa: F401  (the imports are the start-up: done before the ready byte)
+
     cv2.setNumThreads(1)
-    serve(sys.stdin.buffer, sys.stdout.buffer)
+    try:
+        os.nice(max(0, WORKER_NICE - os.nice(0)))
+    except OSError:
+        log.debug("could not lower the priority")
+    try:
+        sys.stdout.buffer.write(_READY)
+        sys.stdout.buffer.flush()
+        serve(sys.stdin.buffer, sys.stdout.buffer)
+    except BrokenPipeError:
+        # The service stopped (or gave up on this worker) while it started or drew: nothing to say.
+        # Python's own advice: point stdout at /dev/null so that the flush at exit does not fail again.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
     return 0
 
 

@@ -8,20 +8,26 @@ mode 0750, group ``companion``: add operators to that group). Run by hand, it is
 when it belongs to someone else).
 
 ``companion ctl``, ``companion watch`` and the view find the service's sockets the same way
-(:func:`find_socket`), looking in the system location first.
+(:func:`find_socket`), looking in the system location first. The /tmp fallback is looked at only when
+``XDG_RUNTIME_DIR`` is not set, so a user's (or a test's) own runtime directory never finds another
+run's sockets. The service removes its socket files when it stops; a socket file with no service
+behind it is reported at once (:func:`check_listening`).
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import os
+import re
 import resource
+import socket
 import stat
 from collections.abc import Mapping
 from pathlib import Path
 
 from companion.config.service import AUTO_ENDPOINT
-from companion.errors import ConfigError
+from companion.errors import ConfigError, InputError
 
 log = logging.getLogger(__name__)
 
@@ -87,7 +93,8 @@ def candidate_sockets(which: str, environ: Mapping[str, str] | None = None) -> l
     xdg = env.get("XDG_RUNTIME_DIR")
     if xdg:
         out.append(Path(xdg) / "companion" / name)
-    out.append(Path("/tmp") / f"companion-{os.getuid()}" / name)
+    else:  # the service falls back to /tmp only without XDG_RUNTIME_DIR, and so does the client
+        out.append(Path("/tmp") / f"companion-{os.getuid()}" / name)
     return out
 
 
@@ -114,6 +121,7 @@ def find_socket(which: str, environ: Mapping[str, str] | None = None) -> str:
                 f"{path}: permission denied: only the service's user and the members of its group "
                 "(companion) may use it (sudo usermod -aG companion $USER, then log in again)"
             )
+        check_listening(f"ipc://{path}")
         return f"ipc://{path}"
     raise ConfigError(
         f"no {which} socket of a running service in {', '.join(str(p.parent) for p in candidates)} "
@@ -139,6 +147,83 @@ def expected_socket(which: str, environ: Mapping[str, str] | None = None) -> str
         if path.parent.is_dir():
             return f"ipc://{path}"
     return f"ipc://{candidates[-1]}"
+
+
+_ENDPOINT = re.compile(r"^(tcp://(\[[0-9A-Fa-f:.]+\]|[^\s:/\[\]]+):(\*|\d{1,5})|ipc://\S+|inproc://\S+)$")
+
+
+def validate_endpoint(endpoint: str, option: str) -> str:
+    """``endpoint`` when it is a ZeroMQ endpoint a client can connect to (``tcp://HOST:PORT``,
+    ``ipc://PATH``, ``inproc://NAME``); ``option`` names where it came from (``--endpoint``).
+
+    Raises:
+        InputError: anything else, in one line.
+    """
+    if not _ENDPOINT.match(endpoint) or (
+        endpoint.startswith("tcp://") and endpoint.rsplit(":", 1)[1] != "*" and int(endpoint.rsplit(":", 1)[1]) > 65535
+    ):
+        raise InputError(
+            f"{option} {endpoint!r}: not a ZeroMQ endpoint (tcp://HOST:PORT or ipc://PATH, e.g. tcp://127.0.0.1:5561)"
+        )
+    return endpoint
+
+
+def validate_timeout(timeout_s: float, option: str = "--timeout-s") -> float:
+    """``timeout_s`` when it is a finite number of seconds > 0.
+
+    Raises:
+        InputError: zero, negative, NaN or infinite.
+    """
+    if not math.isfinite(timeout_s) or timeout_s <= 0:
+        raise InputError(f"{option} {timeout_s:g}: must be a number of seconds > 0")
+    return timeout_s
+
+
+def socket_path(endpoint: str) -> Path | None:
+    """The socket file of an ``ipc://`` endpoint (None: another transport, or an abstract socket)."""
+    if not endpoint.startswith("ipc://") or endpoint.startswith("ipc://@"):
+        return None
+    return Path(endpoint.removeprefix("ipc://"))
+
+
+def check_listening(endpoint: str) -> None:
+    """For an ``ipc://`` endpoint whose socket file exists: raise when no process listens on it (a
+    service that was killed leaves its file; ZeroMQ would only retry in silence). Other endpoints,
+    and a file that does not exist yet: nothing.
+
+    Raises:
+        ConfigError: "no running service", naming the file.
+    """
+    path = socket_path(endpoint)
+    if path is None:
+        return
+    probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    try:
+        probe.settimeout(1.0)
+        probe.connect(str(path))
+    except (FileNotFoundError, PermissionError):
+        return  # not there yet (a client that waits), or said elsewhere with what to do
+    except ConnectionRefusedError:
+        raise ConfigError(
+            f"no running service at {path} (the socket file is left from a service that stopped; "
+            "start the service, or remove the file)"
+        ) from None
+    except OSError:
+        return  # anything else: ZeroMQ's own error or timeout says it
+    finally:
+        probe.close()
+
+
+def remove_socket(endpoint: str) -> None:
+    """Remove the socket file of an ``ipc://`` endpoint this process bound (ZeroMQ usually has; a
+    file left behind would look like a running service to a client)."""
+    path = socket_path(endpoint)
+    if path is None:
+        return
+    try:
+        path.unlink(missing_ok=True)
+    except OSError as err:
+        log.warning("%s: could not remove the socket file: %s", path, err.strerror or err)
 
 
 def restrict_socket(endpoint: str) -> None:

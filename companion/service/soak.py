@@ -129,6 +129,7 @@ def run_soak(args: argparse.Namespace, sizes: list[Any]) -> dict[str, Any]:
                     "replay_rate_hz": SOAK_FPS_HZ,
                     "replay_loop": True,
                     "replay_preload": True,
+                    "open_timeout_s": 120.0,  # preloading is slow on a busy machine; the soak measures after
                 },
                 "calibration": {"ideal_hfov_deg": 87.0},
                 "stereo": {"backend": args.backend, "num_disparities": size.num_disparities},

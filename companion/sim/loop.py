@@ -239,6 +239,19 @@ def simulator_config(cfg: CompanionConfig) -> CompanionConfig:
     return cfg.model_copy(update={"calibration": cfg.calibration.model_copy(update={"file": None})})
 
 
+def simulated_rig_check_lines(cfg: CompanionConfig) -> list[str]:
+    """The rig check of the rig the simulator flies (its ideal eyes, ``sim.eye_*_px``, and the
+    calibration section's ideal field of view and baseline), in the words every tool prints."""
+    from companion.core.geometry import StereoGeometry
+    from companion.core.rig_check import check_rig, rig_check_lines
+
+    sim = cfg.sim
+    geometry = StereoGeometry.ideal(
+        sim.eye_width_px, sim.eye_height_px, cfg.calibration.ideal_hfov_deg, cfg.calibration.ideal_baseline_m
+    )
+    return rig_check_lines(check_rig(geometry, cfg.stereo, cfg.regions, cfg.controller))
+
+
 def make_camera(
     course: Course,
     cfg: CompanionConfig,

@@ -179,7 +179,7 @@ class ServiceProcess:
             self._sub.close(0)
             self._sub = None
         if self._ctx is not None:
-            self._ctx.term()
+            self._ctx.destroy(linger=0)
             self._ctx = None
         if self.health_history:
             await asyncio.to_thread(self._write_health_log)

@@ -64,6 +64,13 @@ class PreviewInputs:
     max_disparity_px: float
 
 
+def thresholds_m(cfg: Any) -> dict[str, float]:
+    """Health's ``thresholds_m``: the controller's near and far thresholds of ``cfg`` (metres), which
+    the view draws its region bars against."""
+    near_m, far_m = near_far_m(cfg)
+    return {"near_m": near_m, "far_m": far_m}
+
+
 def near_far_m(cfg: Any) -> tuple[float, float]:
     """The controller's thresholds: where 'near' stops being total and where 'far' becomes total, metres."""
     near = cfg.controller.input_terms.get("near")

@@ -269,10 +269,7 @@ class ViewServer:
                 self.timeline.append(point)
                 while self.timeline and point["t"] - self.timeline[0]["t"] > TIMELINE_S:
                     self.timeline.popleft()
-            if self.thresholds is None or self._thresholds_version != h.get("config_version"):
-                self._thresholds_version = h.get("config_version")
-                if not self.options.preview_endpoint and self.options.control_endpoint:
-                    asyncio.create_task(self._fetch_thresholds())
+            self._thresholds_from_health(h)
             self._broadcast_text("health", json.dumps({"type": "health", "health": h, "view": self._view_status()}))
 
     async def _follow_preview(self, sock: Any) -> None:
@@ -289,18 +286,29 @@ class ViewServer:
             self.jpeg, self.preview_header, self.preview_at_s = jpeg, header, now
             self.previews += 1
             self._preview_times.append(now)
-            near, far = _finite(header.get("near_m")), _finite(header.get("far_m"))
-            if near is not None and far is not None:
-                new = {"near_m": near, "far_m": far}
-                if new != self.thresholds:
-                    self.thresholds = new
-                    self._broadcast_text("thresholds", json.dumps({"type": "thresholds", **new}))
             for client in self._clients:
                 client.jpeg = jpeg
                 client.wake.set()
             assert self._mjpeg_wake is not None
             self._mjpeg_wake.set()
             self._mjpeg_wake = asyncio.Event()
+
+    def _thresholds_from_health(self, h: dict[str, Any]) -> None:
+        """The region bars' near/far thresholds from health's ``thresholds_m`` (every message carries
+        them, so they are right from the first message, with or without a picture); an older service
+        without them: asked once per config version through the control socket."""
+        t = h.get("thresholds_m") if isinstance(h.get("thresholds_m"), dict) else {}
+        near, far = _finite(t.get("near_m")), _finite(t.get("far_m"))
+        if near is not None and far is not None:
+            new = {"near_m": near, "far_m": far}
+            if new != self.thresholds:
+                self.thresholds = new
+                self._broadcast_text("thresholds", json.dumps({"type": "thresholds", **new}))
+            return
+        if self.thresholds is None or self._thresholds_version != h.get("config_version"):
+            self._thresholds_version = h.get("config_version")
+            if self.options.control_endpoint:
+                asyncio.create_task(self._fetch_thresholds())
 
     async def _fetch_thresholds(self) -> None:
         try:
@@ -332,6 +340,7 @@ class ViewServer:
             "previews": self.previews,
             "preview_encode_ms": (self.preview_header or {}).get("encode_ms"),
             "clients": len(self._clients),
+            "health_endpoint": self.options.health_endpoint,
         }
 
     def _broadcast_text(self, kind: str, text: str) -> None:

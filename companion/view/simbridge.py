@@ -82,7 +82,7 @@ class SimViewBridge:
         self._pub.bind("tcp://127.0.0.1:*")
         health_endpoint = self._pub.getsockopt_string(zmq.LAST_ENDPOINT)
         self.publisher = PreviewPublisher(lambda: self.cfg.view, "tcp://127.0.0.1:*", clock=time.monotonic)
-        self.publisher.start()
+        self.publisher.start(warm_up=True)  # the page is about to watch: no start-up before its first picture
         cmd = [
             sys.executable, "-m", "companion", "view", "--no-control",
             "--health-endpoint", health_endpoint, "--preview-endpoint", self.publisher.endpoint,
@@ -165,7 +165,7 @@ class SimViewBridge:
             self._pub.close(0)
             self._pub = None
         if self._ctx is not None:
-            self._ctx.term()
+            self._ctx.destroy(linger=0)
             self._ctx = None
 
     # ------------------------------------------------------------------ the health message
@@ -190,8 +190,13 @@ class SimViewBridge:
     def _health(self, step: Any) -> dict[str, Any]:
         from companion.core.types import REGION_NAMES
 
+        from companion.core.words import decision_words
+        from companion.view.frame import thresholds_m
+
         res = step.result
         decision = res.decision if res is not None else None
+        publisher = self.publisher
+        preview = publisher.status() if publisher is not None else {"published": 0, "errors": 0, "failing": None}
         recent = [t for t in self._frames[-64:] if step.t_s - t <= 1.0]
         sp = step.setpoint
         engaged = self._state == "engaged" and step.in_offboard
@@ -217,7 +222,9 @@ class SimViewBridge:
             "yaw": decision.yaw if decision is not None else None,
             "pitch": decision.pitch if decision is not None else None,
             "decision": (
-                {"kind": decision.kind.value, "speed_fraction": decision.speed_fraction, "reason": decision.reason}
+                {"kind": decision.kind.value, "speed_fraction": decision.speed_fraction, "reason": decision.reason,
+                 "words": decision_words(decision.kind, decision.yaw, decision.pitch, res.refined.depth_m,
+                                         decision.speed_fraction)}
                 if decision is not None
                 else None
             ),
@@ -252,7 +259,9 @@ class SimViewBridge:
             "dropped_frames": 0,
             "processed_twice": 0,
             "frame_errors": 0,
-            "last_error": None,
+            "last_error": preview["failing"] and f"preview: {preview['failing']}",
+            "thresholds_m": thresholds_m(self.cfg),
+            "preview": preview,
         }
 
 

@@ -84,7 +84,7 @@ class Browser:
 class ViewProcess:
     """``python -m companion view ...`` in a child process; :attr:`url` is the first URL it printed."""
 
-    def __init__(self, *args: str, env: dict[str, str] | None = None, timeout_s: float = 20.0) -> None:
+    def __init__(self, *args: str, env: dict[str, str] | None = None, timeout_s: float = 60.0) -> None:
         cmd = [sys.executable, "-m", "companion", "view", "--port", "0", *args]
         self.proc = subprocess.Popen(
             cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env={**os.environ, **(env or {})},

@@ -251,7 +251,7 @@ class Client:
         self.sock.close(0)
         if self.sub is not None:
             self.sub.close(0)
-        self.ctx.term()
+        self.ctx.destroy(linger=0)
 
 
 def avoid_scene_camera(fps_hz: float = 15.0, width_px: int = 672, height_px: int = 376):
@@ -300,9 +300,47 @@ def avoid_scene_preview_inputs(cfg: CompanionConfig):
     )  # fmt: skip
 
 
-def wait_until(predicate, timeout_s: float, poll_s: float = 0.01) -> bool:
-    """Poll ``predicate()`` until it is true or ``timeout_s`` passes; returns the last value."""
+#: The least a test waits for an eventual state, seconds: the suite runs on loaded machines (two busy
+#: processes on two cores), where "within 3 s" is a budget, not a behaviour. Only a failing wait is slower.
+EVENTUAL_TIMEOUT_S = 30.0
+
+
+def engage_when_ready(client: "Client", timeout_s: float = 60.0, **goal) -> dict:
+    """``engage``, asked again every 0.5 s while the service refuses it for a reason that passes (no
+    frame processed yet, frames stale: a loaded machine's first seconds), as an operator would;
+    returns the last reply."""
     deadline = time.monotonic() + timeout_s
+    while True:
+        reply = client.call("engage", **goal)
+        message = "" if reply["ok"] else str(reply["error"]["message"])
+        passing = any(w in message for w in ("no frame processed yet", "s old", "not delivering", "not known yet", "RateLimited"))
+        if reply["ok"] or not passing or time.monotonic() > deadline:
+            return reply
+        time.sleep(0.5)
+
+
+def engage_and_wait(client: "Client", link, timeout_s: float = 90.0, **goal) -> None:
+    """Engage and wait until the vehicle is in offboard and the service engaged; an engage that the
+    service gave up on the way (frames went stale while it engaged: a loaded machine) is asked again."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        reply = engage_when_ready(client, max(1.0, deadline - time.monotonic()), **goal)
+        assert reply["ok"] or "already" in str(reply.get("error")), reply
+        t_end = time.monotonic() + 20.0
+        while time.monotonic() < min(t_end, deadline):
+            state = client.call("status")["result"]["state"]
+            if state == "engaged" and link.state().in_offboard:
+                return
+            if state not in ("engaging", "engaged"):
+                break  # given up (stale frames, a refusal): ask again
+            time.sleep(0.05)
+        assert time.monotonic() < deadline, f"not engaged within {timeout_s} s ({state})"
+
+
+def wait_until(predicate, timeout_s: float, poll_s: float = 0.01) -> bool:
+    """Poll ``predicate()`` until it is true or ``timeout_s`` (at least :data:`EVENTUAL_TIMEOUT_S`)
+    passes; returns the last value. For eventual states only: never ``assert not wait_until(...)``."""
+    deadline = time.monotonic() + max(timeout_s, EVENTUAL_TIMEOUT_S)
     while time.monotonic() < deadline:
         if predicate():
             return True

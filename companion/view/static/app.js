@@ -179,7 +179,9 @@ function applyHealth(h) {
   drawStick(h);
   const d = h.decision || {};
   setText("decision", d.kind ? d.kind.toUpperCase() + (typeof d.speed_fraction === "number" ? ` (speed ${fmt(d.speed_fraction)})` : "") : "–");
-  setText("decision-reason", d.reason || "");
+  // the pilot's words; the controller's reason (rules, memberships) on hover, for tuning
+  setText("decision-reason", d.words || d.reason || "");
+  $("decision-reason").title = d.words ? (d.reason || "") : "";
   setText("yaw", signed(h.yaw) + (typeof h.yaw === "number" ? (h.yaw > 0.02 ? "  right" : h.yaw < -0.02 ? "  left" : "") : ""));
   setText("pitch", signed(h.pitch) + (typeof h.pitch === "number" ? (h.pitch > 0.02 ? "  up" : h.pitch < -0.02 ? "  down" : "") : ""));
   const sp = h.setpoint || {};
@@ -209,12 +211,16 @@ function applyViewStatus(s) {
   view.viewStatus = s;
   if (!s) return;
   const banner = $("banner");
-  if (s.health_age_s === null) { banner.hidden = false; banner.textContent = "No health message from the service yet: is it running? (companion view follows its health socket)"; }
+  if (s.health_age_s === null) { banner.hidden = false; banner.textContent = `No running service: no health message from ${s.health_endpoint || "its health socket"} yet. Start it (companion run); this page follows it once it runs.`; }
   else if (s.health_age_s > 2) { banner.hidden = false; banner.textContent = `No health message from the service for ${s.health_age_s.toFixed(0)} s: the service may have stopped.`; }
   else banner.hidden = true;
   const age = s.preview_age_s;
-  setText("preview-info", age === null ? "no picture yet (the service publishes one only while someone watches)"
-    : `${fmt(s.preview_fps, 1)} pictures/s, newest ${fmt(age * 1000, 0)} ms ago` + (s.preview_encode_ms ? `, drawn in ${fmt(s.preview_encode_ms, 1)} ms` : ""));
+  const failing = view.health && view.health.preview ? view.health.preview.failing : null;
+  let info = age === null ? "no picture yet (the service draws one only while someone watches; the first takes a few seconds)"
+    : `${fmt(s.preview_fps, 1)} pictures/s, newest ${fmt(age * 1000, 0)} ms ago` + (s.preview_encode_ms ? `, drawn in ${fmt(s.preview_encode_ms, 1)} ms` : "");
+  if (failing) info = `no new picture: ${failing}` + (age === null ? "" : ` (the last one ${fmt(age, 0)} s ago)`);
+  setText("preview-info", info);
+  $("preview-info").className = failing ? "err" : "";
 }
 
 // ------------------------------------------------------------------------------------------ preview
@@ -263,7 +269,11 @@ async function onButton(ev) {
     });
     const reply = await resp.json();
     if (reply.ok) { msg.className = "small ok"; msg.textContent = `${cmd}: ${(reply.result && reply.result.message) || "ok"}`; }
-    else { msg.className = "small err"; msg.textContent = `${cmd} refused: ${(reply.error && reply.error.message) || resp.status}`; }
+    else {
+      // the service's message already says "engage refused: ..."; a message of its own gets the prefix
+      const text = String((reply.error && reply.error.message) || resp.status);
+      msg.className = "small err"; msg.textContent = text.startsWith(`${cmd} refused`) ? text : `${cmd} refused: ${text}`;
+    }
   } catch (err) {
     msg.className = "small err"; msg.textContent = `${cmd}: no answer from the view (${err})`;
   }

@@ -1,0 +1,92 @@
+"""What every test gets: a runtime directory of its own, and a loud failure for a ZeroMQ context left open.
+
+* ``XDG_RUNTIME_DIR`` points at a fresh folder for each test (removed afterwards), and
+  ``RUNTIME_DIRECTORY`` is unset: a test's service binds its ``auto`` sockets there, and a client
+  looks only there (never in the user's own runtime directory, nor in the /tmp fallback), so no
+  test sees another run's sockets or leaves one behind.
+* Every ``zmq.Context`` created during a test must be closed by the end of it (a few seconds of
+  grace for threads that close their own): an open one fails the test, naming it, and is destroyed
+  with linger 0 so that the interpreter's exit never waits in ``zmq_ctx_term``.
+"""
+
+from __future__ import annotations
+
+import gc
+import shutil
+import tempfile
+import time
+import weakref
+from collections.abc import Iterator
+from typing import Any
+
+import pytest
+import zmq
+
+#: How long a test's contexts may take to close after the test (threads that stop on their own).
+CONTEXT_GRACE_S = 5.0
+
+_contexts: weakref.WeakSet[zmq.Context] = weakref.WeakSet()
+_original_init = zmq.Context.__init__
+
+
+def _tracking_init(self: zmq.Context, *args: Any, **kwargs: Any) -> None:
+    _original_init(self, *args, **kwargs)
+    if not getattr(self, "_shadow", False):  # a shadow shares another's context: that one is tracked
+        _contexts.add(self)
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    zmq.Context.__init__ = _tracking_init  # type: ignore[method-assign]
+
+
+def pytest_unconfigure(config: pytest.Config) -> None:
+    zmq.Context.__init__ = _original_init  # type: ignore[method-assign]
+
+
+def _open_contexts(besides: weakref.WeakSet[zmq.Context] | None = None) -> list[zmq.Context]:
+    return [c for c in list(_contexts) if not c.closed and (besides is None or c not in besides)]
+
+
+@pytest.fixture(autouse=True)
+def private_runtime_dir(monkeypatch: pytest.MonkeyPatch) -> Iterator[str]:
+    """A runtime directory of this test's own (short: a socket path has at most 107 bytes)."""
+    path = tempfile.mkdtemp(prefix="companion-test-")
+    monkeypatch.setenv("XDG_RUNTIME_DIR", path)
+    monkeypatch.delenv("RUNTIME_DIRECTORY", raising=False)
+    yield path
+    shutil.rmtree(path, ignore_errors=True)
+
+
+@pytest.fixture(autouse=True)
+def zmq_contexts_closed(request: pytest.FixtureRequest) -> Iterator[None]:
+    """Fail the test when a ZeroMQ context it created is still open at its end."""
+    before = weakref.WeakSet(_contexts)
+    yield
+    deadline = time.monotonic() + CONTEXT_GRACE_S
+    while True:
+        gc.collect()
+        left = _open_contexts(besides=before)
+        if not left or time.monotonic() > deadline:
+            break
+        time.sleep(0.05)
+    if left:
+        for ctx in left:
+            ctx.destroy(linger=0)
+        pytest.fail(
+            f"{request.node.nodeid}: {len(left)} ZeroMQ context(s) left open (close every socket and the "
+            "context with linger 0: ctx.destroy(linger=0))",
+            pytrace=False,
+        )
+
+
+def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
+    """A context still open at the end (a module's fixture's) is destroyed, loudly, so the exit never hangs."""
+    gc.collect()
+    left = _open_contexts()
+    for ctx in left:
+        ctx.destroy(linger=0)
+    if left:
+        session.config.get_terminal_writer().line(
+            f"ERROR: {len(left)} ZeroMQ context(s) still open at the end of the session (destroyed now)", red=True
+        )
+        session.exitstatus = pytest.ExitCode.TESTS_FAILED
