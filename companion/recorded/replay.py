@@ -31,6 +31,7 @@ from typing import IO, Any
 
 import numpy as np
 
+from companion.core.rig_check import check_rig, rig_check_lines
 from companion.core.types import REGION_NAMES
 from companion.errors import FrameError, InputError
 
@@ -239,6 +240,9 @@ def replay_sequence(
                     patch["calibration"] = {"file": str(calib_file)}
                 cfg = apply_patch(cfg, patch)
                 pipeline = make_pipeline(cfg, w, h)
+                # The same rig check, in the same words, as every other tool, on the rig these frames were seen with.
+                for line in rig_check_lines(check_rig(pipeline.geometry, cfg.stereo, cfg.regions, cfg.controller)):
+                    log.warning("%s: %s", sequence.name, line)
                 rectifier = make_rectifier(cfg.calibration, w, h)
                 summary.backend = pipeline.estimator.name
                 summary.eye_size_px = (w, h)
