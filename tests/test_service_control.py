@@ -240,6 +240,47 @@ def test_reload_validates_whole_keeps_old_on_error_and_new_membership_changes_th
         client.close()
 
 
+def test_a_config_byte_that_is_not_utf8_is_refused_on_reload_and_sighup(tmp_path: Path, caplog) -> None:
+    """A Latin-1 ``# café`` appended to the file: ``ctl reload`` once answered InternalError and SIGHUP
+    left "Task exception was never retrieved" with health's ``last_error`` empty. Both are a config
+    error naming the byte, the old config stays, and health says why."""
+    import gc
+    import logging
+
+    path = tmp_path / "companion.toml"
+    endpoints = (
+        f'[bus]\nhealth_endpoint = "ipc://{tmp_path}/h.sock"\ncontrol_endpoint = "ipc://{tmp_path}/c.sock"\n'
+        '[camera]\nfps_hz = 15.0\n[stereo]\nbackend = "opencv-bm"\n'
+    )
+    path.write_text(endpoints)
+    from companion.config import load_config
+
+    service = Service(load_config(path), config_path=path, camera=avoid_scene_camera(15.0), link=FakeLink(),
+                      install_signals=False, environ={})
+    caplog.set_level(logging.INFO)
+    with ServiceRunner(service):
+        client = Client(service.bus.control_endpoint, service.bus.health_endpoint)
+        cruise = client.call("get_config", section="command")["result"]["config"]["cruise_speed_m_s"]
+        path.write_bytes(endpoints.encode() + b"[command]\ncruise_speed_m_s = 0.25\n# caf\xe9\n")
+        reply = client.call("reload")
+        assert not reply["ok"] and reply["error"]["type"] == "ConfigError", reply
+        assert "not UTF-8" in reply["error"]["message"] and str(path) in reply["error"]["message"]
+        assert "not UTF-8" in client.health()["last_error"]
+
+        path.write_text(endpoints + '[command]\ncruise_speed_m_s = "2"\n')  # strict types, as set_config
+        reply = client.call("reload")
+        assert not reply["ok"] and "command.cruise_speed_m_s" in reply["error"]["message"], reply
+
+        path.write_bytes(endpoints.encode() + b"# \xff\n")
+        service._loop.call_soon_threadsafe(service._on_hup)  # what SIGHUP runs
+        assert wait_until(lambda: "byte" in (client.health().get("last_error") or ""), 3.0)
+        assert client.call("get_config", section="command")["result"]["config"]["cruise_speed_m_s"] == cruise
+        client.close()
+    gc.collect()
+    assert "never retrieved" not in caplog.text
+    assert "reload rejected, the old config stays" in caplog.text
+
+
 # ---------------------------------------------------------------------------------------------- envelopes
 
 

@@ -127,3 +127,15 @@ backend = "opencv-bm"
     assert elapsed >= 1.0
     assert "no frame within camera.open_timeout_s" in err and "video-companion-test-missing" in err
     assert notify.lines("STATUS=startup failed") and not notify.lines("READY=1")
+
+
+def test_a_config_byte_that_is_not_utf8_is_a_startup_failure(tmp_path: Path) -> None:
+    """A Latin-1 ``# café`` once ended the service with a traceback and exit 1, so systemd kept
+    restarting it; it is a startup failure (78) naming the file and the byte."""
+    config = tmp_path / "companion.toml"
+    config.write_bytes(b"[command]\ncruise_speed_m_s = 1.0\n# caf\xe9\n")
+    proc = _spawn(config, None)
+    rc, err = _finish(proc)
+    assert rc == exitcodes.STARTUP_FAILURE, err[-2000:]
+    assert str(config) in err and "byte 38 (line 3)" in err and "UTF-8" in err
+    assert "Traceback" not in err

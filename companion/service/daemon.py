@@ -498,6 +498,9 @@ class Service(ControlPlane, HealthReporter, PresencePlane):
             log.info("reload applied: %s", result)
         except CompanionError as err:
             log.error("reload rejected, the old config stays: %s", err)  # reload() recorded it in health
+        except Exception as err:  # a bug: the old config stays, and health says so
+            log.exception("reload failed, the old config stays")
+            self._error(f"reload failed, the old config stays: {type(err).__name__}: {err}", kind="config")
 
     # ================================================================================ frames
 
