@@ -443,12 +443,40 @@ def test_protocol_errors_are_one_line_and_name_the_field() -> None:
         b'{"cmd": "override", "yaw": NaN, "pitch": 0, "speed": 0.5, "duration_s": 1}': "NaN",
         b'{"cmd": "ping", "extra": 1}': "extra",
         b'{"cmd": "set_config", "patch": []}': "patch",
+        # Valid JSON, but deeper than any request: said in the product's terms, not the parser's.
+        b'{"cmd": "set_config", "patch": {"a": ' + b'{"a": ' * 250 + b"1" + b"}" * 251 + b"}": "nested too deeply",
+        b'{"cmd": "ping", "id": ' + b"[" * 5000 + b"]" * 5000 + b"}": "at most 32 levels",
+        # JSON leaves a repeated key's meaning open; the last one silently won.
+        b'{"cmd": "ping", "cmd": "engage"}': "names the key 'cmd' twice",
+        b'{"cmd": "set_config", "patch": {"command": {"cruise_speed_m_s": 1, "cruise_speed_m_s": 9}}}': "'cruise_speed_m_s' twice",
     }
     for raw, expected in cases.items():
         with pytest.raises(ProtocolError) as exc:
             protocol.parse_request(raw, adapter)
         assert expected in str(exc.value) and "\n" not in str(exc.value), (raw, str(exc.value))
     assert math.isfinite(protocol.parse_request(b'{"cmd":"override","yaw":1,"pitch":-1,"speed":0,"duration_s":0.1}', adapter).yaw)
+
+
+def test_permission_denied_names_the_group_that_owns_the_socket(tmp_path: Path, monkeypatch) -> None:
+    """The refusal once always said "companion", whatever group the service runs as."""
+    import grp
+    import os
+
+    from companion.service.client import ClientError, check_ipc_access
+
+    sock = tmp_path / "control.sock"
+    sock.write_bytes(b"")
+    group = next((g for g in grp.getgrall() if g.gr_name != "companion"), None)
+    if group is None:
+        pytest.skip("no group to own the file")
+    if os.geteuid() == 0:
+        os.chown(sock, -1, group.gr_gid)
+    else:
+        group = grp.getgrgid(os.getgid())
+    monkeypatch.setattr(os, "access", lambda *a, **k: False)
+    with pytest.raises(ClientError) as exc:
+        check_ipc_access(f"ipc://{sock}")
+    assert f"its group ({group.gr_name})" in str(exc.value) and f"-aG {group.gr_name} " in str(exc.value)
 
 
 @contextlib.contextmanager

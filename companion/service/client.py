@@ -18,6 +18,7 @@ from typing import Any
 import zmq
 
 from companion.errors import CompanionError, InputError
+from companion.service.runtime import permission_denied
 
 
 class ClientError(CompanionError):
@@ -62,10 +63,7 @@ def check_ipc_access(endpoint: str) -> None:
     except PermissionError:
         exists = True  # the folder itself is closed to us
     if exists and not os.access(path, os.R_OK | os.W_OK):
-        raise ClientError(
-            f"{path}: permission denied: only the service's user and the members of its group (companion) "
-            "may use it (sudo usermod -aG companion $USER, then log in again)"
-        )
+        raise ClientError(permission_denied(path))
 
 
 class ControlClient:
