@@ -139,3 +139,31 @@ def test_a_config_byte_that_is_not_utf8_is_a_startup_failure(tmp_path: Path) -> 
     assert rc == exitcodes.STARTUP_FAILURE, err[-2000:]
     assert str(config) in err and "byte 38 (line 3)" in err and "UTF-8" in err
     assert "Traceback" not in err
+
+
+def test_a_mavsdk_cache_folder_that_cannot_be_written_is_a_startup_failure(tmp_path: Path, monkeypatch) -> None:
+    """Run by a user whose HOME may not be written, MAVSDK once aborted the process from C++
+    (``terminate called ... filesystem_error``) with no Python error. It is checked before MAVSDK
+    starts: exit 78 with one line naming the folder and HOME, the variable that moves it. A file where
+    the folder should be stands for it here (it refuses root too)."""
+    home = tmp_path / "home"
+    home.mkdir()
+    (home / ".cache").write_text("not a folder")
+    monkeypatch.setenv("HOME", str(home))
+    config = tmp_path / "companion.toml"
+    _write_config(config, 9)  # nothing listens: the check comes before any autopilot is heard
+    proc = _spawn(config, None)
+    rc, err = _finish(proc)
+    assert rc == exitcodes.STARTUP_FAILURE, err[-2000:]
+    assert f"{home}/.cache/mavsdk" in err and "set HOME" in err
+    assert "Traceback" not in err and "terminate called" not in err
+
+
+def test_mavsdk_cache_check(tmp_path: Path) -> None:
+    from companion.errors import VehicleError
+    from companion.service.vehicle import check_mavsdk_cache
+
+    assert check_mavsdk_cache({"HOME": str(tmp_path)}) == tmp_path / ".cache" / "mavsdk"
+    assert (tmp_path / ".cache" / "mavsdk").is_dir()
+    with pytest.raises(VehicleError, match="HOME is not set"):
+        check_mavsdk_cache({})
