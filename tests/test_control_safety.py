@@ -5,6 +5,7 @@ the socket's permissions, and the small truths (last_error, ctl with a broken fi
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import subprocess
@@ -201,6 +202,77 @@ def test_request_budgets_answer_a_flooding_client_and_spare_the_others(tmp_path:
         other.close()
         flooder.close(0)
         ctx.term()
+
+
+def test_one_clients_flood_does_not_lock_out_another_operator(tmp_path: Path) -> None:
+    """One group member flooding from several connections once spent the budget of all clients, and
+    another operator's requests, disengage included, got RateLimited. The connections that spent it
+    are refused; one that has used little of its own budget gets in; a stop request always does."""
+    import threading
+
+    cfg = service_config(tmp_path, bus={"requests_per_s_per_client": 50.0, "max_requests_per_s": 100.0})
+    link = FakeLink()
+    service = Service(cfg, camera=avoid_scene_camera(10.0), link=link, install_signals=False, environ={})
+    with ServiceRunner(service):
+        operator = Client(service.bus.control_endpoint, service.bus.health_endpoint)
+        _engage(operator, link)
+        stop = threading.Event()
+        seen: dict[str, int] = {}
+
+        def flood() -> None:
+            ctx = zmq.Context()
+            socks = []
+            for _ in range(8):
+                sock = ctx.socket(zmq.DEALER)
+                sock.setsockopt(zmq.LINGER, 0)
+                sock.connect(service.bus.control_endpoint)
+                socks.append(sock)
+            try:
+                while not stop.is_set():
+                    for sock in socks:
+                        with contextlib.suppress(zmq.Again):
+                            sock.send(b'{"cmd": "ping"}', zmq.NOBLOCK)
+                        while sock.poll(0):
+                            reply = json.loads(sock.recv())
+                            kind = "ok" if reply["ok"] else reply["error"]["message"].split(" = ")[0]
+                            seen[kind] = seen.get(kind, 0) + 1
+                    time.sleep(0.001)
+            finally:
+                for sock in socks:
+                    sock.close(0)
+                ctx.term()
+
+        flooder = threading.Thread(target=flood, daemon=True)
+        flooder.start()
+        try:
+            # The budget of all is spent by the flood (its connections hear so).
+            assert wait_until(lambda: seen.get("more than bus.max_requests_per_s", 0) > 50, 20.0), seen
+            assert operator.call("ping")["ok"]  # a light user still gets in
+            reply = operator.call("disengage")
+            assert reply["ok"], reply
+            assert wait_until(lambda: not link.state().in_offboard, 3.0)
+            # A stop request is never refused by a budget, even from a connection that spent its own.
+            spent = zmq.Context()
+            sock = spent.socket(zmq.DEALER)
+            sock.setsockopt(zmq.LINGER, 0)
+            sock.connect(service.bus.control_endpoint)
+            for _ in range(120):
+                sock.send(b'{"cmd": "ping"}')
+            sock.send(b'{"cmd": "disengage", "id": "last"}')
+            replies = []
+            while sock.poll(2000):
+                replies.append(json.loads(sock.recv()))
+                if replies[-1].get("id") == "last":
+                    break
+            sock.close(0)
+            spent.term()
+            assert replies[-1]["id"] == "last", replies[-3:]
+            assert replies[-1]["ok"] or replies[-1]["error"]["type"] not in ("RateLimited", "Busy"), replies[-1]
+            assert any(not r["ok"] and r["error"]["type"] == "RateLimited" for r in replies[:-1])
+        finally:
+            stop.set()
+            flooder.join(5.0)
+            operator.close()
 
 
 def test_connections_beyond_the_limit_are_refused(tmp_path: Path) -> None:
