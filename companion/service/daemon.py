@@ -92,6 +92,15 @@ log = logging.getLogger(__name__)
 Clock = Callable[[], float]
 
 
+#: The longest the release of everything may take after the vehicle is safe (zero, Hold or its
+#: timeout), seconds; each step has its own smaller budget (:data:`_STEP_BUDGET_S`).
+CLEANUP_BUDGET_S = 1.5
+_STEP_BUDGET_S = 0.5
+#: After the event loop ends, how long threads still running get before the process exits without
+#: them (a MAVSDK call blocked in its thread), seconds.
+EXIT_JOIN_S = 0.3
+
+
 class StartupError(CompanionError):
     """The service could not start; the process exits with STARTUP_FAILURE (78)."""
 
@@ -417,35 +426,53 @@ class Service(ControlPlane, HealthReporter, PresencePlane):
         await self._publish_health()
 
     async def _cleanup(self) -> None:
-        """Release everything; safe after a failed start and safe twice."""
+        """Release everything; safe after a failed start and safe twice.
+
+        Bounded: every step gets its own budget, and all together at most :data:`CLEANUP_BUDGET_S`
+        (a task that ignores its cancellation, a thread blocked in a call, a vehicle link that does
+        not close are logged and left; :func:`run_service` then ends the process anyway).
+        """
+        deadline = time.monotonic() + CLEANUP_BUDGET_S
+
+        def budget(own_s: float) -> float:
+            return max(0.05, min(own_s, deadline - time.monotonic()))
+
+        loop = asyncio.get_running_loop()
+
+        async def in_thread(what: str, fn: Callable[[], Any], own_s: float) -> None:
+            try:
+                await asyncio.wait_for(asyncio.shield(loop.run_in_executor(None, fn)), budget(own_s))
+            except asyncio.TimeoutError:
+                log.error("%s did not finish within its %.1f s; leaving it", what, own_s)
+
         tasks = list(self._tasks) + list(self._action_tasks)
         for task in tasks:
             task.cancel()
         if tasks:
             # Their errors were logged by _task_done / the action runners; a task that ignores its
             # cancellation must not hang the shutdown.
-            _, stuck = await asyncio.wait(tasks, timeout=2.0)
+            _, stuck = await asyncio.wait(tasks, timeout=budget(_STEP_BUDGET_S))
             for task in stuck:
-                log.error("task %s did not stop within 2 s; leaving it", task.get_name())
+                log.error("task %s did not stop within %.1f s; leaving it", task.get_name(), _STEP_BUDGET_S)
         self._tasks = []
         self._action_tasks.clear()
         if self.view is not None:
-            await asyncio.get_running_loop().run_in_executor(None, self.view.close)
+            await in_thread("the preview", self.view.close, _STEP_BUDGET_S)
             self.view = None
         if self.control_server is not None:
-            await asyncio.get_running_loop().run_in_executor(None, self.control_server.stop)
+            await in_thread("the control server", functools.partial(self.control_server.stop, budget(_STEP_BUDGET_S)), 2 * _STEP_BUDGET_S)
         if self.bus is not None:
             self.bus.close()
             self.bus = None
         if self._capture is not None:
-            await asyncio.get_running_loop().run_in_executor(None, self._capture.stop)
+            await in_thread("the capture thread", functools.partial(self._capture.stop, budget(_STEP_BUDGET_S)), 2 * _STEP_BUDGET_S)
         if self._processor is not None:
-            await asyncio.get_running_loop().run_in_executor(None, self._processor.stop)
+            await in_thread("the pipeline thread", functools.partial(self._processor.stop, budget(_STEP_BUDGET_S)), 2 * _STEP_BUDGET_S)
             self._processor = None
         if self._histogram_pool is not None:
             # A job under way finishes (tens of milliseconds); its result is not wanted any more.
             pool, self._histogram_pool = self._histogram_pool, None
-            await asyncio.get_running_loop().run_in_executor(None, functools.partial(pool.shutdown, wait=True, cancel_futures=True))
+            await in_thread("the detour histogram", functools.partial(pool.shutdown, wait=True, cancel_futures=True), _STEP_BUDGET_S)
         if self._pipeline is not None:
             closer = getattr(self._pipeline.estimator, "close", None)  # the GPU backend frees its memory
             if closer is not None:
@@ -456,7 +483,10 @@ class Service(ControlPlane, HealthReporter, PresencePlane):
             self._pipeline = None
         if self.link is not None:
             try:
-                await self.link.close()
+                # MAVSDK's calls run in threads; one that blocks must not hold the exit.
+                await asyncio.wait_for(self.link.close(), budget(_STEP_BUDGET_S))
+            except asyncio.TimeoutError:
+                log.error("the vehicle link did not close within %.1f s; leaving it", _STEP_BUDGET_S)
             except Exception:
                 log.exception("closing the vehicle link failed")
         if self._notifier is not None:
@@ -834,11 +864,7 @@ def _force_exit(signum: int, frame: Any) -> None:
     """Second SIGTERM/SIGINT: leave now. MAVSDK dies with us, so its re-sending stops and PX4's
     offboard-loss failsafe takes over."""
     log.warning("%s again: forced exit", signal.Signals(signum).name)
-    for handler in logging.getLogger().handlers:
-        try:
-            handler.flush()
-        except Exception:  # nothing more can be done about a broken log handler at this point
-            pass
+    _flush_logs()
     os._exit(exitcodes.FORCED_EXIT)
 
 
@@ -854,4 +880,48 @@ def run_service(config_path: Path | None) -> int:
             notifier.close()
         return exitcodes.STARTUP_FAILURE
     service = Service(cfg, config_path=config_path.resolve() if config_path is not None else None)
-    return asyncio.run(service.run())
+    return run_to_exit(service.run())
+
+
+def run_to_exit(main: Any) -> int:
+    """Run coroutine ``main`` (returning an exit code) on a new event loop, and make sure nothing
+    holds the process afterwards.
+
+    Unlike ``asyncio.run``, it does not wait without limit for the default executor's threads: a
+    MAVSDK call blocked in one (its calls run there) would hold the exit for ever. Leftover tasks get
+    :data:`_STEP_BUDGET_S`, threads :data:`EXIT_JOIN_S`; a thread still running then is logged by name
+    and the process ends at once with the exit code (the vehicle is already safe: zero, Hold or the
+    autopilot's offboard-loss failsafe).
+    """
+    loop = asyncio.new_event_loop()
+    executor = concurrent.futures.ThreadPoolExecutor(thread_name_prefix="service-io")
+    loop.set_default_executor(executor)
+    try:
+        code = loop.run_until_complete(main)
+        leftovers = [t for t in asyncio.all_tasks(loop) if not t.done()]
+        for task in leftovers:
+            task.cancel()
+        if leftovers:
+            loop.run_until_complete(asyncio.wait(leftovers, timeout=_STEP_BUDGET_S))
+        loop.run_until_complete(loop.shutdown_asyncgens())
+    finally:
+        executor.shutdown(wait=False, cancel_futures=True)
+        loop.close()
+    deadline = time.monotonic() + EXIT_JOIN_S
+    for thread in threading.enumerate():
+        if thread is not threading.current_thread() and not thread.daemon:
+            thread.join(max(0.0, deadline - time.monotonic()))
+    stuck = [t.name for t in threading.enumerate() if t is not threading.current_thread() and not t.daemon and t.is_alive()]
+    if stuck:
+        log.error("exiting with threads still blocked (%s): not waiting for them", ", ".join(stuck))
+        _flush_logs()
+        os._exit(code)
+    return code
+
+
+def _flush_logs() -> None:
+    for handler in logging.getLogger().handlers:
+        try:
+            handler.flush()
+        except Exception:  # nothing more can be done about a broken log handler at this point
+            pass

@@ -27,11 +27,14 @@ from typing import Any
 from companion.core.announce import Announcer, TextLimiter, heartbeat_state
 from companion.core.types import REGION_INDEX
 from companion.errors import VehicleError
+from companion.service.aio import wait_event
 
 log = logging.getLogger(__name__)
 
 #: STATUSTEXT lines waiting at most (the announcer's rate limit keeps it far below this).
 _MAX_QUEUED_TEXTS = 16
+#: The longest one message may take to hand to the vehicle link, seconds (then it is given up).
+SEND_TIMEOUT_S = 1.0
 
 
 class PresencePlane:
@@ -117,8 +120,14 @@ class PresencePlane:
         if fn is None:
             return False  # a link without presence (tests' fakes)
         try:
-            await fn(*args)
+            # A send that does not return (a MAVSDK call blocked in its thread) is given up, not waited
+            # for: the next heartbeat and the shutdown must not wait behind it.
+            async with asyncio.timeout(SEND_TIMEOUT_S):
+                await fn(*args)
             return True
+        except TimeoutError:
+            self.presence_stats["send_errors"] += 1
+            log.warning("%s not sent within %.1f s; given up", what, SEND_TIMEOUT_S)
         except VehicleError as err:
             self.presence_stats["send_errors"] += 1
             log.debug("%s not sent: %s", what, err)
@@ -135,10 +144,9 @@ class PresencePlane:
         while True:
             timeout = next_beat - self._clock()
             if timeout > 0:
-                try:
-                    await asyncio.wait_for(self._presence_wake.wait(), timeout)
-                except asyncio.TimeoutError:
-                    pass
+                # Not asyncio.wait_for: before Python 3.12 it swallows a cancellation that arrives as
+                # the event is set, and this task then outlived the shutdown.
+                await wait_event(self._presence_wake, timeout)
             self._presence_wake.clear()
             if not self._presence_connected():
                 # Lines said before the autopilot was heard are kept (bounded); frames' bins are not.
