@@ -275,6 +275,71 @@ def test_one_clients_flood_does_not_lock_out_another_operator(tmp_path: Path) ->
             operator.close()
 
 
+_HUGE_MESSAGE_SENDER = """
+import sys, time, zmq
+ctx = zmq.Context()
+sock = ctx.socket(zmq.DEALER)
+sock.setsockopt(zmq.LINGER, 0)
+sock.connect(sys.argv[1])
+frame = b"x" * (100 * 1024)
+for i in range(2999):
+    sock.send(frame, zmq.SNDMORE)
+sock.send(frame)
+print("sent", flush=True)
+time.sleep(float(sys.argv[2]))
+sock.close(0)
+ctx.term()
+"""
+
+
+def test_one_huge_multipart_message_is_cut_before_it_is_buffered(tmp_path: Path, caplog) -> None:
+    """One DEALER sending a single message of 3000 frames of 100 KiB (each frame under the frame limit)
+    once took the service from 152 to 702 MB: ZeroMQ keeps a message's frames until its last one. The
+    connection is cut at the whole message's bound, with a logged reason; the resident size stays
+    within 20 % of its start, and the control plane answers others meanwhile."""
+    import logging
+    import threading
+
+    from peers.process import rss_bytes
+
+    caplog.set_level(logging.WARNING)
+    cfg = service_config(tmp_path)
+    service = Service(cfg, camera=avoid_scene_camera(10.0), link=FakeLink(), install_signals=False, environ={})
+    with ServiceRunner(service):
+        other = Client(service.bus.control_endpoint)
+        assert other.call("ping")["ok"]
+        time.sleep(1.0)  # settled: the pipeline's buffers are allocated
+        start = rss_bytes(os.getpid())
+        peak = [start]
+        stop = threading.Event()
+
+        def sample() -> None:
+            while not stop.is_set():
+                peak[0] = max(peak[0], rss_bytes(os.getpid()))
+                time.sleep(0.02)
+
+        sampler = threading.Thread(target=sample, daemon=True)
+        sampler.start()
+        sender = subprocess.Popen(
+            [sys.executable, "-c", _HUGE_MESSAGE_SENDER, service.bus.control_endpoint, "5"],
+            stdout=subprocess.PIPE, text=True,
+        )
+        try:
+            assert wait_until(lambda: service.bus.relay.cut >= 1, 20.0), "the connection was not cut"
+            for _ in range(5):
+                assert other.call("ping")["ok"]
+            sender.wait(30)
+        finally:
+            if sender.poll() is None:
+                sender.kill()
+                sender.wait()
+            stop.set()
+            sampler.join(2.0)
+            other.close()
+        assert peak[0] <= 1.2 * start, (start / 2**20, peak[0] / 2**20)
+        assert "control connection cut: a message of more than" in caplog.text
+
+
 def test_connections_beyond_the_limit_are_refused(tmp_path: Path) -> None:
     cfg = service_config(tmp_path, bus={"max_connections": 3})
     service = Service(cfg, camera=avoid_scene_camera(10.0), link=FakeLink(), install_signals=False, environ={})
