@@ -79,9 +79,9 @@ from companion.service.control import (  # noqa: F401 (re-exported: the daemon's
     resolve_config_paths,
     restart_required,
 )
-from companion.service.health import HealthReporter
+from companion.service.health import HealthLoop, HealthReporter
 from companion.service.notify import Notifier, watchdog_interval_s
-from companion.service.presence import PresencePlane
+from companion.service.presence import Presence
 from companion.service.runtime import raise_open_file_limit
 
 if TYPE_CHECKING:
@@ -114,7 +114,7 @@ class Processed:
     done_s: float
 
 
-class Service(ControlPlane, HealthReporter, PresencePlane):
+class Service(ControlPlane, HealthReporter):
     """The daemon. Build it, then ``await run()`` (or :func:`run_service` from the CLI).
 
     Args:
@@ -161,7 +161,17 @@ class Service(ControlPlane, HealthReporter, PresencePlane):
         self._histogram_asked: int | None = None  # seq of the last request handed to the worker
         self._histogram_done: HistogramResult | None = None  # computed, for the next step
         self.histogram_stats = {"computed": 0, "failed": 0}
-        self._presence_init()
+        self.presence = Presence(
+            config=lambda: self.config,
+            link=lambda: self.link,
+            connected=self._vehicle_connected,
+            state=lambda: self.supervisor.state.value,
+            engaged=lambda: self.supervisor.engaged,
+            clock=self._clock,
+            on_died=self._part_died,
+        )
+        # The parts with a task of their own (start() in _start, stop(budget) in _cleanup).
+        self.health_loop = HealthLoop(self._publish_health, lambda: self.config.bus.health_rate_hz, on_died=self._part_died)
         self.config_version = 1
         self.exit_code = exitcodes.OK
         self.ready = threading.Event()  # set once READY=1 was sent (for tests and embedding)
@@ -200,7 +210,6 @@ class Service(ControlPlane, HealthReporter, PresencePlane):
         # Events are created in run(), on the loop that uses them.
         self._wake: asyncio.Event | None = None
         self._first_result: asyncio.Event | None = None
-        self._health_now: asyncio.Event | None = None
         self._shutdown: asyncio.Event | None = None
         self.latencies_s: list[float] = []  # every frame-to-setpoint latency (bench); bounded by its user
         self.record_latencies = False
@@ -214,7 +223,6 @@ class Service(ControlPlane, HealthReporter, PresencePlane):
         self._loop = asyncio.get_running_loop()
         self._wake = asyncio.Event()
         self._first_result = asyncio.Event()
-        self._health_now = asyncio.Event()
         self._shutdown = asyncio.Event()
         self._config_lock = asyncio.Lock()
         try:
@@ -289,7 +297,7 @@ class Service(ControlPlane, HealthReporter, PresencePlane):
             except VehicleError as err:
                 raise StartupError(str(err)) from None
         self._spawn(self._vehicle_connector(), "vehicle connector")
-        self._spawn(self._presence_loop(), "presence")
+        self.presence.start()
         if self._camera is None:
             from companion.service.camera import TelemetryPose, make_camera, placement_from_config
 
@@ -326,7 +334,7 @@ class Service(ControlPlane, HealthReporter, PresencePlane):
                 + (f" ({problem})" if problem else "")
             ) from None
         self._spawn(self._control_loop(), "control loop", critical=True)
-        self._spawn(self._health_loop(), "health")
+        self.health_loop.start()
         # The control socket gets its own thread: no client can stall the flight loop.
         self.control_server = ControlServer(
             self.bus.control,
@@ -384,8 +392,11 @@ class Service(ControlPlane, HealthReporter, PresencePlane):
         if task.cancelled():
             return
         err = task.exception()
-        if err is None:
-            return
+        if err is not None:
+            self._part_died(name, err)
+
+    def _part_died(self, name: str, err: BaseException) -> None:
+        """A task of the service (or a part's) ended with an error: stop cleanly."""
         log.error("task %s died: %r", name, err, exc_info=err)
         self._error(f"internal error in {name}: {type(err).__name__}: {err}")
         # Whatever died, stop cleanly (zero, Hold if ours) and let systemd restart us passive.
@@ -445,6 +456,8 @@ class Service(ControlPlane, HealthReporter, PresencePlane):
             except asyncio.TimeoutError:
                 log.error("%s did not finish within its %.1f s; leaving it", what, own_s)
 
+        for part in (self.presence, self.health_loop):
+            await part.stop(budget(_STEP_BUDGET_S))
         tasks = list(self._tasks) + list(self._action_tasks)
         for task in tasks:
             task.cancel()
@@ -605,8 +618,7 @@ class Service(ControlPlane, HealthReporter, PresencePlane):
             self._wake.set()
 
     def _kick_health(self) -> None:
-        if self._health_now is not None:
-            self._health_now.set()
+        self.health_loop.kick()
 
     def _submit(self, request: Any) -> asyncio.Future | None:
         """Queue a supervisor request for the next step; the future gets its :class:`Reply`."""
@@ -700,7 +712,7 @@ class Service(ControlPlane, HealthReporter, PresencePlane):
                     self._latency_s.append(latency)
                     if self.record_latencies:
                         self.latencies_s.append(latency)
-        self._presence_step(now, out, latest, new_frame, camera_ok)
+        self.presence.step(now, out, latest, new_frame, camera_ok)
         if new_frame and latest is not None:
             self._last_stepped_seq = latest.seq
         for action in out.actions:
@@ -832,6 +844,11 @@ class Service(ControlPlane, HealthReporter, PresencePlane):
     def engaged_or_engaging(self) -> bool:
         """True from an accepted engage until the service stops commanding (live changes are limited then)."""
         return self.supervisor.state in (State.ENGAGING, State.ENGAGED, State.DEGRADED, State.PAUSED, State.OVERRIDE)
+
+    def _vehicle_connected(self) -> bool:
+        """Whether the autopilot is connected now (the link has heard it and says so)."""
+        link = self.link
+        return link is not None and self._vehicle_status == "connected" and link.state().connected
 
     async def _vehicle_connector(self) -> None:
         assert self.link is not None
