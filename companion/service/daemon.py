@@ -24,8 +24,12 @@ step on the loop, so every change to the supervisor's state stays on the loop. I
 the process (MAVSDK's 20 Hz re-sending dies with it), and PX4's offboard-loss failsafe takes over.
 
 Shutdown (first SIGTERM/SIGINT): the supervisor sends zero and, if we own offboard, Hold; then the
-stream stops (no mode change), ZeroMQ closes, the camera and the pipeline (GPU) are released. A second
-signal exits at once with :data:`~companion.exitcodes.FORCED_EXIT`. SIGHUP reloads the config file.
+stream stops (no mode change), ZeroMQ closes, the camera and the pipeline (GPU) are released, each
+within its budget (:data:`CLEANUP_BUDGET_S` in all). A second signal exits at once with
+:data:`~companion.exitcodes.FORCED_EXIT`. SIGHUP reloads the config file. When the process ends, and
+with which code, is the :class:`~companion.service.lifecycle.Lifecycle`'s; the presence plane and the
+health loop are parts with their own state, ``start()`` and ``stop(budget_s)``
+(:mod:`companion.service.parts`).
 """
 
 from __future__ import annotations
@@ -37,7 +41,6 @@ import functools
 import logging
 import math
 import os
-import signal
 import threading
 import time
 from collections.abc import Callable
@@ -80,6 +83,7 @@ from companion.service.control import (  # noqa: F401 (re-exported: the daemon's
     restart_required,
 )
 from companion.service.health import HealthLoop, HealthReporter
+from companion.service.lifecycle import Lifecycle, flush_logs
 from companion.service.notify import Notifier, watchdog_interval_s
 from companion.service.presence import Presence
 from companion.service.runtime import raise_open_file_limit
@@ -173,7 +177,8 @@ class Service(ControlPlane, HealthReporter):
         # The parts with a task of their own (start() in _start, stop(budget) in _cleanup).
         self.health_loop = HealthLoop(self._publish_health, lambda: self.config.bus.health_rate_hz, on_died=self._part_died)
         self.config_version = 1
-        self.exit_code = exitcodes.OK
+        # When the process ends and with which code (signals, should_exit, the forced exit).
+        self.lifecycle = Lifecycle(on_reload=self._on_hup)
         self.ready = threading.Event()  # set once READY=1 was sent (for tests and embedding)
         self.stopped = threading.Event()
         self.bus = None
@@ -202,15 +207,12 @@ class Service(ControlPlane, HealthReporter):
         self._last_error_kind: str | None = None  # "config" for a rejected reload: a good one clears it
         self.control_server: ControlServer | None = None
         self._vehicle_status = "connecting"
-        self._signals = 0
         self._health_seq = 0
         self._last_watchdog_s = -1e9
-        self._shutdown_reason: str | None = None
         self._config_lock: asyncio.Lock | None = None
         # Events are created in run(), on the loop that uses them.
         self._wake: asyncio.Event | None = None
         self._first_result: asyncio.Event | None = None
-        self._shutdown: asyncio.Event | None = None
         self.latencies_s: list[float] = []  # every frame-to-setpoint latency (bench); bounded by its user
         self.record_latencies = False
         self.processed_seqs: list[int] = []
@@ -223,7 +225,7 @@ class Service(ControlPlane, HealthReporter):
         self._loop = asyncio.get_running_loop()
         self._wake = asyncio.Event()
         self._first_result = asyncio.Event()
-        self._shutdown = asyncio.Event()
+        self.lifecycle.bind(self._loop)
         self._config_lock = asyncio.Lock()
         try:
             await self._start()
@@ -237,7 +239,7 @@ class Service(ControlPlane, HealthReporter):
             self._notify("READY=1", f"STATUS={self.supervisor.state.value}: {self.supervisor.reason}")
             self.ready.set()
             log.info("ready: %s", self.supervisor.reason)
-            await self._shutdown.wait()
+            await self.lifecycle.wait()
             await self._stop()
         finally:
             await self._cleanup()
@@ -402,18 +404,21 @@ class Service(ControlPlane, HealthReporter):
         # Whatever died, stop cleanly (zero, Hold if ours) and let systemd restart us passive.
         self.request_shutdown(f"internal error in {name}", exit_code=exitcodes.INTERNAL_ERROR)
 
+    @property
+    def exit_code(self) -> int:
+        """The process's exit code (:class:`~companion.service.lifecycle.Lifecycle` keeps it)."""
+        return self.lifecycle.exit_code
+
+    @exit_code.setter
+    def exit_code(self, code: int) -> None:
+        self.lifecycle.exit_code = code
+
     def request_shutdown(self, reason: str = "requested", exit_code: int | None = None) -> None:
         """Begin a clean shutdown (call on the loop; see :meth:`request_shutdown_threadsafe`)."""
-        if exit_code is not None and self.exit_code == exitcodes.OK:
-            self.exit_code = exit_code
-        if self._shutdown is not None and not self._shutdown.is_set():
-            self._shutdown_reason = reason
-            log.info("shutting down: %s", reason)
-            self._shutdown.set()
+        self.lifecycle.request_exit(reason, exit_code)
 
     def request_shutdown_threadsafe(self, reason: str = "requested") -> None:
-        if self._loop is not None and not self._loop.is_closed():
-            self._loop.call_soon_threadsafe(self.request_shutdown, reason)
+        self.lifecycle.request_exit_threadsafe(reason)
 
     async def _stop(self) -> None:
         """Zero, Hold if we own offboard, stop the stream; then everything else goes."""
@@ -509,24 +514,7 @@ class Service(ControlPlane, HealthReporter):
     # ================================================================================ signals
 
     def _setup_signals(self) -> None:
-        loop = self._loop
-        assert loop is not None
-        for sig in (signal.SIGTERM, signal.SIGINT):
-            loop.add_signal_handler(sig, self._on_stop_signal, sig)
-        loop.add_signal_handler(signal.SIGHUP, self._on_hup)
-
-    def _on_stop_signal(self, sig: int) -> None:
-        name = signal.Signals(sig).name
-        self._signals += 1
-        log.info("%s: clean shutdown (send it again to force the exit)", name)
-        # The second signal must work even if the loop is stuck: a plain handler, run by the
-        # interpreter between bytecodes, not by the event loop.
-        loop = self._loop
-        assert loop is not None
-        for s in (signal.SIGTERM, signal.SIGINT):
-            loop.remove_signal_handler(s)
-            signal.signal(s, _force_exit)
-        self.request_shutdown(name)
+        self.lifecycle.install_signals()
 
     def _on_hup(self) -> None:
         log.info("SIGHUP: reloading %s", self.config_path or "(no config file)")
@@ -877,14 +865,6 @@ class Service(ControlPlane, HealthReporter):
 
 
 
-def _force_exit(signum: int, frame: Any) -> None:
-    """Second SIGTERM/SIGINT: leave now. MAVSDK dies with us, so its re-sending stops and PX4's
-    offboard-loss failsafe takes over."""
-    log.warning("%s again: forced exit", signal.Signals(signum).name)
-    _flush_logs()
-    os._exit(exitcodes.FORCED_EXIT)
-
-
 def run_service(config_path: Path | None) -> int:
     """``companion run``: load the config, run the daemon, return the exit code (78 on startup failure)."""
     try:
@@ -931,14 +911,6 @@ def run_to_exit(main: Any) -> int:
     stuck = [t.name for t in threading.enumerate() if t is not threading.current_thread() and not t.daemon and t.is_alive()]
     if stuck:
         log.error("exiting with threads still blocked (%s): not waiting for them", ", ".join(stuck))
-        _flush_logs()
+        flush_logs()
         os._exit(code)
     return code
-
-
-def _flush_logs() -> None:
-    for handler in logging.getLogger().handlers:
-        try:
-            handler.flush()
-        except Exception:  # nothing more can be done about a broken log handler at this point
-            pass
