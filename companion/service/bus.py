@@ -47,6 +47,9 @@ HEALTH_QUEUE_MESSAGES = 100
 #: A connection that has not completed the ZeroMQ handshake by then is closed (a raw TCP flood holds
 #: its file descriptors no longer than this), milliseconds.
 HANDSHAKE_TIMEOUT_MS = 2000
+#: Connections the control relay holds at once at most (a flood of raw connections is cut after the
+#: handshake timeout; the service raises its open-file limit to 65536).
+RELAY_MAX_CONNECTIONS = 8192
 #: Frames of one control message at most (a REQ client sends 2: the empty delimiter and the request).
 MAX_MESSAGE_FRAMES = 4
 #: The ZAP domains of the two sockets (the gatekeeper counts the control socket's connections).
@@ -144,9 +147,10 @@ class Bus:
                 max_frame_bytes=2 * self.cfg.max_request_bytes,
                 max_message_frames=MAX_MESSAGE_FRAMES,
                 max_message_bytes=2 * self.cfg.max_request_bytes,
-                # A backstop for connections that never speak ZeroMQ: the gatekeeper refuses the
-                # ones beyond bus.max_connections in their handshake.
-                max_connections=2 * self.cfg.max_connections + 8,
+                # A backstop only (each takes two descriptors): the gatekeeper refuses ZeroMQ clients
+                # beyond bus.max_connections in their handshake, and one that never speaks ZeroMQ is
+                # cut after the handshake timeout, as ZeroMQ itself does.
+                max_connections=RELAY_MAX_CONNECTIONS,
                 curve_bytes_per_s=self.cfg.requests_per_s_per_client * 2 * self.cfg.max_request_bytes,
             )
             self.relay = ControlRelay(control_endpoint, private, limits)

@@ -24,7 +24,6 @@ from __future__ import annotations
 import asyncio
 import logging
 import os
-import struct
 import threading
 from dataclasses import dataclass
 from pathlib import Path
@@ -36,6 +35,12 @@ _GREETING_BYTES = 64
 _SIGNATURE_BYTES = 10
 _MORE, _LONG, _COMMAND = 0x01, 0x02, 0x04
 _COPY_BYTES = 65536
+#: A client that has not sent its greeting by then is cut (ZeroMQ's own handshake timeout), seconds.
+HANDSHAKE_TIMEOUT_S = 2.0
+#: The relay thread's niceness above the process's (Linux).
+_NICENESS = 5
+#: Connections waiting to be accepted (a burst of connections must not be refused by the kernel).
+_BACKLOG = 1024
 
 
 @dataclass(frozen=True)
@@ -123,6 +128,11 @@ class ControlRelay:
     # ------------------------------------------------------------------ the thread
 
     def _run(self) -> None:
+        try:
+            # Under load the flight loop's threads come first (as for the control server's thread).
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), os.getpriority(os.PRIO_PROCESS, 0) + _NICENESS)
+        except (AttributeError, OSError) as err:  # not Linux, or not allowed: the bounds still hold
+            log.debug("control relay niceness unchanged: %s", err)
         loop = asyncio.new_event_loop()
         self._loop = loop
         try:
@@ -141,10 +151,12 @@ class ControlRelay:
 
     async def _listen(self) -> None:
         if self._family == "unix":
-            self._server = await asyncio.start_unix_server(self._serve, path=self._address)
+            self._server = await asyncio.start_unix_server(self._serve, path=self._address, backlog=_BACKLOG)
         else:
             host, port = self._address
-            self._server = await asyncio.start_server(self._serve, host=host or None, port=port, reuse_address=True)
+            self._server = await asyncio.start_server(
+                self._serve, host=host or None, port=port, reuse_address=True, backlog=_BACKLOG
+            )
             bound = self._server.sockets[0].getsockname()
             shown = f"[{bound[0]}]" if ":" in bound[0] else bound[0]
             host_text = "*" if not host else shown
@@ -169,12 +181,23 @@ class ControlRelay:
         router_w: asyncio.StreamWriter | None = None
         try:
             try:
+                # The ROUTER is reached only once the client has said it speaks ZeroMQ: a flood of raw
+                # connections costs an accept and a timer each.
+                async with asyncio.timeout(HANDSHAKE_TIMEOUT_S):
+                    signature = await client_r.readexactly(_SIGNATURE_BYTES)
+            except (TimeoutError, asyncio.IncompleteReadError, ConnectionError):
+                return
+            if signature[0] != 0xFF or signature[9] != 0x7F:
+                self.cut += 1
+                log.debug("control connection cut: not a ZeroMQ (ZMTP 3) client")
+                return
+            try:
                 router_r, router_w = await asyncio.open_unix_connection(self._target)
             except OSError as err:
                 log.error("control relay: cannot reach the control socket: %s", err)
                 return
             self._writers.add(router_w)
-            up = asyncio.ensure_future(self._upstream(client_r, router_w))
+            up = asyncio.ensure_future(self._upstream(client_r, router_w, signature))
             down = asyncio.ensure_future(self._copy(router_r, client_w))
             done, pending = await asyncio.wait({up, down}, return_when=asyncio.FIRST_COMPLETED)
             for task in pending:
@@ -184,6 +207,9 @@ class ControlRelay:
                 if isinstance(err, _Cut):
                     self.cut += 1
                     log.warning("control connection cut: %s", err)
+                elif isinstance(err, TimeoutError):
+                    self.cut += 1
+                    log.debug("control connection cut: no ZeroMQ greeting within %.0f s", HANDSHAKE_TIMEOUT_S)
                 elif err is not None and not isinstance(err, (ConnectionError, asyncio.IncompleteReadError)):
                     log.error("control relay: %s", err, exc_info=err)
             await asyncio.gather(*pending, return_exceptions=True)
@@ -202,47 +228,62 @@ class ControlRelay:
             writer.write(data)
             await writer.drain()
 
-    async def _upstream(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        """Client -> ROUTER: the greeting, then frame by frame within the bounds (raises _Cut)."""
+    async def _upstream(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, signature: bytes) -> None:
+        """Client -> ROUTER: the greeting, then the frames, read in chunks and passed on once every frame
+        header in the chunk is within the bounds (raises _Cut). Only the headers are looked at, so a
+        flood of small requests costs little more than copying it."""
         lim = self.limits
-        signature = await reader.readexactly(_SIGNATURE_BYTES)
-        if signature[0] != 0xFF or signature[9] != 0x7F:
-            raise _Cut("not a ZeroMQ (ZMTP 3) client")
-        writer.write(signature)
-        await writer.drain()  # the server answers the signature before the client sends the rest
-        rest = await reader.readexactly(_GREETING_BYTES - _SIGNATURE_BYTES)
+        async with asyncio.timeout(HANDSHAKE_TIMEOUT_S):  # as ZeroMQ closes a silent connection
+            writer.write(signature)
+            await writer.drain()  # the server answers the signature before the client sends the rest
+            rest = await reader.readexactly(_GREETING_BYTES - _SIGNATURE_BYTES)
         if rest[0] < 3:
             raise _Cut(f"ZMTP version {rest[0]}.{rest[1]} (3 or later needed)")
         curve = rest[2:22].rstrip(b"\0") == b"CURVE"
         writer.write(rest)
         await writer.drain()
         loop = asyncio.get_running_loop()
-        frames = message_bytes = 0
+        frames = message_bytes = body_left = 0
+        head = bytearray()
         tokens, t_s = lim.curve_bytes_per_s, loop.time()
         while True:
-            flags = (await reader.readexactly(1))[0]
-            long_size = flags & _LONG
-            size_raw = await reader.readexactly(8 if long_size else 1)
-            size = struct.unpack(">Q", size_raw)[0] if long_size else size_raw[0]
-            if size > lim.max_frame_bytes:
-                raise _Cut(f"a frame of {size} bytes (at most {lim.max_frame_bytes})")
-            if curve:
-                now = loop.time()
-                tokens = min(lim.curve_bytes_per_s, tokens + (now - t_s) * lim.curve_bytes_per_s) - size
-                t_s = now
-                if tokens < -lim.curve_bytes_per_s:
-                    raise _Cut(f"more than {lim.curve_bytes_per_s:.0f} bytes per second")
-            elif not flags & _COMMAND:
-                frames += 1
-                message_bytes += size
-                if frames > lim.max_message_frames:
-                    raise _Cut(f"a message of more than {lim.max_message_frames} frames")
-                if message_bytes > lim.max_message_bytes:
-                    raise _Cut(f"a message of more than {lim.max_message_bytes} bytes")
-                if not flags & _MORE:
-                    frames = message_bytes = 0
-            body = await reader.readexactly(size)
-            writer.write(bytes([flags]) + size_raw + body)
+            data = await reader.read(_COPY_BYTES)
+            if not data:
+                return
+            pos, n = 0, len(data)
+            while pos < n:
+                if body_left:
+                    take = min(body_left, n - pos)
+                    pos += take
+                    body_left -= take
+                    continue
+                head.append(data[pos])
+                pos += 1
+                flags = head[0]
+                need = 9 if flags & _LONG else 2
+                if len(head) < need:
+                    continue
+                size = int.from_bytes(head[1:need], "big")
+                head.clear()
+                if size > lim.max_frame_bytes:
+                    raise _Cut(f"a frame of {size} bytes (at most {lim.max_frame_bytes})")
+                if curve:
+                    now = loop.time()
+                    tokens = min(lim.curve_bytes_per_s, tokens + (now - t_s) * lim.curve_bytes_per_s) - size
+                    t_s = now
+                    if tokens < -lim.curve_bytes_per_s:
+                        raise _Cut(f"more than {lim.curve_bytes_per_s:.0f} bytes per second")
+                elif not flags & _COMMAND:
+                    frames += 1
+                    message_bytes += size
+                    if frames > lim.max_message_frames:
+                        raise _Cut(f"a message of more than {lim.max_message_frames} frames")
+                    if message_bytes > lim.max_message_bytes:
+                        raise _Cut(f"a message of more than {lim.max_message_bytes} bytes")
+                    if not flags & _MORE:
+                        frames = message_bytes = 0
+                body_left = size
+            writer.write(data)
             await writer.drain()
 
 
