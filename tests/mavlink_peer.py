@@ -246,6 +246,7 @@ class _AutopilotPeer:
         self.status_texts: list[StatusText] = []
         self.obstacle_distances: list[WireObstacle] = []
         self.silent = False  # True: stop sending anything (a link cut from the autopilot side)
+        self.deaf = False  # True: stop reading (what the service sends piles up unread, then is lost)
 
     # ------------------------------------------------------------------ control from the test
 
@@ -501,6 +502,9 @@ class _AutopilotPeer:
                 changed = self._watch_locked(now)
             if changed:
                 self._send_heartbeat()
+            if self.deaf:
+                time.sleep(0.005)
+                continue
             try:
                 data = self._sock.recv(4096)
             except (TimeoutError, socket.timeout):

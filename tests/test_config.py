@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import tomllib
 from pathlib import Path
 
 import pytest
@@ -225,3 +226,42 @@ def test_the_auto_map_options_need_a_concrete_backend_and_name_their_field_when_
         parse_config({"memory": {"block_erode_px": "most"}})
     with pytest.raises(ConfigError, match="memory.block_erode_px"):
         parse_config({"memory": {"block_erode_px": 5}})
+
+
+def test_a_byte_that_is_not_utf8_names_the_file_and_its_offset(tmp_path: Path) -> None:
+    """A Latin-1 comment appended to the file (``# café`` saved by an editor in Latin-1) once ended the
+    service with a UnicodeDecodeError traceback; it is a config error naming the byte."""
+    path = tmp_path / "c.toml"
+    good = DEFAULT_FILE.read_bytes()
+    path.write_bytes(good + b"# caf\xe9\n")
+    with pytest.raises(ConfigError) as info:
+        load_config(path)
+    message = str(info.value)
+    assert str(path) in message and f"byte {len(good) + 5}" in message and "UTF-8" in message
+    assert "\n" not in message
+    assert info.value.context["offset"] == len(good) + 5
+
+
+@pytest.mark.parametrize(
+    ("text", "key"),
+    [
+        ('[command]\ncruise_speed_m_s = "2"\n', "command.cruise_speed_m_s"),
+        ('[vehicle]\nstatus_text = "yes"\n', "vehicle.status_text"),
+        ("[camera]\nwidth_px = 640.0\n", "camera.width_px"),
+    ],
+)
+def test_the_file_has_strict_types_as_live_changes_do(tmp_path: Path, text: str, key: str) -> None:
+    path = tmp_path / "c.toml"
+    path.write_text(text, encoding="utf-8")
+    with pytest.raises(ConfigError) as info:
+        load_config(path)
+    assert key in str(info.value) and "\n" not in str(info.value)
+    section, name = key.split(".")
+    with pytest.raises(ConfigError, match=key.replace(".", r"\.")):  # the same rule for a live change
+        apply_patch(CompanionConfig(), {section: {name: tomllib.loads(text)[section][name]}})
+
+
+def test_a_whole_number_is_a_number_of_metres_in_the_file(tmp_path: Path) -> None:
+    path = tmp_path / "c.toml"
+    path.write_text("[command]\ncruise_speed_m_s = 2\n", encoding="utf-8")
+    assert load_config(path).command.cruise_speed_m_s == 2.0

@@ -237,6 +237,47 @@ def test_reload_validates_whole_keeps_old_on_error_and_new_membership_changes_th
         client.close()
 
 
+def test_a_config_byte_that_is_not_utf8_is_refused_on_reload_and_sighup(tmp_path: Path, caplog) -> None:
+    """A Latin-1 ``# café`` appended to the file: ``ctl reload`` once answered InternalError and SIGHUP
+    left "Task exception was never retrieved" with health's ``last_error`` empty. Both are a config
+    error naming the byte, the old config stays, and health says why."""
+    import gc
+    import logging
+
+    path = tmp_path / "companion.toml"
+    endpoints = (
+        f'[bus]\nhealth_endpoint = "ipc://{tmp_path}/h.sock"\ncontrol_endpoint = "ipc://{tmp_path}/c.sock"\n'
+        '[camera]\nfps_hz = 15.0\n[stereo]\nbackend = "opencv-bm"\n'
+    )
+    path.write_text(endpoints)
+    from companion.config import load_config
+
+    service = Service(load_config(path), config_path=path, camera=avoid_scene_camera(15.0), link=FakeLink(),
+                      install_signals=False, environ={})
+    caplog.set_level(logging.INFO)
+    with ServiceRunner(service):
+        client = Client(service.bus.control_endpoint, service.bus.health_endpoint)
+        cruise = client.call("get_config", section="command")["result"]["config"]["cruise_speed_m_s"]
+        path.write_bytes(endpoints.encode() + b"[command]\ncruise_speed_m_s = 0.25\n# caf\xe9\n")
+        reply = client.call("reload")
+        assert not reply["ok"] and reply["error"]["type"] == "ConfigError", reply
+        assert "not UTF-8" in reply["error"]["message"] and str(path) in reply["error"]["message"]
+        assert "not UTF-8" in client.health()["last_error"]
+
+        path.write_text(endpoints + '[command]\ncruise_speed_m_s = "2"\n')  # strict types, as set_config
+        reply = client.call("reload")
+        assert not reply["ok"] and "command.cruise_speed_m_s" in reply["error"]["message"], reply
+
+        path.write_bytes(endpoints.encode() + b"# \xff\n")
+        service._loop.call_soon_threadsafe(service._on_hup)  # what SIGHUP runs
+        assert wait_until(lambda: "byte" in (client.health().get("last_error") or ""), 3.0)
+        assert client.call("get_config", section="command")["result"]["config"]["cruise_speed_m_s"] == cruise
+        client.close()
+    gc.collect()
+    assert "never retrieved" not in caplog.text
+    assert "reload rejected, the old config stays" in caplog.text
+
+
 # ---------------------------------------------------------------------------------------------- envelopes
 
 
@@ -400,12 +441,40 @@ def test_protocol_errors_are_one_line_and_name_the_field() -> None:
         b'{"cmd": "override", "yaw": NaN, "pitch": 0, "speed": 0.5, "duration_s": 1}': "NaN",
         b'{"cmd": "ping", "extra": 1}': "extra",
         b'{"cmd": "set_config", "patch": []}': "patch",
+        # Valid JSON, but deeper than any request: said in the product's terms, not the parser's.
+        b'{"cmd": "set_config", "patch": {"a": ' + b'{"a": ' * 250 + b"1" + b"}" * 251 + b"}": "nested too deeply",
+        b'{"cmd": "ping", "id": ' + b"[" * 5000 + b"]" * 5000 + b"}": "at most 32 levels",
+        # JSON leaves a repeated key's meaning open; the last one silently won.
+        b'{"cmd": "ping", "cmd": "engage"}': "names the key 'cmd' twice",
+        b'{"cmd": "set_config", "patch": {"command": {"cruise_speed_m_s": 1, "cruise_speed_m_s": 9}}}': "'cruise_speed_m_s' twice",
     }
     for raw, expected in cases.items():
         with pytest.raises(ProtocolError) as exc:
             protocol.parse_request(raw, adapter)
         assert expected in str(exc.value) and "\n" not in str(exc.value), (raw, str(exc.value))
     assert math.isfinite(protocol.parse_request(b'{"cmd":"override","yaw":1,"pitch":-1,"speed":0,"duration_s":0.1}', adapter).yaw)
+
+
+def test_permission_denied_names_the_group_that_owns_the_socket(tmp_path: Path, monkeypatch) -> None:
+    """The refusal once always said "companion", whatever group the service runs as."""
+    import grp
+    import os
+
+    from companion.service.client import ClientError, check_ipc_access
+
+    sock = tmp_path / "control.sock"
+    sock.write_bytes(b"")
+    group = next((g for g in grp.getgrall() if g.gr_name != "companion"), None)
+    if group is None:
+        pytest.skip("no group to own the file")
+    if os.geteuid() == 0:
+        os.chown(sock, -1, group.gr_gid)
+    else:
+        group = grp.getgrgid(os.getgid())
+    monkeypatch.setattr(os, "access", lambda *a, **k: False)
+    with pytest.raises(ClientError) as exc:
+        check_ipc_access(f"ipc://{sock}")
+    assert f"its group ({group.gr_name})" in str(exc.value) and f"-aG {group.gr_name} " in str(exc.value)
 
 
 @contextlib.contextmanager

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -168,6 +169,7 @@ def test_view_access_token_origin_and_control(tmp_path: Path) -> None:
     service = Service(cfg, camera=avoid_scene_camera(15.0), link=link, install_signals=False, environ={})
     token_file = tmp_path / "token"
     token_file.write_text("s3cret-token-for-the-field\n")
+    token_file.chmod(0o600)
     endpoints = ("--health-endpoint", cfg.bus.health_endpoint, "--preview-endpoint", cfg.view.preview_endpoint,
                  "--control-endpoint", cfg.bus.control_endpoint)
     with ServiceRunner(service):
@@ -178,14 +180,15 @@ def test_view_access_token_origin_and_control(tmp_path: Path) -> None:
             base = f"http://127.0.0.1:{port}"
             assert _get(base + "/")[0] == 401
             assert _get(base + "/api/health")[0] == 401
-            # ?token= once: a cookie, and a redirect that drops the token from the address bar.
+            # ?token= once: a cookie for the page's reads (the page drops the token from the address
+            # bar itself); the page never holds the token.
             import http.cookiejar
 
             jar = http.cookiejar.CookieJar()
             opener = urllib.request.build_opener(urllib.request.HTTPCookieProcessor(jar))
             with opener.open(base + "/?token=s3cret-token-for-the-field", timeout=5) as resp:
-                status, body, headers, final = resp.status, resp.read(), dict(resp.headers), resp.url
-            assert status == 200 and b"companion view" in body and final == base + "/"
+                status, body, headers = resp.status, resp.read(), dict(resp.headers)
+            assert status == 200 and b"companion view" in body and b"s3cret" not in body
             cookie = next(c for c in jar if c.name == "companion_view_token")
             assert cookie.value == "s3cret-token-for-the-field" and cookie.has_nonstandard_attr("HttpOnly")
             assert "default-src 'self'" in headers["Content-Security-Policy"]
@@ -193,14 +196,28 @@ def test_view_access_token_origin_and_control(tmp_path: Path) -> None:
             auth = {"Authorization": "Bearer s3cret-token-for-the-field"}
             assert wait_until(lambda: json.loads(_get(base + "/api/health", auth)[1])["health"] is not None, 5.0)
             assert _get(base + "/api/health", {"Authorization": "Bearer wrong-token-xxxx"})[0] == 401
-        # Loopback without a token: only loopback Host names; control only from the page itself.
-        with ViewProcess(*endpoints) as view:
-            base = view.url.rstrip("/")
-            assert _get(base + "/")[0] == 200
+            # The cookie lets the page watch; commanding needs the token as a header.
+            page = {"Content-Type": "application/json", "X-Companion-View": "1", "Origin": base}
+            req = urllib.request.Request(base + "/api/control", data=b'{"cmd": "engage"}', headers=page, method="POST")
+            with pytest.raises(urllib.error.HTTPError) as refused:
+                opener.open(req, timeout=5)
+            assert refused.value.code == 403 and b"Bearer" in refused.value.read() and not link.state().in_offboard
+        # Loopback: watching is open (loopback Host names only); commanding needs the page's header,
+        # its origin and the token the view made up and printed.
+        with ViewProcess(*endpoints, env={"COMPANION_VIEW_TOKEN": ""}) as view:
+            base, _, token = view.url.partition("/?token=")
+            assert len(token) >= 24 and any("made up" in line for line in view.lines)
+            assert _get(base + "/")[0] == 200 and token.encode() not in _get(base + "/")[1]
             assert _get(base + "/", {"Host": "evil.example:8080"})[0] == 403  # DNS rebinding
             engage = json.dumps({"cmd": "engage"}).encode()
-            assert _get(base + "/api/control", {"Content-Type": "application/json"}, engage)[0] == 403
+            bearer = {"Authorization": f"Bearer {token}"}
+            assert _get(base + "/api/control", {"Content-Type": "application/json", **bearer}, engage)[0] == 403
             page = {"Content-Type": "application/json", "X-Companion-View": "1"}
+            status, body, _ = _get(base + "/api/control", page, engage)  # what another local user could send
+            assert status == 403 and b"token" in body and not link.state().in_offboard
+            status, _, _ = _get(base + "/api/control", {**page, "Authorization": "Bearer " + "x" * len(token)}, engage)
+            assert status == 403 and not link.state().in_offboard
+            page = {**page, **bearer}
             status, _, _ = _get(base + "/api/control", {**page, "Origin": "http://evil.example"}, engage)
             assert status == 403 and not link.state().in_offboard
             status, body, _ = _get(base + "/api/control", page, json.dumps({"cmd": "set_config"}).encode())
@@ -223,6 +240,62 @@ def test_view_access_token_origin_and_control(tmp_path: Path) -> None:
             assert status == 200 and jpeg[:2] == b"\xff\xd8" and headers["Content-Type"] == "image/jpeg"
             timeline = json.loads(_get(base + "/api/timeline")[1])["timeline"]
             assert timeline and {"t", "state", "kind", "yaw", "pitch"} <= set(timeline[-1])
+
+
+@pytest.mark.skipif(
+    os.geteuid() != 0 or not all(shutil.which(t) for t in ("useradd", "userdel", "runuser", "curl")),
+    reason="needs root to create a second local user, and useradd, userdel, runuser and curl",
+)
+def test_another_local_user_cannot_command_through_the_view(tmp_path: Path) -> None:
+    """The operator runs ``companion view`` on loopback; another local user once engaged the vehicle
+    with ``curl -X POST http://127.0.0.1:PORT/api/control -H 'X-Companion-View: 1' -d '{"cmd":"engage"}'``
+    (the header and origin checks stop browsers only). A second user made for this test may watch
+    but not command; the operator's token commands."""
+    user = f"cvtest{os.getpid() % 100000}"
+    subprocess.run(["useradd", "--no-create-home", "--home-dir", "/nonexistent", "--shell", "/usr/sbin/nologin", user],
+                   check=True, capture_output=True)
+    try:
+        link = FakeLink()
+        cfg = service_config(tmp_path)
+        service = Service(cfg, camera=avoid_scene_camera(15.0), link=link, install_signals=False, environ={})
+        token_file = tmp_path / "view-token"
+        token_file.write_text("operator-only-token-0123456789\n")
+        token_file.chmod(0o600)
+        with ServiceRunner(service), ViewProcess(
+            "--health-endpoint", cfg.bus.health_endpoint, "--control-endpoint", cfg.bus.control_endpoint,
+            "--token-file", str(token_file),
+        ) as view:
+            base, _, token = view.url.partition("/?token=")
+            assert token == "operator-only-token-0123456789"
+
+            def curl(*args: str, as_user: str | None = None) -> tuple[str, str]:
+                cmd = ["curl", "-s", "-m", "10", "-w", "\n%{http_code}", *args]
+                if as_user is not None:
+                    cmd = ["runuser", "-u", as_user, "--", *cmd]
+                out = subprocess.run(cmd, capture_output=True, text=True, timeout=30, cwd="/").stdout
+                body, _, code = out.rpartition("\n")
+                return code, body
+
+            engage = ["-X", "POST", base + "/api/control", "-H", "X-Companion-View: 1", "-H",
+                      "Content-Type: application/json", "-d", '{"cmd":"engage"}']
+            # The outsider: watching works, the page does not hold the token, commanding is refused.
+            code, page = curl(base + "/", as_user=user)
+            assert code == "200" and token not in page
+            code, body = curl(*engage, as_user=user)
+            assert code == "403" and "token" in body, (code, body)
+            code, body = curl(*engage, "-H", "Authorization: Bearer operator-only-token-012345678X", as_user=user)
+            assert code == "403", (code, body)
+            assert not link.state().in_offboard and service.supervisor.state.value == "passive"
+            # Nor can it read the token where the operator keeps it.
+            for secret in (str(token_file), f"/proc/{view.pid}/environ", f"/proc/{view.pid}/cmdline"):
+                seen = subprocess.run(["runuser", "-u", user, "--", "cat", secret], capture_output=True, timeout=30)
+                assert token.encode() not in seen.stdout, secret
+            # The operator's token commands.
+            code, body = curl(*engage, "-H", f"Authorization: Bearer {token}")
+            assert code == "200" and json.loads(body)["ok"], (code, body)
+            assert wait_until(lambda: link.state().in_offboard, 3.0)
+    finally:
+        subprocess.run(["userdel", user], capture_output=True)
 
 
 def test_a_network_bind_without_a_token_gets_one_made_up(tmp_path: Path) -> None:

@@ -26,8 +26,10 @@ def register(sub: argparse._SubParsersAction) -> None:
             "near/far thresholds, yaw/pitch and the setpoint, the last 60 s of decisions, fps, latency and "
             "dropped frames, and engage/pause/resume/disengage buttons that speak the control protocol "
             "(with the permissions `companion ctl` has). A process of its own: it crashing or hanging "
-            "never affects the service. Bound to 127.0.0.1 unless --host says otherwise; any other "
-            f"address needs a token (--token-file or ${TOKEN_ENV}; made up and printed when neither is given)."
+            "never affects the service. Bound to 127.0.0.1 unless --host says otherwise. Commanding needs "
+            f"the view's token (--token-file, a file of mode 600 or 640, or ${TOKEN_ENV}; made up when "
+            "neither is given), shown only in the printed address; on any other address than loopback, "
+            "watching needs it too."
         ),
     )
     p.add_argument("--config", type=Path, help="read the endpoints (and nothing else) from this config")
@@ -39,7 +41,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--client-key", type=Path, help="CURVE: your secret certificate (.key_secret)")
     p.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1; 0.0.0.0 = every interface, e.g. the companion's Wi-Fi)")
     p.add_argument("--port", type=int, default=8080, help="TCP port (default 8080; 0 = any free one)")
-    p.add_argument("--token-file", type=Path, help=f"a file holding the access token (else ${TOKEN_ENV})")
+    p.add_argument("--token-file", type=Path, help=f"a file (mode 600 or 640) holding the access token (else ${TOKEN_ENV}, else one is made up)")
     p.add_argument("--title", default="companion", help="the page's title (e.g. the vehicle's name)")
     p.set_defaults(func=_view)
 
@@ -118,9 +120,17 @@ def read_token(token_file: Path | None) -> str | None:
     """
     if token_file is not None:
         try:
+            mode = token_file.stat().st_mode
             token = token_file.read_text(encoding="utf-8").strip().splitlines()
         except OSError as err:
             raise InputError(f"--token-file {token_file}: cannot read it: {err.strerror or err}") from None
+        except UnicodeDecodeError as err:
+            raise InputError(f"--token-file {token_file}: not UTF-8 text (byte {err.start})") from None
+        if mode & 0o007:
+            raise InputError(
+                f"--token-file {token_file}: every local user may read it (mode {mode & 0o777:o}): "
+                f"chmod 600 {token_file} (or 640 with the service's group)"
+            )
         if not token or not token[0].strip():
             raise InputError(f"--token-file {token_file}: is empty")
         return token[0].strip()
@@ -137,8 +147,9 @@ def _view(args: argparse.Namespace) -> int:
     token = read_token(args.token_file)
     health, preview, control = _endpoints(args)
     made_up = False
-    if token is None and not is_loopback_host(args.host):
-        token, made_up = secrets.token_urlsafe(16), True
+    if token is None and (control is not None or not is_loopback_host(args.host)):
+        # Commanding needs it on loopback too: another local user can reach the port, not this terminal.
+        token, made_up = secrets.token_urlsafe(24), True
     options = ViewOptions(
         health_endpoint=health,
         preview_endpoint=preview,

@@ -240,46 +240,82 @@ def check_rig_config(cfg: CompanionConfig, source: str = "config") -> list[str]:
     return list(result.warnings)
 
 
-def load_config(path: Path | str | None) -> CompanionConfig:
-    """Read and validate a TOML config file; ``None`` gives the defaults.
+def read_config_text(path: Path) -> str:
+    """The text of config file ``path``, decoded as UTF-8.
 
     Raises:
-        ConfigError: the file is missing, unreadable, not TOML, or invalid.
+        ConfigError: the file is missing or unreadable, or a byte is not UTF-8 (naming the file, the
+            byte offset and its line).
+    """
+    try:
+        raw = path.read_bytes()
+    except OSError as err:
+        raise ConfigError(f"{path}: cannot read config: {err.strerror or err}", source=str(path)) from None
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError as err:
+        line = raw.count(b"\n", 0, err.start) + 1
+        raise ConfigError(
+            f"{path}: not UTF-8 text: byte {err.start} (line {line}) is {raw[err.start:err.start + 1]!r} "
+            f"({err.reason}); save the file as UTF-8",
+            source=str(path),
+            offset=err.start,
+        ) from None
+
+
+def _read_toml(path: Path) -> dict[str, Any]:
+    """The parsed TOML of config file ``path`` (ConfigError: unreadable, not UTF-8, not TOML)."""
+    text = read_config_text(path)
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as err:
+        raise ConfigError(f"{path}: not valid TOML: {err}", source=str(path)) from None
+
+
+def _strict_validate(model: type[StrictModel], data: Mapping[str, Any], source: str) -> Any:
+    """``data`` (parsed TOML) validated by ``model`` with strict types, as :func:`apply_patch` validates
+    a live change: a number must be a number (``"2"`` is not), a flag a boolean.
+
+    Raises:
+        ConfigError: naming each bad key, or a number that is not finite.
+    """
+    try:
+        text = json.dumps(dict(data), allow_nan=False, default=str)
+    except ValueError:
+        raise ConfigError(f"{source}: invalid config: numbers must be finite (nan and inf are not)", source=source) from None
+    try:
+        return model.model_validate_json(text, strict=True)
+    except ValidationError as err:
+        raise ConfigError(format_validation_error(err, source), source=source) from None
+
+
+def load_config(path: Path | str | None) -> CompanionConfig:
+    """Read and validate a TOML config file; ``None`` gives the defaults. Types are strict, as in a
+    live change (:func:`apply_patch`).
+
+    Raises:
+        ConfigError: the file is missing, unreadable, not UTF-8, not TOML, or invalid.
     """
     if path is None:
         return CompanionConfig()
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as err:
-        raise ConfigError(f"{path}: cannot read config: {err.strerror or err}", source=str(path)) from None
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as err:
-        raise ConfigError(f"{path}: not valid TOML: {err}", source=str(path)) from None
-    return parse_config(data, source=str(path))
+    cfg = _strict_validate(CompanionConfig, _read_toml(path), str(path))
+    check_rig_config(cfg, str(path))
+    return cfg
 
 
 def _load_table(path: Path | str, name: str, model: type[StrictModel]) -> Any:
     """Table ``name`` of a TOML config file, validated alone by ``model`` (the rest of the file may be invalid).
 
     Raises:
-        ConfigError: the file is missing, unreadable, not TOML, or that table is invalid.
+        ConfigError: the file is missing, unreadable, not UTF-8, not TOML, or that table is invalid.
     """
     path = Path(path)
-    try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except OSError as err:
-        raise ConfigError(f"{path}: cannot read config: {err.strerror or err}", source=str(path)) from None
-    except tomllib.TOMLDecodeError as err:
-        raise ConfigError(f"{path}: not valid TOML: {err}", source=str(path)) from None
+    data = _read_toml(path)
     table = data.get(name, {})
     if not isinstance(table, dict):
         raise ConfigError(f"{path}: {name}: expected a table, got {type(table).__name__}", source=str(path))
-    try:
-        return model.model_validate(table)
-    except ValidationError as err:
-        raise ConfigError(format_validation_error(err, f"{path} [{name}]"), source=str(path)) from None
+    return _strict_validate(model, table, f"{path} [{name}]")
 
 
 def load_bus_config(path: Path | str) -> BusConfig:

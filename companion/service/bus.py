@@ -6,8 +6,11 @@ slow subscriber loses old messages). The control socket is a ROUTER: a REQ clien
 It is read and written only by the control server's own thread (:class:`~companion.service.control.ControlServer`),
 never by the flight loop.
 
-What bounds a client, in ZeroMQ itself: a message larger than twice ``bus.max_request_bytes`` is cut
-off before it is buffered (``MAXMSGSIZE``); a connection queues at most :data:`QUEUE_MESSAGES` messages
+What bounds a client: clients reach the control ROUTER through :class:`~companion.service.relay.ControlRelay`,
+which listens on ``bus.control_endpoint`` and cuts a connection whose message has more than
+:data:`MAX_MESSAGE_FRAMES` frames or more than twice ``bus.max_request_bytes`` in all, before ZeroMQ
+buffers it (the ROUTER itself is bound on a private socket); in ZeroMQ itself, a frame larger than twice
+``bus.max_request_bytes`` is cut off before it is buffered (``MAXMSGSIZE``); a connection queues at most :data:`QUEUE_MESSAGES` messages
 each way; a connection that does not finish its handshake within :data:`HANDSHAKE_TIMEOUT_MS` is closed;
 and more than ``bus.max_connections`` control connections are refused in the handshake (ZAP, the
 :class:`Gatekeeper`). With ``bus.curve_server_secret_key_file`` and ``bus.curve_authorized_keys_dir``
@@ -18,6 +21,8 @@ both sockets are CURVE servers and only clients whose public certificate is in t
 from __future__ import annotations
 
 import logging
+import shutil
+import tempfile
 import threading
 from collections.abc import Mapping
 from pathlib import Path
@@ -29,6 +34,7 @@ from zmq.auth.thread import ThreadAuthenticator
 
 from companion.config import BusConfig
 from companion.errors import ConfigError
+from companion.service.relay import ControlRelay, RelayLimits, private_endpoint
 from companion.service.runtime import remove_socket, resolve_endpoint, restrict_socket
 
 log = logging.getLogger(__name__)
@@ -41,6 +47,11 @@ HEALTH_QUEUE_MESSAGES = 100
 #: A connection that has not completed the ZeroMQ handshake by then is closed (a raw TCP flood holds
 #: its file descriptors no longer than this), milliseconds.
 HANDSHAKE_TIMEOUT_MS = 2000
+#: Connections the control relay holds at once at most (a flood of raw connections is cut after the
+#: handshake timeout; the service raises its open-file limit to 65536).
+RELAY_MAX_CONNECTIONS = 8192
+#: Frames of one control message at most (a REQ client sends 2: the empty delimiter and the request).
+MAX_MESSAGE_FRAMES = 4
 #: The ZAP domains of the two sockets (the gatekeeper counts the control socket's connections).
 CONTROL_DOMAIN = "companion-control"
 HEALTH_DOMAIN = "companion-health"
@@ -102,6 +113,8 @@ class Bus:
         self.gatekeeper: Gatekeeper | None = None
         self.health_endpoint = cfg.health_endpoint
         self.control_endpoint = cfg.control_endpoint
+        self.relay: ControlRelay | None = None
+        self._private_dir: Path | None = None
         self._publish_lock = threading.Lock()
         self._bound: list[str] = []  # the endpoints this bus bound (their socket files go on close)
 
@@ -124,13 +137,32 @@ class Bus:
                     self.gatekeeper.configure_curve(domain=domain, location=str(allowed))
             self.health = self._bind(zmq.PUB, health_endpoint, "bus.health_endpoint", keys, HEALTH_DOMAIN)
             self.health.setsockopt(zmq.SNDHWM, HEALTH_QUEUE_MESSAGES)  # a slow subscriber loses old health
-            self.control = self._bind(zmq.ROUTER, control_endpoint, "bus.control_endpoint", keys, CONTROL_DOMAIN)
+            # The ROUTER on a socket of its own in a private folder; clients come through the relay.
+            self._private_dir = Path(tempfile.mkdtemp(prefix="companion-control-"))
+            private = private_endpoint(self._private_dir)
+            self.control = self._bind(zmq.ROUTER, private, "bus.control_endpoint", keys, CONTROL_DOMAIN)
             self.control.setsockopt(zmq.ROUTER_MANDATORY, 1)  # a reply to a gone client raises, never blocks
             self.control.setsockopt(zmq.SNDHWM, QUEUE_MESSAGES)
             self.control.setsockopt(zmq.RCVHWM, QUEUE_MESSAGES)
+            limits = RelayLimits(
+                max_frame_bytes=2 * self.cfg.max_request_bytes,
+                max_message_frames=MAX_MESSAGE_FRAMES,
+                max_message_bytes=2 * self.cfg.max_request_bytes,
+                # A backstop only (each takes two descriptors): the gatekeeper refuses ZeroMQ clients
+                # beyond bus.max_connections in their handshake, and one that never speaks ZeroMQ is
+                # cut after the handshake timeout, as ZeroMQ itself does.
+                max_connections=RELAY_MAX_CONNECTIONS,
+                curve_bytes_per_s=self.cfg.requests_per_s_per_client * 2 * self.cfg.max_request_bytes,
+            )
+            self.relay = ControlRelay(control_endpoint, private, limits)
+            try:
+                self.relay.start()
+            except (OSError, ValueError) as err:
+                self.relay = None
+                raise ConfigError(f"bus.control_endpoint {control_endpoint!r}: cannot bind: {err}") from None
             # What the endpoints really are (a tcp port 0 is bound to an ephemeral port).
             self.health_endpoint = self.health.getsockopt_string(zmq.LAST_ENDPOINT)
-            self.control_endpoint = self.control.getsockopt_string(zmq.LAST_ENDPOINT)
+            self.control_endpoint = self.relay.endpoint
             restrict_socket(self.health_endpoint)
             restrict_socket(self.control_endpoint)
         except BaseException:
@@ -175,6 +207,9 @@ class Bus:
 
     def close(self) -> None:
         """Close both sockets and the context (the control server's thread must have stopped)."""
+        if self.relay is not None:
+            self.relay.stop()
+            self.relay = None
         with self._publish_lock:
             for name in ("health", "control"):
                 sock = getattr(self, name)
@@ -190,6 +225,9 @@ class Bus:
         for endpoint in self._bound:  # a file left behind would look like a running service to a client
             remove_socket(endpoint)
         self._bound = []
+        if self._private_dir is not None:
+            shutil.rmtree(self._private_dir, ignore_errors=True)
+            self._private_dir = None
 
     def stats(self) -> dict[str, Any]:
         """The gatekeeper's counts, for health (live control connections, refused handshakes)."""

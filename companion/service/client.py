@@ -18,7 +18,7 @@ from typing import Any
 import zmq
 
 from companion.errors import CompanionError, ConfigError, InputError
-from companion.service.runtime import check_listening, validate_endpoint, validate_timeout
+from companion.service.runtime import check_listening, permission_denied, validate_endpoint, validate_timeout
 
 
 class ClientError(CompanionError):
@@ -63,10 +63,7 @@ def check_ipc_access(endpoint: str) -> None:
     except PermissionError:
         exists = True  # the folder itself is closed to us
     if exists and not os.access(path, os.R_OK | os.W_OK):
-        raise ClientError(
-            f"{path}: permission denied: only the service's user and the members of its group (companion) "
-            "may use it (sudo usermod -aG companion $USER, then log in again)"
-        )
+        raise ClientError(permission_denied(path))
     try:
         check_listening(endpoint)
     except ConfigError as err:

@@ -59,6 +59,11 @@ _FLOOD_PAUSE_S = 0.005
 _NICENESS = 5
 #: Connections whose budgets are remembered; beyond this the idle ones are forgotten.
 _MAX_TRACKED_PEERS = 1024
+#: Requests that stop the vehicle: never refused by a request budget (one client's flood must not keep
+#: another from stopping it), and they have places in progress of their own beyond :data:`MAX_IN_FLIGHT`.
+STOP_COMMANDS = frozenset({"disengage", "pause"})
+#: A stop request is at most this long (a longer message is not looked at before the budgets).
+_MAX_STOP_BYTES = 256
 #: What a live change may touch while engaged under ``envelope.live_changes_while_engaged = "tuning"``:
 #: these sections, except the command fields below (timeouts, the brake hold, the progress watchdog).
 _TUNING_SECTIONS = ("controller", "lut", "command", "sim")
@@ -406,6 +411,7 @@ class ControlServer:
         self._pending: set[concurrent.futures.Future] = set()
         self._peers: dict[bytes, _Bucket] = {}
         self._all = _Bucket(cfg.max_requests_per_s, clock())
+        self._reserve = _Bucket(cfg.max_requests_per_s, clock())  # the light users' share (_admit)
         self._wake_r, self._wake_w = os.pipe()
         os.set_blocking(self._wake_r, False)
         os.set_blocking(self._wake_w, False)
@@ -506,7 +512,8 @@ class ControlServer:
             if split is None:
                 continue
             envelope, parts = split
-            refusal = self._admit(envelope[0])
+            stop = len(parts) == 1 and self._is_stop(parts[0])
+            refusal = self._admit(envelope[0], stop=stop)
             if refusal is not None:
                 self._send(envelope, refusal)
                 continue
@@ -518,26 +525,50 @@ class ControlServer:
             self._dispatch(envelope, parts[0])
         return _RECV_BATCH
 
-    def _admit(self, identity: bytes, now_s: float | None = None) -> bytes | None:
+    def _admit(self, identity: bytes, now_s: float | None = None, stop: bool = False) -> bytes | None:
         """None when this connection, and all together, are within their request budgets; else the
-        error reply, encoded (the same bytes for every refusal of a kind: a flood costs no JSON)."""
+        error reply, encoded (the same bytes for every refusal of a kind: a flood costs no JSON).
+
+        Fair shares: when the budget of all connections is spent, a connection that has used less than
+        half its own budget in the last second still gets in, from a reserve as large as that budget
+        (the connections that spent it are refused; the total stays bounded at twice it). A ``stop``
+        request (:data:`STOP_COMMANDS`) is never refused by a budget, only when even its own places in
+        progress are taken.
+        """
         now_s = self._clock() if now_s is None else now_s
         per = self._cfg.requests_per_s_per_client
+        total = self._cfg.max_requests_per_s
         bucket = self._peers.get(identity)
         if bucket is None:
             if len(self._peers) >= _MAX_TRACKED_PEERS:
                 self._forget_idle(now_s)
             bucket = self._peers[identity] = _Bucket(per, now_s)
+        if stop:
+            bucket.take(now_s, per)  # counted, never refused
+            if len(self._pending) >= MAX_IN_FLIGHT + len(STOP_COMMANDS) * 2:
+                self.stats.busy += 1
+                return self._refusals["busy"]
+            return None
         if not bucket.take(now_s, per):
             self.stats.rate_limited += 1
             return self._refusals["client"]
-        if not self._all.take(now_s, self._cfg.max_requests_per_s):
+        if not self._all.take(now_s, total) and (bucket.tokens < per / 2.0 or not self._reserve.take(now_s, total)):
             self.stats.rate_limited += 1
             return self._refusals["all"]
         if len(self._pending) >= MAX_IN_FLIGHT:
             self.stats.busy += 1
             return self._refusals["busy"]
         return None
+
+    def _is_stop(self, raw: bytes) -> bool:
+        """Whether ``raw`` is a valid stop request (:data:`STOP_COMMANDS`); only a short message that
+        names one is parsed here, so a flood of anything else costs no JSON."""
+        if len(raw) > _MAX_STOP_BYTES or not any(cmd.encode() in raw for cmd in STOP_COMMANDS):
+            return False
+        try:
+            return protocol.parse_request(raw, self._adapter, self._cfg.max_request_bytes).cmd in STOP_COMMANDS
+        except ProtocolError:
+            return False
 
     def _forget_idle(self, now_s: float) -> None:
         per = self._cfg.requests_per_s_per_client

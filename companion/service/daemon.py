@@ -24,8 +24,12 @@ step on the loop, so every change to the supervisor's state stays on the loop. I
 the process (MAVSDK's 20 Hz re-sending dies with it), and PX4's offboard-loss failsafe takes over.
 
 Shutdown (first SIGTERM/SIGINT): the supervisor sends zero and, if we own offboard, Hold; then the
-stream stops (no mode change), ZeroMQ closes, the camera and the pipeline (GPU) are released. A second
-signal exits at once with :data:`~companion.exitcodes.FORCED_EXIT`. SIGHUP reloads the config file.
+stream stops (no mode change), ZeroMQ closes, the camera and the pipeline (GPU) are released, each
+within its budget (:data:`CLEANUP_BUDGET_S` in all). A second signal exits at once with
+:data:`~companion.exitcodes.FORCED_EXIT`. SIGHUP reloads the config file. When the process ends, and
+with which code, is the :class:`~companion.service.lifecycle.Lifecycle`'s; the presence plane and the
+health loop are parts with their own state, ``start()`` and ``stop(budget_s)``
+(:mod:`companion.service.parts`).
 """
 
 from __future__ import annotations
@@ -37,7 +41,6 @@ import functools
 import logging
 import math
 import os
-import signal
 import threading
 import time
 from collections.abc import Callable
@@ -79,9 +82,10 @@ from companion.service.control import (  # noqa: F401 (re-exported: the daemon's
     resolve_config_paths,
     restart_required,
 )
-from companion.service.health import HealthReporter
+from companion.service.health import HealthLoop, HealthReporter
+from companion.service.lifecycle import Lifecycle, flush_logs
 from companion.service.notify import Notifier, watchdog_interval_s
-from companion.service.presence import PresencePlane
+from companion.service.presence import Presence
 from companion.service.runtime import raise_open_file_limit
 
 if TYPE_CHECKING:
@@ -90,6 +94,15 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 Clock = Callable[[], float]
+
+
+#: The longest the release of everything may take after the vehicle is safe (zero, Hold or its
+#: timeout), seconds; each step has its own smaller budget (:data:`_STEP_BUDGET_S`).
+CLEANUP_BUDGET_S = 1.5
+_STEP_BUDGET_S = 0.5
+#: After the event loop ends, how long threads still running get before the process exits without
+#: them (a MAVSDK call blocked in its thread), seconds.
+EXIT_JOIN_S = 0.3
 
 
 class StartupError(CompanionError):
@@ -105,7 +118,7 @@ class Processed:
     done_s: float
 
 
-class Service(ControlPlane, HealthReporter, PresencePlane):
+class Service(ControlPlane, HealthReporter):
     """The daemon. Build it, then ``await run()`` (or :func:`run_service` from the CLI).
 
     Args:
@@ -152,9 +165,20 @@ class Service(ControlPlane, HealthReporter, PresencePlane):
         self._histogram_asked: int | None = None  # seq of the last request handed to the worker
         self._histogram_done: HistogramResult | None = None  # computed, for the next step
         self.histogram_stats = {"computed": 0, "failed": 0}
-        self._presence_init()
+        self.presence = Presence(
+            config=lambda: self.config,
+            link=lambda: self.link,
+            connected=self._vehicle_connected,
+            state=lambda: self.supervisor.state.value,
+            engaged=lambda: self.supervisor.engaged,
+            clock=self._clock,
+            on_died=self._part_died,
+        )
+        # The parts with a task of their own (start() in _start, stop(budget) in _cleanup).
+        self.health_loop = HealthLoop(self._publish_health, lambda: self.config.bus.health_rate_hz, on_died=self._part_died)
         self.config_version = 1
-        self.exit_code = exitcodes.OK
+        # When the process ends and with which code (signals, should_exit, the forced exit).
+        self.lifecycle = Lifecycle(on_reload=self._on_hup)
         self.ready = threading.Event()  # set once READY=1 was sent (for tests and embedding)
         self.stopped = threading.Event()
         self.bus = None
@@ -183,16 +207,12 @@ class Service(ControlPlane, HealthReporter, PresencePlane):
         self._last_error_kind: str | None = None  # "config" for a rejected reload: a good one clears it
         self.control_server: ControlServer | None = None
         self._vehicle_status = "connecting"
-        self._signals = 0
         self._health_seq = 0
         self._last_watchdog_s = -1e9
-        self._shutdown_reason: str | None = None
         self._config_lock: asyncio.Lock | None = None
         # Events are created in run(), on the loop that uses them.
         self._wake: asyncio.Event | None = None
         self._first_result: asyncio.Event | None = None
-        self._health_now: asyncio.Event | None = None
-        self._shutdown: asyncio.Event | None = None
         self.latencies_s: list[float] = []  # every frame-to-setpoint latency (bench); bounded by its user
         self.record_latencies = False
         self.processed_seqs: list[int] = []
@@ -205,8 +225,7 @@ class Service(ControlPlane, HealthReporter, PresencePlane):
         self._loop = asyncio.get_running_loop()
         self._wake = asyncio.Event()
         self._first_result = asyncio.Event()
-        self._health_now = asyncio.Event()
-        self._shutdown = asyncio.Event()
+        self.lifecycle.bind(self._loop)
         self._config_lock = asyncio.Lock()
         try:
             await self._start()
@@ -220,7 +239,7 @@ class Service(ControlPlane, HealthReporter, PresencePlane):
             self._notify("READY=1", f"STATUS={self.supervisor.state.value}: {self.supervisor.reason}")
             self.ready.set()
             log.info("ready: %s", self.supervisor.reason)
-            await self._shutdown.wait()
+            await self.lifecycle.wait()
             await self._stop()
         finally:
             await self._cleanup()
@@ -280,7 +299,7 @@ class Service(ControlPlane, HealthReporter, PresencePlane):
             except VehicleError as err:
                 raise StartupError(str(err)) from None
         self._spawn(self._vehicle_connector(), "vehicle connector")
-        self._spawn(self._presence_loop(), "presence")
+        self.presence.start()
         if self._camera is None:
             from companion.service.camera import TelemetryPose, make_camera, placement_from_config
 
@@ -317,7 +336,7 @@ class Service(ControlPlane, HealthReporter, PresencePlane):
                 + (f" ({problem})" if problem else "")
             ) from None
         self._spawn(self._control_loop(), "control loop", critical=True)
-        self._spawn(self._health_loop(), "health")
+        self.health_loop.start()
         # The control socket gets its own thread: no client can stall the flight loop.
         self.control_server = ControlServer(
             self.bus.control,
@@ -375,25 +394,31 @@ class Service(ControlPlane, HealthReporter, PresencePlane):
         if task.cancelled():
             return
         err = task.exception()
-        if err is None:
-            return
+        if err is not None:
+            self._part_died(name, err)
+
+    def _part_died(self, name: str, err: BaseException) -> None:
+        """A task of the service (or a part's) ended with an error: stop cleanly."""
         log.error("task %s died: %r", name, err, exc_info=err)
         self._error(f"internal error in {name}: {type(err).__name__}: {err}")
         # Whatever died, stop cleanly (zero, Hold if ours) and let systemd restart us passive.
         self.request_shutdown(f"internal error in {name}", exit_code=exitcodes.INTERNAL_ERROR)
 
+    @property
+    def exit_code(self) -> int:
+        """The process's exit code (:class:`~companion.service.lifecycle.Lifecycle` keeps it)."""
+        return self.lifecycle.exit_code
+
+    @exit_code.setter
+    def exit_code(self, code: int) -> None:
+        self.lifecycle.exit_code = code
+
     def request_shutdown(self, reason: str = "requested", exit_code: int | None = None) -> None:
         """Begin a clean shutdown (call on the loop; see :meth:`request_shutdown_threadsafe`)."""
-        if exit_code is not None and self.exit_code == exitcodes.OK:
-            self.exit_code = exit_code
-        if self._shutdown is not None and not self._shutdown.is_set():
-            self._shutdown_reason = reason
-            log.info("shutting down: %s", reason)
-            self._shutdown.set()
+        self.lifecycle.request_exit(reason, exit_code)
 
     def request_shutdown_threadsafe(self, reason: str = "requested") -> None:
-        if self._loop is not None and not self._loop.is_closed():
-            self._loop.call_soon_threadsafe(self.request_shutdown, reason)
+        self.lifecycle.request_exit_threadsafe(reason)
 
     async def _stop(self) -> None:
         """Zero, Hold if we own offboard, stop the stream; then everything else goes."""
@@ -417,35 +442,55 @@ class Service(ControlPlane, HealthReporter, PresencePlane):
         await self._publish_health()
 
     async def _cleanup(self) -> None:
-        """Release everything; safe after a failed start and safe twice."""
+        """Release everything; safe after a failed start and safe twice.
+
+        Bounded: every step gets its own budget, and all together at most :data:`CLEANUP_BUDGET_S`
+        (a task that ignores its cancellation, a thread blocked in a call, a vehicle link that does
+        not close are logged and left; :func:`run_service` then ends the process anyway).
+        """
+        deadline = time.monotonic() + CLEANUP_BUDGET_S
+
+        def budget(own_s: float) -> float:
+            return max(0.05, min(own_s, deadline - time.monotonic()))
+
+        loop = asyncio.get_running_loop()
+
+        async def in_thread(what: str, fn: Callable[[], Any], own_s: float) -> None:
+            try:
+                await asyncio.wait_for(asyncio.shield(loop.run_in_executor(None, fn)), budget(own_s))
+            except asyncio.TimeoutError:
+                log.error("%s did not finish within its %.1f s; leaving it", what, own_s)
+
+        for part in (self.presence, self.health_loop):
+            await part.stop(budget(_STEP_BUDGET_S))
         tasks = list(self._tasks) + list(self._action_tasks)
         for task in tasks:
             task.cancel()
         if tasks:
             # Their errors were logged by _task_done / the action runners; a task that ignores its
             # cancellation must not hang the shutdown.
-            _, stuck = await asyncio.wait(tasks, timeout=2.0)
+            _, stuck = await asyncio.wait(tasks, timeout=budget(_STEP_BUDGET_S))
             for task in stuck:
-                log.error("task %s did not stop within 2 s; leaving it", task.get_name())
+                log.error("task %s did not stop within %.1f s; leaving it", task.get_name(), _STEP_BUDGET_S)
         self._tasks = []
         self._action_tasks.clear()
         if self.view is not None:
-            await asyncio.get_running_loop().run_in_executor(None, self.view.close)
+            await in_thread("the preview", self.view.close, _STEP_BUDGET_S)
             self.view = None
         if self.control_server is not None:
-            await asyncio.get_running_loop().run_in_executor(None, self.control_server.stop)
+            await in_thread("the control server", functools.partial(self.control_server.stop, budget(_STEP_BUDGET_S)), 2 * _STEP_BUDGET_S)
         if self.bus is not None:
             self.bus.close()
             self.bus = None
         if self._capture is not None:
-            await asyncio.get_running_loop().run_in_executor(None, self._capture.stop)
+            await in_thread("the capture thread", functools.partial(self._capture.stop, budget(_STEP_BUDGET_S)), 2 * _STEP_BUDGET_S)
         if self._processor is not None:
-            await asyncio.get_running_loop().run_in_executor(None, self._processor.stop)
+            await in_thread("the pipeline thread", functools.partial(self._processor.stop, budget(_STEP_BUDGET_S)), 2 * _STEP_BUDGET_S)
             self._processor = None
         if self._histogram_pool is not None:
             # A job under way finishes (tens of milliseconds); its result is not wanted any more.
             pool, self._histogram_pool = self._histogram_pool, None
-            await asyncio.get_running_loop().run_in_executor(None, functools.partial(pool.shutdown, wait=True, cancel_futures=True))
+            await in_thread("the detour histogram", functools.partial(pool.shutdown, wait=True, cancel_futures=True), _STEP_BUDGET_S)
         if self._pipeline is not None:
             closer = getattr(self._pipeline.estimator, "close", None)  # the GPU backend frees its memory
             if closer is not None:
@@ -456,7 +501,10 @@ class Service(ControlPlane, HealthReporter, PresencePlane):
             self._pipeline = None
         if self.link is not None:
             try:
-                await self.link.close()
+                # MAVSDK's calls run in threads; one that blocks must not hold the exit.
+                await asyncio.wait_for(self.link.close(), budget(_STEP_BUDGET_S))
+            except asyncio.TimeoutError:
+                log.error("the vehicle link did not close within %.1f s; leaving it", _STEP_BUDGET_S)
             except Exception:
                 log.exception("closing the vehicle link failed")
         if self._notifier is not None:
@@ -466,24 +514,7 @@ class Service(ControlPlane, HealthReporter, PresencePlane):
     # ================================================================================ signals
 
     def _setup_signals(self) -> None:
-        loop = self._loop
-        assert loop is not None
-        for sig in (signal.SIGTERM, signal.SIGINT):
-            loop.add_signal_handler(sig, self._on_stop_signal, sig)
-        loop.add_signal_handler(signal.SIGHUP, self._on_hup)
-
-    def _on_stop_signal(self, sig: int) -> None:
-        name = signal.Signals(sig).name
-        self._signals += 1
-        log.info("%s: clean shutdown (send it again to force the exit)", name)
-        # The second signal must work even if the loop is stuck: a plain handler, run by the
-        # interpreter between bytecodes, not by the event loop.
-        loop = self._loop
-        assert loop is not None
-        for s in (signal.SIGTERM, signal.SIGINT):
-            loop.remove_signal_handler(s)
-            signal.signal(s, _force_exit)
-        self.request_shutdown(name)
+        self.lifecycle.install_signals()
 
     def _on_hup(self) -> None:
         log.info("SIGHUP: reloading %s", self.config_path or "(no config file)")
@@ -498,6 +529,9 @@ class Service(ControlPlane, HealthReporter, PresencePlane):
             log.info("reload applied: %s", result)
         except CompanionError as err:
             log.error("reload rejected, the old config stays: %s", err)  # reload() recorded it in health
+        except Exception as err:  # a bug: the old config stays, and health says so
+            log.exception("reload failed, the old config stays")
+            self._error(f"reload failed, the old config stays: {type(err).__name__}: {err}", kind="config")
 
     # ================================================================================ frames
 
@@ -572,8 +606,7 @@ class Service(ControlPlane, HealthReporter, PresencePlane):
             self._wake.set()
 
     def _kick_health(self) -> None:
-        if self._health_now is not None:
-            self._health_now.set()
+        self.health_loop.kick()
 
     def _submit(self, request: Any) -> asyncio.Future | None:
         """Queue a supervisor request for the next step; the future gets its :class:`Reply`."""
@@ -667,7 +700,7 @@ class Service(ControlPlane, HealthReporter, PresencePlane):
                     self._latency_s.append(latency)
                     if self.record_latencies:
                         self.latencies_s.append(latency)
-        self._presence_step(now, out, latest, new_frame, camera_ok)
+        self.presence.step(now, out, latest, new_frame, camera_ok)
         if new_frame and latest is not None:
             self._last_stepped_seq = latest.seq
         for action in out.actions:
@@ -800,6 +833,11 @@ class Service(ControlPlane, HealthReporter, PresencePlane):
         """True from an accepted engage until the service stops commanding (live changes are limited then)."""
         return self.supervisor.state in (State.ENGAGING, State.ENGAGED, State.DEGRADED, State.PAUSED, State.OVERRIDE)
 
+    def _vehicle_connected(self) -> bool:
+        """Whether the autopilot is connected now (the link has heard it and says so)."""
+        link = self.link
+        return link is not None and self._vehicle_status == "connected" and link.state().connected
+
     async def _vehicle_connector(self) -> None:
         assert self.link is not None
         timeout_s = self.config.vehicle.connect_timeout_s
@@ -827,18 +865,6 @@ class Service(ControlPlane, HealthReporter, PresencePlane):
 
 
 
-def _force_exit(signum: int, frame: Any) -> None:
-    """Second SIGTERM/SIGINT: leave now. MAVSDK dies with us, so its re-sending stops and PX4's
-    offboard-loss failsafe takes over."""
-    log.warning("%s again: forced exit", signal.Signals(signum).name)
-    for handler in logging.getLogger().handlers:
-        try:
-            handler.flush()
-        except Exception:  # nothing more can be done about a broken log handler at this point
-            pass
-    os._exit(exitcodes.FORCED_EXIT)
-
-
 def run_service(config_path: Path | None) -> int:
     """``companion run``: load the config, run the daemon, return the exit code (78 on startup failure)."""
     try:
@@ -851,4 +877,40 @@ def run_service(config_path: Path | None) -> int:
             notifier.close()
         return exitcodes.STARTUP_FAILURE
     service = Service(cfg, config_path=config_path.resolve() if config_path is not None else None)
-    return asyncio.run(service.run())
+    return run_to_exit(service.run())
+
+
+def run_to_exit(main: Any) -> int:
+    """Run coroutine ``main`` (returning an exit code) on a new event loop, and make sure nothing
+    holds the process afterwards.
+
+    Unlike ``asyncio.run``, it does not wait without limit for the default executor's threads: a
+    MAVSDK call blocked in one (its calls run there) would hold the exit for ever. Leftover tasks get
+    :data:`_STEP_BUDGET_S`, threads :data:`EXIT_JOIN_S`; a thread still running then is logged by name
+    and the process ends at once with the exit code (the vehicle is already safe: zero, Hold or the
+    autopilot's offboard-loss failsafe).
+    """
+    loop = asyncio.new_event_loop()
+    executor = concurrent.futures.ThreadPoolExecutor(thread_name_prefix="service-io")
+    loop.set_default_executor(executor)
+    try:
+        code = loop.run_until_complete(main)
+        leftovers = [t for t in asyncio.all_tasks(loop) if not t.done()]
+        for task in leftovers:
+            task.cancel()
+        if leftovers:
+            loop.run_until_complete(asyncio.wait(leftovers, timeout=_STEP_BUDGET_S))
+        loop.run_until_complete(loop.shutdown_asyncgens())
+    finally:
+        executor.shutdown(wait=False, cancel_futures=True)
+        loop.close()
+    deadline = time.monotonic() + EXIT_JOIN_S
+    for thread in threading.enumerate():
+        if thread is not threading.current_thread() and not thread.daemon:
+            thread.join(max(0.0, deadline - time.monotonic()))
+    stuck = [t.name for t in threading.enumerate() if t is not threading.current_thread() and not t.daemon and t.is_alive()]
+    if stuck:
+        log.error("exiting with threads still blocked (%s): not waiting for them", ", ".join(stuck))
+        flush_logs()
+        os._exit(code)
+    return code

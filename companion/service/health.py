@@ -12,6 +12,7 @@ import asyncio
 import collections
 import logging
 import time
+from collections.abc import Awaitable, Callable
 from typing import Any
 
 import numpy as np
@@ -20,6 +21,7 @@ from companion.core.types import REGION_NAMES, VelocitySetpoint
 from companion.core.words import decision_words
 from companion.service import protocol
 from companion.service.aio import wait_event
+from companion.service.parts import TaskPart
 from companion.view.frame import thresholds_m
 
 log = logging.getLogger(__name__)
@@ -152,7 +154,7 @@ class HealthReporter:
             "frame_errors": self._frame_errors,
             "last_error": self._last_error,
             "control": self._control_status(),
-            "mavlink": self.presence_status(),
+            "mavlink": self.presence.status(),
             "thresholds_m": thresholds_m(self.config),
             "preview": self.view.publisher.status() if self.view is not None and self.view.publisher is not None else None,
         }
@@ -188,9 +190,37 @@ class HealthReporter:
         except Exception:
             log.exception("publishing health failed")
 
-    async def _health_loop(self) -> None:
-        assert self._health_now is not None
+
+
+class HealthLoop(TaskPart):
+    """The health part's task: publishes at ``bus.health_rate_hz`` and at once on :meth:`kick` (a state
+    change), through ``publish`` (which never raises).
+
+    Args:
+        publish: sends one health message now.
+        rate_hz: the rate in force (read at each wait: live changes apply).
+        on_died: see :class:`~companion.service.parts.TaskPart`.
+    """
+
+    name = "health"
+
+    def __init__(
+        self,
+        publish: Callable[[], Awaitable[None]],
+        rate_hz: Callable[[], float],
+        on_died: Callable[[str, BaseException], None] | None = None,
+    ) -> None:
+        super().__init__(on_died)
+        self._publish = publish
+        self._rate_hz = rate_hz
+        self._now = asyncio.Event()
+
+    def kick(self) -> None:
+        """Publish at once (on the loop)."""
+        self._now.set()
+
+    async def run(self) -> None:
         while True:
-            await wait_event(self._health_now, 1.0 / self.config.bus.health_rate_hz)
-            self._health_now.clear()
-            await self._publish_health()
+            await wait_event(self._now, 1.0 / self._rate_hz())
+            self._now.clear()
+            await self._publish()

@@ -167,8 +167,38 @@ COMMANDS: tuple[str, ...] = (
 )
 
 
+#: Objects and arrays nested deeper than this are refused: no request needs more than a few levels.
+MAX_NESTING = 32
+
+
+class _DuplicateKey(ValueError):
+    """A JSON object names a key twice (JSON leaves the meaning open; a request must be unambiguous)."""
+
+
 def _reject_constant(name: str) -> float:
     raise ValueError(f"{name} is not valid JSON")
+
+
+def _unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, value in pairs:
+        if key in out:
+            raise _DuplicateKey(key)
+        out[key] = value
+    return out
+
+
+def _nesting(value: Any, limit: int) -> int:
+    """How deep objects and arrays nest in ``value`` (a scalar: 0), counted up to ``limit + 1``."""
+    depth, level = 0, [(value, 1)]
+    while level:
+        item, d = level.pop()
+        if isinstance(item, (dict, list)):
+            depth = max(depth, d)
+            if depth > limit:
+                return depth
+            level.extend((v, d + 1) for v in (item.values() if isinstance(item, dict) else item))
+    return depth
 
 
 def request_adapter() -> TypeAdapter:
@@ -208,10 +238,17 @@ def parse_request(raw: bytes, adapter: TypeAdapter, max_bytes: int = 65536) -> A
         text = raw.decode("utf-8")
     except UnicodeDecodeError as err:
         raise ProtocolError(f"request is not UTF-8 text: {err.reason} at byte {err.start}") from None
+    too_deep = f"request is nested too deeply: objects and arrays at most {MAX_NESTING} levels deep"
     try:
-        data = json.loads(text, parse_constant=_reject_constant)
-    except (json.JSONDecodeError, ValueError, RecursionError) as err:
+        data = json.loads(text, parse_constant=_reject_constant, object_pairs_hook=_unique_keys)
+    except _DuplicateKey as err:
+        raise ProtocolError(one_line(f"request names the key {str(err)[:40]!r} twice; each key once")) from None
+    except RecursionError:
+        raise ProtocolError(too_deep) from None
+    except (json.JSONDecodeError, ValueError) as err:
         raise ProtocolError(one_line(f"request is not JSON: {err}", 160)) from None
+    if _nesting(data, MAX_NESTING) > MAX_NESTING:
+        raise ProtocolError(too_deep)
     if not isinstance(data, dict):
         raise ProtocolError(f"request must be a JSON object with a 'cmd', got {type(data).__name__}")
     rid = data.get("id")

@@ -19,6 +19,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import grp
 import re
 import resource
 import socket
@@ -98,6 +99,25 @@ def candidate_sockets(which: str, environ: Mapping[str, str] | None = None) -> l
     return out
 
 
+def permission_denied(path: Path, what: str = "it") -> str:
+    """The one-line refusal for a socket (or its folder) this user may not use, naming the group that
+    may: the group that owns ``path`` (the service's), by name where it has one."""
+    try:
+        gid = path.stat().st_gid
+    except OSError:
+        group = "the service's group"
+    else:
+        try:
+            group = grp.getgrgid(gid).gr_name
+        except KeyError:
+            group = str(gid)
+    how = f"sudo usermod -aG {group} $USER, then log in again" if not group.startswith("the ") else "ask its owner"
+    return (
+        f"{path}: permission denied: only the service's user and the members of its group ({group}) "
+        f"may use {what} ({how})"
+    )
+
+
 def find_socket(which: str, environ: Mapping[str, str] | None = None) -> str:
     """The ``ipc://`` endpoint of a running service's ``which`` socket (the first candidate that exists).
 
@@ -110,17 +130,11 @@ def find_socket(which: str, environ: Mapping[str, str] | None = None) -> str:
         try:
             exists = path.exists()
         except PermissionError:
-            raise ConfigError(
-                f"{path.parent}: permission denied: only the service's user and the members of its group "
-                "(companion) may use its sockets (sudo usermod -aG companion $USER, then log in again)"
-            ) from None
+            raise ConfigError(permission_denied(path.parent, "its sockets")) from None
         if not exists:
             continue
         if not os.access(path, os.R_OK | os.W_OK):
-            raise ConfigError(
-                f"{path}: permission denied: only the service's user and the members of its group "
-                "(companion) may use it (sudo usermod -aG companion $USER, then log in again)"
-            )
+            raise ConfigError(permission_denied(path))
         check_listening(f"ipc://{path}")
         return f"ipc://{path}"
     raise ConfigError(

@@ -47,9 +47,12 @@ import asyncio
 import json
 import logging
 import math
+import os
+import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import replace
+from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
@@ -79,6 +82,38 @@ def _forward_mavsdk_log(level: Any, message: str, file: str | None, line: int) -
     py_level = {0: logging.DEBUG, 1: logging.INFO, 2: logging.WARNING, 3: logging.ERROR}.get(int(level), logging.INFO)
     _mavsdk_log.log(py_level, "%s", message)
     return True
+
+
+def check_mavsdk_cache(environ: Mapping[str, str] | None = None) -> Path:
+    """Make sure MAVSDK can write its cache folder, ``$HOME/.cache/mavsdk`` (it keeps the autopilot's
+    component metadata there once one is heard), before MAVSDK starts: MAVSDK cannot report a folder
+    it may not write to Python, and depending on its version it logs and goes on or aborts the process.
+    Returns the folder.
+
+    Raises:
+        VehicleError: ``kind="connection"``: HOME is not set, or the folder cannot be made or written
+            (naming the folder and HOME, the variable that moves it).
+    """
+    env = os.environ if environ is None else environ
+    home = env.get("HOME")
+    if not home:
+        raise VehicleError(
+            "HOME is not set: MAVSDK keeps its cache in $HOME/.cache/mavsdk; set HOME to a folder the "
+            "service's user may write",
+            kind="connection",
+        )
+    cache = Path(home) / ".cache" / "mavsdk"
+    try:
+        cache.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=cache):
+            pass
+    except OSError as err:
+        raise VehicleError(
+            f"{cache}: MAVSDK's cache folder cannot be written ({err.strerror or err}); set HOME (now "
+            f"{home}) to a folder the service's user may write, or let it write this one",
+            kind="connection",
+        ) from None
+    return cache
 
 
 class MavsdkSession:
@@ -112,6 +147,7 @@ class MavsdkSession:
 
         log_subscribe(_forward_mavsdk_log)
         if self.mavsdk is None:
+            check_mavsdk_cache()
             # A companion computer (MAV_TYPE_ONBOARD_CONTROLLER in MAVSDK's heartbeat), as the
             # obstacle-avoidance component unless configured otherwise.
             config = Configuration.create_with_component_type(ComponentType.COMPANION_COMPUTER)

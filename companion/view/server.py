@@ -16,11 +16,19 @@ HTTP (aiohttp; one process, one event loop):
   a video player);
 * ``POST /api/control`` with ``{"cmd": "engage" | "disengage" | "pause" | "resume"}``.
 
-Access: bound to 127.0.0.1 by default. A bind to any other address needs a token (given, or made up
-and printed with the URL); a request carries it as ``?token=`` once (the page then keeps it in a
-cookie), or as ``Authorization: Bearer``. Without a token only loopback Host names are served (a web
-page elsewhere cannot reach it by DNS rebinding), and every control request needs the page's own
-header and origin (no cross-site request can send one).
+Access: bound to 127.0.0.1 by default. The view has a token (given in a file or
+``$COMPANION_VIEW_TOKEN``, else made up), printed only in the URL it shows its operator
+(``…/?token=…``); it is never served to anyone who asks.
+
+* Commanding (``POST /api/control``) always needs it, on loopback too (another local user can reach a
+  loopback port, but cannot read the operator's terminal, a file of mode 0600, or a process's
+  environment): ``Authorization: Bearer TOKEN``, compared in constant time, besides the page's own
+  header (``X-Companion-View: 1``) and origin (no cross-site request can send them). The page takes
+  the token from its address once, keeps it in the tab's ``sessionStorage`` and drops it from the
+  address bar.
+* Watching: on a loopback bind open to anyone local, for loopback Host names only (a web page
+  elsewhere cannot reach it by DNS rebinding). Any other bind needs the token for everything: as
+  ``?token=`` once (the page's later requests carry it in a cookie) or ``Authorization: Bearer``.
 """
 
 from __future__ import annotations
@@ -64,7 +72,7 @@ class ViewOptions:
             :func:`~companion.service.client.curve_client_options`), or None.
         host: the address to bind (127.0.0.1 by default).
         port: the TCP port (0 = any free one).
-        token: the access token, or None (only allowed on a loopback bind).
+        token: the access token, or None (only on a loopback bind, and then nothing commands).
         title: shown in the page's header.
         control_timeout_s: how long a control request waits for the service's reply, seconds.
     """
@@ -367,15 +375,23 @@ class ViewServer:
     # ------------------------------------------------------------------ HTTP
 
     def _token_ok(self, request: Any) -> bool:
-        token = self.options.token
-        if token is None:
-            return True
+        """Whether ``request`` carries the token (in its query, its cookie or its Authorization)."""
         given = [
             request.query.get("token", ""),
             request.cookies.get(_COOKIE, ""),
             request.headers.get("Authorization", "").removeprefix("Bearer ").strip(),
         ]
-        return any(g and hmac.compare_digest(g.encode(), token.encode()) for g in given)
+        return any(self._is_token(g) for g in given)
+
+    def _is_token(self, given: str) -> bool:
+        token = self.options.token
+        # Constant time: how much of a guess matched must not show in how long the refusal takes.
+        return token is not None and bool(given) and hmac.compare_digest(given.encode(), token.encode())
+
+    def _bearer_ok(self, request: Any) -> bool:
+        """Whether ``request`` carries the token as ``Authorization: Bearer`` (what commanding needs)."""
+        header = request.headers.get("Authorization", "")
+        return header.startswith("Bearer ") and self._is_token(header.removeprefix("Bearer ").strip())
 
     def _same_origin(self, request: Any) -> bool:
         origin = request.headers.get("Origin")
@@ -392,10 +408,11 @@ class ViewServer:
     async def _guard_impl(self, request: Any, handler: Any) -> Any:
         from aiohttp import web
 
-        if self.options.token is None and not is_loopback_host(request.url.host or ""):
-            # Bound to loopback without a token: a Host that is not loopback is a DNS-rebinding page.
+        loopback_bind = is_loopback_host(self.options.host)
+        if loopback_bind and not is_loopback_host(request.url.host or ""):
+            # Bound to loopback: a Host that is not loopback is a DNS-rebinding page.
             return web.Response(status=403, text="companion view: this view answers only to localhost\n")
-        if not self._token_ok(request):
+        if not loopback_bind and not self._token_ok(request):
             return web.Response(
                 status=401,
                 text="companion view: this view needs its token: open the address `companion view` printed (…/?token=…)\n",
@@ -406,7 +423,8 @@ class ViewServer:
         response = await handler(request)
         if response.prepared:  # a WebSocket or a stream: its headers are gone already
             return response
-        if self.options.token is not None and request.query.get("token") and isinstance(response, web.Response):
+        if not loopback_bind and request.query.get("token") and isinstance(response, web.Response):
+            # For the page's later reads (its WebSocket, its images); commanding needs the header.
             response.set_cookie(_COOKIE, self.options.token, httponly=True, samesite="Strict", path="/")
         response.headers.setdefault("X-Content-Type-Options", "nosniff")
         response.headers.setdefault("Referrer-Policy", "no-referrer")
@@ -426,9 +444,8 @@ class ViewServer:
     async def _index(self, request: Any) -> Any:
         from aiohttp import web
 
-        if self.options.token is not None and request.query.get("token"):
-            # The token goes into a cookie (set by the guard) and out of the address bar and history.
-            return web.Response(status=303, headers={"Location": "/"})
+        # With ?token=, the page keeps the token in the tab's sessionStorage and drops it from the
+        # address bar itself (a redirect would hide it from the page too).
         response = web.Response(body=self._static["index.html"], content_type="text/html", charset="utf-8")
         response.headers["Content-Security-Policy"] = (
             "default-src 'self'; img-src 'self' blob: data:; connect-src 'self'; style-src 'self'; "
@@ -543,6 +560,14 @@ class ViewServer:
                 {"ok": False, "error": {"type": "ReadOnly", "message": "this view has no control socket (read-only or a simulation)"}},
                 status=409,
             )
+        if not self._bearer_ok(request):
+            message = (
+                "commanding needs the view's token (Authorization: Bearer TOKEN): open the address "
+                "`companion view` printed (…/?token=…)"
+                if self.options.token is not None
+                else "this view has no token: it cannot command (start it with --token-file or $COMPANION_VIEW_TOKEN)"
+            )
+            return web.json_response({"ok": False, "error": {"type": "Forbidden", "message": message}}, status=403)
         try:
             body = await request.json()
         except (ValueError, UnicodeDecodeError):

@@ -12,9 +12,11 @@ import time
 from pathlib import Path
 
 
-def write_config(path: Path, port: int, extra: str = "", cruise: float = 1.0, bus: str = "", vehicle: str = "") -> None:
+def write_config(
+    path: Path, port: int, extra: str = "", cruise: float = 1.0, bus: str = "", vehicle: str = "", service: str = ""
+) -> None:
     """A config for a service on the sim camera that engages at once (autostart) with the peer on UDP
-    ``port``; ``bus``, ``vehicle``: more lines of those tables; ``extra``: more lines after [command]
+    ``port``; ``bus``, ``vehicle``, ``service``: more lines of those tables; ``extra``: more lines after [command]
     (more tables too)."""
     tmp = path.parent
     path.write_text(
@@ -34,6 +36,7 @@ connection = "udpin://127.0.0.1:{port}"
 {vehicle}
 [service]
 autostart = true
+{service}
 [command]
 cruise_speed_m_s = {cruise}
 {extra}

@@ -9,10 +9,25 @@ const STATE_COLOUR = {
   degraded: "#d93025", failsafe: "#d93025", passive: "#5a6675", disengaged: "#5a6675", finished: "#5a6675",
 };
 const $ = (id) => document.getElementById(id);
+const TOKEN_KEY = "companion-view-token";
+
+// The view's token arrives once in the address `companion view` printed (?token=...). Kept in this
+// tab's sessionStorage and sent as "Authorization: Bearer" with each command; dropped from the address
+// bar and the history. The server never puts it in a page.
+function takeToken() {
+  const url = new URL(location.href);
+  const given = url.searchParams.get("token");
+  if (given) {
+    try { sessionStorage.setItem(TOKEN_KEY, given); } catch (err) { view.token = given; }
+    url.searchParams.delete("token");
+    history.replaceState(null, "", url.pathname + url.search + url.hash);
+  }
+  try { return sessionStorage.getItem(TOKEN_KEY) || view.token || null; } catch (err) { return view.token || null; }
+}
 
 const view = {
   ws: null, lastMessageMs: 0, retryMs: 500, timeline: [], windowS: 60, thresholds: null,
-  control: false, health: null, previewUrl: null, previewCount: 0, viewStatus: null,
+  control: false, health: null, previewUrl: null, previewCount: 0, viewStatus: null, token: null,
 };
 
 function fmt(x, digits = 2, unit = "") {
@@ -243,7 +258,10 @@ function updateButtons() {
   }
   const msg = $("control-message");
   if (!view.control) { msg.textContent = "Read-only: this view has no control socket."; msg.dataset.readonly = "1"; }
-  else if (msg.dataset.readonly) { msg.textContent = "Engage and Resume ask for a second tap."; delete msg.dataset.readonly; }
+  else if (!view.token) {
+    for (const b of document.querySelectorAll(".btn")) { b.disabled = true; b.title = "commanding needs the view's token"; }
+    msg.textContent = "Watching only: to command, open the address `companion view` printed (…/?token=…)."; msg.dataset.readonly = "1";
+  } else if (msg.dataset.readonly) { msg.textContent = "Engage and Resume ask for a second tap."; delete msg.dataset.readonly; }
   $("engage").dataset.ready = (h.vehicle && h.vehicle.armed && !h.engaged) ? "1" : "0";
 }
 
@@ -264,7 +282,7 @@ async function onButton(ev) {
   try {
     const resp = await fetch("/api/control", {
       method: "POST", credentials: "same-origin",
-      headers: { "Content-Type": "application/json", "X-Companion-View": "1" },
+      headers: { "Content-Type": "application/json", "X-Companion-View": "1", "Authorization": `Bearer ${view.token}` },
       body: JSON.stringify({ cmd }),
     });
     const reply = await resp.json();
@@ -323,6 +341,7 @@ function watchdog() {
 }
 
 function start() {
+  view.token = takeToken();
   buildRegions();
   for (const b of document.querySelectorAll(".btn")) { b.dataset.label = b.textContent; b.addEventListener("click", onButton); }
   updateRegions(null); drawStick(null); drawTimeline(); updateButtons();
