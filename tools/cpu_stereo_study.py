@@ -30,7 +30,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from companion.bench import BenchSize, rendered_frames  # noqa: E402
+from companion.bench.common import BenchSize, rendered_frames  # noqa: E402
 from companion.config import CompanionConfig, apply_patch  # noqa: E402
 from companion.config.core import StereoConfig  # noqa: E402
 from companion.core.depth import disparity_to_depth  # noqa: E402

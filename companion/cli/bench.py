@@ -72,7 +72,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from companion.bench import DEFAULT_SIZES, parse_sizes
+    from companion.bench.common import DEFAULT_SIZES, parse_sizes
 
     if args.frames < 1 or args.warmup < 0:
         raise InputError("--frames must be >= 1 and --warmup >= 0")
@@ -85,15 +85,15 @@ def run(args: argparse.Namespace) -> int:
     if args.soak:
         if args.duration_s <= 0 or args.sample_s <= 0:
             raise InputError("--duration-s and --sample-s must be > 0")
-        from companion.service.soak import run_soak
+        from companion.bench.soak import run_soak
 
         report = run_soak(args, sizes[:1] if args.sizes else [s for s in sizes if s.width_px == 672] or sizes)
     elif args.e2e:
-        from companion.service.bench import run_e2e_bench
+        from companion.bench.e2e import run_e2e_bench
 
         report = run_e2e_bench(args, sizes)
     elif args.backend == "cupy":
-        from companion.gpu.bench import run_gpu_bench
+        from companion.bench.gpu import run_gpu_bench
 
         report = run_gpu_bench(args, sizes)
     else:
@@ -112,9 +112,9 @@ def run_cpu_bench(args: argparse.Namespace, sizes: list[Any]) -> dict[str, Any]:
 
 
 def _run_cpu_bench(args: argparse.Namespace, sizes: list[Any], tmp: Path) -> dict[str, Any]:
-    from companion.bench import format_table, machine_description, rendered_frames, stats_ms, write_bench_calibration
+    from companion.bench.common import format_table, machine_description, rendered_frames, stats_ms, write_bench_calibration
     from companion.config import CompanionConfig
-    from companion.core.fuzzy.bench import bench_fuzzy
+    from companion.bench.fuzzy import bench_fuzzy
     from companion.backends import make_pipeline
     from companion.sim.render import bench_render
 

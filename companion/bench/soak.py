@@ -97,9 +97,9 @@ class _Operator:
 
 def run_soak(args: argparse.Namespace, sizes: list[Any]) -> dict[str, Any]:
     """Run the soak for ``args.duration_s``; prints a row per sample and a summary; returns the figures."""
-    from companion.bench import format_table, machine_description, rendered_frames, stats_ms
+    from companion.bench.common import format_table, machine_description, rendered_frames, stats_ms
     from companion.config import parse_config
-    from companion.service.bench import BenchVehicleLink, _write_recording
+    from companion.bench.e2e import BenchVehicleLink, _write_recording
     from companion.service.daemon import Service
 
     size = sizes[0]

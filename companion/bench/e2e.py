@@ -101,7 +101,7 @@ def measure_e2e(
     mode = ("on" if viewer else "off") if isinstance(viewer, bool) else viewer
     if mode not in ("off", "on", "alternate"):
         raise ValueError(f"viewer must be off, on or alternate, not {viewer!r}")
-    from companion.bench import rendered_frames, stats_ms
+    from companion.bench.common import rendered_frames, stats_ms
     from companion.config import parse_config
     from companion.service.daemon import Service
 
@@ -260,7 +260,7 @@ def viewer_cost(
         ``{"watched": stats, "unwatched": stats, "p99_diff_ms", "p99_diff_ci95_ms": [lo, hi],
         "median_diff_ms", "windows": n}`` (milliseconds; diff = watched - unwatched).
     """
-    from companion.bench import stats_ms
+    from companion.bench.common import stats_ms
 
     lat = np.asarray(latencies_s, dtype=np.float64) * 1e3
     state = np.zeros(len(lat), dtype=np.int8)  # 0 none yet, 1 watched, 2 unwatched, 3 settling
@@ -288,7 +288,7 @@ def viewer_cost(
 
 def run_e2e_bench(args: argparse.Namespace, sizes: list[Any]) -> dict[str, Any]:
     """Frame-to-setpoint latency for each size with ``args.backend`` (and cupy too when CUDA is there)."""
-    from companion.bench import format_table, machine_description
+    from companion.bench.common import format_table, machine_description
     from companion.backends import cuda_available
 
     backends = [args.backend]

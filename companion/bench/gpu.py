@@ -39,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from companion.bench import (
+from companion.bench.common import (
     BenchSize,
     format_table,
     machine_description,
