@@ -288,7 +288,7 @@ def viewer_cost(
 
 def run_e2e_bench(args: argparse.Namespace, sizes: list[Any]) -> dict[str, Any]:
     """Frame-to-setpoint latency for each size with ``args.backend`` (and cupy too when CUDA is there)."""
-    from companion.bench.common import format_table, machine_description
+    from companion.report import format_table, machine_description
     from companion.backends import cuda_available
 
     backends = [args.backend]

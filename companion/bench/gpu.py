@@ -41,12 +41,11 @@ import numpy as np
 
 from companion.bench.common import (
     BenchSize,
-    format_table,
-    machine_description,
     rendered_frames,
     stats_ms,
     write_bench_calibration,
 )
+from companion.report import format_table, machine_description
 
 #: Upload settings tried for the whole-frame figure (gpu config overrides), besides the default.
 UPLOAD_VARIANTS: tuple[dict[str, Any], ...] = (

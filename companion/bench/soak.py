@@ -97,7 +97,8 @@ class _Operator:
 
 def run_soak(args: argparse.Namespace, sizes: list[Any]) -> dict[str, Any]:
     """Run the soak for ``args.duration_s``; prints a row per sample and a summary; returns the figures."""
-    from companion.bench.common import format_table, machine_description, rendered_frames, stats_ms
+    from companion.bench.common import rendered_frames, stats_ms
+    from companion.report import format_table, machine_description
     from companion.config import parse_config
     from companion.bench.e2e import BenchVehicleLink, _write_recording
     from companion.service.daemon import Service

@@ -253,7 +253,7 @@ def write_plot(result: Any, path: Path, side_view: bool = False) -> None:
 
 
 def _run_suite(args: argparse.Namespace, cfg: Any) -> int:
-    from companion.bench.common import machine_description
+    from companion.report import machine_description
     from companion.sim.suite import realization_line, run_suite, select_kinds, suite_courses, suite_table
 
     if args.workers < 1:
