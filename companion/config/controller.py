@@ -7,8 +7,8 @@ from typing import Literal
 from pydantic import Field, field_validator, model_validator
 
 from companion.config._base import StrictModel
-from companion.core.fuzzy.rules import parse_antecedent
-from companion.core.types import REGION_NAMES
+from companion.config.rules import parse_antecedent
+from companion.config.regions import REGION_NAMES
 
 MembershipShape = Literal["triangle", "trapezoid", "left_shoulder", "right_shoulder", "gaussian"]
 _SHAPE_ARITY = {"triangle": 3, "trapezoid": 4, "left_shoulder": 2, "right_shoulder": 2, "gaussian": 2}
