@@ -217,7 +217,7 @@ class PreviewPublisher:
         import zmq
 
         from companion.service.preview_worker import PreviewWorkerError
-        from companion.view.frame import near_far_m, pack
+        from companion.service.preview_frame import near_far_m, pack
 
         try:
             jpeg, encode_ms, height_px, width_px = self._worker.render(
@@ -268,7 +268,7 @@ class PreviewPublisher:
 
 def _inputs(offer: _Offer) -> Any:
     """What the preview of ``offer`` is drawn from (references; the worker gets copies through its pipe)."""
-    from companion.view.frame import PreviewInputs, near_far_m
+    from companion.service.preview_frame import PreviewInputs, near_far_m
 
     pipeline = offer.pipeline
     cfg = pipeline.config
@@ -439,7 +439,7 @@ class FlightRecorder:
         self.health_lines += 1
 
     def _preview_frame(self, frames: list[bytes]) -> None:
-        from companion.view.frame import unpack
+        from companion.service.preview_frame import unpack
 
         self._previews_seen += 1
         if self._full_preview or (self._previews_seen - 1) % self.preview_every:

@@ -47,7 +47,7 @@ class PreviewWorkerError(CompanionError):
 
 @dataclass(frozen=True)
 class _Job:
-    inputs: Any  # companion.view.frame.PreviewInputs with image and disparity set to None
+    inputs: Any  # companion.service.preview_frame.PreviewInputs with image and disparity set to None
     image_shape: tuple[int, ...]
     disparity_shape: tuple[int, ...] | None
     width_px: int
@@ -83,7 +83,7 @@ class PreviewWorker:
         self.starts = 0
 
     def render(self, inputs: Any, width_px: int, quality: int) -> tuple[bytes, float, int, int]:
-        """One preview: ``inputs`` (a :class:`companion.view.frame.PreviewInputs`) drawn at ``width_px``
+        """One preview: ``inputs`` (a :class:`companion.service.preview_frame.PreviewInputs`) drawn at ``width_px``
         and encoded at JPEG ``quality``.
 
         Returns:
@@ -237,7 +237,7 @@ def _read_exactly(stream: Any, n: int) -> bytes | None:
 def serve(stdin: Any, stdout: Any) -> None:
     """The child's loop: jobs from ``stdin``, replies to ``stdout`` (binary streams), until ``stdin``
     closes."""
-    from companion.view.frame import encode_jpeg, render_preview
+    from companion.service.preview_frame import encode_jpeg, render_preview
 
     while True:
         head = _read_exactly(stdin, _JOB_HEADER.size)

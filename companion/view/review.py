@@ -95,7 +95,7 @@ def _read_previews(folder: Path) -> list[tuple[float, Path]]:
 def _thresholds(folder: Path) -> tuple[float, float, str]:
     from companion.config import load_config
     from companion.errors import ConfigError
-    from companion.view.frame import near_far_m
+    from companion.service.preview_frame import near_far_m
 
     for name in ("config.toml", "companion.toml"):
         path = folder / name
