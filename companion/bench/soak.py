@@ -24,6 +24,11 @@ from typing import Any
 import numpy as np
 
 from companion.errors import CompanionError
+from companion.bench.common import rendered_frames, stats_ms
+from companion.bench.e2e import BenchVehicleLink, _write_recording
+from companion.config import parse_config
+from companion.report import format_table, machine_description
+from companion.service.daemon import Service
 
 #: The replayed camera rate, frames per second (a ZED at 672x376 runs at 15 to 100).
 SOAK_FPS_HZ = 30.0
@@ -97,12 +102,6 @@ class _Operator:
 
 def run_soak(args: argparse.Namespace, sizes: list[Any]) -> dict[str, Any]:
     """Run the soak for ``args.duration_s``; prints a row per sample and a summary; returns the figures."""
-    from companion.bench.common import rendered_frames, stats_ms
-    from companion.report import format_table, machine_description
-    from companion.config import parse_config
-    from companion.bench.e2e import BenchVehicleLink, _write_recording
-    from companion.service.daemon import Service
-
     size = sizes[0]
     report: dict[str, Any] = {
         "machine": machine_description(),

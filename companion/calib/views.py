@@ -26,6 +26,7 @@ import numpy as np
 from companion.core.stereo import to_bgr
 from companion.errors import CalibrationError, CameraError, InputError
 from companion.interfaces import CameraSource
+from companion.core.calibrate import detect_board, pair_views
 
 log = logging.getLogger(__name__)
 
@@ -222,8 +223,6 @@ def capture_views(
     Raises:
         CameraError: the camera failed.
     """
-    from companion.core.calibrate import detect_board, pair_views
-
     kept: list[StereoImage] = []
     signatures: list[_Seen] = []
     frames = 0

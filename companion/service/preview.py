@@ -39,8 +39,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from companion.config.document import render_config_toml
 from companion.errors import ConfigError
-from companion.service.preview_worker import PreviewWorker
+from companion.service.preview_frame import PreviewInputs, near_far_m, pack, unpack
+from companion.service.preview_worker import PreviewWorker, PreviewWorkerError
 from companion.service.runtime import resolve_endpoint, restrict_socket
 
 log = logging.getLogger(__name__)
@@ -216,9 +218,6 @@ class PreviewPublisher:
     def _publish(self, offer: _Offer, cfg: Any) -> None:
         import zmq
 
-        from companion.service.preview_worker import PreviewWorkerError
-        from companion.service.preview_frame import near_far_m, pack
-
         try:
             jpeg, encode_ms, height_px, width_px = self._worker.render(
                 _inputs(offer), cfg.preview_width_px, cfg.preview_jpeg_quality
@@ -268,8 +267,6 @@ class PreviewPublisher:
 
 def _inputs(offer: _Offer) -> Any:
     """What the preview of ``offer`` is drawn from (references; the worker gets copies through its pipe)."""
-    from companion.service.preview_frame import PreviewInputs, near_far_m
-
     pipeline = offer.pipeline
     cfg = pipeline.config
     near_m, far_m = near_far_m(cfg)
@@ -439,8 +436,6 @@ class FlightRecorder:
         self.health_lines += 1
 
     def _preview_frame(self, frames: list[bytes]) -> None:
-        from companion.service.preview_frame import unpack
-
         self._previews_seen += 1
         if self._full_preview or (self._previews_seen - 1) % self.preview_every:
             return
@@ -514,8 +509,6 @@ class ViewPlane:
                 log.error("no preview: %s", err)
                 self._on_error(f"no preview: {err}")
         if view.record_dir is not None:
-            from companion.config.document import render_config_toml
-
             recorder = FlightRecorder(
                 view.record_dir,
                 health_endpoint,

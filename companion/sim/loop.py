@@ -46,6 +46,7 @@ from companion.sim.courses import Course
 from companion.sim.render import Pose, TextureBank
 from companion.sim.scoring import HELD_RADIUS_M, Judge, Outcome
 from companion.sim.vehicle import SimVehicle, VehicleParams
+from companion.sim.scoring import ClearanceField
 
 #: Events scheduled at k/rate fire when the simulated time is within this of it (float steps).
 _EPS_S = 1e-9
@@ -574,8 +575,6 @@ def audit_points(memory: ObstacleMemory, course: Course, now_s: float, seen_from
     with (``map_*``: trusted, not seen past, within ``memory.height_band_m`` of the vehicle and within
     the detour's reach of it) and those that guard (``near_*``: seen nearer than
     ``memory.max_depth_m``)."""
-    from companion.sim.scoring import ClearanceField
-
     field_ = ClearanceField(course.scene)
     pts, trusted = memory.points(now_s, cfg.memory)
     near = memory.near_mask(now_s, cfg.memory)

@@ -45,6 +45,7 @@ from companion.sitl.flight import (
 from companion.sitl.pilot import Pilot
 from companion.sitl.px4 import Px4Ports, Px4Sitl, SitlError
 from companion.sitl.service import ServiceProcess
+from companion.sitl.ardupilot import ArduPilotPilot, ArduPilotSitl, CENTRED_STICKS_US, PITCH_FORWARD_US
 
 log = logging.getLogger(__name__)
 
@@ -494,8 +495,6 @@ async def fly_ardupilot_proximity(
     Raises:
         SitlError: a step failed (named), or ArduPilot reported no proximity data.
     """
-    from companion.sitl.ardupilot import CENTRED_STICKS_US, PITCH_FORWARD_US
-
     course = make_course("wall", seed)
     wall_m = float(course.goal_north_m - 2.0)
     margin_m = float(PROXIMITY_BOOT_PARAMS["AVOID_MARGIN"])
@@ -619,8 +618,6 @@ async def _run_ardupilot_proximity(
 ) -> ProximityResult:
     """The proximity scenario, starting ArduCopter SITL from ``ardupilot_build`` (with
     :data:`PROXIMITY_BOOT_PARAMS`) when given; else one must be running with them."""
-    from companion.sitl.ardupilot import ArduPilotPilot, ArduPilotSitl
-
     sitl = (
         ArduPilotSitl(ardupilot_build, workdir / "ardupilot", ports.instance, boot_params=PROXIMITY_BOOT_PARAMS)
         if ardupilot_build is not None
