@@ -10,32 +10,21 @@ registry when the config changes. A new backend is one entry here.
 
 from __future__ import annotations
 
-import importlib.util
 import logging
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from types import MappingProxyType
 
-from companion.config import CompanionConfig, for_backend
+from companion.config import CompanionConfig, concrete_backend
 from companion.core.estimator import Clock, CpuRegionEstimator, RegionEstimator
 from companion.core.pipeline import Pipeline
+from companion.devices import cuda_available
 from companion.errors import BackendError
 
+__all__ = ["BACKENDS", "Backend", "cuda_available", "make_estimator", "make_pipeline", "resolve_backend"]
+
 log = logging.getLogger(__name__)
-
-
-def cuda_available() -> bool:
-    """True when CuPy imports and sees at least one CUDA device."""
-    if importlib.util.find_spec("cupy") is None:
-        return False
-    try:
-        import cupy
-
-        return cupy.cuda.runtime.getDeviceCount() > 0
-    except Exception as err:  # CuPy raises several types when the driver or runtime is missing
-        log.debug("CuPy present but no usable CUDA device: %s", err)
-        return False
 
 
 def _cpu(cfg: CompanionConfig, width_px: int, height_px: int, clock: Clock) -> RegionEstimator:
@@ -77,19 +66,8 @@ BACKENDS: Mapping[str, Backend] = MappingProxyType(
 
 
 def resolve_backend(cfg: CompanionConfig) -> str:
-    """The backend ``cfg.stereo.backend`` means on this machine ("auto" → cupy or opencv-bm)."""
-    backend = cfg.stereo.backend
-    if backend == "auto":
-        return "cupy" if cuda_available() else "opencv-bm"
-    return backend
-
-
-def flight_config(cfg: CompanionConfig) -> CompanionConfig:
-    """``cfg`` with its "auto" map options resolved for the backend it gets on this machine
-    (:func:`resolve_backend`, :func:`~companion.config.for_backend`): what the pipeline and the
-    supervisor fly with. ``stereo.backend`` itself stays as written (the estimator resolves it), so
-    a config compared with a later one shows only what the user changed."""
-    return for_backend(cfg, resolve_backend(cfg))
+    """The backend ``cfg.stereo.backend`` means on this machine (:func:`~companion.config.concrete_backend`)."""
+    return concrete_backend(cfg.stereo.backend)
 
 
 def make_estimator(
@@ -115,7 +93,5 @@ def make_pipeline(
 ) -> Pipeline:
     """A :class:`~companion.core.pipeline.Pipeline` whose estimator (built now, and again when a config
     change needs a new one) comes from :func:`make_estimator`; ``estimator`` replaces the first one.
-    It flies :func:`flight_config` of ``cfg`` and of every config its ``reconfigure`` gets."""
-    return Pipeline(
-        cfg, width_px, height_px, make_estimator=make_estimator, estimator=estimator, clock=clock, prepare=flight_config
-    )
+    The config's backend-dependent settings were resolved when it was loaded."""
+    return Pipeline(cfg, width_px, height_px, make_estimator=make_estimator, estimator=estimator, clock=clock)

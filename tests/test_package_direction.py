@@ -1,5 +1,5 @@
 """Packages import in one direction: cli -> (sitl, view, bench) -> service -> sim -> backends -> gpu ->
-core -> config -> base types (errors, exitcodes, interfaces, report, framepool). Module-level and
+core -> config -> base types (errors, exitcodes, interfaces, report, framepool, devices). Module-level and
 function-level imports alike: a circle hidden inside a function is still a circle. Imports under
 ``if TYPE_CHECKING`` name types for annotations and load nothing; they may name any part.
 
@@ -27,6 +27,7 @@ RANK: dict[str, int] = {
     "interfaces": 0,
     "report": 0,
     "framepool": 0,
+    "devices": 0,
     "config": 1,
     "core": 2,
     "gpu": 3,

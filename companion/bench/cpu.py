@@ -33,25 +33,17 @@ def _run_cpu_bench(args: argparse.Namespace, sizes: list[Any], tmp: Path) -> dic
     print(f"machine: {report['machine']}")
     rows = []
     for size in sizes:
-        cfg = CompanionConfig()
-        cfg = cfg.model_copy(
-            update={
-                "stereo": cfg.stereo.model_copy(
-                    update={
-                        "backend": args.backend,
-                        "num_disparities": size.num_disparities,
-                        "matcher": args.matcher,
-                        "sgm_paths": args.sgm_paths,
-                    }
-                ),
-                "calibration": cfg.calibration.model_copy(
-                    update={
-                        "ideal_hfov_deg": 87.0,
-                        "file": None if args.no_rectify else write_bench_calibration(size, tmp),
-                    }
-                ),
-            }
-        )
+        calibration: dict[str, Any] = {"ideal_hfov_deg": 87.0}
+        if not args.no_rectify:
+            calibration["file"] = str(write_bench_calibration(size, tmp))
+        stereo = {
+            "backend": args.backend,
+            "num_disparities": size.num_disparities,
+            "matcher": args.matcher,
+            "sgm_paths": args.sgm_paths,
+        }
+        # Validated, so that the backend-dependent settings are resolved for this backend.
+        cfg = CompanionConfig.model_validate({"stereo": stereo, "calibration": calibration})
         _, frames = rendered_frames(size, n=min(32, args.frames + args.warmup))
         pipeline = make_pipeline(cfg, size.width_px, size.height_px)
         per_stage: dict[str, list[float]] = {}

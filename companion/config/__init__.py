@@ -16,7 +16,7 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any, get_args
 
-from pydantic import Field, ValidationError, model_validator
+from pydantic import Field, PrivateAttr, ValidationError, model_validator
 
 from companion.config._base import StrictModel
 from companion.config.core import (
@@ -44,6 +44,7 @@ from companion.config.service import (
 )
 from companion.config.sim import SimConfig
 from companion.config.view import ViewConfig
+from companion.devices import cuda_available
 from companion.errors import ConfigError
 
 if sys.version_info >= (3, 11):
@@ -74,7 +75,9 @@ __all__ = [
     "VehicleConfig",
     "ViewConfig",
     "apply_patch",
+    "as_written",
     "check_rig_config",
+    "concrete_backend",
     "for_backend",
     "load_bus_config",
     "load_config",
@@ -105,12 +108,37 @@ class CompanionConfig(StrictModel):
     view: ViewConfig = Field(default_factory=ViewConfig)
     envelope: EnvelopeConfig = Field(default_factory=EnvelopeConfig)
 
+    #: The settings written "auto" and resolved for the backend, as ("section", "field") pairs.
+    _from_auto: frozenset[tuple[str, str]] = PrivateAttr(default=frozenset())
+
     @model_validator(mode="after")
     def _within_envelope(self) -> CompanionConfig:
         problems = envelope_violations(self)
         if problems:
             raise ValueError("outside the safety envelope: " + "; ".join(problems))
         return self
+
+    @model_validator(mode="after")
+    def _resolve_for_backend(self) -> CompanionConfig:
+        """Every validated config flies its backend-dependent settings resolved (:func:`for_backend`
+        with :func:`concrete_backend`): nothing downstream ever reads "auto"."""
+        auto = frozenset((s, f) for s, f in AUTO_FOR_BACKEND if getattr(getattr(self, s), f) == "auto")
+        if not auto:
+            return self
+        resolved = for_backend(self, concrete_backend(self.stereo.backend))
+        for section in {s for s, _ in auto}:
+            # The model is frozen once validation returns; this is still validation.
+            object.__setattr__(self, section, getattr(resolved, section))
+        self._from_auto = auto
+        return self
+
+
+#: The settings whose "auto" means "as the backend's disparity map needs" (:func:`for_backend`).
+AUTO_FOR_BACKEND: tuple[tuple[str, str], ...] = (
+    ("memory", "block_erode_px"),
+    ("detour", "cone_from_start"),
+    ("detour", "through_squeeze"),
+)
 
 
 #: Settings that were renamed: the old key's path and what replaces it, so that a config written for an
@@ -168,6 +196,24 @@ def parse_config(data: Mapping[str, Any], source: str = "config", *, check_rig: 
 _OWN_MATCHER_BACKENDS = ("cupy", "reference")
 
 
+def concrete_backend(backend: str) -> str:
+    """The backend a ``stereo.backend`` value means on this machine: "auto" is cupy when CuPy sees a
+    CUDA device, else opencv-bm; any other name is itself."""
+    if backend == "auto":
+        return "cupy" if cuda_available() else "opencv-bm"
+    return backend
+
+
+def as_written(cfg: CompanionConfig) -> dict[str, Any]:
+    """``cfg`` as JSON-ready tables, with the settings that were written "auto" (and resolved for the
+    backend) back to "auto": what a patch merges into, so a change of backend or matcher resolves
+    them again."""
+    data = cfg.model_dump(mode="json")
+    for section, name in cfg._from_auto:
+        data[section][name] = "auto"
+    return data
+
+
 def semi_global_map(stereo: StereoConfig, backend: str) -> bool:
     """Whether ``backend`` (a concrete ``stereo.backend``, not "auto") with ``stereo`` makes the
     semi-global matcher's dense map, the one the ``"auto"`` options of ``[memory]`` and ``[detour]``
@@ -181,10 +227,9 @@ def for_backend(cfg: CompanionConfig, backend: str) -> CompanionConfig:
     matcher's dense map (:func:`semi_global_map`), 0 and off with any other. The same object when
     nothing is "auto".
 
-    The map decides: the SGM smears depth edges onto what is behind them and fills plain walls, and
-    the three gained goals with it; StereoBM leaves holes, which they read as ways through. The
-    shell resolves once it knows the backend (``companion.backends.flight_config``); the core reads
-    an unresolved "auto" as off, the behaviour before the options existed.
+    The map decides: the SGM smears depth edges onto what is behind them and fills plain walls, which
+    the three correct; StereoBM leaves holes, which they would read as ways through. Every validated
+    :class:`CompanionConfig` is resolved this way for :func:`concrete_backend` of its backend.
 
     Raises:
         ValueError: ``backend`` is "auto" or names no backend.
@@ -313,7 +358,7 @@ def apply_patch(config: CompanionConfig, patch: Mapping[str, Any], *, check_rig:
     """
     if not isinstance(patch, Mapping):
         raise ConfigError(f"patch: expected a table/object, got {type(patch).__name__}")
-    merged = _deep_merge(config.model_dump(mode="json"), patch, "")
+    merged = _deep_merge(as_written(config), patch, "")
     try:
         text = json.dumps(merged, allow_nan=False, default=str)
     except ValueError:

@@ -429,7 +429,7 @@ def _through(
     ``lookahead_m`` (at most 0.8 of the map's depth: beyond it the map has not seen a wall go on)."""
     out = {1: math.inf, -1: math.inf}
     reach = min(cfg.lookahead_m, 0.8 * map_depth_m)
-    way_m = cfg.squeeze_clearance_m if cfg.through_squeeze is True else cfg.clearance_m  # unresolved auto: off
+    way_m = cfg.squeeze_clearance_m if cfg.through_squeeze is True else cfg.clearance_m  # "auto" is resolved at load
     gn = gd = None
     if goal_distance_m is not None:
         gn, gd = goal_distance_m * math.cos(goal_bearing_rad), goal_distance_m * math.sin(goal_bearing_rad)
@@ -1341,7 +1341,7 @@ class DetourPlanner:
     def _start_cone(self, pos: np.ndarray, cfg: DetourConfig) -> bool:
         """Whether the start's goal direction widens the histogram here (``cone_from_start``, within
         ``cone_from_start_max_m`` of where the detour began)."""
-        # an unresolved auto is off (companion.config.for_backend)
+        # only a resolved true widens it (the loader resolves "auto"; a model built without validation: off)
         return cfg.cone_from_start is True and self._distance_from_start_m(pos) <= cfg.cone_from_start_max_m
 
     def _distance_from_start_m(self, pos: np.ndarray) -> float:

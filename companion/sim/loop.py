@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from companion.backends import flight_config, make_pipeline
+from companion.backends import make_pipeline
 from companion.config import CompanionConfig
 from companion.core.command import NO_PROGRESS_HOLD
 from companion.core.course import CourseHold
@@ -309,7 +309,7 @@ def fly(
             (:func:`audit_points`; slow: a measurement, not for suites).
     """
     wall0 = clock()
-    cfg = flight_config(simulator_config(cfg))  # the map options the backend here gets
+    cfg = simulator_config(cfg)
     sim, cmd = cfg.sim, cfg.command
     pipeline = make_pipeline(cfg, sim.eye_width_px, sim.eye_height_px)
     params = VehicleParams.from_config(sim)
