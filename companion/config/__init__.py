@@ -252,7 +252,7 @@ def for_backend(cfg: CompanionConfig, backend: str) -> CompanionConfig:
 
 
 def check_rig_config(cfg: CompanionConfig, source: str = "config") -> list[str]:
-    """Check the stereo setting against the rig at the camera's eye size (issue 15, item 6).
+    """Check the stereo setting against the rig at the camera's eye size.
 
     The rig is the calibration file's rectified geometry, or the ideal rig without one; a calibration
     that cannot be loaded here is left to the estimator, which reports it. See
