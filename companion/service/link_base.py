@@ -293,7 +293,7 @@ class MavsdkLinkBase:
         self._direct = self._utility = None
         return plugins
 
-    # ------------------------------------------------------------------ presence (issue 18)
+    # ------------------------------------------------------------------ presence
 
     async def _send_direct(self, name: str, fields: dict[str, Any]) -> None:
         """Send MAVLink message ``name`` with ``fields`` (broadcast) through ``mavlink_direct``.

@@ -1,4 +1,4 @@
-"""The service on the ground station's screen (issue 18): its heartbeat, its STATUSTEXT lines and the
+"""The service on the ground station's screen: its heartbeat, its STATUSTEXT lines and the
 OBSTACLE_DISTANCE it feeds the autopilot's own collision prevention.
 
 :class:`PresencePlane` is a part of :class:`~companion.service.daemon.Service` (a mixin). The control

@@ -29,7 +29,7 @@ What MAVSDK does that matters here (read in MAVSDK's ``cpp/src/mavsdk/plugins/of
 * Leaving offboard to Hold is only ever requested while we own offboard: on PX4 ``action.hold()``
   (the same DO_SET_MODE), on ArduPilot LOITER by its own mode number.
 
-The service's presence on the ground station (issue 18), through the same MAVSDK:
+The service's presence on the ground station, through the same MAVSDK:
 
 * MAVSDK is configured as a companion computer with ``vehicle.system_id`` (the vehicle's) and
   ``vehicle.component_id`` (196, MAV_COMP_ID_OBSTACLE_AVOIDANCE), so everything the service sends comes

@@ -1,4 +1,4 @@
-"""Issue 18's proofs with PX4 or ArduPilot SITL in the loop (``companion sitl --scenario ...``).
+"""The ground-station scenarios with PX4 or ArduPilot SITL in the loop (``companion sitl --scenario ...``).
 
 * **collision-prevention**: the service only feeds OBSTACLE_DISTANCE (never engaged). With ``CP_DIST``
   set, a ground-station pilot flies Position mode (MAVSDK ``manual_control``, stick full forward) at the
