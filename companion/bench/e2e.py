@@ -25,12 +25,12 @@ from typing import Any
 
 import numpy as np
 
-from companion.core.types import VelocitySetpoint
-from companion.errors import CompanionError
-from companion.interfaces import VehicleState
 from companion.backends import cuda_available
 from companion.bench.common import rendered_frames, stats_ms
 from companion.config import parse_config
+from companion.core.types import VelocitySetpoint
+from companion.errors import CompanionError
+from companion.interfaces import VehicleState
 from companion.report import format_table, machine_description
 from companion.service.daemon import Service
 from companion.service.recording import RecordingWriter

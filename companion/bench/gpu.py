@@ -39,13 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from companion.bench.common import (
-    BenchSize,
-    rendered_frames,
-    stats_ms,
-    write_bench_calibration,
-)
-from companion.report import format_table, machine_description
+from companion.bench.common import BenchSize, rendered_frames, stats_ms, write_bench_calibration
 from companion.config import CompanionConfig
 from companion.config.core import StereoConfig
 from companion.core.disparity import OpenCVSGBMMatcher
@@ -53,6 +47,7 @@ from companion.core.estimator import CpuRegionEstimator
 from companion.core.stereo import split_side_by_side, to_grey
 from companion.gpu import CupyRegionEstimator
 from companion.gpu.plan import SGM_CENSUS_TILE
+from companion.report import format_table, machine_description
 
 #: Upload settings tried for the whole-frame figure (gpu config overrides), besides the default.
 UPLOAD_VARIANTS: tuple[dict[str, Any], ...] = (

@@ -23,10 +23,10 @@ from typing import Any
 
 import numpy as np
 
-from companion.errors import CompanionError
 from companion.bench.common import rendered_frames, stats_ms
 from companion.bench.e2e import BenchVehicleLink, _write_recording
 from companion.config import parse_config
+from companion.errors import CompanionError
 from companion.report import format_table, machine_description
 from companion.service.daemon import Service
 

@@ -21,12 +21,12 @@ from pathlib import Path
 
 import numpy as np
 
+from companion.backends import make_estimator
 from companion.calib.views import StereoImage
 from companion.config import CompanionConfig
+from companion.core.lut import DepthLUT
 from companion.core.types import REGION_INDEX
 from companion.errors import CalibrationError, InputError
-from companion.backends import make_estimator
-from companion.core.lut import DepthLUT
 
 log = logging.getLogger(__name__)
 

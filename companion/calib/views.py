@@ -23,10 +23,10 @@ from pathlib import Path
 
 import numpy as np
 
+from companion.core.calibrate import detect_board, pair_views
 from companion.core.stereo import to_bgr
 from companion.errors import CalibrationError, CameraError, InputError
 from companion.interfaces import CameraSource
-from companion.core.calibrate import detect_board, pair_views
 
 log = logging.getLogger(__name__)
 

@@ -24,8 +24,8 @@ from typing import Annotated, Any, Literal, Union
 
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
 
-from companion.errors import ProtocolError
 from companion.core.goal import GoalSpec
+from companion.errors import ProtocolError
 
 RequestId = Union[Annotated[str, Field(max_length=128)], Annotated[int, Field(ge=-(2**53), le=2**53)], None]
 

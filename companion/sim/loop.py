@@ -44,9 +44,8 @@ from companion.interfaces import Frame
 from companion.sim.camera import SimCamera
 from companion.sim.courses import Course
 from companion.sim.render import Pose, TextureBank
-from companion.sim.scoring import HELD_RADIUS_M, Judge, Outcome
+from companion.sim.scoring import HELD_RADIUS_M, ClearanceField, Judge, Outcome
 from companion.sim.vehicle import SimVehicle, VehicleParams
-from companion.sim.scoring import ClearanceField
 
 #: Events scheduled at k/rate fire when the simulated time is within this of it (float steps).
 _EPS_S = 1e-9

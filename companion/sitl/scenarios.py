@@ -33,6 +33,7 @@ import numpy as np
 from companion.config import CompanionConfig
 from companion.sim.courses import Course, make_course
 from companion.sim.scoring import Outcome
+from companion.sitl.ardupilot import CENTRED_STICKS_US, PITCH_FORWARD_US, ArduPilotPilot, ArduPilotSitl
 from companion.sitl.flight import (
     PARAMS_BY_AUTOPILOT,
     SITL_PARAMS,
@@ -45,7 +46,6 @@ from companion.sitl.flight import (
 from companion.sitl.pilot import Pilot
 from companion.sitl.px4 import Px4Ports, Px4Sitl, SitlError
 from companion.sitl.service import ServiceProcess
-from companion.sitl.ardupilot import ArduPilotPilot, ArduPilotSitl, CENTRED_STICKS_US, PITCH_FORWARD_US
 
 log = logging.getLogger(__name__)
 

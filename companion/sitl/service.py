@@ -23,8 +23,8 @@ from typing import Any
 from companion.config import CompanionConfig
 from companion.config.document import render_config_toml
 from companion.service.aio import cancel_and_wait
-from companion.sitl.px4 import SitlError, log_tail
 from companion.service.client import ClientError, ControlClient
+from companion.sitl.px4 import SitlError, log_tail
 
 log = logging.getLogger(__name__)
 

@@ -26,12 +26,11 @@ from html import escape
 from pathlib import Path
 from typing import Any
 
-from companion.core.types import REGION_NAMES
-from companion.errors import InputError
-from companion.view.svg import KIND_COLOUR, STATE_COLOUR, Plot
 from companion.config import load_config
-from companion.errors import ConfigError
+from companion.core.types import REGION_NAMES
+from companion.errors import ConfigError, InputError
 from companion.service.preview_frame import near_far_m
+from companion.view.svg import KIND_COLOUR, STATE_COLOUR, Plot
 
 log = logging.getLogger(__name__)
 

@@ -18,10 +18,10 @@ import time
 from types import SimpleNamespace
 from typing import Any
 
-from companion.errors import InputError
 from companion.core.geometry import StereoGeometry
 from companion.core.regions import region_layout
 from companion.core.types import REGION_NAMES
+from companion.errors import InputError
 from companion.service.preview import PreviewPublisher
 from companion.service.protocol import encode
 from companion.sim.loop import fly, simulator_config
