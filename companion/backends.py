@@ -10,33 +10,21 @@ registry when the config changes. A new backend is one entry here.
 
 from __future__ import annotations
 
-import importlib.util
 import logging
-import os
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from types import MappingProxyType
 
-from companion.config import CompanionConfig, for_backend
+from companion.config import CompanionConfig, concrete_backend
 from companion.core.estimator import Clock, CpuRegionEstimator, RegionEstimator
 from companion.core.pipeline import Pipeline
+from companion.devices import cuda_available
 from companion.errors import BackendError
 
+__all__ = ["BACKENDS", "Backend", "cuda_available", "make_estimator", "make_pipeline", "resolve_backend"]
+
 log = logging.getLogger(__name__)
-
-
-def cuda_available() -> bool:
-    """True when CuPy imports and sees at least one CUDA device."""
-    if importlib.util.find_spec("cupy") is None:
-        return False
-    try:
-        import cupy
-
-        return cupy.cuda.runtime.getDeviceCount() > 0
-    except Exception as err:  # CuPy raises several types when the driver or runtime is missing
-        log.debug("CuPy present but no usable CUDA device: %s", err)
-        return False
 
 
 def _cpu(cfg: CompanionConfig, width_px: int, height_px: int, clock: Clock) -> RegionEstimator:
@@ -55,29 +43,6 @@ def _cpu_sgm(cfg: CompanionConfig, width_px: int, height_px: int, clock: Clock) 
         median=st.sgm_median, threads=st.cpu_threads,
     )
     return CpuRegionEstimator(cfg, width_px, height_px, clock=clock, matcher=matcher)
-
-
-#: Threads the cpu-sgm engine's path aggregation (most of its work) runs on at most: two halves.
-CPU_SGM_MAX_THREADS = 2
-
-
-def cpu_sgm_keeps_rate(cfg: CompanionConfig, cores: int) -> bool:
-    """Whether ``cpu-sgm`` keeps the camera's frame rate with ``cores`` CPU cores: camera pixels ×
-    disparities × frames per second at most ``stereo.cpu_sgm_cells_per_core_s`` per thread it may
-    use (``stereo.cpu_threads``, 0 = ``cores``; at most :data:`CPU_SGM_MAX_THREADS`). Pure: the
-    caller counts the cores."""
-    st, cam = cfg.stereo, cfg.camera
-    threads = min(st.cpu_threads, cores) if st.cpu_threads > 0 else cores
-    threads = max(1, min(threads, CPU_SGM_MAX_THREADS))
-    work = cam.width_px * cam.height_px * st.num_disparities * cam.fps_hz
-    return st.cpu_sgm_cells_per_core_s > 0 and work <= st.cpu_sgm_cells_per_core_s * threads
-
-
-def _cores() -> int:
-    """CPU cores this process may run on."""
-    if hasattr(os, "sched_getaffinity"):
-        return len(os.sched_getaffinity(0))
-    return os.cpu_count() or 1
 
 
 def _cupy(cfg: CompanionConfig, width_px: int, height_px: int, clock: Clock) -> RegionEstimator:
@@ -116,25 +81,8 @@ BACKENDS: Mapping[str, Backend] = MappingProxyType(
 
 
 def resolve_backend(cfg: CompanionConfig) -> str:
-    """The backend ``cfg.stereo.backend`` means on this machine: "auto" → cupy with a CUDA device,
-    else cpu-sgm where Numba is installed and it keeps the camera's rate (:func:`cpu_sgm_keeps_rate`),
-    else opencv-bm. The same answer for the same config on the same machine (no timing)."""
-    backend = cfg.stereo.backend
-    if backend == "auto":
-        if cuda_available():
-            return "cupy"
-        if importlib.util.find_spec("numba") is not None and cpu_sgm_keeps_rate(cfg, _cores()):
-            return "cpu-sgm"
-        return "opencv-bm"
-    return backend
-
-
-def flight_config(cfg: CompanionConfig) -> CompanionConfig:
-    """``cfg`` with its "auto" map options resolved for the backend it gets on this machine
-    (:func:`resolve_backend`, :func:`~companion.config.for_backend`): what the pipeline and the
-    supervisor fly with. ``stereo.backend`` itself stays as written (the estimator resolves it), so
-    a config compared with a later one shows only what the user changed."""
-    return for_backend(cfg, resolve_backend(cfg))
+    """The backend ``cfg.stereo.backend`` means on this machine (:func:`~companion.config.concrete_backend`)."""
+    return concrete_backend(cfg)
 
 
 def make_estimator(
@@ -160,7 +108,5 @@ def make_pipeline(
 ) -> Pipeline:
     """A :class:`~companion.core.pipeline.Pipeline` whose estimator (built now, and again when a config
     change needs a new one) comes from :func:`make_estimator`; ``estimator`` replaces the first one.
-    It flies :func:`flight_config` of ``cfg`` and of every config its ``reconfigure`` gets."""
-    return Pipeline(
-        cfg, width_px, height_px, make_estimator=make_estimator, estimator=estimator, clock=clock, prepare=flight_config
-    )
+    The config's backend-dependent settings were resolved when it was loaded."""
+    return Pipeline(cfg, width_px, height_px, make_estimator=make_estimator, estimator=estimator, clock=clock)

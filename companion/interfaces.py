@@ -8,11 +8,12 @@ it scores is the product's own.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
 import numpy as np
 
-from companion.core.types import VelocitySetpoint
+if TYPE_CHECKING:  # annotations only: the seams sit below the core that fills them
+    from companion.core.types import VelocitySetpoint
 
 
 @dataclass(frozen=True)

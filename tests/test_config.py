@@ -199,22 +199,45 @@ def test_a_calibration_that_cannot_be_loaded_is_left_to_the_estimator(tmp_path: 
     ],
 )
 def test_the_auto_map_options_follow_the_matcher(backend: str, matcher: str, dense: bool) -> None:
-    """memory.block_erode_px, detour.cone_from_start and detour.through_squeeze default to "auto": 1 px
-    and on with the semi-global matcher's dense map, 0 and off with the others; set values stay."""
-    from companion.config import for_backend, semi_global_map
+    """memory.block_erode_px, detour.cone_from_start and detour.through_squeeze default to "auto", which
+    the loader resolves for the backend: 1 px and on with the semi-global matcher's dense map, 0 and off
+    with the others; set values stay. No "auto" is left in a loaded config."""
+    from companion.config import as_written, for_backend, semi_global_map
 
-    cfg = parse_config({"stereo": {"matcher": matcher}})
-    assert (cfg.memory.block_erode_px, cfg.detour.cone_from_start, cfg.detour.through_squeeze) == ("auto",) * 3
+    cfg = parse_config({"stereo": {"backend": backend, "matcher": matcher}})
     assert semi_global_map(cfg.stereo, backend) is dense
-    got = for_backend(cfg, backend)
-    assert (got.memory.block_erode_px, got.detour.cone_from_start, got.detour.through_squeeze) == (int(dense), dense, dense)
-    assert got.stereo.backend == cfg.stereo.backend  # the estimator resolves "auto" itself
-    assert for_backend(got, backend) is got  # nothing left to resolve
+    assert (cfg.memory.block_erode_px, cfg.detour.cone_from_start, cfg.detour.through_squeeze) == (int(dense), dense, dense)
+    assert cfg.stereo.backend == backend
+    assert for_backend(cfg, backend) is cfg  # nothing left to resolve
+    written = as_written(cfg)
+    assert (written["memory"]["block_erode_px"], written["detour"]["through_squeeze"]) == ("auto", "auto")
     fixed = parse_config(
-        {"stereo": {"matcher": matcher}, "memory": {"block_erode_px": 2}, "detour": {"cone_from_start": not dense}}
+        {"stereo": {"backend": backend, "matcher": matcher}, "memory": {"block_erode_px": 2},
+         "detour": {"cone_from_start": not dense}}
     )
-    got = for_backend(fixed, backend)
-    assert (got.memory.block_erode_px, got.detour.cone_from_start, got.detour.through_squeeze) == (2, not dense, dense)
+    assert (fixed.memory.block_erode_px, fixed.detour.cone_from_start, fixed.detour.through_squeeze) == (2, not dense, dense)
+    assert as_written(fixed)["memory"]["block_erode_px"] == 2
+
+
+def test_a_patch_resolves_the_auto_settings_again_for_a_new_matcher() -> None:
+    """A live change of matcher re-resolves the settings written "auto"; one set by the patch stays."""
+    sgm = parse_config({"stereo": {"backend": "reference", "matcher": "sgm"}})
+    assert sgm.detour.through_squeeze is True
+    sad = apply_patch(sgm, {"stereo": {"matcher": "sad"}})
+    assert (sad.memory.block_erode_px, sad.detour.through_squeeze) == (0, False)
+    kept = apply_patch(sgm, {"detour": {"through_squeeze": False}})
+    assert (kept.detour.through_squeeze, kept.detour.cone_from_start) == (False, True)
+    assert apply_patch(kept, {"stereo": {"matcher": "sad"}}).detour.through_squeeze is False
+
+
+def test_the_default_config_resolves_auto_for_the_backend_this_machine_gets() -> None:
+    from companion.config import concrete_backend, semi_global_map
+
+    cfg = CompanionConfig()
+    assert concrete_backend(cfg) in ("cupy", "cpu-sgm", "opencv-bm")
+    dense = semi_global_map(cfg.stereo, concrete_backend(cfg))
+    assert cfg.stereo.backend == "auto"  # the estimator resolves the backend itself
+    assert (cfg.memory.block_erode_px, cfg.detour.through_squeeze) == (int(dense), dense)
 
 
 def test_the_auto_map_options_need_a_concrete_backend_and_name_their_field_when_wrong() -> None:

@@ -222,9 +222,11 @@ def test_auto_picks_cpu_sgm_where_it_keeps_the_camera_rate(
     cfg = CompanionConfig.model_validate(
         {"stereo": {"cpu_threads": threads, "num_disparities": 64}, "camera": {"width_px": 672, "height_px": 376, "fps_hz": fps}}
     )
-    assert backends.cpu_sgm_keeps_rate(cfg, cores) is keeps
-    monkeypatch.setattr(backends, "cuda_available", lambda: False)
-    monkeypatch.setattr(backends, "_cores", lambda: cores)
+    import companion.config as config
+
+    assert config.cpu_sgm_keeps_rate(cfg, cores) is keeps
+    monkeypatch.setattr(config, "cuda_available", lambda: False)
+    monkeypatch.setattr(config, "cpu_cores", lambda: cores)
     assert backends.resolve_backend(cfg) == ("cpu-sgm" if keeps else "opencv-bm")
     never = cfg.model_copy(update={"stereo": cfg.stereo.model_copy(update={"cpu_sgm_cells_per_core_s": 0.0})})
     assert backends.resolve_backend(never) == "opencv-bm"

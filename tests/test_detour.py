@@ -109,7 +109,7 @@ def test_the_cone_from_the_start_never_passes_half_a_turn() -> None:
 
 def test_the_planner_asks_for_the_cone_from_the_start_only_when_configured() -> None:
     mem = _trusted_memory(_wall(2.5, -4.0, 4.0))
-    for on in (False, True, "auto"):  # an unresolved auto is off (companion.config.for_backend)
+    for on in (False, True, "auto"):  # "auto" in a model built without validation is off (the loader resolves it)
         cfg = DET.model_copy(update={"cone_from_start": on})
         p = DetourPlanner(defer=True)
         pos = np.array([0.0, 0.0, -1.5])
@@ -173,7 +173,7 @@ def test_an_opening_the_map_narrowed_opens_its_side_as_a_closed_opening() -> Non
     assert math.isinf(plain.through_m[-1]) and math.isinf(plain.through_m[1])
     assert plain.opening_m[-1] == pytest.approx(3.0, abs=0.05) and math.isinf(plain.opening_m[1])
     assert _pick_side(plain, True, DET) == -1
-    for unresolved in ("auto", False):  # an unresolved auto is off (companion.config.for_backend)
+    for unresolved in ("auto", False):  # "auto" in a model built without validation is off (the loader resolves it)
         off = DET.model_copy(update={"through_squeeze": unresolved})
         assert np.array_equal(polar_histogram(pts, 0.0, off, MEM.map_depth_m, goal_distance_m=4.5).through_m, plain.through_m)
     squeeze = DET.model_copy(update={"through_squeeze": True})

@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 import pytest
 
-from companion.bench import BenchSize, rendered_frames
+from companion.bench.common import BenchSize, rendered_frames
 from companion.config import CompanionConfig
 from companion.core.calibration import Rectifier, StereoCalibration, make_rectifier, remap_linear_reference
 from companion.core.disparity.reference import sad_block_match

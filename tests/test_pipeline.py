@@ -120,9 +120,9 @@ def test_reconfigure_changes_the_next_decision_without_rebuilding_the_estimator(
 
 
 def test_the_pipeline_flies_the_auto_map_options_resolved_on_every_config_it_gets() -> None:
-    """make_pipeline resolves memory.block_erode_px "auto" for the backend (the reference SGM: 1 px), on
-    the first config and on every reconfigure; a config that only differs in the controller changes only
-    the controller."""
+    """The loader resolves memory.block_erode_px "auto" for the backend (the reference SGM: 1 px) and the
+    pipeline flies it, on the first config and on every reconfigure; a config that only differs in the
+    controller changes only the controller."""
     cfg = parse_config({"stereo": {"backend": "reference", "matcher": "sgm"}})
     pipeline = make_pipeline(cfg, W, H)
     assert pipeline.config.memory.block_erode_px == 1 and pipeline.config.detour.through_squeeze is True

@@ -15,7 +15,7 @@ import pytest
 from peers.fakes import avoid_scene_preview_inputs, service_config
 
 from companion.service.preview_worker import PreviewWorker, PreviewWorkerError
-from companion.view.frame import PreviewInputs, encode_jpeg, render_preview
+from companion.service.preview_frame import PreviewInputs, encode_jpeg, render_preview
 
 
 @pytest.fixture(scope="module")

@@ -16,7 +16,7 @@ from companion.cli import main
 from companion.config import CompanionConfig, apply_patch
 from companion.errors import CameraError, InputError
 from companion.recorded.camera import RecordedCamera
-from companion.recorded.replay import replay_sequence
+from companion.view.replay import replay_sequence
 from companion.recorded.sequence import PairMatcher, SequenceReport, open_sequence, pick_topics
 from recorded_data import GEOMETRY, PERIOD_NS, Flight, distorted_rig, render_flight, write_asl, write_bag
 

@@ -195,7 +195,7 @@ class _Telemetry:
 
 def test_telemetry_pose_is_placed_in_the_scene_and_stamped_with_its_arrival() -> None:
     from companion.service.camera import TelemetryPose
-    from companion.sim.placement import CoursePlacement
+    from companion.core.placement import CoursePlacement
 
     now = [100.0]
     tel = _Telemetry()
@@ -219,7 +219,7 @@ def test_telemetry_pose_is_placed_in_the_scene_and_stamped_with_its_arrival() ->
 
 def test_sim_camera_on_telemetry_waits_for_a_pose_then_reports_it_missing() -> None:
     from companion.service.camera import TelemetryPose
-    from companion.sim.placement import CoursePlacement
+    from companion.core.placement import CoursePlacement
 
     cfg = parse_config(
         {"camera": {"fps_hz": 100.0, "width_px": 160, "height_px": 120, "sim_world": "course", "sim_course": "head-on", "sim_pose": "telemetry"}}

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from peers.fakes import FakeLink, ServiceRunner, avoid_scene_camera, service_config, wait_until
 
-from companion.bench import BenchSize
+from companion.bench.common import BenchSize
 from companion.cli import main
 from companion.config import CompanionConfig
 from companion.errors import CompanionError, InputError
@@ -81,7 +81,7 @@ def test_parse_assignments() -> None:
 
 
 def test_e2e_bench_counts_frames_and_never_processes_one_twice(capsys) -> None:
-    from companion.service.bench import run_e2e_bench
+    from companion.bench.e2e import run_e2e_bench
 
     args = argparse.Namespace(backend="opencv-bm", frames=15, warmup=3)
     report = run_e2e_bench(args, [BenchSize(320, 240, 32)])
@@ -93,7 +93,7 @@ def test_e2e_bench_counts_frames_and_never_processes_one_twice(capsys) -> None:
 
 
 def test_viewer_cost_splits_latencies_by_the_subscription_of_their_window() -> None:
-    from companion.service.bench import _SETTLE_SAMPLES, viewer_cost
+    from companion.bench.e2e import _SETTLE_SAMPLES, viewer_cost
 
     # 3 windows of 40 frames: unwatched 10 ms, watched 12 ms (the first few after each change skipped).
     lat_s = [0.010] * 40 + [0.012] * 40 + [0.010] * 40
@@ -108,7 +108,7 @@ def test_viewer_cost_splits_latencies_by_the_subscription_of_their_window() -> N
 
 
 def test_e2e_bench_alternates_the_viewer_and_compares_both_kinds_of_window(tmp_path: Path) -> None:
-    from companion.service.bench import measure_e2e
+    from companion.bench.e2e import measure_e2e
 
     fig = measure_e2e(BenchSize(320, 240, 32), "opencv-bm", 150, 5, tmp_path, viewer="alternate", window_s=0.5)
     cost = fig["viewer_cost"]

@@ -539,12 +539,13 @@ def test_the_sim_scene_placement_applies_live_but_the_rest_of_the_camera_waits_f
 
 
 def test_the_auto_map_options_fly_as_the_backend_asks(running, tmp_path: Path) -> None:
-    """memory.block_erode_px, detour.cone_from_start and detour.through_squeeze are "auto" in the config
-    the service shows; the supervisor and the pipeline fly them resolved for the backend (StereoBM here:
-    off; the semi-global matcher: on), and a value set live replaces the resolved one."""
+    """memory.block_erode_px, detour.cone_from_start and detour.through_squeeze default to "auto"; the
+    loaded config, the one the service shows, holds them resolved for the backend (StereoBM here: off;
+    the semi-global matcher: on), the supervisor and the pipeline fly them, and a value set live
+    replaces the resolved one."""
     service, link, client, cfg = running
     got = client.call("get_config", section="detour")["result"]["config"]
-    assert got["through_squeeze"] == "auto" and got["cone_from_start"] == "auto"
+    assert got["through_squeeze"] is False and got["cone_from_start"] is False
     detour = service.supervisor.config.detour
     assert detour.through_squeeze is False and detour.cone_from_start is False
     assert wait_until(lambda: service._pipeline is not None, 5.0)
@@ -554,7 +555,7 @@ def test_the_auto_map_options_fly_as_the_backend_asks(running, tmp_path: Path) -
     detour = service.supervisor.config.detour
     assert detour.through_squeeze is True and detour.cone_from_start is False
     assert service._pipeline.config.memory.block_erode_px == 2
-    assert client.call("get_config", section="detour")["result"]["config"]["cone_from_start"] == "auto"
+    assert client.call("get_config", section="detour")["result"]["config"]["cone_from_start"] is False
 
     sgm = service_config(tmp_path / "sgm", stereo={"backend": "reference", "matcher": "sgm"})
     other = Service(sgm, camera=avoid_scene_camera(15.0), link=FakeLink(), install_signals=False, environ={})

@@ -161,7 +161,7 @@ def test_a_mavsdk_cache_folder_that_cannot_be_written_is_a_startup_failure(tmp_p
 
 def test_mavsdk_cache_check(tmp_path: Path) -> None:
     from companion.errors import VehicleError
-    from companion.service.vehicle import check_mavsdk_cache
+    from companion.service.link_base import check_mavsdk_cache
 
     assert check_mavsdk_cache({"HOME": str(tmp_path)}) == tmp_path / ".cache" / "mavsdk"
     assert (tmp_path / ".cache" / "mavsdk").is_dir()

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from companion.sim.courses import head_on_course
-from companion.sim.placement import CoursePlacement
+from companion.core.placement import CoursePlacement
 from companion.sim.scoring import Judge, Outcome
 
 

@@ -11,7 +11,7 @@ import pytest
 from companion.config import load_config, parse_config
 from companion.config.document import render_config_toml
 from companion.sim.courses import make_course
-from companion.sim.placement import CoursePlacement
+from companion.core.placement import CoursePlacement
 from companion.config import apply_patch
 from companion.sitl.flight import placement_patch, sitl_config
 from companion.sitl.px4 import PX4_BUILD_ENV, Px4Ports, SitlError, find_px4_build

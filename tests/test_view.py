@@ -31,7 +31,7 @@ from peers.fakes import (
 from companion.config import parse_config
 from companion.errors import ConfigError, ProtocolError
 from companion.service.daemon import Service
-from companion.view.frame import PREVIEW_TOPIC, encode_jpeg, pack, render_preview, unpack
+from companion.service.preview_frame import PREVIEW_TOPIC, encode_jpeg, pack, render_preview, unpack
 
 ROOT = Path(__file__).resolve().parent.parent
 

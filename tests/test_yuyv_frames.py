@@ -16,7 +16,7 @@ from peers.fakes import FakeLink, ServiceRunner, avoid_scene_camera, avoid_scene
 from companion.backends import make_pipeline
 from companion.interfaces import Frame
 from companion.service.daemon import Service
-from companion.view.frame import render_preview, unpack
+from companion.service.preview_frame import render_preview, unpack
 
 
 def _yuyv(bgr: np.ndarray) -> np.ndarray:

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""The CPU-default study of issue 15 (item 3): quality and speed of CPU matcher settings.
+"""The CPU-default study: quality and speed of CPU matcher settings.
 
 For each setting (``stereo`` config overrides, built with ``make_cpu_matcher``):
 
@@ -13,7 +13,7 @@ For each setting (``stereo`` config overrides, built with ``make_cpu_matcher``):
 * speed: the whole CPU pipeline (``Pipeline.process``) at 672x376/64 with ``cpu_threads`` threads.
 
 Usage: ``python tools/cpu_stereo_study.py [--threads 2] [--frames 200] [NAME ...]`` (names select rows).
-Figures of 2026-11-23 are in docs/benchmarks.md ("The CPU default").
+Today's figure of the CPU default is in docs/benchmarks.md.
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from companion.bench import BenchSize, rendered_frames  # noqa: E402
+from companion.bench.common import BenchSize, rendered_frames  # noqa: E402
 from companion.config import CompanionConfig, apply_patch  # noqa: E402
 from companion.config.core import StereoConfig  # noqa: E402
 from companion.core.depth import disparity_to_depth  # noqa: E402

@@ -1,5 +1,5 @@
 """The control step's cost during a detour with a full obstacle memory, the histogram inside the step
-(as the simulator computes it, and as the service did before issue 21's last item) or deferred (as the
+(as the simulator computes it) or deferred (as the
 service computes it now: the step asks, a worker computes, a later step takes the result).
 
 A wall 2 m ahead (north 2.0-2.4 m, east -5..+5 m, within 0.4 m of the vehicle's altitude, 5 cm cubes)

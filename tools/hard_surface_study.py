@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Issue 15 item 5: what the hard surfaces do to the obstacle memory, per backend.
+"""What the hard surfaces (plain walls, bars, glare) do to the obstacle memory, per backend.
 
 Flies courses of a suite closed-loop (as ``companion sim --suite`` does: same configs, same verdicts)
 and checks every near point the memory is given (``FrameResult.near_points_cam_m``, placed in NED
@@ -24,8 +24,6 @@ Usage::
     python tools/hard_surface_study.py --config C.toml [--suite standard] [--kinds office] [--workers 2]
     python tools/hard_surface_study.py --frames [--backends opencv-bm,reference] [--kinds office,doorway]
         [--block-erode-px 0,1]
-
-Figures of 2026-11-23 are in docs/history.md ("Hard surfaces").
 """
 
 from __future__ import annotations

@@ -47,7 +47,7 @@ from companion.core.pose import Pose
 from companion.core.types import REGION_INDEX, VelocitySetpoint
 from companion.service.camera import placement_fields, sim_camera_from_config
 from companion.sim.courses import make_course
-from companion.sim.placement import CoursePlacement
+from companion.core.placement import CoursePlacement
 
 
 def _goal(record: dict[str, Any]) -> GoalSpec:

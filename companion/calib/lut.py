@@ -21,8 +21,10 @@ from pathlib import Path
 
 import numpy as np
 
+from companion.backends import make_estimator
 from companion.calib.views import StereoImage
 from companion.config import CompanionConfig
+from companion.core.lut import DepthLUT
 from companion.core.types import REGION_INDEX
 from companion.errors import CalibrationError, InputError
 
@@ -79,8 +81,6 @@ def measure_centre(captures: Sequence[tuple[str, np.ndarray, float]], cfg: Compa
     Raises:
         CalibrationError: captures of different sizes (or the config's calibration does not fit them).
     """
-    from companion.backends import make_estimator
-
     if not captures:
         return []
     h, w2 = captures[0][1].shape[:2]
@@ -175,8 +175,6 @@ def plot_lut(
     """Computed vs true depth: the captures (red), the fitted table (blue line), the captures
     corrected by it (green), and the identity (grey). BGR uint8 ``(H, W, 3)``."""
     import cv2
-
-    from companion.core.lut import DepthLUT
 
     w, h = size_px
     img = np.full((h, w, 3), 255, np.uint8)

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from companion.core.calibrate import detect_board, pair_views
 from companion.core.stereo import to_bgr
 from companion.errors import CalibrationError, CameraError, InputError
 from companion.interfaces import CameraSource
@@ -222,8 +223,6 @@ def capture_views(
     Raises:
         CameraError: the camera failed.
     """
-    from companion.core.calibrate import detect_board, pair_views
-
     kept: list[StereoImage] = []
     signatures: list[_Seen] = []
     frames = 0

@@ -1,12 +1,10 @@
-"""``companion bench``: per-stage median and p99 timings of the pipeline (speed goals live here)."""
+"""``companion bench``: the arguments, and which benchmark of :mod:`companion.bench` runs."""
 
 from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
-from typing import Any
 
 from companion.errors import InputError
 
@@ -72,7 +70,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from companion.bench import DEFAULT_SIZES, parse_sizes
+    from companion.bench.common import DEFAULT_SIZES, parse_sizes
 
     if args.frames < 1 or args.warmup < 0:
         raise InputError("--frames must be >= 1 and --warmup >= 0")
@@ -85,103 +83,25 @@ def run(args: argparse.Namespace) -> int:
     if args.soak:
         if args.duration_s <= 0 or args.sample_s <= 0:
             raise InputError("--duration-s and --sample-s must be > 0")
-        from companion.service.soak import run_soak
+        from companion.bench.soak import run_soak
 
         report = run_soak(args, sizes[:1] if args.sizes else [s for s in sizes if s.width_px == 672] or sizes)
     elif args.e2e:
-        from companion.service.bench import run_e2e_bench
+        from companion.bench.e2e import run_e2e_bench
 
         report = run_e2e_bench(args, sizes)
     elif args.backend == "cpu-sgm":
-        from companion.cpu.bench import run_cpu_sgm_bench
+        from companion.bench.cpu_sgm import run_cpu_sgm_bench
 
         report = run_cpu_sgm_bench(args, sizes if args.sizes else None)
     elif args.backend == "cupy":
-        from companion.gpu.bench import run_gpu_bench
+        from companion.bench.gpu import run_gpu_bench
 
         report = run_gpu_bench(args, sizes)
     else:
+        from companion.bench.cpu import run_cpu_bench
+
         report = run_cpu_bench(args, sizes)
     if args.json is not None:
         args.json.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
     return 0
-
-
-def _progress(what: str) -> None:
-    """One line on stderr before each step (a bench runs for minutes; stdout keeps the figures)."""
-    print(f"companion bench: {what}...", file=sys.stderr, flush=True)
-
-
-def run_cpu_bench(args: argparse.Namespace, sizes: list[Any]) -> dict[str, Any]:
-    """Time the CPU pipeline per stage at each size; print a table; return the figures."""
-    import tempfile
-
-    with tempfile.TemporaryDirectory(prefix="companion-bench-") as tmp:
-        return _run_cpu_bench(args, sizes, Path(tmp))
-
-
-def _run_cpu_bench(args: argparse.Namespace, sizes: list[Any], tmp: Path) -> dict[str, Any]:
-    from companion.bench import format_table, machine_description, rendered_frames, stats_ms, write_bench_calibration
-    from companion.config import CompanionConfig
-    from companion.core.fuzzy.bench import bench_fuzzy
-    from companion.backends import make_pipeline
-    from companion.sim.render import bench_render
-
-    report: dict[str, Any] = {
-        "machine": machine_description(),
-        "backend": args.backend,
-        "rectify": not args.no_rectify,
-        "sizes": {},
-    }
-    print(f"machine: {report['machine']}")
-    rows = []
-    for size in sizes:
-        cfg = CompanionConfig()
-        cfg = cfg.model_copy(
-            update={
-                "stereo": cfg.stereo.model_copy(
-                    update={
-                        "backend": args.backend,
-                        "num_disparities": size.num_disparities,
-                        "matcher": args.matcher,
-                        "sgm_paths": args.sgm_paths,
-                    }
-                ),
-                "calibration": cfg.calibration.model_copy(
-                    update={
-                        "ideal_hfov_deg": 87.0,
-                        "file": None if args.no_rectify else write_bench_calibration(size, tmp),
-                    }
-                ),
-            }
-        )
-        _progress(f"{size.label}: rendering the frames")
-        _, frames = rendered_frames(size, n=min(32, args.frames + args.warmup))
-        _progress(f"{size.label}: timing {args.warmup} + {args.frames} frames")
-        pipeline = make_pipeline(cfg, size.width_px, size.height_px)
-        per_stage: dict[str, list[float]] = {}
-        for i in range(args.warmup + args.frames):
-            result = pipeline.process(frames[i % len(frames)], timestamp_s=i / 30.0)
-            if i >= args.warmup:
-                for stage, ms in result.timings_ms.items():
-                    per_stage.setdefault(stage, []).append(ms)
-        stats = {stage: stats_ms(v) for stage, v in per_stage.items()}
-        report["sizes"][size.label] = stats
-        for stage, s in stats.items():
-            rows.append([size.label, stage.removesuffix("_ms"), f"{s['median_ms']:.3f}", f"{s['p99_ms']:.3f}"])
-    _progress("the fuzzy controller: 5000 decisions")
-    fuzzy = bench_fuzzy(5000)
-    report["fuzzy_us"] = fuzzy
-    _progress("the renderer: 200 stereo pairs")
-    render = bench_render(200)
-    report["render_672x376_ms"] = render
-    print(format_table(rows, ["size/disp", "stage", "median ms", "p99 ms"]))
-    print(
-        f"fuzzy: one inference {fuzzy['infer_median_us']:.1f} us median ({fuzzy['infer_p99_us']:.1f} p99); "
-        f"whole decision {fuzzy['decide_median_us']:.1f} us ({fuzzy['decide_p99_us']:.1f} p99)"
-    )
-    print(
-        f"render 672x376 stereo pair + depth: {render['median_ms']:.2f} ms median ({render['p99_ms']:.2f} p99)"
-    )
-    sys.stdout.flush()
-    return report

@@ -35,7 +35,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--backend", help="override stereo.backend (auto, opencv-bm, opencv-sgbm, reference, cupy, cpu-sgm)")
     p.add_argument("--overlay", type=Path, metavar="OUT.png", help="also draw the regions, depths and command arrow")
     p.add_argument("--verbose", action="store_true", help="also the controller's reason and its rules' strengths")
-    from companion.recorded.cli import add_sequence_arguments
+    from companion.cli.sequence import add_sequence_arguments
 
     add_sequence_arguments(p)
     p.set_defaults(func=run)
@@ -97,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
         # checked below against the rig this frame is really seen with (the file's, at the frame's size)
         cfg = apply_patch(cfg, patch, check_rig=False)
     if args.sequence is not None:
-        from companion.recorded.cli import run_sequence
+        from companion.cli.sequence import run_sequence
 
         return run_sequence(args, cfg)
     frame = load_frame(args)

@@ -286,7 +286,7 @@ def courses_of(args: argparse.Namespace) -> tuple[tuple[str, int], ...]:
 
 
 def _run_suite(args: argparse.Namespace, cfg: Any) -> int:
-    from companion.bench import machine_description
+    from companion.report import machine_description
     from companion.sim.suite import realization_line, run_suite, suite_table
 
     if args.workers < 1:

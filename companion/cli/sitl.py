@@ -161,7 +161,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run_scenario(args: argparse.Namespace, cfg: Any) -> int:
-    """``--scenario``: one of issue 18's proofs against PX4 or ArduPilot SITL; prints what it measured."""
+    """``--scenario``: one of the ground-station scenarios against PX4 or ArduPilot SITL; prints what it measured."""
     import tempfile
 
     from companion.sitl.ardupilot import ArduPilotPorts, find_ardupilot_build

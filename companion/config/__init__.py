@@ -16,7 +16,7 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any, get_args
 
-from pydantic import Field, ValidationError, model_validator
+from pydantic import Field, PrivateAttr, ValidationError, model_validator
 
 from companion.config._base import StrictModel
 from companion.config.core import (
@@ -45,6 +45,7 @@ from companion.config.service import (
 )
 from companion.config.sim import SimConfig
 from companion.config.view import ViewConfig
+from companion.devices import cpu_cores, cuda_available, numba_available
 from companion.errors import ConfigError
 
 if sys.version_info >= (3, 11):
@@ -75,7 +76,9 @@ __all__ = [
     "VehicleConfig",
     "ViewConfig",
     "apply_patch",
+    "as_written",
     "check_rig_config",
+    "concrete_backend",
     "for_backend",
     "load_bus_config",
     "load_config",
@@ -107,12 +110,37 @@ class CompanionConfig(StrictModel):
     view: ViewConfig = Field(default_factory=ViewConfig)
     envelope: EnvelopeConfig = Field(default_factory=EnvelopeConfig)
 
+    #: The settings written "auto" and resolved for the backend, as ("section", "field") pairs.
+    _from_auto: frozenset[tuple[str, str]] = PrivateAttr(default=frozenset())
+
     @model_validator(mode="after")
     def _within_envelope(self) -> CompanionConfig:
         problems = envelope_violations(self)
         if problems:
             raise ValueError("outside the safety envelope: " + "; ".join(problems))
         return self
+
+    @model_validator(mode="after")
+    def _resolve_for_backend(self) -> CompanionConfig:
+        """Every validated config flies its backend-dependent settings resolved (:func:`for_backend`
+        with :func:`concrete_backend`): nothing downstream ever reads "auto"."""
+        auto = frozenset((s, f) for s, f in AUTO_FOR_BACKEND if getattr(getattr(self, s), f) == "auto")
+        if not auto:
+            return self
+        resolved = for_backend(self, concrete_backend(self))
+        for section in {s for s, _ in auto}:
+            # The model is frozen once validation returns; this is still validation.
+            object.__setattr__(self, section, getattr(resolved, section))
+        self._from_auto = auto
+        return self
+
+
+#: The settings whose "auto" means "as the backend's disparity map needs" (:func:`for_backend`).
+AUTO_FOR_BACKEND: tuple[tuple[str, str], ...] = (
+    ("memory", "block_erode_px"),
+    ("detour", "cone_from_start"),
+    ("detour", "through_squeeze"),
+)
 
 
 #: Settings that were renamed: the old key's path and what replaces it, so that a config written for an
@@ -170,6 +198,47 @@ def parse_config(data: Mapping[str, Any], source: str = "config", *, check_rig: 
 _OWN_MATCHER_BACKENDS = ("cupy", "reference")
 
 
+#: Threads the cpu-sgm engine's path aggregation (most of its work) runs on at most: two halves.
+CPU_SGM_MAX_THREADS = 2
+
+
+def cpu_sgm_keeps_rate(cfg: CompanionConfig, cores: int) -> bool:
+    """Whether ``cpu-sgm`` keeps the camera's frame rate with ``cores`` CPU cores: camera pixels ×
+    disparities × frames per second at most ``stereo.cpu_sgm_cells_per_core_s`` per thread it may
+    use (``stereo.cpu_threads``, 0 = ``cores``; at most :data:`CPU_SGM_MAX_THREADS`). Pure: the
+    caller counts the cores."""
+    st, cam = cfg.stereo, cfg.camera
+    threads = min(st.cpu_threads, cores) if st.cpu_threads > 0 else cores
+    threads = max(1, min(threads, CPU_SGM_MAX_THREADS))
+    work = cam.width_px * cam.height_px * st.num_disparities * cam.fps_hz
+    return st.cpu_sgm_cells_per_core_s > 0 and work <= st.cpu_sgm_cells_per_core_s * threads
+
+
+def concrete_backend(cfg: CompanionConfig) -> str:
+    """The backend ``cfg.stereo.backend`` means on this machine: "auto" is cupy when CuPy sees a CUDA
+    device, else cpu-sgm where Numba is installed and it keeps the camera's rate
+    (:func:`cpu_sgm_keeps_rate`), else opencv-bm; any other name is itself. The same answer for the
+    same config on the same machine (no timing)."""
+    backend = cfg.stereo.backend
+    if backend == "auto":
+        if cuda_available():
+            return "cupy"
+        if numba_available() and cpu_sgm_keeps_rate(cfg, cpu_cores()):
+            return "cpu-sgm"
+        return "opencv-bm"
+    return backend
+
+
+def as_written(cfg: CompanionConfig) -> dict[str, Any]:
+    """``cfg`` as JSON-ready tables, with the settings that were written "auto" (and resolved for the
+    backend) back to "auto": what a patch merges into, so a change of backend or matcher resolves
+    them again."""
+    data = cfg.model_dump(mode="json")
+    for section, name in cfg._from_auto:
+        data[section][name] = "auto"
+    return data
+
+
 def semi_global_map(stereo: StereoConfig, backend: str) -> bool:
     """Whether ``backend`` (a concrete ``stereo.backend``, not "auto") with ``stereo`` makes the
     semi-global matcher's dense map, the one the ``"auto"`` options of ``[memory]`` and ``[detour]``
@@ -183,10 +252,9 @@ def for_backend(cfg: CompanionConfig, backend: str) -> CompanionConfig:
     matcher's dense map (:func:`semi_global_map`), 0 and off with any other. The same object when
     nothing is "auto".
 
-    The map decides: the SGM smears depth edges onto what is behind them and fills plain walls, and
-    the three gained goals with it; StereoBM leaves holes, which they read as ways through. The
-    shell resolves once it knows the backend (``companion.backends.flight_config``); the core reads
-    an unresolved "auto" as off, the behaviour before the options existed.
+    The map decides: the SGM smears depth edges onto what is behind them and fills plain walls, which
+    the three correct; StereoBM leaves holes, which they would read as ways through. Every validated
+    :class:`CompanionConfig` is resolved this way for :func:`concrete_backend` of its backend.
 
     Raises:
         ValueError: ``backend`` is "auto" or names no backend.
@@ -209,7 +277,7 @@ def for_backend(cfg: CompanionConfig, backend: str) -> CompanionConfig:
 
 
 def check_rig_config(cfg: CompanionConfig, source: str = "config") -> list[str]:
-    """Check the stereo setting against the rig at the camera's eye size (issue 15, item 6).
+    """Check the stereo setting against the rig at the camera's eye size.
 
     The rig is the calibration file's rectified geometry, or the ideal rig without one; a calibration
     that cannot be loaded here is left to the estimator, which reports it. See
@@ -351,7 +419,7 @@ def apply_patch(config: CompanionConfig, patch: Mapping[str, Any], *, check_rig:
     """
     if not isinstance(patch, Mapping):
         raise ConfigError(f"patch: expected a table/object, got {type(patch).__name__}")
-    merged = _deep_merge(config.model_dump(mode="json"), patch, "")
+    merged = _deep_merge(as_written(config), patch, "")
     try:
         text = json.dumps(merged, allow_nan=False, default=str)
     except ValueError:

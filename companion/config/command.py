@@ -16,9 +16,9 @@ class CommandConfig(StrictModel):
         ge=0.0,
         le=15.0,
         description=(
-            "Forward speed when the way is clear, m/s (paper: constant). With PX4's default velocity "
-            "response (~0.85 s lag) 1 m/s collided in the simulator and in PX4 SITL where 0.7 did not; "
-            "raise it only on a vehicle tuned to respond faster."
+            "Forward speed when the way is clear, m/s (paper: constant). A multicopter with PX4's "
+            "default velocity response (~0.85 s lag) needs the margin 0.7 m/s leaves; raise it only on "
+            "a vehicle tuned to respond faster."
         ),
     )
     avoid_speed_fraction: float = Field(
@@ -36,10 +36,9 @@ class CommandConfig(StrictModel):
         max_length=9,
         description=(
             "Regions whose 'near' degree also slows the vehicle (the largest of them and the centre's "
-            "drives the avoid_speed_fraction blend); [] = the centre only (the default). "
-            "[\"left\", \"right\"] slows while a box passes beside the vehicle: in the simulator it "
-            "raised the clearances but cost goals (timeouts in corridors), and in PX4 SITL it did not "
-            "stop a flank clip; see docs/benchmarks.md."
+            "drives the avoid_speed_fraction blend); [] = the centre only (the default). [\"left\", "
+            "\"right\"] slows while a box passes beside the vehicle: it raises the clearances but costs "
+            "time in corridors."
         ),
     )
     max_yaw_rate_deg_s: float = Field(
@@ -88,9 +87,7 @@ class CommandConfig(StrictModel):
             "Course hold, turning back: once the decisions have been CLEAR this long, seconds, turning "
             "or not, turning back acts without waiting for hold_resume_delay_s of CLEAR without "
             "turning. A side rule along a wall keeps a CLEAR decision turning for as long as the wall "
-            "reads partly near, and it carried a vehicle round through 160 deg and back along the "
-            "course at cruise (kinematic corridor-7 and pitch-7 with drift, until the regress "
-            "watchdog held it)."
+            "reads partly near, and can carry a vehicle round and back along the course at cruise."
         ),
     )
     turn_back_angle_deg: float = Field(
@@ -102,9 +99,9 @@ class CommandConfig(StrictModel):
             "hold aims at (line included), on a CLEAR decision past hold_resume_delay_s, the vehicle "
             "stops going forward and turns toward the course in place at max_heading_hold_rate_deg_s, "
             "whatever its side regions read (a turn in place moves it toward nothing, and the obstacle "
-            "memory guards its flanks); 180 = off. Without it a vehicle that had turned around in a "
-            "corridor (PX4 SITL, corridor-0) flew back out of it: the walls beside it read nearer than "
-            "hold_clear_depth_m, so course hold never turned it."
+            "memory guards its flanks); 180 = off. A vehicle turned around in a corridor would "
+            "otherwise fly back out of it: the walls beside it read nearer than hold_clear_depth_m, so "
+            "course hold never turns it."
         ),
     )
     line_hold_gain_per_m: float = Field(
@@ -126,10 +123,10 @@ class CommandConfig(StrictModel):
         ge=0.0,
         le=10.0,
         description=(
-            "Course hold, line, sideways: also fly sideways back toward the line at this speed per metre "
-            "of cross-track distance, 1/s (0 = off: the paper never flies sideways). Turning back takes "
-            "seconds; a multicopter that drifts sideways (wind, or PX4 SITL's ~0.2 m/s velocity-estimate "
-            "error) is brought back at once, and the camera keeps looking ahead."
+            "Course hold, line, sideways: also fly sideways back toward the line at this speed per "
+            "metre of cross-track distance, 1/s (0 = off: the paper never flies sideways). Turning back "
+            "takes seconds; a multicopter that drifts sideways (wind, or a velocity-estimate error of a "
+            "few tenths of a m/s) is brought back at once, and the camera keeps looking ahead."
         ),
     )
     max_line_hold_lateral_speed_m_s: float = Field(
@@ -144,12 +141,8 @@ class CommandConfig(StrictModel):
             "pushes the vehicle away from it, whatever the decision and whatever the vehicle believes "
             "its velocity is (0 = off, the default). The autopilot holds the velocity its estimate "
             "reads, and an estimate off by a few tenths of a m/s carries the vehicle on into a wall it "
-            "sees; the measured depth is the one thing that knows (kinematic doorway-4 with 0.14 m/s "
-            "drift: slid 0.4 m/s into a jamb at 0.3 m while its estimate read 0.1 m/s). Unknown pushes "
-            "nothing. Off by default: at 0.8 m (gain 3, 0.7 m/s) it removed 3 of StereoBM's 4 drift "
-            "collisions in the kinematic suite, but a false near reading on a plain wall backed "
-            "the vehicle blind for metres (office timeouts: 4 of 9 with StereoBM); "
-            "docs/history.md has the table."
+            "sees; the measured depth is the one thing that knows. Unknown pushes nothing. Off by "
+            "default: a false near reading on a plain wall backs the vehicle away blind."
         ),
     )
     standoff_gain_per_s: float = Field(
@@ -182,9 +175,8 @@ class CommandConfig(StrictModel):
         description=(
             "Course hold, line, sideways: the sideways speed tapers to 0 as the heading the course hold "
             "aims at lies this far from the heading now, degrees (180 = no taper). A vehicle still "
-            "turning toward a side carries its body, sideways, into what the camera has not seen yet: "
-            "PX4 SITL forest-4 slid left at 0.3 m/s while turning left at 20 deg/s into a pillar in "
-            "the left image's unmatched strip."
+            "turning toward a side would carry its body, sideways, into what the camera has not seen "
+            "yet (the left image's unmatched strip, say)."
         ),
     )
     sideways_clear_depth_m: float = Field(
@@ -196,13 +188,9 @@ class CommandConfig(StrictModel):
             "vehicle sideways toward a side whose region (left, right) reads nearer than this, metres, "
             "at no more than (depth - half of this) per second, and not at all from half of it in or "
             "toward a side that cannot be read; 0 = off, the default. The memory places what it saw "
-            "with the autopilot's position estimate, which wanders (PX4 SITL: 0.5-0.7 m in corridor-8, "
-            "where a push away from a remembered wall slid the vehicle into a box's corner the camera "
-            "saw; corridor-0, where the slide past a remembered box went into the wall); the camera "
+            "with the autopilot's position estimate, which wanders by tenths of a metre; the camera "
             "does not. A limit that shrinks with the room, not a ban: in a dead end both sides read "
-            "near, and the push away from the wall the vehicle drifts toward keeps it off it. Off by "
-            "default: the kinematic suite (detour layer on) measures nothing it gains; "
-            "docs/history.md has the figures."
+            "near, and the push away from the wall the vehicle drifts toward keeps it off it."
         ),
     )
     altitude_hold_gain_per_s: float = Field(
@@ -219,9 +207,8 @@ class CommandConfig(StrictModel):
         description=(
             "Course hold's altitude hold acts on AVOID decisions too, where it does not fight the "
             "decision's own climb or descent (a descent only over nothing remembered below). Off by "
-            "default: in its one full PX4 SITL run the office doors were reached nearer the engaged "
-            "altitude (office 6 of 9 goals, was 4), but three doorway flights hit a jamb "
-            "(docs/history.md)."
+            "default: it reaches doors nearer the engaged altitude but pulls the vehicle back toward a "
+            "jamb's height band while it avoids."
         ),
     )
     max_altitude_hold_speed_m_s: float = Field(
@@ -248,10 +235,9 @@ class CommandConfig(StrictModel):
         description=(
             "Overhead memory, metres (0 = off): no climb at all (by a rule or by course hold) until the "
             "vehicle has flown this far (horizontally) since the up region last read nearer than "
-            "hold_clear_depth_m, and course hold's descent also waits this far after the "
-            "decisions turned CLEAR and straight. The camera cannot see straight up: under a block, "
-            "rules that climb away from the ground (and a hold that waited only for a time) flew the "
-            "vehicle into the block's rear edge (simulator and PX4 SITL)."
+            "hold_clear_depth_m, and course hold's descent also waits this far after the decisions "
+            "turned CLEAR and straight. The camera cannot see straight up: under a block, a climb (or a "
+            "hold that waited only for a time) flies the vehicle into the block's rear edge."
         ),
     )
     min_altitude_m: float = Field(
@@ -259,18 +245,16 @@ class CommandConfig(StrictModel):
         ge=0.0,
         le=100.0,
         description=(
-            "Floor: no setpoint descends below this altitude above the autopilot's local origin "
-            "(where its position estimate began: normally the take-off point on the ground), metres; "
-            "0 = off. Descending, the down speed is capped at 2/s times the height left above it, the "
-            "measured sink over motion_brake_lag_s counted as height already lost, so the vehicle's "
-            "lag does not carry it through; below it (PX4 drifts vertically under a zero vertical "
-            "speed), every fresh setpoint climbs back at 2/s times the shortfall unless the up region "
-            "measures nearer than 1 m (an unknown one does not stop the climb: PX4 SITL sank an office "
-            "flight under the floor in front of a plain wall until it touched the ground). Elsewhere "
-            "unknown counts as near, and a plain ceiling "
-            "or sky the up regions cannot read sends the vehicle down: PX4 SITL flew an office flight "
-            "into the floor that way. Above ground that rises from the take-off point it does not "
-            "protect: the down regions do."
+            "Floor: no setpoint descends below this altitude above the autopilot's local origin (where "
+            "its position estimate began: normally the take-off point on the ground), metres; 0 = off. "
+            "Descending, the down speed is capped at 2/s times the height left above it, the measured "
+            "sink over motion_brake_lag_s counted as height already lost, so the vehicle's lag does not "
+            "carry it through; below it (PX4 drifts vertically under a zero vertical speed), every "
+            "fresh setpoint climbs back at 2/s times the shortfall unless the up region measures nearer "
+            "than 1 m (an unknown up region does not stop the climb, or a vehicle in front of a plain "
+            "wall would sink to the ground). Elsewhere unknown counts as near, and a plain ceiling or "
+            "sky the up regions cannot read would send the vehicle down. Above ground that rises from "
+            "the take-off point it does not protect: the down regions do."
         ),
     )
     brake_hold_gain_per_s: float = Field(
@@ -279,11 +263,11 @@ class CommandConfig(StrictModel):
         le=10.0,
         description=(
             "Brake position and heading hold: while braking, command a velocity back to where the brake "
-            "began, this gain times the distance, and a yaw rate back to the heading it began with, this "
-            "gain times the angle (capped at max_heading_hold_rate_deg_s), per second (0 = plain zero "
-            "velocity and yaw rate). Zero velocity lets a real multicopter drift with its "
-            "velocity-estimate error (PX4 SITL: into the obstacle within 20 s), and PX4 keeps turning "
-            "~0.4 s after a zero yaw rate, which can open a false escape; holding both does not."
+            "began, this gain times the distance, and a yaw rate back to the heading it began with, "
+            "this gain times the angle (capped at max_heading_hold_rate_deg_s), per second (0 = plain "
+            "zero velocity and yaw rate). Zero velocity lets a real multicopter drift with its "
+            "velocity-estimate error, into the obstacle within seconds, and PX4 keeps turning ~0.4 s "
+            "after a zero yaw rate, which can open a false escape; holding both does not."
         ),
     )
     brake_hold_max_speed_m_s: float = Field(
@@ -319,8 +303,8 @@ class CommandConfig(StrictModel):
             "Progress watchdog, regress: a vehicle this much farther from its goal (along the course, "
             "for the course at engagement) than the nearest it has been is flying back; after "
             "regress_timeout_s of that it holds as for no progress, metres (0 = off). A vehicle that "
-            "turned round at a dead end's closed end flew back out of the channel until the 20 s "
-            "watchdog stopped it (PX4 SITL, run 21)."
+            "turned round at a dead end's closed end would otherwise fly back out of the channel until "
+            "the no-progress watchdog stopped it."
         ),
     )
     regress_timeout_s: float = Field(
@@ -354,15 +338,13 @@ class CommandConfig(StrictModel):
         le=5.0,
         description=(
             "The camera's check on where the vehicle is actually going: where its measured velocity "
-            "points into the view's middle row (the centre region within 15 degrees of the nose, "
-            "left and right to 45), it must be able to stop short of what that region reads, less "
-            "this, metres, within motion_brake_lag_s; faster, and the setpoint loses its own motion "
-            "that way and leans against the excess (0 = off). The fuzzy controller judges the way "
-            "along the heading; a vehicle turning away from a cabinet still flew its old course at "
-            "0.9 m/s, into what its right region read (kinematic office-4 and forest-6 with 0.14 m/s "
-            "drift: the last collisions of the suites). Whatever else a setpoint carries (the "
-            "memory's push, a hold's pull back) never goes forward faster than the centre region "
-            "allows by the same rule: PX4 SITL r14's corridor-8 was pushed into a box it read at 0.4 m."
+            "points into the view's middle row (the centre region within 15 degrees of the nose, left "
+            "and right to 45), it must be able to stop short of what that region reads, less this, "
+            "metres, within motion_brake_lag_s; faster, and the setpoint loses its own motion that way "
+            "and leans against the excess (0 = off). The fuzzy controller judges the way along the "
+            "heading; a vehicle turning away from a cabinet still flies its old course, into what its "
+            "side region reads. Whatever else a setpoint carries (the memory's push, a hold's pull "
+            "back) never goes forward faster than the centre region allows by the same rule."
         ),
     )
     motion_brake_lag_s: float = Field(
@@ -383,11 +365,10 @@ class CommandConfig(StrictModel):
         description=(
             "The camera's check on the velocity estimate: while the centre region reads nearer than "
             "this, the rate its depth falls less the forward speed the vehicle reports (the forward "
-            "drift the autopilot's estimate does not show) comes off the setpoint, metres (0 = "
-            "off). The depth of a static point falls at exactly the forward speed; PX4 flies its "
-            "velocity estimate, and an estimate 0.45 m/s off carried a simulated vehicle into a "
-            "cabinet while every setpoint slowed it (kinematic office-4 with 0.14 m/s drift collided "
-            "in 3 of 4 drift suites; with the check it reaches its goal)."
+            "drift the autopilot's estimate does not show) comes off the setpoint, metres (0 = off). "
+            "The depth of a static point falls at exactly the forward speed; PX4 flies its velocity "
+            "estimate, and an estimate a few tenths of a m/s off would carry the vehicle into what it "
+            "sees while every setpoint slows it."
         ),
     )
     unseen_closing_window_s: float = Field(
@@ -458,9 +439,9 @@ class CommandConfig(StrictModel):
         description=(
             "The velocity the memory's guard and the motion brake act on: the reported velocity plus "
             "the motion of the reported position it does not explain, over this window, seconds (0 = "
-            "the reported velocity alone, and no track counter). The remembered points and the "
-            "course live in the reported position, and PX4 SITL's position moved 0.12 m/s (median "
-            "over 1 s windows) otherwise than the velocity it reported (r28's health logs)."
+            "the reported velocity alone, and no track counter). The remembered points and the course "
+            "live in the reported position, and an autopilot's position can move a tenth of a m/s "
+            "otherwise than the velocity it reports."
         ),
     )
     track_counter_fraction: float = Field(
@@ -469,15 +450,12 @@ class CommandConfig(StrictModel):
         le=1.0,
         description=(
             "This fraction of that unexplained motion (track_velocity_window_s) comes off a fresh "
-            "frame's setpoint, in the body frame, so that the vehicle moves in its reported position "
-            "as asked, sideways too, where the camera's own check (unseen_closing_range_m) sees only "
-            "motion toward the centre (0 = none); forward it adds nothing while the frame brakes or "
-            "the centre cannot be read, and never more than the vehicle can stop short of what the "
-            "centre reads. A remembered point on the counter's path slides the counter alone, never the "
-            "guard's push away from a wall (PX4 SITL r32: two side-wall collisions). With 0.14 m/s of "
-            "simulated drift it took the kinematic standard suite from "
-            "177 goals of 189 and 2 collisions to 185 and none (StereoBM), and from 175 and 1 to "
-            "181-184 and 0-1 (cupy, earlier versions of it) (2026-11-29)."
+            "frame's setpoint, in the body frame, so that the vehicle moves in its reported position as "
+            "asked, sideways too, where the camera's own check (unseen_closing_range_m) sees only "
+            "motion toward the centre (0 = none); forward it adds nothing while the frame brakes or the "
+            "centre cannot be read, and never more than the vehicle can stop short of what the centre "
+            "reads. A remembered point on the counter's path slides the counter alone, never the "
+            "guard's push away from a wall (sliding both would cancel the push)."
         ),
     )
     max_track_counter_m_s: float = Field(

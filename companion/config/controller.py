@@ -7,8 +7,8 @@ from typing import Literal
 from pydantic import Field, field_validator, model_validator
 
 from companion.config._base import StrictModel
-from companion.core.fuzzy.rules import parse_antecedent
-from companion.core.types import REGION_NAMES
+from companion.config.rules import parse_antecedent
+from companion.config.regions import REGION_NAMES
 
 MembershipShape = Literal["triangle", "trapezoid", "left_shoulder", "right_shoulder", "gaussian"]
 _SHAPE_ARITY = {"triangle": 3, "trapezoid": 4, "left_shoulder": 2, "right_shoulder": 2, "gaussian": 2}
@@ -145,10 +145,9 @@ def _default_main_rules() -> list[RuleConfig]:
            "go that way (same reading as rule 6). Weight 0.5 (not in the paper): a preference breaks "
            "ties and must not cancel the rule that names the free side. An overhead block reads in "
            "the up region as near as the centre, 'near' and 'far' 0.5 each at 1.5 m, so at weight 1 "
-           "this rule fired as strongly as R2 and the two cancelled: no descent from 2.25 m in, a "
-           "brake at 1.5 m (PX4 SITL pitch-1 timed out in every run r7-r13). At 0.5 it descends from "
-           "2 m, a low wall still climbs as before, and with both sides free up still wins at 2/3 "
-           "of the command (docs/history.md, 2026-11-27).",
+           "this rule would fire as strongly as R2 and the two cancel: no descent under the block, a "
+           "brake instead. At 0.5 it descends from 2 m, a low wall still climbs, and with both sides "
+           "free up still wins at 2/3 of the command.",
            weight=0.5, pitch="{pitch_side}"),
         _r("TIE", "center is near and up is near and down is near and left is far and right is far",
            "Tie rule (paper Fig. 9c): ahead, above and below blocked, both sides free: take the "

@@ -24,12 +24,9 @@ class DetourConfig(StrictModel):
         ge=0.0,
         le=30.0,
         description=(
-            "Start a detour once the controller has braked (the way ahead blocked, no escape) this "
-            "long without a break, seconds; 0 = the detour layer is off (the reactive controller and "
-            "course hold alone, as before it). Short, since the simulator's judge, and a pilot, call "
-            "a vehicle stopped for 3 s held. On by default since two full PX4 SITL standard runs in a "
-            "row with it had no collision (57 and 51 of the 63 non-dead-end flights reached the "
-            "goal; the layer off reached 30 of 54 flights; docs/history.md)."
+            "Start a detour once the controller has braked (the way ahead blocked, no escape) this long "
+            "without a break, seconds; 0 = the detour layer is off (the reactive controller and course "
+            "hold alone). Short, since a pilot calls a vehicle stopped for 3 s held."
         ),
     )
     trigger_no_progress_s: float = Field(
@@ -58,9 +55,9 @@ class DetourConfig(StrictModel):
         description=(
             "Also start a detour as soon as the vehicle has flown command.regress_distance_m back from "
             "the nearest it has been to its goal, before the progress watchdog's regress hold "
-            "(command.regress_timeout_s later): once per stall, as for trigger_no_progress_s. PX4 "
-            "SITL detour-3: avoiding along the wall turned the vehicle 137 deg from the goal, CLEAR "
-            "decisions flew it back 1.5 m, and the watchdog held 16 s after engaging, no detour begun."
+            "(command.regress_timeout_s later): once per stall, as for trigger_no_progress_s. Avoiding "
+            "along a wall can turn the vehicle away from the goal and fly it back; a detour then finds "
+            "the way round before the watchdog holds."
         ),
     )
     passing_away_deg: float = Field(
@@ -71,9 +68,9 @@ class DetourConfig(StrictModel):
             "No detour under way, facing at least this many degrees away from the goal direction on a "
             "decision that is no brake (the controller steering along a wall, across a door's mouth, "
             "round a fence's end), look at the map in passing: the goal direction free, or an opening "
-            "to line up with it, hands back there as a detour's choice would, degrees; 0 = off. "
-            "Kinematic office-6 flew across its door's mouth parallel to the wall: the side rules kept "
-            "the CLEAR decisions turning, so course hold never turned it in."
+            "to line up with it, hands back there as a detour's choice would, degrees; 0 = off. Flying "
+            "across a door's mouth parallel to the wall, the side rules keep turning the vehicle along "
+            "it, so course hold alone would never turn it in."
         ),
     )
     passing_interval_s: float = Field(
@@ -97,10 +94,8 @@ class DetourConfig(StrictModel):
         description=(
             "The passing look (passing_away_deg) with the goal direction closed: when the side the "
             "vehicle heads along opens no way to the goal within lookahead_m and the other side does "
-            "(and has a free direction), begin a detour round that side there. Kinematic office-8 "
-            "(cupy, 0.14 m/s drift): the side rules flew the vehicle along a fence into the pocket "
-            "the room's wall closes, 20-35 s lost there; the standard suite's offices went from 25 "
-            "to 26 of 27, every suite gaining or keeping its goals (2026-11-29)."
+            "(and has a free direction), begin a detour round that side there, rather than follow a "
+            "fence into a pocket that a wall closes."
         ),
     )
     scan_half_angle_deg: float = Field(
@@ -161,14 +156,9 @@ class DetourConfig(StrictModel):
             "count as leading toward the goal too (false: only of the goal direction now; auto: true "
             "with the semi-global matcher, as memory.block_erode_px). Flying along a wall toward its "
             "end, the bearing to a goal point turns away from the way the vehicle flies, and the "
-            "directions left within max_angle_deg of it close in on the wall: kinematic detour-2 "
-            "with 0.14 m/s drift flew to 0.57 m of the wall beside its opening, found no direction "
-            "free on its side and went round the other (a dead end after 45 s). A wider "
-            "max_angle_deg (120) took it through but let the dead ends fly back out (8 of 27 timed "
-            "out). Alone it left StereoBM's drift suite as it was (177 goals of 189, two detours "
-            "traded places); with through_squeeze StereoBM's detours with drift chose the wrong side "
-            "and followed its wall (docs/history.md, twenty-ninth session), so auto leaves it off "
-            "there."
+            "directions left within max_angle_deg of it close in on the wall; the start's direction "
+            "keeps the opening ahead. With StereoBM's sparse map it sends detours down the wrong side, "
+            "so auto leaves it off there."
         ),
     )
     cone_from_start_max_m: float = Field(
@@ -179,10 +169,8 @@ class DetourConfig(StrictModel):
             "With cone_from_start, the start's directions count only while the vehicle is within this "
             "far (horizontally) of where the detour began, metres; farther, only those within "
             "max_angle_deg of the goal direction now, so a side with no opening can end as a dead end "
-            "and the detour switch sides. Unbounded, the wall's own direction stayed within the "
-            "start's cone: kinematic detour-8 (StereoBM and SGM, 0.14 m/s drift) flew 10 m along "
-            "the wall on the side without the opening and out of the course; at 4 m it switched "
-            "sides at 21 s (the detour kind's opening lies 3 m to a side)."
+            "and the detour switch sides (unbounded, a wall's own direction stays within the start's "
+            "cone and the vehicle follows it on and on)."
         ),
     )
     either_side_within_deg: float = Field(
@@ -191,10 +179,9 @@ class DetourConfig(StrictModel):
         le=90.0,
         description=(
             "A detour keeps to the side of the goal direction it chose, but a free direction within "
-            "this many degrees of the goal direction may be taken on either side, degrees (0 = only "
-            "the side chosen). Flying along a wall, an opening just past the goal direction is the "
-            "way through, not a switch of sides: with 0.14 m/s drift, kinematic detour-0 and -7 flew "
-            "past theirs and ran out of time; 15 took both through, 25 reached two goals fewer."
+            "this many degrees of the goal direction may be taken on either side, degrees (0 = only the "
+            "side chosen). Flying along a wall, an opening just past the goal direction is the way "
+            "through, not a switch of sides."
         ),
     )
     sector_deg: float = Field(
@@ -250,13 +237,12 @@ class DetourConfig(StrictModel):
         ge=0.0,
         le=2.0,
         description=(
-            "Lining up with an opening: when the goal direction is not free from where the vehicle "
-            "is, but the path parallel to it is (with line_up_clearance_m) from an opening's middle "
-            "at most this far to one side (free offsets with points on both sides within twice "
-            "this: a door, not a box's free side), the vehicle slides there, facing the goal, and "
-            "hands back, metres (0 = off). A door just wide enough: the map's jambs, smeared inward, "
-            "left no free direction from anywhere but its middle, and the detour flew to and fro "
-            "before it (kinematic offices with drift, 8-34 s at the far wall)."
+            "Lining up with an opening: when the goal direction is not free from where the vehicle is, "
+            "but the path parallel to it is (with line_up_clearance_m) from an opening's middle at most "
+            "this far to one side (free offsets with points on both sides within twice this: a door, "
+            "not a box's free side), the vehicle slides there, facing the goal, and hands back, metres "
+            "(0 = off). At a door just wide enough, the map's jambs, smeared inward, leave no free "
+            "direction from anywhere but its middle."
         ),
     )
     line_up_clearance_m: float = Field(
@@ -290,15 +276,11 @@ class DetourConfig(StrictModel):
         description=(
             "Choosing a side: after a step square to the goal direction, the way to the goal counts as "
             "open when its path keeps squeeze_clearance_m from every trusted point, not clearance_m "
-            "(false: clearance_m; auto: true with the semi-global matcher, as "
-            "memory.block_erode_px). The SGM smears an opening's jambs inward on the map, so a 1.6 m "
-            "opening can read too narrow for clearance_m on both sides of its path; neither side "
-            "then opens the way, and the tie goes to the preferred side. Kinematic detour-8 "
-            "(realization 0), detour-2 and detour-7 (realization 2), with 0.14 m/s drift and "
-            "memory.block_erode_px 1, went round the wall's far side and held after 45 s; with this "
-            "on, all three chose the opening's side and reached the goal. StereoBM's map is sparse, "
-            "a hole in a mapped wall then reads as a way through, and its detour kind with drift fell "
-            "from 25 to 24 of 27 (22 with cone_from_start as well), so auto leaves it off there."
+            "(false: clearance_m; auto: true with the semi-global matcher, as memory.block_erode_px). "
+            "The SGM smears an opening's jambs inward on the map, so an opening can read too narrow for "
+            "clearance_m on both sides of its path and the detour would go round the wall's far side. "
+            "StereoBM's map is sparse and a hole in a mapped wall would read as a way through, so auto "
+            "leaves it off there."
         ),
     )
     lookahead_m: float = Field(
@@ -309,11 +291,10 @@ class DetourConfig(StrictModel):
             "Choosing a side (left or right of the goal): the side where a step square to the goal "
             "direction, on the map's free space, opens the way to the goal soonest is the shorter way "
             "round (an opening, or the end of the wall); steps up to this long are tried (at most 0.8 "
-            "memory.map_depth_m), metres; 0 = choose by the free direction nearest the goal only. "
-            "After a look round, the middle of an opening the map closes at both ends (free with "
-            "squeeze_clearance_m, found in 5 cm steps, on a side with a free direction) counts as "
-            "such a step too: a wall's end where the look stopped measuring it is unseen, not free "
-            "(kinematic detour kind, StereoBM: a 1.57 m opening read 1.0-1.25 m wide)."
+            "memory.map_depth_m), metres; 0 = choose by the free direction nearest the goal only. After "
+            "a look round, the middle of an opening the map closes at both ends (free with "
+            "squeeze_clearance_m, found in 5 cm steps, on a side with a free direction) counts as such "
+            "a step too: a wall's end where the look stopped measuring it is unseen, not free."
         ),
     )
     speed_m_s: float = Field(

@@ -124,9 +124,11 @@ def render_default_toml() -> str:
 
 def render_config_toml(cfg: CompanionConfig, header: list[str]) -> str:
     """``cfg`` as documented TOML text that loads back to an equal config, after the ``header`` lines
-    (comments)."""
+    (comments). Settings written "auto" are written "auto" again (not as resolved for this machine)."""
     out = list(header)
     for name in type(cfg).model_fields:
+        section = getattr(cfg, name)
+        auto = {f: "auto" for s, f in cfg._from_auto if s == name}
         out.append("")
-        out += _section(name, getattr(cfg, name))
+        out += _section(name, section.model_copy(update=auto) if auto else section)
     return "\n".join(out) + "\n"

@@ -1,4 +1,4 @@
-"""Config section of the CuPy backend (issue 4): ``[gpu]`` in the TOML file.
+"""Config section of the CuPy backend: ``[gpu]`` in the TOML file.
 
 Only read when ``stereo.backend`` resolves to ``cupy``. The matching rules themselves (disparities,
 block size, uniqueness, texture) live in ``[stereo]`` and are shared with the CPU reference, which the

@@ -25,11 +25,11 @@ class LutConfig(StrictModel):
         le=9,
         description=(
             "Each region depth is the median of its last this many frames, odd (an unknown region "
-            "counts at once and unknown history counts as near). 1 = off (the paper). 3: a false "
-            "stereo match that lasts one frame (PX4 SITL: weak-texture patches matched 40 px off, "
-            "read 0.4 m in open space) no longer swerves the vehicle, and a near region that drops out "
-            "to far for one frame stays near, at the cost of seeing a suddenly appearing obstacle one "
-            "frame later (67 ms at 15 Hz)."
+            "counts at once and unknown history counts as near). 1 = off (the paper). 3: a false stereo "
+            "match that lasts one frame (a weak-texture patch matched far off, read as a near obstacle "
+            "in open space) no longer swerves the vehicle, and a near region that drops out to far for "
+            "one frame stays near, at the cost of seeing a suddenly appearing obstacle one frame later "
+            "(67 ms at 15 Hz)."
         ),
     )
     release_time_constant_s: float = Field(

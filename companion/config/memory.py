@@ -74,17 +74,13 @@ class MemoryConfig(StrictModel):
     block_erode_px: Annotated[int, Field(ge=0, le=4)] | Literal["auto"] = Field(
         default="auto",
         description=(
-            "Before the blocks are reduced, each pixel takes the smallest disparity of its row's "
-            "pixels within this many pixels (an invalid one the smallest), pixels; 0 = off; auto = 1 "
-            "with the semi-global matcher (stereo.backend cupy or reference, matcher sgm), 0 with any "
-            "other. A lone too-near pixel or a foreground edge smeared onto what is behind it then "
-            "gives no block its depth; a true surface loses this many pixels at each side. In the "
-            "simulator's offices 7.5 % of the semi-global matcher's blocks were too near (half at "
-            "depth edges, half on plain walls); at 1 px, 3.3 %, while 76 % instead of 83 % of near "
-            "surfaces were still seen (docs/history.md). With the SGM, 1 px and detour.cone_from_start "
-            "and through_squeeze gained 21 goals of 378 over six realizations of the kinematic drift "
-            "suite, with as many collisions (2; thirtieth session); with StereoBM the three lost 7 "
-            "goals of 189 and collided once more, so auto leaves it off there."
+            "Before the blocks are reduced, each pixel takes the smallest disparity of its row's pixels "
+            "within this many pixels (an invalid one the smallest), pixels; 0 = off; auto = 1 with the "
+            "semi-global matcher (stereo.backend cupy or reference, matcher sgm), 0 with any other. A "
+            "lone too-near pixel or a foreground edge smeared onto what is behind it then gives no "
+            "block its depth; a true surface loses this many pixels at each side. The semi-global "
+            "matcher smears depth edges and fills plain walls, so it halves its too-near blocks; "
+            "StereoBM's sparse map has few, and loses near surfaces to it, so auto leaves it off there."
         ),
     )
     robust_percentile_pct: float = Field(
@@ -136,17 +132,14 @@ class MemoryConfig(StrictModel):
         le=60.0,
         description=(
             "A remembered point that the camera sees well past for this long in a row (as for "
-            "map_clear_after_frames, which must be on, with the detour layer: they judge the points) "
-            "no longer guards the vehicle, keeps course hold from a side or bounds a gap until it is "
-            "seen again, seconds; 0 = never. Each frame that sees past counts the time since the "
-            "frame before it, at most 0.2 s, so that a camera stall is not time spent seeing past. "
-            "Far longer than map_clear_after_frames: a point the position drift moved off its "
-            "surface is seen past too; forgetting after 3 frames collided, and after 2 s (30 frames "
-            "at 15 Hz) in one drifting flight, where keeping did not. A false match kept guarding "
-            "for 3-15 s stopped kinematic offices and detours in open space; 4 s (60 frames at the "
-            "simulator's 15 Hz, since 2026-11-27) gained 11 goals over three realizations of the "
-            "four kinematic suites with no collision gained or lost, and flew as well at 30 Hz "
-            "(docs/history.md). Seconds, not frames, so that it means the same at any camera rate."
+            "map_clear_after_frames, which must be on, with the detour layer: they judge the points) no "
+            "longer guards the vehicle, keeps course hold from a side or bounds a gap until it is seen "
+            "again, seconds; 0 = never. Each frame that sees past counts the time since the frame "
+            "before it, at most 0.2 s, so that a camera stall is not time spent seeing past. Far longer "
+            "than map_clear_after_frames: a point the position drift moved off its surface is seen past "
+            "too, and forgetting it within a couple of seconds lets a drifting vehicle into the "
+            "surface; a false match kept guarding for longer stops the vehicle in open space. Seconds, "
+            "not frames, so that it means the same at any camera rate."
         ),
     )
     map_clear_depth_ratio: float = Field(
@@ -204,10 +197,9 @@ class MemoryConfig(StrictModel):
             "The push away from a point drops by this fraction of the speed the vehicle already moves "
             "away from it (its measured velocity; never below zero), dimensionless; 0 = off. Between "
             "two points on opposite sides the push alone is a spring, and the autopilot's lag (~0.85 s "
-            "with PX4) makes it ring: PX4 SITL with guard_gain_per_s 3 and max_guard_speed_m_s 0.8 swung "
-            "between a wall and a box 1 m apart until it touched (corridor-8). Damping 1 stopped that "
-            "ringing in the simulator, but costs stiffness where the position drifts unseen (the "
-            "estimate says the vehicle moves away), and no damped guard beat the defaults there."
+            "with PX4) makes a strong push ring between a wall and a box until it touches. Damping "
+            "stops that ringing, but costs stiffness where the position drifts unseen (the estimate "
+            "says the vehicle moves away)."
         ),
     )
     counter_velocity_fraction: float = Field(
@@ -218,10 +210,9 @@ class MemoryConfig(StrictModel):
             "While the vehicle is still moving toward a guarding point on the path it actually flies "
             "(its velocity lags the setpoint: ~0.85 s with PX4), the setpoint moves away from it at "
             "this fraction of that closing speed (with the push, at most max_guard_speed_m_s), so the "
-            "lag does not carry it in (0 = only stop commanding toward it). Dimensionless. Default 0.5: "
-            "with PX4 SITL the vehicle pushed off one jamb of a 1.1-1.3 m doorway slid on into the "
-            "other (2 collisions in 14 doorway flights at 0, none in 18 at 0.5); 1 shoves the vehicle "
-            "sideways, where the camera does not see either (a kinematic collision)."
+            "lag does not carry it in (0 = only stop commanding toward it). Dimensionless. Without it a "
+            "vehicle pushed off one jamb of a narrow doorway slides on into the other; 1 shoves the "
+            "vehicle sideways, where the camera does not see either."
         ),
     )
     hold_clear_m: float = Field(
@@ -229,10 +220,10 @@ class MemoryConfig(StrictModel):
         ge=0.0,
         le=5.0,
         description=(
-            "Course hold neither turns nor slides toward a side with a remembered point within this "
-            "of the vehicle, horizontally, and not more than keep_out_m behind it, metres (0 = off): "
-            "an obstacle just passed is beside it, out of view (PX4 SITL: turning back toward the "
-            "line right after a box, the vehicle swung into the box's rear corner)."
+            "Course hold neither turns nor slides toward a side with a remembered point within this of "
+            "the vehicle, horizontally, and not more than keep_out_m behind it, metres (0 = off): an "
+            "obstacle just passed is beside it, out of view, and turning back toward the line right "
+            "after a box would swing the vehicle into the box's rear corner."
         ),
     )
     gap_centering_gain_per_s: float = Field(
@@ -242,12 +233,11 @@ class MemoryConfig(StrictModel):
         description=(
             "Gap centering: with remembered points on both sides of the vehicle, abreast or up to "
             "gap_lookahead_m ahead, less than gap_max_width_m apart sideways (a doorway, two pillars), "
-            "a CLEAR decision flies sideways toward the middle between the nearest of each side at "
-            "this speed per metre off it, 1/s, instead of the line hold's sideways step (0 = off). "
-            "At 1 it raised PX4 SITL's doorway clearances from 0.01-0.08 m to 0.10-0.25 m. Only "
-            "points seen from two places push_baseline_m apart bound a gap: a false near point once "
-            "made a false gap and slid a forest flight into a pillar (1 collision in 27 PX4 SITL "
-            "flights, before that rule)."
+            "a CLEAR decision flies sideways toward the middle between the nearest of each side at this "
+            "speed per metre off it, 1/s, instead of the line hold's sideways step (0 = off). It raises "
+            "the clearance through doorways from a few centimetres to a few tenths of a metre. Only "
+            "points seen from two places push_baseline_m apart bound a gap: a false near point would "
+            "make a false gap."
         ),
     )
     max_gap_centering_speed_m_s: float = Field(
@@ -280,10 +270,9 @@ class MemoryConfig(StrictModel):
             "Slow down for what lies in the vehicle's path: on CLEAR and AVOID decisions the forward "
             "speed is at most (how far it can fly straight on before a trusted remembered point comes "
             "within path_half_width_m of its centre, less path_stop_m) / this, seconds; 0 = off (the "
-            "default). About the autopilot's velocity lag plus a frame: PX4 follows a "
-            "setpoint ~0.85 s late. The centre region is a fixed angle wide, so near the vehicle what "
-            "it will hit sits in a side region (the paper's Fig. 11): PX4 SITL side-4 and doorway-2 "
-            "flew CLEAR at 0.7 m/s into a corner the right region read at 0.4-0.9 m. Points the "
+            "default). About the autopilot's velocity lag plus a frame: PX4 follows a setpoint ~0.85 s "
+            "late. The centre region is a fixed angle wide, so near the vehicle what it will hit sits "
+            "in a side region (the paper's Fig. 11), where a CLEAR decision does not look. Points the "
             "camera now sees past do not count."
         ),
     )
@@ -318,13 +307,13 @@ class MemoryConfig(StrictModel):
         le=2.0,
         description=(
             "Gap centering: the vehicle flies on into a gap only while its centre stays this far from "
-            "the nearest bounding point on either side, metres (0 = off: it flies on while it "
-            "centres): off the middle by more than half the gap's width less this, the forward speed "
-            "falls to 0 over gap_lineup_ramp_m while the sideways slide lines it up (at least "
-            "gap_lineup_min_slack_m off the middle always counts as lined up, so that a gap the map "
-            "has narrowed still lets a centred vehicle through). The vehicle's 0.25 m plus 0.1 m: "
-            "PX4 SITL doorway-2 arrived at a 1.3 m door 0.5 m off its middle at 0.7 m/s while the "
-            "centering slid it at 0.18 m/s, and hit the jamb."
+            "the nearest bounding point on either side, metres (0 = off: it flies on while it centres): "
+            "off the middle by more than half the gap's width less this, the forward speed falls to 0 "
+            "over gap_lineup_ramp_m while the sideways slide lines it up (at least "
+            "gap_lineup_min_slack_m off the middle always counts as lined up, so that a gap the map has "
+            "narrowed still lets a centred vehicle through). The vehicle's 0.25 m plus 0.1 m: a vehicle "
+            "arriving at a door well off its middle at cruise hits the jamb before the centering has "
+            "slid it across."
         ),
     )
     gap_lineup_ramp_m: float = Field(
@@ -354,11 +343,9 @@ class MemoryConfig(StrictModel):
             "remembered below it (seen within duration_s, not seen past since, within keep_out_m "
             "horizontally, above command.min_altitude_m over the take-off point, so not the ground): "
             "nearer, every setpoint climbs at 2/s times the shortfall (at most "
-            "command.max_altitude_hold_speed_m_s) while the up region is open, metres; 0 = off. The "
-            "camera cannot see what is under the vehicle, and an autopilot sags while it brakes or "
-            "turns hard: PX4 SITL pitch-4 lost 0.3 m over a wall's top that way and touched it. Off "
-            "by default until the GPU matcher's suite and a PX4 run have flown it (0.6 m: the "
-            "kinematic suite with StereoBM, docs/history.md)."
+            "command.max_altitude_hold_speed_m_s) while the up region is open, metres; 0 = off (the "
+            "default). The camera cannot see what is under the vehicle, and an autopilot sags while it "
+            "brakes or turns hard, a few tenths of a metre over a low wall's top."
         ),
     )
     height_band_m: float = Field(
@@ -387,9 +374,9 @@ class MemoryConfig(StrictModel):
         description=(
             "A remembered point is trusted once its cube has been seen from two camera positions at "
             "least this far apart, metres (0 = from any two frames). Only trusted points open or close "
-            "a detour's direction (to push or bound a gap, push_baseline_m): a false point the vehicle "
-            "flew through made a false gap and a collision (PX4 SITL, run 22), and a false match moves with the "
-            "view where a surface does not."
+            "a detour's direction (to push or bound a gap, push_baseline_m): a false match moves with "
+            "the view where a surface does not, and a false point the vehicle could fly through would "
+            "make a false gap."
         ),
     )
     push_baseline_m: float = Field(
@@ -399,11 +386,11 @@ class MemoryConfig(StrictModel):
         description=(
             "Only a point whose trust_cell_m cube has been seen from two camera positions at least this "
             "far apart pushes the vehicle away (guard_gain_per_s) or bounds a gap to centre in, metres; "
-            "0 = every trusted point does. A false match that follows the vehicle (StereoBM's alias on a "
-            "fence's bars, a smudge on the lens) lands in one cube only while the vehicle moves less "
-            "than about the cube's diagonal, and persists: trusted by persistence, such an alias pushed a PX4 "
-            "SITL vehicle into the wall across from it (r5, office-3). At least trust_cell_m × 1.5 "
-            "(a cube's horizontal diagonal, and a little)."
+            "0 = every trusted point does. A false match that follows the vehicle (StereoBM's alias on "
+            "a fence's bars, a smudge on the lens) lands in one cube only while the vehicle moves less "
+            "than about the cube's diagonal, and persists; trusted by persistence alone, it would push "
+            "the vehicle into the wall across from it. At least trust_cell_m × 1.5 (a cube's horizontal "
+            "diagonal, and a little)."
         ),
     )
     trust_persist_s: float = Field(

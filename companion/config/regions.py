@@ -8,7 +8,20 @@ from pydantic import Field
 
 from companion.config._base import StrictModel
 
-#: A region's name (the same names, in the same order, as ``companion.core.types.REGION_NAMES``).
+#: The nine regions, row-major over the image (up row first, left column first).
+REGION_NAMES: tuple[str, ...] = (
+    "up_left",
+    "up",
+    "up_right",
+    "left",
+    "center",
+    "right",
+    "down_left",
+    "down",
+    "down_right",
+)
+
+#: A region's name (the same names, in the same order, as :data:`REGION_NAMES`).
 RegionName = Literal["up_left", "up", "up_right", "left", "center", "right", "down_left", "down", "down_right"]
 
 

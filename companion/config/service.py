@@ -1,6 +1,6 @@
 """Config sections of the service shell: camera source, vehicle link, ZeroMQ bus, daemon.
 
-Owned by the daemon work (issue 5). Every field: type, default, bounds, unit in its name, description.
+Every field: type, default, bounds, unit in its name, description.
 Sections or fields that the running service cannot change without a restart (the camera, the vehicle
 connection, the bus endpoints and keys) are listed in :data:`RESTART_FIELDS`; a live ``set_config`` or
 ``reload`` reports them and leaves them as they are until the next start, except the scene placement

@@ -1,4 +1,4 @@
-"""Config section of the closed-loop simulator (issue 3): camera, timing, vehicle model, scoring.
+"""Config section of the closed-loop simulator: camera, timing, vehicle model, scoring.
 
 The simulator flies the product's own pipeline (every other section of the config applies as in the
 service) through procedural courses; only what has no counterpart on a real vehicle lives here.
@@ -132,11 +132,11 @@ class SimConfig(StrictModel):
         le=2**31 - 1,
         description=(
             "Which draw of the sensor noise, the exposure steps, the eyes' gain mismatch and the drift "
-            "a flight gets, with its course seed; the course itself (geometry, textures, start) "
-            "stays. 0 = the course seed's own draws (every figure in docs/ before 2026-11-27). The "
-            "closed loop is chaotic: a 1 % change of noise_std_grey changed the outcome of 20 of the "
-            "288 flights of four standard suites, so compare configurations over several "
-            "realizations (companion sim --realizations; docs/simulator.md, 'Judging a change')."
+            "a flight gets, with its course seed; the course itself (geometry, textures, start) stays. "
+            "0 = the course seed's own draws. The closed loop is chaotic: a 1 % change of "
+            "noise_std_grey changes the outcome of several flights in a suite, so compare "
+            "configurations over several realizations (companion sim --realizations; docs/simulator.md, "
+            "'Judging a change')."
         ),
     )
     drift_speed_m_s: float = Field(

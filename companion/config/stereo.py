@@ -55,9 +55,9 @@ class StereoConfig(StrictModel):
         description=(
             "Reject a match unless its cost beats every non-adjacent disparity's cost by this margin, "
             "percent (OpenCV's uniquenessRatio; matcher sad of the reference and cupy backends uses the "
-            "same rule). 5 (10 before 2026-11-23): on a plain wall 3 m ahead StereoBM left 15 of 27 "
-            "regions unknown instead of 27, for 1.16 % bad-2 on Aloe instead of 1.00 % (with "
-            "disp12_max_diff_px 1; docs/benchmarks.md)."
+            "same rule). 5 rather than OpenCV's customary 10: on a plain wall 3 m ahead StereoBM then "
+            "leaves about half the regions unknown instead of all of them, for slightly more bad pixels "
+            "(with disp12_max_diff_px 1; docs/benchmarks.md)."
         ),
     )
     texture_threshold_grey: int = Field(
@@ -115,11 +115,10 @@ class StereoConfig(StrictModel):
             "place. agree: keep d only where the half-size match exists and is within "
             "bm_scale_check_tolerance_px of it; no_conflict: reject d only where the half-size match "
             "exists and differs; off: no check (where the half-size matcher's wider left band leaves it "
-            "nothing, neither checks). A window over thin bars and what lies behind them (a "
-            "fence, a grid) matches a wrong period at one size and not at the other; a true match "
-            "agrees. agree (the default since 2026-11-24): in the simulator's office views the phantom "
-            "near regions fell from 43 to 9 in 54 views; Aloe (half size) bad-2 1.16 -> 0.76 % at "
-            "density 59.8 -> 54.7 %; about 1.4 ms more a frame on 2 cores at 672x376 "
+            "nothing, neither checks). A window over thin bars and what lies behind them (a fence, a "
+            "grid) matches a wrong period at one size and not at the other; a true match agrees. agree "
+            "removes most phantom near regions in front of bars and lowers Aloe's bad pixels, at "
+            "slightly lower density and about 1.4 ms more a frame on 2 cores at 672x376 "
             "(docs/benchmarks.md)."
         ),
     )

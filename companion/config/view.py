@@ -1,4 +1,4 @@
-"""Config section of the live view and the flight recording (issue 19): ``[view]`` in the TOML file.
+"""Config section of the live view and the flight recording: ``[view]`` in the TOML file.
 
 The service publishes a small JPEG preview (the Fig. 10 overlay with the disparity inset) on
 ``preview_endpoint`` for ``companion view``, only while something subscribes, at most

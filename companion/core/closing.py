@@ -180,15 +180,14 @@ class ClosingWatch:
         residual = depth - depth.mean() - slope * tc
         if float(np.sqrt(np.mean(residual * residual))) > cmd.unseen_closing_max_fit_error_m:
             # Not a surface coming steadily nearer: a see-through fence's bars and the room behind
-            # them, a plain wall's matches coming and going (kinematic office-2 backed off a fence
-            # whose centre read 0.48-0.64 m from frame to frame, its depth not rising as it backed).
+            # them, a plain wall's matches coming and going from frame to frame.
             return 0.0
         closing = -slope
         # The yaw rate's share of the depth change, at its worst for the region, is not drift.
         unseen = closing - speed - yaw_rate * _CENTRE_HALF_WIDTH_PER_M * float(depth.mean())
         # ... and the surface must truly come nearer: backing off from one whose depth does not rise
-        # is no danger now (kinematic office-2 backed off a fence whose depth, from the bars, fell
-        # 0.1 m/s); the drift measured before is held meanwhile (drift()).
+        # is no danger now (a fence's depth, from its bars, can fall while the vehicle backs off);
+        # the drift measured before is held meanwhile (drift()).
         if unseen < cmd.unseen_closing_min_m_s or closing < cmd.unseen_closing_min_m_s:
             return 0.0
         return min(unseen, cmd.max_unseen_closing_counter_m_s)
@@ -199,9 +198,9 @@ class TrackWatch:
 
     The obstacle memory, the course's line and the camera's rendered world in the simulators all
     live in the position the autopilot reports; the guard's distances to remembered points change
-    at the rate that position moves. PX4 SITL's position moved 0.12 m/s (median over 1 s windows;
-    95th percentile 0.28 m/s) otherwise than the velocity it reported (r28's health logs, steady
-    flight or not), and the kinematic simulator's drift is of that kind. So the guard and the motion
+    at the rate that position moves. PX4's position can move a tenth of a m/s or more otherwise
+    than the velocity it reports (over 1 s windows, steady flight or not), and the kinematic
+    simulator's drift is of that kind. So the guard and the motion
     brake can use the reported velocity plus this (``command.track_velocity_window_s``). Pure: time
     is passed in; the samples live in a fixed ring."""
 

@@ -269,8 +269,8 @@ def _altitude_return_m_s(
     if waited:
         return down
     # Level within STRAIGHT_TOLERANCE, as is_straight_clear has it: the defuzzified pitch of a level
-    # CLEAR decision is a hair off zero either way (-1e-4), and a strict sign test let that block
-    # the climb back for the first 1.5 m (simulator, 0.1 m/s vertical drift: pitch-2 sank 0.37 m).
+    # CLEAR decision is a hair off zero either way (-1e-4), and a strict sign test would let that
+    # block the climb back while the vehicle sinks.
     if down < 0.0 and pitch > -STRAIGHT_TOLERANCE:
         return down
     if down > 0.0 and pitch < STRAIGHT_TOLERANCE and below_clear is True:
@@ -484,8 +484,8 @@ def setpoint_for(
       nothing remembered below the vehicle down to that altitude): what it climbed over was seen
       on the way there, and an office never gives 1.5 m of straight, clear flight. A climb back
       (below that altitude, the decision level or climbing) waits for neither: PX4 sags 0.2-0.3 m
-      as it speeds up, and the controller's small climbs on a CLEAR reset the clear timers, so
-      PX4 SITL pitch-4 flew 0.3 m low until the low wall's top filled the up regions.
+      as it speeds up, and the controller's small climbs on a CLEAR reset the clear timers, so it
+      would fly low until a low wall's top filled the up regions.
       What was overhead still stops it (``since_up_near_m``). With ``cmd.altitude_hold_on_avoid``, on
       an AVOID decision (steering round something; an office's walls never let the CLEAR wait end)
       the same climb back and descent over nothing remembered act, never against the decision's
@@ -676,9 +676,9 @@ def within_forward_room(sp: VelocitySetpoint, region_depths_m: np.ndarray | None
     float ``(9,)``): what the vehicle can stop short of. The controller's own forward speed is already
     slower than this with the centre at 0.56 m or more (nearer, its creep of avoid_speed_fraction ·
     cruise stops and it turns in place); what it catches is the rest of a setpoint, which does not
-    look ahead: the memory's push away from a wall behind, a hold's pull back to its anchor
-    (PX4 SITL r14 corridor-8: looking round 0.4 m from a box, a wall 0.6 m behind it, the vehicle was
-    sent forward at 0.5 m/s into the box the camera read at 0.4 m). Unchanged when the motion brake is
+    look ahead: the memory's push away from a wall behind, a hold's pull back to its anchor (looking
+    round close to a box with a wall behind, the push would send the vehicle forward into the box
+    the camera reads). Unchanged when the motion brake is
     off, without depths or where the centre cannot be read (the controller counts it as near)."""
     if cmd.motion_brake_clearance_m <= 0.0 or region_depths_m is None or sp.forward_m_s <= 0.0:
         return sp
@@ -756,8 +756,8 @@ FLOOR_GAIN_PER_S = 2.0
 #: Below the floor, the climb back is refused only where the up region reads nearer than this,
 #: metres. An unknown up region does not refuse it: the ground under the floor is measured (the
 #: altitude), the up region is what lies ahead and above, not overhead, and the climb goes no higher
-#: than the floor the user set. PX4 SITL r15's office-2 sank under the floor in front of a plain wall
-#: whose up region read unknown, and touched the ground.
+#: than the floor the user set (in front of a plain wall the up region reads unknown, and refusing
+#: would let the vehicle sink to the ground).
 FLOOR_CLIMB_UP_CLEAR_M = 1.0
 
 
@@ -924,10 +924,9 @@ def detour_setpoint(
       rate toward the direction of ``clip(heading_hold_gain_per_s · error, ±turn_rate_deg_s)``,
       scaled by ``1 - |yaw|`` (the controller's own turn comes first). On a CLEAR decision the
       altitude hold acts as in course hold (``altitude_error_m``, ``below_clear``, ``clear_for_s``,
-      ``clear_for_m``, ``since_up_near_m``: :func:`setpoint_for`): without it a detour flew on at
-      whatever height the vehicle had reached (PX4 SITL doorway-1: 0.45 m up, drifted there under
-      zero vertical speed setpoints; a door's lintel then within the memory's height band, the door
-      closed on the map, and the detour flew past it). Flying, the forward speed is also held to
+      ``clear_for_m``, ``since_up_near_m``: :func:`setpoint_for`): without it a detour flies on at
+      whatever height the vehicle has drifted to, where a door's lintel can fall within the memory's
+      height band and close the door on the map. Flying, the forward speed is also held to
       :func:`path_speed_limit_m_s` of ``path_ahead_m``, as in :func:`setpoint_for`.
 
     ``region_depths_m`` (float ``(9,)`` metres, NaN unknown): the stand-off's push acts here too

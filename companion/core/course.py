@@ -421,8 +421,8 @@ class CourseHold:
         point on the counter's own path (``guard_m``, no push again) applies to the counter alone.
         ``sp`` has had the guard already (its push and lean away from a remembered wall included);
         sliding the sum again took that push off too: a point on the far side of a push (a false
-        near point that may not push) cancelled both the push away from the wall and the counter, and
-        the drift carried the vehicle into the wall (PX4 SITL r32, office-1 and office-3).
+        near point that may not push) would cancel both the push away from the wall and the counter,
+        and the drift would carry the vehicle into the wall.
         Forward the counter adds nothing while ``decision`` brakes or the centre of
         ``region_depths_m`` cannot be read, and never more than the vehicle can stop short of what
         the centre reads (:func:`stoppable_speed_m_s`): the brake is absolute, and the unexplained

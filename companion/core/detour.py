@@ -108,11 +108,8 @@ VERTICAL_ESCAPE = 0.2
 #: the vehicle back to the brake that began it (office and forest timeouts), degrees.
 _ESCAPE_FACING_DEG = 30.0
 #: Within this of the floor (``command.min_altitude_m``) a descending AVOID is no escape under: the
-#: floor stops it before it passes under anything (kinematic office-2: 1 m under its course at the
-#: floor in front of a fence that reaches the ground, the controller's "down" ended every look round
-#: facing the goal; office-4 with drift, 0.45 m over the floor at a fence's free end: a "down" read
-#: through the bars ended the second detour, and the vehicle sank to the floor there until the
-#: watchdog held), metres.
+#: floor stops it before it passes under anything (a "down" read through a fence's bars near the
+#: floor would end the detour and sink the vehicle to the floor), metres.
 FLOOR_MARGIN_M = 0.5
 #: A scan target counts as reached within this, radians.
 _SCAN_TOLERANCE_RAD = math.radians(6.0)
@@ -429,7 +426,7 @@ def _through(
     ``lookahead_m`` (at most 0.8 of the map's depth: beyond it the map has not seen a wall go on)."""
     out = {1: math.inf, -1: math.inf}
     reach = min(cfg.lookahead_m, 0.8 * map_depth_m)
-    way_m = cfg.squeeze_clearance_m if cfg.through_squeeze is True else cfg.clearance_m  # unresolved auto: off
+    way_m = cfg.squeeze_clearance_m if cfg.through_squeeze is True else cfg.clearance_m  # "auto" is resolved at load
     gn = gd = None
     if goal_distance_m is not None:
         gn, gd = goal_distance_m * math.cos(goal_bearing_rad), goal_distance_m * math.sin(goal_bearing_rad)
@@ -876,8 +873,8 @@ class DetourPlanner:
         """A detour's start, with the histogram from where it began (``seen_from``, NED metres; None:
         ``pos``): choose at once, or look round."""
         # Before a look round the map holds what the approach saw: the lean orders the look only,
-        # and a closed opening (a gap between a box and a wall) leaning it the other way turned a
-        # two-turn look into four (kinematic corridor-0 with drift held at a dead end after it).
+        # and a closed opening (a gap between a box and a wall) leaning it the other way would
+        # lengthen the look.
         lean = self._side or _pick_side(h, prefer_right, cfg, openings=False)
         k = _best(h, lean, cfg, None)
         in_view = k is not None and abs(wrap_pi(h.bearing_rad[k] - yaw)) <= math.radians(_IN_VIEW_DEG)
@@ -1019,8 +1016,7 @@ class DetourPlanner:
             peek = bool(self._targets) and reached == self._scan_goal_rad
         if peek and now_s - self._scan_since_s <= cfg.scan_timeout_s:
             # Facing the goal with turns still to go: if the way to it is free, or an opening lines
-            # up with it, the rest of the look round would change nothing of that choice (kinematic
-            # office-2: a four-turn look in a door's mouth, 8.5 s, that ended lining up with it).
+            # up with it, the rest of the look round would change nothing of that choice.
             h = self._histogram(now_s, pos, goal, memory, memory_cfg, cfg, "peek")
             if h is None:
                 return self._waiting(pos, yaw, cfg)
@@ -1142,8 +1138,7 @@ class DetourPlanner:
             k = _best(h, self._side, cfg, None)
         if k is None:
             # Before a dead end: a direction free for all of min_free_m with squeeze_clearance_m,
-            # either side (a gap just wide enough: kinematic office-0 held between a cabinet and a
-            # wall 1.3 m apart on the map, whose wall grazing-angle stereo had smeared 0.4 m inward).
+            # either side (a gap just wide enough, whose wall grazing-angle stereo smeared inward).
             for side in (self._side, -self._side):
                 k = _best(h, side, cfg, None, 1.0, tight=True)
                 if k is not None:
@@ -1156,9 +1151,9 @@ class DetourPlanner:
                 f"{cfg.min_free_m:g} m (detour.min_free_m), either side",
             )
         # A new direction keeps the anchor: while the vehicle turns in place (a look round, or a turn
-        # toward the direction before) it must hold where that turn began. Re-anchoring at each replan
-        # let an unseen drift carry it on, 0.4 s at a time (kinematic detour-4 with drift: 1 m into
-        # the wall in 3 s). Once it flies a direction there is no anchor, and the next turn starts one.
+        # toward the direction before) it must hold where that turn began: re-anchoring at each replan
+        # would let an unseen drift carry it on, 0.4 s at a time. Once it flies a direction there is
+        # no anchor, and the next turn starts one.
         self.phase = Phase.FLY
         self._target_rad = float(h.bearing_rad[k])
         side = "right" if self._side > 0 else "left"
@@ -1341,7 +1336,7 @@ class DetourPlanner:
     def _start_cone(self, pos: np.ndarray, cfg: DetourConfig) -> bool:
         """Whether the start's goal direction widens the histogram here (``cone_from_start``, within
         ``cone_from_start_max_m`` of where the detour began)."""
-        # an unresolved auto is off (companion.config.for_backend)
+        # only a resolved true widens it (the loader resolves "auto"; a model built without validation: off)
         return cfg.cone_from_start is True and self._distance_from_start_m(pos) <= cfg.cone_from_start_max_m
 
     def _distance_from_start_m(self, pos: np.ndarray) -> float:
@@ -1366,8 +1361,7 @@ def _pick_side(h: Histogram, prefer_right: bool, cfg: DetourConfig, openings: bo
     step = dict(h.through_m)
     if openings:
         # An opening counts only where its side has a direction to fly now: choosing a side with none
-        # spends the detour's one switch at once (PX4 SITL corridor-0: a gap between a box and the
-        # wall beside it, no direction free toward it; the switch spent, the next replan a dead end).
+        # would spend the detour's one switch at once and leave the next replan a dead end.
         step = {side: min(step[side], h.opening_m[side] if math.isfinite(best[side]) else math.inf) for side in (1, -1)}
     r, left = step[1], step[-1]
     if not (math.isinf(r) and math.isinf(left)) and abs(r - left) > 0.5 * _THROUGH_STEP_M:
@@ -1405,9 +1399,8 @@ def _best(
     if current_rad is not None:
         # The directions are laid out from the goal's bearing, which turns as the vehicle moves, so
         # this matches only while it hovers or turns in place; in flight every replan chooses afresh.
-        # Matching the nearest within half a sector kept a detour on its direction in flight too:
-        # in PX4 SITL it then flew past openings it would otherwise have turned into (quick suite,
-        # layer on: 3 more timeouts, doorway-1, office-0 and detour-0; history.md, 2026-11-24).
+        # Matching the nearest within half a sector in flight too would fly past openings a fresh
+        # choice turns into.
         near = np.abs(np.array([wrap_pi(b - current_rad) for b in h.bearing_rad]))
         j = int(np.argmin(near))
         if on[j] and near[j] < 1e-6 and cost[j] - cost[k] < _HYSTERESIS_DEG:

@@ -453,12 +453,12 @@ class ObstacleMemory:
     ``memory.trust_min_frames`` frames spanning at least ``memory.trust_persist_s``. Untrusted points
     still guard, but only by stopping the motion toward them: the guard's push away moves the vehicle
     sideways into what the camera does not see (a false point in the air, seen for a moment from one
-    place, pushed a simulated vehicle into a pillar out of view: forest-2 with StereoBM). So a point
+    place, could push the vehicle into a pillar out of view). So a point
     *may push* (and bound a gap to centre in, :meth:`may_push`) only once its cube has been seen from
     two positions ``memory.push_baseline_m`` apart, more than a cube's width: a false match that
     follows the vehicle (StereoBM's alias on a fence's bars, a smudge on the lens) persists, and stays
-    in one cube only while the vehicle moves less than that. Trusted by persistence, such an alias
-    pushed a PX4 SITL vehicle into the wall across from it (r5, office-3).
+    in one cube only while the vehicle moves less than that. Trusted by persistence alone, such an
+    alias would push the vehicle into the wall across from it.
 
     Args:
         max_points: most cubes kept; beyond it the least recently seen are dropped.
@@ -682,13 +682,12 @@ class ObstacleMemory:
         ``course_down_m`` (NED down of the altitude course hold flies back to, metres; None = off):
         only points within the band of that altitude too. A point the vehicle clears at one of the
         two heights is passed there: a door's lintel 0.2 m over a vehicle that has climbed 0.4 m
-        (PX4 SITL office-2: held at the door as a dead end), or a low wall's top under one that
+        (else held at the door as a dead end), or a low wall's top under one that
         has climbed over it. Only while the vehicle is within ``height_band_m`` of that altitude
         (the two bands share at least half their height): farther off, the bands share little or
         nothing, and their common points would be an empty map. The vehicle's own band then
-        decides: what is at its height now is what it would hit (kinematic office-2: 1 m under its
-        course in front of a fence, the map was empty and every detour handed straight back into
-        the brake)."""
+        decides: what is at its height now is what it would hit (an empty map would hand every
+        detour straight back into the brake)."""
         pos = np.asarray(position_ned_m, dtype=np.float64).reshape(-1)
         if pos.shape != (3,) or not np.all(np.isfinite(pos)):
             return None
@@ -872,7 +871,7 @@ def path_ahead_m(fwd: np.ndarray, right: np.ndarray, cfg: MemoryConfig) -> float
     metres, float ``(N,)``) ahead of it and less than that sideways, the least
     ``fwd - sqrt(half_width² - right²)`` (at least 0); None when none (or it is off). The half
     width is the vehicle's radius and a little: a wall alongside, farther sideways, is not in the way
-    however near it is (stopping beside one left a drifting vehicle there, kinematic deadend-7). The
+    however near it is (stopping beside one would leave a drifting vehicle there). The
     centre region is a fixed angle wide, so near the vehicle what it will hit sits in a side region
     (the paper's Fig. 11); the memory's points, in the body frame, say where it is."""
     if cfg.path_slow_time_s <= 0.0:
@@ -889,8 +888,8 @@ def path_ahead_m(fwd: np.ndarray, right: np.ndarray, cfg: MemoryConfig) -> float
 def _sides(fwd: np.ndarray, right: np.ndarray, dist: np.ndarray, cfg: MemoryConfig) -> tuple[bool, bool]:
     """(left, right): a point within ``cfg.hold_clear_m`` on that side and not more than
     ``cfg.keep_out_m`` behind the vehicle (body-frame arrays, metres). Turning or sliding toward a
-    point farther behind does not close on it; counting it kept a vehicle flying away from the goal
-    past a pillar it had passed (kinematic forest-2 with drift)."""
+    point farther behind does not close on it; counting it would keep a vehicle flying away from the
+    goal past a pillar it had passed."""
     close = (dist < cfg.hold_clear_m) & (fwd > -cfg.keep_out_m)
     return bool(np.any(close & (right < 0.0))), bool(np.any(close & (right > 0.0)))
 
@@ -947,7 +946,7 @@ def apply_guard(
     it at ``counter_velocity_fraction`` times the closing speed (less what it already moves away):
     leaning against the motion stops it in about a third of the distance a zero command would (a
     first-order lag). The lean and the push together are capped at ``max_guard_speed_m_s``: a
-    vehicle shoved sideways flies into what the camera does not see either (kinematic forest-4).
+    vehicle shoved sideways flies into what the camera does not see either.
     With ``guard_damping_fraction`` > 0 each point's push drops by that fraction of the speed the
     vehicle already moves away from it (never below zero): the push alone, between points on
     opposite sides, is a spring that rings against the lag.
@@ -1002,8 +1001,8 @@ def _slide_past(v: np.ndarray, u: np.ndarray, toward: float, side_room_m_s: tupl
     """Velocity ``v`` (body forward, right m/s) less its part ``toward`` (m/s) along unit ``u`` toward a
     point on its path: what is left slides past the point. The slide's sideways speed stays within
     the side's room (:func:`within_room`), and the forward speed drops so that nothing is left toward
-    the point: taking the forward motion off toward a remembered box ahead on the left slid a PX4
-    SITL vehicle right at 0.3-0.5 m/s into the wall its right region read at 0.8 m (corridor-0)."""
+    the point: taking only the forward motion off toward a remembered box ahead on the left would
+    slide the vehicle right into the wall its right region reads."""
     slid = v - toward * u
     right = within_room(float(slid[1]), float(v[1]), side_room_m_s)
     if right == slid[1]:

@@ -20,7 +20,6 @@ from __future__ import annotations
 import logging
 import time
 from collections import deque
-from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -119,9 +118,6 @@ class Pipeline:
             again when a change needs a new one); :func:`companion.backends.make_estimator`.
         estimator: an estimator to use instead of building one from ``cfg`` (tests, GPU sharing).
         clock: timing clock for the per-stage figures.
-        prepare: applied to ``cfg`` here and to every config :meth:`reconfigure` gets, before
-            anything else; :func:`companion.backends.flight_config` (the "auto" map options resolved
-            for the backend). None: the config as given.
     """
 
     def __init__(
@@ -133,15 +129,11 @@ class Pipeline:
         make_estimator: EstimatorFactory,
         estimator: RegionEstimator | None = None,
         clock: Clock = time.perf_counter,
-        prepare: Callable[[CompanionConfig], CompanionConfig] | None = None,
     ):
         self.width_px = width_px
         self.height_px = height_px
         self._clock = clock
         self._make_estimator = make_estimator
-        self._prepare = prepare
-        if prepare is not None:
-            cfg = prepare(cfg)
         estimator = estimator or make_estimator(cfg, width_px, height_px, clock)
         self._filtered: np.ndarray | None = None
         self._history: deque[np.ndarray] = deque(maxlen=cfg.lut.median_frames - 1)
@@ -170,8 +162,6 @@ class Pipeline:
         next frame uses it. Everything is built before anything is swapped: if building raises,
         the old config stays in force.
         """
-        if self._prepare is not None:
-            cfg = self._prepare(cfg)
         changed = [
             name
             for name in type(cfg).model_fields
@@ -213,7 +203,7 @@ class Pipeline:
                 frame,
                 want_disparity=want_disparity,
                 near_block_px=near.cfg.block_px,
-                near_erode_px=erode if isinstance(erode, int) else 0,  # unresolved auto: off (config.for_backend)
+                near_erode_px=erode if isinstance(erode, int) else 0,  # a model built without validation: off
             )
         t1 = clock()
         looked_up = self._lut.apply(est.regions.depth_m)

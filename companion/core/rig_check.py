@@ -1,4 +1,4 @@
-"""Does the stereo setting work with the rig? The check ``load_config`` runs (issue 15, item 6).
+"""Does the stereo setting work with the rig? The check ``load_config`` runs.
 
 For the camera's eye size and the rig (the calibration file's rectified geometry, or the ideal rig), with
 ``f·B`` the focal length times the baseline and ``D`` the number of disparities:

@@ -805,8 +805,8 @@ class Supervisor:
         if m.activity is State.ENGAGED and (m.course.holding_reason is not None or self._no_progress(now_s, v)):
             m.activity = State.PAUSED  # the goal reached, a dead end, or the progress watchdog
             m.stalled = True
-            # Before the reset below: it clears the watchdog's why, and a regress was reported as
-            # "no progress for 20 s" (PX4 SITL detour-3, held 16 s after engaging).
+            # Before the reset below: it clears the watchdog's why (a regress would read as
+            # "no progress for 20 s").
             m.stall_reason = self._stalled_reason()
         if m.activity is not State.ENGAGED:
             m.course.progress.reset()  # the watchdog times the automatic flight only

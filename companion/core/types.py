@@ -20,18 +20,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-#: The nine regions, row-major over the image (up row first, left column first).
-REGION_NAMES: tuple[str, ...] = (
-    "up_left",
-    "up",
-    "up_right",
-    "left",
-    "center",
-    "right",
-    "down_left",
-    "down",
-    "down_right",
-)
+from companion.config.regions import REGION_NAMES  # re-exported: the core names the regions by it
+
 REGION_INDEX: dict[str, int] = {name: i for i, name in enumerate(REGION_NAMES)}
 N_REGIONS = len(REGION_NAMES)
 

@@ -1,5 +1,5 @@
 """The service shell around the pure core: camera sources, capture thread, MAVSDK vehicle link, ZeroMQ
-control plane, the asyncio daemon (``companion run``), systemd glue, recording and the e2e benchmark.
+control plane, the asyncio daemon (``companion run``), systemd glue, and recording.
 
 Modules (each imported only by what needs it; nothing runs at import time):
 
@@ -12,5 +12,4 @@ Modules (each imported only by what needs it; nothing runs at import time):
 * :mod:`~companion.service.notify`: sd_notify (READY, STATUS, WATCHDOG).
 * :mod:`~companion.service.install`: the systemd unit and ``companion install-service``.
 * :mod:`~companion.service.client`: ``companion ctl`` and ``companion watch``.
-* :mod:`~companion.service.bench`: ``companion bench --e2e``.
 """

@@ -44,7 +44,7 @@ from types import MappingProxyType
 from typing import Any
 
 from companion.errors import VehicleError
-from companion.service.vehicle import MavsdkLinkBase, MavsdkSession
+from companion.service.link_base import MavsdkLinkBase, MavsdkSession
 
 log = logging.getLogger(__name__)
 

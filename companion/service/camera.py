@@ -22,15 +22,17 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from companion.core.geometry import StereoGeometry
+from companion.core.placement import CoursePlacement
+from companion.core.pose import Pose
 from companion.errors import CameraError
 from companion.framepool import FrameBuffers
 from companion.interfaces import CameraSource, Frame, VehicleState
-from companion.sim.placement import CoursePlacement
 
 if TYPE_CHECKING:
     from companion.config import CompanionConfig
     from companion.config.service import CameraConfig
-    from companion.sim.render import Pose, Scene
+    from companion.sim.render import Scene
 
 log = logging.getLogger(__name__)
 
@@ -610,8 +612,6 @@ class SimCamera:
         clock: Clock = time.monotonic,
         pose_wait_s: float = 1.0,
     ) -> None:
-        from companion.sim.render import Pose
-
         self.name = "sim"
         self.geometry = geometry
         self.scene = scene
@@ -757,9 +757,6 @@ def sim_camera_from_config(
 ) -> SimCamera:
     """The ``sim`` source of ``cfg.camera``: its scene (:func:`sim_scene_from_config`), the ideal rig of
     ``cfg.calibration``; the pose is fixed unless a ``pose_provider`` is given."""
-    from companion.core.geometry import StereoGeometry
-    from companion.sim.render import Pose
-
     cam = cfg.camera
     geometry = StereoGeometry.ideal(
         cam.width_px, cam.height_px, hfov_deg=cfg.calibration.ideal_hfov_deg, baseline_m=cfg.calibration.ideal_baseline_m

@@ -34,7 +34,6 @@ from typing import Any
 import zmq
 from zmq.utils.monitor import recv_monitor_message
 
-from companion.backends import flight_config
 from companion.config import BusConfig, CompanionConfig, apply_patch, load_config
 from companion.config.service import LIVE_CAMERA_FIELDS, RESTART_FIELDS
 from companion.config.view import VIEW_RESTART_FIELDS
@@ -288,7 +287,7 @@ class ControlPlane:
                     raise ConfigError(
                         f"{source}: rejected, the old config stays: {type(err).__name__}: {err}"
                     ) from None
-            self.supervisor.reconfigure(SupervisorConfig.from_config(flight_config(applied)))
+            self.supervisor.reconfigure(SupervisorConfig.from_config(applied))
             if self._telemetry_pose is not None:
                 from companion.service.camera import placement_from_config
 

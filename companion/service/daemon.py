@@ -50,7 +50,7 @@ from typing import TYPE_CHECKING, Any
 
 
 from companion import exitcodes
-from companion.backends import flight_config, make_pipeline, resolve_backend
+from companion.backends import make_pipeline, resolve_backend
 from companion.config import CompanionConfig, load_config
 from companion.core.supervisor import (
     Action,
@@ -158,7 +158,7 @@ class Service(ControlPlane, HealthReporter):
         self._notifier = notifier if notifier is not None else Notifier.from_environment(self._environ)
         self._watchdog_s = watchdog_interval_s(self._environ)
         # The detour layer's histograms are computed off the control loop (_plan_off_loop).
-        self.supervisor = Supervisor(SupervisorConfig.from_config(flight_config(self.config)), defer_histogram=True)
+        self.supervisor = Supervisor(SupervisorConfig.from_config(self.config), defer_histogram=True)
         self._histogram_fn = histogram_fn
         self._histogram_pool: concurrent.futures.ThreadPoolExecutor | None = None  # one worker, made on first use
         self._histogram_job: HistogramRequest | None = None  # the request being computed now

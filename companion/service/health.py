@@ -22,7 +22,7 @@ from companion.core.words import decision_words
 from companion.service import protocol
 from companion.service.aio import wait_event
 from companion.service.parts import TaskPart
-from companion.view.frame import thresholds_m
+from companion.service.preview_frame import thresholds_m
 
 log = logging.getLogger(__name__)
 

@@ -41,9 +41,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from companion.config.document import render_config_toml
 from companion.errors import ConfigError
 from companion.service.backoff import LogBackoff
-from companion.service.preview_worker import PreviewWorker
+from companion.service.preview_frame import PreviewInputs, near_far_m, pack, unpack
+from companion.service.preview_worker import PreviewWorker, PreviewWorkerError, PreviewWorkerStarting
 from companion.service.runtime import remove_socket, resolve_endpoint, restrict_socket
 
 log = logging.getLogger(__name__)
@@ -246,9 +248,6 @@ class PreviewPublisher:
     def _publish(self, offer: _Offer, cfg: Any) -> None:
         import zmq
 
-        from companion.service.preview_worker import PreviewWorkerError, PreviewWorkerStarting
-        from companion.view.frame import near_far_m, pack
-
         try:
             jpeg, encode_ms, height_px, width_px = self._worker.render(
                 _inputs(offer), cfg.preview_width_px, cfg.preview_jpeg_quality
@@ -314,8 +313,6 @@ class PreviewPublisher:
 
 def _inputs(offer: _Offer) -> Any:
     """What the preview of ``offer`` is drawn from (references; the worker gets copies through its pipe)."""
-    from companion.view.frame import PreviewInputs, near_far_m
-
     pipeline = offer.pipeline
     cfg = pipeline.config
     near_m, far_m = near_far_m(cfg)
@@ -485,8 +482,6 @@ class FlightRecorder:
         self.health_lines += 1
 
     def _preview_frame(self, frames: list[bytes]) -> None:
-        from companion.view.frame import unpack
-
         self._previews_seen += 1
         if self._full_preview or (self._previews_seen - 1) % self.preview_every:
             return
@@ -575,8 +570,6 @@ class ViewPlane:
                 log.error("no preview: %s", err)
                 self._on_error(f"no preview: {err}")
         if view.record_dir is not None:
-            from companion.config.document import render_config_toml
-
             recorder = FlightRecorder(
                 view.record_dir,
                 health_endpoint,

@@ -61,7 +61,7 @@ class PreviewWorkerStarting(PreviewWorkerError):
 
 @dataclass(frozen=True)
 class _Job:
-    inputs: Any  # companion.view.frame.PreviewInputs with image and disparity set to None
+    inputs: Any  # companion.service.preview_frame.PreviewInputs with image and disparity set to None
     image_shape: tuple[int, ...]
     disparity_shape: tuple[int, ...] | None
     width_px: int
@@ -109,7 +109,7 @@ class PreviewWorker:
         self.starts = 0
 
     def render(self, inputs: Any, width_px: int, quality: int) -> tuple[bytes, float, int, int]:
-        """One preview: ``inputs`` (a :class:`companion.view.frame.PreviewInputs`) drawn at ``width_px``
+        """One preview: ``inputs`` (a :class:`companion.service.preview_frame.PreviewInputs`) drawn at ``width_px``
         and encoded at JPEG ``quality``.
 
         Returns:
@@ -301,7 +301,7 @@ def _read_exactly(stream: Any, n: int) -> bytes | None:
 def serve(stdin: Any, stdout: Any) -> None:
     """The child's loop: jobs from ``stdin``, replies to ``stdout`` (binary streams), until ``stdin``
     closes."""
-    from companion.view.frame import encode_jpeg, render_preview
+    from companion.service.preview_frame import encode_jpeg, render_preview
 
     while True:
         head = _read_exactly(stdin, _JOB_HEADER.size)
@@ -340,7 +340,7 @@ def main() -> int:
     # The imports first, at the service's priority: at a lower one beside busy processes they took a minute.
     import cv2
 
-    import companion.view.frame  # noqa: F401  (the imports are the start-up: done before the ready byte)
+    import companion.service.preview_frame  # noqa: F401  (the imports are the start-up: done before the ready byte)
 
     cv2.setNumThreads(1)
     try:

@@ -24,6 +24,7 @@ from typing import Annotated, Any, Literal, Union
 
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
 
+from companion.core.goal import GoalSpec
 from companion.errors import ProtocolError
 
 RequestId = Union[Annotated[str, Field(max_length=128)], Annotated[int, Field(ge=-(2**53), le=2**53)], None]
@@ -81,8 +82,6 @@ class Goal(BaseModel):
 
     def spec(self) -> Any:
         """The core's :class:`~companion.core.goal.GoalSpec` (raises ValueError for a bearing of 0 m)."""
-        from companion.core.goal import GoalSpec
-
         return GoalSpec(
             kind=self.kind,
             north_m=self.north_m,

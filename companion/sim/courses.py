@@ -53,7 +53,7 @@ START_ALTITUDE_M = 1.5
 #: The goal point the vehicle is sent to lies this far past the goal line, metres.
 GOAL_POINT_BEYOND_M = 1.0
 _KIND_ID = {name: i + 1 for i, name in enumerate(COURSE_KINDS)}
-_KIND_ID["detour"] = 21  # fixed (issue 21), whatever its place in COURSE_KINDS: its courses stay the same
+_KIND_ID["detour"] = 21  # fixed, whatever its place in COURSE_KINDS: its courses stay the same
 
 
 @dataclass(frozen=True)

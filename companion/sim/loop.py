@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from companion.backends import flight_config, make_pipeline
+from companion.backends import make_pipeline
 from companion.config import CompanionConfig
 from companion.core.command import NO_PROGRESS_HOLD
 from companion.core.course import CourseHold
@@ -47,7 +47,7 @@ from companion.interfaces import Frame
 from companion.sim.camera import SimCamera
 from companion.sim.courses import Course
 from companion.sim.render import Pose, TextureBank
-from companion.sim.scoring import HELD_RADIUS_M, Judge, Outcome
+from companion.sim.scoring import HELD_RADIUS_M, ClearanceField, Judge, Outcome
 from companion.sim.vehicle import SimVehicle, VehicleParams
 
 #: Events scheduled at k/rate fire when the simulated time is within this of it (float steps).
@@ -324,7 +324,7 @@ def fly(
             (:func:`audit_points`; slow: a measurement, not for suites).
     """
     wall0 = clock()
-    cfg = flight_config(simulator_config(cfg))  # the map options the backend here gets
+    cfg = simulator_config(cfg)
     sim, cmd = cfg.sim, cfg.command
     pipeline = make_pipeline(cfg, sim.eye_width_px, sim.eye_height_px)
     params = VehicleParams.from_config(sim)
@@ -606,8 +606,6 @@ def audit_points(memory: ObstacleMemory, course: Course, now_s: float, seen_from
     with (``map_*``: trusted, not seen past, within ``memory.height_band_m`` of the vehicle and within
     the detour's reach of it) and those that guard (``near_*``: seen nearer than
     ``memory.max_depth_m``)."""
-    from companion.sim.scoring import ClearanceField
-
     field_ = ClearanceField(course.scene)
     pts, trusted = memory.points(now_s, cfg.memory)
     near = memory.near_mask(now_s, cfg.memory)

@@ -235,7 +235,7 @@ def realization_line(realization: int, results: Sequence[FlightResult]) -> str:
 
 def suite_table(results: Sequence[FlightResult]) -> str:
     """The suite's scores as a fixed-width text table."""
-    from companion.bench import format_table
+    from companion.report import format_table
 
     header = ["course", "flights", "success", "goal", "held", "collisions", "timeout/out",
               "mean clear m", "worst clear m", "mean time s"]

@@ -8,7 +8,7 @@ A flight, as a user would fly it:
 3. the service starts (``companion run``, camera ``sim`` rendering from the pose PX4 reports);
 4. once the hover is steady, the course is placed at the vehicle: its start at the vehicle's position,
    its north axis along the vehicle's heading, its ground the start altitude below it
-   (:class:`~companion.sim.placement.CoursePlacement`; a live ``set_config``), so the flight starts
+   (:class:`~companion.core.placement.CoursePlacement`; a live ``set_config``), so the flight starts
    at the course's start pose;
 5. ``engage`` on the service's control socket; the service streams setpoints and enters offboard
    (ArduCopter: GUIDED);
@@ -46,7 +46,7 @@ from companion.sim.loop import (
     LogKind,
     simulator_config,
 )
-from companion.sim.placement import CoursePlacement
+from companion.core.placement import CoursePlacement
 from companion.sim.scoring import HELD_RADIUS_M, Judge, Outcome
 from companion.sitl.ardupilot import SITL_PARAMS as ARDUPILOT_SITL_PARAMS
 from companion.sitl.ardupilot import ArduPilotBuild, ArduPilotPilot, ArduPilotPorts, ArduPilotSitl

@@ -1,4 +1,4 @@
-"""Issue 18's proofs with PX4 or ArduPilot SITL in the loop (``companion sitl --scenario ...``).
+"""The ground-station scenarios with PX4 or ArduPilot SITL in the loop (``companion sitl --scenario ...``).
 
 * **collision-prevention**: the service only feeds OBSTACLE_DISTANCE (never engaged). With ``CP_DIST``
   set, a ground-station pilot flies Position mode (MAVSDK ``manual_control``, stick full forward) at the
@@ -33,6 +33,7 @@ import numpy as np
 from companion.config import CompanionConfig
 from companion.sim.courses import Course, make_course
 from companion.sim.scoring import Outcome
+from companion.sitl.ardupilot import CENTRED_STICKS_US, PITCH_FORWARD_US, ArduPilotPilot, ArduPilotSitl
 from companion.sitl.flight import (
     PARAMS_BY_AUTOPILOT,
     SITL_PARAMS,
@@ -494,8 +495,6 @@ async def fly_ardupilot_proximity(
     Raises:
         SitlError: a step failed (named), or ArduPilot reported no proximity data.
     """
-    from companion.sitl.ardupilot import CENTRED_STICKS_US, PITCH_FORWARD_US
-
     course = make_course("wall", seed)
     wall_m = float(course.goal_north_m - 2.0)
     margin_m = float(PROXIMITY_BOOT_PARAMS["AVOID_MARGIN"])
@@ -619,8 +618,6 @@ async def _run_ardupilot_proximity(
 ) -> ProximityResult:
     """The proximity scenario, starting ArduCopter SITL from ``ardupilot_build`` (with
     :data:`PROXIMITY_BOOT_PARAMS`) when given; else one must be running with them."""
-    from companion.sitl.ardupilot import ArduPilotPilot, ArduPilotSitl
-
     sitl = (
         ArduPilotSitl(ardupilot_build, workdir / "ardupilot", ports.instance, boot_params=PROXIMITY_BOOT_PARAMS)
         if ardupilot_build is not None

@@ -23,6 +23,7 @@ from typing import Any
 from companion.config import CompanionConfig
 from companion.config.document import render_config_toml
 from companion.service.aio import cancel_and_wait
+from companion.service.client import ClientError, ControlClient
 from companion.sitl.px4 import SitlError, log_tail
 
 log = logging.getLogger(__name__)
@@ -114,8 +115,6 @@ class ServiceProcess:
         Raises:
             SitlError: no reply, or the service refused (the reply's error in the message).
         """
-        from companion.service.client import ClientError, ControlClient
-
         try:
             with ControlClient(self.cfg.bus.control_endpoint, timeout_s=timeout_s) as client:
                 reply = client.call(request)

@@ -26,8 +26,10 @@ from html import escape
 from pathlib import Path
 from typing import Any
 
+from companion.config import load_config
 from companion.core.types import REGION_NAMES
-from companion.errors import InputError
+from companion.errors import ConfigError, InputError
+from companion.service.preview_frame import near_far_m
 from companion.view.svg import KIND_COLOUR, STATE_COLOUR, Plot
 
 log = logging.getLogger(__name__)
@@ -93,10 +95,6 @@ def _read_previews(folder: Path) -> list[tuple[float, Path]]:
 
 
 def _thresholds(folder: Path) -> tuple[float, float, str]:
-    from companion.config import load_config
-    from companion.errors import ConfigError
-    from companion.view.frame import near_far_m
-
     for name in ("config.toml", "companion.toml"):
         path = folder / name
         if path.is_file():

@@ -281,7 +281,7 @@ class ViewServer:
             self._broadcast_text("health", json.dumps({"type": "health", "health": h, "view": self._view_status()}))
 
     async def _follow_preview(self, sock: Any) -> None:
-        from companion.view.frame import unpack
+        from companion.service.preview_frame import unpack
 
         while True:
             frames = await sock.recv_multipart()

@@ -18,7 +18,15 @@ import time
 from types import SimpleNamespace
 from typing import Any
 
+from companion.core.geometry import StereoGeometry
+from companion.core.regions import region_layout
+from companion.core.types import REGION_NAMES
+from companion.core.words import decision_words
 from companion.errors import InputError
+from companion.service.preview import PreviewPublisher
+from companion.service.preview_frame import thresholds_m
+from companion.service.protocol import encode
+from companion.sim.loop import fly, simulator_config
 
 log = logging.getLogger(__name__)
 
@@ -34,10 +42,6 @@ class SimViewBridge:
     """
 
     def __init__(self, cfg: Any, course_name: str, *, host: str = "127.0.0.1", port: int = 8080, title: str = "companion sim") -> None:
-        from companion.core.geometry import StereoGeometry
-        from companion.core.regions import region_layout
-        from companion.sim.loop import simulator_config
-
         self.cfg = simulator_config(cfg)
         sim = self.cfg.sim
         geometry = StereoGeometry.ideal(
@@ -72,8 +76,6 @@ class SimViewBridge:
             InputError: the view did not start (its output in the message).
         """
         import zmq
-
-        from companion.service.preview import PreviewPublisher
 
         self._ctx = zmq.Context()
         self._pub = self._ctx.socket(zmq.PUB)
@@ -173,8 +175,6 @@ class SimViewBridge:
     def _publish(self, step: Any, wall: bool = False) -> None:
         import zmq
 
-        from companion.service.protocol import encode
-
         if self._pub is None or step is None:
             return
         with self._lock:
@@ -188,11 +188,6 @@ class SimViewBridge:
             pass
 
     def _health(self, step: Any) -> dict[str, Any]:
-        from companion.core.types import REGION_NAMES
-
-        from companion.core.words import decision_words
-        from companion.view.frame import thresholds_m
-
         res = step.result
         decision = res.decision if res is not None else None
         publisher = self.publisher
@@ -268,8 +263,6 @@ class SimViewBridge:
 def fly_with_view(course: Any, cfg: Any, *, host: str, port: int, title: str, on_frame: Any = None, on_urls: Any = None) -> Any:
     """Fly ``course`` in real time with the web view; returns (FlightResult, bridge): the page stays
     up, showing the outcome, until :func:`linger` closes it."""
-    from companion.sim.loop import fly
-
     bridge = SimViewBridge(cfg, course.name, host=host, port=port, title=title)
     urls = bridge.start()
     if on_urls is not None:

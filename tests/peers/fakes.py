@@ -284,9 +284,9 @@ def expected_result(cfg: CompanionConfig, camera):
 
 def avoid_scene_preview_inputs(cfg: CompanionConfig):
     """What the service's preview of :func:`avoid_scene_camera`'s frame is drawn from (with its
-    disparity): a :class:`companion.view.frame.PreviewInputs` at time 1.5 s, frame 7."""
+    disparity): a :class:`companion.service.preview_frame.PreviewInputs` at time 1.5 s, frame 7."""
     from companion.backends import make_pipeline
-    from companion.view.frame import PreviewInputs, near_far_m
+    from companion.service.preview_frame import PreviewInputs, near_far_m
 
     camera = avoid_scene_camera()
     camera.open()

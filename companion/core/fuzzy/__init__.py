@@ -20,7 +20,7 @@ from companion.core.fuzzy.engine import (
     trapezoid,
     triangle,
 )
-from companion.core.fuzzy.rules import Antecedent, Clause, parse_antecedent
+from companion.config.rules import Antecedent, Clause, parse_antecedent
 
 __all__ = [
     "Antecedent",

@@ -38,8 +38,6 @@ body-frame velocity setpoint.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 
 from companion.core.fuzzy.engine import (
@@ -50,11 +48,10 @@ from companion.core.fuzzy.engine import (
     Rule,
     Term,
 )
+from companion.config.core import CommandConfig, ControllerConfig, RuleConfig
 from companion.core.types import N_REGIONS, REGION_NAMES, Decision, DecisionKind
 from companion.errors import ConfigError
 
-if TYPE_CHECKING:  # config imports companion.core.fuzzy.rules: import it lazily to avoid a cycle
-    from companion.config.core import CommandConfig, ControllerConfig, RuleConfig
 
 OUTPUTS: tuple[str, str] = ("yaw", "pitch")
 

@@ -32,7 +32,7 @@ from typing import Literal
 
 import numpy as np
 
-from companion.core.fuzzy.rules import Antecedent, parse_antecedent
+from companion.config.rules import Antecedent, parse_antecedent
 from companion.errors import ConfigError
 
 Shape = Literal["triangle", "trapezoid", "left_shoulder", "right_shoulder", "gaussian"]
@@ -311,7 +311,7 @@ class OutputVariable:
 class Rule:
     """``if antecedent then output is term, ...`` with a weight in (0, 1] multiplying its strength.
 
-    ``antecedent`` is a parsed :class:`~companion.core.fuzzy.rules.Antecedent` or its text.
+    ``antecedent`` is a parsed :class:`~companion.config.rules.Antecedent` or its text.
     """
 
     name: str

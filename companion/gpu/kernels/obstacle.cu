@@ -1,4 +1,4 @@
-// OBSTACLE_DISTANCE bins from the device disparity image (issue 18): a column of blocks per 5-degree bin.
+// OBSTACLE_DISTANCE bins from the device disparity image: a column of blocks per 5-degree bin.
 //
 // Exactly companion/core/obstacle.py's reduce_obstacle_distance on the disparity as the host sees it
 // (int16 x scale, -1 invalid -> NaN): the same float32 compare for the height band (d >= row_thr[v]),

@@ -15,8 +15,6 @@ from companion.sim.render.renderer import (
     Photometry,
     RenderResult,
     StereoRenderer,
-    bench_render,
-    bench_scene,
 )
 from companion.sim.render.scene import TEXTURED, Box, Obstacle, Pillar, Scene, Surface, corridor_scene
 from companion.sim.render.target import PlanarTarget, TargetCamera, chessboard_target
@@ -39,8 +37,6 @@ __all__ = [
     "Surface",
     "TargetCamera",
     "TextureBank",
-    "bench_render",
-    "bench_scene",
     "chessboard_target",
     "corridor_scene",
 ]

@@ -46,8 +46,8 @@ _MATERIAL_TONE: tuple[tuple[float, float], ...] = (
 #: (its pattern key, in tenths of a grey level). The shading varies over ``size / 16`` texels and
 #: more (tens of centimetres to metres): almost no gradient within a matching window; the grain, at
 #: the texel scale, is about the camera's default sensor noise (2 grey levels, independent per eye),
-#: so matching a plain wall is largely matching noise, as on a real one (measured: docs/history.md,
-#: "Hard surfaces").
+#: so matching a plain wall is largely matching noise, as on a real one (tools/hard_surface_study.py
+#: measures it).
 PLAIN_TONE = (182.0, 5.0)
 #: BARS: the bars' mean grey and the std of their shading and grain; an opaque pattern's gaps are
 #: this fraction of the bars' grey (a shadowed recess).

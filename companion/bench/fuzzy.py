@@ -8,14 +8,11 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from typing import TYPE_CHECKING
 
 import numpy as np
 
+from companion.config.core import CommandConfig, ControllerConfig
 from companion.core.fuzzy.avoidance import AvoidanceController
-
-if TYPE_CHECKING:
-    from companion.config.core import CommandConfig, ControllerConfig
 
 
 def _stats_us(samples_s: np.ndarray) -> tuple[float, float]:
@@ -51,8 +48,6 @@ def bench_fuzzy(
     if n < 1:
         raise ValueError(f"n must be >= 1, got {n}")
     if cfg is None or cmd is None:
-        from companion.config.core import CommandConfig, ControllerConfig  # lazy: config imports us
-
         cfg = cfg if cfg is not None else ControllerConfig()
         cmd = cmd if cmd is not None else CommandConfig()
     t0 = clock()

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from companion.sim.render import Pose
+from companion.core.pose import Pose
 
 
 def wrap_pi(angle_rad: float) -> float:

@@ -39,14 +39,15 @@ from typing import Any
 
 import numpy as np
 
-from companion.bench import (
-    BenchSize,
-    format_table,
-    machine_description,
-    rendered_frames,
-    stats_ms,
-    write_bench_calibration,
-)
+from companion.bench.common import BenchSize, rendered_frames, stats_ms, write_bench_calibration
+from companion.config import CompanionConfig
+from companion.config.core import StereoConfig
+from companion.core.disparity import OpenCVSGBMMatcher
+from companion.core.estimator import CpuRegionEstimator
+from companion.core.stereo import split_side_by_side, to_grey
+from companion.gpu import CupyRegionEstimator
+from companion.gpu.plan import SGM_CENSUS_TILE
+from companion.report import format_table, machine_description
 
 #: Upload settings tried for the whole-frame figure (gpu config overrides), besides the default.
 UPLOAD_VARIANTS: tuple[dict[str, Any], ...] = (
@@ -87,8 +88,6 @@ SGM_UPLOAD_VARIANTS: tuple[dict[str, Any], ...] = (
 
 def _cfg(size: BenchSize, calib: Path | None, matcher: str = "sad", sgm_paths: int = 4, **gpu: Any) -> Any:
     """The benchmark config; ``calib``: a calibration file (the remap is timed) or None (identity)."""
-    from companion.config import CompanionConfig
-
     calibration: dict[str, Any] = {"ideal_hfov_deg": 87.0}
     if calib is not None:
         calibration["file"] = str(calib)
@@ -109,8 +108,6 @@ def _cfg(size: BenchSize, calib: Path | None, matcher: str = "sad", sgm_paths: i
 
 def _sgm_kernel_times(est: Any, cp: Any, n: int) -> dict[str, dict[str, float]]:
     """CUDA-event times of each SGM kernel, and of the four together, on the estimator's last rectified pair."""
-    from companion.gpu.plan import SGM_CENSUS_TILE
-
     s = est._stream
     events = [cp.cuda.Event() for _ in range(5)]
     names = ("census", "paths", "wta_right", "lr_median_regions")
@@ -325,11 +322,6 @@ def _time_estimator(est: Any, frames: list[np.ndarray], warmup: int, n: int) -> 
 def _opencv(size: BenchSize, calib: Path | None, frames: list[np.ndarray], warmup: int, n: int) -> dict[str, Any]:
     import cv2
 
-    from companion.config.core import StereoConfig
-    from companion.core.disparity import OpenCVSGBMMatcher
-    from companion.core.estimator import CpuRegionEstimator
-    from companion.core.stereo import split_side_by_side, to_grey
-
     threads = os.cpu_count() or 1
     cv2.setNumThreads(threads)
     bm = cv2.StereoBM_create(numDisparities=size.num_disparities, blockSize=9)
@@ -399,8 +391,6 @@ def _opencv(size: BenchSize, calib: Path | None, frames: list[np.ndarray], warmu
 def run_gpu_bench(args: argparse.Namespace, sizes: list[BenchSize]) -> dict[str, Any]:
     """Time the GPU path and OpenCV StereoBM at each size; print a table; return the figures."""
     import cupy as cp
-
-    from companion.gpu import CupyRegionEstimator
 
     n, warmup = int(args.frames), int(args.warmup)
     matcher = getattr(args, "matcher", "sgm")

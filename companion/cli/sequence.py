@@ -28,7 +28,7 @@ def add_sequence_arguments(p: argparse.ArgumentParser) -> None:
 
 def run_sequence(args: argparse.Namespace, cfg: Any) -> int:
     """Replay ``args.sequence`` under ``cfg``; print the summary."""
-    from companion.recorded.replay import print_summary, replay_sequence
+    from companion.view.replay import print_summary, replay_sequence
     from companion.recorded.sequence import open_sequence
 
     if args.right is not None or args.overlay is not None:

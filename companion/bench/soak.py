@@ -23,7 +23,12 @@ from typing import Any
 
 import numpy as np
 
+from companion.bench.common import rendered_frames, stats_ms
+from companion.bench.e2e import BenchVehicleLink, _write_recording
+from companion.config import parse_config
 from companion.errors import CompanionError
+from companion.report import format_table, machine_description
+from companion.service.daemon import Service
 
 #: The replayed camera rate, frames per second (a ZED at 672x376 runs at 15 to 100).
 SOAK_FPS_HZ = 30.0
@@ -97,11 +102,6 @@ class _Operator:
 
 def run_soak(args: argparse.Namespace, sizes: list[Any]) -> dict[str, Any]:
     """Run the soak for ``args.duration_s``; prints a row per sample and a summary; returns the figures."""
-    from companion.bench import format_table, machine_description, rendered_frames, stats_ms
-    from companion.config import parse_config
-    from companion.service.bench import BenchVehicleLink, _write_recording
-    from companion.service.daemon import Service
-
     size = sizes[0]
     report: dict[str, Any] = {
         "machine": machine_description(),

@@ -25,9 +25,15 @@ from typing import Any
 
 import numpy as np
 
+from companion.backends import cuda_available
+from companion.bench.common import rendered_frames, stats_ms
+from companion.config import parse_config
 from companion.core.types import VelocitySetpoint
 from companion.errors import CompanionError
 from companion.interfaces import VehicleState
+from companion.report import format_table, machine_description
+from companion.service.daemon import Service
+from companion.service.recording import RecordingWriter
 
 log = logging.getLogger(__name__)
 
@@ -64,8 +70,6 @@ class BenchVehicleLink:
 
 
 def _write_recording(folder: Path, frames: list[np.ndarray], fps_hz: float) -> None:
-    from companion.service.recording import RecordingWriter
-
     with RecordingWriter(folder, fps_hz) as writer:
         for i, image in enumerate(frames):
             writer.write(image, i / fps_hz, i + 1)
@@ -101,9 +105,6 @@ def measure_e2e(
     mode = ("on" if viewer else "off") if isinstance(viewer, bool) else viewer
     if mode not in ("off", "on", "alternate"):
         raise ValueError(f"viewer must be off, on or alternate, not {viewer!r}")
-    from companion.bench import rendered_frames, stats_ms
-    from companion.config import parse_config
-    from companion.service.daemon import Service
 
     _, images = rendered_frames(size, n=min(60, frames + warmup))
     rec = workdir / f"rec_{size.width_px}x{size.height_px}_{stream_fps_hz:g}fps"
@@ -263,8 +264,6 @@ def viewer_cost(
         ``{"watched": stats, "unwatched": stats, "p99_diff_ms", "p99_diff_ci95_ms": [lo, hi],
         "median_diff_ms", "windows": n}`` (milliseconds; diff = watched - unwatched).
     """
-    from companion.bench import stats_ms
-
     lat = np.asarray(latencies_s, dtype=np.float64) * 1e3
     state = np.zeros(len(lat), dtype=np.int8)  # 0 none yet, 1 watched, 2 unwatched, 3 settling
     for k, (idx, sub) in enumerate(toggles):
@@ -291,9 +290,6 @@ def viewer_cost(
 
 def run_e2e_bench(args: argparse.Namespace, sizes: list[Any]) -> dict[str, Any]:
     """Frame-to-setpoint latency for each size with ``args.backend`` (and cupy too when CUDA is there)."""
-    from companion.bench import format_table, machine_description
-    from companion.backends import cuda_available
-
     backends = [args.backend]
     if args.backend != "cupy" and cuda_available():
         backends.append("cupy")

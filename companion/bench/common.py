@@ -1,4 +1,4 @@
-"""Benchmark helpers shared by ``companion bench`` and the backends' own benchmarks.
+"""What every benchmark shares: the sizes, rendered frames, the benchmark calibration, statistics.
 
 Speed goals live here and in ``docs/benchmarks.md``, never in timed tests.
 """
@@ -6,17 +6,16 @@ Speed goals live here and in ``docs/benchmarks.md``, never in timed tests.
 from __future__ import annotations
 
 import math
-import os
-import platform
-from collections.abc import Iterable, Sequence
+import sys
+from collections.abc import Sequence
 from dataclasses import dataclass
-
 from pathlib import Path
 
 import cv2
 import numpy as np
 
 from companion.core.geometry import StereoGeometry
+from companion.sim.render import Photometry, Pose, StereoRenderer, corridor_scene
 
 
 @dataclass(frozen=True)
@@ -65,8 +64,6 @@ def rendered_frames(size: BenchSize, n: int, seed: int = 0) -> tuple[StereoGeome
 
     Distinct frames so that caches do not flatter the figures. The rig is ZED-like (87° HFOV, 12 cm).
     """
-    from companion.sim.render import Photometry, Pose, StereoRenderer, corridor_scene
-
     geometry = StereoGeometry.ideal(size.width_px, size.height_px, hfov_deg=87.0, baseline_m=0.12)
     scene = corridor_scene(length_m=80.0, width_m=6.0, n_obstacles=18, seed=seed)
     renderer = StereoRenderer(geometry, scene, seed=seed)
@@ -112,28 +109,6 @@ def write_bench_calibration(size: BenchSize, directory: Path) -> Path:
     return path
 
 
-def machine_description() -> str:
-    """One line: CPU model, core count, Python and OpenCV versions."""
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo", encoding="utf-8") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    cpu = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
-    return (
-        f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, "
-        f"OpenCV {cv2.__version__} ({cv2.getNumThreads()} threads), NumPy {np.__version__}"
-    )
-
-
-def format_table(rows: Iterable[Sequence[object]], header: Sequence[str]) -> str:
-    """A plain fixed-width text table."""
-    rows = [[str(c) for c in r] for r in rows]
-    widths = [max(len(h), *(len(r[i]) for r in rows)) if rows else len(h) for i, h in enumerate(header)]
-    line = "  ".join(h.ljust(w) for h, w in zip(header, widths))
-    out = [line, "  ".join("-" * w for w in widths)]
-    out += ["  ".join(c.ljust(w) for c, w in zip(r, widths)) for r in rows]
-    return "\n".join(out)
+def progress(what: str) -> None:
+    """One line on stderr before each step (a bench runs for minutes; stdout keeps the figures)."""
+    print(f"companion bench: {what}...", file=sys.stderr, flush=True)

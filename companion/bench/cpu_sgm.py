@@ -13,6 +13,11 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
+from companion.backends import make_pipeline
+from companion.bench.common import parse_sizes, rendered_frames, stats_ms, write_bench_calibration
+from companion.config import CompanionConfig
+from companion.report import format_table, machine_description
+
 #: (size, disparities) -> median milliseconds of the whole pipeline the engine should meet.
 GOALS_MS = {(672, 376, 64): 40.0, (336, 188, 32): 12.0}
 #: The largest ratio of the CPU SGM pipeline's median to StereoBM's.
@@ -24,10 +29,6 @@ DEFAULT_SIZES = "672x376:64,336x188:32"
 def run_cpu_sgm_bench(args: argparse.Namespace, sizes: list[Any] | None = None) -> dict[str, Any]:
     """Time both pipelines per size (``args.frames`` each after ``args.warmup``); print a table and
     return the figures (median and p99 ms of each, the ratio, the goals)."""
-    from companion.bench import format_table, machine_description, parse_sizes, rendered_frames, stats_ms
-    from companion.bench import write_bench_calibration
-    from companion.backends import make_pipeline
-    from companion.config import CompanionConfig
 
     if sizes is None:
         sizes = parse_sizes(DEFAULT_SIZES)

@@ -166,7 +166,7 @@ def replay_sequence(
     from companion.core.calibration import make_rectifier, save_calibration
     from companion.core.command import setpoint_for
     from companion.core.overlay import draw_overlay
-    from companion.view.frame import near_far_m
+    from companion.service.preview_frame import near_far_m
     from companion.view.review import write_review
 
     if fmt not in ("jsonl", "csv"):

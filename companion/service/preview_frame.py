@@ -23,9 +23,12 @@ from typing import Any
 import cv2
 import numpy as np
 
+from companion.core.overlay import draw_overlay
 from companion.core.regions import RegionLayout
+from companion.core.stereo import split_side_by_side, to_bgr
 from companion.core.types import Decision
 from companion.errors import ProtocolError
+from companion.service.protocol import encode
 
 #: The ZeroMQ topic (first frame) of preview messages.
 PREVIEW_TOPIC = b"preview"
@@ -142,9 +145,6 @@ def render_preview(inp: PreviewInputs, width_px: int) -> np.ndarray:
     Returns:
         BGR uint8 ``(round(H * width_px / W), width_px, 3)`` for an eye of ``W`` x ``H``.
     """
-    from companion.core.overlay import draw_overlay
-    from companion.core.stereo import split_side_by_side, to_bgr
-
     left, _ = split_side_by_side(inp.image)
     left = to_bgr(left)  # a YUYV camera's eye decoded here, off the hot path
     eye_h, eye_w = left.shape[:2]
@@ -182,8 +182,6 @@ def encode_jpeg(image: np.ndarray, quality: int) -> bytes:
 
 def pack(header: dict[str, Any], jpeg: bytes) -> list[bytes]:
     """A preview message's ZeroMQ frames."""
-    from companion.service.protocol import encode
-
     return [PREVIEW_TOPIC, encode(header), jpeg]
 
 

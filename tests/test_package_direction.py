@@ -1,0 +1,137 @@
+"""Packages import in one direction: cli -> (sitl, view, bench) -> service -> recorded -> (sim, calib)
+-> backends -> (gpu, cpu) -> core -> config -> base types (errors, exitcodes, interfaces, report, framepool, devices). Module-level and
+function-level imports alike: a circle hidden inside a function is still a circle. Imports under
+``if TYPE_CHECKING`` name types for annotations and load nothing; they may name any part.
+
+The service imports the simulator only inside a function (the ``sim`` camera source builds the renderer
+when it is asked for), so the flight service never loads it.
+"""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+PACKAGE = Path(__file__).resolve().parent.parent / "companion"
+
+#: Each top-level part of ``companion`` and its rank: a part may import only parts of a lower rank
+#: (and itself). ``companion`` is the package's own ``__init__``.
+RANK: dict[str, int] = {
+    "companion": 0,
+    "errors": 0,
+    "exitcodes": 0,
+    "interfaces": 0,
+    "report": 0,
+    "framepool": 0,
+    "devices": 0,
+    "config": 1,
+    "core": 2,
+    "gpu": 3,
+    "cpu": 3,
+    "backends": 4,
+    "sim": 5,
+    "calib": 5,
+    "recorded": 6,
+    "service": 7,
+    "view": 8,
+    "sitl": 8,
+    "bench": 8,
+    "cli": 9,
+    "__main__": 10,
+}
+
+#: The one import that still goes up, with why: loading a config checks the stereo setting against
+#: the rig, and the rig's geometry comes from the core's calibration loader. Moving the loaders
+#: (load_config, parse_config, apply_patch) above the core would end it.
+KNOWN_UPWARD: frozenset[tuple[str, str]] = frozenset(
+    {
+        ("companion.config", "companion.core.calibration"),
+        ("companion.config", "companion.core.rig_check"),
+    }
+)
+
+
+def _module_name(path: Path) -> str:
+    parts = path.relative_to(PACKAGE.parent).with_suffix("").parts
+    return ".".join(parts).removesuffix(".__init__")
+
+
+def _part(module: str) -> str:
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 else parts[0]
+
+
+def _imports(path: Path) -> list[tuple[str, int, bool]]:
+    """(imported ``companion`` module, line, inside a function) of one file, less typing-only imports."""
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    deferred: set[int] = set()
+    typing_only: set[int] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
+            typing_only.update(id(n) for n in ast.walk(node))
+        elif isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            deferred.update(id(n) for n in ast.walk(node))
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            names = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            names = [node.module]
+        else:
+            continue
+        if id(node) in typing_only:
+            continue
+        found += [(n, node.lineno, id(node) in deferred) for n in names if n.split(".")[0] == "companion"]
+    return found
+
+
+def _all_imports() -> list[tuple[str, str, int, bool]]:
+    return [
+        (_module_name(p), target, line, deferred)
+        for p in sorted(PACKAGE.rglob("*.py"))
+        for target, line, deferred in _imports(p)
+    ]
+
+
+def test_every_part_of_the_package_has_a_rank() -> None:
+    parts = {_part(_module_name(p)) for p in PACKAGE.rglob("*.py")}
+    assert parts <= set(RANK), sorted(parts - set(RANK))
+
+
+def test_imports_go_down_the_layers() -> None:
+    upward = sorted(
+        f"{module}:{line} imports {target}"
+        for module, target, line, _ in _all_imports()
+        if _part(module) != _part(target)
+        and RANK[_part(target)] >= RANK[_part(module)]
+        and (module, target) not in KNOWN_UPWARD
+    )
+    assert not upward, "\n".join(upward)
+
+
+def test_the_service_never_imports_the_simulator_at_module_level() -> None:
+    offenders = sorted(
+        f"{module}:{line} imports {target}"
+        for module, target, line, deferred in _all_imports()
+        if _part(module) == "service" and _part(target) == "sim" and not deferred
+    )
+    assert not offenders, "\n".join(offenders)
+
+
+@pytest.mark.parametrize(
+    ("module", "never"),
+    [
+        ("companion.service.daemon", ("companion.sim", "companion.view", "companion.bench", "companion.cli")),
+        ("companion.core.pipeline", ("companion.gpu", "companion.service", "companion.sim", "companion.backends")),
+        ("companion.config", ("companion.core",)),
+        ("companion.interfaces", ("companion.core", "companion.config")),
+    ],
+)
+def test_importing_a_module_loads_nothing_above_it(module: str, never: tuple[str, ...]) -> None:
+    code = f"import sys, {module}\nprint(sorted(m for m in sys.modules if m.startswith({never!r})))\n"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]", out.stdout
