@@ -139,6 +139,41 @@ def directions(yaw_rad: np.ndarray, climb_rad: np.ndarray) -> np.ndarray:
     return np.stack([c * np.cos(yaw_rad), c * np.sin(yaw_rad), -np.sin(climb_rad)], axis=-1)
 
 
+#: Samples of a candidate's swing (the lagging part of its predicted path), per path.
+SWING_SAMPLES = 32
+#: The swing is followed for this many time constants (the velocity is then within 5 % of the command).
+SWING_TIME_CONSTANTS = 3.0
+
+
+def predicted_paths(
+    velocity_ned_m_s: np.ndarray, dirs: np.ndarray, speed_m_s: np.ndarray, cfg: PlannerConfig, step_m: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Where the vehicle will fly for each candidate: its velocity now blending into the command
+    ``dirs * speed_m_s`` (float ``(K, 3)`` unit NED, ``(K,)`` m/s) as a first-order lag, then on along
+    the candidate to the map range.
+
+    The lag's time constant is ``latency_s`` (the planner's own response setting: a frame, the
+    pipeline and the autopilot's velocity response), the old velocity decaying as ``exp(-t/τ)``:
+    told to turn, the vehicle carries on along its motion about its speed times ``τ``.
+
+    Returns ``(offsets, arc)``: float64 ``(K, S, 3)`` NED metres from the vehicle and ``(K, S)`` arc
+    length from it, metres, increasing (NaN past the map range)."""
+    v0 = np.asarray(velocity_ned_m_s, dtype=np.float64)[None, :]
+    vc = dirs * np.asarray(speed_m_s, dtype=np.float64)[:, None]
+    dv = v0 - vc
+    tau = np.full(len(dirs), max(cfg.latency_s, 1e-3))
+    t = (SWING_TIME_CONSTANTS * tau)[:, None] * np.linspace(0.0, 1.0, SWING_SAMPLES + 1)[None, 1:]  # (K, M)
+    lag = (tau[:, None] * (1.0 - np.exp(-t / tau[:, None])))[..., None]
+    swing = vc[:, None, :] * t[..., None] + dv[:, None, :] * lag  # (K, M, 3)
+    n_tail = int(math.ceil(cfg.map_range_m / step_m))
+    tail = swing[:, -1:, :] + dirs[:, None, :] * (step_m * np.arange(1, n_tail + 1))[None, :, None]
+    pts = np.concatenate([swing, tail], axis=1)
+    seg = np.diff(np.concatenate([np.zeros((len(dirs), 1, 3)), pts], axis=1), axis=1)
+    arc = np.cumsum(np.linalg.norm(seg, axis=2), axis=1)
+    arc = np.where(arc <= cfg.map_range_m + 1e-9, arc, np.nan)
+    return pts, arc
+
+
 def costs(
     yaw: np.ndarray,
     climb: np.ndarray,
@@ -294,6 +329,14 @@ class LocalPlanner:
         band_cut = to_band < free
         free = np.minimum(free, to_band)
         blocked = fl.blocked | band_cut
+        # The path the vehicle will fly (its velocity lags the command): a swing that enters a
+        # surface's inflation shortens the candidate like a surface on its line, so that a sharp turn
+        # at speed costs speed, not clearance.
+        offs, arc = predicted_paths(snap.velocity_ned_m_s, dirs, speed_law(free, cfg), cfg, lmap.voxel_m)
+        clear = lmap.clear_along(pos, pos + offs, arc)
+        swung = clear < free
+        free = np.where(swung, clear, free)
+        blocked = blocked | swung
         # Hoped-for length: unknown space not looked at lately is worth a look.
         unlooked = snap.now_s - self._looked_t[self._bin(yaw)] > cfg.look_memory_s
         hopeful = unlooked & ~blocked & ~fl.horizon

@@ -266,6 +266,34 @@ class LocalMap:
         return FreeLengths(length_m=length, blocked=blocked, horizon=~any_bad)
 
 
+    def clear_along(self, start_ned_m: np.ndarray, points_ned_m: np.ndarray, arc_m: np.ndarray) -> np.ndarray:
+        """How far along each of K sampled paths (``points_ned_m`` float ``(K, S, 3)`` NED m at arc
+        lengths ``arc_m`` float ``(K, S)`` from ``start_ned_m``, increasing; NaN: past the path's end)
+        the centre stays out of every surface's inflation, metres (float64 ``(K,)``; inf where it
+        never enters one).
+
+        Only surfaces seen block here, not unknown space: this judges the swing of a lagging vehicle
+        round a line whose own seen-free length is judged by :meth:`free_lengths`. As there, where the
+        start is within the radius of a surface the first radius is judged on the surfaces alone."""
+        arc = np.asarray(arc_m, dtype=np.float64)
+        valid = np.isfinite(arc)
+        if self.origin is None:
+            return np.zeros(arc.shape[0])
+        pts = np.asarray(points_ned_m, dtype=np.float64)
+        idx, inside = self._index(pts)
+        hit = self.inflated().reshape(-1)[idx] & inside & valid
+        start = np.asarray(start_ned_m, dtype=np.float64)
+        s_idx, s_in = self._index(start)
+        if bool(s_in) and bool(self.inflated().reshape(-1)[s_idx]):
+            near = np.where(valid, arc, np.inf) <= self.radius_m + self.voxel_m
+            hit = np.where(near, self.occupied().reshape(-1)[idx] & inside & valid, hit)
+        any_hit = hit.any(axis=1)
+        first = hit.argmax(axis=1)
+        rows = np.arange(arc.shape[0])
+        before = np.where(first > 0, arc[rows, np.maximum(first - 1, 0)], 0.0)
+        return np.where(any_hit, before, np.inf)
+
+
 def _moves_closer(m: LocalMap, start: np.ndarray, pts: np.ndarray) -> np.ndarray:
     """bool ``(K, S)``: samples nearer to the nearest occupied cube round ``start`` than ``start`` is
     (the way in, from inside the inflation)."""
