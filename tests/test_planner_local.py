@@ -97,6 +97,25 @@ def test_the_map_rolls_with_the_vehicle_and_keeps_what_it_saw() -> None:
     assert fl.blocked[0] and fl.length_m[0] < 2.0
 
 
+def test_the_layers_kept_up_frame_by_frame_equal_the_layers_computed_whole() -> None:
+    """The occupancy and its inflation are updated round the cubes that change (hits, passes, hits
+    that age out, the grid rolling): they equal the layers computed from the evidence at once."""
+    from companion.core.planner.localmap import OCCUPIED_LOG_ODDS, _box_count
+
+    m = LocalMap(voxel_m=0.15, range_m=8.0, radius_m=0.25, occupied_memory_s=1.0, free_memory_s=6.0)
+    t = 0.0
+    for k in range(40):
+        t = 0.1 * k
+        depth = 1.5 if k < 20 else 30.0  # a wall, then seen through (its hits clear and age out)
+        pose = Pose.at(0.08 * k, 0.03 * k, 1.5, yaw_rad=0.05 * k)
+        m.integrate(_wall_blocks(depth, slice(10 + k % 7, 60)), GEOM, BLOCK_PX, pose, t)
+        if k in (12, 39):
+            occ = (m.log_odds > OCCUPIED_LOG_ODDS) & (m.hit_t >= m.now_s - m.occupied_memory_s)
+            assert k != 12 or occ.any()
+            assert np.array_equal(m.occupied(), occ)
+            assert np.array_equal(m.inflated(), _box_count(occ, 2) > 0)
+
+
 def test_speed_law_is_the_exact_stopping_solution() -> None:
     cfg = PlannerConfig(cruise_speed_m_s=20.0)
     a, t, margin = cfg.braking_accel_m_s2, cfg.latency_s, cfg.stop_margin_m
