@@ -141,6 +141,8 @@ def directions(yaw_rad: np.ndarray, climb_rad: np.ndarray) -> np.ndarray:
 
 #: Samples of a candidate's swing (the lagging part of its predicted path), per path.
 SWING_SAMPLES = 32
+#: The cheapest candidates (on their lines) whose predicted paths are checked each tick.
+SWING_CANDIDATES = 24
 #: The swing is followed for this many time constants (the velocity is then within 5 % of the command).
 SWING_TIME_CONSTANTS = 3.0
 
@@ -284,7 +286,9 @@ class LocalPlanner:
 
     def _visited_at(self, points: np.ndarray) -> np.ndarray:
         keys = np.floor(points[:, :2] / VISITED_CELL_M).astype(np.int64)
-        return np.array([self._visited.get((int(a), int(b)), 0.0) for a, b in keys])
+        cells, back = np.unique(keys, axis=0, return_inverse=True)  # a few cells round the vehicle
+        seconds = np.array([self._visited.get((int(a), int(b)), 0.0) for a, b in cells])
+        return seconds[back.reshape(-1)]
 
     def plan(self, snap: Snapshot, lmap: LocalMap) -> Plan:
         """One tick (see the module doc)."""
@@ -329,32 +333,43 @@ class LocalPlanner:
         band_cut = to_band < free
         free = np.minimum(free, to_band)
         blocked = fl.blocked | band_cut
-        # The path the vehicle will fly (its velocity lags the command): a swing that enters a
-        # surface's inflation shortens the candidate like a surface on its line, so that a sharp turn
-        # at speed costs speed, not clearance.
-        offs, arc = predicted_paths(snap.velocity_ned_m_s, dirs, speed_law(free, cfg), cfg, lmap.voxel_m)
-        clear = lmap.clear_along(pos, pos + offs, arc)
-        swung = clear < free
-        free = np.where(swung, clear, free)
-        blocked = blocked | swung
-        # Hoped-for length: unknown space not looked at lately is worth a look.
+        free_line, blocked_line = free, blocked  # on the lines themselves
         unlooked = snap.now_s - self._looked_t[self._bin(yaw)] > cfg.look_memory_s
-        hopeful = unlooked & ~blocked & ~fl.horizon
-        hoped = np.where(hopeful, np.maximum(free, 0.5 * cfg.map_range_m), free)
-        look_pts = pos + dirs * np.minimum(hoped, VISITED_LOOKAHEAD_M)[:, None]
-        visited = self._visited_at(look_pts)
         v = np.asarray(snap.velocity_ned_m_s, dtype=np.float64)
         sp = float(np.linalg.norm(v))
         motion = None
         if sp > 0.3:
             motion = (math.atan2(v[1], v[0]), math.asin(max(-1.0, min(1.0, -v[2] / sp))), min(sp, cfg.cruise_speed_m_s))
-        c = costs(yaw, climb, hoped, blocked & (free < goal_dist), goal_yaw, goal_climb, goal_dist, self._prev, fuzzy, visited, motion, cfg)
-        # A candidate that cannot move a cube's length is out, unless hoped for.
-        c = np.where((hoped < lmap.voxel_m) , np.inf, c)
+
+        def score(free: np.ndarray, blocked: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            # Hoped-for length: unknown space not looked at lately is worth a look.
+            hopeful = unlooked & ~blocked & ~fl.horizon
+            hoped = np.where(hopeful, np.maximum(free, 0.5 * cfg.map_range_m), free)
+            visited = self._visited_at(pos + dirs * np.minimum(hoped, VISITED_LOOKAHEAD_M)[:, None])
+            c = costs(yaw, climb, hoped, blocked & (free < goal_dist), goal_yaw, goal_climb, goal_dist, self._prev, fuzzy, visited, motion, cfg)
+            # A candidate that cannot move a cube's length is out, unless hoped for.
+            return hopeful, hoped, np.where(hoped < lmap.voxel_m, np.inf, c)
+
+        hopeful, hoped, c = score(free, blocked)
+        # The path the vehicle will fly (its velocity lags the command), for the cheapest candidates:
+        # a swing that enters a surface's inflation shortens the candidate like a surface on its line,
+        # so that a sharp turn at speed costs speed, not clearance. The others cost more already, and
+        # a swing only shortens.
+        top = np.argsort(c)[:SWING_CANDIDATES]
+        top = top[np.isfinite(c[top])]
+        if len(top):
+            offs, arc = predicted_paths(v, dirs[top], speed_law(free[top], cfg), cfg, lmap.voxel_m)
+            clear = np.full(len(free), np.inf)
+            clear[top] = lmap.clear_along(pos, pos + offs, arc)
+            swung = clear < free
+            if np.any(swung):
+                free, blocked = np.where(swung, clear, free), blocked | swung
+                hopeful, hoped, c = score(free, blocked)
         table = np.stack([yaw, climb, free, hoped, c], axis=1)
         # A dead end: every direction within the cone of the goal's is closed short by surfaces seen.
         in_cone = _angle_diff(yaw, goal_yaw) <= math.radians(cfg.dead_end_cone_deg)
-        closed = in_cone & (free < cfg.dead_end_free_m) & (blocked | ~unlooked)
+        # On the lines themselves (a swing at speed is no dead end).
+        closed = in_cone & (free_line < cfg.dead_end_free_m) & (blocked_line | ~unlooked)
         if snap.goal_ned_m is not None and np.all(closed[in_cone]):
             if self._closed_since is None:
                 self._closed_since = snap.now_s

@@ -127,11 +127,13 @@ class LocalMap:
     def _index(self, ned_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Flat grid indices (int64 ``(...)``) of points ``ned_m`` (float ``(..., 3)``) and whether
         each lies inside the grid (bool ``(...)``)."""
-        q = np.floor(ned_m / self.voxel_m).astype(np.int64) - self.origin
-        inside = np.all((q >= 0) & (q < np.array(self.shape)), axis=-1)
-        q = np.where(inside[..., None], q, 0)
-        flat = (q[..., 0] * self.shape[1] + q[..., 1]) * self.shape[2] + q[..., 2]
-        return flat, inside
+        # In float (exact for these small integers) and per axis: this runs on every query's samples.
+        q = np.floor(np.asarray(ned_m, dtype=np.float64) / self.voxel_m) - self.origin
+        i, j, k = q[..., 0], q[..., 1], q[..., 2]
+        nx, ny, nz = self.shape
+        inside = (i >= 0) & (i < nx) & (j >= 0) & (j < ny) & (k >= 0) & (k < nz)
+        flat = (i * ny + j) * nz + k
+        return np.where(inside, flat, 0.0).astype(np.int64), inside
 
     # -- frames in ---------------------------------------------------------------------------------
     def _camera_rays(self, geometry: StereoGeometry, block_shape: tuple[int, int], block_px: int, pool: int) -> np.ndarray:
