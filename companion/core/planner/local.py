@@ -341,9 +341,9 @@ class LocalPlanner:
         if sp > 0.3:
             motion = (math.atan2(v[1], v[0]), math.asin(max(-1.0, min(1.0, -v[2] / sp))), min(sp, cfg.cruise_speed_m_s))
 
-        def score(free: np.ndarray, blocked: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        def score(free: np.ndarray, blocked: np.ndarray, swung: np.ndarray | bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
             # Hoped-for length: unknown space not looked at lately is worth a look.
-            hopeful = unlooked & ~blocked & ~fl.horizon
+            hopeful = unlooked & ~blocked & ~swung & ~fl.horizon
             hoped = np.where(hopeful, np.maximum(free, 0.5 * cfg.map_range_m), free)
             visited = self._visited_at(pos + dirs * np.minimum(hoped, VISITED_LOOKAHEAD_M)[:, None])
             c = costs(yaw, climb, hoped, blocked & (free < goal_dist), goal_yaw, goal_climb, goal_dist, self._prev, fuzzy, visited, motion, cfg)
@@ -363,8 +363,12 @@ class LocalPlanner:
             clear[top] = lmap.clear_along(pos, pos + offs, arc)
             swung = clear < free
             if np.any(swung):
-                free, blocked = np.where(swung, clear, free), blocked | swung
-                hopeful, hoped, c = score(free, blocked)
+                # Swung short, the way still leads on once slower: its time is the short length at
+                # the low speed, then the rest at cruise (not the rest at the low speed, as past a
+                # surface on the line).
+                free = np.where(swung, clear, free)
+                hopeful, hoped, c = score(free, blocked, swung)
+                blocked = blocked | swung
         table = np.stack([yaw, climb, free, hoped, c], axis=1)
         # A dead end: every direction within the cone of the goal's is closed short by surfaces seen.
         in_cone = _angle_diff(yaw, goal_yaw) <= math.radians(cfg.dead_end_cone_deg)
