@@ -13,7 +13,7 @@ from companion.config.controller import ControllerConfig
 from companion.config.planner import PlannerConfig
 from companion.core.fuzzy.avoidance import AvoidanceController
 from companion.core.geometry import StereoGeometry
-from companion.core.planner.local import TRANSITIONS, LocalPlanner, Mode, Snapshot, speed_law
+from companion.core.planner.local import TRANSITIONS, LocalPlanner, Mode, Snapshot, predicted_paths, speed_law
 from companion.core.planner.localmap import LocalMap
 from companion.core.planner.safety import (
     CHAIN,
@@ -97,6 +97,25 @@ def test_the_map_rolls_with_the_vehicle_and_keeps_what_it_saw() -> None:
     assert fl.blocked[0] and fl.length_m[0] < 2.0
 
 
+def test_the_layers_kept_up_frame_by_frame_equal_the_layers_computed_whole() -> None:
+    """The occupancy and its inflation are updated round the cubes that change (hits, passes, hits
+    that age out, the grid rolling): they equal the layers computed from the evidence at once."""
+    from companion.core.planner.localmap import OCCUPIED_LOG_ODDS, _box_count
+
+    m = LocalMap(voxel_m=0.15, range_m=8.0, radius_m=0.25, occupied_memory_s=1.0, free_memory_s=6.0)
+    t = 0.0
+    for k in range(40):
+        t = 0.1 * k
+        depth = 1.5 if k < 20 else 30.0  # a wall, then seen through (its hits clear and age out)
+        pose = Pose.at(0.08 * k, 0.03 * k, 1.5, yaw_rad=0.05 * k)
+        m.integrate(_wall_blocks(depth, slice(10 + k % 7, 60)), GEOM, BLOCK_PX, pose, t)
+        if k in (12, 39):
+            occ = (m.log_odds > OCCUPIED_LOG_ODDS) & (m.hit_t >= m.now_s - m.occupied_memory_s)
+            assert k != 12 or occ.any()
+            assert np.array_equal(m.occupied(), occ)
+            assert np.array_equal(m.inflated(), _box_count(occ, 2) > 0)
+
+
 def test_speed_law_is_the_exact_stopping_solution() -> None:
     cfg = PlannerConfig(cruise_speed_m_s=20.0)
     a, t, margin = cfg.braking_accel_m_s2, cfg.latency_s, cfg.stop_margin_m
@@ -154,6 +173,39 @@ def test_a_closed_pocket_is_held_once_looked_round() -> None:
     # Held: it stays held whatever comes next (only a new engagement leaves it).
     assert p.plan(_snap(now_s=5.0), m).mode is Mode.HOLD
     assert all(TRANSITIONS[(Mode.HOLD, e)] is Mode.HOLD for e in ("direct", "steer", "round"))
+
+
+def test_the_predicted_path_swings_with_the_lagging_velocity() -> None:
+    """A vehicle flying east at 3 m/s told to fly north carries on east for about its speed times
+    the response time before its velocity turns; told to fly on as it flies, it flies the line."""
+    cfg = PlannerConfig()
+    north = np.array([[1.0, 0.0, 0.0]])
+    offs, arc = predicted_paths(np.array([0.0, 3.0, 0.0]), north, np.array([3.0]), cfg, 0.15)
+    ok = np.isfinite(arc[0])
+    assert offs[0, ok, 1].max() >= 3.0 * cfg.latency_s * 0.9
+    assert np.all(np.diff(arc[0, ok]) > 0.0) and arc[0, ok].max() <= cfg.map_range_m + 1e-9
+    offs, arc = predicted_paths(np.array([3.0, 0.0, 0.0]), north, np.array([3.0]), cfg, 0.15)
+    ok = np.isfinite(arc[0])
+    assert np.abs(offs[0, ok, 1]).max() < 1e-9
+    assert offs[0, ok, 0] == pytest.approx(arc[0, ok])
+
+
+def test_a_sharp_turn_at_speed_costs_speed_not_clearance() -> None:
+    """Flying fast along a wall's side and turning away from it costs nothing; turning when the
+    lagging velocity would carry the vehicle into a wall ahead of its motion shortens the turn's
+    free length (its speed), though the line itself is seen free."""
+    m = _map()
+    _see(m, _wall_blocks(1.0), pose=Pose.at(0.0, 0.0, 1.5, yaw_rad=math.pi / 2))  # a wall 1 m east
+    _see(m, _wall_blocks(30.0))  # north seen free to the range
+    p = LocalPlanner(PlannerConfig(), 0.25)
+    at_rest = p.plan(_snap(), m).candidates
+    p = LocalPlanner(PlannerConfig(), 0.25)
+    eastward = p.plan(_snap(velocity_ned_m_s=np.array([0.0, 3.0, 0.0])), m).candidates
+    north_level = 2  # yaw row 0 (the goal's direction, north), the level climb
+    assert at_rest[north_level, 2] >= 4.0
+    assert eastward[north_level, 2] < 0.5 * at_rest[north_level, 2]
+    westward = LocalPlanner(PlannerConfig(), 0.25).plan(_snap(velocity_ned_m_s=np.array([0.0, -3.0, 0.0])), m).candidates
+    assert westward[north_level, 2] == pytest.approx(at_rest[north_level, 2])
 
 
 def test_without_a_goal_the_fuzzy_controller_is_the_whole_policy() -> None:
@@ -279,9 +331,12 @@ def test_the_stack_flies_a_course_goal_and_needs_the_envelope_raised() -> None:
         CompanionConfig.model_validate({"planner": {"kind": "local"}})
 
 
-def test_the_service_flies_the_local_stack_when_planner_kind_is_local() -> None:
+@pytest.mark.parametrize("memory_s", [0.0, 8.0])
+def test_the_service_flies_the_local_stack_when_planner_kind_is_local(memory_s: float) -> None:
     """The supervisor's engaged step runs the local stack: frames enter its map from the pose at
-    capture, and the setpoint is the stack's (forward into space seen free; zero before any is seen)."""
+    capture whatever the rules' obstacle memory is set to, and the setpoint is the stack's (forward
+    into space seen free; zero before any is seen). A dead end the planner holds pauses the flight
+    with the planner's reason, as the rules stack's does."""
     from dataclasses import dataclass, replace
 
     from companion.core.supervisor import Engage, State, Supervisor, SupervisorConfig
@@ -296,7 +351,10 @@ def test_the_service_flies_the_local_stack_when_planner_kind_is_local() -> None:
         geometry: object
         refined: object = None
 
-    cfg = CompanionConfig.model_validate({"planner": {"kind": "local"}, "envelope": {"max_horizontal_speed_m_s": 4.0}})
+    cfg = CompanionConfig.model_validate(
+        {"planner": {"kind": "local"}, "envelope": {"max_horizontal_speed_m_s": 4.0}, "memory": {"duration_s": memory_s}}
+        | ({"envelope": {"max_horizontal_speed_m_s": 4.0, "memory_may_be_off": True}} if memory_s == 0.0 else {})
+    )
     sup = Supervisor(SupervisorConfig.from_config(cfg))
     clear = Decision(DecisionKind.CLEAR, 0.0, 0.0, 1.0, "clear")
     at = np.array([0.0, 0.0, -1.5])
@@ -320,3 +378,11 @@ def test_the_service_flies_the_local_stack_when_planner_kind_is_local() -> None:
         seen = Seen(now - 0.01, clear, np.empty((0, 3)), _wall_blocks(30.0), GEOM)
         out = sup.step(now, seen, v, [], camera_ok=True)
     assert out.setpoint is not None and out.setpoint.forward_m_s > 0.5
+    # The planner declares a dead end: the service pauses (zero velocity) and says why.
+    planner = sup._m.local.planner
+    planner.mode, planner.reason = Mode.HOLD, "dead end: no direction within 100 deg of the goal is free for 1.5 m"
+    now += 0.05
+    v = replace(v, position_timestamp_s=now)
+    out = sup.step(now, Seen(now - 0.01, clear, np.empty((0, 3)), _wall_blocks(30.0), GEOM), v, [], camera_ok=True)
+    assert out.state is State.PAUSED and "dead end" in out.reason
+    assert out.setpoint is not None and out.setpoint.forward_m_s == 0.0

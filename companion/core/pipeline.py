@@ -101,8 +101,9 @@ class FrameResult:
 
 
 def _near_cells(cfg: CompanionConfig, geometry: StereoGeometry, width_px: int, height_px: int) -> NearCells | None:
-    """The obstacle memory's per-frame stage, or None when the memory is off."""
-    if cfg.memory.duration_s <= 0.0:
+    """The per-frame block stage of the obstacle memory and the local planner's map, or None when
+    neither is on (the memory off and ``planner.kind`` "rules")."""
+    if cfg.memory.duration_s <= 0.0 and cfg.planner.kind != "local":
         return None
     b = cfg.memory.block_px
     return NearCells(cfg.memory, geometry, (-(-height_px // b), -(-width_px // b)))
@@ -171,7 +172,7 @@ class Pipeline:
         if any(s in changed for s in ESTIMATOR_SECTIONS):
             estimator = self._make_estimator(cfg, self.width_px, self.height_px, self._clock)
         near = self._near
-        if estimator is not self.estimator or cfg.memory != self.config.memory:
+        if estimator is not self.estimator or cfg.memory != self.config.memory or cfg.planner.kind != self.config.planner.kind:
             near = _near_cells(cfg, estimator.geometry, self.width_px, self.height_px)
         self._install(cfg, estimator, near)
         if cfg.lut.median_frames - 1 != self._history.maxlen:
@@ -223,7 +224,7 @@ class Pipeline:
         decision = self._controller.decide(refined)
         t3 = clock()
         points = far = None
-        if near is not None and est.near_blocks is not None:
+        if near is not None and est.near_blocks is not None and self.config.memory.duration_s > 0.0:
             points = near.points(est.near_blocks)
             if self.config.memory.map_clear_after_frames > 0 and self.config.detour.on:
                 far = near.far_view(est.near_blocks, self._view_limits)  # the map is the detour layer's alone

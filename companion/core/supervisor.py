@@ -483,17 +483,19 @@ class Supervisor:
             if not m.poses or t > m.poses[-1][0]:
                 m.poses.append((float(t), pose))
         points = getattr(latest, "near_points_cam_m", None)
-        if latest is None or points is None or latest.timestamp_s == m.last_frame_s:
+        blocks, geometry = getattr(latest, "near_blocks", None), getattr(latest, "geometry", None)
+        if latest is None or (points is None and blocks is None) or latest.timestamp_s == m.last_frame_s:
             return
         m.last_frame_s = latest.timestamp_s
         m.view_limits = getattr(latest, "view_limits", None)
-        if self._cfg.memory.duration_s <= 0.0 or not m.poses:
+        if not m.poses:
             return
         t_seen, seen_from = min(m.poses, key=lambda tp: abs(tp[0] - latest.timestamp_s))
         if abs(t_seen - latest.timestamp_s) <= _POSE_MATCH_S:
-            # With the viewpoint, so that the memory can trust points seen from two places (detours).
-            m.obstacles.add_frame(points, seen_from, latest.timestamp_s, self._cfg.memory, getattr(latest, "far_view", None))
-            blocks, geometry = getattr(latest, "near_blocks", None), getattr(latest, "geometry", None)
+            if self._cfg.memory.duration_s > 0.0 and points is not None:
+                # With the viewpoint, so that the memory can trust points seen from two places (detours).
+                m.obstacles.add_frame(points, seen_from, latest.timestamp_s, self._cfg.memory, getattr(latest, "far_view", None))
+            # The local planner's map takes every frame, whatever the obstacle memory's setting.
             if m.local is not None and blocks is not None and geometry is not None:
                 m.local.add_frame(blocks, geometry, self._cfg.memory.block_px, seen_from, latest.timestamp_s)
 
@@ -802,7 +804,7 @@ class Supervisor:
             )
             self._set(State.DEGRADED, f"{why}: zero velocity")
             return
-        if m.activity is State.ENGAGED and (m.course.holding_reason is not None or self._no_progress(now_s, v)):
+        if m.activity is State.ENGAGED and (self._holding_reason() is not None or self._no_progress(now_s, v)):
             m.activity = State.PAUSED  # the goal reached, a dead end, or the progress watchdog
             m.stalled = True
             # Before the reset below: it clears the watchdog's why (a regress would read as
@@ -867,10 +869,16 @@ class Supervisor:
         """The progress watchdog (:class:`~companion.core.command.ProgressWatch`) fed the position now."""
         return self._m.course.no_progress(v.position_ned_m, now_s, self._cfg.command)
 
+    def _holding_reason(self) -> str | None:
+        """Why the flying stack holds (the goal reached, a dead end), or None: the local planner's
+        when it flies (planner.kind "local"), else the course's."""
+        m = self._m
+        return m.local.holding_reason if m.local is not None else m.course.holding_reason
+
     def _stalled_reason(self) -> str:
         cmd = self._cfg.command
-        if self._m.course.holding_reason is not None:
-            return self._m.course.holding_reason  # the goal reached, or a dead end
+        if self._holding_reason() is not None:
+            return self._holding_reason()  # the goal reached, or a dead end
         if self._m.course.progress.why == "regress":
             return (
                 f"flying back: {cmd.regress_distance_m:g} m farther from the goal than the nearest it has been "

@@ -44,10 +44,11 @@ from companion.core.planner.stack import LocalStack
 from companion.core.types import ZERO_SETPOINT, DecisionKind, VelocitySetpoint
 from companion.errors import CameraError
 from companion.interfaces import Frame
+from companion.sim.audit import add_counts, audit_points
 from companion.sim.camera import SimCamera
 from companion.sim.courses import Course
 from companion.sim.render import Pose, TextureBank
-from companion.sim.scoring import HELD_RADIUS_M, ClearanceField, Judge, Outcome
+from companion.sim.scoring import HELD_RADIUS_M, Judge, Outcome
 from companion.sim.vehicle import SimVehicle, VehicleParams
 
 #: Events scheduled at k/rate fire when the simulated time is within this of it (float steps).
@@ -172,7 +173,7 @@ class FlightResult:
         hold_reason: why the flight held, when it did (the progress watchdog, a dead end), else "".
         detours: detours the detour layer began.
         memory_audit: with ``audit_memory``: the remembered points against the ground truth
-            (:func:`audit_points`), summed over the audited frames; else None.
+            (:func:`~companion.sim.audit.audit_points`), summed over the audited frames; else None.
         log: the setpoint-rate log.
         frame_log: the per-frame log.
         timing: wall-clock instrumentation (not compared).
@@ -321,7 +322,7 @@ def fly(
         on_step: called at every setpoint tick with what was commanded (a live view).
         clock, sleep: wall clock and sleep, for ``realtime`` and the timing instrumentation.
         audit_memory: judge the obstacle memory's points against the ground truth every 5th frame
-            (:func:`audit_points`; slow: a measurement, not for suites).
+            (:func:`~companion.sim.audit.audit_points`; slow: a measurement, not for suites).
     """
     wall0 = clock()
     cfg = simulator_config(cfg)
@@ -439,7 +440,7 @@ def fly(
             if memory is not None and latest.near_points_cam_m is not None:
                 memory.add_frame(latest.near_points_cam_m, seen_from, latest.timestamp_s, cfg.memory, latest.far_view)
                 if audit is not None and len(f_t) % 5 == 0:
-                    _add_counts(audit, audit_points(memory, course, latest.timestamp_s, seen_from, cfg))
+                    add_counts(audit, audit_points(memory, course, latest.timestamp_s, seen_from, cfg))
 
         # -- setpoint, at the service's rate and by the service's rule
         if t >= n_sp * sp_period - _EPS_S:
@@ -593,41 +594,3 @@ def fly(
         frame_log=frame_log,
         timing=timing,
     )
-
-
-#: A remembered point farther than this from every true surface is false, metres.
-FALSE_POINT_TOLERANCE_M = 0.3
-
-
-def audit_points(memory: ObstacleMemory, course: Course, now_s: float, seen_from: Pose, cfg: CompanionConfig) -> dict[str, int]:
-    """The memory's points at ``now_s`` judged against the course's true geometry: ``points`` (all
-    remembered), ``false`` (farther than :data:`FALSE_POINT_TOLERANCE_M` from every surface, ground
-    included), ``trusted`` and ``trusted_false``; and the same for the points the detour layer maps
-    with (``map_*``: trusted, not seen past, within ``memory.height_band_m`` of the vehicle and within
-    the detour's reach of it) and those that guard (``near_*``: seen nearer than
-    ``memory.max_depth_m``)."""
-    field_ = ClearanceField(course.scene)
-    pts, trusted = memory.points(now_s, cfg.memory)
-    near = memory.near_mask(now_s, cfg.memory)
-    dist = np.array([field_.distance_m(p) for p in pts])
-    false = dist > FALSE_POINT_TOLERANCE_M
-    pos = np.asarray(seen_from.position_ned_m, dtype=np.float64)
-    reach = max(cfg.detour.radius_m, cfg.memory.map_depth_m) + cfg.detour.clearance_m
-    rel = pts - pos
-    mapped = trusted & ~memory.seen_past_mask(now_s, cfg.memory)
-    mapped &= (np.abs(rel[:, 2]) <= cfg.memory.height_band_m) & (np.hypot(rel[:, 0], rel[:, 1]) < reach)
-    return {
-        "points": int(len(pts)),
-        "false": int(np.count_nonzero(false)),
-        "trusted": int(np.count_nonzero(trusted)),
-        "trusted_false": int(np.count_nonzero(trusted & false)),
-        "map_points": int(np.count_nonzero(mapped)),
-        "map_false": int(np.count_nonzero(mapped & false)),
-        "near_points": int(np.count_nonzero(near)),
-        "near_false": int(np.count_nonzero(near & false)),
-    }
-
-
-def _add_counts(total: dict[str, int], counts: dict[str, int]) -> None:
-    for k, v in counts.items():
-        total[k] = total.get(k, 0) + v

@@ -139,6 +139,43 @@ def directions(yaw_rad: np.ndarray, climb_rad: np.ndarray) -> np.ndarray:
     return np.stack([c * np.cos(yaw_rad), c * np.sin(yaw_rad), -np.sin(climb_rad)], axis=-1)
 
 
+#: Samples of a candidate's swing (the lagging part of its predicted path), per path.
+SWING_SAMPLES = 32
+#: The cheapest candidates (on their lines) whose predicted paths are checked each tick.
+SWING_CANDIDATES = 24
+#: The swing is followed for this many time constants (the velocity is then within 5 % of the command).
+SWING_TIME_CONSTANTS = 3.0
+
+
+def predicted_paths(
+    velocity_ned_m_s: np.ndarray, dirs: np.ndarray, speed_m_s: np.ndarray, cfg: PlannerConfig, step_m: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Where the vehicle will fly for each candidate: its velocity now blending into the command
+    ``dirs * speed_m_s`` (float ``(K, 3)`` unit NED, ``(K,)`` m/s) as a first-order lag, then on along
+    the candidate to the map range.
+
+    The lag's time constant is ``latency_s`` (the planner's own response setting: a frame, the
+    pipeline and the autopilot's velocity response), the old velocity decaying as ``exp(-t/τ)``:
+    told to turn, the vehicle carries on along its motion about its speed times ``τ``.
+
+    Returns ``(offsets, arc)``: float64 ``(K, S, 3)`` NED metres from the vehicle and ``(K, S)`` arc
+    length from it, metres, increasing (NaN past the map range)."""
+    v0 = np.asarray(velocity_ned_m_s, dtype=np.float64)[None, :]
+    vc = dirs * np.asarray(speed_m_s, dtype=np.float64)[:, None]
+    dv = v0 - vc
+    tau = np.full(len(dirs), max(cfg.latency_s, 1e-3))
+    t = (SWING_TIME_CONSTANTS * tau)[:, None] * np.linspace(0.0, 1.0, SWING_SAMPLES + 1)[None, 1:]  # (K, M)
+    lag = (tau[:, None] * (1.0 - np.exp(-t / tau[:, None])))[..., None]
+    swing = vc[:, None, :] * t[..., None] + dv[:, None, :] * lag  # (K, M, 3)
+    n_tail = int(math.ceil(cfg.map_range_m / step_m))
+    tail = swing[:, -1:, :] + dirs[:, None, :] * (step_m * np.arange(1, n_tail + 1))[None, :, None]
+    pts = np.concatenate([swing, tail], axis=1)
+    seg = np.diff(np.concatenate([np.zeros((len(dirs), 1, 3)), pts], axis=1), axis=1)
+    arc = np.cumsum(np.linalg.norm(seg, axis=2), axis=1)
+    arc = np.where(arc <= cfg.map_range_m + 1e-9, arc, np.nan)
+    return pts, arc
+
+
 def costs(
     yaw: np.ndarray,
     climb: np.ndarray,
@@ -249,7 +286,9 @@ class LocalPlanner:
 
     def _visited_at(self, points: np.ndarray) -> np.ndarray:
         keys = np.floor(points[:, :2] / VISITED_CELL_M).astype(np.int64)
-        return np.array([self._visited.get((int(a), int(b)), 0.0) for a, b in keys])
+        cells, back = np.unique(keys, axis=0, return_inverse=True)  # a few cells round the vehicle
+        seconds = np.array([self._visited.get((int(a), int(b)), 0.0) for a, b in cells])
+        return seconds[back.reshape(-1)]
 
     def plan(self, snap: Snapshot, lmap: LocalMap) -> Plan:
         """One tick (see the module doc)."""
@@ -294,24 +333,47 @@ class LocalPlanner:
         band_cut = to_band < free
         free = np.minimum(free, to_band)
         blocked = fl.blocked | band_cut
-        # Hoped-for length: unknown space not looked at lately is worth a look.
+        free_line, blocked_line = free, blocked  # on the lines themselves
         unlooked = snap.now_s - self._looked_t[self._bin(yaw)] > cfg.look_memory_s
-        hopeful = unlooked & ~blocked & ~fl.horizon
-        hoped = np.where(hopeful, np.maximum(free, 0.5 * cfg.map_range_m), free)
-        look_pts = pos + dirs * np.minimum(hoped, VISITED_LOOKAHEAD_M)[:, None]
-        visited = self._visited_at(look_pts)
         v = np.asarray(snap.velocity_ned_m_s, dtype=np.float64)
         sp = float(np.linalg.norm(v))
         motion = None
         if sp > 0.3:
             motion = (math.atan2(v[1], v[0]), math.asin(max(-1.0, min(1.0, -v[2] / sp))), min(sp, cfg.cruise_speed_m_s))
-        c = costs(yaw, climb, hoped, blocked & (free < goal_dist), goal_yaw, goal_climb, goal_dist, self._prev, fuzzy, visited, motion, cfg)
-        # A candidate that cannot move a cube's length is out, unless hoped for.
-        c = np.where((hoped < lmap.voxel_m) , np.inf, c)
+
+        def score(free: np.ndarray, blocked: np.ndarray, swung: np.ndarray | bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            # Hoped-for length: unknown space not looked at lately is worth a look.
+            hopeful = unlooked & ~blocked & ~swung & ~fl.horizon
+            hoped = np.where(hopeful, np.maximum(free, 0.5 * cfg.map_range_m), free)
+            visited = self._visited_at(pos + dirs * np.minimum(hoped, VISITED_LOOKAHEAD_M)[:, None])
+            c = costs(yaw, climb, hoped, blocked & (free < goal_dist), goal_yaw, goal_climb, goal_dist, self._prev, fuzzy, visited, motion, cfg)
+            # A candidate that cannot move a cube's length is out, unless hoped for.
+            return hopeful, hoped, np.where(hoped < lmap.voxel_m, np.inf, c)
+
+        hopeful, hoped, c = score(free, blocked)
+        # The path the vehicle will fly (its velocity lags the command), for the cheapest candidates:
+        # a swing that enters a surface's inflation shortens the candidate like a surface on its line,
+        # so that a sharp turn at speed costs speed, not clearance. The others cost more already, and
+        # a swing only shortens.
+        top = np.argsort(c)[:SWING_CANDIDATES]
+        top = top[np.isfinite(c[top])]
+        if len(top):
+            offs, arc = predicted_paths(v, dirs[top], speed_law(free[top], cfg), cfg, lmap.voxel_m)
+            clear = np.full(len(free), np.inf)
+            clear[top] = lmap.clear_along(pos, pos + offs, arc)
+            swung = clear < free
+            if np.any(swung):
+                # Swung short, the way still leads on once slower: its time is the short length at
+                # the low speed, then the rest at cruise (not the rest at the low speed, as past a
+                # surface on the line).
+                free = np.where(swung, clear, free)
+                hopeful, hoped, c = score(free, blocked, swung)
+                blocked = blocked | swung
         table = np.stack([yaw, climb, free, hoped, c], axis=1)
         # A dead end: every direction within the cone of the goal's is closed short by surfaces seen.
         in_cone = _angle_diff(yaw, goal_yaw) <= math.radians(cfg.dead_end_cone_deg)
-        closed = in_cone & (free < cfg.dead_end_free_m) & (blocked | ~unlooked)
+        # On the lines themselves (a swing at speed is no dead end).
+        closed = in_cone & (free_line < cfg.dead_end_free_m) & (blocked_line | ~unlooked)
         if snap.goal_ned_m is not None and np.all(closed[in_cone]):
             if self._closed_since is None:
                 self._closed_since = snap.now_s

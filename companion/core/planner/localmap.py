@@ -41,8 +41,6 @@ CLAMP_LOG_ODDS = (-1.0, 2.5)
 RAY_SPACING_PX = 8
 #: The grid reaches this much beyond the map range round the vehicle, m, so that it rolls rarely.
 ROLL_SLACK_M = 2.0
-#: The layers' ageing is evaluated in steps of this, seconds (a tenth of the shortest memory is enough).
-AGE_STEP_S = 0.25
 #: Half height of the grid round the vehicle, m.
 HALF_HEIGHT_M = 2.6
 
@@ -86,9 +84,16 @@ class LocalMap:
         self.hit_t = np.full(self.shape, -np.inf, dtype=np.float32)
         self.free_t = np.full(self.shape, -np.inf, dtype=np.float32)
         self.origin = None  # int64 (3,): world cube index of grid cube (0, 0, 0); None before the first use
-        self._version = 0  # bumped by every change of the evidence
-        self._cache_key: tuple[int, float] | None = None
-        self._cache: tuple[np.ndarray, np.ndarray, np.ndarray] = ()  # type: ignore[assignment]
+        # The layers the queries read, kept up to the evidence at each frame (not at each query):
+        # occupied, seen free, and per cube the number of occupied cubes within the radius (rounded up
+        # to whole cubes; > 0: inflated), updated round the cubes whose occupancy changed.
+        self._inflate_n = int(math.ceil(radius_m / voxel_m - 1e-9))
+        self._occ = np.zeros(self.shape, dtype=bool)
+        self._free = np.zeros(self.shape, dtype=bool)
+        self._infl = np.zeros(self.shape, dtype=np.int16)
+        self._rebuild = True  # the next refresh recomputes every layer (first use, after a roll)
+        r = np.arange(-self._inflate_n, self._inflate_n + 1)
+        self._box = np.stack(np.meshgrid(r, r, r, indexing="ij"), axis=-1).reshape(-1, 3)  # (B, 3) cube offsets
         self._rays: dict[tuple, np.ndarray] = {}
         self._scratch = np.zeros(self.shape, dtype=bool)
         self.now_s = -math.inf
@@ -116,16 +121,19 @@ class LocalMap:
         for arr, fill in ((self.log_odds, 0.0), (self.hit_t, -np.inf), (self.free_t, -np.inf)):
             _shift_fill(arr, -shift, fill)
         self.origin = want
-        self._version += 1
+        self._rebuild = True
+        self._refresh(None)
 
     def _index(self, ned_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Flat grid indices (int64 ``(...)``) of points ``ned_m`` (float ``(..., 3)``) and whether
         each lies inside the grid (bool ``(...)``)."""
-        q = np.floor(ned_m / self.voxel_m).astype(np.int64) - self.origin
-        inside = np.all((q >= 0) & (q < np.array(self.shape)), axis=-1)
-        q = np.where(inside[..., None], q, 0)
-        flat = (q[..., 0] * self.shape[1] + q[..., 1]) * self.shape[2] + q[..., 2]
-        return flat, inside
+        # In float (exact for these small integers) and per axis: this runs on every query's samples.
+        q = np.floor(np.asarray(ned_m, dtype=np.float64) / self.voxel_m) - self.origin
+        i, j, k = q[..., 0], q[..., 1], q[..., 2]
+        nx, ny, nz = self.shape
+        inside = (i >= 0) & (i < nx) & (j >= 0) & (j < ny) & (k >= 0) & (k < nz)
+        flat = (i * ny + j) * nz + k
+        return np.where(inside, flat, 0.0).astype(np.int64), inside
 
     # -- frames in ---------------------------------------------------------------------------------
     def _camera_rays(self, geometry: StereoGeometry, block_shape: tuple[int, int], block_px: int, pool: int) -> np.ndarray:
@@ -160,6 +168,7 @@ class LocalMap:
         rays = self._camera_rays(geometry, b.shape, block_px, pool)
         valid = np.isfinite(pooled) & (pooled > 0.0)
         if not np.any(valid):
+            self._refresh(None)
             return
         depth = geometry.focal_baseline_px_m / pooled[valid].astype(np.float64)
         r_cam = rays[valid]  # (n, 3), z = 1
@@ -190,7 +199,47 @@ class LocalMap:
         self.free_t.reshape(-1)[f_idx] = t
         lo[h_idx] = np.minimum(lo[h_idx] + HIT_LOG_ODDS, CLAMP_LOG_ODDS[1])
         self.hit_t.reshape(-1)[h_idx] = t
-        self._version += 1
+        self._refresh(np.concatenate([h_idx, f_idx]))
+
+    def _refresh(self, touched: np.ndarray | None) -> None:
+        """Bring the layers up to the evidence at ``now_s``: the occupancy of the ``touched`` cubes
+        (int64 flat indices, repeats allowed) and of those whose last hit aged out, the inflation
+        counts round the cubes that changed, and the seen-free layer (recomputed whole: it ages).
+        ``touched`` None with nothing to rebuild: ageing only."""
+        now = self.now_s
+        lo, hit_t = self.log_odds.reshape(-1), self.hit_t.reshape(-1)
+        occ = self._occ.reshape(-1)
+        if self._rebuild:
+            self._occ[...] = (self.log_odds > OCCUPIED_LOG_ODDS) & (self.hit_t >= now - self.occupied_memory_s)
+            self._infl[...] = _box_count(self._occ, self._inflate_n)
+            self._rebuild = False
+        else:
+            was = np.flatnonzero(occ)
+            aged = was[hit_t[was] < now - self.occupied_memory_s]
+            if touched is not None and len(touched):
+                now_occ = (lo[touched] > OCCUPIED_LOG_ODDS) & (hit_t[touched] >= now - self.occupied_memory_s)
+                rising = np.unique(touched[now_occ & ~occ[touched]])
+                falling = np.unique(np.concatenate([touched[~now_occ & occ[touched]], aged]))
+            else:
+                rising, falling = np.zeros(0, np.int64), aged
+            occ[rising] = True
+            occ[falling] = False
+            self._count_round(rising, 1)
+            self._count_round(falling, -1)
+        recent = self.free_t >= now - self.free_memory_s
+        # The rays are up to a cube apart at the range: a cube beside one seen free counts as seen.
+        self._free[...] = _dilate(recent, 1) & (self.log_odds <= OCCUPIED_LOG_ODDS) & ~self._occ
+
+    def _count_round(self, cubes: np.ndarray, delta: int) -> None:
+        """Add ``delta`` to the inflation count of every cube within the radius box of ``cubes``
+        (int64 flat indices, unique)."""
+        if len(cubes) == 0:
+            return
+        q = np.stack(np.unravel_index(cubes, self.shape), axis=-1)[:, None, :] + self._box[None, :, :]
+        q = q.reshape(-1, 3)
+        q = q[np.all((q >= 0) & (q < np.array(self.shape)), axis=1)]
+        flat = (q[:, 0] * self.shape[1] + q[:, 1]) * self.shape[2] + q[:, 2]
+        np.add.at(self._infl.reshape(-1), flat, np.int16(delta))
 
     def mark_body_free(self, position_ned_m: np.ndarray, t_s: float) -> None:
         """The cubes the vehicle's body is in are free (it is there), seen at ``t_s``."""
@@ -203,31 +252,23 @@ class LocalMap:
         self.seen_free().reshape(-1)[idx[~occ]] = True  # the cached layer, patched in place
 
     # -- queries -------------------------------------------------------------------------------------
-    def _layers(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(occupied, seen free, inflated) for the map as it is now, computed once per change."""
-        # Evidence ages in whole steps of AGE_STEP_S: the layers are recomputed per frame, not per tick.
-        key = (self._version, math.floor(self.now_s / AGE_STEP_S))
-        if self._cache_key != key:
-            occ = (self.log_odds > OCCUPIED_LOG_ODDS) & (self.hit_t >= self.now_s - self.occupied_memory_s)
-            free = self.free_t >= self.now_s - self.free_memory_s
-            # The rays are up to a cube apart at the range: a cube beside one seen free counts as seen.
-            free = _dilate(free, 1) & (self.log_odds <= OCCUPIED_LOG_ODDS) & ~occ
-            n = int(math.ceil(self.radius_m / self.voxel_m - 1e-9))
-            self._cache = (occ, free, _dilate(occ, n))
-            self._cache_key = key
-        return self._cache
-
+    # The layers are as of the newest frame: evidence ages with the frames, not between them (the
+    # safety chain stops the vehicle when the frames stop).
     def occupied(self) -> np.ndarray:
         """bool grid shape: cubes with a surface (enough hits, the last within occupied_memory_s)."""
-        return self._layers()[0]
+        return self._occ
 
     def seen_free(self) -> np.ndarray:
         """bool grid shape: cubes seen free within free_memory_s and not occupied."""
-        return self._layers()[1]
+        return self._free
 
     def inflated(self) -> np.ndarray:
-        """bool grid shape: within the vehicle's radius (rounded up to whole cubes) of an occupied cube."""
-        return self._layers()[2]
+        """bool grid shape: within the vehicle's radius (rounded up to whole cubes) of an occupied
+        cube (a new array: queries read the counts at their samples instead)."""
+        return self._infl > 0
+
+    def _inflated_at(self, idx: np.ndarray) -> np.ndarray:
+        return self._infl.reshape(-1)[idx] > 0
 
     def free_lengths(self, start_ned_m: np.ndarray, directions: np.ndarray, horizon_m: float | None = None) -> FreeLengths:
         """How far the centre may fly from ``start_ned_m`` (float ``(3,)`` NED m) along each of
@@ -248,11 +289,11 @@ class LocalMap:
         s = np.arange(step, h + 1e-9, step)
         pts = start + d[:, None, :] * s[None, :, None]  # (K, S, 3)
         idx, inside = self._index(pts)
-        infl = self.inflated().reshape(-1)[idx]
+        infl = self._inflated_at(idx)
         occ = self.occupied().reshape(-1)[idx]
         free = self.seen_free().reshape(-1)[idx]
         s_idx, s_in = self._index(start)
-        if bool(s_in) and bool(self.inflated().reshape(-1)[s_idx]):
+        if bool(s_in) and bool(self._inflated_at(s_idx)):
             near = s[None, :] <= self.radius_m + step
             infl = np.where(near, occ | _moves_closer(self, start, pts), infl)
         blocked_at = infl & inside
@@ -264,6 +305,34 @@ class LocalMap:
         rows = np.arange(len(d))
         blocked = any_bad & blocked_at[rows, np.minimum(first, len(s) - 1)]
         return FreeLengths(length_m=length, blocked=blocked, horizon=~any_bad)
+
+
+    def clear_along(self, start_ned_m: np.ndarray, points_ned_m: np.ndarray, arc_m: np.ndarray) -> np.ndarray:
+        """How far along each of K sampled paths (``points_ned_m`` float ``(K, S, 3)`` NED m at arc
+        lengths ``arc_m`` float ``(K, S)`` from ``start_ned_m``, increasing; NaN: past the path's end)
+        the centre stays out of every surface's inflation, metres (float64 ``(K,)``; inf where it
+        never enters one).
+
+        Only surfaces seen block here, not unknown space: this judges the swing of a lagging vehicle
+        round a line whose own seen-free length is judged by :meth:`free_lengths`. As there, where the
+        start is within the radius of a surface the first radius is judged on the surfaces alone."""
+        arc = np.asarray(arc_m, dtype=np.float64)
+        valid = np.isfinite(arc)
+        if self.origin is None:
+            return np.zeros(arc.shape[0])
+        pts = np.asarray(points_ned_m, dtype=np.float64)
+        idx, inside = self._index(pts)
+        hit = self._inflated_at(idx) & inside & valid
+        start = np.asarray(start_ned_m, dtype=np.float64)
+        s_idx, s_in = self._index(start)
+        if bool(s_in) and bool(self._inflated_at(s_idx)):
+            near = np.where(valid, arc, np.inf) <= self.radius_m + self.voxel_m
+            hit = np.where(near, self.occupied().reshape(-1)[idx] & inside & valid, hit)
+        any_hit = hit.any(axis=1)
+        first = hit.argmax(axis=1)
+        rows = np.arange(arc.shape[0])
+        before = np.where(first > 0, arc[rows, np.maximum(first - 1, 0)], 0.0)
+        return np.where(any_hit, before, np.inf)
 
 
 def _moves_closer(m: LocalMap, start: np.ndarray, pts: np.ndarray) -> np.ndarray:
@@ -294,6 +363,21 @@ def _dilate(mask: np.ndarray, n: int) -> np.ndarray:
             sl_a[axis], sl_b[axis] = slice(k, None), slice(None, -k)
             out[tuple(sl_a)] |= src[tuple(sl_b)]
             out[tuple(sl_b)] |= src[tuple(sl_a)]
+    return out
+
+
+def _box_count(mask: np.ndarray, n: int) -> np.ndarray:
+    """int16 grid: the number of True cubes of ``mask`` (bool 3-D) within ``n`` cubes along each axis
+    (a cube of side 2n+1; separable sums)."""
+    out = mask.astype(np.int16)
+    for axis in range(3):
+        src = out.copy()
+        for k in range(1, n + 1):
+            sl_a = [slice(None)] * 3
+            sl_b = [slice(None)] * 3
+            sl_a[axis], sl_b[axis] = slice(k, None), slice(None, -k)
+            out[tuple(sl_a)] += src[tuple(sl_b)]
+            out[tuple(sl_b)] += src[tuple(sl_a)]
     return out
 
 
