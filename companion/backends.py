@@ -19,7 +19,7 @@ from types import MappingProxyType
 from companion.config import CompanionConfig, concrete_backend
 from companion.core.estimator import Clock, CpuRegionEstimator, RegionEstimator
 from companion.core.pipeline import Pipeline
-from companion.devices import cuda_available
+from companion.devices import cuda_available, numba_available
 from companion.errors import BackendError
 
 __all__ = ["BACKENDS", "Backend", "cuda_available", "make_estimator", "make_pipeline", "resolve_backend"]
@@ -32,7 +32,7 @@ def _cpu(cfg: CompanionConfig, width_px: int, height_px: int, clock: Clock) -> R
 
 
 def _cpu_sgm(cfg: CompanionConfig, width_px: int, height_px: int, clock: Clock) -> RegionEstimator:
-    if importlib.util.find_spec("numba") is None:
+    if not numba_available():
         raise BackendError("stereo.backend = 'cpu-sgm' needs Numba (pip install numba); or use 'auto'")
     from companion.cpu import CpuSgmMatcher  # imported only when asked for: it loads Numba
 

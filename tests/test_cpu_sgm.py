@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from companion import backends
-from companion.config import CompanionConfig, for_backend
+from companion.config import CompanionConfig
 from companion.core.disparity import sgm as S
 from companion.errors import BackendError, FrameError
 
@@ -157,7 +157,7 @@ def _cfg(**stereo) -> CompanionConfig:
 
 def test_the_estimator_equals_the_reference_estimator_regions_and_obstacle_distance() -> None:
     """Same rectification, region reduction and OBSTACLE_DISTANCE as the other CPU estimators."""
-    from companion.bench import BenchSize, rendered_frames
+    from companion.bench.common import BenchSize, rendered_frames
 
     w, h = 160, 96
     _, frames = rendered_frames(BenchSize(w, h, 32), 2, seed=3)
@@ -200,7 +200,7 @@ def test_aloe_at_half_size_equals_the_reference() -> None:
 def test_the_backend_makes_the_dense_map_and_refuses_the_core_factory() -> None:
     from companion.core.disparity import make_cpu_matcher
 
-    got = for_backend(CompanionConfig(), "cpu-sgm")
+    got = CompanionConfig.model_validate({"stereo": {"backend": "cpu-sgm"}})
     assert got.memory.block_erode_px == 1 and got.detour.cone_from_start is True
     with pytest.raises(BackendError, match="cpu-sgm"):
         make_cpu_matcher(_cfg(backend="cpu-sgm").stereo)

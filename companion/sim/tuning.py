@@ -28,7 +28,7 @@ from typing import Any, get_args
 from pydantic import BaseModel
 from pydantic.fields import FieldInfo
 
-from companion.config import CompanionConfig, parse_config
+from companion.config import CompanionConfig, as_written, parse_config
 from companion.config.edit import toml_value
 from companion.config.envelope import envelope_violations
 from companion.errors import InputError
@@ -311,7 +311,7 @@ def with_settings(base: CompanionConfig, values: Mapping[str, float]) -> Compani
         ConfigError: the candidate is not a valid config (naming the field and why).
         InputError: a path that names nothing in ``base``.
     """
-    data = base.model_dump(mode="json")
+    data = as_written(base)  # settings written "auto" stay "auto", resolved again for the candidate
     for path, value in values.items():
         try:
             keys = _keys_in_data(data, path)
