@@ -503,21 +503,6 @@ class FlightRecorder:
         self.bytes_written += len(line)
         self.preview_frames += 1
 
-    def _failed(self, offer: _Offer, message: str) -> None:
-        """A preview that failed: counted, shown (health's ``preview.failing`` and ``last_error``), and
-        logged less and less often while it goes on (a failing worker is not a flood of log lines)."""
-        self.errors += 1
-        self.failing = message
-        if self._error_log.due(self._clock()):
-            more = f" ({self._error_log.suppressed} more since the last line)" if self._error_log.suppressed else ""
-            log.error("preview: frame %s: %s%s", getattr(offer.frame, "seq", "?"), message, more)
-        self._report(f"preview: {message}")
-
-    def status(self) -> dict[str, Any]:
-        """For the health message: previews published and failed, and why the last one failed (None
-        once a preview succeeds again)."""
-        return {"published": self.published, "errors": self.errors, "failing": self.failing}
-
     def _report(self, message: str) -> None:
         try:
             self._on_error(message)
