@@ -9,7 +9,6 @@ each ``companion`` command line in them must parse; ``bash ci`` is CI's own line
 from __future__ import annotations
 
 import os
-import re
 import shlex
 import stat
 import subprocess
@@ -17,6 +16,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from doc_blocks import blocks, commands, companion_argv
 
 from companion.cli import build_parser
 from companion.config import load_config
@@ -27,56 +27,18 @@ DOC = ROOT / "docs" / "first-flight.md"
 TAGS = {("bash", "run"), ("bash", "sitl"), ("bash", "hardware"), ("bash", "ci"), ("nsh", "")}
 
 
-def _blocks() -> list[tuple[str, str, str]]:
-    """(language, tag, body) of every fenced block, in order."""
-    out = []
-    for m in re.finditer(r"^```(\w*)[ \t]*(\w*)[ \t]*\n(.*?)^```[ \t]*$", DOC.read_text(encoding="utf-8"), re.M | re.S):
-        out.append((m.group(1), m.group(2), m.group(3)))
-    return out
-
-
-def _commands(body: str) -> list[str]:
-    """The shell commands of a block: continuation lines joined, here-documents and comments dropped,
-    ``&&`` chains split."""
-    lines, skip_until = [], None
-    joined = body.replace("\\\n", " ")
-    for line in joined.splitlines():
-        if skip_until is not None:
-            if line.strip() == skip_until:
-                skip_until = None
-            continue
-        here = re.search(r"<<\s*'?(\w+)'?", line)
-        if here:
-            skip_until = here.group(1)
-        lines.append(line.split(" #")[0].strip())
-    out = []
-    for line in lines:
-        out += [part.strip() for part in line.split("&&") if part.strip()]
-    return out
-
-
-def _companion_argv(command: str) -> list[str] | None:
-    """The argument list of a ``companion`` command (``sudo`` and a venv path allowed), else None."""
-    argv = shlex.split(command)
-    if argv and argv[0] == "sudo":
-        argv = argv[1:]
-    if not argv or Path(argv[0]).name != "companion":
-        return None
-    return argv[1:]
-
-
 def test_every_block_is_tagged_and_every_companion_command_parses() -> None:
-    blocks = _blocks()
-    assert len(blocks) >= 12
-    untagged = [(lang, tag, body[:40]) for lang, tag, body in blocks if (lang, tag) not in TAGS]
+    found = blocks(DOC)
+    assert len(found) >= 12
+    untagged = [(lang, tag, body[:40]) for lang, tag, body in found if (lang, tag) not in TAGS]
     assert not untagged, f"blocks without a known tag (bash run|sitl|hardware|ci, nsh): {untagged}"
     parser = build_parser()
     parsed = 0
-    for lang, tag, body in blocks:
+    for lang, tag, body in found:
         if lang != "bash":
             continue
-        for command in _commands(body):
-            argv = _companion_argv(command)
+        for command in commands(body):
+            argv = companion_argv(command)
             if argv is None:
                 continue
             try:
@@ -86,8 +48,8 @@ def test_every_block_is_tagged_and_every_companion_command_parses() -> None:
             parsed += 1
     assert parsed >= 15
     ci = (ROOT / ".ci" / "run").read_text(encoding="utf-8")
-    for _, _, body in (b for b in blocks if b[1] == "ci"):
-        for command in _commands(body):
+    for _, _, body in (b for b in found if b[1] == "ci"):
+        for command in commands(body):
             assert command.split(" install")[0] in ci, command
 
 
@@ -103,7 +65,7 @@ def test_the_run_blocks_run_in_order(tmp_path: Path) -> None:
     shim.chmod(shim.stat().st_mode | stat.S_IXUSR)
     env = dict(os.environ, PATH=f"{bin_dir}{os.pathsep}{os.environ.get('PATH', '')}")
     ran = 0
-    for _lang, tag, body in _blocks():
+    for _lang, tag, body in blocks(DOC):
         if tag != "run":
             continue
         proc = subprocess.run(["bash", "-euo", "pipefail", "-c", body], cwd=tmp_path, env=env,
