@@ -4,8 +4,8 @@ Two parts:
 
 * :class:`~companion.service.control_server.ControlServer` (:mod:`companion.service.control_server`)
   owns the ZeroMQ ROUTER socket in a thread of its own, with the budgets.
-* :class:`ControlPlane`, a part of :class:`~companion.service.daemon.Service` (a mixin), carries a
-  request out on the flight loop: supervisor requests (engage, disengage, pause, resume, override) go
+* :class:`ControlPlane`, an object the daemon holds (a part with ``start`` and ``stop``), owns the
+  config in force and the control server, and carries a request out on the flight loop: supervisor requests (engage, disengage, pause, resume, override) go
   to the control loop; a config change or reload is validated whole, checked against the safety
   envelope (:mod:`companion.config.envelope`) and against what may change while engaged
   (:func:`live_change_refusal`), and the controller must still see a near obstacle as near
@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -32,6 +33,7 @@ from companion.service.control_server import (  # noqa: F401 (re-exported)
     ControlServer,
     ControlStats,
 )
+from companion.service.parts import LastError, call_on_loop, stop_in_thread
 
 log = logging.getLogger(__name__)
 
@@ -148,8 +150,122 @@ def live_change_refusal(current: CompanionConfig, new: CompanionConfig, *, engag
 
 
 class ControlPlane:
-    """The control-plane part of the service that runs on the flight loop (mixed into
-    :class:`~companion.service.daemon.Service`)."""
+    """The control plane: the config in force (and its version), the requests carried out on the flight
+    loop, and the control server part (:meth:`start`, :meth:`stop`) that reads the socket in its thread.
+
+    Args:
+        config: the validated config (relative paths already resolved against its file's folder).
+        config_path: the file it came from (for ``reload``), or None.
+        clock: monotonic seconds.
+        supervisor: the control loop's supervisor (its state, for replies; its reconfigure).
+        submit: queues a supervisor request for the control loop's next step; its future gets the reply.
+        status: the health message now (the ``status`` request).
+        engaged: whether the service commands now (live changes are limited then).
+        pipeline: the pipeline part (a new config is built there before it is swapped in).
+        capture: the capture part (a new config's camera placement).
+        errors: health's ``last_error`` (a rejected reload stays there until a good change).
+        on_applied: called after a change was applied (health publishes at once).
+        on_server_failed: called on the loop when the control server's thread died (the service stops).
+    """
+
+    name = "control server"
+    stop_budget_s = 1.0
+
+    def __init__(
+        self,
+        config: CompanionConfig,
+        *,
+        config_path: Path | None,
+        clock: Callable[[], float],
+        supervisor: Any,
+        submit: Callable[[Any], asyncio.Future | None],
+        status: Callable[[], dict[str, Any]],
+        engaged: Callable[[], bool],
+        pipeline: Any,
+        capture: Any,
+        errors: LastError,
+        on_applied: Callable[[], None],
+        on_server_failed: Callable[[], None],
+    ) -> None:
+        self.config = config
+        self.config_version = 1
+        self.config_path = config_path
+        self._clock = clock
+        self._supervisor = supervisor
+        self._submit = submit
+        self._status = status
+        self._engaged = engaged
+        self._pipeline = pipeline
+        self._capture = capture
+        self._errors = errors
+        self._on_applied = on_applied
+        self._on_server_failed = on_server_failed
+        self._lock: asyncio.Lock | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._bus: Any = None
+        self._reloads: set[asyncio.Task] = set()
+        self.server: ControlServer | None = None
+
+    # ------------------------------------------------------------------------------ the server part
+
+    def bind(self, loop: asyncio.AbstractEventLoop) -> None:
+        """The flight loop (before any request is carried out)."""
+        self._loop = loop
+        self._lock = asyncio.Lock()
+
+    def start(self, bus: Any) -> None:
+        """Serve ``bus.control`` in the control server's own thread: no client can stall the flight loop."""
+        assert self._loop is not None
+        self._bus = bus
+        self.server = ControlServer(
+            bus.control,
+            self.config.bus,
+            self._loop,
+            self.handle_local,
+            self.handle_request,
+            on_internal_error=self._server_error,
+            gatekeeper=bus.gatekeeper,
+            clock=self._clock,
+        )
+        self.server.start()
+
+    async def stop(self, budget_s: float) -> bool:
+        """Stop the server's thread (requests in progress get no reply) and any reload under way."""
+        for task in list(self._reloads):
+            task.cancel()
+        if self._reloads:
+            await asyncio.wait(list(self._reloads), timeout=budget_s / 2.0)
+        self._reloads.clear()
+        if self.server is None:
+            return True
+        return await stop_in_thread("the control server", self.server.stop, budget_s)
+
+    def _server_error(self, message: str) -> None:
+        """From the control server's thread: a request failed with a bug, or the thread itself died."""
+        call_on_loop(self._loop, self._errors.record, message)
+        if self.server is not None and self.server.error is not None:
+            # Nobody could command or stop the service any more: stop cleanly (zero, Hold if ours).
+            call_on_loop(self._loop, self._on_server_failed)
+
+    def counts(self) -> dict[str, int] | None:
+        """Health's ``control``: live connections, requests received, refused by the budgets
+        (``rate_limited``) or the bound on requests in progress (``busy``), malformed (``bad``),
+        replies dropped (a client that does not read them), handshakes refused (too many connections)."""
+        server = self.server
+        if server is None:
+            return None
+        st = server.stats
+        return {
+            "connections": server.connections,
+            "received": st.received,
+            "rate_limited": st.rate_limited,
+            "busy": st.busy,
+            "bad": st.bad,
+            "replies_dropped": st.replies_dropped,
+            "refused_connections": self._bus.stats()["refused_connections"] if self._bus is not None else 0,
+        }
+
+    # ------------------------------------------------------------------------------ requests
 
     def handle_local(self, request: Any) -> dict[str, Any] | None:
         """The answer to a request the control server's thread gives itself, from immutable snapshots
@@ -160,7 +276,7 @@ class ControlPlane:
         """
         cmd = request.cmd
         if cmd == "ping":
-            return {"pong": True, "time_s": self._clock(), "state": self.supervisor.state.value}
+            return {"pong": True, "time_s": self._clock(), "state": self._supervisor.state.value}
         if cmd == "get_config":
             config, version = self.config, self.config_version  # one reference each: a consistent pair
             data = config.model_dump(mode="json")
@@ -178,7 +294,7 @@ class ControlPlane:
             return local
         cmd = request.cmd
         if cmd == "status":
-            return self.health_message()
+            return self._status()
         if cmd == "set_config":
             new = apply_patch(self.config, request.patch)
             return await self.apply_config(new, "set_config")
@@ -213,7 +329,7 @@ class ControlPlane:
             raise RequestRefused(f"{type(request).__name__.lower()}: the control loop did not answer within 2 s") from None
         if not reply.ok:
             raise RequestRefused(reply.message)
-        return {"message": reply.message, "state": self.supervisor.state.value, "reason": self.supervisor.reason}
+        return {"message": reply.message, "state": self._supervisor.state.value, "reason": self._supervisor.reason}
 
     async def reload(self) -> dict[str, Any]:
         """Re-read the config file and apply it (validated whole first). A rejection stays in health's
@@ -225,7 +341,7 @@ class ControlPlane:
             new = resolve_config_paths(new, self.config_path.parent)
             return await self.apply_config(new, f"reload of {self.config_path}", from_file=True)
         except ConfigError as err:
-            self._error(f"reload rejected: {err}", kind="config")
+            self._errors.record(f"reload rejected: {err}", kind="config")
             raise
 
     async def apply_config(self, new: CompanionConfig, source: str, from_file: bool = False) -> dict[str, Any]:
@@ -237,41 +353,51 @@ class ControlPlane:
         Fields that need a restart are reported in ``restart_required`` and not applied.
         ``from_file``: a reload of the config file (the only way the envelope changes).
         """
-        assert self._config_lock is not None
-        async with self._config_lock:
+        assert self._lock is not None
+        async with self._lock:
             current = self.config
             later = restart_required(current, new)
             applied = keep_restart_fields(current, new)
-            refusal = live_change_refusal(current, applied, engaged=self.engaged_or_engaging, from_file=from_file)
+            refusal = live_change_refusal(current, applied, engaged=self._engaged(), from_file=from_file)
             if refusal is None:
                 refusal = near_blindness(applied)
             if refusal is not None:
                 raise ConfigError(f"{source}: rejected, the old config stays: {refusal}")
             changed = [name for name in type(applied).model_fields if getattr(applied, name) != getattr(current, name)]
-            if self._pipeline is not None and self._processor is not None:
-                try:
-                    # In the pipeline thread, between two frames: never racing one.
-                    await asyncio.wrap_future(self._processor.submit(self._reconfigure_pipeline, applied))
-                except CompanionError as err:
-                    raise ConfigError(f"{source}: rejected, the old config stays: {err}") from None
-                except Exception as err:
-                    log.exception("%s: building the new pipeline failed", source)
-                    raise ConfigError(
-                        f"{source}: rejected, the old config stays: {type(err).__name__}: {err}"
-                    ) from None
-            self.supervisor.reconfigure(SupervisorConfig.from_config(applied))
-            if self._telemetry_pose is not None:
-                from companion.service.camera import placement_from_config
-
-                self._telemetry_pose.placement = placement_from_config(applied)  # one reference swap
-            if self._processor is not None:
-                self._processor.skip_late_frames = applied.service.skip_late_frames
+            try:
+                await self._pipeline.reconfigure(applied)
+            except CompanionError as err:
+                raise ConfigError(f"{source}: rejected, the old config stays: {err}") from None
+            except Exception as err:
+                log.exception("%s: building the new pipeline failed", source)
+                raise ConfigError(
+                    f"{source}: rejected, the old config stays: {type(err).__name__}: {err}"
+                ) from None
+            self._supervisor.reconfigure(SupervisorConfig.from_config(applied))
+            self._capture.place(applied)
             self.config = applied
             if changed:
                 self.config_version += 1
             if later:
                 log.warning("%s: %s need a restart to take effect", source, ", ".join(later))
             log.info("%s applied (changed: %s)", source, ", ".join(changed) or "nothing")
-            self._clear_error("config")  # an earlier rejected change is no longer what is in force
-            self._kick_health()
+            self._errors.clear("config")  # an earlier rejected change is no longer what is in force
+            self._on_applied()
             return {"changed": changed, "restart_required": later, "config_version": self.config_version}
+
+    def reload_in_background(self) -> None:
+        """SIGHUP: reload the config file beside the loop; the outcome is logged (and kept in health)."""
+        assert self._loop is not None
+        task = self._loop.create_task(self._reload_logged(), name="reload")
+        self._reloads.add(task)
+        task.add_done_callback(self._reloads.discard)
+
+    async def _reload_logged(self) -> None:
+        try:
+            result = await self.reload()
+            log.info("reload applied: %s", result)
+        except CompanionError as err:
+            log.error("reload rejected, the old config stays: %s", err)  # reload() recorded it in health
+        except Exception as err:  # a bug: the old config stays, and health says so
+            log.exception("reload failed, the old config stays")
+            self._errors.record(f"reload failed, the old config stays: {type(err).__name__}: {err}", kind="config")
