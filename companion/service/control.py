@@ -24,6 +24,7 @@ from typing import Any
 from companion.config import CompanionConfig, apply_patch, load_config
 from companion.config.service import LIVE_CAMERA_FIELDS, RESTART_FIELDS
 from companion.config.view import VIEW_RESTART_FIELDS
+from companion.core.rig_check import check_rig_config
 from companion.core.safety import near_blindness
 from companion.core.supervisor import Disengage, Engage, Goto, Override, Pause, Reply, Resume, SupervisorConfig
 from companion.errors import CompanionError, ConfigError, ProtocolError
@@ -359,6 +360,11 @@ class ControlPlane:
             later = restart_required(current, new)
             applied = keep_restart_fields(current, new)
             refusal = live_change_refusal(current, applied, engaged=self._engaged(), from_file=from_file)
+            if refusal is None:
+                try:
+                    check_rig_config(applied, source)
+                except ConfigError as err:
+                    refusal = str(err).removeprefix(f"{source}: ")
             if refusal is None:
                 refusal = near_blindness(applied)
             if refusal is not None:

@@ -52,6 +52,7 @@ from typing import Any
 from companion import exitcodes
 from companion.config import CompanionConfig, load_config
 from companion.core.detour import Histogram, HistogramRequest, compute_histogram
+from companion.core.rig_check import check_rig_config
 from companion.core.safety import near_blindness
 from companion.core.supervisor import Shutdown, Supervisor, SupervisorConfig
 from companion.errors import CompanionError, ConfigError
@@ -364,6 +365,7 @@ class Service:
         cfg = self.config
         if self._install_signals:
             self.lifecycle.install_signals()
+        check_rig_config(cfg, str(self.config_path or "config"))
         blind = near_blindness(cfg)
         if blind is not None:
             raise StartupError(f"config: {blind}")
