@@ -663,8 +663,7 @@ def test_side_room_shrinks_with_the_depth_a_side_region_reads_and_is_none_where_
     """Only the side that is not the deeper one is limited. In the kinematic suite with 0.14 m/s of
     drift, limiting both sides made four dead ends collide (as banning every near side had): in a
     dead end both sides read near, and the push away from the wall the vehicle drifts toward is what
-    keeps it off that wall (:func:`test_drifting_dead_ends_push_off_the_wall_they_drift_toward` flies
-    them)."""
+    keeps it off that wall."""
     from companion.core.command import side_room_m_s
 
     cmd = CompanionConfig().command.model_copy(update={"sideways_clear_depth_m": 1.0})  # off by default
