@@ -19,7 +19,7 @@ import asyncio
 import logging
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from companion.config import CompanionConfig, apply_patch, load_config
 from companion.config.service import LIVE_CAMERA_FIELDS, RESTART_FIELDS
@@ -35,6 +35,10 @@ from companion.service.control_server import (  # noqa: F401 (re-exported)
     ControlStats,
 )
 from companion.service.parts import LastError, call_on_loop, stop_in_thread
+
+if TYPE_CHECKING:
+    from companion.core.supervisor import Supervisor
+    from companion.service.frames import CapturePart, PipelinePart
 
 log = logging.getLogger(__name__)
 
@@ -178,12 +182,12 @@ class ControlPlane:
         *,
         config_path: Path | None,
         clock: Callable[[], float],
-        supervisor: Any,
+        supervisor: Supervisor,
         submit: Callable[[Any], asyncio.Future | None],
         status: Callable[[], dict[str, Any]],
         engaged: Callable[[], bool],
-        pipeline: Any,
-        capture: Any,
+        pipeline: PipelinePart,
+        capture: CapturePart,
         errors: LastError,
         on_applied: Callable[[], None],
         on_server_failed: Callable[[], None],
