@@ -18,6 +18,7 @@ from __future__ import annotations
 import asyncio
 import logging
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -154,6 +155,29 @@ def live_change_refusal(current: CompanionConfig, new: CompanionConfig, *, engag
     return None
 
 
+@dataclass(frozen=True)
+class ControlCounts:
+    """The control server's counts (health's ``control``).
+
+    Attributes:
+        connections: live connections.
+        received: messages received.
+        rate_limited: requests refused by the request budgets.
+        busy: requests refused by the bound on requests in progress.
+        bad: malformed requests.
+        replies_dropped: replies a client did not read.
+        refused_connections: handshakes refused (too many connections).
+    """
+
+    connections: int
+    received: int
+    rate_limited: int
+    busy: int
+    bad: int
+    replies_dropped: int
+    refused_connections: int
+
+
 class ControlPlane:
     """The control plane: the config in force (and its version), the requests carried out on the flight
     loop, and the control server part (:meth:`start`, :meth:`stop`) that reads the socket in its thread.
@@ -252,23 +276,21 @@ class ControlPlane:
             # Nobody could command or stop the service any more: stop cleanly (zero, Hold if ours).
             call_on_loop(self._loop, self._on_server_failed)
 
-    def counts(self) -> dict[str, int] | None:
-        """Health's ``control``: live connections, requests received, refused by the budgets
-        (``rate_limited``) or the bound on requests in progress (``busy``), malformed (``bad``),
-        replies dropped (a client that does not read them), handshakes refused (too many connections)."""
+    def counts(self) -> ControlCounts | None:
+        """The control server's counts, or None before it started."""
         server = self.server
         if server is None:
             return None
         st = server.stats
-        return {
-            "connections": server.connections,
-            "received": st.received,
-            "rate_limited": st.rate_limited,
-            "busy": st.busy,
-            "bad": st.bad,
-            "replies_dropped": st.replies_dropped,
-            "refused_connections": self._bus.stats()["refused_connections"] if self._bus is not None else 0,
-        }
+        return ControlCounts(
+            connections=server.connections,
+            received=st.received,
+            rate_limited=st.rate_limited,
+            busy=st.busy,
+            bad=st.bad,
+            replies_dropped=st.replies_dropped,
+            refused_connections=self._bus.stats()["refused_connections"] if self._bus is not None else 0,
+        )
 
     # ------------------------------------------------------------------------------ requests
 

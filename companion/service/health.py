@@ -10,10 +10,10 @@ change. Both run on the service's event loop and never command anything.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import logging
 import time
 from collections.abc import Awaitable, Callable
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -68,7 +68,7 @@ def _regions(result: Any) -> dict[str, Any]:
     }
 
 
-@dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True)
 class HealthSources:
     """Where the health message comes from: each part's own snapshot, read through these callables.
 
@@ -81,7 +81,7 @@ class HealthSources:
         capture: the capture thread's status, or None before it started.
         vehicle: the vehicle link's state (or None) and health's ``vehicle.link`` word for it.
         setpoints: the control loop's setpoint counters.
-        control: the control server's counters, or None before it started.
+        control: the control server's counts (a dataclass), or None before it started.
         mavlink: the presence part's status.
         preview: the preview publisher's status, or None.
         last_error: the newest fault, in one line, or None.
@@ -95,7 +95,7 @@ class HealthSources:
     capture: Callable[[], Any]
     vehicle: Callable[[], tuple[Any, str]]
     setpoints: Callable[[], Any]
-    control: Callable[[], dict[str, int] | None]
+    control: Callable[[], Any]
     mavlink: Callable[[], dict[str, Any]]
     preview: Callable[[], dict[str, Any] | None]
     last_error: Callable[[], str | None]
@@ -118,6 +118,7 @@ class HealthReporter:
         v, vehicle_link = src.vehicle()
         frames = src.frames(now)
         sp = src.setpoints()
+        control = src.control()
         supervisor = src.supervisor
         latencies = sp.latencies_s
         result = latest.result if latest is not None else None
@@ -192,7 +193,7 @@ class HealthReporter:
             "processed_twice": frames.processed_twice,
             "frame_errors": frames.frame_errors,
             "last_error": src.last_error(),
-            "control": src.control(),
+            "control": dataclasses.asdict(control) if control is not None else None,
             "mavlink": src.mavlink(),
             "thresholds_m": thresholds_m(config),
             "preview": src.preview(),
