@@ -9,6 +9,7 @@ import pytest
 
 from companion.config import CompanionConfig, apply_patch, load_config, parse_config
 from companion.config.document import render_default_toml
+from companion.core.rig_check import check_rig_config
 from companion.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -141,8 +142,6 @@ def _patched(**sections: dict) -> dict:
 
 
 def test_the_defaults_pass_the_rig_check_without_a_warning() -> None:
-    from companion.config import check_rig_config
-
     assert check_rig_config(CompanionConfig()) == []
     assert check_rig_config(parse_config({"camera": {"width_px": 1280, "height_px": 720},
                                           "stereo": {"num_disparities": 128}})) == []
@@ -160,14 +159,12 @@ def test_the_defaults_pass_the_rig_check_without_a_warning() -> None:
 )
 def test_settings_that_cannot_work_are_errors_naming_the_nearest_depth(data: dict, expected: str) -> None:
     with pytest.raises(ConfigError) as exc:
-        parse_config(data, source="rig.toml")
+        check_rig_config(parse_config(data, source="rig.toml"), "rig.toml")
     msg = str(exc.value)
     assert expected in msg and "the nearest depth this rig can measure is" in msg and msg.startswith("rig.toml: ")
 
 
 def test_settings_that_work_badly_are_warnings(caplog: pytest.LogCaptureFixture) -> None:
-    from companion.config import check_rig_config
-
     cfg = parse_config(_patched(stereo={"num_disparities": 128}))  # the corridor setting
     warnings = check_rig_config(cfg)
     assert any("searches down to 0.27 m" in w and "96 would reach 0.36 m" in w for w in warnings)
@@ -177,14 +174,16 @@ def test_settings_that_work_badly_are_warnings(caplog: pytest.LogCaptureFixture)
     assert len(sgm) == 1 and "searches down to" in sgm[0]
     far = check_rig_config(parse_config({"stereo": {"num_disparities": 48}}))
     assert any("nearer than 0.86 m cannot be measured" in w for w in far)
-    with caplog.at_level("WARNING", logger="companion.config"):
-        load_config_text = parse_config(_patched(stereo={"num_disparities": 128}), source="x.toml")
-    assert load_config_text.stereo.num_disparities == 128
+    with caplog.at_level("WARNING", logger="companion.core.rig_check"):
+        checked = parse_config(_patched(stereo={"num_disparities": 128}), source="x.toml")
+        check_rig_config(checked, "x.toml")
+    assert checked.stereo.num_disparities == 128
     assert any(r.message.startswith("x.toml: ") for r in caplog.records)
 
 
 def test_a_calibration_that_cannot_be_loaded_is_left_to_the_estimator(tmp_path: Path) -> None:
     cfg = parse_config({"calibration": {"file": str(tmp_path / "missing.yaml")}, "stereo": {"num_disparities": 16}})
+    assert check_rig_config(cfg) == []
     assert cfg.stereo.num_disparities == 16  # not checked here: the estimator reports the missing file
 
 

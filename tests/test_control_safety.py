@@ -19,6 +19,7 @@ from peers.fakes import Client, FakeLink, ServiceRunner, avoid_scene_camera, eng
 
 from companion.config import CompanionConfig, apply_patch, load_bus_config, parse_config
 from companion.config.envelope import envelope_violations
+from companion.core.rig_check import check_rig_config
 from companion.core.safety import near_blindness
 from companion.errors import ConfigError
 from companion.service.control import live_change_refusal
@@ -111,9 +112,9 @@ def test_a_controller_blind_to_near_is_refused() -> None:
             }
         }
     }
+    late_near = apply_patch(cfg, late_terms)
     with pytest.raises(ConfigError, match="nothing could ever read near"):  # the rig check sees it first
-        apply_patch(cfg, late_terms)
-    late_near = apply_patch(cfg, late_terms, check_rig=False)
+        check_rig_config(late_near, "patch")
     assert "not brake" in near_blindness(late_near)
     # Rules without the paper's escapes still brake (no rule fired means brake): not blind.
     main = [r.model_dump() for r in cfg.controller.main_rules if r.name in ("R1", "S1", "S2", "S3", "S4")]

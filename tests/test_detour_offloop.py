@@ -318,9 +318,8 @@ def _daemon(tmp_path, histogram_fn):
 
 async def _run_control_loop(service, until, timeout_s: float = 10.0) -> None:
     """Run the daemon's control loop until ``until()`` holds (checked every 10 ms)."""
-    service._loop = asyncio.get_running_loop()
-    service._wake = asyncio.Event()
-    task = asyncio.get_running_loop().create_task(service._control_loop())
+    service.control_loop.bind(asyncio.get_running_loop())
+    task = asyncio.get_running_loop().create_task(service.control_loop.run())
     try:
         for _ in range(int(timeout_s / 0.01)):
             if until():
@@ -343,7 +342,7 @@ def test_the_daemon_computes_the_histogram_off_the_control_loop(tmp_path) -> Non
 
     service = _daemon(tmp_path, slow)
     req = _request()
-    sup = service.supervisor = _AskingSupervisor(req)
+    sup = service.control_loop.supervisor = _AskingSupervisor(req)
 
     async def scenario() -> None:
         await _run_control_loop(service, lambda: len(calls) == 1 and len(service.link.sent) >= 20)
@@ -351,7 +350,7 @@ def test_the_daemon_computes_the_histogram_off_the_control_loop(tmp_path) -> Non
         assert all(h is None for _, h, _ in sup.steps)
         release.set()
         await _run_control_loop(service, lambda: sup.answer is not None)
-        service._histogram_pool.shutdown(wait=True)
+        await service.control_loop.stop(10.0)
 
     asyncio.run(scenario())
     assert len(calls) == 1 and calls[0][0] == req.seq
@@ -369,17 +368,17 @@ def test_a_failure_in_the_worker_is_logged_and_handed_to_the_supervisor(tmp_path
 
     service = _daemon(tmp_path, broken)
     req = _request(seq=5)
-    sup = service.supervisor = _AskingSupervisor(req)
-    caplog.set_level(logging.ERROR, logger="companion.service.daemon")
+    sup = service.control_loop.supervisor = _AskingSupervisor(req)
+    caplog.set_level(logging.ERROR, logger="companion.service.control_loop")
 
     async def scenario() -> None:
         await _run_control_loop(service, lambda: sup.answer is not None and len(service.link.sent) >= 5)
-        service._histogram_pool.shutdown(wait=True)
+        await service.control_loop.stop(10.0)
 
     asyncio.run(scenario())
     assert sup.answer.histogram is None and "RuntimeError: boom" in sup.answer.error
     assert service.histogram_stats["failed"] == 1
-    assert "detour histogram" in (service._last_error or "") and "boom" in service._last_error
+    assert "detour histogram" in (service.errors.message or "") and "boom" in service.errors.message
     records = [r for r in caplog.records if "detour histogram failed" in r.getMessage()]
     assert records and "request 5" in records[0].getMessage() and records[0].exc_info is not None
 

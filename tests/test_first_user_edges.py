@@ -104,10 +104,10 @@ def test_no_autopilot_is_reported_less_and_less_often(caplog: pytest.LogCaptureF
 
     link = _Silent()
     service = Service(CompanionConfig(), link=link, clock=lambda: now[0], install_signals=False, environ={})
-    with caplog.at_level(logging.INFO, logger="companion.service.daemon"):
-        asyncio.run(service._vehicle_connector())
+    with caplog.at_level(logging.INFO, logger="companion.service.connection"):
+        asyncio.run(service.vehicle.run())
     lines = [r.getMessage() for r in caplog.records if "still waiting" in r.getMessage()]
-    assert link.calls == 101 and service._vehicle_status == "connected"
+    assert link.calls == 101 and service.vehicle.status == "connected"
     assert 5 <= len(lines) <= 8, lines  # was 100
     assert "10 s so far" in lines[0] and "next report in 20 s" in lines[1]
 

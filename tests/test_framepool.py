@@ -171,13 +171,13 @@ def test_the_service_gives_the_camera_the_gpu_backends_pool_and_none_otherwise(t
             self.estimator = estimator
 
     gpu = _Estimator()
-    service._offer_frame_pool(_Pipeline(gpu), cfg)
-    assert gpu.asked == [(cfg.gpu.camera_frame_buffers, 3)] and service._frame_buffers.acquire(SHAPE) is not None
+    service.vision.offer_frame_pool(_Pipeline(gpu), cfg)
+    assert gpu.asked == [(cfg.gpu.camera_frame_buffers, 3)] and service.vision.frame_buffers.acquire(SHAPE) is not None
     off = cfg.model_copy(update={"gpu": cfg.gpu.model_copy(update={"camera_frame_buffers": 0})})
-    service._offer_frame_pool(_Pipeline(gpu), off)
-    assert service._frame_buffers.pool is None
-    service._offer_frame_pool(_Pipeline(object()), cfg)  # a CPU estimator
-    assert service._frame_buffers.pool is None
+    service.vision.offer_frame_pool(_Pipeline(gpu), off)
+    assert service.vision.frame_buffers.pool is None
+    service.vision.offer_frame_pool(_Pipeline(object()), cfg)  # a CPU estimator
+    assert service.vision.frame_buffers.pool is None
 
 
 def test_a_uvc_camera_takes_yuyv_bytes_only_where_the_driver_gives_yuyv(caplog: pytest.LogCaptureFixture) -> None:

@@ -660,6 +660,10 @@ def _sides(left_m: float, right_m: float) -> np.ndarray:
 
 
 def test_side_room_shrinks_with_the_depth_a_side_region_reads_and_is_none_where_unknown() -> None:
+    """Only the side that is not the deeper one is limited. In the kinematic suite with 0.14 m/s of
+    drift, limiting both sides made four dead ends collide (as banning every near side had): in a
+    dead end both sides read near, and the push away from the wall the vehicle drifts toward is what
+    keeps it off that wall."""
     from companion.core.command import side_room_m_s
 
     cmd = CompanionConfig().command.model_copy(update={"sideways_clear_depth_m": 1.0})  # off by default
@@ -799,6 +803,9 @@ def _remembered(points_ned: np.ndarray) -> ObstacleMemory:
 
 
 def test_a_point_seen_past_frame_after_frame_leaves_the_map_but_still_guards() -> None:
+    """A point seen past leaves the detour layer's map but still guards: the position estimate's drift
+    moves true points off their surfaces too, where they are seen past, and forgetting them outright
+    added 4 collisions to the simulator's four drift suites."""
     here = np.array([0.0, 0.0, -1.5])
     mem = _remembered(np.array([[2.0, 0.0, -1.5]]))  # 2 m ahead of a vehicle facing north
     pose = Pose(tuple(here), 0.0)

@@ -557,13 +557,13 @@ def test_the_auto_map_options_fly_as_the_backend_asks(running, tmp_path: Path) -
     assert got["through_squeeze"] is False and got["cone_from_start"] is False
     detour = service.supervisor.config.detour
     assert detour.through_squeeze is False and detour.cone_from_start is False
-    assert wait_until(lambda: service._pipeline is not None, 5.0)
-    assert service._pipeline.config.memory.block_erode_px == 0
+    assert wait_until(lambda: service.vision.pipeline is not None, 5.0)
+    assert service.vision.pipeline.config.memory.block_erode_px == 0
     reply = client.call("set_config", patch={"detour": {"through_squeeze": True}, "memory": {"block_erode_px": 2}})
     assert reply["ok"], reply
     detour = service.supervisor.config.detour
     assert detour.through_squeeze is True and detour.cone_from_start is False
-    assert service._pipeline.config.memory.block_erode_px == 2
+    assert service.vision.pipeline.config.memory.block_erode_px == 2
     assert client.call("get_config", section="detour")["result"]["config"]["cone_from_start"] is False
 
     sgm = service_config(tmp_path / "sgm", stereo={"backend": "reference", "matcher": "sgm"})

@@ -133,7 +133,7 @@ def test_watchdog_is_fed_by_the_control_loop_only_and_stops_when_it_stalls(tmp_p
         lines = drain()
         assert "READY=1" in lines and lines.count("WATCHDOG=1") >= 4
         # Stall the control loop (as a hung step would): the watchdog stops while health goes on.
-        original = service._control_step
+        original = service.control_loop.step
         release = threading.Event()
 
         async def stalled(now, ticked):
@@ -142,12 +142,12 @@ def test_watchdog_is_fed_by_the_control_loop_only_and_stops_when_it_stalls(tmp_p
             while not release.is_set():
                 await asyncio.sleep(0.01)
 
-        service._control_step = stalled
+        service.control_loop.step = stalled
         time.sleep(0.3)
         drain()
         time.sleep(0.6)
         assert "WATCHDOG=1" not in drain()
-        service._control_step = original
+        service.control_loop.step = original
         release.set()
         deadline = time.monotonic() + 3.0
         fed = False

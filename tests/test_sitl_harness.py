@@ -184,7 +184,12 @@ def test_the_service_config_accepts_every_course_the_harness_flies() -> None:
 
 def test_the_floor_moves_with_the_course_ground() -> None:
     """The course's ground lies where the hover put it, not at PX4's take-off point: the placement
-    patch keeps the user's floor at its height over the ground the camera sees and the judge scores."""
+    patch keeps the user's floor at its height over the ground the camera sees and the judge scores.
+
+    A PX4 SITL office flight (2026-11-25) showed why: the hover put the course's ground 0.17-0.19 m
+    above the take-off ground, so a 0.5 m floor left at the take-off point stood ~0.32 m over the
+    course's ground, ~0.07 m over the collision sphere, and PX4's lag carried the vehicle that far
+    below it."""
     user = parse_config({"command": {"min_altitude_m": 0.5}})
     course = make_course("office", 0)
     # hovering 0.17 m above the course's start altitude: the course's ground is 0.17 m above the origin

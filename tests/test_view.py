@@ -71,7 +71,7 @@ def test_preview_image_and_message(tmp_path: Path) -> None:
 def _count_disparity_requests(service: Service) -> list[float]:
     """Wrap the pipeline's process: the times at which it was asked for a disparity image."""
     asked: list[float] = []
-    pipeline = service._pipeline
+    pipeline = service.vision.pipeline
     original = pipeline.process
 
     def process(image, timestamp_s, want_disparity=False):
@@ -91,7 +91,7 @@ def test_preview_only_while_watched_at_the_rate_asked_for(tmp_path: Path) -> Non
         publisher = service.view.publisher
         time.sleep(1.0)
         assert asked == [] and publisher.published == 0 and not publisher.subscribed
-        assert service._latest.result.disparity is None  # nobody watches: no disparity image at all
+        assert service.vision.latest.result.disparity is None  # nobody watches: no disparity image at all
 
         ctx = zmq.Context()
         sub = ctx.socket(zmq.SUB)

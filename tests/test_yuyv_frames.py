@@ -84,4 +84,4 @@ def test_the_service_flies_and_previews_on_yuyv_frames(tmp_path: Path) -> None:
         assert got, "no preview of a YUYV frame"
         header, jpeg = got[0]
         assert header["decision"] == "avoid" and jpeg[:2] == b"\xff\xd8"
-        assert service._latest.result.decision.kind.name == "AVOID"
+        assert service.vision.latest.result.decision.kind.name == "AVOID"

@@ -9,8 +9,8 @@ from typing import Any
 
 from companion.errors import InputError
 
-#: The demo's course: a block across the whole view, its bottom 0.2 m under the vehicle's top (pitch-1).
-#: Flown with the defaults, the vehicle slows in front of it, finds the way under it (the paper's rule 2:
+#: The demo's course (pitch, seed 1): a block across the whole view, its bottom 0.2 m under the vehicle's
+#: top. Flown with the defaults, the vehicle slows in front of it, finds the way under it (the paper's rule 2:
 #: down), passes with 0.32 m to spare and reaches the goal: an escape in one short, deterministic
 #: flight (19 s simulated, about 3 s on a 2-core VM).
 #: The doorway (the paper's Fig. 10) shows neither: it is flown straight through (234 of 234 frames clear).
@@ -27,7 +27,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="fly one simulated course closed-loop (no hardware) and write its plot",
         description=(
             "Fly a simulated course closed-loop with the real pipeline: rendered ZED frames -> 9 region "
-            "depths -> fuzzy decision -> setpoints -> a simulated multicopter. The default course (pitch-1) "
+            "depths -> fuzzy decision -> setpoints -> a simulated multicopter. The default course (pitch, seed 1) "
             "puts a block across the way, too low to fly under at the start altitude: the vehicle slows, "
             "escapes downward, passes under it and reaches the goal. Prints the decisions and the "
             "outcome, and writes the top-down and side-view plot and Fig. 10 overlay frames of the "

@@ -109,7 +109,6 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
             "camera": {"width_px": w, "height_px": h},
             "gpu": {"disparity_preview_downsample": 0},
         },
-        check_rig=False,  # scored whatever the rig; the check's findings are reported instead
     )
     from companion.core.rig_check import check_rig
 

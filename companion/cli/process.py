@@ -95,7 +95,7 @@ def run(args: argparse.Namespace) -> int:
         patch["stereo"] = {"backend": args.backend}
     if patch:
         # checked below against the rig this frame is really seen with (the file's, at the frame's size)
-        cfg = apply_patch(cfg, patch, check_rig=False)
+        cfg = apply_patch(cfg, patch)
     if args.sequence is not None:
         from companion.cli.sequence import run_sequence
 

@@ -94,6 +94,7 @@ def describe_sitl(flight: Any) -> list[str]:
 def run(args: argparse.Namespace) -> int:
     from companion.cli.sim import _check_plot_path, write_plot
     from companion.config import load_config
+    from companion.core.rig_check import check_rig_config
     from companion.sim.courses import make_course
     from companion.sim.suite import suite_courses, suite_table
     from companion.sitl.ardupilot import ArduPilotPorts, find_ardupilot_build
@@ -106,6 +107,7 @@ def run(args: argparse.Namespace) -> int:
     if (args.px4_build is not None and ardupilot) or (args.ardupilot_build is not None and not ardupilot):
         raise InputError("--px4-build goes with --autopilot px4, --ardupilot-build with --autopilot ardupilot")
     cfg = load_config(args.config)
+    check_rig_config(cfg, str(args.config or "config"))  # the service it starts checks it too: say it now
     if args.scenario is not None:
         return _run_scenario(args, cfg)
     if args.course is not None:

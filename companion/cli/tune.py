@@ -68,6 +68,7 @@ def run(args: argparse.Namespace) -> int:
 
     from companion.cli.sim import courses_of
     from companion.config import load_config
+    from companion.core.rig_check import check_rig_config
     from companion.sim.cluster import TuneSpec, require_ray, run_tune
     from companion.sim.tuning import (
         best_patch,
@@ -90,6 +91,7 @@ def run(args: argparse.Namespace) -> int:
     if args.kinds is not None and not args.kinds.strip():
         raise InputError("--kinds needs at least one course kind")
     cfg = load_config(args.config)
+    check_rig_config(cfg, str(args.config or "config"))  # the base the candidates are made from
     requested = [parse_setting(t) for t in args.settings]
     if args.space is not None:
         requested += load_space_file(args.space)

@@ -77,7 +77,6 @@ __all__ = [
     "ViewConfig",
     "apply_patch",
     "as_written",
-    "check_rig_config",
     "concrete_backend",
     "for_backend",
     "load_bus_config",
@@ -175,22 +174,19 @@ def format_validation_error(err: ValidationError, source: str) -> str:
     return f"{source}: invalid config: " + "; ".join(parts)
 
 
-def parse_config(data: Mapping[str, Any], source: str = "config", *, check_rig: bool = True) -> CompanionConfig:
-    """Validate a mapping (e.g. parsed TOML) into a :class:`CompanionConfig`, then check that the stereo
-    setting works with the rig (:func:`check_rig_config`: warnings are logged, errors raised), unless
-    ``check_rig`` is False (``companion eval``, which scores pairs from any rig and reports the check's
-    findings itself).
+def parse_config(data: Mapping[str, Any], source: str = "config") -> CompanionConfig:
+    """Validate a mapping (e.g. parsed TOML) into a :class:`CompanionConfig`.
+
+    Whether the stereo setting works with the rig is checked where the config meets the rig
+    (:func:`companion.core.rig_check.check_rig_config`: the service, the tools that fly it).
 
     Raises:
-        ConfigError: naming each bad field's path and value, or what cannot work with the rig (with the
-            nearest depth the rig can measure).
+        ConfigError: naming each bad field's path and value.
     """
     try:
         cfg = CompanionConfig.model_validate(dict(data))
     except ValidationError as err:
         raise ConfigError(format_validation_error(err, source), source=source) from None
-    if check_rig:
-        check_rig_config(cfg, source)
     return cfg
 
 
@@ -276,38 +272,6 @@ def for_backend(cfg: CompanionConfig, backend: str) -> CompanionConfig:
     )
 
 
-def check_rig_config(cfg: CompanionConfig, source: str = "config") -> list[str]:
-    """Check the stereo setting against the rig at the camera's eye size.
-
-    The rig is the calibration file's rectified geometry, or the ideal rig without one; a calibration
-    that cannot be loaded here is left to the estimator, which reports it. See
-    :mod:`companion.core.rig_check` for the rules.
-
-    Returns:
-        The warnings (each also logged on ``companion.config``).
-
-    Raises:
-        ConfigError: the setting cannot work (one line per problem, each naming the nearest depth).
-    """
-    import logging
-
-    from companion.core.calibration import make_rectifier
-    from companion.core.rig_check import check_rig
-    from companion.errors import CompanionError
-
-    try:
-        geometry = make_rectifier(cfg.calibration, cfg.camera.width_px, cfg.camera.height_px).geometry
-    except (CompanionError, OSError, ValueError) as err:
-        logging.getLogger(__name__).debug("%s: rig not checked (calibration not loadable here: %s)", source, err)
-        return []
-    result = check_rig(geometry, cfg.stereo, cfg.regions, cfg.controller)
-    if result.errors:  # in the words every tool prints (rig_check_lines)
-        raise ConfigError(f"{source}: rig check: error: " + "; ".join(result.errors), source=source)
-    for w in result.warnings:
-        logging.getLogger(__name__).warning("%s: rig check: warning: %s", source, w)
-    return list(result.warnings)
-
-
 def read_config_text(path: Path) -> str:
     """The text of config file ``path``, decoded as UTF-8.
 
@@ -367,9 +331,7 @@ def load_config(path: Path | str | None) -> CompanionConfig:
     if path is None:
         return CompanionConfig()
     path = Path(path)
-    cfg = _strict_validate(CompanionConfig, _read_toml(path), str(path))
-    check_rig_config(cfg, str(path))
-    return cfg
+    return _strict_validate(CompanionConfig, _read_toml(path), str(path))
 
 
 def _load_table(path: Path | str, name: str, model: type[StrictModel]) -> Any:
@@ -410,12 +372,12 @@ def _deep_merge(base: dict[str, Any], patch: Mapping[str, Any], path: str) -> di
     return out
 
 
-def apply_patch(config: CompanionConfig, patch: Mapping[str, Any], *, check_rig: bool = True) -> CompanionConfig:
+def apply_patch(config: CompanionConfig, patch: Mapping[str, Any]) -> CompanionConfig:
     """Return a new config: ``config`` with ``patch`` deep-merged in (tables merge, lists replace).
 
     The whole result is validated with strict types, as JSON: a number must be a number (``"2.5"``
-    and ``true`` are not), a flag a boolean; then, unless ``check_rig`` is False, checked against the
-    rig (:func:`check_rig_config`). On error ``config`` is untouched and a ConfigError says which field.
+    and ``true`` are not), a flag a boolean. On error ``config`` is untouched and a ConfigError says
+    which field.
     """
     if not isinstance(patch, Mapping):
         raise ConfigError(f"patch: expected a table/object, got {type(patch).__name__}")
@@ -428,6 +390,4 @@ def apply_patch(config: CompanionConfig, patch: Mapping[str, Any], *, check_rig:
         cfg = CompanionConfig.model_validate_json(text, strict=True)
     except ValidationError as err:
         raise ConfigError(format_validation_error(err, "patch"), source="patch") from None
-    if check_rig:
-        check_rig_config(cfg, "patch")
     return cfg

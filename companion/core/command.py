@@ -778,9 +778,8 @@ def above_floor(
     ``cmd.max_altitude_hold_speed_m_s``; a faster climb in ``sp`` is kept) unless the up region of
     ``region_depths_m`` (float ``(9,)`` metres, NaN unknown; None: not known, no climb) reads nearer than
     :data:`FLOOR_CLIMB_UP_CLEAR_M`: PX4 in offboard velocity control holds a vertical speed, not a
-    height, and drifts under a setpoint that asks for none (the kinematic suite with 0.1 m/s of
-    vertical drift: 4 flights into the ground without it, none with it). Unchanged when off or
-    without a finite position."""
+    height, and drifts under a setpoint that asks for none, so only a climb back keeps it off the
+    ground. Unchanged when off or without a finite position."""
     if cmd.min_altitude_m <= 0.0 or position_ned_m is None:
         return sp
     altitude = -float(np.asarray(position_ned_m, dtype=np.float64).reshape(-1)[2])
@@ -859,8 +858,7 @@ def side_room_m_s(region_depths_m: np.ndarray | None, cmd: CommandConfig | None)
 
     The memory places what it saw with a position estimate that wanders; the camera does not. The
     deeper side is not limited: in a dead end both sides read near, and the push away from the wall
-    the vehicle drifts toward is what keeps it off that wall (kinematic suite, 0.14 m/s drift:
-    limiting both sides made four dead ends collide, as banning every near side had)."""
+    the vehicle drifts toward is what keeps it off that wall."""
     if region_depths_m is None or cmd is None or cmd.sideways_clear_depth_m <= 0.0:
         return None
     half = 0.5 * cmd.sideways_clear_depth_m

@@ -35,8 +35,7 @@ From one frame to points (:func:`block_max`, :class:`NearCells`):
    into its opening, an alias on a fence) is not there when looked at again; a true surface is seen
    again at its depth, or not measured at all (a plain wall: no valid block), which never clears it.
    It still guards: the position estimate's drift moves true points off their surfaces too, where
-   they are seen past, and the guard needs them (forgetting them outright added 4 collisions to the
-   simulator's four drift suites). Only ``guard_clear_after_s`` of seeing past in a row (4 s; each
+   they are seen past, and the guard needs them. Only ``guard_clear_after_s`` of seeing past in a row (4 s; each
    frame counts the time since the one before, at most :data:`LONGEST_COUNTED_FRAME_S`) take a
    point out of the guard as well: seconds, so that it means the same at any camera rate.
 

@@ -1,4 +1,5 @@
-"""Does the stereo setting work with the rig? The check ``load_config`` runs.
+"""Does the stereo setting work with the rig? The check run where a config meets the rig (the service
+at its start and on every change, the tools that fly or process a config): :func:`check_rig_config`.
 
 For the camera's eye size and the rig (the calibration file's rectified geometry, or the ideal rig), with
 ``f·B`` the focal length times the baseline and ``D`` the number of disparities:
@@ -23,11 +24,17 @@ calibration file when one is set.
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass
 
+from companion.config import CompanionConfig
 from companion.config.core import ControllerConfig, RegionsConfig, StereoConfig
+from companion.core.calibration import make_rectifier
 from companion.core.geometry import StereoGeometry
+from companion.errors import CompanionError, ConfigError
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -160,3 +167,29 @@ def check_rig(
                 f"{fb / (n - 1):.2f} m ({rig})"
             )
     return RigCheck(nearest_depth_m=z_min, errors=tuple(errors), warnings=tuple(warnings))
+
+
+def check_rig_config(cfg: CompanionConfig, source: str = "config") -> list[str]:
+    """Check the stereo setting against the rig at the camera's eye size.
+
+    The rig is the calibration file's rectified geometry, or the ideal rig without one; a calibration
+    that cannot be loaded here is left to the estimator, which reports it. See
+    :func:`check_rig` for the rules.
+
+    Returns:
+        The warnings (each also logged).
+
+    Raises:
+        ConfigError: the setting cannot work (one line per problem, each naming the nearest depth).
+    """
+    try:
+        geometry = make_rectifier(cfg.calibration, cfg.camera.width_px, cfg.camera.height_px).geometry
+    except (CompanionError, OSError, ValueError) as err:
+        log.debug("%s: rig not checked (calibration not loadable here: %s)", source, err)
+        return []
+    result = check_rig(geometry, cfg.stereo, cfg.regions, cfg.controller)
+    if result.errors:  # in the words every tool prints (rig_check_lines)
+        raise ConfigError(f"{source}: rig check: error: " + "; ".join(result.errors), source=source)
+    for w in result.warnings:
+        log.warning("%s: rig check: warning: %s", source, w)
+    return list(result.warnings)

@@ -2,14 +2,10 @@
 
 Two parts:
 
-* :class:`ControlServer` owns the ZeroMQ ROUTER socket in a thread of its own, so that no client,
-  however many messages it sends or however slowly it reads, can stall the flight loop (setpoints,
-  the watchdog, signals). It enforces the budgets (per connection and in total, requests per second),
-  bounds the requests in progress, parses and validates each request, answers ``ping`` and
-  ``get_config`` itself from immutable snapshots, and hands everything else to the flight loop one
-  request per task, bounded.
-* :class:`ControlPlane`, a part of :class:`~companion.service.daemon.Service` (a mixin), carries a
-  request out on the flight loop: supervisor requests (engage, disengage, pause, resume, override) go
+* :class:`~companion.service.control_server.ControlServer` (:mod:`companion.service.control_server`)
+  owns the ZeroMQ ROUTER socket in a thread of its own, with the budgets.
+* :class:`ControlPlane`, an object the daemon holds (a part with ``start`` and ``stop``), owns the
+  config in force and the control server, and carries a request out on the flight loop: supervisor requests (engage, disengage, pause, resume, override) go
   to the control loop; a config change or reload is validated whole, checked against the safety
   envelope (:mod:`companion.config.envelope`) and against what may change while engaged
   (:func:`live_change_refusal`), and the controller must still see a near obstacle as near
@@ -20,49 +16,33 @@ Two parts:
 from __future__ import annotations
 
 import asyncio
-import concurrent.futures
 import logging
-import os
-import queue
-import threading
-import time
-from collections.abc import Callable, Coroutine
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import zmq
-from zmq.utils.monitor import recv_monitor_message
-
-from companion.config import BusConfig, CompanionConfig, apply_patch, load_config
+from companion.config import CompanionConfig, apply_patch, load_config
 from companion.config.service import LIVE_CAMERA_FIELDS, RESTART_FIELDS
 from companion.config.view import VIEW_RESTART_FIELDS
+from companion.core.rig_check import check_rig_config
 from companion.core.safety import near_blindness
 from companion.core.supervisor import Disengage, Engage, Goto, Override, Pause, Reply, Resume, SupervisorConfig
 from companion.errors import CompanionError, ConfigError, ProtocolError
-from companion.service import protocol
+from companion.service.control_server import (  # noqa: F401 (re-exported)
+    MAX_IN_FLIGHT,
+    STOP_COMMANDS,
+    ControlServer,
+    ControlStats,
+)
+from companion.service.parts import LastError, call_on_loop, stop_in_thread
+
+if TYPE_CHECKING:
+    from companion.core.supervisor import Supervisor
+    from companion.service.frames import CapturePart, PipelinePart
 
 log = logging.getLogger(__name__)
 
-#: Requests carried out on the flight loop at once; a further one gets a "Busy" reply at once.
-MAX_IN_FLIGHT = 8
-#: Messages read from the socket per turn of the server's loop (then replies are sent, events read).
-_RECV_BATCH = 64
-#: After a full batch (more messages are waiting: a flood), the thread sleeps this long, seconds. It
-#: bounds the share of the CPU and of the interpreter lock that clients can take from the flight loop
-#: (at most ~13 000 messages a second); what waits meanwhile stays in ZeroMQ's small per-connection
-#: queues, and a client that keeps flooding loses its surplus there.
-_FLOOD_PAUSE_S = 0.005
-#: The control thread's niceness above the process's (Linux): under load the flight loop's threads
-#: come first.
-_NICENESS = 5
-#: Connections whose budgets are remembered; beyond this the idle ones are forgotten.
-_MAX_TRACKED_PEERS = 1024
-#: Requests that stop the vehicle: never refused by a request budget (one client's flood must not keep
-#: another from stopping it), and they have places in progress of their own beyond :data:`MAX_IN_FLIGHT`.
-STOP_COMMANDS = frozenset({"disengage", "pause"})
-#: A stop request is at most this long (a longer message is not looked at before the budgets).
-_MAX_STOP_BYTES = 256
 #: What a live change may touch while engaged under ``envelope.live_changes_while_engaged = "tuning"``:
 #: these sections, except the command fields below (timeouts, the brake hold, the progress watchdog).
 _TUNING_SECTIONS = ("controller", "lut", "command", "sim")
@@ -175,9 +155,144 @@ def live_change_refusal(current: CompanionConfig, new: CompanionConfig, *, engag
     return None
 
 
+@dataclass(frozen=True)
+class ControlCounts:
+    """The control server's counts (health's ``control``).
+
+    Attributes:
+        connections: live connections.
+        received: messages received.
+        rate_limited: requests refused by the request budgets.
+        busy: requests refused by the bound on requests in progress.
+        bad: malformed requests.
+        replies_dropped: replies a client did not read.
+        refused_connections: handshakes refused (too many connections).
+    """
+
+    connections: int
+    received: int
+    rate_limited: int
+    busy: int
+    bad: int
+    replies_dropped: int
+    refused_connections: int
+
+
 class ControlPlane:
-    """The control-plane part of the service that runs on the flight loop (mixed into
-    :class:`~companion.service.daemon.Service`)."""
+    """The control plane: the config in force (and its version), the requests carried out on the flight
+    loop, and the control server part (:meth:`start`, :meth:`stop`) that reads the socket in its thread.
+
+    Args:
+        config: the validated config (relative paths already resolved against its file's folder).
+        config_path: the file it came from (for ``reload``), or None.
+        clock: monotonic seconds.
+        supervisor: the control loop's supervisor (its state, for replies; its reconfigure).
+        submit: queues a supervisor request for the control loop's next step; its future gets the reply.
+        status: the health message now (the ``status`` request).
+        engaged: whether the service commands now (live changes are limited then).
+        pipeline: the pipeline part (a new config is built there before it is swapped in).
+        capture: the capture part (a new config's camera placement).
+        errors: health's ``last_error`` (a rejected reload stays there until a good change).
+        on_applied: called after a change was applied (health publishes at once).
+        on_server_failed: called on the loop when the control server's thread died (the service stops).
+    """
+
+    name = "control server"
+    stop_budget_s = 1.0
+
+    def __init__(
+        self,
+        config: CompanionConfig,
+        *,
+        config_path: Path | None,
+        clock: Callable[[], float],
+        supervisor: Supervisor,
+        submit: Callable[[Any], asyncio.Future | None],
+        status: Callable[[], dict[str, Any]],
+        engaged: Callable[[], bool],
+        pipeline: PipelinePart,
+        capture: CapturePart,
+        errors: LastError,
+        on_applied: Callable[[], None],
+        on_server_failed: Callable[[], None],
+    ) -> None:
+        self.config = config
+        self.config_version = 1
+        self.config_path = config_path
+        self._clock = clock
+        self._supervisor = supervisor
+        self._submit = submit
+        self._status = status
+        self._engaged = engaged
+        self._pipeline = pipeline
+        self._capture = capture
+        self._errors = errors
+        self._on_applied = on_applied
+        self._on_server_failed = on_server_failed
+        self._lock: asyncio.Lock | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._bus: Any = None
+        self._reloads: set[asyncio.Task] = set()
+        self.server: ControlServer | None = None
+
+    # ------------------------------------------------------------------------------ the server part
+
+    def bind(self, loop: asyncio.AbstractEventLoop) -> None:
+        """The flight loop (before any request is carried out)."""
+        self._loop = loop
+        self._lock = asyncio.Lock()
+
+    def start(self, bus: Any) -> None:
+        """Serve ``bus.control`` in the control server's own thread: no client can stall the flight loop."""
+        assert self._loop is not None
+        self._bus = bus
+        self.server = ControlServer(
+            bus.control,
+            self.config.bus,
+            self._loop,
+            self.handle_local,
+            self.handle_request,
+            on_internal_error=self._server_error,
+            gatekeeper=bus.gatekeeper,
+            clock=self._clock,
+        )
+        self.server.start()
+
+    async def stop(self, budget_s: float) -> bool:
+        """Stop the server's thread (requests in progress get no reply) and any reload under way."""
+        for task in list(self._reloads):
+            task.cancel()
+        if self._reloads:
+            await asyncio.wait(list(self._reloads), timeout=budget_s / 2.0)
+        self._reloads.clear()
+        if self.server is None:
+            return True
+        return await stop_in_thread("the control server", self.server.stop, budget_s)
+
+    def _server_error(self, message: str) -> None:
+        """From the control server's thread: a request failed with a bug, or the thread itself died."""
+        call_on_loop(self._loop, self._errors.record, message)
+        if self.server is not None and self.server.error is not None:
+            # Nobody could command or stop the service any more: stop cleanly (zero, Hold if ours).
+            call_on_loop(self._loop, self._on_server_failed)
+
+    def counts(self) -> ControlCounts | None:
+        """The control server's counts, or None before it started."""
+        server = self.server
+        if server is None:
+            return None
+        st = server.stats
+        return ControlCounts(
+            connections=server.connections,
+            received=st.received,
+            rate_limited=st.rate_limited,
+            busy=st.busy,
+            bad=st.bad,
+            replies_dropped=st.replies_dropped,
+            refused_connections=self._bus.stats()["refused_connections"] if self._bus is not None else 0,
+        )
+
+    # ------------------------------------------------------------------------------ requests
 
     def handle_local(self, request: Any) -> dict[str, Any] | None:
         """The answer to a request the control server's thread gives itself, from immutable snapshots
@@ -188,7 +303,7 @@ class ControlPlane:
         """
         cmd = request.cmd
         if cmd == "ping":
-            return {"pong": True, "time_s": self._clock(), "state": self.supervisor.state.value}
+            return {"pong": True, "time_s": self._clock(), "state": self._supervisor.state.value}
         if cmd == "get_config":
             config, version = self.config, self.config_version  # one reference each: a consistent pair
             data = config.model_dump(mode="json")
@@ -206,7 +321,7 @@ class ControlPlane:
             return local
         cmd = request.cmd
         if cmd == "status":
-            return self.health_message()
+            return self._status()
         if cmd == "set_config":
             new = apply_patch(self.config, request.patch)
             return await self.apply_config(new, "set_config")
@@ -241,7 +356,7 @@ class ControlPlane:
             raise RequestRefused(f"{type(request).__name__.lower()}: the control loop did not answer within 2 s") from None
         if not reply.ok:
             raise RequestRefused(reply.message)
-        return {"message": reply.message, "state": self.supervisor.state.value, "reason": self.supervisor.reason}
+        return {"message": reply.message, "state": self._supervisor.state.value, "reason": self._supervisor.reason}
 
     async def reload(self) -> dict[str, Any]:
         """Re-read the config file and apply it (validated whole first). A rejection stays in health's
@@ -253,7 +368,7 @@ class ControlPlane:
             new = resolve_config_paths(new, self.config_path.parent)
             return await self.apply_config(new, f"reload of {self.config_path}", from_file=True)
         except ConfigError as err:
-            self._error(f"reload rejected: {err}", kind="config")
+            self._errors.record(f"reload rejected: {err}", kind="config")
             raise
 
     async def apply_config(self, new: CompanionConfig, source: str, from_file: bool = False) -> dict[str, Any]:
@@ -265,372 +380,56 @@ class ControlPlane:
         Fields that need a restart are reported in ``restart_required`` and not applied.
         ``from_file``: a reload of the config file (the only way the envelope changes).
         """
-        assert self._config_lock is not None
-        async with self._config_lock:
+        assert self._lock is not None
+        async with self._lock:
             current = self.config
             later = restart_required(current, new)
             applied = keep_restart_fields(current, new)
-            refusal = live_change_refusal(current, applied, engaged=self.engaged_or_engaging, from_file=from_file)
+            refusal = live_change_refusal(current, applied, engaged=self._engaged(), from_file=from_file)
+            if refusal is None:
+                try:
+                    check_rig_config(applied, source)
+                except ConfigError as err:
+                    refusal = str(err).removeprefix(f"{source}: ")
             if refusal is None:
                 refusal = near_blindness(applied)
             if refusal is not None:
                 raise ConfigError(f"{source}: rejected, the old config stays: {refusal}")
             changed = [name for name in type(applied).model_fields if getattr(applied, name) != getattr(current, name)]
-            if self._pipeline is not None and self._processor is not None:
-                try:
-                    # In the pipeline thread, between two frames: never racing one.
-                    await asyncio.wrap_future(self._processor.submit(self._reconfigure_pipeline, applied))
-                except CompanionError as err:
-                    raise ConfigError(f"{source}: rejected, the old config stays: {err}") from None
-                except Exception as err:
-                    log.exception("%s: building the new pipeline failed", source)
-                    raise ConfigError(
-                        f"{source}: rejected, the old config stays: {type(err).__name__}: {err}"
-                    ) from None
-            self.supervisor.reconfigure(SupervisorConfig.from_config(applied))
-            if self._telemetry_pose is not None:
-                from companion.service.camera import placement_from_config
-
-                self._telemetry_pose.placement = placement_from_config(applied)  # one reference swap
-            if self._processor is not None:
-                self._processor.skip_late_frames = applied.service.skip_late_frames
+            try:
+                await self._pipeline.reconfigure(applied)
+            except CompanionError as err:
+                raise ConfigError(f"{source}: rejected, the old config stays: {err}") from None
+            except Exception as err:
+                log.exception("%s: building the new pipeline failed", source)
+                raise ConfigError(
+                    f"{source}: rejected, the old config stays: {type(err).__name__}: {err}"
+                ) from None
+            self._supervisor.reconfigure(SupervisorConfig.from_config(applied))
+            self._capture.place(applied)
             self.config = applied
             if changed:
                 self.config_version += 1
             if later:
                 log.warning("%s: %s need a restart to take effect", source, ", ".join(later))
             log.info("%s applied (changed: %s)", source, ", ".join(changed) or "nothing")
-            self._clear_error("config")  # an earlier rejected change is no longer what is in force
-            self._kick_health()
+            self._errors.clear("config")  # an earlier rejected change is no longer what is in force
+            self._on_applied()
             return {"changed": changed, "restart_required": later, "config_version": self.config_version}
 
+    def reload_in_background(self) -> None:
+        """SIGHUP: reload the config file beside the loop; the outcome is logged (and kept in health)."""
+        assert self._loop is not None
+        task = self._loop.create_task(self._reload_logged(), name="reload")
+        self._reloads.add(task)
+        task.add_done_callback(self._reloads.discard)
 
-# ---------------------------------------------------------------------------------------------- the server
-
-
-@dataclass
-class _Bucket:
-    """A token bucket: ``tokens`` (requests) at ``t_s``, refilled at ``rate`` per second up to ``rate``."""
-
-    tokens: float
-    t_s: float
-
-    def take(self, now_s: float, rate: float) -> bool:
-        self.tokens = min(rate, self.tokens + (now_s - self.t_s) * rate)
-        self.t_s = now_s
-        if self.tokens < 1.0:
-            return False
-        self.tokens -= 1.0
-        return True
-
-
-@dataclass
-class ControlStats:
-    """What the control server has seen (health's ``control``)."""
-
-    received: int = 0
-    rate_limited: int = 0
-    busy: int = 0
-    bad: int = 0
-    replies_dropped: int = 0
-
-
-def _envelope(frames: list[bytes]) -> tuple[list[bytes], list[bytes]] | None:
-    """(the reply envelope, the payload frames) of one ROUTER message; None when it has no payload."""
-    if len(frames) < 2:
-        return None  # no identity and payload: nothing we could reply to
-    identity, rest = frames[0], frames[1:]
-    if len(rest) >= 2 and rest[0] == b"":
-        return [identity, b""], rest[1:]  # REQ client
-    return [identity], rest  # DEALER client
-
-
-class ControlServer:
-    """The control socket's own thread (see the module doc). Start with :meth:`start`, end with :meth:`stop`.
-
-    Args:
-        sock: the bound ROUTER socket; from :meth:`start` on only this thread uses it.
-        cfg: the ``[bus]`` config (the budgets; a restart changes them).
-        loop: the flight loop, where :meth:`ControlPlane.handle_request` runs.
-        handle_local: answers the requests the thread gives itself, or returns None
-            (:meth:`ControlPlane.handle_local`).
-        handle: a request's coroutine on the flight loop (:meth:`ControlPlane.handle_request`).
-        on_internal_error: called (from this thread) with a one-line message when a request failed
-            with a bug.
-        gatekeeper: told the live connection count (:class:`~companion.service.bus.Gatekeeper`), or None.
-        clock: monotonic seconds, for the budgets.
-    """
-
-    def __init__(
-        self,
-        sock: zmq.Socket,
-        cfg: BusConfig,
-        loop: asyncio.AbstractEventLoop,
-        handle_local: Callable[[Any], dict[str, Any] | None],
-        handle: Callable[[Any], Coroutine[Any, Any, dict[str, Any]]],
-        on_internal_error: Callable[[str], None],
-        gatekeeper: Any = None,
-        clock: Callable[[], float] = time.monotonic,
-    ) -> None:
-        self._sock = sock
-        self._cfg = cfg
-        self._loop = loop
-        self._handle_local = handle_local
-        self._handle = handle
-        self._on_internal_error = on_internal_error
-        self._gatekeeper = gatekeeper
-        self._clock = clock
-        self._adapter = protocol.request_adapter()
-        self._refusals = {
-            "client": protocol.encode(
-                protocol.error_reply(
-                    None,
-                    None,
-                    "RateLimited",
-                    f"more than bus.requests_per_s_per_client = {cfg.requests_per_s_per_client:g} requests "
-                    "per second from this connection; not carried out",
-                )
-            ),
-            "all": protocol.encode(
-                protocol.error_reply(
-                    None,
-                    None,
-                    "RateLimited",
-                    f"more than bus.max_requests_per_s = {cfg.max_requests_per_s:g} requests per second "
-                    "from all clients; not carried out",
-                )
-            ),
-            "busy": protocol.encode(
-                protocol.error_reply(
-                    None, None, "Busy", f"{MAX_IN_FLIGHT} requests are in progress already; try again"
-                )
-            ),
-        }
-        self._done: queue.SimpleQueue[tuple[list[bytes], str, Any, concurrent.futures.Future]] = queue.SimpleQueue()
-        self._pending: set[concurrent.futures.Future] = set()
-        self._peers: dict[bytes, _Bucket] = {}
-        self._all = _Bucket(cfg.max_requests_per_s, clock())
-        self._reserve = _Bucket(cfg.max_requests_per_s, clock())  # the light users' share (_admit)
-        self._wake_r, self._wake_w = os.pipe()
-        os.set_blocking(self._wake_r, False)
-        os.set_blocking(self._wake_w, False)
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="control server", daemon=True)
-        self.stats = ControlStats()
-        self.connections = 0
-        self.error: BaseException | None = None  # what ended the thread, if it died
-
-    # ------------------------------------------------------------------------------------ lifecycle
-
-    def start(self) -> None:
-        self._thread.start()
-
-    def stop(self, timeout_s: float = 2.0) -> None:
-        """End the thread: requests in progress are cancelled (their clients get no reply)."""
-        self._stop.set()
-        self._wake()
-        self._thread.join(timeout_s)
-        if self._thread.is_alive():
-            log.error("the control server's thread did not stop within %.1f s", timeout_s)
-        for fut in list(self._pending):
-            fut.cancel()
-        for fd in (self._wake_r, self._wake_w):
-            try:
-                os.close(fd)
-            except OSError:
-                pass  # closed already
-
-    @property
-    def alive(self) -> bool:
-        return self._thread.is_alive()
-
-    def _wake(self) -> None:
+    async def _reload_logged(self) -> None:
         try:
-            os.write(self._wake_w, b"x")
-        except (BlockingIOError, OSError):
-            pass  # the pipe is full (the thread wakes anyway) or closed (it has stopped)
-
-    # ------------------------------------------------------------------------------------ the thread
-
-    def _run(self) -> None:
-        try:
-            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), os.getpriority(os.PRIO_PROCESS, 0) + _NICENESS)
-        except (AttributeError, OSError) as err:  # not Linux, or not allowed: the budgets still bound it
-            log.debug("control thread niceness unchanged: %s", err)
-        monitor = self._sock.get_monitor_socket(zmq.EVENT_ACCEPTED | zmq.EVENT_DISCONNECTED)
-        poller = zmq.Poller()
-        poller.register(self._sock, zmq.POLLIN)
-        poller.register(monitor, zmq.POLLIN)
-        poller.register(self._wake_r, zmq.POLLIN)
-        try:
-            while not self._stop.is_set():
-                ready = dict(poller.poll(200))
-                if monitor in ready:
-                    self._read_monitor(monitor)
-                if self._wake_r in ready:
-                    try:
-                        os.read(self._wake_r, 4096)
-                    except BlockingIOError:
-                        pass
-                self._send_done()
-                if self._sock in ready and self._receive() == _RECV_BATCH:
-                    time.sleep(_FLOOD_PAUSE_S)
-        except Exception as err:  # a bug: the service notices (health) and stops cleanly
-            self.error = err
-            log.exception("the control server's thread failed")
-            self._on_internal_error(f"control server: {type(err).__name__}: {err}")
-        finally:
-            try:
-                self._sock.disable_monitor()
-            except zmq.ZMQError:
-                pass  # the socket is already closed
-            monitor.close(0)
-
-    def _read_monitor(self, monitor: zmq.Socket) -> None:
-        while True:
-            try:
-                event = recv_monitor_message(monitor, zmq.NOBLOCK)
-            except zmq.Again:
-                break
-            if event["event"] == zmq.EVENT_ACCEPTED:
-                self.connections += 1
-            elif event["event"] == zmq.EVENT_DISCONNECTED:
-                self.connections = max(0, self.connections - 1)
-        if self._gatekeeper is not None:
-            self._gatekeeper.live_connections = self.connections
-
-    def _receive(self) -> int:
-        """Read and handle up to :data:`_RECV_BATCH` messages; returns how many."""
-        for n in range(_RECV_BATCH):
-            try:
-                frames = self._sock.recv_multipart(zmq.NOBLOCK)
-            except zmq.Again:
-                return n
-            self.stats.received += 1
-            split = _envelope(frames)
-            if split is None:
-                continue
-            envelope, parts = split
-            stop = len(parts) == 1 and self._is_stop(parts[0])
-            refusal = self._admit(envelope[0], stop=stop)
-            if refusal is not None:
-                self._send(envelope, refusal)
-                continue
-            if len(parts) != 1:
-                self.stats.bad += 1
-                message = f"expected one JSON frame after the envelope, got {len(parts)} frames"
-                self._reply(envelope, protocol.error_reply(None, None, "ProtocolError", message))
-                continue
-            self._dispatch(envelope, parts[0])
-        return _RECV_BATCH
-
-    def _admit(self, identity: bytes, now_s: float | None = None, stop: bool = False) -> bytes | None:
-        """None when this connection, and all together, are within their request budgets; else the
-        error reply, encoded (the same bytes for every refusal of a kind: a flood costs no JSON).
-
-        Fair shares: when the budget of all connections is spent, a connection that has used less than
-        half its own budget in the last second still gets in, from a reserve as large as that budget
-        (the connections that spent it are refused; the total stays bounded at twice it). A ``stop``
-        request (:data:`STOP_COMMANDS`) is never refused by a budget, only when even its own places in
-        progress are taken.
-        """
-        now_s = self._clock() if now_s is None else now_s
-        per = self._cfg.requests_per_s_per_client
-        total = self._cfg.max_requests_per_s
-        bucket = self._peers.get(identity)
-        if bucket is None:
-            if len(self._peers) >= _MAX_TRACKED_PEERS:
-                self._forget_idle(now_s)
-            bucket = self._peers[identity] = _Bucket(per, now_s)
-        if stop:
-            bucket.take(now_s, per)  # counted, never refused
-            if len(self._pending) >= MAX_IN_FLIGHT + len(STOP_COMMANDS) * 2:
-                self.stats.busy += 1
-                return self._refusals["busy"]
-            return None
-        if not bucket.take(now_s, per):
-            self.stats.rate_limited += 1
-            return self._refusals["client"]
-        if not self._all.take(now_s, total) and (bucket.tokens < per / 2.0 or not self._reserve.take(now_s, total)):
-            self.stats.rate_limited += 1
-            return self._refusals["all"]
-        if len(self._pending) >= MAX_IN_FLIGHT:
-            self.stats.busy += 1
-            return self._refusals["busy"]
-        return None
-
-    def _is_stop(self, raw: bytes) -> bool:
-        """Whether ``raw`` is a valid stop request (:data:`STOP_COMMANDS`); only a short message that
-        names one is parsed here, so a flood of anything else costs no JSON."""
-        if len(raw) > _MAX_STOP_BYTES or not any(cmd.encode() in raw for cmd in STOP_COMMANDS):
-            return False
-        try:
-            return protocol.parse_request(raw, self._adapter, self._cfg.max_request_bytes).cmd in STOP_COMMANDS
-        except ProtocolError:
-            return False
-
-    def _forget_idle(self, now_s: float) -> None:
-        per = self._cfg.requests_per_s_per_client
-        idle = [k for k, b in self._peers.items() if b.tokens + (now_s - b.t_s) * per >= per]
-        for k in idle or list(self._peers)[: len(self._peers) // 2]:
-            del self._peers[k]
-
-    def _dispatch(self, envelope: list[bytes], raw: bytes) -> None:
-        cmd = rid = None
-        try:
-            request = protocol.parse_request(raw, self._adapter, self._cfg.max_request_bytes)
-            cmd, rid = request.cmd, request.id
-            local = self._handle_local(request)
-        except ProtocolError as err:
-            self.stats.bad += 1
-            cmd = cmd or err.context.get("cmd")
-            rid = rid if rid is not None else err.context.get("id")
-            log.info("bad request: %s", err)
-            self._reply(envelope, protocol.error_reply(cmd, rid, "ProtocolError", str(err)))
-            return
-        except Exception as err:
-            self._reply(envelope, self._internal_error(cmd, rid, err))
-            return
-        if local is not None:
-            self._reply(envelope, protocol.ok_reply(cmd, rid, local))
-            return
-        fut = asyncio.run_coroutine_threadsafe(self._handle(request), self._loop)
-        self._pending.add(fut)
-        fut.add_done_callback(lambda f: (self._done.put((envelope, cmd, rid, f)), self._wake()))
-
-    def _send_done(self) -> None:
-        while True:
-            try:
-                envelope, cmd, rid, fut = self._done.get_nowait()
-            except queue.Empty:
-                return
-            self._pending.discard(fut)
-            if fut.cancelled():
-                continue
-            err = fut.exception()
-            if err is None:
-                message = protocol.ok_reply(cmd, rid, fut.result())
-            elif isinstance(err, ProtocolError):
-                log.info("bad request: %s", err)
-                message = protocol.error_reply(cmd, rid, "ProtocolError", str(err))
-            elif isinstance(err, CompanionError):
-                log.info("%s request failed: %s", cmd, err)
-                message = protocol.error_reply(cmd, rid, type(err).__name__, str(err))
-            else:
-                message = self._internal_error(cmd, rid, err)
-            self._reply(envelope, message)
-
-    def _internal_error(self, cmd: Any, rid: Any, err: BaseException) -> dict[str, Any]:
-        log.error("request %s failed", cmd, exc_info=err)
-        self._on_internal_error(f"internal error handling {cmd}: {type(err).__name__}: {err}")
-        return protocol.error_reply(cmd, rid, "InternalError", f"{type(err).__name__}: {err}")
-
-    def _reply(self, envelope: list[bytes], message: dict[str, Any]) -> None:
-        self._send(envelope, protocol.encode(message))
-
-    def _send(self, envelope: list[bytes], payload: bytes) -> None:
-        try:
-            self._sock.send_multipart(envelope + [payload], zmq.NOBLOCK)
-        except zmq.ZMQError as err:  # the client went away, or does not read its replies: drop it
-            self.stats.replies_dropped += 1
-            log.debug("control reply not delivered: %s", err)
+            result = await self.reload()
+            log.info("reload applied: %s", result)
+        except CompanionError as err:
+            log.error("reload rejected, the old config stays: %s", err)  # reload() recorded it in health
+        except Exception as err:  # a bug: the old config stays, and health says so
+            log.exception("reload failed, the old config stays")
+            self._errors.record(f"reload failed, the old config stays: {type(err).__name__}: {err}", kind="config")

@@ -1,15 +1,16 @@
 """The service's health concern: the health message (see docs/service.md for its fields) and its publisher.
 
-:class:`HealthReporter` is a part of :class:`~companion.service.daemon.Service` (a mixin): it reads the
-counters and state the daemon keeps (frames processed, latencies, the last setpoint, the supervisor, the
-capture thread and the vehicle link) and publishes the message on the bus at ``bus.health_rate_hz`` and
-on every state change. It runs on the service's event loop and never commands anything.
+:class:`HealthReporter` builds the message from a small typed snapshot of each part
+(:class:`HealthSources`: the pipeline's frame counters, the control loop's setpoints, the capture
+thread's status, the vehicle link's state, the control server's counters, the presence part's);
+:class:`HealthLoop` is the part that publishes it at ``bus.health_rate_hz`` and at once on every state
+change. Both run on the service's event loop and never command anything.
 """
 
 from __future__ import annotations
 
 import asyncio
-import collections
+import dataclasses
 import logging
 import time
 from collections.abc import Awaitable, Callable
@@ -19,7 +20,6 @@ import numpy as np
 
 from companion.core.types import REGION_NAMES, VelocitySetpoint
 from companion.core.words import decision_words
-from companion.service import protocol
 from companion.service.aio import wait_event
 from companion.service.parts import TaskPart
 from companion.service.preview_frame import thresholds_m
@@ -27,10 +27,10 @@ from companion.service.preview_frame import thresholds_m
 log = logging.getLogger(__name__)
 
 
-def _percentile_ms(values: collections.deque, q: float) -> float | None:
-    if not values:
+def _percentile_ms(values_s: tuple[float, ...], q: float) -> float | None:
+    if not values_s:
         return None
-    return float(np.percentile(np.fromiter(values, np.float64), q)) * 1e3
+    return float(np.percentile(np.asarray(values_s, np.float64), q)) * 1e3
 
 
 def _setpoint_dict(sp: VelocitySetpoint | None) -> dict[str, float] | None:
@@ -68,40 +68,80 @@ def _regions(result: Any) -> dict[str, Any]:
     }
 
 
-class HealthReporter:
-    """The health part of the service (mixed into :class:`~companion.service.daemon.Service`)."""
+@dataclasses.dataclass(frozen=True)
+class HealthSources:
+    """Where the health message comes from: each part's own snapshot, read through these callables.
 
-    def health_message(self) -> dict[str, Any]:
+    Attributes:
+        clock: monotonic seconds.
+        config: the config in force and its version (one consistent pair).
+        supervisor: the control loop's supervisor (its public state and status methods).
+        frames: the pipeline part's counters at a time (:meth:`~companion.service.frames.PipelinePart.counts`).
+        latest: the newest processed frame, or None.
+        capture: the capture thread's status, or None before it started.
+        vehicle: the vehicle link's state (or None) and health's ``vehicle.link`` word for it.
+        setpoints: the control loop's setpoint counters.
+        control: the control server's counts (a dataclass), or None before it started.
+        mavlink: the presence part's status.
+        preview: the preview publisher's status, or None.
+        last_error: the newest fault, in one line, or None.
+    """
+
+    clock: Callable[[], float]
+    config: Callable[[], tuple[Any, int]]
+    supervisor: Any
+    frames: Callable[[float], Any]
+    latest: Callable[[], Any]
+    capture: Callable[[], Any]
+    vehicle: Callable[[], tuple[Any, str]]
+    setpoints: Callable[[], Any]
+    control: Callable[[], Any]
+    mavlink: Callable[[], dict[str, Any]]
+    preview: Callable[[], dict[str, Any] | None]
+    last_error: Callable[[], str | None]
+
+
+class HealthReporter:
+    """The health part's message: built from the parts' snapshots (:class:`HealthSources`), numbered."""
+
+    def __init__(self, sources: HealthSources) -> None:
+        self._src = sources
+        self._seq = 0
+
+    def message(self) -> dict[str, Any]:
         """The health message (the field list: docs/service.md)."""
-        now = self._clock()
-        latest = self._latest
-        capture = self._capture.status() if self._capture is not None else None
-        v = self.link.state() if self.link is not None else None
-        recent = [t for t in self._processed_times if now - t <= 1.0]
+        src = self._src
+        now = src.clock()
+        config, config_version = src.config()
+        latest = src.latest()
+        capture = src.capture()
+        v, vehicle_link = src.vehicle()
+        frames = src.frames(now)
+        sp = src.setpoints()
+        control = src.control()
+        supervisor = src.supervisor
+        latencies = sp.latencies_s
         result = latest.result if latest is not None else None
         decision = result.decision if result is not None else None
-        self._health_seq += 1
-        vehicle_link = self._vehicle_status
-        if v is not None and self._vehicle_status == "connected":
-            vehicle_link = "connected" if v.connected else "lost"
+        self._seq += 1
         return {
             "type": "health",
-            "seq": self._health_seq,
+            "seq": self._seq,
             "time_s": now,
             "unix_time_s": time.time(),
-            "state": self.supervisor.state.value,
-            "reason": self.supervisor.reason,
-            "engaged": self.supervisor.engaged,
-            "offboard_switch_ready": self.supervisor.ready,
-            "config_version": self.config_version,
-            "fps": float(len(recent)),
+            "state": supervisor.state.value,
+            "reason": supervisor.reason,
+            "engaged": supervisor.engaged,
+            "offboard_switch_ready": supervisor.ready,
+            "config_version": config_version,
+            "fps": frames.fps,
             "frame_age_ms": (now - result.timestamp_s) * 1e3 if result is not None else None,
             "stages_ms": dict(result.timings_ms) if result is not None else {},
             "frame_to_setpoint_ms": {
-                "last": self._last_latency_s * 1e3 if self._last_latency_s is not None else None,
-                "median": _percentile_ms(self._latency_s, 50),
-                "p99": _percentile_ms(self._latency_s, 99),
-                "samples": len(self._latency_s),
+                "last": sp.latency_last_s * 1e3 if sp.latency_last_s is not None else None,
+                "median": _percentile_ms(latencies, 50),
+                "p99": _percentile_ms(latencies, 99),
+                "samples": len(latencies),
             },
             **_regions(result),
             "yaw": decision.yaw if decision is not None else None,
@@ -117,12 +157,12 @@ class HealthReporter:
                 if decision is not None
                 else None
             ),
-            "setpoint": _setpoint_dict(self._last_setpoint),
-            "setpoint_age_ms": (now - self._last_setpoint_s) * 1e3 if self._last_setpoint_s is not None else None,
-            "setpoints_sent": self._setpoints_sent,
-            "override": self.supervisor.override_status(now),
-            "memory": self.supervisor.memory_status(),
-            "goal": self.supervisor.goal_status(v.position_ned_m if v is not None else None),
+            "setpoint": _setpoint_dict(sp.last),
+            "setpoint_age_ms": (now - sp.last_s) * 1e3 if sp.last_s is not None else None,
+            "setpoints_sent": sp.sent,
+            "override": supervisor.override_status(now),
+            "memory": supervisor.memory_status(),
+            "goal": supervisor.goal_status(v.position_ned_m if v is not None else None),
             "camera": (
                 {
                     "source": capture.source,
@@ -148,48 +188,16 @@ class HealthReporter:
                     v.velocity_ned_m_s.tolist() if v is not None and v.velocity_ned_m_s is not None else None
                 ),
             },
-            "processed_frames": self._processed,
-            "dropped_frames": (capture.dropped if capture is not None else 0) + self._skipped_frames(),
-            "processed_twice": self._processed_twice,
-            "frame_errors": self._frame_errors,
-            "last_error": self._last_error,
-            "control": self._control_status(),
-            "mavlink": self.presence.status(),
-            "thresholds_m": thresholds_m(self.config),
-            "preview": self.view.publisher.status() if self.view is not None and self.view.publisher is not None else None,
+            "processed_frames": frames.processed,
+            "dropped_frames": (capture.dropped if capture is not None else 0) + frames.skipped,
+            "processed_twice": frames.processed_twice,
+            "frame_errors": frames.frame_errors,
+            "last_error": src.last_error(),
+            "control": dataclasses.asdict(control) if control is not None else None,
+            "mavlink": src.mavlink(),
+            "thresholds_m": thresholds_m(config),
+            "preview": src.preview(),
         }
-
-    def _control_status(self) -> dict[str, int] | None:
-        """The control server's counts: live connections, requests received, refused by the budgets
-        (``rate_limited``) or the bound on requests in progress (``busy``), malformed (``bad``),
-        replies dropped (a client that does not read them), handshakes refused (too many connections)."""
-        server = self.control_server
-        if server is None:
-            return None
-        st = server.stats
-        return {
-            "connections": server.connections,
-            "received": st.received,
-            "rate_limited": st.rate_limited,
-            "busy": st.busy,
-            "bad": st.bad,
-            "replies_dropped": st.replies_dropped,
-            "refused_connections": self.bus.stats()["refused_connections"] if self.bus is not None else 0,
-        }
-
-    def _skipped_frames(self) -> int:
-        return self._processor.skipped if self._processor is not None else 0
-
-    async def _publish_health(self) -> None:
-        if self.bus is None:
-            return
-        try:
-            self.bus.publish(protocol.encode(self.health_message()))
-        except asyncio.CancelledError:
-            raise
-        except Exception:
-            log.exception("publishing health failed")
-
 
 
 class HealthLoop(TaskPart):

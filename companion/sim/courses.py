@@ -89,7 +89,7 @@ class Course:
 
     @property
     def name(self) -> str:
-        """``kind-seed``, e.g. ``doorway-3``."""
+        """``{kind}-{seed}``: the course kind and its seed."""
         return f"{self.kind}-{self.seed}"
 
     @property
@@ -340,8 +340,7 @@ def office_course(seed: int) -> Course:
     ]
     # The far wall with its door (1.1 to 1.4 m wide, 2.1 m high, on the line as in doorway) and the
     # door leaf open beyond it. On the line: the controller is reactive and flies back to the line
-    # after a detour, so a door well off it is a dead end whatever the stereo sees (the first office,
-    # doors up to 1.3 m off the line, held at the far wall in 7 of 9 flights).
+    # after a detour, so a door well off it is a dead end whatever the stereo sees.
     door_w = float(rng.uniform(1.1, 1.4))
     door_e = float(rng.uniform(-0.25, 0.25))
     door_h = 2.1

@@ -31,6 +31,7 @@ from pydantic.fields import FieldInfo
 from companion.config import CompanionConfig, as_written, parse_config
 from companion.config.edit import toml_value
 from companion.config.envelope import envelope_violations
+from companion.core.rig_check import check_rig_config
 from companion.errors import InputError
 from companion.sim.scoring import Outcome
 
@@ -321,7 +322,9 @@ def with_settings(base: CompanionConfig, values: Mapping[str, float]) -> Compani
         for k in keys[:-1]:
             node = node[k]
         node[keys[-1]] = value
-    return parse_config(data, source="candidate")
+    candidate = parse_config(data, source="candidate")
+    check_rig_config(candidate, "candidate")  # as the service checks a reload
+    return candidate
 
 
 def best_patch(base: CompanionConfig, values: Mapping[str, float]) -> dict[str, Any]:

@@ -268,8 +268,8 @@ def placement_patch(cfg: CompanionConfig, placement: CoursePlacement) -> dict[st
     The course's ground lies ``placement.origin_ned_m[2]`` metres below the autopilot's local origin
     (:func:`placement_at`: wherever the hover put it, 0.17–0.19 m *above* PX4's take-off ground in
     one flight), and the rendered floor and the judge's are the course's. Left at the take-off point,
-    a 0.5 m floor stood ~0.32 m over that ground, ~0.07 m over the collision sphere: PX4's lag carried
-    an office flight that far below it (PX4 SITL, 2026-11-25). 0 (off) stays off.
+    a 0.5 m floor stood ~0.32 m over that ground, within the autopilot's lag of the collision sphere.
+    0 (off) stays off.
     """
     floor = cfg.command.min_altitude_m
     if floor > 0.0:
