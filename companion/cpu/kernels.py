@@ -236,6 +236,7 @@ def _walk(half, left_image, right_image, cost, sums, p1, p2, paths, u, lr_max_di
     mode = 0 if phase == 0 else 1
     left = census[half, 0]
     right = census[half, 1]
+    right_rev = census[half, 2]
     for g0 in range(i0, i1, ROW_GROUP):
         g1 = min(g0 + ROW_GROUP, i1)
         y0 = g0 if half == 0 else h - 1 - g0
@@ -247,11 +248,16 @@ def _walk(half, left_image, right_image, cost, sums, p1, p2, paths, u, lr_max_di
                 crow = cost[y]
                 _census_row(left_image, y, left, planes[half])
                 _census_row(right_image, y, right, planes[half])
+                # the right censuses in reverse, so that a column's costs read them forwards (the
+                # compiler then vectorises without reversing each vector)
+                for k in range(w):
+                    right_rev[k] = right[w - 1 - k]
                 for x in range(w):
                     a = left[x]
                     cx = crow[x]
+                    r = right_rev[w - 1 - x :]  # r[d] is the right census at x - d
                     for d in range(min(x, D - 1) + 1):
-                        cx[d] = _popcount(a ^ right[np.uint64(x) - np.uint64(d)])
+                        cx[d] = _popcount(a ^ r[d])
         # horizontal, from the left (half 0) or from the right (half 1), four rows side by side
         if g1 - g0 == ROW_GROUP:
             if mode == 0:
@@ -307,7 +313,8 @@ def match(left_image, right_image, cost, sums, p1, p2, paths, u, lr_max_diff, ou
             undefined; overwritten by the selection).
         p1, p2: the penalties; paths: 4 or 8; u, lr_max_diff: rules 6 and 9.
         out: int16 ``(H, W)`` disparity × 16, -1 invalid (written in phase 1).
-        census, planes: per half: uint64 ``(2, 2, W)`` a row's left and right censuses and uint8
+        census, planes: per half: uint64 ``(2, 3, W)`` a row's left and right censuses (and the
+            right ones reversed) and uint8
             ``(2, 8, W)`` their byte planes (:func:`_census_row`).
         scratch_*: per half: int16 ``(2, ROW_GROUP, 2, D + 2)`` and ``(2, ROW_GROUP)`` the
             horizontal path's costs at the pixel before and this one in each row of a group, and

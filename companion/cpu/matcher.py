@@ -72,7 +72,7 @@ class CpuSgmMatcher:
         h, w = self.shape
         # Chunks of rows for the median's parallel loop: a few per thread, so that a slow one is caught up.
         chunks = max(1, min(h, 4 * self.threads))
-        self._census = np.empty((2, 2, w), np.uint64)
+        self._census = np.empty((2, 3, w), np.uint64)
         self._planes = np.empty((2, 8, w), np.uint8)
         self._sums = np.empty((h, w + 1, D), np.uint16)
         self._cost = np.empty((h, w + 1, D), np.uint8)
