@@ -21,6 +21,9 @@ import numpy as np
 #: "Absent": larger than any path cost + P1 + P2 (as the reference's), small enough for int16 sums.
 INF = 1 << 12
 
+#: Rows whose horizontal paths one thread walks side by side (:func:`_horizontal4`).
+ROW_GROUP = 4
+
 _JIT = dict(cache=True, nogil=True, error_model="numpy", boundscheck=False)
 
 
@@ -70,13 +73,13 @@ def _popcount(v):  # pragma: no cover - compiled
 
 
 @nb.njit(**_JIT, inline="always")
-def _path(p, c, cx, out, base, mode, m, nc, first, p1, p2):  # pragma: no cover - compiled
+def _path(p, c, cx, out, mode, m, nc, first, p1, p2):  # pragma: no cover - compiled
     """One pixel of a path (rule 3) and its share of the sums; returns the new path costs' minimum.
 
     ``p``: the path costs of the pixel before (int16 ``(D + 2,)``, padded), whose minimum is ``m``
     (unused when ``first``: the path starts here, ``Lr = C``); ``c`` receives this pixel's; ``cx``:
-    its uint8 costs; ``nc``: its included disparities. ``mode`` 0: ``out = Lr``; 1: ``out += Lr``;
-    2: ``out = base + Lr`` (uint16 ``(D,)``). One loop with the minimum kept as it goes, inlined:
+    its uint8 costs; ``nc``: its included disparities. ``mode`` 0: ``out = Lr``; 1: ``out += Lr``
+    (uint16 ``(D,)``). One loop with the minimum kept as it goes, inlined:
     the form the compiler vectorises best.
     """
     D = cx.shape[0]
@@ -88,10 +91,8 @@ def _path(p, c, cx, out, base, mode, m, nc, first, p1, p2):  # pragma: no cover 
             mn = min(mn, v)
             if mode == 0:
                 out[d] = np.uint16(v)
-            elif mode == 1:
-                out[d] += np.uint16(v)
             else:
-                out[d] = base[d] + np.uint16(v)
+                out[d] += np.uint16(v)
     else:
         mp2 = np.int16(m + p2)
         if mode == 0:
@@ -101,69 +102,89 @@ def _path(p, c, cx, out, base, mode, m, nc, first, p1, p2):  # pragma: no cover 
                 c[d + 1] = v
                 mn = min(mn, v)
                 out[d] = np.uint16(v)
-        elif mode == 1:
-            for d in range(nc):
-                v = min(min(p[d + 1], mp2), min(np.int16(p[d] + p1), np.int16(p[d + 2] + p1)))
-                v = np.int16(np.int16(cx[d]) + v - m)
-                c[d + 1] = v
-                mn = min(mn, v)
-                out[d] += np.uint16(v)
         else:
             for d in range(nc):
                 v = min(min(p[d + 1], mp2), min(np.int16(p[d] + p1), np.int16(p[d + 2] + p1)))
                 v = np.int16(np.int16(cx[d]) + v - m)
                 c[d + 1] = v
                 mn = min(mn, v)
-                out[d] = base[d] + np.uint16(v)
+                out[d] += np.uint16(v)
     for d in range(nc, D):
         c[d + 1] = INF
     return mn
 
 
+@nb.njit(**_JIT, inline="always")
+def _horizontal4(cost, sums, w, hbufs, hmins, y0, dy, forward, mode, p1, p2):  # pragma: no cover - compiled
+    """The horizontal path of four rows ``y0 + g·dy`` side by side, from the left (``forward``) or the
+    right, into their sums (``mode`` as :func:`_path`'s): the rows' steps are independent, so each
+    overlaps the others' latency (one row's step waits on its previous pixel's). ``hbufs``: int16
+    ``(4, 2, D + 2)``; ``hmins``: int16 ``(4,)`` scratch."""
+    D = sums.shape[2]
+    for j in range(w):
+        x = j if forward else w - 1 - j
+        nc = min(x, D - 1) + 1
+        for g in range(4):
+            y = y0 + g * dy
+            hb = hbufs[g]
+            hmins[g] = _path(hb[(j + 1) & 1], hb[j & 1], cost[y, x], sums[y, x], mode, hmins[g], nc, j == 0, p1, p2)
+
+
 @nb.njit(**_JIT)
-def _select_row(srow, keys, best, d_bits, u, lr_max_diff, out):  # pragma: no cover - compiled
+def _horizontal1(cost, sums, w, hb, y, forward, mode, p1, p2):  # pragma: no cover - compiled
+    """:func:`_horizontal4` for one row ``y``; ``hb``: int16 ``(2, D + 2)`` scratch."""
+    D = sums.shape[2]
+    m = np.int16(0)
+    for j in range(w):
+        x = j if forward else w - 1 - j
+        m = _path(hb[(j + 1) & 1], hb[j & 1], cost[y, x], sums[y, x], mode, m, min(x, D - 1) + 1, j == 0, p1, p2)
+
+
+@nb.njit(**_JIT)
+def _select_row(srow, best, d_bits, u, lr_max_diff, out):  # pragma: no cover - compiled
     """Rules 5-9 for one row: ``srow`` uint16 ``(W, D)`` the sums ``S``, into int16 ``out`` ``(W,)``.
 
     Each argmin with ties to the largest ``d`` is a plain minimum of the key ``256·S + 255 - d``
-    (``S`` < 2^16, ``d`` < 256), which the compiler vectorises; ``key >> 8`` is ``S``; an excluded
-    disparity's key is the largest value. ``keys``: uint32 ``(W, D)`` and ``best`` uint32 ``(2, W)``
-    scratch (each column's left and right winner); ``d_bits``: uint32 ``255 - d``.
+    (``S`` < 2^16, ``d`` < 256), which the compiler vectorises; ``key >> 8`` is ``S``. One pass over
+    the sums makes every column's left winner and offers each key to its right-image column (rule
+    8); a second reads the sub-pixel neighbours and the uniqueness minimum from the sums themselves.
+    ``best``: uint32 ``(2, W)`` scratch (each column's left and right winner); ``d_bits``: uint32
+    ``255 - d``.
     """
-    w, D = srow.shape
+    w = out.shape[0]
+    D = srow.shape[1]
     none = np.uint32(0xFFFFFFFF)
     best_left = best[0]
     best_right = best[1]
+    check = lr_max_diff >= 0
+    if check:
+        best_right[:] = none
     for x in range(w):
         sx = srow[x]
-        kx = keys[x]
         nc = min(x, D - 1) + 1
         b = none
-        for d in range(nc):
-            key = (np.uint32(sx[d]) << np.uint32(8)) | d_bits[d]
-            kx[d] = key
-            b = min(b, key)
-        for d in range(nc, D):
-            kx[d] = none
-        best_left[x] = b
-    if lr_max_diff >= 0:
-        # dR(xr) = argmin_d S(y, xr + d, d): every included (x, d) offers itself to xr = x - d
-        best_right[:] = none
-        for x in range(w):
-            kx = keys[x]
-            nc = min(x, D - 1) + 1
+        if check:
+            # dR(xr) = argmin_d S(y, xr + d, d): every included (x, d) offers itself to xr = x - d
             br = best_right[x + 1 - nc : x + 1]
-            for j in range(nc):
+            for d in range(nc):
+                key = (np.uint32(sx[d]) << np.uint32(8)) | d_bits[d]
+                b = min(b, key)
                 # an unsigned index: no negative-index check, so the loop vectorises
-                br[j] = min(br[j], kx[np.uint64(nc - 1) - np.uint64(j)])
+                j = np.uint64(nc - 1) - np.uint64(d)
+                br[j] = min(br[j], key)
+        else:
+            for d in range(nc):
+                b = min(b, (np.uint32(sx[d]) << np.uint32(8)) | d_bits[d])
+        best_left[x] = b
     for x in range(w):
-        kx = keys[x]
+        sx = srow[x]
         nc = min(x, D - 1) + 1
         b = best_left[x]
         ds = 255 - np.int64(b & np.uint32(255))
         c1 = np.int64(b >> np.uint32(8))
         if ds >= 1 and ds + 1 < nc:
-            c0 = np.int64(kx[ds - 1] >> np.uint32(8))
-            c2 = np.int64(kx[ds + 1] >> np.uint32(8))
+            c0 = np.int64(sx[ds - 1])
+            c2 = np.int64(sx[ds + 1])
             den = c0 + c2 - 2 * c1
             # floor division in float64: exact here (|numerator|, |denominator| < 2^20, so a
             # quotient that is not an integer lies at least 2^-20 from one), and cheaper than idiv
@@ -171,92 +192,85 @@ def _select_row(srow, keys, best, d_bits, u, lr_max_diff, out):  # pragma: no co
         else:
             off = 0
         v = 16 * ds + off
-        # uniqueness: the smallest sum 2 or more away (the winner and its neighbours taken out)
-        for d in range(max(ds - 1, 0), min(ds + 2, D)):
-            kx[d] = none
-        m2 = none
-        for d in range(D):
-            m2 = min(m2, kx[d])
-        reject = m2 != none and 100 * np.int64(m2 >> np.uint32(8)) <= (100 + u) * c1
-        if lr_max_diff >= 0:
+        # uniqueness: the smallest sum 2 or more away. The winner and its neighbours are taken out
+        # by overwriting them (the row's sums are not read again) with 65535, above every sum
+        # (at most 8 · 255), which also means "none": one loop over every included disparity
+        for d in range(max(ds - 1, 0), min(ds + 2, nc)):
+            sx[d] = 65535
+        m2 = np.uint16(65535)
+        for d in range(nc):
+            m2 = min(m2, sx[d])
+        reject = m2 != 65535 and 100 * np.int64(m2) <= (100 + u) * c1
+        if check:
             d_back = 255 - np.int64(best_right[x - ds] & np.uint32(255))
             if abs(ds - d_back) > lr_max_diff:
                 reject = True
         out[x] = -1 if reject else v
 
 
-@nb.njit(**_JIT, parallel=True)
-def match(left_image, right_image, cost, sums, p1, p2, paths, u, lr_max_diff, out, phase, census, planes,
-          scratch_rows, scratch_cols, scratch_mins, scratch_sums, scratch_keys, scratch_right,
+@nb.njit(**_JIT)
+def _walk(half, left_image, right_image, cost, sums, p1, p2, paths, u, lr_max_diff, out, phase, census, planes,
+          scratch_rows, scratch_hmins, scratch_cols, scratch_mins, scratch_right,
           d_bits):  # pragma: no cover - compiled
-    """Rules 1-9 in two halves that run side by side, in two phases (two calls, ``phase`` 0 then 1).
-
-    Half 0 walks the rows downwards with the paths that come from the left and from above
-    (``(1, 0)``, ``(0, 1)``, and with 8 paths ``(1, 1)``, ``(-1, 1)``), half 1 upwards with the
-    others. In phase 0 half 0 covers the upper rows ``[0, H // 2)`` and half 1 the lower ``[H // 2, H)``, each
-    computing its rows' censuses and costs into ``cost`` and writing its partial sums into ``sums``. In phase 1 each continues into the other's rows, adds
-    its partial sums to the other's and, the row's ``S`` now complete, selects its disparities
-    into ``out`` at once: every sum is written once and read once, and no half waits for the other
-    within a phase.
-
-    Args:
-        left_image, right_image: uint8 ``(H, W)`` rectified grey images.
-        cost: uint8 ``(H, W, D)``: rule 2's costs (phase 0 writes them, phase 1 reads them;
-            excluded disparities: undefined).
-        sums: uint16 ``(H, W, D)``: phase 0's partial sums (excluded disparities: undefined).
-        p1, p2: the penalties; paths: 4 or 8; u, lr_max_diff: rules 6 and 9.
-        out: int16 ``(H, W)`` disparity × 16, -1 invalid (written in phase 1).
-        census, planes: per half: uint64 ``(2, 2, W)`` a row's left and right censuses and uint8
-            ``(2, 8, W)`` their byte planes (:func:`_census_row`).
-        scratch_*: per half: int16 ``(2, 2, D + 2)`` the horizontal
-            path's costs at the pixel before and this one; int16 ``(2, P, 2, W, D + 2)`` and
-            ``(2, P, 2, W)`` the previous and current row of the vertical (and, P = 3, the two
-            diagonal) paths and their minima (kept from phase 0 to phase 1); uint16
-            ``(2, W, D)`` a row of complete sums; uint32 ``(2, W, D)`` and ``(2, 2, W)`` the
-            selection's keys and winners. d_bits: uint32 ``(D,)``, ``255 - d``.
-    """
-    h, w, D = sums.shape
+    """One half of :func:`match` (the same arguments), a plain function that the parallel loop calls."""
+    h, w = left_image.shape
+    D = sums.shape[2]
     mid = h // 2
     n_col = 1 if paths == 4 else 3
-    for half in nb.prange(2):
-        hbuf = scratch_rows[half]
-        vbufs = scratch_cols[half]
-        vmins = scratch_mins[half]
-        full = scratch_sums[half]
+    hbufs = scratch_rows[half]
+    hmins = scratch_hmins[half]
+    vbufs = scratch_cols[half]
+    vmins = scratch_mins[half]
+    if phase == 0:
+        hbufs[:, :, 0] = INF
+        hbufs[:, :, D + 1] = INF
+        vbufs[:, :, :, 0] = INF
+        vbufs[:, :, :, D + 1] = INF
+    # step i of this half's walk: half 0 at row i, half 1 at row h - 1 - i
+    if half == 0:
+        i0, i1 = (0, mid) if phase == 0 else (mid, h)
+    else:
+        i0, i1 = (0, h - mid) if phase == 0 else (h - mid, h)
+    dy = 1 if half == 0 else -1
+    # phase 0 writes the sums of its rows, phase 1 adds the other half's paths to them
+    mode = 0 if phase == 0 else 1
+    left = census[half, 0]
+    right = census[half, 1]
+    right_rev = census[half, 2]
+    for g0 in range(i0, i1, ROW_GROUP):
+        g1 = min(g0 + ROW_GROUP, i1)
+        y0 = g0 if half == 0 else h - 1 - g0
+        # the rows' costs: computed in phase 0 by the half that reaches the row first, kept for
+        # the other half in phase 1
         if phase == 0:
-            hbuf[:, 0] = INF
-            hbuf[:, D + 1] = INF
-            vbufs[:, :, :, 0] = INF
-            vbufs[:, :, :, D + 1] = INF
-        # step i of this half's walk: half 0 at row i, half 1 at row h - 1 - i
-        if half == 0:
-            i0, i1 = (0, mid) if phase == 0 else (mid, h)
-        else:
-            i0, i1 = (0, h - mid) if phase == 0 else (h - mid, h)
-        mode = 0 if phase == 0 else 2
-        for i in range(i0, i1):
-            y = i if half == 0 else h - 1 - i
-            srow = sums[y]
-            dst = srow if phase == 0 else full
-            # the row's costs: computed in phase 0 by the half that reaches the row first, kept for
-            # the other half in phase 1
-            crow = cost[y]
-            if phase == 0:
-                left = census[half, 0]
-                right = census[half, 1]
+            for i in range(g0, g1):
+                y = y0 + dy * (i - g0)
+                crow = cost[y]
                 _census_row(left_image, y, left, planes[half])
                 _census_row(right_image, y, right, planes[half])
+                # the right censuses in reverse, so that a column's costs read them forwards (the
+                # compiler then vectorises without reversing each vector)
+                for k in range(w):
+                    right_rev[k] = right[w - 1 - k]
                 for x in range(w):
                     a = left[x]
                     cx = crow[x]
+                    r = right_rev[w - 1 - x :]  # r[d] is the right census at x - d
                     for d in range(min(x, D - 1) + 1):
-                        cx[d] = _popcount(a ^ right[np.uint64(x) - np.uint64(d)])
-            # horizontal: from the left (half 0) or from the right (half 1)
-            m = np.int16(0)
-            for j in range(w):
-                x = j if half == 0 else w - 1 - j
-                m = _path(hbuf[(j + 1) & 1], hbuf[j & 1], crow[x], dst[x], srow[x], mode, m,
-                          min(x, D - 1) + 1, j == 0, p1, p2)
+                        cx[d] = _popcount(a ^ r[d])
+        # horizontal, from the left (half 0) or from the right (half 1), four rows side by side
+        if g1 - g0 == ROW_GROUP:
+            if mode == 0:
+                _horizontal4(cost, sums, w, hbufs, hmins, y0, dy, half == 0, 0, p1, p2)
+            else:
+                _horizontal4(cost, sums, w, hbufs, hmins, y0, dy, half == 0, 1, p1, p2)
+        else:
+            for i in range(g0, g1):
+                _horizontal1(cost, sums, w, hbufs[0], y0 + dy * (i - g0), half == 0, mode, p1, p2)
+        for i in range(g0, g1):
+            y = y0 + dy * (i - g0)
+            crow = cost[y]
+            srow = sums[y]
             # vertical (and diagonal): continue the path of the row before, in walking order
             for k in range(n_col):
                 prev = vbufs[k, (i + 1) & 1]
@@ -268,10 +282,49 @@ def match(left_image, right_image, cost, sums, p1, p2, paths, u, lr_max_diff, ou
                     xp = x - dx
                     first = i == 0 or xp < 0 or xp >= w
                     xq = x if first else xp
-                    cur_min[x] = _path(prev[xq], cur[x], crow[x], dst[x], srow[x], 1, prev_min[xq],
+                    cur_min[x] = _path(prev[xq], cur[x], crow[x], srow[x], 1, prev_min[xq],
                                        min(x, D - 1) + 1, first, p1, p2)
             if phase == 1:
-                _select_row(full, scratch_keys[half], scratch_right[half], d_bits, u, lr_max_diff, out[y])
+                _select_row(srow, scratch_right[half], d_bits, u, lr_max_diff, out[y])
+
+
+@nb.njit(**_JIT, parallel=True)
+def match(left_image, right_image, cost, sums, p1, p2, paths, u, lr_max_diff, out, phase, census, planes,
+          scratch_rows, scratch_hmins, scratch_cols, scratch_mins, scratch_right,
+          d_bits):  # pragma: no cover - compiled
+    """Rules 1-9 in two halves that run side by side, in two phases (two calls, ``phase`` 0 then 1).
+
+    Half 0 walks the rows downwards with the paths that come from the left and from above
+    (``(1, 0)``, ``(0, 1)``, and with 8 paths ``(1, 1)``, ``(-1, 1)``), half 1 upwards with the
+    others. In phase 0 half 0 covers the upper rows ``[0, H // 2)`` and half 1 the lower ``[H // 2, H)``, each
+    computing its rows' censuses and costs into ``cost`` and writing its partial sums into ``sums``.
+    In phase 1 each continues into the other's rows, adds its paths to the other's partial sums in
+    place and, the row's ``S`` now complete, selects its disparities into ``out`` at once; no half
+    waits for the other within a phase. Each half walks its horizontal path four rows at a time
+    (:func:`_horizontal4`).
+
+    Args:
+        left_image, right_image: uint8 ``(H, W)`` rectified grey images.
+        cost: uint8 ``(H, W + 1, D)``: rule 2's costs (phase 0 writes them, phase 1 reads them;
+            excluded disparities and the last column: undefined; the spare column keeps rows
+            from lying a multiple of 4 KiB apart, where the four rows walked side by side would
+            share cache sets).
+        sums: uint16 ``(H, W + 1, D)``: the sums (excluded disparities and the last column:
+            undefined; overwritten by the selection).
+        p1, p2: the penalties; paths: 4 or 8; u, lr_max_diff: rules 6 and 9.
+        out: int16 ``(H, W)`` disparity × 16, -1 invalid (written in phase 1).
+        census, planes: per half: uint64 ``(2, 3, W)`` a row's left and right censuses (and the
+            right ones reversed) and uint8
+            ``(2, 8, W)`` their byte planes (:func:`_census_row`).
+        scratch_*: per half: int16 ``(2, ROW_GROUP, 2, D + 2)`` and ``(2, ROW_GROUP)`` the
+            horizontal path's costs at the pixel before and this one in each row of a group, and
+            their minima; int16 ``(2, P, 2, W, D + 2)`` and ``(2, P, 2, W)`` the previous and
+            current row of the vertical (and, P = 3, the two diagonal) paths and their minima
+            (kept from phase 0 to phase 1); uint32 ``(2, 2, W)`` the selection's winners.
+            d_bits: uint32 ``(D,)``, ``255 - d``.
+    """
+    for half in nb.prange(2):
+        _walk(half, left_image, right_image, cost, sums, p1, p2, paths, u, lr_max_diff, out, phase, census, planes, scratch_rows, scratch_hmins, scratch_cols, scratch_mins, scratch_right, d_bits)
 
 
 @nb.njit(**_JIT, parallel=True)

@@ -72,16 +72,15 @@ class CpuSgmMatcher:
         h, w = self.shape
         # Chunks of rows for the median's parallel loop: a few per thread, so that a slow one is caught up.
         chunks = max(1, min(h, 4 * self.threads))
-        self._census = np.empty((2, 2, w), np.uint64)
+        self._census = np.empty((2, 3, w), np.uint64)
         self._planes = np.empty((2, 8, w), np.uint8)
-        self._sums = np.empty((h, w, D), np.uint16)
-        self._cost = np.empty((h, w, D), np.uint8)
+        self._sums = np.empty((h, w + 1, D), np.uint16)
+        self._cost = np.empty((h, w + 1, D), np.uint8)
         self._scratch = (
-            np.empty((2, 2, D + 2), np.int16),
+            np.empty((2, self._k.ROW_GROUP, 2, D + 2), np.int16),
+            np.empty((2, self._k.ROW_GROUP), np.int16),
             np.empty((2, 3 if self.paths == 8 else 1, 2, w, D + 2), np.int16),
             np.empty((2, 3 if self.paths == 8 else 1, 2, w), np.int16),
-            np.empty((2, w, D), np.uint16),
-            np.empty((2, w, D), np.uint32),
             np.empty((2, 2, w), np.uint32),
             (255 - np.arange(D)).astype(np.uint32),
         )
