@@ -351,29 +351,33 @@ def test_malformed_messages_get_error_replies_and_the_setpoint_stream_never_paus
     assert "\n" not in reply["error"]["message"]
 
 
-@pytest.mark.xfail(
-    reason=(
-        "known defect: the control relay parses each frame header in Python in the service's process, and "
-        "during a fuzz on 2 cores that work can leave the camera/pipeline thread without a frame for 0.5 s "
-        "(the service then degrades to zero velocity, as it must); the relay's parsing must move off the "
-        "interpreter lock"
-    ),
-    strict=False,
-)
+#: PX4's offboard-loss timeout (COM_OF_LOSS_T, 1 s by default): a setpoint stream that pauses this long
+#: loses offboard control; the nominal period is 50 ms.
+OFFBOARD_LOSS_S = 1.0
+
+
 def test_setpoint_stream_did_not_pause_during_the_fuzz(engaged) -> None:
-    # Runs after the fuzz (file order): the whole time the stream kept its rate and the state held.
+    """Runs after the fuzz (file order): the whole time engaged, through the fuzz, the setpoint stream
+    never paused as long as PX4's offboard-loss timeout, and the service is (back) engaged.
+
+    In the full suite on a loaded 2-core machine this once failed: the service was degraded after the
+    fuzz. The cause was this process, not the control plane: the suite's per-test check for open ZeroMQ
+    contexts ran a full garbage collection of the session's heap after every test, which held the
+    interpreter lock 0.5-0.9 s there, every thread of the in-process service waiting, longer than the
+    0.5 s stale-frame timeout (the service degraded to zero velocity, as it must). The suite now freezes
+    its start-up heap out of the collector, and so does the service after its own start-up.
+    """
     service, link, client = engaged
-    health = client.call("status")["result"]
-    assert health["state"] == "engaged", health["reason"]
-    times = np.array([s.t_s for s in link.sent])
-    times = times[times >= times[-1] - 60.0]
+    t_start = next(t for t, c in link.calls if c == "start_offboard")
+    times = np.array([s.t_s for s in link.sent if s.t_s >= t_start])
     gaps = np.diff(times)
-    rate = len(times) / (times[-1] - times[0])
-    # The stream went on through the fuzz: never a gap as long as PX4's offboard-loss timeout
-    # (COM_OF_LOSS_T, 1 s by default; the nominal period is 50 ms). Its regularity is a figure of
-    # `companion bench --soak`, not this test's: on a loaded machine the scheduler sets it.
-    print(f"setpoints during the fuzz: {rate:.1f} per second, largest gap {gaps.max():.3f} s")
-    assert rate > 0.0 and health["setpoints_sent"] >= len(times), f"{rate:.1f} setpoints per second"
+    # Its regularity is a figure of `companion bench --soak`, not this test's: on a loaded machine the
+    # scheduler sets it. A pause of PX4's offboard-loss timeout is what the vehicle would act on.
+    print(f"setpoints while engaged: {len(times) / (times[-1] - times[0]):.1f} per second, largest gap {gaps.max():.3f} s")
+    assert len(times) > 2 and gaps.max() < OFFBOARD_LOSS_S, f"the setpoint stream paused {gaps.max():.3f} s"
+    # Stale frames (0.5 s) would have degraded it, as they must; with fresh frames it is engaged again.
+    assert wait_until(lambda: client.call("status")["result"]["state"] == "engaged", 5.0), client.call("status")["result"]
+    assert link.state().in_offboard and service.supervisor.engaged
 
 
 def test_control_rate_is_fixed_whatever_the_vision_rate(tmp_path: Path) -> None:
