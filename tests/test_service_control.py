@@ -34,7 +34,7 @@ HEALTH_FIELDS = {
     "type", "seq", "time_s", "unix_time_s", "state", "reason", "engaged", "config_version", "fps",
     "frame_age_ms", "stages_ms", "frame_to_setpoint_ms", "regions_m", "yaw", "pitch", "decision",
     "setpoint", "setpoint_age_ms", "setpoints_sent", "override", "camera", "vehicle", "processed_frames",
-    "dropped_frames", "processed_twice", "frame_errors", "last_error", "memory",
+    "dropped_frames", "processed_twice", "frame_errors", "last_error", "memory", "rig",
 }
 
 

@@ -444,3 +444,45 @@ def test_sim_course_with_the_view(tmp_path: Path) -> None:
     assert proc.returncode in (0, 130), "".join(lines) + rest  # 130: the Ctrl-C above, mid-flight
     with pytest.raises(urllib.error.URLError):  # the view went with it
         urllib.request.urlopen(url, timeout=2)
+
+
+def test_the_page_and_the_terminal_give_the_rig_check_when_near_cannot_be_measured(tmp_path: Path) -> None:
+    """``process``, ``eval`` and ``run`` say when the rig cannot measure down to where the controller's
+    near is full; the view said nothing, and its bars showed such a rig's regions as far. The service's
+    health carries the rig check (``rig``), the page data has its lines, and the view prints them in its
+    terminal, in the same words as the other tools."""
+    from companion.core.calibration import make_rectifier
+    from companion.core.rig_check import check_rig, rig_check_lines
+
+    # The ideal rig (f 336 px, B 0.12 m) with 32 disparities measures nothing nearer than 1.30 m: the
+    # controller's near is full from 0.75 m.
+    cfg = service_config(tmp_path, stereo={"num_disparities": 32})
+    geometry = make_rectifier(cfg.calibration, cfg.camera.width_px, cfg.camera.height_px).geometry
+    expected = rig_check_lines(check_rig(geometry, cfg.stereo, cfg.regions, cfg.controller))
+    assert any("cannot be measured" in line for line in expected), expected
+    service = Service(cfg, camera=avoid_scene_camera(15.0), link=FakeLink(), install_signals=False, environ={})
+    with ServiceRunner(service):
+        with ViewProcess("--health-endpoint", cfg.bus.health_endpoint, "--no-control") as view:
+            base = view.url.split("?", 1)[0].rstrip("/")
+
+            def page_data() -> dict:
+                status, body, _ = _get(base + "/api/health")
+                assert status == 200, body
+                return json.loads(body)
+
+            assert wait_until(lambda: (page_data()["health"] or {}).get("rig") is not None, 60.0), page_data()
+            data = page_data()
+            rig = data["health"]["rig"]
+            assert rig["lines"] == expected and rig["near_unmeasurable"] is True, rig
+            assert rig["min_measurable_depth_m"] == pytest.approx(geometry.focal_baseline_px_m / 31, abs=1e-3)
+            assert data["view"]["rig_lines"] == expected
+            # The page shows them (an element of its own, filled from each health message).
+            status, index, _ = _get(base + "/")
+            assert status == 200 and b'id="rig"' in index
+            # The terminal: the same words as `companion process` prints, once the service is heard.
+            assert wait_until(lambda: all(f"companion view: {line}" in view.lines for line in expected), 30.0), view.lines
+    # The default setting measures near enough: nothing to say.
+    from companion.service.health import rig_status
+
+    assert rig_status(service_config(tmp_path)) == {"min_measurable_depth_m": pytest.approx(40.32 / 63, abs=1e-3),
+                                                    "near_unmeasurable": False, "lines": []}

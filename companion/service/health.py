@@ -68,8 +68,45 @@ def _regions(result: Any) -> dict[str, Any]:
     }
 
 
+def rig_status(cfg: Any) -> dict[str, Any] | None:
+    """Health's ``rig``: what the stereo setting measures with the service's rig (the calibration file's
+    rectified geometry, or the ideal rig, at the camera's eye size), in the words every tool prints.
+
+    Returns:
+        ``min_measurable_depth_m`` (``f·B / (D - 1)``, metres: nothing nearer is measured),
+        ``near_unmeasurable`` (True when that is beyond where the controller's 'near' is full: a nearer
+        obstacle reads unknown or, a false match, far) and ``lines`` (the rig check's findings, one
+        line each, as :func:`~companion.core.rig_check.rig_check_lines` words them); None when the
+        calibration cannot be loaded here (the pipeline reports that itself).
+    """
+    from companion.core.calibration import make_rectifier
+    from companion.core.rig_check import check_rig, near_unmeasurable, rig_check_lines
+    from companion.errors import CompanionError
+
+    try:
+        geometry = make_rectifier(cfg.calibration, cfg.camera.width_px, cfg.camera.height_px).geometry
+    except (CompanionError, OSError, ValueError) as err:
+        log.debug("rig status: calibration not loadable here: %s", err)
+        return None
+    result = check_rig(geometry, cfg.stereo, cfg.regions, cfg.controller)
+    return {
+        "min_measurable_depth_m": round(result.nearest_depth_m, 3),
+        "near_unmeasurable": near_unmeasurable(result, cfg.controller),
+        "lines": rig_check_lines(result),
+    }
+
+
 class HealthReporter:
     """The health part of the service (mixed into :class:`~companion.service.daemon.Service`)."""
+
+    def _rig_status(self) -> dict[str, Any] | None:
+        """:func:`rig_status` of the config in force, worked out once per config (a calibration file is
+        read for it)."""
+        cached = getattr(self, "_rig_status_cache", None)
+        if cached is None or cached[0] is not self.config:
+            cached = (self.config, rig_status(self.config))
+            self._rig_status_cache = cached
+        return cached[1]
 
     def health_message(self) -> dict[str, Any]:
         """The health message (the field list: docs/service.md)."""
@@ -156,6 +193,7 @@ class HealthReporter:
             "control": self._control_status(),
             "mavlink": self.presence.status(),
             "thresholds_m": thresholds_m(self.config),
+            "rig": self._rig_status(),
             "preview": self.view.publisher.status() if self.view is not None and self.view.publisher is not None else None,
         }
 
