@@ -289,14 +289,18 @@ def test_a_control_flood_cannot_stall_the_flight_path(tmp_path: Path) -> None:
     assert after["control"]["rate_limited"] > 0, after["control"]
 
 
-def test_the_soak_benchmark_runs(tmp_path: Path) -> None:
-    """``companion bench --soak`` for a few seconds: it samples and summarises (the hour is a benchmark)."""
+@pytest.mark.parametrize("flood", [False, True], ids=["quiet", "flood"])
+def test_the_soak_benchmark_runs(tmp_path: Path, flood: bool) -> None:
+    """``companion bench --soak`` for a few seconds: it samples and summarises (the hour is a benchmark);
+    with ``--flood`` another process floods the control socket meanwhile, and the longest gap between
+    two setpoints is the figure."""
     import subprocess
     import sys
 
     out = tmp_path / "soak.json"
     proc = subprocess.run(
-        [sys.executable, "-m", "companion", "bench", "--soak", "--duration-s", "3", "--sample-s", "1", "--json", str(out)],
+        [sys.executable, "-m", "companion", "bench", "--soak", "--duration-s", "3", "--sample-s", "1", "--json", str(out),
+         *(["--flood"] if flood else [])],
         capture_output=True,
         text=True,
         timeout=120,
@@ -307,4 +311,10 @@ def test_the_soak_benchmark_runs(tmp_path: Path) -> None:
     # On a loaded machine the soak may start degraded (the first frames late): it ends engaged, and its
     # rates are figures, not this test's budget.
     assert len(report["samples"]) == 3 and "engaged" in s["states"]
-    assert s["setpoints_per_s_min"] > 0 and s["processed_twice"] == 0 and not s["operator_errors"]
+    assert s["setpoints_per_s_min"] > 0 and s["processed_twice"] == 0 and s["longest_setpoint_gap_ms"] > 0
+    assert report["flood"] is flood
+    if flood:
+        # The operator's requests may meet the flood's spent budgets (RateLimited, Busy): figures too.
+        assert report["flood_sent"]["status"] > 0 and report["flood_sent"]["oversize"] >= 1, report["flood_sent"]
+    else:
+        assert not s["operator_errors"]
