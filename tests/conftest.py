@@ -11,11 +11,11 @@
   capture, pipeline, control, relay, preview and recorder threads) or any non-daemon thread still
   alive a few seconds after the test fails it, naming the threads. A service left running in this
   process would compete with every later test's service for the interpreter lock and the cores.
-* The heap the session starts with (pytest, the collected tests, every imported module) is frozen
+* The heap the test process starts with (pytest, the collected tests, every imported module) is frozen
   out of the garbage collector once collection is done (:func:`gc.freeze`), as the service freezes its
   own after start-up. A full collection holds the interpreter lock for the whole heap: in this process
   that is every thread of a service a test runs in-process, and on a loaded machine a collection of
-  the session's heap took 0.5 to 0.9 s, longer than the stale-frame timeout (the service then
+  the test process's heap took 0.5 to 0.9 s, longer than the stale-frame timeout (the service then
   degrades, as it must). The context check collects only when a context still looks open.
 """
 

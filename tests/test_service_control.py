@@ -362,7 +362,7 @@ def test_setpoint_stream_did_not_pause_during_the_fuzz(engaged) -> None:
 
     In the full suite on a loaded 2-core machine this once failed: the service was degraded after the
     fuzz. The cause was this process, not the control plane: the suite's per-test check for open ZeroMQ
-    contexts ran a full garbage collection of the session's heap after every test, which held the
+    contexts ran a full garbage collection of the test process's heap after every test, which held the
     interpreter lock 0.5-0.9 s there, every thread of the in-process service waiting, longer than the
     0.5 s stale-frame timeout (the service degraded to zero velocity, as it must). The suite now freezes
     its start-up heap out of the collector, and so does the service after its own start-up.
