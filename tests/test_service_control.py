@@ -380,6 +380,17 @@ def test_setpoint_stream_did_not_pause_during_the_fuzz(engaged) -> None:
     assert link.state().in_offboard and service.supervisor.engaged
 
 
+def test_the_service_freezes_its_start_up_heap_before_ready(tmp_path: Path) -> None:
+    """What start-up built is out of the garbage collector by READY: a later full collection, which
+    holds the interpreter lock while every thread of the flight path waits, walks only what is newer."""
+    import gc
+
+    service = Service(service_config(tmp_path), camera=avoid_scene_camera(15.0), link=FakeLink(), install_signals=False, environ={})
+    frozen = gc.get_freeze_count()
+    with ServiceRunner(service):
+        assert gc.get_freeze_count() > frozen
+
+
 def test_control_rate_is_fixed_whatever_the_vision_rate(tmp_path: Path) -> None:
     cfg = service_config(tmp_path, vehicle={"setpoint_rate_hz": 25.0}, service={"autostart": True})
     link = FakeLink()
