@@ -227,7 +227,8 @@ def test_a_control_flood_cannot_stall_the_flight_path(tmp_path: Path) -> None:
         proc = spawn(config, notify, watchdog_usec=100_000)
         try:
             assert notify.wait_for("READY=1", 30.0), "no READY=1"
-            assert peer.wait_for(lambda: peer.mode == "OFFBOARD", 15.0), peer.commands
+            # autostart: engaged once the first frames are processed (a minute at most on a loaded machine)
+            assert peer.wait_for(lambda: peer.mode == "OFFBOARD", 90.0), peer.commands
             health = Health(ctx, f"ipc://{tmp_path}/h.sock")
             time.sleep(1.0)
             rss_before = rss_bytes(proc.pid)
