@@ -7,6 +7,16 @@
 * Every ``zmq.Context`` created during a test must be closed by the end of it (a few seconds of
   grace for threads that close their own): an open one fails the test, naming it, and is destroyed
   with linger 0 so that the interpreter's exit never waits in ``zmq_ctx_term``.
+* A test must not leave a service running behind it: a thread of the service's (its event loop, the
+  capture, pipeline, control, relay, preview and recorder threads) or any non-daemon thread still
+  alive a few seconds after the test fails it, naming the threads. A service left running in this
+  process would compete with every later test's service for the interpreter lock and the cores.
+* The heap the test process starts with (pytest, the collected tests, every imported module) is frozen
+  out of the garbage collector once collection is done (:func:`gc.freeze`), as the service freezes its
+  own after start-up. A full collection holds the interpreter lock for the whole heap: in this process
+  that is every thread of a service a test runs in-process, and on a loaded machine a collection of
+  the test process's heap took 0.5 to 0.9 s, longer than the stale-frame timeout (the service then
+  degrades, as it must). The context check collects only when a context still looks open.
 """
 
 from __future__ import annotations
@@ -14,6 +24,7 @@ from __future__ import annotations
 import gc
 import shutil
 import tempfile
+import threading
 import time
 import weakref
 from collections.abc import Iterator
@@ -39,8 +50,44 @@ def pytest_configure(config: pytest.Config) -> None:
     zmq.Context.__init__ = _tracking_init  # type: ignore[method-assign]
 
 
+def pytest_collection_finish(session: pytest.Session) -> None:
+    gc.collect()
+    gc.freeze()
+
+
 def pytest_unconfigure(config: pytest.Config) -> None:
     zmq.Context.__init__ = _original_init  # type: ignore[method-assign]
+
+
+#: How long a test's threads may take to end after the test, seconds.
+THREAD_GRACE_S = 5.0
+#: The threads a service running in this process owns (their names): one left alive is a leaked service.
+SERVICE_THREADS = frozenset({"service", "capture", "pipeline", "control server", "control relay", "preview", "recorder"})
+
+
+def _leaked_threads(before: set[int]) -> list[threading.Thread]:
+    return [
+        t for t in threading.enumerate()
+        if t.ident not in before and t.is_alive() and (not t.daemon or t.name in SERVICE_THREADS)
+    ]
+
+
+@pytest.fixture(autouse=True)
+def no_threads_left(request: pytest.FixtureRequest) -> Iterator[None]:
+    """Fail the test when a thread it started (a service's, or any non-daemon one) outlives it."""
+    before = {t.ident for t in threading.enumerate()}
+    yield
+    deadline = time.monotonic() + THREAD_GRACE_S
+    left = _leaked_threads(before)
+    while left and time.monotonic() <= deadline:
+        time.sleep(0.05)
+        left = _leaked_threads(before)
+    if left:
+        pytest.fail(
+            f"{request.node.nodeid}: thread(s) left running: {', '.join(sorted(t.name for t in left))} (stop the "
+            "service and join its threads before the test ends)",
+            pytrace=False,
+        )
 
 
 def _open_contexts(besides: weakref.WeakSet[zmq.Context] | None = None) -> list[zmq.Context]:
@@ -63,12 +110,13 @@ def zmq_contexts_closed(request: pytest.FixtureRequest) -> Iterator[None]:
     before = weakref.WeakSet(_contexts)
     yield
     deadline = time.monotonic() + CONTEXT_GRACE_S
-    while True:
+    left = _open_contexts(besides=before)
+    while left and time.monotonic() <= deadline:
+        # One that is unreachable is closed by its finaliser once collected; a thread may close its own.
         gc.collect()
         left = _open_contexts(besides=before)
-        if not left or time.monotonic() > deadline:
-            break
-        time.sleep(0.05)
+        if left:
+            time.sleep(0.05)
     if left:
         for ctx in left:
             ctx.destroy(linger=0)

@@ -6,8 +6,12 @@ What is measured, on the service's own evidence:
 * the control loop: sd_notify WATCHDOG=1 comes only from it, once per step at the 20 Hz setpoint rate
   (WATCHDOG_USEC = 0.1 s makes it feed at every step), so a gap between two is a control-loop stall;
 * the setpoints it hands over: ``setpoints_sent`` in the health messages (a separate socket);
-* SIGTERM: the process exits within 1 s of it;
+* the operator, during the flood: ``disengage`` is answered and carried out (the vehicle leaves OFFBOARD);
+* SIGTERM: the process exits cleanly after it;
 * memory: the resident size after the flood, against the one before.
+
+How regular the flight path stays under a flood is a figure (``companion bench --soak --flood``), not
+these tests': on a loaded machine the scheduler, not the service, sets the gaps.
 """
 
 from __future__ import annotations
@@ -73,7 +77,7 @@ class Health:
         self.sock.setsockopt(zmq.SUBSCRIBE, b"")
         self.sock.connect(endpoint)
 
-    def latest(self, timeout_s: float = 3.0) -> dict:
+    def latest(self, timeout_s: float = 30.0) -> dict:
         deadline = time.monotonic() + timeout_s
         last = None
         while time.monotonic() < deadline:
@@ -151,16 +155,43 @@ def _flood_worker(endpoint: str, duration_s: float, niceness: int, out: Any) -> 
     out.put(_flood(endpoint, time.monotonic() + duration_s))
 
 
-def _flood_from_another_process(endpoint: str, duration_s: float) -> dict[str, int]:
+class _FloodProcess:
     """:func:`_flood` run by another process, as an attacker's would be, at :data:`FLOOD_NICENESS`."""
-    ctx = multiprocessing.get_context("spawn")
-    out = ctx.Queue()
-    proc = ctx.Process(target=_flood_worker, args=(endpoint, duration_s, FLOOD_NICENESS, out))
-    proc.start()
-    try:
-        return out.get(timeout=duration_s + 60.0)
-    finally:
-        proc.join(10.0)
+
+    def __init__(self, endpoint: str, duration_s: float) -> None:
+        ctx = multiprocessing.get_context("spawn")
+        self._duration_s = duration_s
+        self._out = ctx.Queue()
+        self._proc = ctx.Process(target=_flood_worker, args=(endpoint, duration_s, FLOOD_NICENESS, self._out))
+        self._proc.start()
+
+    def result(self) -> dict[str, int]:
+        """What it sent, once it is over."""
+        try:
+            return self._out.get(timeout=self._duration_s + 60.0)
+        finally:
+            self._proc.join(10.0)
+            if self._proc.is_alive():
+                self._proc.kill()
+                self._proc.join(10.0)
+
+
+def _disengage(ctx: zmq.Context, endpoint: str, timeout_s: float) -> dict:
+    """``disengage`` (never rate-limited: it stops the vehicle) as an operator asks it: from a new
+    connection, asked again on another every 3 s until answered (while the flood's raw connections fill
+    ``bus.max_connections`` a new connection is refused); the reply."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        client = ctx.socket(zmq.DEALER)
+        client.setsockopt(zmq.LINGER, 0)
+        client.connect(endpoint)
+        try:
+            client.send(json.dumps({"cmd": "disengage", "id": "operator"}).encode())
+            if client.poll(3000):
+                return json.loads(client.recv())
+        finally:
+            client.close(0)
+        assert time.monotonic() < deadline, f"disengage not answered within {timeout_s} s of asking during the flood"
 
 
 def _ping_until_answered(ctx: zmq.Context, endpoint: str, timeout_s: float) -> list[str]:
@@ -201,7 +232,8 @@ def test_a_control_flood_cannot_stall_the_flight_path(tmp_path: Path) -> None:
         proc = spawn(config, notify, watchdog_usec=100_000)
         try:
             assert notify.wait_for("READY=1", 30.0), "no READY=1"
-            assert peer.wait_for(lambda: peer.mode == "OFFBOARD", 15.0), peer.commands
+            # autostart: engaged once the first frames are processed (a minute at most on a loaded machine)
+            assert peer.wait_for(lambda: peer.mode == "OFFBOARD", 90.0), peer.commands
             health = Health(ctx, f"ipc://{tmp_path}/h.sock")
             time.sleep(1.0)
             rss_before = rss_bytes(proc.pid)
@@ -211,12 +243,20 @@ def test_a_control_flood_cannot_stall_the_flight_path(tmp_path: Path) -> None:
 
             at_flood = health.latest()
             t_flood = time.monotonic()
-            sent = _flood_from_another_process(endpoint, 6.0)
-            t_end = time.monotonic()
+            flood = _FloodProcess(endpoint, 10.0)
+            try:
+                time.sleep(5.0)  # well into the flood
+                during = health.latest()
+                mode_during_flood = peer.mode
+                t_disengage = time.monotonic()
+                disengaged = _disengage(ctx, endpoint, 60.0)
+                disengage_s = time.monotonic() - t_disengage
+                left_offboard = peer.wait_for(lambda: peer.mode != "OFFBOARD", 30.0)
+            finally:
+                sent = flood.result()
             after = health.latest()
-            mode_after_flood = peer.mode
-            gaps = _watchdog_gaps_s(notify, t_flood, t_end)
-            flood_hz = (after["setpoints_sent"] - at_flood["setpoints_sent"]) / (after["time_s"] - at_flood["time_s"])
+            gaps = _watchdog_gaps_s(notify, t_flood, t_disengage)
+            flood_hz = (during["setpoints_sent"] - at_flood["setpoints_sent"]) / (during["time_s"] - at_flood["time_s"])
             time.sleep(2.0)  # let ZeroMQ drop what it queued
             rss_after = rss_bytes(proc.pid)
             # The operator still gets through once the flood is over. What the flood left queued in
@@ -237,29 +277,38 @@ def test_a_control_flood_cannot_stall_the_flight_path(tmp_path: Path) -> None:
         f"flood {sent}: setpoints {baseline_hz:.1f} Hz before, {flood_hz:.1f} Hz during; longest watchdog gap "
         f"{max(gaps, default=0) * 1e3:.0f} ms ({max(baseline_gaps, default=0) * 1e3:.0f} ms before); SIGTERM exit {exit_s:.2f} s; "
         f"RSS {rss_before / 2**20:.0f} -> {rss_after / 2**20:.0f} MiB; control {after['control']}; "
-        f"ping refusals after the flood {refusals}"
+        f"ping refusals after the flood {refusals}; disengage answered {disengage_s:.2f} s after it was asked "
+        f"({t_disengage - t_flood:.1f} s into the flood)"
     )
     assert rc == exitcodes.OK, err[-3000:]  # SIGTERM after the flood: a clean exit (the Hold confirmed)
     assert sent["status"] >= 20_000 and sent["big"] == 30 and sent["raw"] == 1100, sent
     # The flight path went on through the flood: the control loop fed the watchdog (systemd did not
-    # kill the service), setpoints kept flowing, the vehicle stayed in OFFBOARD and the service engaged.
-    # How regular the loop stays under a flood is a figure (printed above, and `companion bench --soak`),
-    # not this test's: on a loaded machine the scheduler, not the service, sets the gaps.
+    # kill the service), setpoints kept flowing, the vehicle stayed in OFFBOARD and the service commanding
+    # it (engaged, or degraded for a moment of stale frames on a loaded machine: zero velocity, as it
+    # must). How regular the loop stays is a figure (printed above; `companion bench --soak --flood`).
     assert gaps and len(gaps) >= 2, gaps
-    assert after["setpoints_sent"] > at_flood["setpoints_sent"] and after["state"] == "engaged", after
-    assert mode_after_flood == "OFFBOARD", mode_after_flood
+    assert during["setpoints_sent"] > at_flood["setpoints_sent"] and during["engaged"], during
+    assert mode_during_flood == "OFFBOARD", mode_during_flood
+    # The operator still stops it during the flood: disengage is answered and carried out.
+    assert disengaged["ok"], disengaged
+    assert left_offboard, peer.mode
+    assert not after["engaged"], after
     assert rss_after <= 1.2 * rss_before, (rss_before, rss_after)
     assert after["control"]["rate_limited"] > 0, after["control"]
 
 
-def test_the_soak_benchmark_runs(tmp_path: Path) -> None:
-    """``companion bench --soak`` for a few seconds: it samples and summarises (the hour is a benchmark)."""
+@pytest.mark.parametrize("flood", [False, True], ids=["quiet", "flood"])
+def test_the_soak_benchmark_runs(tmp_path: Path, flood: bool) -> None:
+    """``companion bench --soak`` for a few seconds: it samples and summarises (the hour is a benchmark);
+    with ``--flood`` another process floods the control socket meanwhile, and the longest gap between
+    two setpoints is the figure."""
     import subprocess
     import sys
 
     out = tmp_path / "soak.json"
     proc = subprocess.run(
-        [sys.executable, "-m", "companion", "bench", "--soak", "--duration-s", "3", "--sample-s", "1", "--json", str(out)],
+        [sys.executable, "-m", "companion", "bench", "--soak", "--duration-s", "3", "--sample-s", "1", "--json", str(out),
+         *(["--flood"] if flood else [])],
         capture_output=True,
         text=True,
         timeout=120,
@@ -269,5 +318,14 @@ def test_the_soak_benchmark_runs(tmp_path: Path) -> None:
     s = report["summary"]
     # On a loaded machine the soak may start degraded (the first frames late): it ends engaged, and its
     # rates are figures, not this test's budget.
-    assert len(report["samples"]) == 3 and "engaged" in s["states"]
-    assert s["setpoints_per_s_min"] > 0 and s["processed_twice"] == 0 and not s["operator_errors"]
+    assert len(report["samples"]) == 3
+    # Under a flood on a loaded machine the frames may go stale (degraded: zero velocity, as it must);
+    # how often is the figure. Commanding throughout.
+    assert "engaged" in s["states"] if not flood else set(s["states"]) <= {"engaged", "degraded"}, s["states"]
+    assert s["setpoints_per_s_min"] > 0 and s["processed_twice"] == 0 and s["longest_setpoint_gap_ms"] > 0
+    assert report["flood"] is flood
+    if flood:
+        # The operator's requests may meet the flood's spent budgets (RateLimited, Busy): figures too.
+        assert report["flood_sent"]["status"] > 0 and report["flood_sent"]["oversize"] >= 1, report["flood_sent"]
+    else:
+        assert not s["operator_errors"]

@@ -144,3 +144,37 @@ def test_a_worker_whose_service_goes_while_it_starts_ends_without_a_traceback() 
     proc.wait(120)
     proc.stderr.close()
     assert proc.returncode == 0 and b"Traceback" not in err, err.decode()
+
+
+def test_a_running_service_s_worker_runs_at_the_worker_s_priority(tmp_path: Path) -> None:
+    """The worker inherits the niceness of the thread that starts it (Linux), and a process may lower
+    its own priority but not raise it again. The service's preview thread used to lower itself to nice
+    10 before it started the worker: the worker's imports and previews ran at nice 10, and beside two
+    busy processes the page showed its first picture after about 50 s and then fewer than one a second.
+    The worker of a running service, watched, runs at :data:`WORKER_NICE` above the service."""
+    import zmq
+    from peers.fakes import FakeLink, ServiceRunner, avoid_scene_camera, wait_until
+
+    from companion.service.daemon import Service
+    from companion.service.preview_worker import WORKER_NICE
+
+    cfg = service_config(tmp_path)
+    service = Service(cfg, camera=avoid_scene_camera(15.0), link=FakeLink(), install_signals=False, environ={})
+    ctx = zmq.Context()
+    try:
+        with ServiceRunner(service):
+            sub = ctx.socket(zmq.SUB)
+            sub.setsockopt(zmq.LINGER, 0)
+            sub.setsockopt(zmq.SUBSCRIBE, b"preview")
+            sub.connect(cfg.view.preview_endpoint)
+            assert sub.poll(120_000), "no preview"  # the worker is up and has drawn one
+            worker = service.view.publisher._worker
+            assert worker.pid is not None
+            assert os.getpriority(os.PRIO_PROCESS, worker.pid) == max(WORKER_NICE, os.nice(0))
+            # The service's own threads keep its priority (none that takes the GIL below the others').
+            preview_thread = service.view.publisher._thread
+            assert os.getpriority(os.PRIO_PROCESS, preview_thread.native_id) == os.nice(0)
+            sub.close(0)
+            assert wait_until(lambda: not service.view.publisher.subscribed, 30.0)
+    finally:
+        ctx.destroy(linger=0)

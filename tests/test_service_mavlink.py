@@ -108,9 +108,10 @@ def test_obstacle_distance_on_the_wire(flight: Flight) -> None:
     assert wait_until(lambda: len(peer.obstacle_distances) >= 20, 5.0)
     frames0 = _status(flight.client)["processed_frames"]
     t0 = time.monotonic()
-    time.sleep(2.0)
+    assert wait_until(lambda: len([m for m in peer.obstacle_distances if m.t_s >= t0]) >= 10, 30.0)
+    t1 = time.monotonic()
     frames = _status(flight.client)["processed_frames"] - frames0
-    window = [m for m in peer.obstacle_distances if t0 <= m.t_s < t0 + 2.0]
+    window = [m for m in peer.obstacle_distances if t0 <= m.t_s < t1]
     # One per processed frame (15 fps here, fewer on a loaded machine); never more.
     assert frames - 3 <= len(window) <= frames + 2, (len(window), frames)
     assert len(window) >= 10
@@ -164,10 +165,15 @@ def test_statustext_rate_limit_on_the_wire(tmp_path: Path) -> None:
             time.sleep(0.05)
             f.client.call("resume")
             time.sleep(0.05)
-        time.sleep(3.0)
-        flood = [t for t in f.peer.status_texts if t.t_s >= t1]
-        assert 1 <= len(flood) <= 3, [t.text for t in flood]
-        assert flood[-1].text == "companion: engaged"  # the last word arrives
+        t_end = time.monotonic()
+
+        def flood() -> list:
+            return [t for t in f.peer.status_texts if t.t_s >= t1]
+
+        # The last word arrives (once its token is there: up to 2 s after the flood).
+        assert wait_until(lambda: flood() and flood()[-1].text == "companion: engaged", 5.0), [t.text for t in flood()]
+        # One line per 2 s, and the burst of 1: over the flood's own length (longer on a loaded machine).
+        assert 1 <= len(flood()) <= 3 + (t_end - t1) / 2.0, [t.text for t in flood()]
         assert _status(f.client)["mavlink"]["status_texts_suppressed"] >= 10
     finally:
         f.close()
@@ -192,8 +198,9 @@ def test_engage_from_the_sticks(tmp_path: Path) -> None:
         peer.pilot_switch("POSCTL")
         t1 = time.monotonic()
         assert wait_until(lambda: _status(client)["state"] == "disengaged", 1.0)
-        time.sleep(0.5)
-        assert all(s.is_zero for s in peer.setpoints_since(t1 + 0.2))
+        t_seen = time.monotonic()
+        time.sleep(0.5)  # what comes after it, if anything
+        assert all(s.is_zero for s in peer.setpoints_since(max(t1 + 0.2, t_seen)))
         assert peer.mode_commands() == []
         # Ready again: a second switch engages again.
         assert peer.pilot_switch("OFFBOARD")
@@ -202,8 +209,8 @@ def test_engage_from_the_sticks(tmp_path: Path) -> None:
         # Not ready (the camera is gone): the stream stops, and PX4 refuses the switch.
         assert wait_until(lambda: _status(client)["state"] == "disengaged", 1.0)
         f.camera.fail()
-        time.sleep(1.5)
-        assert peer.setpoints_since(time.monotonic() - 0.5) == []
+        assert wait_until(lambda: not _status(client)["offboard_switch_ready"], 5.0)
+        assert wait_until(lambda: peer.setpoints_since(time.monotonic() - 1.0) == [], 5.0)
         assert not peer.pilot_switch("OFFBOARD")
     finally:
         f.close()

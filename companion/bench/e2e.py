@@ -46,11 +46,22 @@ class BenchVehicleLink:
     def __init__(self) -> None:
         self._state = VehicleState(connected=True, armed=True, flight_mode="POSCTL", in_offboard=False)
         self.setpoints = 0
+        self._last_setpoint_s: float | None = None
+        self._longest_gap_s = 0.0
+
+    def take_longest_gap_s(self) -> float:
+        """The longest time between two setpoints since the last call, seconds (then starts again)."""
+        gap, self._longest_gap_s = self._longest_gap_s, 0.0
+        return gap
 
     async def connect(self, timeout_s: float) -> None:
         self._state = replace(self._state, timestamp_s=time.monotonic())
 
     async def send_setpoint(self, setpoint: VelocitySetpoint) -> None:
+        now = time.monotonic()
+        if self._last_setpoint_s is not None:
+            self._longest_gap_s = max(self._longest_gap_s, now - self._last_setpoint_s)
+        self._last_setpoint_s = now
         self.setpoints += 1
 
     async def start_offboard(self) -> None:

@@ -5,7 +5,9 @@ rendered frames at the camera rate (``--sizes``' first size; 30 fps), engaged (a
 vehicle link, while an operator's client asks ``status`` every second, a subscriber reads every health
 message, and a ``set_config`` changes the cruise speed every 30 s. Every ``--sample-s`` seconds it
 records the process's resident memory, the setpoints handed over per second, the frame-to-setpoint
-latency percentiles of that window, and the frames dropped; the summary says whether memory grew.
+latency percentiles of that window, the longest gap between two setpoints handed to the vehicle, and
+the frames dropped; the summary says whether memory grew. With ``--flood`` another process floods the
+control socket the whole time (:mod:`companion.bench.flood`): what a flood costs the flight path.
 
 The service runs in this process, so the resident size includes the benchmark's own few megabytes.
 """
@@ -109,10 +111,14 @@ def run_soak(args: argparse.Namespace, sizes: list[Any]) -> dict[str, Any]:
         "backend": args.backend,
         "fps": SOAK_FPS_HZ,
         "duration_s": args.duration_s,
+        "flood": bool(getattr(args, "flood", False)),
         "samples": [],
     }
     print(f"machine: {report['machine']}")
-    print(f"soak: {size.label}, {args.backend}, {SOAK_FPS_HZ:g} fps replay, {args.duration_s:g} s, a row every {args.sample_s:g} s")
+    print(
+        f"soak: {size.label}, {args.backend}, {SOAK_FPS_HZ:g} fps replay, {args.duration_s:g} s, a row every "
+        f"{args.sample_s:g} s{', the control socket flooded by another process' if report['flood'] else ''}"
+    )
     with tempfile.TemporaryDirectory(prefix="companion-soak-") as tmp:
         workdir = Path(tmp)
         _, images = rendered_frames(size, n=60)
@@ -140,18 +146,26 @@ def run_soak(args: argparse.Namespace, sizes: list[Any]) -> dict[str, Any]:
             },
             source="soak",
         )
-        service = Service(cfg, link=BenchVehicleLink(), install_signals=False, notifier=None, environ={})
+        link = BenchVehicleLink()
+        service = Service(cfg, link=link, install_signals=False, notifier=None, environ={})
         service.record_latencies = True
         result: dict[str, Any] = {}
         thread = threading.Thread(target=lambda: result.update(exit=asyncio.run(service.run())), name="soak-service", daemon=True)
         thread.start()
         operator = None
+        flood = None
         try:
             if not service.ready.wait(60.0):
                 raise CompanionError(f"soak: the service did not start (exit code {result.get('exit')})")
             operator = _Operator(service.bus.control_endpoint, service.bus.health_endpoint)
             operator.start()
+            if report["flood"]:
+                from companion.bench.flood import Flood
+
+                flood = Flood(service.bus.control_endpoint)
+                flood.start()
             time.sleep(min(10.0, args.sample_s))  # warm up
+            link.take_longest_gap_s()
             rows = []
             t_start = time.monotonic()
             h_prev, t_prev, n_prev = service.health_message(), time.monotonic(), len(service.latencies_s)
@@ -168,6 +182,7 @@ def run_soak(args: argparse.Namespace, sizes: list[Any]) -> dict[str, Any]:
                     "setpoints_per_s": (h["setpoints_sent"] - h_prev["setpoints_sent"]) / (t - t_prev),
                     "processed_fps": (h["processed_frames"] - h_prev["processed_frames"]) / (t - t_prev),
                     "dropped": h["dropped_frames"] - h_prev["dropped_frames"],
+                    "longest_setpoint_gap_ms": link.take_longest_gap_s() * 1e3,
                     "latency_ms": lat,
                     "state": h["state"],
                 }
@@ -179,6 +194,7 @@ def run_soak(args: argparse.Namespace, sizes: list[Any]) -> dict[str, Any]:
                         f"{sample['setpoints_per_s']:.1f}",
                         f"{sample['processed_fps']:.1f}",
                         str(sample["dropped"]),
+                        f"{sample['longest_setpoint_gap_ms']:.0f}",
                         f"{lat['median_ms']:.1f}",
                         f"{lat['p99_ms']:.1f}",
                         f"{lat['max_ms']:.1f}",
@@ -189,6 +205,8 @@ def run_soak(args: argparse.Namespace, sizes: list[Any]) -> dict[str, Any]:
                 h_prev, t_prev, n_prev = h, t, n
             final = service.health_message()
         finally:
+            if flood is not None:
+                report["flood_sent"] = flood.stop()
             if operator is not None:
                 operator.stop()
             service.request_shutdown_threadsafe("soak done")
@@ -204,6 +222,7 @@ def run_soak(args: argparse.Namespace, sizes: list[Any]) -> dict[str, Any]:
         "setpoints_per_s_min": min(s["setpoints_per_s"] for s in samples),
         "setpoints_per_s_mean": float(np.mean([s["setpoints_per_s"] for s in samples])),
         "latency_p99_ms_max": max(s["latency_ms"]["p99_ms"] for s in samples),
+        "longest_setpoint_gap_ms": max(s["longest_setpoint_gap_ms"] for s in samples),
         "latency_median_ms_mean": float(np.nanmean([s["latency_ms"]["median_ms"] for s in samples])),
         "dropped_frames": int(sum(s["dropped"] for s in samples)),
         "processed_frames": int(final["processed_frames"]),
@@ -214,13 +233,15 @@ def run_soak(args: argparse.Namespace, sizes: list[Any]) -> dict[str, Any]:
         "health_messages_read": operator.health_messages if operator else 0,
         "states": sorted({s["state"] for s in samples}),
     }
-    print(format_table(rows, ["t s", "RSS MiB", "setpoints/s", "proc fps", "dropped", "median ms", "p99 ms", "max ms", "state"]))
+    print(format_table(rows, ["t s", "RSS MiB", "setpoints/s", "proc fps", "dropped", "gap ms", "median ms", "p99 ms", "max ms", "state"]))
     s = report["summary"]
     print(
         f"summary: RSS {s['rss_first_mib']:.1f} -> {s['rss_last_mib']:.1f} MiB (max {s['rss_max_mib']:.1f}); setpoints "
-        f"{s['setpoints_per_s_min']:.1f}/s at least, {s['setpoints_per_s_mean']:.1f}/s mean; latency p99 at most "
+        f"{s['setpoints_per_s_min']:.1f}/s at least, {s['setpoints_per_s_mean']:.1f}/s mean, longest gap "
+        f"{s['longest_setpoint_gap_ms']:.0f} ms; latency p99 at most "
         f"{s['latency_p99_ms_max']:.1f} ms; {s['dropped_frames']} frames dropped of {s['processed_frames']} processed; "
         f"{s['processed_twice']} twice; {s['frame_errors']} frame errors; operator {s['operator_replies']} replies, "
         f"{len(s['operator_errors'])} errors; states {', '.join(s['states'])}"
+        + (f"; flood sent {report.get('flood_sent')}" if report["flood"] else "")
     )
     return report

@@ -46,6 +46,11 @@ def register(sub: argparse._SubParsersAction) -> None:
             "latency and dropped frames every --sample-s"
         ),
     )
+    p.add_argument(
+        "--flood",
+        action="store_true",
+        help="with --soak: another process floods the control socket the whole time (what a flood costs the flight path)",
+    )
     p.add_argument("--duration-s", type=float, default=3600.0, help="--soak: how long, seconds (default 3600)")
     p.add_argument("--sample-s", type=float, default=60.0, help="--soak: seconds between rows (default 60)")
     p.add_argument(
@@ -80,6 +85,8 @@ def run(args: argparse.Namespace) -> int:
         sizes = parse_sizes(args.sizes) if args.sizes else list(DEFAULT_SIZES)
     except ValueError as err:
         raise InputError(str(err)) from None
+    if args.flood and not args.soak:
+        raise InputError("--flood goes with --soak")
     if args.soak:
         if args.duration_s <= 0 or args.sample_s <= 0:
             raise InputError("--duration-s and --sample-s must be > 0")

@@ -159,6 +159,7 @@ def _view(args: argparse.Namespace) -> int:
         port=args.port,
         token=token,
         title=args.title,
+        say=lambda line: print(f"companion view: {line}", flush=True),
     )
 
     async def main() -> None:

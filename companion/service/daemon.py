@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import asyncio
 import concurrent.futures
+import gc
 import logging
 import os
 import threading
@@ -342,6 +343,12 @@ class Service:
             log.exception("startup failed")
             return await self._startup_failed(err)
         try:
+            # What start-up built (modules, config, parts) lives as long as the process: out of the
+            # garbage collector, so that a later full collection, which holds the interpreter lock
+            # (every thread of the flight path waits), walks only what is newer. Of the start-up heap
+            # it took 0.2-0.3 s on a loaded 2-core machine: half the stale-frame timeout.
+            gc.collect()
+            gc.freeze()
             self._notify("READY=1", f"STATUS={self.supervisor.state.value}: {self.supervisor.reason}")
             self.ready.set()
             log.info("ready: %s", self.supervisor.reason)

@@ -68,6 +68,34 @@ def _regions(result: Any) -> dict[str, Any]:
     }
 
 
+def rig_status(cfg: Any) -> dict[str, Any] | None:
+    """Health's ``rig``: what the stereo setting measures with the service's rig (the calibration file's
+    rectified geometry, or the ideal rig, at the camera's eye size), in the words every tool prints.
+
+    Returns:
+        ``min_measurable_depth_m`` (``f·B / (D - 1)``, metres: nothing nearer is measured),
+        ``near_unmeasurable`` (True when that is beyond where the controller's 'near' is full: a nearer
+        obstacle reads unknown or, a false match, far) and ``lines`` (the rig check's findings, one
+        line each, as :func:`~companion.core.rig_check.rig_check_lines` words them); None when the
+        calibration cannot be loaded here (the pipeline reports that itself).
+    """
+    from companion.core.calibration import make_rectifier
+    from companion.core.rig_check import check_rig, near_unmeasurable, rig_check_lines
+    from companion.errors import CompanionError
+
+    try:
+        geometry = make_rectifier(cfg.calibration, cfg.camera.width_px, cfg.camera.height_px).geometry
+    except (CompanionError, OSError, ValueError) as err:
+        log.debug("rig status: calibration not loadable here: %s", err)
+        return None
+    result = check_rig(geometry, cfg.stereo, cfg.regions, cfg.controller)
+    return {
+        "min_measurable_depth_m": round(result.nearest_depth_m, 3),
+        "near_unmeasurable": near_unmeasurable(result, cfg.controller),
+        "lines": rig_check_lines(result),
+    }
+
+
 @dataclasses.dataclass(frozen=True)
 class HealthSources:
     """Where the health message comes from: each part's own snapshot, read through these callables.
@@ -107,6 +135,13 @@ class HealthReporter:
     def __init__(self, sources: HealthSources) -> None:
         self._src = sources
         self._seq = 0
+        self._rig: tuple[Any, dict[str, Any] | None] | None = None  # (config, its rig status)
+
+    def _rig_status(self, config: Any) -> dict[str, Any] | None:
+        """:func:`rig_status` of ``config``, worked out once per config (a calibration file is read for it)."""
+        if self._rig is None or self._rig[0] is not config:
+            self._rig = (config, rig_status(config))
+        return self._rig[1]
 
     def message(self) -> dict[str, Any]:
         """The health message (the field list: docs/service.md)."""
@@ -196,6 +231,7 @@ class HealthReporter:
             "control": dataclasses.asdict(control) if control is not None else None,
             "mavlink": src.mavlink(),
             "thresholds_m": thresholds_m(config),
+            "rig": self._rig_status(config),
             "preview": src.preview(),
         }
 

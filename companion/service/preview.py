@@ -204,12 +204,12 @@ class PreviewPublisher:
                     log.info("preview: no viewer left")
 
     def _run(self) -> None:
-        # Below the pipeline and the control loop: when both cores are busy the scheduler runs them
-        # first (this thread mostly waits on the worker's pipe, without the GIL). Linux only.
-        try:
-            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 10)
-        except (AttributeError, OSError):
-            log.debug("preview: could not lower this thread's priority")
+        # This thread keeps the service's priority: it starts the worker, which inherits the starting
+        # thread's niceness (Linux) and may only lower its own, never raise it back to
+        # WORKER_NICE: from a thread at nice 10 the worker's imports and previews ran at nice 10, too
+        # low to draw beside two busy processes. Its own work is small (it mostly waits on the
+        # worker's pipe, without the GIL), and a lowered thread that holds the GIL keeps the flight
+        # loop's threads waiting while the scheduler runs others.
         if self._warm_up:
             from companion.service.preview_worker import PreviewWorkerError
 

@@ -44,6 +44,7 @@ import shutil
 import socket
 import subprocess
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -75,6 +76,8 @@ class ViewOptions:
         token: the access token, or None (only on a loopback bind, and then nothing commands).
         title: shown in the page's header.
         control_timeout_s: how long a control request waits for the service's reply, seconds.
+        say: called with each line the operator's terminal should show (the rig check's lines from
+            health's ``rig``, when they first arrive or change), or None.
     """
 
     health_endpoint: str
@@ -86,6 +89,7 @@ class ViewOptions:
     token: str | None = None
     title: str = "companion"
     control_timeout_s: float = 3.0
+    say: Callable[[str], None] | None = None
 
 
 def is_loopback_host(host: str) -> bool:
@@ -164,6 +168,7 @@ class ViewServer:
         self.previews = 0
         self._preview_times: collections.deque[float] = collections.deque(maxlen=64)
         self.thresholds: dict[str, float] | None = None
+        self.rig_lines: list[str] = []
         self._thresholds_version: Any = None
         self._clients: set[_Client] = set()
         self._mjpeg_wake: asyncio.Event | None = None
@@ -278,6 +283,7 @@ class ViewServer:
                 while self.timeline and point["t"] - self.timeline[0]["t"] > TIMELINE_S:
                     self.timeline.popleft()
             self._thresholds_from_health(h)
+            self._rig_from_health(h)
             self._broadcast_text("health", json.dumps({"type": "health", "health": h, "view": self._view_status()}))
 
     async def _follow_preview(self, sock: Any) -> None:
@@ -318,6 +324,17 @@ class ViewServer:
             if self.options.control_endpoint:
                 asyncio.create_task(self._fetch_thresholds())
 
+    def _rig_from_health(self, h: dict[str, Any]) -> None:
+        """The rig check's lines (health's ``rig``): kept for the page, and said in the terminal when
+        they first arrive or change."""
+        rig = h.get("rig") if isinstance(h.get("rig"), dict) else {}
+        lines = [str(line) for line in rig.get("lines") or [] if isinstance(line, str)]
+        if lines != self.rig_lines:
+            self.rig_lines = lines
+            if self.options.say is not None:
+                for line in lines:
+                    self.options.say(line)
+
     async def _fetch_thresholds(self) -> None:
         try:
             reply = await self._control({"cmd": "get_config", "section": "controller"})
@@ -349,6 +366,7 @@ class ViewServer:
             "preview_encode_ms": (self.preview_header or {}).get("encode_ms"),
             "clients": len(self._clients),
             "health_endpoint": self.options.health_endpoint,
+            "rig_lines": self.rig_lines,
         }
 
     def _broadcast_text(self, kind: str, text: str) -> None:

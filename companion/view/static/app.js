@@ -190,6 +190,11 @@ function applyHealth(h) {
   st.dataset.seq = String(h.seq);
   st.className = "state state-" + (h.state || "unknown");
   setText("reason", h.reason || "");
+  // The rig check's lines (health's rig), in the words process/eval/run print: shown while the rig
+  // cannot measure down to where "near" is full, or measures badly.
+  const rig = $("rig"), rigLines = (h.rig && Array.isArray(h.rig.lines)) ? h.rig.lines : [];
+  rig.hidden = rigLines.length === 0;
+  if (rigLines.length) rig.textContent = rigLines.join("\n");
   updateRegions(h);
   drawStick(h);
   const d = h.decision || {};
