@@ -35,6 +35,23 @@ def test_velocity_follows_a_first_order_lag_when_the_limit_is_not_reached() -> N
         assert abs(v[1]) < 1e-12 and v[2] == 0.0
 
 
+def test_a_response_delay_shifts_the_lag_and_keeps_the_order_of_setpoints() -> None:
+    """With ``response_delay_s`` the same first-order response starts that much later; setpoints
+    commanded in between take effect in their order, each the delay after it was sent."""
+    p = VehicleParams(velocity_time_constant_s=0.4, max_horizontal_accel_m_s2=100.0, response_delay_s=0.1)
+    m = VehicleModel(p, Pose.at(0, 0, 2))
+    m.command(VelocitySetpoint(forward_m_s=1.0))
+    for t, v, _ in _run(m, 1.0):
+        expected = 0.0 if t <= 0.1 + DT else 1.0 - math.exp(-(t - 0.1 - DT) / 0.4)
+        assert v[0] == pytest.approx(expected, abs=2e-2)
+    m.command(VelocitySetpoint(forward_m_s=0.0))
+    v_then = m.velocity_ned_m_s[0]
+    _run(m, 0.09)
+    assert m.velocity_ned_m_s[0] > v_then  # still the old setpoint
+    _run(m, 0.5)
+    assert m.velocity_ned_m_s[0] < v_then
+
+
 def test_acceleration_limits_hold_horizontally_vertically_and_in_yaw() -> None:
     p = VehicleParams(velocity_time_constant_s=0.05, max_horizontal_accel_m_s2=2.0, max_vertical_accel_m_s2=1.0,
                       yaw_rate_time_constant_s=0.05, max_yaw_accel_deg_s2=90.0)

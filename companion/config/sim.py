@@ -92,6 +92,16 @@ class SimConfig(StrictModel):
             "0.56 is the harder vehicle that reproduced PX4's ringing (docs/simulator.md)."
         ),
     )
+    response_delay_s: float = Field(
+        default=0.0,
+        ge=0.0,
+        le=1.0,
+        description=(
+            "A velocity or yaw-rate setpoint takes effect this long after the service sends it, "
+            "seconds (0 = at once): the autopilot's link and loops, and the age of the velocity it "
+            "reports. It adds to the stopping distance as processing_latency_s does."
+        ),
+    )
     max_horizontal_accel_m_s2: float = Field(
         default=3.0, gt=0.0, le=30.0, description="Horizontal acceleration limit of the vehicle, m/s²."
     )

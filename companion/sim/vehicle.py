@@ -17,6 +17,7 @@ Nothing here reads a clock: time advances only through :meth:`VehicleModel.step`
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -57,6 +58,8 @@ class VehicleParams:
         drift_time_constant_s: correlation time of that drift (Ornstein-Uhlenbeck), seconds (> 0).
         vertical_drift_speed_m_s: the same for a vertical drift (the same correlation time), m/s
             (>= 0; 0 = none): PX4 in offboard velocity control holds a vertical speed, not a height.
+        response_delay_s: a setpoint takes effect this long after it is commanded, seconds (>= 0;
+            0 = at once): the autopilot's link and loops, and its telemetry's age.
     """
 
     velocity_time_constant_s: float = 0.3
@@ -71,6 +74,7 @@ class VehicleParams:
     drift_speed_m_s: float = 0.0
     drift_time_constant_s: float = 4.0
     vertical_drift_speed_m_s: float = 0.0
+    response_delay_s: float = 0.0
 
     def __post_init__(self) -> None:
         for name in (
@@ -86,7 +90,7 @@ class VehicleParams:
             v = float(getattr(self, name))
             if not (v > 0.0 and math.isfinite(v)):
                 raise ValueError(f"VehicleParams.{name} must be finite and > 0, got {v}")
-        for name in ("drift_speed_m_s", "vertical_drift_speed_m_s", "acceleration_time_constant_s"):
+        for name in ("drift_speed_m_s", "vertical_drift_speed_m_s", "acceleration_time_constant_s", "response_delay_s"):
             v = float(getattr(self, name))
             if not (v >= 0.0 and math.isfinite(v)):
                 raise ValueError(f"VehicleParams.{name} must be finite and >= 0, got {v}")
@@ -121,18 +125,23 @@ class VehicleModel:
         self.pitch_rad = 0.0
         self.roll_rad = 0.0
         self.accel_ned_m_s2 = np.zeros(3)
-        self.setpoint: VelocitySetpoint = ZERO_SETPOINT
+        self.setpoint: VelocitySetpoint = ZERO_SETPOINT  # the one the dynamics follow now
+        self._pending: deque[tuple[float, VelocitySetpoint]] = deque()  # (when it takes effect s, setpoint)
         key = realization_key(seed, realization)
         self._rng = np.random.default_rng(list(key))  # [seed] draws as seed did: realization 0 unchanged
         self._vrng = np.random.default_rng([*key, 1])  # the vertical drift's own draws
         self.drift_ned_m_s = np.zeros(3)  # the estimator-like drift now, m/s
 
     def command(self, setpoint: VelocitySetpoint) -> None:
-        """Set the velocity/yaw-rate setpoint tracked from now on (non-finite values are refused)."""
+        """Set the velocity/yaw-rate setpoint tracked from now on, or ``response_delay_s`` from now
+        (non-finite values are refused)."""
         vals = (setpoint.forward_m_s, setpoint.right_m_s, setpoint.down_m_s, setpoint.yaw_rate_deg_s)
         if not all(math.isfinite(v) for v in vals):
             raise VehicleError(f"non-finite setpoint {setpoint}")
-        self.setpoint = setpoint
+        if self.params.response_delay_s > 0.0:
+            self._pending.append((self.time_s + self.params.response_delay_s, setpoint))
+        else:
+            self.setpoint = setpoint
 
     def commanded_velocity_ned_m_s(self) -> np.ndarray:
         """The setpoint turned into NED with the current yaw, float64 ``(3,)`` m/s."""
@@ -147,6 +156,8 @@ class VehicleModel:
         if not (dt_s > 0.0 and math.isfinite(dt_s)):
             raise ValueError(f"dt_s must be finite and > 0, got {dt_s}")
         p = self.params
+        while self._pending and self._pending[0][0] <= self.time_s + 1e-9:
+            self.setpoint = self._pending.popleft()[1]
         v_cmd = self.commanded_velocity_ned_m_s()
         v = self.velocity_ned_m_s
         # Exact discrete first-order lag over dt, expressed as the acceleration that realises it,
