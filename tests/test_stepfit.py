@@ -75,5 +75,5 @@ def test_a_flight_file_is_analysed_step_by_step(tmp_path: Path):
         ("forward", 0.0, 2.0), ("forward", 2.0, 0.0), ("right", 0.0, 2.0), ("right", 2.0, 0.0), ("yaw", 0.0, 60.0), ("yaw", 60.0, 0.0),
     ]
     result = analyse(segments, path)
-    assert set(result.fits) == {"forward", "right", "yaw", "horizontal"}
-    assert len(result.lines()) == len(segments) + 1 + 4 + 1
+    assert set(result.fits) == {"forward", "right", "yaw", "horizontal", "horizontal, first 2 s"}
+    assert len(result.lines()) == len(segments) + 1 + 5 + 1

@@ -22,9 +22,10 @@ from collections.abc import Sequence
 
 import numpy as np
 
-#: Bounds of the fitted constants: time constant s, acceleration limit (units/s²), delay s.
+#: Bounds of the fitted constants: time constant s, delay s; the acceleration limit's are the
+#: largest step's size times these, per second.
 TAU_BOUNDS_S = (0.02, 5.0)
-ACCEL_BOUNDS = (0.05, 50.0)
+ACCEL_BOUNDS_PER_S = (0.02, 20.0)
 DELAY_BOUNDS_S = (0.0, 0.6)
 
 
@@ -51,8 +52,8 @@ class StepFit:
 
     Attributes:
         tau_s: first-order time constant, seconds.
-        accel_limit: acceleration limit, the value's unit per second (m/s², deg/s²); at its upper
-            bound when no step was large enough to reach it.
+        accel_limit: acceleration limit, the value's unit per second (m/s², deg/s²); meaningless
+            when no step was large enough to reach it (``accel_reached`` False).
         delay_s: pure delay before the response starts, seconds (0 when not fitted).
         rms: root-mean-square residual, the value's unit.
         accel_reached: some step asked for more than ``accel_limit`` (the limit was measured).
@@ -84,9 +85,10 @@ def _residuals(params: np.ndarray, steps: Sequence[StepData], with_delay: bool) 
     return np.concatenate([step_response(s.t_s, s.start, s.target, tau, accel, delay) - s.value for s in steps])
 
 
-def fit_steps(steps: Sequence[StepData], with_delay: bool = True) -> StepFit:
+def fit_steps(steps: Sequence[StepData], with_delay: bool = True, window_s: float | None = None) -> StepFit:
     """Least-squares fit of one ``tau``, one ``a_max`` (and one delay, with ``with_delay``) to every
-    step in ``steps`` at once (from a few starting points; the best one wins).
+    step in ``steps`` at once (from a few starting points; the best one wins); with ``window_s``,
+    only the samples within that long after each step count.
 
     Raises:
         ValueError: no step, or a step with fewer than 5 finite samples.
@@ -100,19 +102,23 @@ def fit_steps(steps: Sequence[StepData], with_delay: bool = True) -> StepFit:
         t = np.asarray(s.t_s, dtype=np.float64)
         v = np.asarray(s.value, dtype=np.float64)
         ok = np.isfinite(t) & np.isfinite(v)
+        if window_s is not None:
+            ok &= t <= window_s
         if np.count_nonzero(ok) < 5:
             raise ValueError(f"fit_steps: a step {s.start:g} -> {s.target:g} has {np.count_nonzero(ok)} finite samples (needs 5)")
         clean.append(StepData(t[ok], v[ok], float(s.start), float(s.target)))
-    lo = [TAU_BOUNDS_S[0], ACCEL_BOUNDS[0]] + ([DELAY_BOUNDS_S[0]] if with_delay else [])
-    hi = [TAU_BOUNDS_S[1], ACCEL_BOUNDS[1]] + ([DELAY_BOUNDS_S[1]] if with_delay else [])
-    best = None
     largest = max(abs(s.target - s.start) for s in clean)
+    accel_lo, accel_hi = ACCEL_BOUNDS_PER_S[0] * largest, ACCEL_BOUNDS_PER_S[1] * largest
+    lo = [TAU_BOUNDS_S[0], accel_lo] + ([DELAY_BOUNDS_S[0]] if with_delay else [])
+    hi = [TAU_BOUNDS_S[1], accel_hi] + ([DELAY_BOUNDS_S[1]] if with_delay else [])
+    best = None
     for tau0 in (0.2, 0.5, 1.0):
-        for accel0 in (0.5 * largest / tau0, 2.0 * largest / tau0, 20.0):
-            x0 = [tau0, min(max(accel0, ACCEL_BOUNDS[0] * 2), ACCEL_BOUNDS[1] * 0.9)] + ([0.05] if with_delay else [])
-            r = least_squares(_residuals, x0, bounds=(lo, hi), args=(clean, with_delay))
-            if best is None or r.cost < best.cost:
-                best = r
+        for accel0 in (0.5 * largest / tau0, 2.0 * largest / tau0, 0.9 * accel_hi):
+            for delay0 in (0.02, 0.15, 0.3) if with_delay else (None,):
+                x0 = [tau0, min(max(accel0, 1.01 * accel_lo), 0.99 * accel_hi)] + ([delay0] if with_delay else [])
+                r = least_squares(_residuals, x0, bounds=(lo, hi), args=(clean, with_delay))
+                if best is None or r.cost < best.cost:
+                    best = r
     assert best is not None
     tau, accel = float(best.x[0]), float(best.x[1])
     delay = float(best.x[2]) if with_delay else 0.0

@@ -102,7 +102,7 @@ class StepResponseResult:
                 f"{f1.tau_s:5.2f} s {f1.delay_s:5.2f} s {_accel(f1)} {f1.rms:5.3f}"
             )
         for axis, (f0, f1) in self.fits.items():
-            u, ua = unit[axis]
+            u, ua = unit[axis.split(",")[0]]
             out.append(
                 f"{axis} (all steps): lag {f0.tau_s:.2f} s, acceleration limit {_accel(f0).strip()} {ua}, rms {f0.rms:.3f} {u}; "
                 f"with a delay: lag {f1.tau_s:.2f} s after {f1.delay_s:.2f} s, limit {_accel(f1).strip()} {ua}, rms {f1.rms:.3f} {u}"
@@ -220,7 +220,8 @@ async def fly_step_response(pilot: OffboardPilot, workdir: Path) -> StepResponse
 
 def analyse(segments: list[tuple[str, float, float, StepData]], csv_path: Path | None = None) -> StepResponseResult:
     """Fit each step, and each axis's steps jointly; forward and right share one horizontal fit too
-    (``"horizontal"``: the simulator has one horizontal lag and limit)."""
+    (``"horizontal"``: the simulator has one horizontal lag and limit), and one over the first 2 s
+    of each step (``"horizontal, first 2 s"``)."""
     steps = []
     by_axis: dict[str, list[StepData]] = {}
     for axis, a, b, data in segments:
@@ -230,6 +231,10 @@ def analyse(segments: list[tuple[str, float, float, StepData]], csv_path: Path |
     horizontal = by_axis.get("forward", []) + by_axis.get("right", [])
     if horizontal:
         fits["horizontal"] = (fit_steps(horizontal, with_delay=False), fit_steps(horizontal, with_delay=True))
+        # The reaction and the braking that matter most near an obstacle, without the slow tail.
+        fits["horizontal, first 2 s"] = (
+            fit_steps(horizontal, with_delay=False, window_s=2.0), fit_steps(horizontal, with_delay=True, window_s=2.0)
+        )
     return StepResponseResult(tuple(steps), fits, csv_path)
 
 
