@@ -105,6 +105,22 @@ class SimConfig(StrictModel):
             "reports. It adds to the stopping distance as processing_latency_s does."
         ),
     )
+    slow_response_fraction: float = Field(
+        default=0.0,
+        ge=0.0,
+        le=1.0,
+        description=(
+            "This share of every velocity step follows a second, slow lag "
+            "(slow_response_time_constant_s) instead of velocity_time_constant_s; 0 = none. An "
+            "autopilot's velocity integrator closes the last part of a step over seconds: asked to stop "
+            "from 3 m/s, PX4 SITL still moved at 0.4 m/s 2 s later and 0.25 m/s 6 s later, 3.9 m in "
+            "all. 0.22 with 8 s, velocity_time_constant_s 0.44 and response_delay_s 0.14 reproduce "
+            "PX4 SITL's steps (docs/simulator.md)."
+        ),
+    )
+    slow_response_time_constant_s: float = Field(
+        default=8.0, gt=0.0, le=60.0, description="The slow lag of slow_response_fraction, seconds."
+    )
     max_horizontal_accel_m_s2: float = Field(
         default=2.6,
         gt=0.0,
