@@ -227,3 +227,19 @@ def test_a_false_point_across_the_counter_never_cancels_the_push_away_from_a_wal
     assert counter > 0.2  # the counter is on, and slid away by the left point
     assert sp_off.right_m_s < -0.1  # the guard pushes away from the wall on the right
     assert sp.right_m_s <= sp_off.right_m_s + 1e-9
+
+
+def test_nothing_added_to_a_cruising_setpoint_sends_it_forward_past_the_cruise():
+    """PX4 SITL at 0.7 m/s: the guard's push away from a remembered point beside and behind the
+    vehicle took the forward setpoint to 0.713 m/s. Whatever adds to it, the forward speed the
+    course hold sends is at most the cruise; slower and sideways setpoints are left as they are."""
+    from companion.core.course import forward_within_cruise
+
+    cmd = parse_config({}).command
+    over = VelocitySetpoint(cmd.cruise_speed_m_s + 0.013, 0.2, -0.1, 5.0)
+    capped = forward_within_cruise(over, cmd)
+    assert capped.forward_m_s == cmd.cruise_speed_m_s
+    assert (capped.right_m_s, capped.down_m_s, capped.yaw_rate_deg_s) == (0.2, -0.1, 5.0)
+    slow = VelocitySetpoint(0.3, -0.4, 0.0, 0.0)
+    assert forward_within_cruise(slow, cmd) is slow
+

@@ -69,6 +69,15 @@ def _finite(x: float | None) -> float | None:
     return None if x is None or not math.isfinite(x) else float(x)
 
 
+def forward_within_cruise(sp: VelocitySetpoint, cmd: CommandConfig) -> VelocitySetpoint:
+    """``sp`` with its forward speed at most ``cmd.cruise_speed_m_s`` (m/s): the shapers that add to
+    a cruising setpoint (the guard's push away from a point behind, the counters) never send the
+    vehicle forward faster than the speed the user chose."""
+    if sp.forward_m_s <= cmd.cruise_speed_m_s:
+        return sp
+    return replace(sp, forward_m_s=cmd.cruise_speed_m_s)
+
+
 class CourseHold:
     """What course hold remembers during one flight (see the module doc).
 
@@ -340,7 +349,9 @@ class CourseHold:
             )
             turning = command.anchor_ned_m is not None and sp.yaw_rate_deg_s != 0.0
             self._turn_sign = math.copysign(1.0, sp.yaw_rate_deg_s) if turning else 0.0
-            sp = self._counter_drift(sp, decision, now_s, yaw, cmd, fresh, guard_m, memory_cfg, unexplained, region_depths_m)
+            sp = forward_within_cruise(
+                self._counter_drift(sp, decision, now_s, yaw, cmd, fresh, guard_m, memory_cfg, unexplained, region_depths_m), cmd
+            )
             return self._vertical_limits(
                 sp, now_s, cmd, position_ned_m, velocity_ned_m_s, region_depths_m, obstacles, memory_cfg, fresh
             )
@@ -375,7 +386,9 @@ class CourseHold:
             path_ahead_m=path_ahead_m,
             below_clear=below_clear,
         )
-        sp = self._counter_drift(sp, decision, now_s, yaw, cmd, fresh, guard_m, memory_cfg, unexplained, region_depths_m)
+        sp = forward_within_cruise(
+            self._counter_drift(sp, decision, now_s, yaw, cmd, fresh, guard_m, memory_cfg, unexplained, region_depths_m), cmd
+        )
         return self._vertical_limits(
             sp, now_s, cmd, position_ned_m, velocity_ned_m_s, region_depths_m, obstacles, memory_cfg, fresh
         )
