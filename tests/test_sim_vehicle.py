@@ -35,6 +35,44 @@ def test_velocity_follows_a_first_order_lag_when_the_limit_is_not_reached() -> N
         assert abs(v[1]) < 1e-12 and v[2] == 0.0
 
 
+def test_a_response_delay_shifts_the_lag_and_keeps_the_order_of_setpoints() -> None:
+    """With ``response_delay_s`` the same first-order response starts that much later; setpoints
+    commanded in between take effect in their order, each the delay after it was sent."""
+    p = VehicleParams(velocity_time_constant_s=0.4, max_horizontal_accel_m_s2=100.0, response_delay_s=0.1)
+    m = VehicleModel(p, Pose.at(0, 0, 2))
+    m.command(VelocitySetpoint(forward_m_s=1.0))
+    for t, v, _ in _run(m, 1.0):
+        expected = 0.0 if t <= 0.1 + DT else 1.0 - math.exp(-(t - 0.1 - DT) / 0.4)
+        assert v[0] == pytest.approx(expected, abs=2e-2)
+    m.command(VelocitySetpoint(forward_m_s=0.0))
+    v_then = m.velocity_ned_m_s[0]
+    _run(m, 0.09)
+    assert m.velocity_ned_m_s[0] > v_then  # still the old setpoint
+    _run(m, 0.5)
+    assert m.velocity_ned_m_s[0] < v_then
+
+
+def test_a_slow_share_of_the_step_leaves_a_creep_after_a_stop() -> None:
+    """PX4 SITL, asked to stop from 3 m/s, still moved at 0.2-0.4 m/s seconds later (its velocity
+    integrator); with ``slow_response_fraction`` the model does too, and without it it does not."""
+    def after_stop(fraction: float) -> tuple[float, float]:
+        p = VehicleParams(velocity_time_constant_s=0.44, max_horizontal_accel_m_s2=100.0,
+                          slow_response_fraction=fraction, slow_response_time_constant_s=8.0)
+        m = VehicleModel(p, Pose.at(0, 0, 2))
+        m.command(VelocitySetpoint(forward_m_s=3.0))
+        _run(m, 20.0)
+        m.command(VelocitySetpoint())
+        x0 = m.position_ned_m[0]
+        _run(m, 2.0)
+        return float(m.velocity_ned_m_s[0]), float(m.position_ned_m[0] - x0)
+
+    v_plain, d_plain = after_stop(0.0)
+    v_slow, d_slow = after_stop(0.22)
+    assert v_plain < 0.05
+    assert 0.3 < v_slow < 0.7  # 0.22 of the step left, decaying over 8 s
+    assert d_slow > d_plain + 0.6
+
+
 def test_acceleration_limits_hold_horizontally_vertically_and_in_yaw() -> None:
     p = VehicleParams(velocity_time_constant_s=0.05, max_horizontal_accel_m_s2=2.0, max_vertical_accel_m_s2=1.0,
                       yaw_rate_time_constant_s=0.05, max_yaw_accel_deg_s2=90.0)

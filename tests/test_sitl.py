@@ -45,21 +45,32 @@ def _run(coro, timeout_s: float = 300.0):
 
 
 async def _engaged(px4: Px4Sitl, workdir: Path, box_north_m: float = 30.0):
-    """Take off, start the service on a course with a far box, engage; returns (pilot, service, t_offboard)."""
+    """Take off, start the service on a course with a far box, engage; returns (pilot, service,
+    t_offboard). A step that fails stops what was started (the service, the pilot's link) first."""
     pilot = Pilot(PILOT_URL, px4.ports.system_id)
     await pilot.connect()
-    course = head_on_course(0, box_north_m=box_north_m)
-    service = await prepare_flight(course, load_config(None), pilot, px4.ports, workdir)
-    await start_and_place(service, pilot, course)
-    await service.request({"cmd": "engage"})
-    t = await pilot.wait_for("OFFBOARD after engage", lambda: pilot.flight_mode == "OFFBOARD", 10.0)
+    service = None
+    try:
+        course = head_on_course(0, box_north_m=box_north_m)
+        service = await prepare_flight(course, load_config(None), pilot, px4.ports, workdir)
+        await start_and_place(service, pilot, course)
+        await service.request({"cmd": "engage"})
+        t = await pilot.wait_for("OFFBOARD after engage", lambda: pilot.flight_mode == "OFFBOARD", 10.0)
+    except BaseException:
+        await _finish(pilot, service)
+        raise
     return pilot, service, t
 
 
 async def _finish(pilot: Pilot, service) -> None:
-    await service.stop()
-    await pilot.make_ready()
-    await pilot.close()
+    """Stop the service, then bring the vehicle back to the ground and close the pilot's link; the
+    link is closed whatever the landing does."""
+    try:
+        if service is not None:
+            await service.stop()
+        await pilot.make_ready()
+    finally:
+        await pilot.close()
 
 
 def _speed(pilot: Pilot) -> float:

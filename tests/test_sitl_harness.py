@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import asyncio
 import math
+import os
+import socket
 import tomllib
 from pathlib import Path
 
@@ -10,11 +13,12 @@ import pytest
 
 from companion.config import load_config, parse_config
 from companion.config.document import render_config_toml
-from companion.sim.courses import make_course
+from companion.sim.courses import head_on_course, make_course
 from companion.core.placement import CoursePlacement
 from companion.config import apply_patch
 from companion.sitl.flight import placement_patch, sitl_config
 from companion.sitl.px4 import PX4_BUILD_ENV, Px4Ports, SitlError, find_px4_build
+from companion.sitl.service import ServiceProcess
 
 
 def test_px4_build_is_found_from_the_argument_or_the_environment(tmp_path: Path) -> None:
@@ -204,3 +208,55 @@ def test_the_floor_moves_with_the_course_ground() -> None:
     assert placement_patch(user, CoursePlacement((0.0, 0.0, 0.9), 0.0))["command"]["min_altitude_m"] == 0.01
     off = parse_config({"command": {"min_altitude_m": 0.0}})
     assert placement_patch(off, above)["command"]["min_altitude_m"] == 0.0
+
+
+# ---------------------------------------------------------------- what the harness starts, it stops
+
+
+def _free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _service(workdir: Path) -> ServiceProcess:
+    """The service as the harness starts it, its vehicle link on a port no autopilot sends to: it
+    never becomes ready."""
+    course = head_on_course(0)
+    url = f"udpin://127.0.0.1:{_free_udp_port()}"
+    cfg = sitl_config(load_config(None), course, CoursePlacement((0.0, 0.0, 0.0), 0.0), url, workdir, 1)
+    return ServiceProcess(cfg, workdir)
+
+
+def _gone(pid: int | None) -> bool:
+    assert pid is not None
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    return False
+
+
+def test_a_service_that_is_not_ready_in_time_is_stopped(tmp_path: Path) -> None:
+    """No autopilot answers: the start fails naming why, and the service's process is gone (a failed
+    engage once left it running beside the next test's)."""
+    service = _service(tmp_path)
+
+    async def scenario() -> None:
+        with pytest.raises(SitlError, match="not ready|exited"):
+            await service.start(timeout_s=2.0)
+
+    asyncio.run(scenario())
+    assert _gone(service.pid)
+
+
+def test_a_cancelled_start_stops_the_service(tmp_path: Path) -> None:
+    """The caller gives up (a test's overall timeout cancels the task): the process still goes."""
+    service = _service(tmp_path)
+
+    async def scenario() -> None:
+        with pytest.raises(asyncio.TimeoutError):
+            await asyncio.wait_for(service.start(timeout_s=60.0), 2.0)
+
+    asyncio.run(scenario())
+    assert _gone(service.pid)

@@ -172,8 +172,31 @@ def test_the_counter_adds_no_forward_motion_toward_what_brakes_or_reads_near():
     room = (0.8 - on.motion_brake_clearance_m) / on.motion_brake_lag_s
     assert last(on, clear, 0.8).forward_m_s <= max(room, last(off, clear, 0.8).forward_m_s) + 1e-9
     assert last(on, clear, math.nan).forward_m_s <= max(0.0, last(off, clear, math.nan).forward_m_s) + 1e-9
-    # far from anything the counter does its work: forward more than without it
-    assert last(on, clear, 5.0).forward_m_s > last(off, clear, 5.0).forward_m_s + 0.2
+    # far from anything the counter does its work: forward more than without it, below the cruise
+    half = Decision(kind=DecisionKind.CLEAR, yaw=0.0, pitch=0.0, speed_fraction=0.5, reason="centre clear")
+    assert last(on, half, 5.0).forward_m_s > last(off, half, 5.0).forward_m_s + 0.2
+
+
+def test_the_counter_never_sends_the_vehicle_past_the_cruise():
+    """PX4 SITL, clear ahead at the cruise: PX4's reported position moved slower than its reported
+    velocity, so the track counter read the vehicle as falling behind and added forward speed: the
+    setpoint went 0.74 m/s over a 0.7 m/s cruise in every flight, up to 1.21 m/s. The counter may
+    slow the vehicle or push it sideways, never past the cruise, in any direction."""
+    cmd = parse_config({}).command
+    clear = Decision(kind=DecisionKind.CLEAR, yaw=0.0, pitch=0.0, speed_fraction=1.0, reason="centre clear")
+    for drift in ((-0.4, 0.0), (-0.4, 0.4), (0.0, -0.5)):
+        hold = CourseHold()
+        hold.engage(np.array([0.0, 0.0, -1.5]), 0.0)
+        depths = np.full(9, 10.0)
+        for k in range(30):
+            t = k / RATE_HZ
+            v = np.array([cmd.cruise_speed_m_s, 0.0, 0.0])
+            p = np.array([(v[0] + drift[0]) * t, drift[1] * t, -1.5])
+            hold.observe(clear, t, p)
+            sp = hold.setpoint(clear, t, 0.0, cmd, position_ned_m=p, yaw_rad=0.0, velocity_ned_m_s=v, region_depths_m=depths)
+            assert sp.forward_m_s <= cmd.cruise_speed_m_s + 1e-9, (drift, k, sp)
+            assert math.hypot(sp.forward_m_s, sp.right_m_s) <= cmd.cruise_speed_m_s + 1e-9, (drift, k, sp)
+        assert hold.track_counter_m_s > 0.0  # the counter acted
 
 
 def test_a_false_point_across_the_counter_never_cancels_the_push_away_from_a_wall():
@@ -204,3 +227,19 @@ def test_a_false_point_across_the_counter_never_cancels_the_push_away_from_a_wal
     assert counter > 0.2  # the counter is on, and slid away by the left point
     assert sp_off.right_m_s < -0.1  # the guard pushes away from the wall on the right
     assert sp.right_m_s <= sp_off.right_m_s + 1e-9
+
+
+def test_nothing_added_to_a_cruising_setpoint_sends_it_forward_past_the_cruise():
+    """PX4 SITL at 0.7 m/s: the guard's push away from a remembered point beside and behind the
+    vehicle took the forward setpoint to 0.713 m/s. Whatever adds to it, the forward speed the
+    course hold sends is at most the cruise; slower and sideways setpoints are left as they are."""
+    from companion.core.course import forward_within_cruise
+
+    cmd = parse_config({}).command
+    over = VelocitySetpoint(cmd.cruise_speed_m_s + 0.013, 0.2, -0.1, 5.0)
+    capped = forward_within_cruise(over, cmd)
+    assert capped.forward_m_s == cmd.cruise_speed_m_s
+    assert (capped.right_m_s, capped.down_m_s, capped.yaw_rate_deg_s) == (0.2, -0.1, 5.0)
+    slow = VelocitySetpoint(0.3, -0.4, 0.0, 0.0)
+    assert forward_within_cruise(slow, cmd) is slow
+

@@ -33,12 +33,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     what.add_argument("--course", metavar="KIND", help="course kind: corridor, doorway, forest, pitch, side, deadend, office, detour, head-on")
     what.add_argument("--suite", metavar="NAME", help="a suite of courses: quick (16 flights) or standard (72)")
     what.add_argument(
-        "--scenario", choices=["collision-prevention", "rc-engage", "proximity"],
+        "--scenario", choices=["collision-prevention", "rc-engage", "proximity", "step-response"],
         help=(
             "PX4 (docs/sitl.md): collision-prevention: the service only feeds OBSTACLE_DISTANCE while a pilot "
             "flies Position mode at a wall (CP_DIST set); then the service stops. rc-engage: the ground station "
             "switches PX4 to Offboard while the service is ready (vehicle.engage_on_offboard_switch), then back to "
-            "Position mode. ArduPilot (--autopilot ardupilot, docs/sitl-ardupilot.md): proximity: the service only "
+            "Position mode. step-response: the ground station steps PX4's velocity and yaw-rate setpoints itself "
+            "and fits the simulator's vehicle model to the response (docs/simulator.md). "
+            "ArduPilot (--autopilot ardupilot, docs/sitl-ardupilot.md): proximity: the service only "
             "feeds OBSTACLE_DISTANCE to ArduCopter's proximity library (PRX1_TYPE 2) while a pilot flies LOITER at "
             "the wall; then the service stops"
         ),

@@ -453,8 +453,9 @@ class CommandConfig(StrictModel):
             "frame's setpoint, in the body frame, so that the vehicle moves in its reported position as "
             "asked, sideways too, where the camera's own check (unseen_closing_range_m) sees only "
             "motion toward the centre (0 = none); forward it adds nothing while the frame brakes or the "
-            "centre cannot be read, and never more than the vehicle can stop short of what the centre "
-            "reads. A remembered point on the counter's path slides the counter alone, never the "
+            "centre cannot be read, never more than the vehicle can stop short of what the centre "
+            "reads, and never past cruise_speed_m_s (the horizontal speed it leaves stays within the "
+            "cruise). A remembered point on the counter's path slides the counter alone, never the "
             "guard's push away from a wall (sliding both would cancel the push)."
         ),
     )

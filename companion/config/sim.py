@@ -70,12 +70,15 @@ class SimConfig(StrictModel):
     )
     # -- vehicle model ---------------------------------------------------------------------------
     velocity_time_constant_s: float = Field(
-        default=0.85,
+        default=1.17,
         gt=0.0,
         le=5.0,
         description=(
             "First-order lag of the velocity response to a velocity setpoint, seconds. Default: fitted to "
-            "PX4 SITL (SIH quadrotor, default MPC gains: 0.8-0.9 s); a crisp racer is nearer 0.3."
+            "PX4 SITL's step response (SIH quadrotor, default MPC gains; steps of 1 and 3 m/s forward and "
+            "sideways, 6-7 s each; docs/simulator.md): PX4 closes most of a step within 1 s and the rest "
+            "over seconds, and this lag travels about as far as PX4 does after a stop from 3 m/s (a "
+            "faster lag would stop short of where PX4 stops). A crisp racer is nearer 0.3."
         ),
     )
     acceleration_time_constant_s: float = Field(
@@ -88,27 +91,62 @@ class SimConfig(StrictModel):
             "velocity is a pure first-order lag (velocity_time_constant_s). With a lag here the "
             "response is second order, as PX4's cascade of velocity and attitude loops is: a guard "
             "that pushes from both sides rings with it where a first-order lag stays calm. PX4 SITL's "
-            "flights fit the first-order 0.85 s better; 0.25 s here with velocity_time_constant_s "
+            "step response fits the first-order lag (velocity_time_constant_s); 0.25 s here with velocity_time_constant_s "
             "0.56 is the harder vehicle that reproduced PX4's ringing (docs/simulator.md)."
         ),
     )
+    response_delay_s: float = Field(
+        default=0.0,
+        ge=0.0,
+        le=1.0,
+        description=(
+            "A velocity or yaw-rate setpoint takes effect this long after the service sends it, "
+            "seconds (0 = at once): the autopilot's link and loops, and the age of the velocity it "
+            "reports. It adds to the stopping distance as processing_latency_s does."
+        ),
+    )
+    slow_response_fraction: float = Field(
+        default=0.0,
+        ge=0.0,
+        le=1.0,
+        description=(
+            "This share of every velocity step follows a second, slow lag "
+            "(slow_response_time_constant_s) instead of velocity_time_constant_s; 0 = none. An "
+            "autopilot's velocity integrator closes the last part of a step over seconds: asked to stop "
+            "from 3 m/s, PX4 SITL still moved at 0.4 m/s 2 s later and 0.25 m/s 6 s later, 3.9 m in "
+            "all. 0.22 with 8 s, velocity_time_constant_s 0.44 and response_delay_s 0.14 reproduce "
+            "PX4 SITL's steps (docs/simulator.md)."
+        ),
+    )
+    slow_response_time_constant_s: float = Field(
+        default=8.0, gt=0.0, le=60.0, description="The slow lag of slow_response_fraction, seconds."
+    )
     max_horizontal_accel_m_s2: float = Field(
-        default=3.0, gt=0.0, le=30.0, description="Horizontal acceleration limit of the vehicle, m/s²."
+        default=2.6,
+        gt=0.0,
+        le=30.0,
+        description=(
+            "Horizontal acceleration limit of the vehicle, m/s². Default: PX4 SITL's step response over "
+            "the first 2 s of its 3 m/s steps (starting and stopping)."
+        ),
     )
     max_vertical_accel_m_s2: float = Field(
         default=2.0, gt=0.0, le=30.0, description="Vertical acceleration limit of the vehicle, m/s²."
     )
     yaw_rate_time_constant_s: float = Field(
-        default=0.35,
+        default=0.4,
         gt=0.0,
         le=5.0,
         description=(
-            "First-order lag of the yaw rate response, seconds. Default: fitted to PX4 SITL (0.3 s "
-            "plus 0.12 s of delay)."
+            "First-order lag of the yaw rate response, seconds. Default: fitted to PX4 SITL's yaw-rate "
+            "steps of 45 and 90 deg/s (0.36 s after 0.09 s of delay, or 0.42 s with none)."
         ),
     )
     max_yaw_accel_deg_s2: float = Field(
-        default=200.0, gt=0.0, le=5000.0, description="Yaw acceleration limit, deg/s²."
+        default=130.0,
+        gt=0.0,
+        le=5000.0,
+        description="Yaw acceleration limit, deg/s². Default: fitted with yaw_rate_time_constant_s to PX4 SITL's yaw-rate steps.",
     )
     tilt_with_acceleration: bool = Field(
         default=True,

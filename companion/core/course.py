@@ -69,6 +69,15 @@ def _finite(x: float | None) -> float | None:
     return None if x is None or not math.isfinite(x) else float(x)
 
 
+def forward_within_cruise(sp: VelocitySetpoint, cmd: CommandConfig) -> VelocitySetpoint:
+    """``sp`` with its forward speed at most ``cmd.cruise_speed_m_s`` (m/s): the shapers that add to
+    a cruising setpoint (the guard's push away from a point behind, the counters) never send the
+    vehicle forward faster than the speed the user chose."""
+    if sp.forward_m_s <= cmd.cruise_speed_m_s:
+        return sp
+    return replace(sp, forward_m_s=cmd.cruise_speed_m_s)
+
+
 class CourseHold:
     """What course hold remembers during one flight (see the module doc).
 
@@ -340,7 +349,9 @@ class CourseHold:
             )
             turning = command.anchor_ned_m is not None and sp.yaw_rate_deg_s != 0.0
             self._turn_sign = math.copysign(1.0, sp.yaw_rate_deg_s) if turning else 0.0
-            sp = self._counter_drift(sp, decision, now_s, yaw, cmd, fresh, guard_m, memory_cfg, unexplained, region_depths_m)
+            sp = forward_within_cruise(
+                self._counter_drift(sp, decision, now_s, yaw, cmd, fresh, guard_m, memory_cfg, unexplained, region_depths_m), cmd
+            )
             return self._vertical_limits(
                 sp, now_s, cmd, position_ned_m, velocity_ned_m_s, region_depths_m, obstacles, memory_cfg, fresh
             )
@@ -375,7 +386,9 @@ class CourseHold:
             path_ahead_m=path_ahead_m,
             below_clear=below_clear,
         )
-        sp = self._counter_drift(sp, decision, now_s, yaw, cmd, fresh, guard_m, memory_cfg, unexplained, region_depths_m)
+        sp = forward_within_cruise(
+            self._counter_drift(sp, decision, now_s, yaw, cmd, fresh, guard_m, memory_cfg, unexplained, region_depths_m), cmd
+        )
         return self._vertical_limits(
             sp, now_s, cmd, position_ned_m, velocity_ned_m_s, region_depths_m, obstacles, memory_cfg, fresh
         )
@@ -424,9 +437,10 @@ class CourseHold:
         near point that may not push) would cancel both the push away from the wall and the counter,
         and the drift would carry the vehicle into the wall.
         Forward the counter adds nothing while ``decision`` brakes or the centre of
-        ``region_depths_m`` cannot be read, and never more than the vehicle can stop short of what
-        the centre reads (:func:`stoppable_speed_m_s`): the brake is absolute, and the unexplained
-        motion may be the estimate's, not the vehicle's."""
+        ``region_depths_m`` cannot be read, never more than the vehicle can stop short of what
+        the centre reads (:func:`stoppable_speed_m_s`), and never past ``cmd.cruise_speed_m_s``: the
+        brake is absolute, and the unexplained motion may be the estimate's, not the vehicle's. The
+        horizontal speed it leaves is at most the cruise (or ``sp``'s own, when that is faster)."""
         self.unseen_drift_m_s = 0.0
         self.track_counter_m_s = 0.0
         if not fresh or yaw is None:
@@ -455,7 +469,14 @@ class CourseHold:
             counter[:] = apply_guard(float(counter[0]), float(counter[1]), slide_only, memory_cfg)
         forward, right = sp.forward_m_s + float(counter[0]), sp.right_m_s + float(counter[1])
         if forward > sp.forward_m_s:
-            forward = min(forward, max(sp.forward_m_s, self._forward_room_m_s(decision, region_depths_m, cmd)))
+            room = min(cmd.cruise_speed_m_s, self._forward_room_m_s(decision, region_depths_m, cmd))
+            forward = min(forward, max(sp.forward_m_s, room))
+        # Never faster than the cruise (the speed the user chose, within the envelope): the
+        # unexplained motion may be the estimate's, not the vehicle's.
+        limit = max(cmd.cruise_speed_m_s, math.hypot(sp.forward_m_s, sp.right_m_s))
+        speed = math.hypot(forward, right)
+        if speed > limit:
+            forward, right = forward * limit / speed, right * limit / speed
         if forward == sp.forward_m_s and right == sp.right_m_s:
             return sp
         return replace(sp, forward_m_s=forward, right_m_s=right)

@@ -17,6 +17,7 @@ Nothing here reads a clock: time advances only through :meth:`VehicleModel.step`
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -57,6 +58,12 @@ class VehicleParams:
         drift_time_constant_s: correlation time of that drift (Ornstein-Uhlenbeck), seconds (> 0).
         vertical_drift_speed_m_s: the same for a vertical drift (the same correlation time), m/s
             (>= 0; 0 = none): PX4 in offboard velocity control holds a vertical speed, not a height.
+        response_delay_s: a setpoint takes effect this long after it is commanded, seconds (>= 0;
+            0 = at once): the autopilot's link and loops, and its telemetry's age.
+        slow_response_fraction: this share of every velocity step follows a second, slow first-order
+            lag instead (0..1; 0 = none): PX4's velocity integrator closing the rest of a step over
+            seconds. The horizontal and vertical acceleration limits hold for the sum.
+        slow_response_time_constant_s: that slow lag, seconds (> 0).
     """
 
     velocity_time_constant_s: float = 0.3
@@ -71,6 +78,9 @@ class VehicleParams:
     drift_speed_m_s: float = 0.0
     drift_time_constant_s: float = 4.0
     vertical_drift_speed_m_s: float = 0.0
+    response_delay_s: float = 0.0
+    slow_response_fraction: float = 0.0
+    slow_response_time_constant_s: float = 8.0
 
     def __post_init__(self) -> None:
         for name in (
@@ -82,14 +92,17 @@ class VehicleParams:
             "attitude_time_constant_s",
             "collision_radius_m",
             "drift_time_constant_s",
+            "slow_response_time_constant_s",
         ):
             v = float(getattr(self, name))
             if not (v > 0.0 and math.isfinite(v)):
                 raise ValueError(f"VehicleParams.{name} must be finite and > 0, got {v}")
-        for name in ("drift_speed_m_s", "vertical_drift_speed_m_s", "acceleration_time_constant_s"):
+        for name in ("drift_speed_m_s", "vertical_drift_speed_m_s", "acceleration_time_constant_s", "response_delay_s"):
             v = float(getattr(self, name))
             if not (v >= 0.0 and math.isfinite(v)):
                 raise ValueError(f"VehicleParams.{name} must be finite and >= 0, got {v}")
+        if not 0.0 <= float(self.slow_response_fraction) <= 1.0:
+            raise ValueError(f"VehicleParams.slow_response_fraction must be within [0, 1], got {self.slow_response_fraction}")
 
     @classmethod
     def from_config(cls, sim: object) -> VehicleParams:
@@ -116,23 +129,29 @@ class VehicleModel:
         self.time_s = float(time_s)
         self.position_ned_m = np.array(start.position_ned_m, dtype=np.float64)
         self.velocity_ned_m_s = np.zeros(3)
+        self._slow_ned_m_s = np.zeros(3)  # the slow lag's part of the velocity (slow_response_fraction)
         self.yaw_rad = wrap_angle_rad(start.yaw_rad)
         self.yaw_rate_rad_s = 0.0
         self.pitch_rad = 0.0
         self.roll_rad = 0.0
         self.accel_ned_m_s2 = np.zeros(3)
-        self.setpoint: VelocitySetpoint = ZERO_SETPOINT
+        self.setpoint: VelocitySetpoint = ZERO_SETPOINT  # the one the dynamics follow now
+        self._pending: deque[tuple[float, VelocitySetpoint]] = deque()  # (when it takes effect s, setpoint)
         key = realization_key(seed, realization)
         self._rng = np.random.default_rng(list(key))  # [seed] draws as seed did: realization 0 unchanged
         self._vrng = np.random.default_rng([*key, 1])  # the vertical drift's own draws
         self.drift_ned_m_s = np.zeros(3)  # the estimator-like drift now, m/s
 
     def command(self, setpoint: VelocitySetpoint) -> None:
-        """Set the velocity/yaw-rate setpoint tracked from now on (non-finite values are refused)."""
+        """Set the velocity/yaw-rate setpoint tracked from now on, or ``response_delay_s`` from now
+        (non-finite values are refused)."""
         vals = (setpoint.forward_m_s, setpoint.right_m_s, setpoint.down_m_s, setpoint.yaw_rate_deg_s)
         if not all(math.isfinite(v) for v in vals):
             raise VehicleError(f"non-finite setpoint {setpoint}")
-        self.setpoint = setpoint
+        if self.params.response_delay_s > 0.0:
+            self._pending.append((self.time_s + self.params.response_delay_s, setpoint))
+        else:
+            self.setpoint = setpoint
 
     def commanded_velocity_ned_m_s(self) -> np.ndarray:
         """The setpoint turned into NED with the current yaw, float64 ``(3,)`` m/s."""
@@ -147,12 +166,23 @@ class VehicleModel:
         if not (dt_s > 0.0 and math.isfinite(dt_s)):
             raise ValueError(f"dt_s must be finite and > 0, got {dt_s}")
         p = self.params
+        while self._pending and self._pending[0][0] <= self.time_s + 1e-9:
+            self.setpoint = self._pending.popleft()[1]
         v_cmd = self.commanded_velocity_ned_m_s()
         v = self.velocity_ned_m_s
         # Exact discrete first-order lag over dt, expressed as the acceleration that realises it,
         # then clipped to the limits (the limit wins during large steps, the lag near the target).
         k = -math.expm1(-dt_s / p.velocity_time_constant_s) / dt_s
-        acc = (v_cmd - v) * k
+        f = p.slow_response_fraction
+        if f > 0.0:
+            # Two lags: the fast one follows (1 - f) of the setpoint, the slow one f of it.
+            k_slow = -math.expm1(-dt_s / p.slow_response_time_constant_s) / dt_s
+            acc_slow = (f * v_cmd - self._slow_ned_m_s) * k_slow
+            acc = ((1.0 - f) * v_cmd - (v - self._slow_ned_m_s)) * k + acc_slow
+        else:
+            acc_slow = None
+            acc = (v_cmd - v) * k
+        acc_asked = acc.copy()
         ah = math.hypot(acc[0], acc[1])
         if ah > p.max_horizontal_accel_m_s2:
             acc[:2] *= p.max_horizontal_accel_m_s2 / ah
@@ -162,6 +192,11 @@ class VehicleModel:
             ka = -math.expm1(-dt_s / p.acceleration_time_constant_s)
             acc = self.accel_ned_m_s2 + (acc - self.accel_ned_m_s2) * ka
         v_new = v + acc * dt_s
+        if acc_slow is not None:
+            # The limits scale both parts alike.
+            with np.errstate(divide="ignore", invalid="ignore"):
+                scale = np.where(acc_asked != 0.0, acc / acc_asked, 1.0)
+            self._slow_ned_m_s = self._slow_ned_m_s + acc_slow * scale * dt_s
         self.position_ned_m = self.position_ned_m + 0.5 * (v + v_new) * dt_s
         if p.drift_speed_m_s > 0.0 or p.vertical_drift_speed_m_s > 0.0:
             # Ornstein-Uhlenbeck, exact over dt: stationary std drift_speed_m_s per horizontal axis

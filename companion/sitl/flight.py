@@ -255,9 +255,14 @@ async def prepare_flight(
 async def start_and_place(service: ServiceProcess, pilot: Pilot, course: Course) -> CoursePlacement:
     """Steps 4 and 3: start the service, wait for a steady hover, and place the course at the vehicle
     *now* with a live ``set_config`` of ``camera.sim_origin_*`` (the hover drifts while the service
-    starts: a placement taken earlier would start the flight off the course's start pose)."""
+    starts: a placement taken earlier would start the flight off the course's start pose). When
+    either step fails, the service is stopped before the error goes on: nothing is left running."""
     await service.start()
-    return await place_course(service, pilot, course)
+    try:
+        return await place_course(service, pilot, course)
+    except BaseException:
+        await service.stop()
+        raise
 
 
 def placement_patch(cfg: CompanionConfig, placement: CoursePlacement) -> dict[str, dict[str, float]]:

@@ -15,6 +15,9 @@
   pilot's pitch stick full forward. ArduCopter must stop the vehicle about the margin short of the wall.
   Then the service stops while the vehicle stands there, stick still forward: what ArduCopter does is
   measured (its proximity data expires 0.5 s after the last message).
+* **step-response** (PX4): the ground station flies offboard itself and steps its velocity and yaw-rate
+  setpoints; the simulator's vehicle model is fitted to PX4's response
+  (:mod:`companion.sitl.step_response`).
 """
 
 from __future__ import annotations
@@ -49,7 +52,7 @@ from companion.sitl.service import ServiceProcess
 
 log = logging.getLogger(__name__)
 
-SCENARIOS: tuple[str, ...] = ("collision-prevention", "rc-engage", "proximity")
+SCENARIOS: tuple[str, ...] = ("collision-prevention", "rc-engage", "proximity", "step-response")
 
 _MAV_CMD_DO_SET_MODE = 176
 _PX4_MAIN_POSCTL = 3
@@ -593,6 +596,19 @@ async def run_scenario(
         return await _run_ardupilot_proximity(cfg, ports=ports, pilot_url=pilot_url, workdir=workdir,
                                               service_log_level=service_log_level, **kw)
     sitl = Px4Sitl(px4_build, workdir / "px4", ports.instance) if px4_build is not None else None
+    if name == "step-response":
+        from companion.sitl.step_response import OffboardPilot, fly_step_response
+
+        step_pilot = OffboardPilot(pilot_url, ports.system_id)
+        try:
+            if sitl is not None:
+                await asyncio.to_thread(sitl.start)
+            await step_pilot.connect()
+            return await fly_step_response(step_pilot, workdir)
+        finally:
+            await step_pilot.close()
+            if sitl is not None:
+                await asyncio.to_thread(sitl.stop)
     pilot = StickPilot(pilot_url, ports.system_id)
     try:
         if sitl is not None:

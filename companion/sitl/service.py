@@ -55,11 +55,20 @@ class ServiceProcess:
 
     async def start(self, timeout_s: float = 30.0) -> None:
         """Write the config, start the process, wait until its health says the camera streams and the
-        vehicle link is connected with the flight mode known (what ``engage`` needs).
+        vehicle link is connected with the flight mode known (what ``engage`` needs). Whatever ends
+        the wait early (not ready, an error, a cancelled task) stops the process first (:meth:`stop`):
+        a start that fails leaves nothing running.
 
         Raises:
             SitlError: it exited (its exit code and log tail are in the message) or was not ready in time.
         """
+        try:
+            await self._start(timeout_s)
+        except BaseException:
+            await self.stop()
+            raise
+
+    async def _start(self, timeout_s: float) -> None:
         import zmq
         import zmq.asyncio
 
@@ -161,25 +170,31 @@ class ServiceProcess:
         after ``timeout_s``. Returns the exit code (None if it was never started). Safe to call twice."""
         proc = self._proc
         code = None
-        if proc is not None:
-            if proc.poll() is None:
+        try:
+            if proc is not None and proc.poll() is None:
                 proc.send_signal(signal.SIGTERM)
                 try:
                     await asyncio.to_thread(proc.wait, timeout_s)
                 except subprocess.TimeoutExpired:
                     log.warning("the service did not stop within %g s; killing it", timeout_s)
-                    proc.kill()
-                    proc.wait()
+        finally:
+            # Whatever happened above (the wait cancelled included), nothing is left behind.
+            if proc is not None and proc.poll() is None:
+                proc.kill()
+                proc.wait()
+            task, self._task = self._task, None
+            try:
+                if task is not None:
+                    await cancel_and_wait([task])
+            finally:
+                if self._sub is not None:
+                    self._sub.close(0)
+                    self._sub = None
+                if self._ctx is not None:
+                    self._ctx.destroy(linger=0)
+                    self._ctx = None
+        if proc is not None:
             code = proc.returncode
-        if self._task is not None:
-            await cancel_and_wait([self._task])
-            self._task = None
-        if self._sub is not None:
-            self._sub.close(0)
-            self._sub = None
-        if self._ctx is not None:
-            self._ctx.destroy(linger=0)
-            self._ctx = None
         if self.health_history:
             await asyncio.to_thread(self._write_health_log)
         return code
