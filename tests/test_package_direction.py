@@ -27,6 +27,7 @@ RANK: dict[str, int] = {
     "interfaces": 0,
     "report": 0,
     "framepool": 0,
+    "pacing": 0,
     "devices": 0,
     "config": 1,
     "core": 2,

@@ -15,6 +15,7 @@ import numpy as np
 
 from companion.errors import CameraError, InputError
 from companion.interfaces import Frame
+from companion.pacing import RatePacer, RecordedPacer
 
 __all__ = ["RecordedCamera"]
 
@@ -64,9 +65,8 @@ class RecordedCamera:
         self._sequence: Any = None
         self._pairs: Iterator[Any] | None = None
         self._seq = 0
-        self._t0_wall: float | None = None
-        self._t0_rec_ns = 0
-        self._next_s: float | None = None
+        self._at_recorded = RecordedPacer(clock, self._stop, unit_s=1e-9)
+        self._at_rate = RatePacer(1.0 / rate_hz, clock, self._stop) if rate_hz is not None else None
 
     @property
     def eye_size_px(self) -> tuple[int, int]:
@@ -87,8 +87,9 @@ class RecordedCamera:
         with self._lock:
             self._sequence = seq
             self._pairs = seq.pairs()
-        self._t0_wall = None
-        self._next_s = None
+        self._at_recorded.restart()
+        if self._at_rate is not None:
+            self._at_rate.restart()
         log.info("%s: open (%s, topics %s and %s)", self.name, seq.kind, *seq.topics)
 
     def _next_pair(self) -> Any:
@@ -104,7 +105,7 @@ class RecordedCamera:
                 log.info("%s: end of the recording: %s", self.name, report.summary())
                 raise CameraError(f"{self.name}: end of the recording ({report.summary()})", ended=True) from None
             self._pairs = self._sequence.pairs()
-            self._t0_wall = None
+            self._at_recorded.restart()
             try:
                 return next(self._pairs)
             except StopIteration:
@@ -142,23 +143,10 @@ class RecordedCamera:
         return Frame(image=np.ascontiguousarray(image), timestamp_s=self._clock(), seq=self._seq)
 
     def _wait_for(self, t_ns: int) -> None:
-        now = self._clock()
-        if self.rate_hz is None:
-            # Pair i is due at t0 + (t_i - t_0); far behind (a slow disk, a pause): start again from now.
-            if self._t0_wall is None:
-                self._t0_wall, self._t0_rec_ns = now, t_ns
-            due = self._t0_wall + (t_ns - self._t0_rec_ns) / 1e9
-            if due > now:
-                self._stop.wait(due - now)
-            elif now - due > 0.5:
-                self._t0_wall, self._t0_rec_ns = now, t_ns
-            return
-        period = 1.0 / self.rate_hz
-        if self._next_s is None or now - self._next_s > period:
-            self._next_s = now
-        if self._next_s > now:
-            self._stop.wait(self._next_s - now)
-        self._next_s += period
+        if self._at_rate is None:
+            self._at_recorded.wait(t_ns)
+        else:
+            self._at_rate.wait()
 
     def close(self) -> None:
         """Stop waiting and release the sequence (safe to call twice)."""

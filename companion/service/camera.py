@@ -28,6 +28,7 @@ from companion.core.pose import Pose
 from companion.errors import CameraError
 from companion.framepool import FrameBuffers
 from companion.interfaces import CameraSource, Frame, VehicleState
+from companion.pacing import RatePacer, RecordedPacer
 
 if TYPE_CHECKING:
     from companion.config import CompanionConfig
@@ -66,25 +67,6 @@ def _check_frame(image: object, source: str, width_px: int, height_px: int, yuyv
             f"{2 * width_px}x{height_px} (two {width_px}x{height_px} eyes)"
         )
     return image
-
-
-class _Pacer:
-    """Sleeps so that frames come out at ``period_s`` (restarts the grid when it falls behind)."""
-
-    def __init__(self, period_s: float, clock: Clock, stop: threading.Event) -> None:
-        self.period_s = period_s
-        self._clock = clock
-        self._stop = stop
-        self._next: float | None = None
-
-    def wait(self) -> None:
-        now = self._clock()
-        if self._next is None or now - self._next > self.period_s:
-            self._next = now  # first frame, or we fell behind by more than a frame: no burst
-        delay = self._next - now
-        if delay > 0:
-            self._stop.wait(delay)
-        self._next += self.period_s
 
 
 # ---------------------------------------------------------------------------------------------- UVC
@@ -433,9 +415,8 @@ class ReplayCamera:
         self._times: np.ndarray | None = None
         self._index = 0
         self._seq = 0
-        self._t0_wall: float | None = None
-        self._t0_rec = 0.0
-        self._pacer: _Pacer | None = None
+        self._at_recorded = RecordedPacer(clock, self._stop)
+        self._pacer: RatePacer | None = None
         self._opened = False
 
     @property
@@ -485,9 +466,9 @@ class ReplayCamera:
             self._frames = frames
             self._release_video()
         self._index = 0
-        self._t0_wall = None
+        self._at_recorded.restart()
         period = 1.0 / (self.rate_hz or self.fallback_fps_hz)
-        self._pacer = _Pacer(period, self._clock, self._stop)
+        self._pacer = RatePacer(period, self._clock, self._stop)
         self._opened = True
         log.info("%s: open (%s)", self.name, "preloaded" if self.preload else "streaming from disk")
 
@@ -544,7 +525,7 @@ class ReplayCamera:
             if not self.loop:
                 raise CameraError(f"{self.name}: end of the recording", ended=True)
             self._rewind()
-            self._t0_wall = None
+            self._at_recorded.restart()
             index = 0
             image = self._decode_next(allow_end=False)
             if image is None:
@@ -556,15 +537,7 @@ class ReplayCamera:
 
     def _wait_for(self, index: int) -> None:
         if self.rate_hz is None and self._times is not None and index < len(self._times):
-            # At the recorded timestamps: frame i is due at t0 + (t_i - t_0).
-            now = self._clock()
-            if self._t0_wall is None:
-                self._t0_wall, self._t0_rec = now, float(self._times[index])
-            due = self._t0_wall + float(self._times[index]) - self._t0_rec
-            if due - now > 0:
-                self._stop.wait(due - now)
-            elif now - due > 0.5:
-                self._t0_wall, self._t0_rec = now, float(self._times[index])  # fell behind: re-anchor
+            self._at_recorded.wait(float(self._times[index]))  # at the recorded timestamps
             return
         assert self._pacer is not None
         self._pacer.wait()
@@ -626,7 +599,7 @@ class SimCamera:
         self._renderer = None
         self._rng = np.random.default_rng(seed)
         self._fixed: np.ndarray | None = None
-        self._pacer: _Pacer | None = None
+        self._pacer: RatePacer | None = None
         self._seq = 0
 
     @property
@@ -639,7 +612,7 @@ class SimCamera:
         self._stop.clear()
         if self._renderer is None:
             self._renderer = StereoRenderer(self.geometry, self.scene, seed=self.seed)
-        self._pacer = _Pacer(1.0 / self.fps_hz, self._clock, self._stop)
+        self._pacer = RatePacer(1.0 / self.fps_hz, self._clock, self._stop)
 
     def _render(self, pose: Pose) -> np.ndarray:
         from companion.sim.render import Photometry
