@@ -48,3 +48,13 @@ def companion_argv(command: str) -> list[str] | None:
         if word in (">", ">>", "<", "|", "2>&1") or word.startswith((">", "2>")):
             return argv[1:i]
     return argv[1:]
+
+
+def companion_commands(body: str) -> list[tuple[str, list[str]]]:
+    """``(command, arguments)`` of every ``companion`` command in a block's body (:func:`commands`)."""
+    found = []
+    for command in commands(body):
+        argv = companion_argv(command)
+        if argv is not None:
+            found.append((command, argv))
+    return found

@@ -24,7 +24,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from doc_blocks import blocks, commands, companion_argv
+from doc_blocks import blocks, companion_commands
 
 from companion.cli import build_parser
 
@@ -52,10 +52,7 @@ def test_every_companion_command_in_the_docs_parses() -> None:
         for lang, _tag, body in blocks(path):
             if lang != "bash":
                 continue
-            for command in commands(body):
-                argv = companion_argv(command)
-                if argv is None:
-                    continue
+            for command, argv in companion_commands(body):
                 try:
                     parser.parse_args(argv)
                     parsed += 1

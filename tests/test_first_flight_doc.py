@@ -16,7 +16,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from doc_blocks import blocks, commands, companion_argv
+from doc_blocks import blocks, commands, companion_commands
 
 from companion.cli import build_parser
 from companion.config import load_config
@@ -37,10 +37,7 @@ def test_every_block_is_tagged_and_every_companion_command_parses() -> None:
     for lang, tag, body in found:
         if lang != "bash":
             continue
-        for command in commands(body):
-            argv = companion_argv(command)
-            if argv is None:
-                continue
+        for command, argv in companion_commands(body):
             try:
                 parser.parse_args(argv)
             except SystemExit:
