@@ -11,9 +11,9 @@ from __future__ import annotations
 import tracemalloc
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pytest
+from stereo_pairs import shifted_pair
 
 from companion import backends
 from companion.config import CompanionConfig
@@ -47,16 +47,6 @@ def _matcher(w: int, h: int, d: int, **kw):
     return CpuSgmMatcher(w, h, d, **kw)
 
 
-def _pair(h: int, w: int, shift: int, seed: int, noise: int = 3) -> tuple[np.ndarray, np.ndarray]:
-    """right(x) = left(x + shift) + noise (as in tests/test_sgm.py)."""
-    rng = np.random.default_rng(seed)
-    base = cv2.GaussianBlur(rng.integers(0, 256, (h, w + shift)).astype(np.float32), (0, 0), 1.0)
-    base = np.clip((base - base.mean()) * 3 + 128, 0, 255).astype(np.uint8)
-    left = base[:, :w].copy()
-    right = np.clip(base[:, shift:].astype(int) + rng.integers(-noise, noise + 1, (h, w)), 0, 255).astype(np.uint8)
-    return left, right
-
-
 def _assert_equal(left: np.ndarray, right: np.ndarray, d: int, **params) -> None:
     h, w = left.shape
     got = _matcher(w, h, d, **params).compute_fixed(left, right)
@@ -74,7 +64,7 @@ def _assert_equal(left: np.ndarray, right: np.ndarray, d: int, **params) -> None
     ],
 )
 def test_equals_the_reference_on_the_literal_rules_pairs(D: int, p1: int, p2: int, paths: int, u: int, lr: int, median: bool) -> None:
-    left, right = _pair(9, 14, 2, seed=D + p1)
+    left, right = shifted_pair(9, 14, 2, seed=D + p1)
     left[2:6, 4:9] = 90  # a flat patch: equal sums, ties to the largest d
     right[2:6, 2:7] = 90
     _assert_equal(left, right, D, p1=p1, p2=p2, paths=paths, uniqueness_ratio_pct=u, lr_max_diff_px=lr, median=median)
@@ -115,13 +105,13 @@ def test_one_matcher_matches_frame_after_frame_into_the_callers_buffer() -> None
     m = _matcher(90, 40, 16, p1=10, p2=120)
     out = np.empty((40, 90), np.float32)
     for seed, shift in ((2, 5), (3, 9)):
-        left, right = _pair(40, 90, shift, seed=seed)
+        left, right = shifted_pair(40, 90, shift, seed=seed)
         assert m.compute(left, right, out=out) is out
         np.testing.assert_array_equal(out, S.fixed_to_float(S.sgm_match(left, right, 16, p1=10, p2=120)))
 
 
 def test_a_frame_allocates_nothing_large() -> None:
-    left, right = _pair(120, 200, 7, seed=5)
+    left, right = shifted_pair(120, 200, 7, seed=5)
     m = _matcher(200, 120, 32, p1=10, p2=120)
     out = np.empty((120, 200), np.float32)
     m.compute(left, right, out=out)
@@ -135,7 +125,7 @@ def test_a_frame_allocates_nothing_large() -> None:
 
 
 def test_one_thread_and_all_threads_agree() -> None:
-    left, right = _pair(50, 80, 6, seed=7)
+    left, right = shifted_pair(50, 80, 6, seed=7)
     a = _matcher(80, 50, 16, p1=10, p2=120, threads=1).compute_fixed(left, right)
     b = _matcher(80, 50, 16, p1=10, p2=120, threads=0).compute_fixed(left, right)
     np.testing.assert_array_equal(a, b)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+from stereo_pairs import shifted_pair
 
 from companion.config import CompanionConfig
 from companion.config.core import StereoConfig
@@ -113,16 +114,6 @@ def _brute_force(left, right, D, p1, p2, paths, u, lr, median):  # noqa: ANN001,
     return med
 
 
-def _pair(h: int, w: int, shift: int, seed: int, noise: int = 3) -> tuple[np.ndarray, np.ndarray]:
-    """right(x) = left(x + shift) + noise, i.e. left(x) = right(x - shift): a pair with disparity ``shift`` everywhere it is matchable."""
-    rng = np.random.default_rng(seed)
-    base = cv2.GaussianBlur(rng.integers(0, 256, (h, w + shift)).astype(np.float32), (0, 0), 1.0)
-    base = np.clip((base - base.mean()) * 3 + 128, 0, 255).astype(np.uint8)
-    left = base[:, :w].copy()
-    right = np.clip(base[:, shift:].astype(int) + rng.integers(-noise, noise + 1, (h, w)), 0, 255).astype(np.uint8)
-    return left, right
-
-
 def test_census_equals_the_literal_rule() -> None:
     img = np.random.default_rng(0).integers(0, 256, (11, 13), dtype=np.uint8)
     img[3:7, 2:9] = 50  # ties: equal neighbours give 0
@@ -140,7 +131,7 @@ def test_census_equals_the_literal_rule() -> None:
     ],
 )
 def test_reference_equals_the_literal_rules(D: int, p1: int, p2: int, paths: int, u: int, lr: int, median: bool) -> None:
-    left, right = _pair(9, 14, 2, seed=D + p1)
+    left, right = shifted_pair(9, 14, 2, seed=D + p1)
     left[2:6, 4:9] = 90  # a flat patch: equal sums, ties to the largest d
     right[2:6, 2:7] = 90
     got = S.sgm_match(left, right, D, p1=p1, p2=p2, paths=paths, uniqueness_ratio_pct=u, lr_max_diff_px=lr,
@@ -150,7 +141,7 @@ def test_reference_equals_the_literal_rules(D: int, p1: int, p2: int, paths: int
 
 def test_a_shifted_pair_is_matched_at_its_disparity() -> None:
     h, w, shift = 60, 120, 9
-    left, right = _pair(h, w, shift, seed=1)
+    left, right = shifted_pair(h, w, shift, seed=1)
     v = S.sgm_match(left, right, 32, p1=10, p2=120)
     d = S.fixed_to_float(v)
     matchable = np.zeros((h, w), bool)
@@ -186,7 +177,7 @@ def test_matcher_from_config_and_cpu_estimator() -> None:
     assert m.params == dict(p1=10, p2=120, paths=4, uniqueness_ratio_pct=10, lr_max_diff_px=1, median=True)
     sad = make_cpu_matcher(StereoConfig(backend="reference", matcher="sad"))
     assert not isinstance(sad, SgmReferenceMatcher)
-    left, right = _pair(40, 90, 5, seed=2)
+    left, right = shifted_pair(40, 90, 5, seed=2)
     out = np.empty(left.shape, np.float32)
     assert m.compute(left, right, out=out) is out
     np.testing.assert_array_equal(out, S.fixed_to_float(m.compute_fixed(left, right)))
