@@ -188,9 +188,25 @@ def test_a_closed_pocket_is_held_once_looked_round() -> None:
         m.integrate(_wall_blocks(1.0), GEOM, BLOCK_PX, pose, 0.05 * k)
         plan = p.plan(_snap(now_s=0.05 * k, yaw_rad=yaw), m)
     assert plan is not None and plan.mode is Mode.HOLD and "dead end" in plan.reason
-    # Held: it stays held whatever comes next (only a new engagement leaves it).
+    # Held: it stays held whatever comes next (only the operator's resume or a new engagement leaves it).
     assert p.plan(_snap(now_s=5.0), m).mode is Mode.HOLD
     assert all(TRANSITIONS[(Mode.HOLD, e)] is Mode.HOLD for e in ("direct", "steer", "round"))
+    p.resume()  # looks again: the pocket is still closed, so it is held again once confirmed
+    assert p.plan(_snap(now_s=5.1), m).mode is not Mode.HOLD
+    assert p.plan(_snap(now_s=5.7), m).mode is Mode.HOLD
+
+
+def test_the_service_s_watchdog_stops_the_planner_at_the_point_it_holds() -> None:
+    m = _map()
+    _see(m, _wall_blocks(30.0))
+    p = LocalPlanner(PlannerConfig(), 0.25)
+    assert p.plan(_snap(now_s=0.3), m).mode is Mode.CRUISE
+    p.stop("no progress along the course for 20 s")
+    held = p.plan(_snap(now_s=0.35), m)
+    assert held.mode is Mode.HOLD and held.reason.startswith("no progress")
+    assert np.allclose(held.velocity_ned_m_s, 0.0)
+    away = p.plan(_snap(now_s=0.4, position_ned_m=np.array([0.3, 0.0, -1.5])), m)
+    assert away.velocity_ned_m_s[0] == pytest.approx(-0.3)  # back to the point held
 
 
 def test_the_predicted_path_swings_with_the_lagging_velocity() -> None:
@@ -317,13 +333,15 @@ def test_speed_law_limits_the_command_and_brakes_the_motion() -> None:
     assert out.right_m_s > 1.5  # the sideways part stays (within cruise)
 
 
-def test_the_unexplained_motion_comes_off_the_setpoint_but_not_off_zero_or_a_hold() -> None:
+def test_the_unexplained_motion_comes_off_the_setpoint_and_a_hold_but_not_off_zero() -> None:
     west = np.array([0.0, -0.3, 0.0])  # the vehicle moves west the reported velocity does not show
     out = counter_unexplained(FAST, _ctx(unexplained_ned_m_s=west))
     assert out.forward_m_s == pytest.approx(3.0) and out.right_m_s == pytest.approx(0.3)
     facing_east = counter_unexplained(FAST, _ctx(unexplained_ned_m_s=west, yaw_rad=math.pi / 2))
     assert facing_east.forward_m_s == pytest.approx(3.3) and facing_east.right_m_s == pytest.approx(0.0, abs=1e-9)
-    assert counter_unexplained(FAST, _ctx(unexplained_ned_m_s=west, holding=True)) == FAST
+    # Holding, the point is held against the drift too (the position loop alone lags it).
+    held = counter_unexplained(ZERO_SETPOINT, _ctx(unexplained_ned_m_s=west, holding=True))
+    assert held.forward_m_s == pytest.approx(0.0, abs=1e-9) and held.right_m_s == pytest.approx(0.3)
     assert apply_chain(FAST, _ctx(unexplained_ned_m_s=west, frame_age_s=9.0)) == ZERO_SETPOINT
 
 
@@ -392,7 +410,9 @@ def test_the_service_flies_the_local_stack_when_planner_kind_is_local(memory_s: 
     """The supervisor's engaged step runs the local stack: frames enter its map from the pose at
     capture whatever the rules' obstacle memory is set to, and the setpoint is the stack's (forward
     into space seen free; zero before any is seen). A dead end the planner holds pauses the flight
-    with the planner's reason, as the rules stack's does."""
+    with the planner's reason, as the rules stack's does, and holds the point where it stopped (told
+    zero velocity, PX4 crept on at 0.2 m/s after a stop from 3 m/s and touched the dead end's wall);
+    the operator's resume flies again."""
     from dataclasses import dataclass, replace
 
     from companion.core.supervisor import Engage, State, Supervisor, SupervisorConfig
@@ -442,3 +462,17 @@ def test_the_service_flies_the_local_stack_when_planner_kind_is_local(memory_s: 
     out = sup.step(now, Seen(now - 0.01, clear, np.empty((0, 3)), _wall_blocks(30.0), GEOM), v, [], camera_ok=True)
     assert out.state is State.PAUSED and "dead end" in out.reason
     assert out.setpoint is not None and out.setpoint.forward_m_s == 0.0
+    # Creeping on toward the wall at 0.2 m/s: back to the held point, without turning.
+    for k in range(1, 21):
+        now += 0.05
+        v = replace(v, position_ned_m=at + np.array([0.01 * k, 0.0, 0.0]), velocity_ned_m_s=np.array([0.2, 0.0, 0.0]),
+                    position_timestamp_s=now)
+        out = sup.step(now, Seen(now - 0.01, clear, np.empty((0, 3)), _wall_blocks(30.0), GEOM), v, [], camera_ok=True)
+    assert out.state is State.PAUSED and "dead end" in out.reason
+    assert out.setpoint is not None and out.setpoint.forward_m_s < -0.15 and out.setpoint.yaw_rate_deg_s == 0.0
+    from companion.core.supervisor import Resume
+
+    now += 0.05
+    out = sup.step(now, Seen(now - 0.01, clear, np.empty((0, 3)), _wall_blocks(30.0), GEOM), v, [Resume()], camera_ok=True)
+    assert out.state is State.ENGAGED and planner.mode is not Mode.HOLD
+    assert out.setpoint is not None and out.setpoint.forward_m_s > 0.5

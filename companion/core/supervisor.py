@@ -696,6 +696,9 @@ class Supervisor:
                 return Reply(r, False, f"goto refused: not engaged ({m.state.value}); engage with a goal instead")
             m.goal = r.goal
             m.course.set_goal(r.goal, v.position_ned_m, _finite_or_none(v.attitude_rad, 2))
+            heading = _finite_or_none(v.attitude_rad, 2)
+            if m.local is not None and v.position_ned_m is not None and heading is not None:
+                m.local.set_goal(np.asarray(v.position_ned_m, dtype=np.float64), heading, r.goal)
             if m.stalled:
                 m.activity = State.ENGAGED  # a hold of the watchdog, a dead end or the goal: automatic again
                 m.stalled = False
@@ -724,6 +727,8 @@ class Supervisor:
             m.stalled = False
             m.override = None
             m.course.resume()  # forget a hold of the watchdog, a dead end or the goal reached: look again
+            if m.local is not None:
+                m.local.resume()
             return Reply(r, True, "automatic" if was is not State.ENGAGED else "already automatic")
         if isinstance(r, Override):
             if not self._commanding():
@@ -810,6 +815,8 @@ class Supervisor:
             # Before the reset below: it clears the watchdog's why (a regress would read as
             # "no progress for 20 s").
             m.stall_reason = self._stalled_reason()
+            if m.local is not None and m.local.holding_reason is None:
+                m.local.stop(m.stall_reason)  # the watchdog's hold: the local planner holds the point
         if m.activity is not State.ENGAGED:
             m.course.progress.reset()  # the watchdog times the automatic flight only
         if m.activity is State.PAUSED:
@@ -902,12 +909,14 @@ class Supervisor:
         heading_now = _finite_or_none(v.attitude_rad, 2)
         refined = getattr(latest, "refined", None)
         if m.local is not None:
-            # The local planner (planner.kind "local"): its safety chain ends the setpoint. Without a
-            # position, velocity and heading there is no plan: zero velocity.
-            if hold or heading_now is None or v.position_ned_m is None or v.velocity_ned_m_s is None:
+            # The local planner (planner.kind "local"): its safety chain ends the setpoint; holding, it
+            # holds the point where the hold began (an autopilot told zero velocity creeps on: PX4's
+            # velocity integrator, the position estimate's drift). Without a position, velocity and
+            # heading there is no plan: zero velocity.
+            if heading_now is None or v.position_ned_m is None or v.velocity_ned_m_s is None:
                 return ZERO_SETPOINT
             step = m.local.step(
-                now_s, age_s, decision, getattr(refined, "depth_m", None),
+                now_s, age_s, latest.decision, getattr(refined, "depth_m", None),
                 np.asarray(v.position_ned_m, dtype=np.float64), np.asarray(v.velocity_ned_m_s, dtype=np.float64), heading_now,
             )
             return step.setpoint

@@ -57,17 +57,21 @@ class Mode(str, enum.Enum):
     CRUISE = "cruise"  #: flying at the goal, or within 15° of it
     AVOID = "avoid"  #: steering round something, within 60° of the goal's direction
     DETOUR = "detour"  #: farther off the goal's direction, or turning to look
-    HOLD = "hold"  #: a dead end, or the goal reached: zero velocity until the operator commands
+    HOLD = "hold"  #: a dead end, the goal reached or the flight stopped: the point held until the operator commands
 
 
-#: The one transition table: (mode now, event) -> next mode. Events (:func:`event_of`): "direct",
-#: "steer", "round", "dead_end", "arrived". HOLD is left only by a new engagement (:meth:`LocalPlanner.engage`).
+#: The one transition table: (mode now, event) -> next mode. Events: "direct", "steer", "round"
+#: (:func:`event_of`), "dead_end", "arrived", "stopped" (the service's progress watchdog) and "resumed"
+#: (the operator's resume or new goal). HOLD is left only by "resumed" or a new engagement
+#: (:meth:`LocalPlanner.engage`).
 TRANSITIONS: dict[tuple[Mode, str], Mode] = {
     **{(m, "direct"): Mode.CRUISE for m in (Mode.CRUISE, Mode.AVOID, Mode.DETOUR)},
     **{(m, "steer"): Mode.AVOID for m in (Mode.CRUISE, Mode.AVOID, Mode.DETOUR)},
     **{(m, "round"): Mode.DETOUR for m in (Mode.CRUISE, Mode.AVOID, Mode.DETOUR)},
     **{(m, "dead_end"): Mode.HOLD for m in Mode},
     **{(m, "arrived"): Mode.HOLD for m in Mode},
+    **{(m, "stopped"): Mode.HOLD for m in Mode},
+    **{(m, "resumed"): Mode.CRUISE for m in Mode},
     **{(Mode.HOLD, e): Mode.HOLD for e in ("direct", "steer", "round")},
 }
 
@@ -266,6 +270,20 @@ class LocalPlanner:
         self._last_t: float | None = None
         self._closed_since: float | None = None
         self._held_at: np.ndarray | None = None
+
+    def stop(self, reason: str) -> None:
+        """Hold the point where the vehicle is from the next tick on (the service's progress watchdog),
+        for ``reason``."""
+        self.mode = TRANSITIONS[(self.mode, "stopped")]
+        self.reason = reason
+
+    def resume(self) -> None:
+        """Leave a hold and plan again (the operator's resume or new goal), keeping what was learnt of
+        the places and the looks: a dead end is declared again only once it is seen closed again."""
+        self.mode = TRANSITIONS[(self.mode, "resumed")]
+        self.reason = ""
+        self._held_at = None
+        self._closed_since = None
 
     def _bin(self, yaw: np.ndarray | float) -> np.ndarray:
         n = len(self._yaw_off)

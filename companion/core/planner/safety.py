@@ -115,10 +115,12 @@ def brake_hold(sp: VelocitySetpoint, ctx: SafetyContext) -> VelocitySetpoint:
 
 def speed_law_limit(sp: VelocitySetpoint, ctx: SafetyContext) -> VelocitySetpoint:
     """The commanded speed within the speed law on the free length along it, and its component along
-    the vehicle's motion within the speed law on the free length along that."""
+    the vehicle's motion within the speed law on the free length along that. Holding, the command
+    leads back to the held point, where the vehicle's body was (the way back need not have been
+    seen): only the motion is bounded."""
     v = to_ned(sp, ctx.yaw_rad)
     speed = float(np.linalg.norm(v))
-    if speed > 1e-9:
+    if speed > 1e-9 and not ctx.holding:
         cap = float(speed_law(ctx.free_along(v / speed), ctx.planner))
         if speed > cap:
             v = v * (cap / speed)
@@ -140,10 +142,11 @@ def speed_law_limit(sp: VelocitySetpoint, ctx: SafetyContext) -> VelocitySetpoin
 
 def counter_unexplained(sp: VelocitySetpoint, ctx: SafetyContext) -> VelocitySetpoint:
     """The unexplained motion taken off the horizontal setpoint (the autopilot tracks its velocity
-    estimate; the vehicle moves at the setpoint plus the estimate's error). Not while holding (the
-    hold steers back to its point on the position itself) nor on stale frames (zero is zero)."""
+    estimate; the vehicle moves at the setpoint plus the estimate's error). Holding too: the hold
+    steers back to its point on the position, which alone lags a drift by its speed over the hold's
+    gain. Not on stale frames (zero is zero)."""
     u = ctx.unexplained_ned_m_s
-    if ctx.holding or not ctx.frame_age_s <= ctx.stale_after_s or not (u[0] or u[1]):
+    if not ctx.frame_age_s <= ctx.stale_after_s or not (u[0] or u[1]):
         return sp
     v = to_ned(sp, ctx.yaw_rad)
     v[:2] -= u[:2]

@@ -63,14 +63,33 @@ class LocalStack:
         pos = np.asarray(position_ned_m, dtype=np.float64)
         self.planner.engage()
         self.track.reset()
+        self.goal_ned_m = self._goal_point(pos, yaw_rad, goal)
+
+    @staticmethod
+    def _goal_point(pos: np.ndarray, yaw_rad: float, goal: GoalSpec | None) -> np.ndarray | None:
+        """The NED point (float64 ``(3,)``) a goal is flown to from ``pos`` heading ``yaw_rad``, at the
+        altitude now; None for no goal."""
         if goal is None:
-            self.goal_ned_m = None
-            return
+            return None
         g = resolve_goal(goal, pos, yaw_rad)
         if g.point_ned_m is None:
-            self.goal_ned_m = pos + COURSE_POINT_M * np.array([math.cos(yaw_rad), math.sin(yaw_rad), 0.0])
-        else:
-            self.goal_ned_m = np.array([g.point_ned_m[0], g.point_ned_m[1], pos[2]])
+            return pos + COURSE_POINT_M * np.array([math.cos(yaw_rad), math.sin(yaw_rad), 0.0])
+        return np.array([g.point_ned_m[0], g.point_ned_m[1], pos[2]])
+
+    def set_goal(self, position_ned_m: np.ndarray, yaw_rad: float, goal: GoalSpec | None) -> None:
+        """A new goal in flight (the operator's goto): the map and the places flown through stay, a hold
+        ends."""
+        pos = np.asarray(position_ned_m, dtype=np.float64)
+        self.goal_ned_m = self._goal_point(pos, yaw_rad, goal)
+        self.planner.resume()
+
+    def resume(self) -> None:
+        """The operator's resume: a hold ends, the goal stays."""
+        self.planner.resume()
+
+    def stop(self, reason: str) -> None:
+        """Hold the point where the vehicle is (the service's progress watchdog), for ``reason``."""
+        self.planner.stop(reason)
 
     @property
     def holding_reason(self) -> str | None:
