@@ -99,22 +99,29 @@ def test_the_map_rolls_with_the_vehicle_and_keeps_what_it_saw() -> None:
 
 
 def test_the_layers_kept_up_frame_by_frame_equal_the_layers_computed_whole() -> None:
-    """The occupancy and its inflation are updated round the cubes that change (hits, passes, hits
-    that age out, the grid rolling): they equal the layers computed from the evidence at once."""
+    """The occupancy, its inflation and the seen-free layer are updated round the cubes that change
+    (hits, passes, hits and passes that age out, the grid rolling): they equal the layers computed
+    from the evidence at once."""
     from companion.core.planner.localmap import OCCUPIED_LOG_ODDS, _box_count
 
-    m = LocalMap(voxel_m=0.15, range_m=8.0, radius_m=0.25, occupied_memory_s=1.0, free_memory_s=6.0)
+    m = LocalMap(voxel_m=0.15, range_m=8.0, radius_m=0.25, occupied_memory_s=1.0, free_memory_s=0.8)
     t = 0.0
-    for k in range(40):
+    origins = set()
+    for k in range(60):
         t = 0.1 * k
         depth = 1.5 if k < 20 else 30.0  # a wall, then seen through (its hits clear and age out)
-        pose = Pose.at(0.08 * k, 0.03 * k, 1.5, yaw_rad=0.05 * k)
+        pose = Pose.at(0.12 * k, 0.03 * k, 1.5, yaw_rad=0.05 * k)
         m.integrate(_wall_blocks(depth, slice(10 + k % 7, 60)), GEOM, BLOCK_PX, pose, t)
-        if k in (12, 39):
+        origins.add(tuple(m.origin))
+        if k in (12, 39, 59):
             occ = (m.log_odds > OCCUPIED_LOG_ODDS) & (m.hit_t >= m.now_s - m.occupied_memory_s)
             assert k != 12 or occ.any()
             assert np.array_equal(m.occupied(), occ)
             assert np.array_equal(m.inflated(), _box_count(occ, 2) > 0)
+            recent = m.free_t >= m.now_s - m.free_memory_s
+            free = (_box_count(recent, 1) > 0) & (m.log_odds <= OCCUPIED_LOG_ODDS) & ~occ
+            assert np.array_equal(m.seen_free(), free)
+    assert len(origins) > 1  # the grid rolled
 
 
 def test_speed_law_is_the_exact_stopping_solution() -> None:
