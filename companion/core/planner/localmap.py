@@ -95,13 +95,12 @@ class LocalMap:
         # cubes within one cube (> 0: seen, as the rays are up to a cube apart at the range).
         self._recent = np.zeros(self.shape, dtype=bool)
         self._fcnt = np.zeros(self.shape, dtype=np.int8)
-        # What may age out, in time order: (time s, flat cube indices) of each frame's hits and passes,
-        # and the cubes carried over a rebuild (their oldest time, indices), so that a refresh looks
-        # only at the cubes whose time has come instead of scanning the grid.
+        # What may age out, in time order: (time s, flat cube indices) of each frame's hits and passes
+        # (a rebuild sorts the grid's into them), so that a refresh looks only at the cubes whose
+        # time has come instead of scanning the grid.
         self._hit_log: deque[tuple[np.float32, np.ndarray]] = deque()
         self._pass_log: deque[tuple[np.float32, np.ndarray]] = deque()
-        self._hit_carried: tuple[np.float32, np.ndarray] | None = None
-        self._pass_carried: tuple[np.float32, np.ndarray] | None = None
+        self._slot = np.zeros(int(np.prod(self.shape)), dtype=np.int32)  # scratch of _unique
         self._rebuild = True  # the next refresh recomputes every layer (first use, after a roll)
         r = np.arange(-self._inflate_n, self._inflate_n + 1)
         self._box = np.stack(np.meshgrid(r, r, r, indexing="ij"), axis=-1).reshape(-1, 3)  # (B, 3) cube offsets
@@ -233,7 +232,7 @@ class LocalMap:
         rec = self._recent.reshape(-1)
         rising = f_idx[~rec[f_idx]]
         if len(rising):
-            rising = np.unique(rising)
+            rising = self._unique(rising)
             rec[rising] = True
             _count_box(self._fcnt, rising, self._box1, self._grid_shape, 1)
 
@@ -250,17 +249,15 @@ class LocalMap:
             self._infl[...] = _box_count(self._occ, self._inflate_n)
             self._recent[...] = self.free_t >= now - self.free_memory_s
             self._fcnt[...] = _box_count(self._recent, 1)
-            self._hit_log.clear()
-            self._pass_log.clear()
-            self._hit_carried = _carried(occ, hit_t)
-            self._pass_carried = _carried(self._recent.reshape(-1), self.free_t.reshape(-1))
+            self._hit_log = _log_of(occ, hit_t)
+            self._pass_log = _log_of(self._recent.reshape(-1), self.free_t.reshape(-1))
             self._rebuild = False
             return
-        aged = self._aged(self._hit_log, "_hit_carried", occ, hit_t, now - self.occupied_memory_s)
+        aged = self._aged(self._hit_log, occ, hit_t, now - self.occupied_memory_s)
         if touched is not None and len(touched):
             now_occ = (lo[touched] > OCCUPIED_LOG_ODDS) & (hit_t[touched] >= now - self.occupied_memory_s)
-            rising = np.unique(touched[now_occ & ~occ[touched]])
-            falling = np.unique(np.concatenate([touched[~now_occ & occ[touched]], aged]))
+            rising = self._unique(touched[now_occ & ~occ[touched]])
+            falling = self._unique(np.concatenate([touched[~now_occ & occ[touched]], aged]))
         else:
             rising, falling = np.zeros(0, np.int64), aged
         occ[rising] = True
@@ -268,28 +265,30 @@ class LocalMap:
         _count_box(self._infl, rising, self._box, self._grid_shape, 1)
         _count_box(self._infl, falling, self._box, self._grid_shape, -1)
         rec = self._recent.reshape(-1)
-        stale = self._aged(self._pass_log, "_pass_carried", rec, self.free_t.reshape(-1), now - self.free_memory_s)
+        stale = self._aged(self._pass_log, rec, self.free_t.reshape(-1), now - self.free_memory_s)
         rec[stale] = False
         _count_box(self._fcnt, stale, self._box1, self._grid_shape, -1)
 
-    def _aged(self, log: deque, carried_name: str, flag: np.ndarray, times: np.ndarray, since: float) -> np.ndarray:
+    def _aged(self, log: deque, flag: np.ndarray, times: np.ndarray, since: float) -> np.ndarray:
         """The cubes (int64 flat, unique) still ``flag``-ged whose time (``times``) is now before
-        ``since``: found among the log's entries older than ``since`` (popped) and the carried set
-        (what a rebuild found flagged; what is still flagged and not yet due stays carried)."""
-        found = []
+        ``since``: found among the log's entries older than ``since`` (popped)."""
         thr = np.float32(since)
+        found = []
         while log and log[0][0] < thr:
             found.append(log.popleft()[1])
-        carried = getattr(self, carried_name)
-        if carried is not None and carried[0] < thr:
-            idx = carried[1]
-            found.append(idx)
-            rest = idx[flag[idx] & (times[idx] >= thr)]
-            setattr(self, carried_name, (times[rest].min(), rest) if len(rest) else None)
         if not found:
             return np.zeros(0, np.int64)
-        c = np.unique(np.concatenate(found))
-        return c[flag[c] & (times[c] < thr)]
+        c = found[0] if len(found) == 1 else np.concatenate(found)
+        return self._unique(c[flag[c] & (times[c] < thr)])
+
+    def _unique(self, idx: np.ndarray) -> np.ndarray:
+        """``idx`` (int64 flat cube indices) without repeats, in no particular order, in one pass
+        (a slot per cube remembers which element claimed it; no sort)."""
+        if len(idx) < 2:
+            return idx
+        n = np.arange(len(idx), dtype=np.int32)
+        self._slot[idx] = n
+        return idx[self._slot[idx] == n]
 
     def mark_body_free(self, position_ned_m: np.ndarray, t_s: float) -> None:
         """The cubes the vehicle's body is in now are free (it is there) at ``t_s``: those alone, not
@@ -415,17 +414,30 @@ def _count_box(counts: np.ndarray, cubes: np.ndarray, box: np.ndarray, shape: np
     round each of ``cubes`` (int64 flat indices, unique) inside the grid of ``shape``."""
     if len(cubes) == 0:
         return
-    q = np.stack(np.unravel_index(cubes, counts.shape), axis=-1)[:, None, :] + box[None, :, :]
-    q = q.reshape(-1, 3)
-    q = q[np.all((q >= 0) & (q < shape), axis=1)]
-    flat = (q[:, 0] * counts.shape[1] + q[:, 1]) * counts.shape[2] + q[:, 2]
+    ny, nz = counts.shape[1], counts.shape[2]
+    r = int(np.abs(box).max())
+    ijk = np.stack(np.unravel_index(cubes, counts.shape), axis=-1)
+    inner = np.all((ijk >= r) & (ijk < shape - r), axis=1)
+    # Inside the grid by the box's reach: flat offsets alone; at the edge, each cube of the box checked.
+    flat = (cubes[inner][:, None] + ((box[:, 0] * ny + box[:, 1]) * nz + box[:, 2])[None, :]).reshape(-1)
+    if not np.all(inner):
+        q = (ijk[~inner][:, None, :] + box[None, :, :]).reshape(-1, 3)
+        q = q[np.all((q >= 0) & (q < shape), axis=1)]
+        flat = np.concatenate([flat, (q[:, 0] * ny + q[:, 1]) * nz + q[:, 2]])
     np.add.at(counts.reshape(-1), flat, counts.dtype.type(delta))
 
 
-def _carried(flag: np.ndarray, times: np.ndarray) -> tuple[np.float32, np.ndarray] | None:
-    """The flagged cubes of a rebuilt layer (int64 flat indices) and their oldest time, or None."""
+def _log_of(flag: np.ndarray, times: np.ndarray) -> deque:
+    """The flagged cubes of a rebuilt layer as a log: (time, int64 flat indices) per distinct time
+    (``times``, float32 per cube), in time order."""
     idx = np.flatnonzero(flag)
-    return (times[idx].min(), idx) if len(idx) else None
+    if len(idx) == 0:
+        return deque()
+    t = times[idx]
+    order = np.argsort(t, kind="stable")
+    idx, t = idx[order], t[order]
+    cuts = np.flatnonzero(np.diff(t)) + 1
+    return deque(zip(t[np.concatenate([[0], cuts])], np.split(idx, cuts)))
 
 
 def _box_count(mask: np.ndarray, n: int) -> np.ndarray:

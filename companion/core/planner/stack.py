@@ -115,8 +115,20 @@ class LocalStack:
         env = self.cfg.envelope
         lmap = self.map
 
+        # The chain asks along the command and along the motion: both in one query, the usual case.
+        asked = np.zeros((2, 3))
+        asked[0] = plan.direction_ned
+        sp_m = float(np.linalg.norm(vel))
+        if sp_m > 1e-9:
+            asked[1] = vel / sp_m
+        known = lmap.free_lengths(pos, asked).length_m
+
         def free_along(u: np.ndarray) -> float:
-            return float(lmap.free_lengths(pos, np.asarray(u, dtype=np.float64)[None, :]).length_m[0])
+            u = np.asarray(u, dtype=np.float64)
+            for k in range(2):
+                if float(asked[k] @ u) > 1.0 - 1e-9:
+                    return float(known[k])
+            return float(lmap.free_lengths(pos, u[None, :]).length_m[0])
 
         ctx = SafetyContext(
             frame_age_s=frame_age_s,
