@@ -247,6 +247,7 @@ class LocalMap:
         if self._rebuild:
             self._occ[...] = (self.log_odds > OCCUPIED_LOG_ODDS) & (self.hit_t >= now - self.occupied_memory_s)
             self._infl[...] = _box_count(self._occ, self._inflate_n)
+            self._body_mask &= ~self._occ
             self._recent[...] = self.free_t >= now - self.free_memory_s
             self._fcnt[...] = _box_count(self._recent, 1)
             self._hit_log = _log_of(occ, hit_t)
@@ -262,6 +263,7 @@ class LocalMap:
             rising, falling = np.zeros(0, np.int64), aged
         occ[rising] = True
         occ[falling] = False
+        self._body_mask.reshape(-1)[rising] = False
         _count_box(self._infl, rising, self._box, self._grid_shape, 1)
         _count_box(self._infl, falling, self._box, self._grid_shape, -1)
         rec = self._recent.reshape(-1)
@@ -316,8 +318,10 @@ class LocalMap:
         return (((self._fcnt > 0) & (self.log_odds <= OCCUPIED_LOG_ODDS)) | self._body_mask) & ~self._occ
 
     def _free_at(self, idx: np.ndarray) -> np.ndarray:
+        # An occupied cube's evidence is above OCCUPIED_LOG_ODDS, and the body's cubes are never
+        # occupied (a cube that turns occupied leaves the body's): no need to read the occupancy.
         seen = (self._fcnt.reshape(-1)[idx] > 0) & (self.log_odds.reshape(-1)[idx] <= OCCUPIED_LOG_ODDS)
-        return (seen | self._body_mask.reshape(-1)[idx]) & ~self._occ.reshape(-1)[idx]
+        return seen | self._body_mask.reshape(-1)[idx]
 
     def inflated(self) -> np.ndarray:
         """bool grid shape: within the vehicle's radius (rounded up to whole cubes) of an occupied
@@ -347,11 +351,11 @@ class LocalMap:
         pts = start + d[:, None, :] * s[None, :, None]  # (K, S, 3)
         idx, inside = self._index(pts)
         infl = self._inflated_at(idx)
-        occ = self.occupied().reshape(-1)[idx]
         free = self._free_at(idx)
         s_idx, s_in = self._index(start)
         if bool(s_in) and bool(self._inflated_at(s_idx)):
             near = s[None, :] <= self.radius_m + step
+            occ = self._occ.reshape(-1)[idx]
             infl = np.where(near, occ | _moves_closer(self, start, pts), infl)
         blocked_at = infl & inside
         bad = blocked_at | ~free | ~inside
