@@ -65,6 +65,16 @@ def test_a_wall_ahead_bounds_the_free_length_at_the_radius() -> None:
     assert fl.blocked[0]
 
 
+def test_from_inside_a_surface_s_radius_the_way_out_is_open_and_the_way_in_is_not() -> None:
+    m = _map()
+    _see(m, _wall_blocks(4.0))
+    inside = np.array([3.8, 0.0, -1.5])  # 0.2 m from the wall's face: within the radius
+    m.mark_body_free(inside, 0.3)
+    fl = m.free_lengths(inside, np.array([[-1.0, 0.0, 0.0], [1.0, 0.0, 0.0]]))
+    assert fl.length_m[0] > 1.0  # back, away from the wall
+    assert fl.length_m[1] < 0.2 and fl.blocked[1]  # on into it
+
+
 def test_unknown_is_near_a_side_never_looked_at_is_not_free() -> None:
     m = _map()
     _see(m, _wall_blocks(6.0))

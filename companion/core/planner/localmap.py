@@ -294,9 +294,12 @@ class LocalMap:
 
     def mark_body_free(self, position_ned_m: np.ndarray, t_s: float) -> None:
         """The cubes the vehicle's body is in now are free (it is there) at ``t_s``: those alone, not
-        the cubes round them as round a ray's passes (no ray saw those)."""
+        the cubes round them as round a ray's passes (no ray saw those). The grid rolls with the
+        frames, not here (a control tick never pays for a roll): the body lies well inside it while
+        frames come, and without frames the vehicle is stopped."""
         self.now_s = max(self.now_s, float(t_s))
-        self.centre_on(np.asarray(position_ned_m))
+        if self.origin is None:
+            self.centre_on(np.asarray(position_ned_m))
         idx, inside = self._index(np.asarray(position_ned_m, dtype=np.float64) + self._body)
         idx = idx[inside]
         body = self._body_mask.reshape(-1)
@@ -354,9 +357,10 @@ class LocalMap:
         free = self._free_at(idx)
         s_idx, s_in = self._index(start)
         if bool(s_in) and bool(self._inflated_at(s_idx)):
-            near = s[None, :] <= self.radius_m + step
-            occ = self._occ.reshape(-1)[idx]
-            infl = np.where(near, occ | _moves_closer(self, start, pts), infl)
+            # Only the first radius of each line (a few samples) is judged so.
+            n = int(np.count_nonzero(s <= self.radius_m + step))
+            infl = infl.copy()
+            infl[:, :n] = self._occ.reshape(-1)[idx[:, :n]] | _moves_closer(self, start, pts[:, :n])
         blocked_at = infl & inside
         bad = blocked_at | ~free | ~inside
         any_bad = bad.any(axis=1)
