@@ -95,7 +95,7 @@ class LocalMap:
         # cubes within one cube (> 0: seen, as the rays are up to a cube apart at the range).
         self._recent = np.zeros(self.shape, dtype=bool)
         self._fcnt = np.zeros(self.shape, dtype=np.int8)
-        # What may age out, in time order: (time s, flat cube indices) of each frame's hits and passes
+        # What may age out, in time order: (time s, int32 flat cube indices) of each frame's hits and passes
         # (a rebuild sorts the grid's into them), so that a refresh looks only at the cubes whose
         # time has come instead of scanning the grid.
         self._hit_log: deque[tuple[np.float32, np.ndarray]] = deque()
@@ -217,7 +217,7 @@ class LocalMap:
         lo[h_idx] = np.minimum(lo[h_idx] + HIT_LOG_ODDS, CLAMP_LOG_ODDS[1])
         self.hit_t.reshape(-1)[h_idx] = t
         if len(h_idx):
-            self._hit_log.append((t, h_idx))
+            self._hit_log.append((t, h_idx.astype(np.int32)))
         self._refresh(np.concatenate([h_idx, f_idx]))
 
     def _pass(self, f_idx: np.ndarray, t: np.float32) -> None:
@@ -226,7 +226,7 @@ class LocalMap:
         if len(f_idx) == 0:
             return
         self.free_t.reshape(-1)[f_idx] = t
-        self._pass_log.append((t, f_idx))
+        self._pass_log.append((t, f_idx.astype(np.int32)))  # half the memory: the log holds seconds of frames
         if self._rebuild:
             return  # the refresh recomputes the layer whole
         rec = self._recent.reshape(-1)
@@ -445,7 +445,7 @@ def _log_of(flag: np.ndarray, times: np.ndarray) -> deque:
     order = np.argsort(t, kind="stable")
     idx, t = idx[order], t[order]
     cuts = np.flatnonzero(np.diff(t)) + 1
-    return deque(zip(t[np.concatenate([[0], cuts])], np.split(idx, cuts)))
+    return deque(zip(t[np.concatenate([[0], cuts])], np.split(idx.astype(np.int32), cuts)))
 
 
 def _box_count(mask: np.ndarray, n: int) -> np.ndarray:
