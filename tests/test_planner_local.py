@@ -20,6 +20,7 @@ from companion.core.planner.safety import (
     SafetyContext,
     apply_chain,
     brake_hold,
+    counter_unexplained,
     envelope,
     floor_ceiling,
     speed_law_limit,
@@ -64,6 +65,16 @@ def test_a_wall_ahead_bounds_the_free_length_at_the_radius() -> None:
     assert fl.blocked[0]
 
 
+def test_from_inside_a_surface_s_radius_the_way_out_is_open_and_the_way_in_is_not() -> None:
+    m = _map()
+    _see(m, _wall_blocks(4.0))
+    inside = np.array([3.8, 0.0, -1.5])  # 0.2 m from the wall's face: within the radius
+    m.mark_body_free(inside, 0.3)
+    fl = m.free_lengths(inside, np.array([[-1.0, 0.0, 0.0], [1.0, 0.0, 0.0]]))
+    assert fl.length_m[0] > 1.0  # back, away from the wall
+    assert fl.length_m[1] < 0.2 and fl.blocked[1]  # on into it
+
+
 def test_unknown_is_near_a_side_never_looked_at_is_not_free() -> None:
     m = _map()
     _see(m, _wall_blocks(6.0))
@@ -98,22 +109,29 @@ def test_the_map_rolls_with_the_vehicle_and_keeps_what_it_saw() -> None:
 
 
 def test_the_layers_kept_up_frame_by_frame_equal_the_layers_computed_whole() -> None:
-    """The occupancy and its inflation are updated round the cubes that change (hits, passes, hits
-    that age out, the grid rolling): they equal the layers computed from the evidence at once."""
+    """The occupancy, its inflation and the seen-free layer are updated round the cubes that change
+    (hits, passes, hits and passes that age out, the grid rolling): they equal the layers computed
+    from the evidence at once."""
     from companion.core.planner.localmap import OCCUPIED_LOG_ODDS, _box_count
 
-    m = LocalMap(voxel_m=0.15, range_m=8.0, radius_m=0.25, occupied_memory_s=1.0, free_memory_s=6.0)
+    m = LocalMap(voxel_m=0.15, range_m=8.0, radius_m=0.25, occupied_memory_s=1.0, free_memory_s=0.8)
     t = 0.0
-    for k in range(40):
+    origins = set()
+    for k in range(60):
         t = 0.1 * k
         depth = 1.5 if k < 20 else 30.0  # a wall, then seen through (its hits clear and age out)
-        pose = Pose.at(0.08 * k, 0.03 * k, 1.5, yaw_rad=0.05 * k)
+        pose = Pose.at(0.12 * k, 0.03 * k, 1.5, yaw_rad=0.05 * k)
         m.integrate(_wall_blocks(depth, slice(10 + k % 7, 60)), GEOM, BLOCK_PX, pose, t)
-        if k in (12, 39):
+        origins.add(tuple(m.origin))
+        if k in (12, 39, 59):
             occ = (m.log_odds > OCCUPIED_LOG_ODDS) & (m.hit_t >= m.now_s - m.occupied_memory_s)
             assert k != 12 or occ.any()
             assert np.array_equal(m.occupied(), occ)
             assert np.array_equal(m.inflated(), _box_count(occ, 2) > 0)
+            recent = m.free_t >= m.now_s - m.free_memory_s
+            free = (_box_count(recent, 1) > 0) & (m.log_odds <= OCCUPIED_LOG_ODDS) & ~occ
+            assert np.array_equal(m.seen_free(), free)
+    assert len(origins) > 1  # the grid rolled
 
 
 def test_speed_law_is_the_exact_stopping_solution() -> None:
@@ -257,6 +275,7 @@ def _ctx(**kw: object) -> SafetyContext:
         yaw_rad=0.0,
         altitude_m=1.5,
         velocity_ned_m_s=np.zeros(3),
+        unexplained_ned_m_s=np.zeros(3),
         free_along=lambda u: 8.0,
         planner=PlannerConfig(),
         max_horizontal_m_s=4.0,
@@ -298,6 +317,41 @@ def test_speed_law_limits_the_command_and_brakes_the_motion() -> None:
     assert out.right_m_s > 1.5  # the sideways part stays (within cruise)
 
 
+def test_the_unexplained_motion_comes_off_the_setpoint_but_not_off_zero_or_a_hold() -> None:
+    west = np.array([0.0, -0.3, 0.0])  # the vehicle moves west the reported velocity does not show
+    out = counter_unexplained(FAST, _ctx(unexplained_ned_m_s=west))
+    assert out.forward_m_s == pytest.approx(3.0) and out.right_m_s == pytest.approx(0.3)
+    facing_east = counter_unexplained(FAST, _ctx(unexplained_ned_m_s=west, yaw_rad=math.pi / 2))
+    assert facing_east.forward_m_s == pytest.approx(3.3) and facing_east.right_m_s == pytest.approx(0.0, abs=1e-9)
+    assert counter_unexplained(FAST, _ctx(unexplained_ned_m_s=west, holding=True)) == FAST
+    assert apply_chain(FAST, _ctx(unexplained_ned_m_s=west, frame_age_s=9.0)) == ZERO_SETPOINT
+
+
+def test_the_stack_measures_the_motion_the_reported_velocity_does_not_show() -> None:
+    """A velocity estimate 0.3 m/s off carried a vehicle passing a box at 3 m/s sideways into it (the
+    reported velocity read the setpoint while the position moved toward the box): the stack now
+    reads the position's track, predicts with the motion it shows and takes the unseen part off the
+    setpoint, at most ``vehicle.odometry_drift_m_s``."""
+    def last_setpoint(drift_m_s: float) -> VelocitySetpoint:
+        cfg = CompanionConfig.model_validate(
+            {"planner": {"kind": "local"}, "envelope": {"max_horizontal_speed_m_s": 4.0},
+             "vehicle": {"odometry_drift_m_s": drift_m_s}}
+        )
+        stack = LocalStack(cfg)
+        stack.engage(np.array([0.0, 0.0, -1.5]), 0.0, None)
+        for k in range(3):
+            stack.add_frame(_wall_blocks(30.0), GEOM, BLOCK_PX, Pose.at(0.0, 0.0, 1.5), 0.1 * k)
+        clear = Decision(DecisionKind.CLEAR, 0.0, 0.0, 1.0, "clear")
+        for k in range(12):  # the position moves west at 0.3 m/s; the reported velocity reads zero
+            t = 0.3 + 0.05 * k
+            step = stack.step(t, 0.05, clear, np.full(9, 10.0), np.array([0.0, -0.3 * 0.05 * k, -1.5]), np.zeros(3), 0.0)
+        return step.setpoint
+
+    assert last_setpoint(0.5).right_m_s == pytest.approx(0.3 - 0.02, abs=0.02)  # east, less the dead band
+    assert last_setpoint(0.1).right_m_s == pytest.approx(0.1, abs=0.01)  # at most the setting
+    assert last_setpoint(0.0).right_m_s == pytest.approx(0.0, abs=1e-9)
+
+
 def test_floor_and_ceiling_stop_descent_and_climb() -> None:
     down = VelocitySetpoint(0.0, 0.0, 1.0, 0.0)
     up = VelocitySetpoint(0.0, 0.0, -1.0, 0.0)
@@ -312,7 +366,9 @@ def test_envelope_bounds_speed_and_rate() -> None:
 
 
 def test_the_chain_order_is_written_once() -> None:
-    assert [f.__name__ for f in CHAIN] == ["stale_to_zero", "brake_hold", "speed_law_limit", "floor_ceiling", "envelope"]
+    assert [f.__name__ for f in CHAIN] == [
+        "stale_to_zero", "brake_hold", "speed_law_limit", "counter_unexplained", "floor_ceiling", "envelope"
+    ]
     assert apply_chain(FAST, _ctx(frame_age_s=9.0)) == ZERO_SETPOINT
 
 

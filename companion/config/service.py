@@ -290,6 +290,18 @@ class VehicleConfig(StrictModel):
             "included, m: the local planner keeps every surface outside it (docs/planner.md)."
         ),
     )
+    odometry_drift_m_s: float = Field(
+        default=0.5,
+        ge=0.0,
+        le=2.0,
+        description=(
+            "How far the velocity the autopilot reports may be from the vehicle's real motion, m/s "
+            "(a velocity estimate off by a few tenths of a m/s, wind it does not see): the local "
+            "planner measures the difference from the reported position's track, predicts its paths "
+            "with it and takes it off the setpoint, up to this much (0 = the reported velocity is "
+            "the motion)."
+        ),
+    )
     connection: str = Field(
         default="udpin://0.0.0.0:14540",
         min_length=1,

@@ -286,9 +286,11 @@ class LocalPlanner:
 
     def _visited_at(self, points: np.ndarray) -> np.ndarray:
         keys = np.floor(points[:, :2] / VISITED_CELL_M).astype(np.int64)
-        cells, back = np.unique(keys, axis=0, return_inverse=True)  # a few cells round the vehicle
-        seconds = np.array([self._visited.get((int(a), int(b)), 0.0) for a, b in cells])
-        return seconds[back.reshape(-1)]
+        # A few cells round the vehicle: one code per cell (north, east each well within 2^31).
+        codes = (keys[:, 0] << 32) + (keys[:, 1] & 0xFFFFFFFF)
+        cells, first, back = np.unique(codes, return_index=True, return_inverse=True)
+        seconds = np.array([self._visited.get((int(keys[i, 0]), int(keys[i, 1])), 0.0) for i in first])
+        return seconds[back]
 
     def plan(self, snap: Snapshot, lmap: LocalMap) -> Plan:
         """One tick (see the module doc)."""

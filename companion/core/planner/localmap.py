@@ -22,6 +22,7 @@ grid's origin index.
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -89,11 +90,25 @@ class LocalMap:
         # to whole cubes; > 0: inflated), updated round the cubes whose occupancy changed.
         self._inflate_n = int(math.ceil(radius_m / voxel_m - 1e-9))
         self._occ = np.zeros(self.shape, dtype=bool)
-        self._free = np.zeros(self.shape, dtype=bool)
         self._infl = np.zeros(self.shape, dtype=np.int16)
+        # Seen free: cubes passed within free_memory_s (recent), and per cube the number of recent
+        # cubes within one cube (> 0: seen, as the rays are up to a cube apart at the range).
+        self._recent = np.zeros(self.shape, dtype=bool)
+        self._fcnt = np.zeros(self.shape, dtype=np.int8)
+        # What may age out, in time order: (time s, int32 flat cube indices) of each frame's hits and passes
+        # (a rebuild sorts the grid's into them), so that a refresh looks only at the cubes whose
+        # time has come instead of scanning the grid.
+        self._hit_log: deque[tuple[np.float32, np.ndarray]] = deque()
+        self._pass_log: deque[tuple[np.float32, np.ndarray]] = deque()
+        self._slot = np.zeros(int(np.prod(self.shape)), dtype=np.int32)  # scratch of _unique
         self._rebuild = True  # the next refresh recomputes every layer (first use, after a roll)
         r = np.arange(-self._inflate_n, self._inflate_n + 1)
         self._box = np.stack(np.meshgrid(r, r, r, indexing="ij"), axis=-1).reshape(-1, 3)  # (B, 3) cube offsets
+        r1 = np.arange(-1, 2)
+        self._box1 = np.stack(np.meshgrid(r1, r1, r1, indexing="ij"), axis=-1).reshape(-1, 3)
+        self._grid_shape = np.array(self.shape)
+        self._body_mask = np.zeros(self.shape, dtype=bool)  # the cubes the body is in (mark_body_free)
+        self._body_idx = np.zeros(0, np.int64)
         self._rays: dict[tuple, np.ndarray] = {}
         self._scratch = np.zeros(self.shape, dtype=bool)
         self.now_s = -math.inf
@@ -121,6 +136,8 @@ class LocalMap:
         for arr, fill in ((self.log_odds, 0.0), (self.hit_t, -np.inf), (self.free_t, -np.inf)):
             _shift_fill(arr, -shift, fill)
         self.origin = want
+        self._body_mask[...] = False  # marked again where the body is now
+        self._body_idx = np.zeros(0, np.int64)
         self._rebuild = True
         self._refresh(None)
 
@@ -196,60 +213,99 @@ class LocalMap:
         mark[h_idx] = False
         lo = self.log_odds.reshape(-1)
         lo[f_idx] = np.maximum(lo[f_idx] - FREE_LOG_ODDS, CLAMP_LOG_ODDS[0])
-        self.free_t.reshape(-1)[f_idx] = t
+        self._pass(f_idx, t)
         lo[h_idx] = np.minimum(lo[h_idx] + HIT_LOG_ODDS, CLAMP_LOG_ODDS[1])
         self.hit_t.reshape(-1)[h_idx] = t
+        if len(h_idx):
+            self._hit_log.append((t, h_idx.astype(np.int32)))
         self._refresh(np.concatenate([h_idx, f_idx]))
+
+    def _pass(self, f_idx: np.ndarray, t: np.float32) -> None:
+        """Cubes ``f_idx`` (int64 flat, repeats allowed) seen free at ``t``: their time, and the
+        seen-free counts round those that were not recent."""
+        if len(f_idx) == 0:
+            return
+        self.free_t.reshape(-1)[f_idx] = t
+        self._pass_log.append((t, f_idx.astype(np.int32)))  # half the memory: the log holds seconds of frames
+        if self._rebuild:
+            return  # the refresh recomputes the layer whole
+        rec = self._recent.reshape(-1)
+        rising = f_idx[~rec[f_idx]]
+        if len(rising):
+            rising = self._unique(rising)
+            rec[rising] = True
+            _count_box(self._fcnt, rising, self._box1, self._grid_shape, 1)
 
     def _refresh(self, touched: np.ndarray | None) -> None:
         """Bring the layers up to the evidence at ``now_s``: the occupancy of the ``touched`` cubes
         (int64 flat indices, repeats allowed) and of those whose last hit aged out, the inflation
-        counts round the cubes that changed, and the seen-free layer (recomputed whole: it ages).
-        ``touched`` None with nothing to rebuild: ageing only."""
+        counts round the cubes that changed, and the seen-free counts round the cubes whose last
+        pass aged out. ``touched`` None with nothing to rebuild: ageing only."""
         now = self.now_s
         lo, hit_t = self.log_odds.reshape(-1), self.hit_t.reshape(-1)
         occ = self._occ.reshape(-1)
         if self._rebuild:
             self._occ[...] = (self.log_odds > OCCUPIED_LOG_ODDS) & (self.hit_t >= now - self.occupied_memory_s)
             self._infl[...] = _box_count(self._occ, self._inflate_n)
+            self._body_mask &= ~self._occ
+            self._recent[...] = self.free_t >= now - self.free_memory_s
+            self._fcnt[...] = _box_count(self._recent, 1)
+            self._hit_log = _log_of(occ, hit_t)
+            self._pass_log = _log_of(self._recent.reshape(-1), self.free_t.reshape(-1))
             self._rebuild = False
-        else:
-            was = np.flatnonzero(occ)
-            aged = was[hit_t[was] < now - self.occupied_memory_s]
-            if touched is not None and len(touched):
-                now_occ = (lo[touched] > OCCUPIED_LOG_ODDS) & (hit_t[touched] >= now - self.occupied_memory_s)
-                rising = np.unique(touched[now_occ & ~occ[touched]])
-                falling = np.unique(np.concatenate([touched[~now_occ & occ[touched]], aged]))
-            else:
-                rising, falling = np.zeros(0, np.int64), aged
-            occ[rising] = True
-            occ[falling] = False
-            self._count_round(rising, 1)
-            self._count_round(falling, -1)
-        recent = self.free_t >= now - self.free_memory_s
-        # The rays are up to a cube apart at the range: a cube beside one seen free counts as seen.
-        self._free[...] = _dilate(recent, 1) & (self.log_odds <= OCCUPIED_LOG_ODDS) & ~self._occ
-
-    def _count_round(self, cubes: np.ndarray, delta: int) -> None:
-        """Add ``delta`` to the inflation count of every cube within the radius box of ``cubes``
-        (int64 flat indices, unique)."""
-        if len(cubes) == 0:
             return
-        q = np.stack(np.unravel_index(cubes, self.shape), axis=-1)[:, None, :] + self._box[None, :, :]
-        q = q.reshape(-1, 3)
-        q = q[np.all((q >= 0) & (q < np.array(self.shape)), axis=1)]
-        flat = (q[:, 0] * self.shape[1] + q[:, 1]) * self.shape[2] + q[:, 2]
-        np.add.at(self._infl.reshape(-1), flat, np.int16(delta))
+        aged = self._aged(self._hit_log, occ, hit_t, now - self.occupied_memory_s)
+        if touched is not None and len(touched):
+            now_occ = (lo[touched] > OCCUPIED_LOG_ODDS) & (hit_t[touched] >= now - self.occupied_memory_s)
+            rising = self._unique(touched[now_occ & ~occ[touched]])
+            falling = self._unique(np.concatenate([touched[~now_occ & occ[touched]], aged]))
+        else:
+            rising, falling = np.zeros(0, np.int64), aged
+        occ[rising] = True
+        occ[falling] = False
+        self._body_mask.reshape(-1)[rising] = False
+        _count_box(self._infl, rising, self._box, self._grid_shape, 1)
+        _count_box(self._infl, falling, self._box, self._grid_shape, -1)
+        rec = self._recent.reshape(-1)
+        stale = self._aged(self._pass_log, rec, self.free_t.reshape(-1), now - self.free_memory_s)
+        rec[stale] = False
+        _count_box(self._fcnt, stale, self._box1, self._grid_shape, -1)
+
+    def _aged(self, log: deque, flag: np.ndarray, times: np.ndarray, since: float) -> np.ndarray:
+        """The cubes (int64 flat, unique) still ``flag``-ged whose time (``times``) is now before
+        ``since``: found among the log's entries older than ``since`` (popped)."""
+        thr = np.float32(since)
+        found = []
+        while log and log[0][0] < thr:
+            found.append(log.popleft()[1])
+        if not found:
+            return np.zeros(0, np.int64)
+        c = found[0] if len(found) == 1 else np.concatenate(found)
+        return self._unique(c[flag[c] & (times[c] < thr)])
+
+    def _unique(self, idx: np.ndarray) -> np.ndarray:
+        """``idx`` (int64 flat cube indices) without repeats, in no particular order, in one pass
+        (a slot per cube remembers which element claimed it; no sort)."""
+        if len(idx) < 2:
+            return idx
+        n = np.arange(len(idx), dtype=np.int32)
+        self._slot[idx] = n
+        return idx[self._slot[idx] == n]
 
     def mark_body_free(self, position_ned_m: np.ndarray, t_s: float) -> None:
-        """The cubes the vehicle's body is in are free (it is there), seen at ``t_s``."""
+        """The cubes the vehicle's body is in now are free (it is there) at ``t_s``: those alone, not
+        the cubes round them as round a ray's passes (no ray saw those). The grid rolls with the
+        frames, not here (a control tick never pays for a roll): the body lies well inside it while
+        frames come, and without frames the vehicle is stopped."""
         self.now_s = max(self.now_s, float(t_s))
-        self.centre_on(np.asarray(position_ned_m))
+        if self.origin is None:
+            self.centre_on(np.asarray(position_ned_m))
         idx, inside = self._index(np.asarray(position_ned_m, dtype=np.float64) + self._body)
         idx = idx[inside]
-        occ = self.occupied().reshape(-1)[idx]
-        self.free_t.reshape(-1)[idx[~occ]] = np.float32(t_s)
-        self.seen_free().reshape(-1)[idx[~occ]] = True  # the cached layer, patched in place
+        body = self._body_mask.reshape(-1)
+        body[self._body_idx] = False
+        self._body_idx = idx[~self._occ.reshape(-1)[idx]]
+        body[self._body_idx] = True
 
     # -- queries -------------------------------------------------------------------------------------
     # The layers are as of the newest frame: evidence ages with the frames, not between them (the
@@ -259,8 +315,16 @@ class LocalMap:
         return self._occ
 
     def seen_free(self) -> np.ndarray:
-        """bool grid shape: cubes seen free within free_memory_s and not occupied."""
-        return self._free
+        """bool grid shape: cubes within a cube of one passed within free_memory_s and with no
+        surface's evidence, or the body's; not occupied (a new array: queries read the counts at
+        their samples instead)."""
+        return (((self._fcnt > 0) & (self.log_odds <= OCCUPIED_LOG_ODDS)) | self._body_mask) & ~self._occ
+
+    def _free_at(self, idx: np.ndarray) -> np.ndarray:
+        # An occupied cube's evidence is above OCCUPIED_LOG_ODDS, and the body's cubes are never
+        # occupied (a cube that turns occupied leaves the body's): no need to read the occupancy.
+        seen = (self._fcnt.reshape(-1)[idx] > 0) & (self.log_odds.reshape(-1)[idx] <= OCCUPIED_LOG_ODDS)
+        return seen | self._body_mask.reshape(-1)[idx]
 
     def inflated(self) -> np.ndarray:
         """bool grid shape: within the vehicle's radius (rounded up to whole cubes) of an occupied
@@ -290,12 +354,13 @@ class LocalMap:
         pts = start + d[:, None, :] * s[None, :, None]  # (K, S, 3)
         idx, inside = self._index(pts)
         infl = self._inflated_at(idx)
-        occ = self.occupied().reshape(-1)[idx]
-        free = self.seen_free().reshape(-1)[idx]
+        free = self._free_at(idx)
         s_idx, s_in = self._index(start)
         if bool(s_in) and bool(self._inflated_at(s_idx)):
-            near = s[None, :] <= self.radius_m + step
-            infl = np.where(near, occ | _moves_closer(self, start, pts), infl)
+            # Only the first radius of each line (a few samples) is judged so.
+            n = int(np.count_nonzero(s <= self.radius_m + step))
+            infl = infl.copy()
+            infl[:, :n] = self._occ.reshape(-1)[idx[:, :n]] | _moves_closer(self, start, pts[:, :n])
         blocked_at = infl & inside
         bad = blocked_at | ~free | ~inside
         any_bad = bad.any(axis=1)
@@ -352,18 +417,35 @@ def _moves_closer(m: LocalMap, start: np.ndarray, pts: np.ndarray) -> np.ndarray
     return dp < d0 - 1e-9
 
 
-def _dilate(mask: np.ndarray, n: int) -> np.ndarray:
-    """``mask`` (bool 3-D) dilated by ``n`` cubes along each axis (a cube of side 2n+1; separable)."""
-    out = mask.copy()
-    for axis in range(3):
-        src = out.copy()
-        for k in range(1, n + 1):
-            sl_a = [slice(None)] * 3
-            sl_b = [slice(None)] * 3
-            sl_a[axis], sl_b[axis] = slice(k, None), slice(None, -k)
-            out[tuple(sl_a)] |= src[tuple(sl_b)]
-            out[tuple(sl_b)] |= src[tuple(sl_a)]
-    return out
+def _count_box(counts: np.ndarray, cubes: np.ndarray, box: np.ndarray, shape: np.ndarray, delta: int) -> None:
+    """Add ``delta`` to ``counts`` (integer 3-D) at every cube of ``box`` (int ``(B, 3)`` offsets)
+    round each of ``cubes`` (int64 flat indices, unique) inside the grid of ``shape``."""
+    if len(cubes) == 0:
+        return
+    ny, nz = counts.shape[1], counts.shape[2]
+    r = int(np.abs(box).max())
+    ijk = np.stack(np.unravel_index(cubes, counts.shape), axis=-1)
+    inner = np.all((ijk >= r) & (ijk < shape - r), axis=1)
+    # Inside the grid by the box's reach: flat offsets alone; at the edge, each cube of the box checked.
+    flat = (cubes[inner][:, None] + ((box[:, 0] * ny + box[:, 1]) * nz + box[:, 2])[None, :]).reshape(-1)
+    if not np.all(inner):
+        q = (ijk[~inner][:, None, :] + box[None, :, :]).reshape(-1, 3)
+        q = q[np.all((q >= 0) & (q < shape), axis=1)]
+        flat = np.concatenate([flat, (q[:, 0] * ny + q[:, 1]) * nz + q[:, 2]])
+    np.add.at(counts.reshape(-1), flat, counts.dtype.type(delta))
+
+
+def _log_of(flag: np.ndarray, times: np.ndarray) -> deque:
+    """The flagged cubes of a rebuilt layer as a log: (time, int64 flat indices) per distinct time
+    (``times``, float32 per cube), in time order."""
+    idx = np.flatnonzero(flag)
+    if len(idx) == 0:
+        return deque()
+    t = times[idx]
+    order = np.argsort(t, kind="stable")
+    idx, t = idx[order], t[order]
+    cuts = np.flatnonzero(np.diff(t)) + 1
+    return deque(zip(t[np.concatenate([[0], cuts])], np.split(idx.astype(np.int32), cuts)))
 
 
 def _box_count(mask: np.ndarray, n: int) -> np.ndarray:

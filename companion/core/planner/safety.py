@@ -9,9 +9,11 @@ their order written once (:data:`CHAIN`).
 3. :func:`speed_law_limit`: the commanded velocity, and the component of it along the way the vehicle
    is actually moving (the autopilot follows late), no faster than the speed law on the free length
    the map sees along each;
-4. :func:`floor_ceiling`: no descent below the floor nor climb above the ceiling, slowing on the last
+4. :func:`counter_unexplained`: the motion the reported velocity does not explain (measured on the
+   position's track) taken off the horizontal setpoint, so that the vehicle moves as commanded;
+5. :func:`floor_ceiling`: no descent below the floor nor climb above the ceiling, slowing on the last
    metre;
-5. :func:`envelope`: the horizontal and vertical speed and the yaw rate within the safety envelope.
+6. :func:`envelope`: the horizontal and vertical speed and the yaw rate within the safety envelope.
 
 Setpoints are body-frame (FRD) :class:`~companion.core.types.VelocitySetpoint`; the context's yaw turns
 them into NED where a filter needs it.
@@ -47,7 +49,10 @@ class SafetyContext:
         centre_depth_m: the centre region's depth, metres (NaN unknown).
         yaw_rad: heading, radians.
         altitude_m: altitude above the local origin, metres.
-        velocity_ned_m_s: float ``(3,)`` the vehicle's velocity, NED m/s.
+        velocity_ned_m_s: float ``(3,)`` the vehicle's motion, NED m/s: the reported velocity plus
+            ``unexplained_ned_m_s``.
+        unexplained_ned_m_s: float ``(3,)`` the motion of the reported position the reported velocity
+            does not explain, NED m/s (zeros: none measured).
         free_along: the map's seen-free length (metres) along a unit NED direction (float ``(3,)``).
         planner: the planner section (speed law, floor, ceiling).
         max_horizontal_m_s, max_vertical_m_s, max_yaw_rate_deg_s: the safety envelope.
@@ -61,6 +66,7 @@ class SafetyContext:
     yaw_rad: float
     altitude_m: float
     velocity_ned_m_s: np.ndarray
+    unexplained_ned_m_s: np.ndarray
     free_along: Callable[[np.ndarray], float]
     planner: PlannerConfig
     max_horizontal_m_s: float
@@ -132,6 +138,18 @@ def speed_law_limit(sp: VelocitySetpoint, ctx: SafetyContext) -> VelocitySetpoin
     return from_ned(v, ctx.yaw_rad, sp.yaw_rate_deg_s)
 
 
+def counter_unexplained(sp: VelocitySetpoint, ctx: SafetyContext) -> VelocitySetpoint:
+    """The unexplained motion taken off the horizontal setpoint (the autopilot tracks its velocity
+    estimate; the vehicle moves at the setpoint plus the estimate's error). Not while holding (the
+    hold steers back to its point on the position itself) nor on stale frames (zero is zero)."""
+    u = ctx.unexplained_ned_m_s
+    if ctx.holding or not ctx.frame_age_s <= ctx.stale_after_s or not (u[0] or u[1]):
+        return sp
+    v = to_ned(sp, ctx.yaw_rad)
+    v[:2] -= u[:2]
+    return from_ned(v, ctx.yaw_rad, sp.yaw_rate_deg_s)
+
+
 def floor_ceiling(sp: VelocitySetpoint, ctx: SafetyContext) -> VelocitySetpoint:
     """No descent below the floor nor climb above the ceiling; within :data:`BAND_SLOW_M` of either,
     the speed toward it in proportion to the distance left."""
@@ -159,6 +177,7 @@ CHAIN: tuple[Callable[[VelocitySetpoint, SafetyContext], VelocitySetpoint], ...]
     stale_to_zero,
     brake_hold,
     speed_law_limit,
+    counter_unexplained,
     floor_ceiling,
     envelope,
 )

@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from companion.core.closing import TrackWatch
 from companion.core.geometry import StereoGeometry
 from companion.core.goal import GoalSpec, resolve_goal
 from companion.core.planner.local import LocalPlanner, Mode, Plan, Snapshot
@@ -24,6 +25,10 @@ if TYPE_CHECKING:
 
 #: A course goal (no point) is flown as a point this far along the heading at engagement, metres.
 COURSE_POINT_M = 1000.0
+#: The motion the reported velocity does not explain is fitted over this window of the position's
+#: track, seconds: long enough to average out a few samples' timing jitter, short against the way an
+#: estimate's error changes (seconds).
+TRACK_WINDOW_S = 0.5
 
 
 @dataclass(frozen=True)
@@ -48,6 +53,8 @@ class LocalStack:
         self.planner = LocalPlanner(p, cfg.vehicle.radius_m)
         self.goal_ned_m: np.ndarray | None = None
         self.view_half_rad = math.radians(40.0)
+        self.track = TrackWatch()
+        self._unexplained = np.zeros(3)
 
     def engage(self, position_ned_m: np.ndarray, yaw_rad: float, goal: GoalSpec | None) -> None:
         """Start a flight at ``position_ned_m`` (float ``(3,)`` NED m) heading ``yaw_rad`` toward ``goal``
@@ -55,6 +62,7 @@ class LocalStack:
         heading, at the altitude now)."""
         pos = np.asarray(position_ned_m, dtype=np.float64)
         self.planner.engage()
+        self.track.reset()
         if goal is None:
             self.goal_ned_m = None
             return
@@ -85,9 +93,20 @@ class LocalStack:
         velocity_ned_m_s: np.ndarray,
         yaw_rad: float,
     ) -> StackStep:
-        """One control tick: plan on the map, then the safety chain."""
+        """One control tick: plan on the map, then the safety chain.
+
+        The vehicle's motion is the reported velocity plus what the reported position's track shows
+        it does not explain (at most ``vehicle.odometry_drift_m_s``): the planner predicts its paths
+        and the speed law judges the way it moves with that motion, and the chain takes the
+        unexplained part off the setpoint so that the vehicle moves as planned."""
         pos = np.asarray(position_ned_m, dtype=np.float64)
-        vel = np.asarray(velocity_ned_m_s, dtype=np.float64)
+        self.track.observe(now_s, pos, np.asarray(velocity_ned_m_s, dtype=np.float64))
+        u = self.track.unexplained_m_s(now_s, TRACK_WINDOW_S, self.cfg.vehicle.odometry_drift_m_s)
+        unexplained = self._unexplained
+        unexplained[:] = 0.0
+        if u is not None:
+            unexplained[:2] = u
+        vel = np.asarray(velocity_ned_m_s, dtype=np.float64) + unexplained
         self.map.mark_body_free(pos, now_s)
         snap = Snapshot(now_s, pos, vel, float(yaw_rad), self.goal_ned_m, decision, self.view_half_rad)
         plan = self.planner.plan(snap, self.map)
@@ -96,8 +115,20 @@ class LocalStack:
         env = self.cfg.envelope
         lmap = self.map
 
+        # The chain asks along the command and along the motion: both in one query, the usual case.
+        asked = np.zeros((2, 3))
+        asked[0] = plan.direction_ned
+        sp_m = float(np.linalg.norm(vel))
+        if sp_m > 1e-9:
+            asked[1] = vel / sp_m
+        known = lmap.free_lengths(pos, asked).length_m
+
         def free_along(u: np.ndarray) -> float:
-            return float(lmap.free_lengths(pos, np.asarray(u, dtype=np.float64)[None, :]).length_m[0])
+            u = np.asarray(u, dtype=np.float64)
+            for k in range(2):
+                if float(asked[k] @ u) > 1.0 - 1e-9:
+                    return float(known[k])
+            return float(lmap.free_lengths(pos, u[None, :]).length_m[0])
 
         ctx = SafetyContext(
             frame_age_s=frame_age_s,
@@ -108,6 +139,7 @@ class LocalStack:
             yaw_rad=float(yaw_rad),
             altitude_m=float(-pos[2]),
             velocity_ned_m_s=vel,
+            unexplained_ned_m_s=unexplained.copy(),
             free_along=free_along,
             planner=self.cfg.planner,
             max_horizontal_m_s=env.max_horizontal_speed_m_s,
