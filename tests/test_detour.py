@@ -22,7 +22,7 @@ from companion.service.protocol import parse_request, request_adapter
 
 # The detour layer as configured by default (detour.trigger_after_s = 0.8), pinned: these tests are
 # about the layer, not about the default.
-CFG = parse_config({"detour": {"trigger_after_s": 0.8}})
+CFG = parse_config({"detour": {"trigger_after_s": 0.8}, "planner": {"kind": "rules"}})  # the rule stack's layer
 DET = CFG.detour
 MEM = CFG.memory
 CMD = CFG.command
@@ -1058,7 +1058,8 @@ def test_the_detour_course_reaches_the_goal_and_the_reactive_controller_alone_do
     course = make_course("detour", 0)
     result = fly(course, CFG)
     assert result.outcome.value == "goal" and result.detours >= 1, result.reason
-    off = parse_config({"detour": {"trigger_after_s": 0.0}})  # the reactive controller and course hold alone
+    # the reactive controller and course hold alone
+    off = parse_config({"detour": {"trigger_after_s": 0.0}, "planner": {"kind": "rules"}})
     assert fly(course, off).outcome.value != "goal"
     assert CompanionConfig().detour.on  # the layer is on by default
 
@@ -1080,11 +1081,12 @@ def test_the_office_door_is_flown_through_once_the_map_forgets_what_it_sees_past
         {
             "stereo": {"backend": "opencv-bm"},
             "detour": {"trigger_after_s": 0.8, "either_side_within_deg": 0.0},
+            "planner": {"kind": "rules"},
         }
     )
     course = make_course("office", 0)
     assert fly(course, cfg).outcome.value == "goal"
-    cone = parse_config({"stereo": {"backend": "opencv-bm"}, "detour": {"trigger_after_s": 0.8}})
+    cone = parse_config({"stereo": {"backend": "opencv-bm"}, "detour": {"trigger_after_s": 0.8}, "planner": {"kind": "rules"}})
     assert fly(course, cone).outcome.value == "goal"
 
 
