@@ -978,10 +978,10 @@ def test_the_protocol_carries_a_goal_with_engage_and_goto() -> None:
 
 
 def test_the_supervisor_engages_with_a_goal_reports_it_and_takes_goto() -> None:
-    from test_supervisor import Harness, vehicle
+    from test_supervisor import Harness, rules_config, vehicle
     from companion.core.supervisor import Engage
 
-    h = Harness()
+    h = Harness(rules_config())  # course hold's goal: reached, it pauses
     h.vehicle = replace(vehicle(), position_ned_m=np.array([0.0, 0.0, -1.5]), attitude_rad=np.zeros(3))
     h.step(Goto(GoalSpec(kind="point", north_m=1.0, east_m=0.0)))
     assert not h.outputs[-1].replies[0].ok  # not engaged: refused

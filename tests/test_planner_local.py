@@ -372,10 +372,10 @@ def test_the_chain_order_is_written_once() -> None:
     assert apply_chain(FAST, _ctx(frame_age_s=9.0)) == ZERO_SETPOINT
 
 
-def test_the_stack_flies_a_course_goal_and_needs_the_envelope_raised() -> None:
-    cfg = CompanionConfig.model_validate(
-        {"planner": {"kind": "local"}, "envelope": {"max_horizontal_speed_m_s": 4.0}}
-    )
+def test_the_stack_flies_a_course_goal_within_the_default_envelope() -> None:
+    cfg = CompanionConfig()
+    assert cfg.planner.kind == "local" and cfg.planner.cruise_speed_m_s == 3.0
+    assert cfg.envelope.max_horizontal_speed_m_s == 4.0  # the cruise, the drift counter's and the controller's headroom
     stack = LocalStack(cfg)
     stack.engage(np.array([0.0, 0.0, -1.5]), 0.0, None)
     for k in range(3):
@@ -384,7 +384,10 @@ def test_the_stack_flies_a_course_goal_and_needs_the_envelope_raised() -> None:
                       np.array([0.0, 0.0, -1.5]), np.zeros(3), 0.0)
     assert step.setpoint.forward_m_s > 0.5
     with pytest.raises(ValueError, match="planner.cruise_speed_m_s"):
-        CompanionConfig.model_validate({"planner": {"kind": "local"}})
+        CompanionConfig.model_validate({"envelope": {"max_horizontal_speed_m_s": 2.0}})
+    # The rule stack's own cruise (walking pace) is not bounded by the local planner's.
+    rules = CompanionConfig.model_validate({"planner": {"kind": "rules"}, "envelope": {"max_horizontal_speed_m_s": 2.0}})
+    assert rules.command.cruise_speed_m_s == 0.7
 
 
 @pytest.mark.parametrize("memory_s", [0.0, 8.0])
