@@ -14,7 +14,7 @@ from companion.errors import InputError
 #: 2.2 m ahead, slows and descends under it (the fuzzy controller's "down", the paper's rule 2, is a term
 #: of the planner's cost), passes with 0.26 m to spare, speeds up to 2.8 m/s and reaches the goal 11 m
 #: on: an escape in one short, deterministic flight (6 s simulated).
-#: The doorway (the paper's Fig. 10) shows neither: it is flown straight through (234 of 234 frames clear).
+#: The doorway (the paper's Fig. 10) shows neither: it is flown straight through.
 DEMO_COURSE = ("pitch", 1)
 #: Where the demo writes when no --out is given: relative to the working directory on purpose (it is
 #: the user's "here"), resolved to an absolute path and printed.
