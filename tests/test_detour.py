@@ -22,7 +22,7 @@ from companion.service.protocol import parse_request, request_adapter
 
 # The detour layer as configured by default (detour.trigger_after_s = 0.8), pinned: these tests are
 # about the layer, not about the default.
-CFG = parse_config({"detour": {"trigger_after_s": 0.8}})
+CFG = parse_config({"detour": {"trigger_after_s": 0.8}, "planner": {"kind": "rules"}})  # the rule stack's layer
 DET = CFG.detour
 MEM = CFG.memory
 CMD = CFG.command
@@ -978,10 +978,10 @@ def test_the_protocol_carries_a_goal_with_engage_and_goto() -> None:
 
 
 def test_the_supervisor_engages_with_a_goal_reports_it_and_takes_goto() -> None:
-    from test_supervisor import Harness, vehicle
+    from test_supervisor import Harness, rules_config, vehicle
     from companion.core.supervisor import Engage
 
-    h = Harness()
+    h = Harness(rules_config())  # course hold's goal: reached, it pauses
     h.vehicle = replace(vehicle(), position_ned_m=np.array([0.0, 0.0, -1.5]), attitude_rad=np.zeros(3))
     h.step(Goto(GoalSpec(kind="point", north_m=1.0, east_m=0.0)))
     assert not h.outputs[-1].replies[0].ok  # not engaged: refused
@@ -1058,7 +1058,8 @@ def test_the_detour_course_reaches_the_goal_and_the_reactive_controller_alone_do
     course = make_course("detour", 0)
     result = fly(course, CFG)
     assert result.outcome.value == "goal" and result.detours >= 1, result.reason
-    off = parse_config({"detour": {"trigger_after_s": 0.0}})  # the reactive controller and course hold alone
+    # the reactive controller and course hold alone
+    off = parse_config({"detour": {"trigger_after_s": 0.0}, "planner": {"kind": "rules"}})
     assert fly(course, off).outcome.value != "goal"
     assert CompanionConfig().detour.on  # the layer is on by default
 
@@ -1080,11 +1081,12 @@ def test_the_office_door_is_flown_through_once_the_map_forgets_what_it_sees_past
         {
             "stereo": {"backend": "opencv-bm"},
             "detour": {"trigger_after_s": 0.8, "either_side_within_deg": 0.0},
+            "planner": {"kind": "rules"},
         }
     )
     course = make_course("office", 0)
     assert fly(course, cfg).outcome.value == "goal"
-    cone = parse_config({"stereo": {"backend": "opencv-bm"}, "detour": {"trigger_after_s": 0.8}})
+    cone = parse_config({"stereo": {"backend": "opencv-bm"}, "detour": {"trigger_after_s": 0.8}, "planner": {"kind": "rules"}})
     assert fly(course, cone).outcome.value == "goal"
 
 

@@ -22,9 +22,12 @@ ROOT = Path(__file__).resolve().parent.parent
 def test_sighup_reload_and_sigterm_clean_shutdown_on_the_wire(tmp_path: Path) -> None:
     config = tmp_path / "companion.toml"
     notify = Notifications(tmp_path / "notify.sock")
+    # The rule stack: a reload of command.cruise_speed_m_s changes its speed while engaged (the local
+    # planner's settings wait for the next engagement).
+    rules = '[planner]\nkind = "rules"'
     with Px4Peer(heartbeat_hz=5.0) as peer:
         port = peer.port
-        _write_config(config, port, cruise=1.0)
+        _write_config(config, port, cruise=1.0, extra=rules)
         proc = _spawn(config, notify, watchdog_usec=1_000_000)
         try:
             assert notify.wait_for("READY=1", 30.0), "no READY=1"
@@ -32,11 +35,11 @@ def test_sighup_reload_and_sigterm_clean_shutdown_on_the_wire(tmp_path: Path) ->
             assert peer.wait_for(lambda: peer.mode == "OFFBOARD", 15.0), peer.commands
             assert peer.wait_for(lambda: peer.setpoints[-1].vx == pytest.approx(1.0), 3.0)
 
-            _write_config(config, port, cruise=0.7)
+            _write_config(config, port, cruise=0.7, extra=rules)
             proc.send_signal(signal.SIGHUP)
             assert peer.wait_for(lambda: peer.setpoints[-1].vx == pytest.approx(0.7, abs=1e-6), 3.0)
 
-            _write_config(config, port, cruise=-3.0)  # invalid: rejected, the old one stays
+            _write_config(config, port, cruise=-3.0, extra=rules)  # invalid: rejected, the old one stays
             proc.send_signal(signal.SIGHUP)
             time.sleep(0.7)
             assert proc.poll() is None

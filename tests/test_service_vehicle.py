@@ -43,6 +43,9 @@ def flying(tmp_path: Path):
         # track counter reads as up to ~0.03 m/s of unexplained motion for its window: this test is
         # about the wire (the exact values), the counter has its own (tests/test_track.py).
         command={"failsafe_timeout_s": 1.5, "track_velocity_window_s": 0.0, "track_counter_fraction": 0.0},
+        # The rule stack: its setpoint is the frame's decision alone, which this test checks on the wire
+        # (the local planner's, the default, depends on the flight so far: tests/test_planner_local.py).
+        planner={"kind": "rules"},
     )
     camera = GatedCamera(avoid_scene_camera(15.0))
     service = Service(cfg, camera=camera, link=MavsdkVehicleLink(cfg.vehicle.connection), install_signals=False, environ={})

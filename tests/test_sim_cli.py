@@ -64,8 +64,8 @@ def test_demo_writes_the_plot_and_overlays_and_prints_where(tmp_path: Path, caps
     assert str(out_dir.resolve()) in out
     names = sorted(p.name for p in out_dir.iterdir())
     assert "flight.png" in names and sum(n.startswith("overlay_") for n in names) >= 3
-    # The default course shows the product: an escape under an overhead block (the paper's rule 2),
-    # and still the goal (issue 20).
+    # The default course shows the product: an escape under an overhead block (the controller steers
+    # down), and still the goal.
     frames = re.search(r"frames:\s+\d+ \(clear (\d+), avoid (\d+), brake (\d+)\)", out)
     assert frames is not None and int(frames.group(2)) > 0, out
     assert "descending" in out and re.search(r"escape by R\d", out), out  # the words, and with --verbose the rule

@@ -16,6 +16,7 @@ def test_paper_profile_is_the_papers_controller() -> None:
     cfg = load_config(PAPER)
     default = CompanionConfig()
     assert [r.name for r in cfg.controller.main_rules] == ["R1", "R2", "R3", "R4", "R5", "R6", "R7", "TIE"]
+    assert cfg.planner.kind == "rules" and default.planner.kind == "local"  # the decision, straight to a setpoint
     assert cfg.command.avoid_speed_fraction == 1.0  # constant speed
     assert cfg.command.heading_hold_gain_per_s == 0.0 and cfg.command.altitude_hold_gain_per_s == 0.0
     assert cfg.lut.release_time_constant_s == 0.0

@@ -47,6 +47,19 @@ def default_config(**overrides) -> SupervisorConfig:
     return replace(cfg, **overrides)
 
 
+def rules_companion_config(patch: dict | None = None) -> CompanionConfig:
+    """The defaults with the rule stack (``planner.kind = "rules"``: course hold, the obstacle
+    memory's guard, the progress watchdog, the detour layer) and ``patch`` applied."""
+    from companion.config import parse_config
+
+    return parse_config({**(patch or {}), "planner": {"kind": "rules"}})
+
+
+def rules_config(**overrides) -> SupervisorConfig:
+    """:func:`default_config` of the rule stack."""
+    return replace(SupervisorConfig.from_config(rules_companion_config()), **overrides)
+
+
 class Harness:
     """Drives a Supervisor at 20 Hz with fresh frames and a PX4-like vehicle unless told otherwise."""
 
@@ -622,9 +635,7 @@ def test_invariants_under_random_sequences(seq) -> None:
 def test_course_hold_steers_back_to_the_heading_at_engagement_when_enabled() -> None:
     import numpy as np
 
-    from companion.config import parse_config
-
-    cfg = parse_config(
+    cfg = rules_companion_config(
         {
             "command": {
                 "heading_hold_gain_per_s": 1.0,
@@ -668,9 +679,7 @@ def test_course_hold_steers_back_to_the_heading_at_engagement_when_enabled() -> 
 def test_course_hold_is_off_with_zero_gains() -> None:
     import numpy as np
 
-    from companion.config import parse_config
-
-    cfg = parse_config({"command": {"heading_hold_gain_per_s": 0.0, "altitude_hold_gain_per_s": 0.0}})
+    cfg = rules_companion_config({"command": {"heading_hold_gain_per_s": 0.0, "altitude_hold_gain_per_s": 0.0}})
     h = Harness(SupervisorConfig.from_config(cfg))
     h.vehicle = replace(vehicle(), attitude_rad=np.array([0.0, 0.0, 0.3]))
     h.engage()
@@ -681,7 +690,7 @@ def test_course_hold_is_off_with_zero_gains() -> None:
 def test_brake_holds_the_position_where_it_began() -> None:
     import numpy as np
 
-    h = Harness(SupervisorConfig.from_config(CompanionConfig()))
+    h = Harness(rules_config())
     h.engage()
     h.vehicle = replace(vehicle("OFFBOARD"), attitude_rad=np.array([0.0, 0.0, 0.0]), position_ned_m=np.array([4.0, 0.0, -1.5]))
     h.frame = Result(h.now, BRAKE)
@@ -704,9 +713,7 @@ def test_brake_holds_the_position_where_it_began() -> None:
 def test_line_hold_steers_back_to_the_engagement_line() -> None:
     import numpy as np
 
-    from companion.config import parse_config
-
-    cfg = parse_config({"command": {"heading_hold_gain_per_s": 1.0, "line_hold_gain_per_m": 0.5, "hold_resume_delay_s": 0.0}})
+    cfg = rules_companion_config({"command": {"heading_hold_gain_per_s": 1.0, "line_hold_gain_per_m": 0.5, "hold_resume_delay_s": 0.0}})
     # Engagement records the heading and position the vehicle has when OFFBOARD is confirmed.
     h2 = Harness(SupervisorConfig.from_config(cfg))
     h2.vehicle = replace(vehicle(), attitude_rad=np.array([0.0, 0.0, 0.0]), position_ned_m=np.array([0.0, 0.0, -1.5]))
@@ -736,7 +743,7 @@ def test_a_remembered_obstacle_beside_the_vehicle_pushes_it_away() -> None:
     from companion.core.memory import ViewLimits
 
     view = ViewLimits(math.radians(32.0), math.radians(44.0), 0.3)
-    base = CompanionConfig()
+    base = rules_companion_config()
     leaning = base.model_copy(update={"memory": base.memory.model_copy(update={"counter_velocity_fraction": 1.0})})
     h = Harness(SupervisorConfig.from_config(leaning))
     h.engage()
@@ -763,7 +770,7 @@ def test_a_remembered_obstacle_beside_the_vehicle_pushes_it_away() -> None:
     assert sp.right_m_s == pytest.approx(min(lean_and_push, mem.max_guard_speed_m_s))
     assert sp.right_m_s > mem.guard_gain_per_s * (mem.guard_distance_m - 0.3)
     # With the memory off nothing is remembered.
-    off = CompanionConfig().model_copy(update={"memory": mem.model_copy(update={"duration_s": 0.0})})
+    off = base.model_copy(update={"memory": mem.model_copy(update={"duration_s": 0.0})})
     h2 = Harness(SupervisorConfig.from_config(off))
     h2.engage()
     h2.vehicle = replace(vehicle("OFFBOARD"), attitude_rad=np.zeros(3), position_ned_m=at, position_timestamp_s=h2.now)
@@ -778,10 +785,10 @@ def test_a_remembered_obstacle_beside_the_vehicle_pushes_it_away() -> None:
 
 
 def _engaged_at(position_ned_m, *, cfg: SupervisorConfig | None = None) -> Harness:
-    """A harness engaged with the defaults (course hold on) at ``position_ned_m``, facing north."""
+    """A harness engaged with the rule stack's defaults (course hold on) at ``position_ned_m``, facing north."""
     import numpy as np
 
-    h = Harness(cfg)
+    h = Harness(cfg or rules_config())
     h.vehicle = replace(vehicle(), attitude_rad=np.array([0.0, 0.0, 0.0]), position_ned_m=np.array(position_ned_m, dtype=float))
     h.step(Engage())
     h.run(0.6)
@@ -850,10 +857,8 @@ def test_progress_keeps_the_flight_going() -> None:
 def test_no_progress_watchdog_off_without_course_hold_or_timeout() -> None:
     import numpy as np
 
-    from companion.config import parse_config
-
     for patch in ({"no_progress_timeout_s": 0.0}, {"heading_hold_gain_per_s": 0.0}):
-        cfg = SupervisorConfig.from_config(parse_config({"command": patch}))
+        cfg = SupervisorConfig.from_config(rules_companion_config({"command": patch}))
         h = _engaged_at([0.0, 0.0, -1.5], cfg=cfg)
         h.vehicle = replace(h.vehicle, position_ned_m=np.array([0.0, 0.0, -1.5]))
         assert all(o.state is State.ENGAGED for o in h.run(30.0))
@@ -887,7 +892,7 @@ def test_course_hold_waits_while_a_clear_decision_still_turns() -> None:
 
     from companion.config.detour import DetourConfig
 
-    h = _engaged_at([0.0, 0.0, -1.5], cfg=default_config(detour=DetourConfig(trigger_after_s=0.0)))
+    h = _engaged_at([0.0, 0.0, -1.5], cfg=rules_config(detour=DetourConfig(trigger_after_s=0.0)))
     h.vehicle = replace(h.vehicle, attitude_rad=np.array([0.0, 0.0, math.radians(120.0)]))  # facing away
     fading = Decision(DecisionKind.CLEAR, yaw=0.3, pitch=0.0, speed_fraction=1.0, reason="release")
     escape = Decision(DecisionKind.AVOID, yaw=0.6, pitch=0.0, speed_fraction=0.5, reason="escape")
@@ -918,7 +923,7 @@ def test_a_clear_decision_that_only_climbs_lets_course_hold_turn_back() -> None:
 
     from companion.config.detour import DetourConfig
 
-    h = _engaged_at([0.0, 0.0, -1.5], cfg=default_config(detour=DetourConfig(trigger_after_s=0.0)))
+    h = _engaged_at([0.0, 0.0, -1.5], cfg=rules_config(detour=DetourConfig(trigger_after_s=0.0)))
     h.vehicle = replace(h.vehicle, attitude_rad=np.array([0.0, 0.0, math.radians(-120.0)]))  # facing away
     h.frame = Result(h.now, Decision(DecisionKind.CLEAR, yaw=0.0, pitch=0.2, speed_fraction=1.0, reason="ground"))
     cmd = h.cfg.command

@@ -26,14 +26,18 @@ class EnvelopeConfig(StrictModel):
     """Limits that bound every other section; changed only by editing the file (read at start and reload)."""
 
     max_horizontal_speed_m_s: float = Field(
-        default=2.0,
+        default=4.0,
         gt=0.0,
         le=20.0,
         description=(
-            "Upper bound of every horizontal speed the service may command, m/s: command.cruise_speed_m_s, "
-            "brake_hold_max_speed_m_s, max_line_hold_lateral_speed_m_s, max_standoff_speed_m_s, "
-            "memory.max_guard_speed_m_s, "
-            "memory.max_gap_centering_speed_m_s, detour.speed_m_s."
+            "Upper bound of every horizontal speed the service may command, m/s: planner.cruise_speed_m_s "
+            "(with planner.kind 'local'), command.cruise_speed_m_s, brake_hold_max_speed_m_s, "
+            "max_line_hold_lateral_speed_m_s, max_standoff_speed_m_s, memory.max_guard_speed_m_s, "
+            "memory.max_gap_centering_speed_m_s, detour.speed_m_s. Also the last limit on each setpoint. "
+            "4 m/s: the local planner's 3 m/s cruise, plus the counter to motion the reported velocity "
+            "does not explain (up to vehicle.odometry_drift_m_s, 0.5 m/s) that is added to it, plus "
+            "headroom for the autopilot's velocity controller, so that the envelope clips no setpoint "
+            "the planner meant."
         ),
     )
     max_vertical_speed_m_s: float = Field(

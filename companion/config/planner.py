@@ -18,11 +18,12 @@ class PlannerConfig(StrictModel):
     """The local planner (used when ``kind`` is "local")."""
 
     kind: Literal["rules", "local"] = Field(
-        default="rules",
+        default="local",
         description=(
-            "Which layer turns the fuzzy decision into setpoints: 'rules' (course hold, the detour "
-            "layer and the command shapers) or 'local' (one planner on a 3D local map with a "
-            "stopping-distance speed law, docs/planner.md)."
+            "Which layer turns the fuzzy decision into setpoints: 'local' (one planner on a 3D local "
+            "map with a stopping-distance speed law, flying up to cruise_speed_m_s where the space "
+            "seen free allows, docs/planner.md) or 'rules' (course hold, the detour layer and the "
+            "command shapers, at command.cruise_speed_m_s: walking pace)."
         ),
     )
     cruise_speed_m_s: float = Field(
