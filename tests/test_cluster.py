@@ -70,7 +70,7 @@ def test_ranges_are_clipped_to_the_field_bounds_and_the_envelope() -> None:
     speed, weight, breakpoint_, resolution = resolve_settings(
         cfg,
         [
-            ("command.cruise_speed_m_s", 0.5, 9.0),  # envelope.max_horizontal_speed_m_s = 2
+            ("command.cruise_speed_m_s", 0.5, 9.0),  # envelope.max_horizontal_speed_m_s = 4
             ("controller.main_rules.R7.weight", 0.2, 3.0),  # a rule by its name; weight <= 1
             ("controller.input_terms.near.params_m.1", 1.8, 2.6),  # a breakpoint: no bounds of its own
             ("controller.output_resolution", 10, 500),  # an integer >= 21
@@ -81,7 +81,7 @@ def test_ranges_are_clipped_to_the_field_bounds_and_the_envelope() -> None:
     assert (breakpoint_.low, breakpoint_.high, breakpoint_.start) == (1.8, 2.6, 2.25)
     assert (resolution.low, resolution.high, resolution.integer) == (21, 500, True)
     # A tighter envelope bounds the search tighter: the envelope of the config searched.
-    tight = apply_patch(cfg, {"envelope": {"max_horizontal_speed_m_s": 1.0}})
+    tight = apply_patch(cfg, {"envelope": {"max_horizontal_speed_m_s": 1.0}, "planner": {"cruise_speed_m_s": 1.0}})
     (clipped,) = resolve_settings(tight, [("command.cruise_speed_m_s", 0.5, 9.0)])
     assert clipped.high == 1.0
 
@@ -93,7 +93,7 @@ def test_ranges_are_clipped_to_the_field_bounds_and_the_envelope() -> None:
         ("controller.main_rules.R99.weight", 0, 1, "no 'R99' here"),
         ("controller.preferred_yaw_side", 0, 1, "not a number"),
         ("envelope.max_horizontal_speed_m_s", 1, 3, "not searched"),
-        ("command.cruise_speed_m_s", 3, 5, "inside the safety envelope"),
+        ("planner.cruise_speed_m_s", 4.5, 5, "inside the safety envelope"),
         ("controller.main_rules.R7.weight", 2, 3, "outside the field's bounds"),
     ],
 )
@@ -200,7 +200,7 @@ def test_without_ray_the_suite_says_how_to_install_it(
     ("argv", "message"),
     [
         (["x=2:1"], "low 2 is above high 1"),
-        (["command.cruise_speed_m_s=3:4"], "inside the safety envelope"),
+        (["planner.cruise_speed_m_s=4.5:5"], "inside the safety envelope"),
         ([], "name at least one setting"),
         (["command.cruise_speed_m_s=0.5:1", "--trials", "0"], "--trials must be >= 1"),
         (["command.cruise_speed_m_s=0.5:1", "--kinds", "maze"], "unknown course kind 'maze'"),
@@ -268,7 +268,7 @@ def test_a_tune_stopped_by_ctrl_c_resumes_and_writes_its_best_settings(tmp_path:
     from companion.sim.cluster import TuneSpec, run_tune
 
     cfg = CompanionConfig()
-    settings = resolve_settings(cfg, [("command.cruise_speed_m_s", 0.5, 1.2), ("controller.main_rules.R7.weight", 0.3, 1.0)])
+    settings = resolve_settings(cfg, [("planner.cruise_speed_m_s", 2.0, 3.5), ("controller.main_rules.R7.weight", 0.3, 1.0)])
     spec = TuneSpec(base=cfg, settings=settings, courses=(("pitch", 0),), trials=3, seed=1)
     storage = tmp_path / "tune"
     rows, complete = run_tune(spec, storage, num_cpus=2, verbose=0, callbacks=[_ctrl_c_after_first_trial()])
@@ -279,9 +279,9 @@ def test_a_tune_stopped_by_ctrl_c_resumes_and_writes_its_best_settings(tmp_path:
     assert complete
     assert [r["trial"] for r in rows] == [1, 2, 3]
     first = rows[0]
-    assert (first["command.cruise_speed_m_s"], first["controller.main_rules.R7.weight"]) == (0.7, 0.5)  # the base
+    assert (first["planner.cruise_speed_m_s"], first["controller.main_rules.R7.weight"]) == (3.0, 0.5)  # the base
     for r in rows:
-        assert 0.5 <= r["command.cruise_speed_m_s"] <= 1.2 and 0.3 <= r["controller.main_rules.R7.weight"] <= 1.0
+        assert 2.0 <= r["planner.cruise_speed_m_s"] <= 3.5 and 0.3 <= r["controller.main_rules.R7.weight"] <= 1.0
         assert r["flights"] == 1 and r["problem"] == ""
     best = best_row(rows)
     assert best is not None and best["score"] >= first["score"]

@@ -333,6 +333,22 @@ def test_speed_law_limits_the_command_and_brakes_the_motion() -> None:
     assert out.right_m_s > 1.5  # the sideways part stays (within cruise)
 
 
+def test_a_command_outside_the_camera_s_view_flies_slower_the_farther_off_the_axis() -> None:
+    """Fly where you look. A flight at 0.7 m/s round an overhead block turned the camera east along
+    its edge; the goal then lay north, and the planner flew body-left at once into space it had seen
+    free seconds before, under the block's edge (the block's lowest cubes cleared by rays passing
+    beneath it), and touched it. Off the camera's view the speed comes only as the camera turns."""
+    sideways = VelocitySetpoint(0.0, -3.0, 0.0, 0.0)  # body-left: 90 deg off the axis
+    assert speed_law_limit(sideways, _ctx()).right_m_s == pytest.approx(0.0, abs=1e-9)
+    ahead = VelocitySetpoint(2.0, 1.0, 0.0, 0.0)  # 27 deg off: within the view
+    assert speed_law_limit(ahead, _ctx()) == ahead
+    off = speed_law_limit(VelocitySetpoint(1.5, 2.6, 0.0, 0.0), _ctx())  # 60 deg off: 0.6 of the speed
+    assert math.hypot(off.forward_m_s, off.right_m_s) == pytest.approx(0.6 * 3.0, rel=2e-3)
+    assert math.atan2(off.right_m_s, off.forward_m_s) == pytest.approx(math.atan2(2.6, 1.5))
+    back = speed_law_limit(VelocitySetpoint(-0.3, 0.0, 0.0, 0.0), _ctx(holding=True))  # the hold's way back
+    assert back.forward_m_s == pytest.approx(-0.3)
+
+
 def test_the_unexplained_motion_comes_off_the_setpoint_and_a_hold_but_not_off_zero() -> None:
     west = np.array([0.0, -0.3, 0.0])  # the vehicle moves west the reported velocity does not show
     out = counter_unexplained(FAST, _ctx(unexplained_ned_m_s=west))
@@ -402,7 +418,7 @@ def test_the_stack_flies_a_course_goal_and_needs_the_envelope_raised() -> None:
                       np.array([0.0, 0.0, -1.5]), np.zeros(3), 0.0)
     assert step.setpoint.forward_m_s > 0.5
     with pytest.raises(ValueError, match="planner.cruise_speed_m_s"):
-        CompanionConfig.model_validate({"planner": {"kind": "local"}})
+        CompanionConfig.model_validate({"planner": {"kind": "local"}, "envelope": {"max_horizontal_speed_m_s": 2.0}})
 
 
 @pytest.mark.parametrize("memory_s", [0.0, 8.0])

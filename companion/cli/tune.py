@@ -36,7 +36,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         nargs="*",
         metavar="PATH=LOW:HIGH",
         help=(
-            "a setting and its range: e.g. command.cruise_speed_m_s=0.5:1.5, "
+            "a setting and its range: e.g. planner.cruise_speed_m_s=2:3.5, "
             "controller.input_terms.near.params_m.1=1.8:2.6 (a breakpoint), controller.main_rules.R7.weight=0.2:1"
         ),
     )

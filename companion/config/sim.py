@@ -17,7 +17,15 @@ class SimConfig(StrictModel):
     """Simulator: camera rig and timing, the multicopter model, and when a flight ends."""
 
     # -- camera ----------------------------------------------------------------------------------
-    camera_rate_hz: float = Field(default=15.0, gt=0.0, le=120.0, description="Simulated camera frame rate, Hz.")
+    camera_rate_hz: float = Field(
+        default=30.0,
+        gt=0.0,
+        le=120.0,
+        description=(
+            "Simulated camera frame rate, Hz: the ZED's 30 by default (60 as the ZED's option at VGA). "
+            "At 3 m/s a frame period is 0.1 m flown before the next look."
+        ),
+    )
     eye_width_px: int = Field(
         default=336,
         ge=64,
@@ -70,15 +78,17 @@ class SimConfig(StrictModel):
     )
     # -- vehicle model ---------------------------------------------------------------------------
     velocity_time_constant_s: float = Field(
-        default=1.17,
+        default=0.44,
         gt=0.0,
         le=5.0,
         description=(
-            "First-order lag of the velocity response to a velocity setpoint, seconds. Default: fitted to "
-            "PX4 SITL's step response (SIH quadrotor, default MPC gains; steps of 1 and 3 m/s forward and "
-            "sideways, 6-7 s each; docs/simulator.md): PX4 closes most of a step within 1 s and the rest "
-            "over seconds, and this lag travels about as far as PX4 does after a stop from 3 m/s (a "
-            "faster lag would stop short of where PX4 stops). A crisp racer is nearer 0.3."
+            "First-order lag of the velocity response to a velocity setpoint (of the share that "
+            "slow_response_fraction leaves), seconds. Default: with response_delay_s 0.14 and "
+            "slow_response_fraction 0.22, fitted to PX4 SITL's step response (SIH quadrotor, default "
+            "MPC gains; steps of 1 and 3 m/s forward and sideways, 6-7 s each; docs/simulator.md): "
+            "PX4 closes three quarters of a step within a second and the rest over seconds. Alone "
+            "(slow_response_fraction 0), 1.17 s travels about as far as PX4 after a stop from 3 m/s. "
+            "A crisp racer is nearer 0.3."
         ),
     )
     acceleration_time_constant_s: float = Field(
@@ -96,7 +106,7 @@ class SimConfig(StrictModel):
         ),
     )
     response_delay_s: float = Field(
-        default=0.0,
+        default=0.14,
         ge=0.0,
         le=1.0,
         description=(
@@ -106,7 +116,7 @@ class SimConfig(StrictModel):
         ),
     )
     slow_response_fraction: float = Field(
-        default=0.0,
+        default=0.22,
         ge=0.0,
         le=1.0,
         description=(
@@ -114,8 +124,8 @@ class SimConfig(StrictModel):
             "(slow_response_time_constant_s) instead of velocity_time_constant_s; 0 = none. An "
             "autopilot's velocity integrator closes the last part of a step over seconds: asked to stop "
             "from 3 m/s, PX4 SITL still moved at 0.4 m/s 2 s later and 0.25 m/s 6 s later, 3.9 m in "
-            "all. 0.22 with 8 s, velocity_time_constant_s 0.44 and response_delay_s 0.14 reproduce "
-            "PX4 SITL's steps (docs/simulator.md)."
+            "all. The default 0.22 with 8 s, velocity_time_constant_s 0.44 and response_delay_s 0.14 "
+            "reproduces PX4 SITL's steps (docs/simulator.md)."
         ),
     )
     slow_response_time_constant_s: float = Field(

@@ -8,7 +8,7 @@ their order written once (:data:`CHAIN`).
    (unknown counts as 0 m);
 3. :func:`speed_law_limit`: the commanded velocity, and the component of it along the way the vehicle
    is actually moving (the autopilot follows late), no faster than the speed law on the free length
-   the map sees along each;
+   the map sees along each; a command outside the camera's view slower still (fly where you look);
 4. :func:`counter_unexplained`: the motion the reported velocity does not explain (measured on the
    position's track) taken off the horizontal setpoint, so that the vehicle moves as commanded;
 5. :func:`floor_ceiling`: no descent below the floor nor climb above the ceiling, slowing on the last
@@ -37,6 +37,17 @@ MOVING_M_S = 0.3
 BAND_SLOW_M = 1.0
 
 
+def view_factor(off_axis_rad: float, view_half_rad: float) -> float:
+    """The share of the speed law's speed a command may fly at ``off_axis_rad`` (radians, horizontal)
+    from the camera's axis: 1 within the view's half-angle ``view_half_rad``, falling linearly to 0 at
+    a right angle and beyond (the space there is only remembered, in a position estimate that drifts:
+    the planner turns the camera to where it flies, and the speed comes as the way comes into view)."""
+    a = abs(off_axis_rad)
+    if a <= view_half_rad:
+        return 1.0
+    return max(0.0, (0.5 * math.pi - a) / max(0.5 * math.pi - view_half_rad, 1e-6))
+
+
 @dataclass(frozen=True)
 class SafetyContext:
     """What the filters know of the tick (frozen).
@@ -56,6 +67,7 @@ class SafetyContext:
         free_along: the map's seen-free length (metres) along a unit NED direction (float ``(3,)``).
         planner: the planner section (speed law, floor, ceiling).
         max_horizontal_m_s, max_vertical_m_s, max_yaw_rate_deg_s: the safety envelope.
+        view_half_rad: half the camera's horizontal view, radians.
     """
 
     frame_age_s: float
@@ -72,6 +84,7 @@ class SafetyContext:
     max_horizontal_m_s: float
     max_vertical_m_s: float
     max_yaw_rate_deg_s: float
+    view_half_rad: float = math.radians(40.0)
 
 
 def to_ned(sp: VelocitySetpoint, yaw_rad: float) -> np.ndarray:
@@ -114,14 +127,18 @@ def brake_hold(sp: VelocitySetpoint, ctx: SafetyContext) -> VelocitySetpoint:
 
 
 def speed_law_limit(sp: VelocitySetpoint, ctx: SafetyContext) -> VelocitySetpoint:
-    """The commanded speed within the speed law on the free length along it, and its component along
-    the vehicle's motion within the speed law on the free length along that. Holding, the command
-    leads back to the held point, where the vehicle's body was (the way back need not have been
-    seen): only the motion is bounded."""
+    """The commanded speed within the speed law on the free length along it, times
+    :func:`view_factor` of the command's bearing off the camera's axis; and its component along the
+    vehicle's motion within the speed law on the free length along that. Holding, the command leads
+    back to the held point, where the vehicle's body was (the way back need not have been seen): only
+    the motion is bounded."""
     v = to_ned(sp, ctx.yaw_rad)
     speed = float(np.linalg.norm(v))
     if speed > 1e-9 and not ctx.holding:
         cap = float(speed_law(ctx.free_along(v / speed), ctx.planner))
+        h = math.hypot(sp.forward_m_s, sp.right_m_s)
+        if h > 1e-9:  # the bearing off the axis: body frame, forward is the camera's axis
+            cap *= view_factor(math.atan2(abs(sp.right_m_s), sp.forward_m_s), ctx.view_half_rad)
         if speed > cap:
             v = v * (cap / speed)
     m = np.asarray(ctx.velocity_ned_m_s, dtype=np.float64)

@@ -164,5 +164,6 @@ class LocalStack:
             max_horizontal_m_s=env.max_horizontal_speed_m_s,
             max_vertical_m_s=min(env.max_vertical_speed_m_s, self.cfg.planner.max_vertical_speed_m_s),
             max_yaw_rate_deg_s=min(env.max_yaw_rate_deg_s, self.cfg.planner.max_yaw_rate_deg_s),
+            view_half_rad=self.view_half_rad,
         )
         return StackStep(apply_chain(sp, ctx), plan)
