@@ -419,3 +419,44 @@ def median_to_float(disp, median, fixed, out, med_buf):  # pragma: no cover - co
             for x in range(w):
                 v = fr[x]
                 orow[x] = nan if v < 0 else np.float32(v) * scale
+
+
+@nb.njit(**_JIT, parallel=True)
+def shrink_pair(left, right, out, scale):  # pragma: no cover - compiled
+    """Rule 11's coarse pair: uint8 ``left``, ``right`` ``(H, W)`` -> uint8 ``out`` ``(2, Hc, Wc)``,
+    each coarse pixel the rounded mean of its ``scale × scale`` block."""
+    hc, wc = out.shape[1], out.shape[2]
+    n = scale * scale
+    half = n // 2
+    for k in nb.prange(2 * hc):
+        img = left if k < hc else right
+        yc = k % hc
+        dst = out[0 if k < hc else 1, yc]
+        for xc in range(wc):
+            acc = 0
+            for i in range(scale):
+                row = img[yc * scale + i]
+                for j in range(scale):
+                    acc += np.int32(row[xc * scale + j])
+            dst[xc] = np.uint8((acc + half) // n)
+
+
+@nb.njit(**_JIT, parallel=True)
+def near_fill(coarse, scale, num_disparities, fixed, out):  # pragma: no cover - compiled
+    """Rule 11's test and fill: where the coarse match (int16 ``(Hc, Wc)`` disparity × 16, -1 invalid)
+    of full-size pixel ``(y, x)`` (coarse ``(min(y // s, Hc - 1), min(x // s, Wc - 1))``) lies beyond
+    ``[0, D)``, int16 ``fixed`` becomes ``16 · (D - 1)`` and float32 ``out`` ``D - 1`` px."""
+    h, w = fixed.shape
+    hc, wc = coarse.shape
+    limit = 16 * num_disparities
+    near_v = np.int16(16 * (num_disparities - 1))
+    near_px = np.float32(num_disparities - 1)
+    for y in nb.prange(h):
+        crow = coarse[min(y // scale, hc - 1)]
+        frow = fixed[y]
+        orow = out[y]
+        for x in range(w):
+            q = np.int32(crow[min(x // scale, wc - 1)])
+            if q >= 0 and scale * q >= limit:
+                frow[x] = near_v
+                orow[x] = near_px
