@@ -98,6 +98,7 @@ class CpuSgmMatcher:
         if coarse is not None:
             hc, wc, dc = coarse
             self._shrunk = np.empty((2, hc, wc), np.uint8)
+            self._shrink_cols = np.empty((2 * hc, wc * NEAR_SCALE), np.uint16)
             self._coarse = CpuSgmMatcher(
                 wc, hc, dc, p1=p1, p2=p2, paths=paths, uniqueness_ratio_pct=uniqueness_ratio_pct,
                 lr_max_diff_px=lr_max_diff_px, median=median, threads=self.threads, near_range=False,
@@ -118,7 +119,7 @@ class CpuSgmMatcher:
         k.median_to_float(self._raw, self.median, self._fixed, out, self._med)
         c = self._coarse
         if c is not None:
-            k.shrink_pair(left, right, self._shrunk, NEAR_SCALE)
+            k.shrink_pair(left, right, self._shrunk, NEAR_SCALE, self._shrink_cols)
             c._run(self._shrunk[0], self._shrunk[1], c._out)
             k.near_fill(c._fixed, NEAR_SCALE, self.num_disparities, self._fixed, out)
 
