@@ -251,3 +251,62 @@ def test_the_gpu_kernels_read_a_too_near_wall_near() -> None:
     expected = reduce_regions_from_disparity(S.fixed_to_float(reference), layout, RegionsConfig(), geometry.focal_baseline_px_m)
     np.testing.assert_array_equal(out["regions"][:9], expected.depth_m)
     np.testing.assert_array_equal(out["regions"][:9], np.full(9, nearest))
+
+
+# ---------------------------------------------------------------------------------------------------------
+# a real pair: Middlebury's Aloe (the shared copy, where present)
+
+
+def _shared_data(name: str):
+    """``shared/data/<name>`` beside the checkout or a folder above it (as in tests/test_eval.py)."""
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    for parent in root.parents:
+        if (parent / "shared" / "data" / name).is_dir():
+            return parent / "shared" / "data" / name
+    return root.parent / "shared" / "data" / name
+
+
+_needs_aloe = pytest.mark.skipif(not (_shared_data("aloe") / "aloeGT.png").is_file(), reason="no shared Aloe pair")
+
+
+@pytest.mark.slow
+@_needs_aloe
+@pytest.mark.usefixtures("_numba_cache")
+def test_aloe_with_too_few_disparities_reads_its_near_leaves_near() -> None:
+    """Aloe at full size has disparities up to 211 px; with 64 the plant's leaves are nearer than the
+    range. Without the check two upper regions read farther than the nearest measurable depth (the
+    leaves matched a wrong, smaller disparity); with it every region whose true depth is nearer than the
+    range reads the nearest measurable depth."""
+    from companion.core.evaluation import load_middlebury
+    from companion.cpu import CpuSgmMatcher
+
+    pair = load_middlebury(_shared_data("aloe"))
+    h, w = pair.left.shape
+    layout = RegionLayout(np.array([0, h // 3, 2 * h // 3, h]), np.array([0, w // 3, 2 * w // 3, w]))
+    fb = 100.0  # any f·B: the regions are compared in the same units
+    cfg = RegionsConfig()
+    nearest = float(np.float32(fb) / np.float32(63))
+    truth = reduce_regions_from_disparity(np.where(pair.disparity > 0, pair.disparity, np.nan).astype(np.float32),
+                                          layout, cfg, fb).depth_m
+    too_near = truth < nearest
+    assert too_near.sum() >= 6
+    read = {}
+    for near_range in (False, True):
+        fixed = CpuSgmMatcher(w, h, 64, near_range=near_range, **_SGM).compute_fixed(pair.left, pair.right)
+        read[near_range] = reduce_regions_from_disparity(S.fixed_to_float(fixed), layout, cfg, fb).depth_m
+    assert (read[False][too_near] > 1.05 * nearest).any()
+    np.testing.assert_array_equal(read[True][too_near], np.full(too_near.sum(), nearest))
+
+
+@pytest.mark.slow
+@_needs_aloe
+def test_aloe_inside_the_range_reads_exactly_as_without_the_check() -> None:
+    """Aloe at half size with 112 disparities: every surface inside the range, no pixel changes."""
+    from companion.core.evaluation import load_middlebury, rescale
+
+    pair = rescale(load_middlebury(_shared_data("aloe")), 0.5)
+    np.testing.assert_array_equal(
+        S.sgm_match(pair.left, pair.right, 112, **_SGM), S.sgm_match(pair.left, pair.right, 112, near_range=False, **_SGM)
+    )

@@ -919,29 +919,38 @@ class CupyRegionEstimator:
                        stream=s)
         k["sgm_wta"]((-(-sp.wta_tasks // warps),), (SGM_PATH_THREADS,),
                      (self._volumes, self._winner, self._right_keys, uniq), stream=s)
-        n = self._near
-        near_args: tuple[Any, ...] = (np.uint64(0), np.int32(0), np.int32(0))  # a null pointer: no check
-        if n is not None:
-            # the near-range check's coarse pair, shrunk from the rectified pair and matched whole
-            k["sgm_shrink"]((-(-n.width_px // 64), n.height_px, 2), (64,),
-                            (self._rect_l, self._rect_r, n.left, n.right, np.int32(n.width_px),
-                             np.int32(n.height_px), np.int32(n.pitch_bytes)), stream=s)
-            nk, npl = n.kernels, n.plan
-            nk["sgm_census"](npl.census_grid(n.height_px), SGM_CENSUS_TILE,
-                             (n.left, n.right, n.census, n.right_keys, np.int32(0), np.int32(n.height_px)), stream=s)
-            nk["sgm_paths"]((-(-npl.path_tasks // warps),), (SGM_PATH_THREADS,), (n.census, n.volumes, p1, p2),
-                            stream=s)
-            nk["sgm_wta"]((-(-npl.wta_tasks // warps),), (SGM_PATH_THREADS,),
-                          (n.volumes, n.winner, n.right_keys, uniq), stream=s)
-            nk["sgm_post"]((npl.post_blocks,), (SGM_POST_THREADS,),
-                           (n.winner, n.right_keys, n.disp, n.hist, n.counter, n.result, lr_max, median, fb, pct,
-                            min_valid, max_depth, *near_args),
-                           stream=s)
-            near_args = (n.disp, np.int32(n.width_px), np.int32(n.height_px))
+        near_args = self._enqueue_near(s)
         k["sgm_post"]((sp.post_blocks,), (SGM_POST_THREADS,),
                       (self._winner, self._right_keys, self._disp, self._hist, self._counter, self._result_dev,
                        lr_max, median, fb, pct, min_valid, max_depth, *near_args),
                       stream=s)
+
+    def _enqueue_near(self, s: Any) -> tuple[Any, ...]:
+        """Queue the near-range check's coarse pair on stream ``s`` (after the rectification): shrink the
+        rectified pair and match it whole with the coarse module. Returns ``sgm_post``'s last three
+        arguments: the coarse disparity and its size, or a null pointer where the check is skipped."""
+        n = self._near
+        if n is None:
+            return (np.uint64(0), np.int32(0), np.int32(0))
+        k = self._k_sgm
+        p1, p2, uniq, lr_max, median = self._sgm_args
+        fb, pct, min_valid, max_depth = self._region_args
+        warps = SGM_PATH_THREADS // 32
+        k["sgm_shrink"]((-(-n.width_px // 64), n.height_px, 2), (64,),
+                        (self._rect_l, self._rect_r, n.left, n.right, np.int32(n.width_px),
+                         np.int32(n.height_px), np.int32(n.pitch_bytes)), stream=s)
+        nk, npl = n.kernels, n.plan
+        nk["sgm_census"](npl.census_grid(n.height_px), SGM_CENSUS_TILE,
+                         (n.left, n.right, n.census, n.right_keys, np.int32(0), np.int32(n.height_px)), stream=s)
+        nk["sgm_paths"]((-(-npl.path_tasks // warps),), (SGM_PATH_THREADS,), (n.census, n.volumes, p1, p2), stream=s)
+        nk["sgm_wta"]((-(-npl.wta_tasks // warps),), (SGM_PATH_THREADS,), (n.volumes, n.winner, n.right_keys, uniq),
+                      stream=s)
+        # the coarse module's own region results are not used; its post reads no coarser pair (null)
+        nk["sgm_post"]((npl.post_blocks,), (SGM_POST_THREADS,),
+                       (n.winner, n.right_keys, n.disp, n.hist, n.counter, n.result, lr_max, median, fb, pct,
+                        min_valid, max_depth, np.uint64(0), np.int32(0), np.int32(0)),
+                       stream=s)
+        return (n.disp, np.int32(n.width_px), np.int32(n.height_px))
 
     def _near_blocks(self, block_px: int, erode_px: int) -> np.ndarray:
         f = self._preview_factor
