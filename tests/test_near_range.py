@@ -68,11 +68,12 @@ def test_a_pair_beyond_the_range_reads_the_nearest_measurable_disparity() -> Non
     plain = S.sgm_match(left, right, 16, near_range=False, **_SGM)
     checked = S.sgm_match(left, right, 16, **_SGM)
     interior = np.s_[8:-8, 40:-8]  # away from the borders and the unmatched left band
-    assert np.median(plain[interior][plain[interior] >= 0]) < 16 * 15  # the wrong, farther match
-    assert (checked[interior] == 16 * 15).all()
-    # the check only ever makes a pixel nearer
+    assert (plain[interior] < 0).mean() > 0.3  # much of it: no match the full-size matcher can stand behind
+    # every pixel the full-size matcher left invalid reads the nearest measurable disparity
+    assert (checked[interior][plain[interior] < 0] == 16 * 15).all()
+    # and a valid full-size match is never overridden
     changed = checked != plain
-    assert (checked[changed] == 16 * 15).all()
+    assert (plain[changed] < 0).all() and (checked[changed] == 16 * 15).all()
 
 
 def test_a_pair_inside_the_range_is_left_as_it_was() -> None:
@@ -123,6 +124,27 @@ def test_the_benchmark_corridor_reads_as_before() -> None:
         np.testing.assert_array_equal(
             S.sgm_match(left, right, 32, **_SGM), S.sgm_match(left, right, 32, near_range=False, **_SGM)
         )
+
+
+@pytest.mark.parametrize(("period_m", "distance_m"), [(0.04, 3.5), (0.06, 2.0), (0.1, 2.0), (0.1, 3.5), (0.2, 3.5)])
+def test_bars_inside_the_range_are_not_read_near(period_m: float, distance_m: float) -> None:
+    """Opaque bars (a radiator's fins) in front of a wall: shrunk 4 times, the bars' period is a few
+    pixels and the coarse match locks onto a wrong repeat beyond the range in patches. The full-size
+    matcher matches the bars there, and the check never overrides a valid full-size match: no region
+    reads near."""
+    from companion.sim.render import Box, Photometry, Pose, Scene, StereoRenderer, Surface
+
+    geometry = StereoGeometry.ideal(336, 188, hfov_deg=87.0, baseline_m=0.12)
+    bars = Surface(kind="bars", bar_period_m=period_m, bar_width_m=period_m / 4, see_through=False)
+    scene = Scene(obstacles=(Box((2.05 + distance_m, 0.0, -1.5), (0.1, 6.0, 3.0), surface=bars),
+                             Box((5.0 + distance_m, 0.0, -1.5), (0.1, 8.0, 4.0))))
+    noise = Photometry(noise_std=2.0)
+    res = StereoRenderer(geometry, scene, seed=1).render(Pose.at(2.0, 0.0, 1.5), left=noise, right=noise,
+                                                         rng=np.random.default_rng(0))
+    left, right = (cv2.cvtColor(img, cv2.COLOR_BGR2GRAY) for img in (res.left_bgr, res.right_bgr))
+    with_check = _regions(S.sgm_match(left, right, 32, **_SGM), geometry)
+    without = _regions(S.sgm_match(left, right, 32, near_range=False, **_SGM), geometry)
+    assert (with_check >= 0.95 * without).all(), (with_check, without)
 
 
 @pytest.mark.parametrize("backend", ["opencv-bm", "opencv-sgbm"])
@@ -197,11 +219,15 @@ def test_the_cpu_engine_reads_a_too_near_wall_near() -> None:
 _needs_gxx = pytest.mark.skipif(shutil.which("g++") is None, reason="needs g++ to compile the kernels for the CPU")
 
 
-def _host_run(left: np.ndarray, right: np.ndarray, d: int, fb: float, **params) -> dict[str, np.ndarray]:
+def _host_run(left: np.ndarray, right: np.ndarray, d: int, fb: float, layout: RegionLayout | None = None,
+              **params) -> dict[str, np.ndarray]:
     from companion.gpu.hostemu import HostSgmKernels
 
     h, w = left.shape
-    rows_e, cols_e = [0, h // 3, 2 * h // 3, h], [0, w // 3, 2 * w // 3, w]
+    if layout is None:
+        rows_e, cols_e = [0, h // 3, 2 * h // 3, h], [0, w // 3, 2 * w // 3, w]
+    else:
+        rows_e, cols_e = [int(e) for e in layout.row_edges], [int(e) for e in layout.col_edges]
     kernels = HostSgmKernels(w, h, d, params.get("paths", 4), rows_e, cols_e)
     out = kernels.run(left, right, params["p1"], params["p2"], params.get("uniqueness_ratio_pct", 10),
                       params.get("lr_max_diff_px", 1), params.get("median", True), fb=fb)
@@ -242,7 +268,7 @@ def test_the_gpu_kernels_equal_the_reference(h: int, w: int, shift: int, d: int,
 def test_the_gpu_kernels_read_a_too_near_wall_near() -> None:
     """128x72 px, 16 disparities: nothing nearer than 0.54 m is measurable; a plain wall at 0.3 m."""
     geometry, left, right = _wall_pair(128, 72, 0.3, "plain")
-    out = _host_run(left, right, 16, geometry.focal_baseline_px_m, **_SGM)
+    out = _host_run(left, right, 16, geometry.focal_baseline_px_m, region_layout(geometry, RegionsConfig()), **_SGM)
     reference = S.sgm_match(left, right, 16, **_SGM)
     np.testing.assert_array_equal(out["disparity"], reference)
     nearest = _nearest_m(geometry, 16)
@@ -278,7 +304,7 @@ def test_aloe_with_too_few_disparities_reads_its_near_leaves_near() -> None:
     """Aloe at full size has disparities up to 211 px; with 64 the plant's leaves are nearer than the
     range. Without the check two upper regions read farther than the nearest measurable depth (the
     leaves matched a wrong, smaller disparity); with it every region whose true depth is nearer than the
-    range reads the nearest measurable depth."""
+    range reads the nearest measurable depth (the leaves the full-size matcher left unmatched)."""
     from companion.core.evaluation import load_middlebury
     from companion.cpu import CpuSgmMatcher
 

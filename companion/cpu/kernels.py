@@ -453,9 +453,10 @@ def shrink_pair(left, right, out, scale, cols_buf):  # pragma: no cover - compil
 
 @nb.njit(**_JIT, parallel=True)
 def near_fill(coarse, scale, num_disparities, fixed, out):  # pragma: no cover - compiled
-    """Rule 11's test and fill: where the coarse match (int16 ``(Hc, Wc)`` disparity × 16, -1 invalid)
-    of full-size pixel ``(y, x)`` (coarse ``(min(y // s, Hc - 1), min(x // s, Wc - 1))``) lies beyond
-    ``[0, D)``, int16 ``fixed`` becomes ``16 · (D - 1)`` and float32 ``out`` ``D - 1`` px. One test
+    """Rule 11's test and fill: where full-size pixel ``(y, x)`` is invalid in int16 ``fixed`` and its
+    coarse match (int16 ``(Hc, Wc)`` disparity × 16, -1 invalid; coarse ``(min(y // s, Hc - 1),
+    min(x // s, Wc - 1))``) lies beyond ``[0, D)``, ``fixed`` becomes ``16 · (D - 1)`` and float32
+    ``out`` ``D - 1`` px. One test
     per coarse pixel and full-size row (the columns it covers are filled together)."""
     h, w = fixed.shape
     hc, wc = coarse.shape
@@ -471,5 +472,6 @@ def near_fill(coarse, scale, num_disparities, fixed, out):  # pragma: no cover -
             if q >= 0 and scale * q >= limit:
                 x1 = w if xc == wc - 1 else (xc + 1) * scale
                 for x in range(xc * scale, x1):
-                    frow[x] = near_v
-                    orow[x] = near_px
+                    if frow[x] < 0:
+                        frow[x] = near_v
+                        orow[x] = near_px

@@ -62,9 +62,12 @@ left and right images ``(H, W)``; ``D`` is the number of disparities (``d`` in `
     ``P1``, ``P2``, paths, ``u``, left-right tolerance and median) with ``Dc = D // 2`` disparities,
     which reaches ``s · Dc`` (about ``2·D``) full-size pixels, twice the full-size range, at
     ``1 / (s² · 2)`` of its cost. Each full-size pixel ``(y, x)`` reads its coarse pixel
-    ``(min(y // s, Hc - 1), min(x // s, Wc - 1))``; where that coarse ``vc`` is valid and
-    ``s · vc >= 16 · D`` (a surface beyond the full-size range), the output is ``16 · (D - 1)``: the
-    rig's nearest measurable depth, whatever rules 1–10 found there (valid or not). The check is
+    ``(min(y // s, Hc - 1), min(x // s, Wc - 1))``; where rules 1–10 left the pixel invalid and that
+    coarse ``vc`` is valid with ``s · vc >= 16 · D`` (a surface beyond the full-size range), the output
+    is ``16 · (D - 1)``: the rig's nearest measurable depth. A valid full-size match (unique and
+    left-right consistent) is never overridden: a shrunk regular pattern (bars, a grid) can match a
+    wrong repeat beyond the range, and over a surface inside the range the full-size matcher finds it.
+    The check is
     skipped when the coarse pair is smaller than the census window (``Wc < 9`` or ``Hc < 7``) or
     ``Dc < 2``.
 
@@ -349,7 +352,8 @@ def near_range_check(
     median: bool = True,
 ) -> np.ndarray:
     """Rule 11 on rules 1–10's output ``disp`` (int16 ``(H, W)`` disparity × 16, ``-1`` invalid): a new
-    int16 array, ``16 · (D - 1)`` where the coarse match finds a surface nearer than the range."""
+    int16 array, ``16 · (D - 1)`` where ``disp`` is invalid and the coarse match finds a surface nearer
+    than the range."""
     h, w = disp.shape
     shape = near_range_shape(h, w, num_disparities)
     if shape is None:
@@ -359,7 +363,7 @@ def near_range_check(
         lr_max_diff_px=lr_max_diff_px, median=median, near_range=False,
     )
     out = disp.copy()
-    out[near_range_mask(coarse, h, w, num_disparities)] = SUBPIXEL_SCALE * (int(num_disparities) - 1)
+    out[near_range_mask(coarse, h, w, num_disparities) & (disp < 0)] = SUBPIXEL_SCALE * (int(num_disparities) - 1)
     return out
 
 

@@ -752,7 +752,7 @@ extern "C" __global__ void __launch_bounds__(POST_THREADS) sgm_post(const int* _
     const int r = idx / IMG_W + 1, x = idx % IMG_W;
     int v = sm.chk[r * IMG_W + x];
     if (median && v >= 0) v = median_valid_3x3(sm.chk, r, x);
-    if (near != nullptr) {  // the near-range check (rule 11): the coarse match beyond [0, NDISP)
+    if (near != nullptr && v < 0) {  // the near-range check (rule 11): the coarse match beyond [0, NDISP)
       const int yc = min((ya + r - 1) / NEAR_S, near_h - 1), xc = min(x / NEAR_S, near_w - 1);
       const int q = near[(size_t)yc * near_w + xc];
       if (q >= 0 && NEAR_S * q >= 16 * NDISP) v = 16 * (NDISP - 1);
