@@ -55,8 +55,8 @@ left and right images ``(H, W)``; ``D`` is the number of disparities (``d`` in `
     values; an invalid pixel stays invalid.
 
 11. **Near-range check** (always, where the coarse pair below exists). A surface nearer than the rig's
-    range (true disparity above ``D - 1``) cannot be matched, and rules 1–10 then pick a wrong, farther
-    disparity inside the range. So the pair is also matched coarsely: both images are shrunk
+    range (true disparity above ``D - 1``) cannot be matched: rules 1–10 leave much of it invalid and
+    match the rest at a wrong, farther disparity inside the range. So the pair is also matched coarsely: both images are shrunk
     :data:`NEAR_SCALE` (``s`` = 4) times, each coarse pixel the rounded mean of its ``s × s`` block,
     ``(sum + s²/2) // s²``, over ``floor(H/s) × floor(W/s)`` pixels, and matched by rules 1–10 (the same
     ``P1``, ``P2``, paths, ``u``, left-right tolerance and median) with ``Dc = D // 2`` disparities,
@@ -67,9 +67,8 @@ left and right images ``(H, W)``; ``D`` is the number of disparities (``d`` in `
     is ``16 · (D - 1)``: the rig's nearest measurable depth. A valid full-size match (unique and
     left-right consistent) is never overridden: a shrunk regular pattern (bars, a grid) can match a
     wrong repeat beyond the range, and over a surface inside the range the full-size matcher finds it.
-    The check is
-    skipped when the coarse pair is smaller than the census window (``Wc < 9`` or ``Hc < 7``) or
-    ``Dc < 2``.
+    The check is skipped when the coarse pair is smaller than the census window (``Wc < 9`` or
+    ``Hc < 7``) or ``Dc < 2``.
 
 Output: int16 ``v`` (disparity × 16), ``-1`` where invalid. :class:`SgmReferenceMatcher` converts to
 float32 pixels with NaN for invalid.
