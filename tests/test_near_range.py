@@ -336,3 +336,49 @@ def test_aloe_inside_the_range_reads_exactly_as_without_the_check() -> None:
     np.testing.assert_array_equal(
         S.sgm_match(pair.left, pair.right, 112, **_SGM), S.sgm_match(pair.left, pair.right, 112, near_range=False, **_SGM)
     )
+
+
+# ---------------------------------------------------------------------------------------------------------
+# the estimators: the whole frame, the region depths the controller sees
+
+
+def _ideal_cfg(backend: str, num_disparities: int) -> CompanionConfig:
+    """The rendered rig as the ideal one (frames already rectified): 87°, 12 cm."""
+    return CompanionConfig.model_validate({
+        "stereo": {"backend": backend, "num_disparities": num_disparities},
+        "calibration": {"ideal_hfov_deg": 87.0, "ideal_baseline_m": 0.12},
+        "gpu": {"disparity_preview_downsample": 0},
+    })
+
+
+def _gpu_present() -> bool:
+    from companion.backends import cuda_available
+
+    return cuda_available()
+
+
+@pytest.mark.parametrize(
+    "backend",
+    [
+        "cpu-sgm",
+        pytest.param("cupy", marks=[pytest.mark.gpu, pytest.mark.skipif(not _gpu_present(), reason="needs CuPy and a CUDA device")]),
+    ],
+)
+def test_the_estimators_read_a_too_near_wall_as_the_reference(backend: str, request: pytest.FixtureRequest) -> None:
+    """A plain wall 0.3 m ahead, 336x188 px with 32 disparities: the backend's estimator gives the
+    reference estimator's disparity and region depths, each region the nearest measurable depth."""
+    from companion.backends import make_estimator
+
+    if backend == "cpu-sgm":
+        request.getfixturevalue("_numba_cache")
+    geometry, left, right = _wall_pair(336, 188, 0.3, "plain")
+    frame = np.ascontiguousarray(np.hstack([left, right]))
+    est = make_estimator(_ideal_cfg(backend, 32), 336, 188)
+    ref = make_estimator(_ideal_cfg("reference", 32), 336, 188)
+    assert est.name == backend
+    a, b = est.estimate(frame, want_disparity=True), ref.estimate(frame, want_disparity=True)
+    np.testing.assert_array_equal(a.disparity, b.disparity)
+    np.testing.assert_array_equal(a.regions.depth_m, b.regions.depth_m)
+    np.testing.assert_array_equal(a.regions.valid_fraction, b.regions.valid_fraction)
+    assert est.geometry.focal_baseline_px_m == pytest.approx(geometry.focal_baseline_px_m)
+    np.testing.assert_array_equal(a.regions.depth_m, np.full(9, _nearest_m(est.geometry, 32)))
