@@ -1,10 +1,12 @@
 """The near-range check (rule 11 of :mod:`companion.core.disparity.sgm`): a surface nearer than the rig's
-range reads as the nearest measurable depth, never farther, with every engine; a scene inside the range
-reads exactly as without the check; the CPU engine and the GPU kernels (run on the CPU by the host
+range makes its regions read the nearest measurable depth, not farther, with every engine; a scene
+inside the range reads exactly as without the check, and bars that fool the shrunk match are not read
+near; the CPU engine and the GPU kernels (run on the CPU by the host
 emulation) equal the reference bit for bit.
 
-A wall nearer than the range cannot be matched inside ``[0, D)``: census + SGM then picks a wrong
-disparity inside the range, and the region reads some way behind the wall (the unsafe direction).
+A wall nearer than the range cannot be matched inside ``[0, D)``: census + SGM leaves much of it
+unmatched and matches the rest at a wrong disparity inside the range, so the region reads some way
+behind the wall (the unsafe direction).
 """
 
 from __future__ import annotations
@@ -22,7 +24,12 @@ from companion.core.depth import disparity_to_depth
 from companion.core.disparity import make_cpu_matcher
 from companion.core.disparity import sgm as S
 from companion.core.geometry import StereoGeometry
-from companion.core.regions import RegionLayout, reduce_regions, reduce_regions_from_disparity, region_layout
+from companion.core.regions import (
+    RegionLayout,
+    reduce_regions,
+    reduce_regions_from_disparity,
+    region_layout,
+)
 
 _SGM = dict(p1=10, p2=120)
 
@@ -30,7 +37,14 @@ _SGM = dict(p1=10, p2=120)
 def _wall_pair(width_px: int, height_px: int, distance_m: float, kind: str) -> tuple[StereoGeometry, np.ndarray, np.ndarray]:
     """A rendered wall ``distance_m`` ahead filling the view (ZED-like rig: 87°, 12 cm; sensor noise 2
     grey levels an eye): the geometry and the grey uint8 ``(H, W)`` left and right eyes."""
-    from companion.sim.render import Box, Photometry, Pose, Scene, StereoRenderer, Surface
+    from companion.sim.render import (
+        Box,
+        Photometry,
+        Pose,
+        Scene,
+        StereoRenderer,
+        Surface,
+    )
 
     geometry = StereoGeometry.ideal(width_px, height_px, hfov_deg=87.0, baseline_m=0.12)
     wall = Box((2.0 + distance_m + 0.05, 0.0, -1.5), (0.1, 6.0, 3.0), surface=Surface(kind=kind))
@@ -132,7 +146,14 @@ def test_bars_inside_the_range_are_not_read_near(period_m: float, distance_m: fl
     pixels and the coarse match locks onto a wrong repeat beyond the range in patches. The full-size
     matcher matches the bars there, and the check never overrides a valid full-size match: no region
     reads near."""
-    from companion.sim.render import Box, Photometry, Pose, Scene, StereoRenderer, Surface
+    from companion.sim.render import (
+        Box,
+        Photometry,
+        Pose,
+        Scene,
+        StereoRenderer,
+        Surface,
+    )
 
     geometry = StereoGeometry.ideal(336, 188, hfov_deg=87.0, baseline_m=0.12)
     bars = Surface(kind="bars", bar_period_m=period_m, bar_width_m=period_m / 4, see_through=False)
