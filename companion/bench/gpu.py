@@ -109,8 +109,8 @@ def _cfg(size: BenchSize, calib: Path | None, matcher: str = "sad", sgm_paths: i
 def _sgm_kernel_times(est: Any, cp: Any, n: int) -> dict[str, dict[str, float]]:
     """CUDA-event times of each SGM kernel, and of the four together, on the estimator's last rectified pair."""
     s = est._stream
-    events = [cp.cuda.Event() for _ in range(5)]
-    names = ("census", "paths", "wta_right", "lr_median_regions")
+    events = [cp.cuda.Event() for _ in range(6)]
+    names = ("census", "paths", "wta_right", "near_range", "lr_median_regions")
     samples: dict[str, list[float]] = {k: [] for k in (*names, "sgm_total")}
     k = est._k_sgm
     sp = est.sgm_plan
@@ -128,16 +128,18 @@ def _sgm_kernel_times(est: Any, cp: Any, n: int) -> dict[str, dict[str, float]]:
             k["sgm_wta"]((-(-sp.wta_tasks // 4),), (128,), (est._volumes, est._winner, est._right_keys, uniq),
                          stream=s)
             events[3].record(s)
+            near_args = est._enqueue_near(s)  # the near-range check's coarse pair
+            events[4].record(s)
             k["sgm_post"]((sp.post_blocks,), (256,),
                           (est._winner, est._right_keys, est._disp, est._hist, est._counter, est._result_dev,
-                           lr_max, median, fb, pct, min_valid, max_depth),
+                           lr_max, median, fb, pct, min_valid, max_depth, *near_args),
                           stream=s)
-            events[4].record(s)
-            events[4].synchronize()
+            events[5].record(s)
+            events[5].synchronize()
             if i >= 10:
                 for j, name in enumerate(names):
                     samples[name].append(cp.cuda.get_elapsed_time(events[j], events[j + 1]))
-                samples["sgm_total"].append(cp.cuda.get_elapsed_time(events[0], events[4]))
+                samples["sgm_total"].append(cp.cuda.get_elapsed_time(events[0], events[5]))
     return {key: stats_ms(v) for key, v in samples.items()}
 
 

@@ -32,8 +32,11 @@ class StereoConfig(StrictModel):
         description=(
             "reference and cupy: the matching algorithm. sgm: census (9x7) costs, semi-global "
             "aggregation along sgm_paths paths, winner with the sgm_uniqueness_ratio_pct test, "
-            "sub-pixel, a left-right check and a 3x3 median (every column matched, with the "
-            "disparities it allows). sad: SAD block matching (block_size_px, uniqueness_ratio_pct, "
+            "sub-pixel, a left-right check, a 3x3 median (every column matched, with the "
+            "disparities it allows) and a near-range check (the pair shrunk 4 times, matched with half "
+            "the disparities: where the full-size match finds nothing and the shrunk one a surface "
+            "nearer than the range, the pixel reads the nearest measurable depth, not a wrong farther "
+            "one). sad: SAD block matching (block_size_px, uniqueness_ratio_pct, "
             "texture_threshold_grey; the leftmost num_disparities + block_size_px/2 columns are never "
             "matched). The OpenCV backends ignore it; cpu-sgm is always sgm."
         ),

@@ -419,3 +419,59 @@ def median_to_float(disp, median, fixed, out, med_buf):  # pragma: no cover - co
             for x in range(w):
                 v = fr[x]
                 orow[x] = nan if v < 0 else np.float32(v) * scale
+
+
+@nb.njit(**_JIT, parallel=True)
+def shrink_pair(left, right, out, scale, cols_buf):  # pragma: no cover - compiled
+    """Rule 11's coarse pair: uint8 ``left``, ``right`` ``(H, W)`` -> uint8 ``out`` ``(2, Hc, Wc)``,
+    each coarse pixel the rounded mean of its ``scale × scale`` block. ``out``'s rows are the
+    parallel loop's items; each sums its source rows column by column first (a loop the compiler
+    vectorises) into its row of ``cols_buf`` (uint16 ``(2·Hc, Wc·scale)`` scratch), then the columns
+    in groups."""
+    hc, wc = out.shape[1], out.shape[2]
+    n = scale * scale
+    half = n // 2
+    for k in nb.prange(2 * hc):
+        eye = 0 if k < hc else 1
+        yc = k - eye * hc
+        img = left if eye == 0 else right
+        dst = out[eye, yc]
+        cols = cols_buf[k]
+        row = img[yc * scale, : wc * scale]
+        for x in range(wc * scale):
+            cols[x] = np.uint16(row[x])
+        for i in range(1, scale):
+            row = img[yc * scale + i, : wc * scale]
+            for x in range(wc * scale):
+                cols[x] += np.uint16(row[x])
+        for xc in range(wc):
+            acc = np.int32(half)
+            for j in range(scale):
+                acc += np.int32(cols[xc * scale + j])
+            dst[xc] = np.uint8(acc // n)
+
+
+@nb.njit(**_JIT, parallel=True)
+def near_fill(coarse, scale, num_disparities, fixed, out):  # pragma: no cover - compiled
+    """Rule 11's test and fill: where full-size pixel ``(y, x)`` is invalid in int16 ``fixed`` and its
+    coarse match (int16 ``(Hc, Wc)`` disparity × 16, -1 invalid; coarse ``(min(y // s, Hc - 1),
+    min(x // s, Wc - 1))``) lies beyond ``[0, D)``, ``fixed`` becomes ``16 · (D - 1)`` and float32
+    ``out`` ``D - 1`` px. One test
+    per coarse pixel and full-size row (the columns it covers are filled together)."""
+    h, w = fixed.shape
+    hc, wc = coarse.shape
+    limit = 16 * num_disparities
+    near_v = np.int16(16 * (num_disparities - 1))
+    near_px = np.float32(num_disparities - 1)
+    for y in nb.prange(h):
+        crow = coarse[min(y // scale, hc - 1)]
+        frow = fixed[y]
+        orow = out[y]
+        for xc in range(wc):
+            q = np.int32(crow[xc])
+            if q >= 0 and scale * q >= limit:
+                x1 = w if xc == wc - 1 else (xc + 1) * scale
+                for x in range(xc * scale, x1):
+                    if frow[x] < 0:
+                        frow[x] = near_v
+                        orow[x] = near_px

@@ -7,7 +7,7 @@ import logging
 import numpy as np
 
 from companion.core.disparity.base import check_grey_pair, check_out
-from companion.core.disparity.sgm import check_sgm_params
+from companion.core.disparity.sgm import NEAR_SCALE, check_sgm_params, near_range_shape
 from companion.errors import FrameError
 
 log = logging.getLogger(__name__)
@@ -19,7 +19,8 @@ class CpuSgmMatcher:
     :func:`companion.cpu.kernels.match`; docs/gpu.md).
 
     Built once per eye size: the kernels compile (or load from the cache) here, and every buffer is
-    allocated here (about 3 bytes per pixel and disparity: 49 MB at 672×376×64), so :meth:`compute`
+    allocated here (about 3 bytes per pixel and disparity: 49 MB at 672×376×64, and 1/32 of that for
+    the near-range check's coarse pair), so :meth:`compute`
     allocates nothing.
 
     Args:
@@ -29,6 +30,8 @@ class CpuSgmMatcher:
             :func:`~companion.core.disparity.sgm.sgm_match`.
         threads: worker threads, 0 = all Numba threads (``NUMBA_NUM_THREADS``, by default every
             core); more than Numba has are clamped.
+        near_range: the near-range check (the reference's rule 11; the product always has it): a
+            second engine of this class matches the pair shrunk 4 times with half the disparities.
 
     Raises:
         ValueError: a parameter outside the rules.
@@ -49,6 +52,7 @@ class CpuSgmMatcher:
         lr_max_diff_px: int = 1,
         median: bool = True,
         threads: int = 0,
+        near_range: bool = True,
     ) -> None:
         check_sgm_params(num_disparities, p1, p2, paths, uniqueness_ratio_pct, lr_max_diff_px)
         if width_px < 1 or height_px < 1:
@@ -88,6 +92,17 @@ class CpuSgmMatcher:
         self._raw = np.empty((h, w), np.int16)
         self._fixed = np.empty((h, w), np.int16)
         self._out = np.empty((h, w), np.float32)
+        # Rule 11: the coarse pair and the engine that matches it (without a check of its own).
+        self._coarse: CpuSgmMatcher | None = None
+        coarse = near_range_shape(h, w, D) if near_range else None
+        if coarse is not None:
+            hc, wc, dc = coarse
+            self._shrunk = np.empty((2, hc, wc), np.uint8)
+            self._shrink_cols = np.empty((2 * hc, wc * NEAR_SCALE), np.uint16)
+            self._coarse = CpuSgmMatcher(
+                wc, hc, dc, p1=p1, p2=p2, paths=paths, uniqueness_ratio_pct=uniqueness_ratio_pct,
+                lr_max_diff_px=lr_max_diff_px, median=median, threads=self.threads, near_range=False,
+            )
         # Compile (or load the cached machine code) now, not on the first frame.
         zeros = np.zeros((h, w), np.uint8)
         self._run(zeros, zeros, self._out)
@@ -102,6 +117,11 @@ class CpuSgmMatcher:
                 self.lr_max_diff_px, self._raw, phase, self._census, self._planes, *self._scratch,
             )
         k.median_to_float(self._raw, self.median, self._fixed, out, self._med)
+        c = self._coarse
+        if c is not None:
+            k.shrink_pair(left, right, self._shrunk, NEAR_SCALE, self._shrink_cols)
+            c._run(self._shrunk[0], self._shrunk[1], c._out)
+            k.near_fill(c._fixed, NEAR_SCALE, self.num_disparities, self._fixed, out)
 
     def _check(self, left: np.ndarray, right: np.ndarray) -> None:
         shape = check_grey_pair(left, right)

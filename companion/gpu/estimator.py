@@ -29,7 +29,9 @@ upload); after the last band the rest of the semi-global matcher of ``kernels/sg
 rectified pair: ``sgm_paths`` (every path in one launch, one byte per (pixel, disparity) and path),
 ``sgm_wta`` (the winner, uniqueness, sub-pixel and the right view's disparity, per run of pixels) and
 ``sgm_post`` (left-right check, median, the disparity image and the 9 region depths), exactly
-:mod:`companion.core.disparity.sgm`'s rules.
+:mod:`companion.core.disparity.sgm`'s rules. Before ``sgm_post``, the near-range check (rule 11):
+``sgm_shrink`` shrinks the rectified pair 4 times and a second module of the same kernels, built for
+that size and half the disparities, matches it; ``sgm_post`` then reads its disparity.
 
 Each band's GPU work is captured once as a CUDA graph and replayed. The results equal
 :class:`~companion.core.estimator.CpuRegionEstimator` with the ``reference`` backend and the same matcher.
@@ -50,6 +52,7 @@ import numpy as np
 
 from companion.config import CompanionConfig
 from companion.core.calibration import make_rectifier
+from companion.core.disparity.sgm import near_range_shape
 from companion.core.geometry import StereoGeometry
 from companion.core.memory import block_max
 from companion.core.estimator import RegionEstimate
@@ -214,6 +217,7 @@ class CupyRegionEstimator:
         self._k_regions = get("regions_from_disp")
         self._k_preview = get("preview_max")
         self._k_memory = get("memory_max")
+        self._near: _Near | None = None
         if self.sgm_plan is not None:
             sp = self.sgm_plan
             self._sgm_module = cp.RawModule(
@@ -222,7 +226,7 @@ class CupyRegionEstimator:
                 options=("--std=c++17", "--fmad=false"),
             )
             sget = self._sgm_module.get_function
-            self._k_sgm = {name: sget(name) for name in ("sgm_census", "sgm_paths", "sgm_wta", "sgm_post")}
+            self._k_sgm = {name: sget(name) for name in ("sgm_census", "sgm_paths", "sgm_wta", "sgm_post", "sgm_shrink")}
             self._sgm_args = (
                 np.uint32(st.sgm_p1),
                 np.uint32(st.sgm_p2),
@@ -230,6 +234,7 @@ class CupyRegionEstimator:
                 np.int32(st.sgm_lr_max_diff_px),
                 np.int32(1 if st.sgm_median else 0),
             )
+            self._near = self._build_near(cfg)
 
         if self.obstacle_layout is not None:
             lay = self.obstacle_layout
@@ -367,6 +372,43 @@ class CupyRegionEstimator:
                 self.device_name, w, h, sp.num_disparities, sp.paths, sp.lanes_per_line, sp.words_per_lane,
                 sum(sp.device_bytes().values()) / 1e6, [(b.src, b.rect) for b in self._bands],
             )
+
+    def _build_near(self, cfg: CompanionConfig) -> _Near | None:
+        """The near-range check's coarse pair (the reference's rule 11): a second module of the SGM
+        kernels built for the pair shrunk :data:`~companion.core.disparity.sgm.NEAR_SCALE` times with half the disparities, and its
+        buffers (1/32 of the full size's); None where the rule skips the check."""
+        cp = self._cp
+        st = cfg.stereo
+        shape = near_range_shape(self.height_px, self.width_px, st.num_disparities)
+        if shape is None:
+            return None
+        hc, wc, dc = shape
+        rows_e, cols_e = [0, hc // 3, 2 * hc // 3, hc], [0, wc // 3, 2 * wc // 3, wc]
+        plan = plan_sgm(wc, hc, dc, st.sgm_paths, rows_e, 0, cfg.gpu.sgm_prefetch_steps, self.sm_count)
+        pitch = -(-(wc + 16) // 16) * 16
+        module = cp.RawModule(
+            code=sgm_defines(plan, pitch, rows_e, cols_e) + kernel_source("sgm.cu"),
+            options=("--std=c++17", "--fmad=false"),
+        )
+        get = module.get_function
+        return _Near(
+            plan=plan,
+            width_px=wc,
+            height_px=hc,
+            pitch_bytes=pitch,
+            module=module,
+            kernels={name: get(name) for name in ("sgm_census", "sgm_paths", "sgm_wta", "sgm_post")},
+            left=cp.zeros((hc, pitch), dtype=cp.uint8),
+            right=cp.zeros((hc, pitch), dtype=cp.uint8),
+            census=cp.zeros((3, hc, plan.census_stride_px), dtype=cp.uint64),
+            volumes=cp.zeros((plan.paths, hc, wc, plan.dpad), dtype=cp.uint8),
+            winner=cp.zeros((hc, wc), dtype=cp.int32),
+            right_keys=cp.zeros((hc, wc), dtype=cp.uint32),
+            disp=cp.full((hc, wc), -1, dtype=cp.int16),
+            hist=cp.zeros(N_REGIONS * plan.nbins, dtype=cp.uint32),
+            counter=cp.zeros(1, dtype=cp.uint32),
+            result=cp.zeros(2 * N_REGIONS, dtype=cp.float64),
+        )
 
     def _plan_bands(self, cfg: CompanionConfig, rectifier: Any) -> list[_Band]:
         """Split the frame into row bands whose GPU work needs only the rows uploaded so far.
@@ -877,10 +919,38 @@ class CupyRegionEstimator:
                        stream=s)
         k["sgm_wta"]((-(-sp.wta_tasks // warps),), (SGM_PATH_THREADS,),
                      (self._volumes, self._winner, self._right_keys, uniq), stream=s)
+        near_args = self._enqueue_near(s)
         k["sgm_post"]((sp.post_blocks,), (SGM_POST_THREADS,),
                       (self._winner, self._right_keys, self._disp, self._hist, self._counter, self._result_dev,
-                       lr_max, median, fb, pct, min_valid, max_depth),
+                       lr_max, median, fb, pct, min_valid, max_depth, *near_args),
                       stream=s)
+
+    def _enqueue_near(self, s: Any) -> tuple[Any, ...]:
+        """Queue the near-range check's coarse pair on stream ``s`` (after the rectification): shrink the
+        rectified pair and match it whole with the coarse module. Returns ``sgm_post``'s last three
+        arguments: the coarse disparity and its size, or a null pointer where the check is skipped."""
+        n = self._near
+        if n is None:
+            return (np.uint64(0), np.int32(0), np.int32(0))
+        k = self._k_sgm
+        p1, p2, uniq, lr_max, median = self._sgm_args
+        fb, pct, min_valid, max_depth = self._region_args
+        warps = SGM_PATH_THREADS // 32
+        k["sgm_shrink"]((-(-n.width_px // 64), n.height_px, 2), (64,),
+                        (self._rect_l, self._rect_r, n.left, n.right, np.int32(n.width_px),
+                         np.int32(n.height_px), np.int32(n.pitch_bytes)), stream=s)
+        nk, npl = n.kernels, n.plan
+        nk["sgm_census"](npl.census_grid(n.height_px), SGM_CENSUS_TILE,
+                         (n.left, n.right, n.census, n.right_keys, np.int32(0), np.int32(n.height_px)), stream=s)
+        nk["sgm_paths"]((-(-npl.path_tasks // warps),), (SGM_PATH_THREADS,), (n.census, n.volumes, p1, p2), stream=s)
+        nk["sgm_wta"]((-(-npl.wta_tasks // warps),), (SGM_PATH_THREADS,), (n.volumes, n.winner, n.right_keys, uniq),
+                      stream=s)
+        # the coarse module's own region results are not used; its post reads no coarser pair (null)
+        nk["sgm_post"]((npl.post_blocks,), (SGM_POST_THREADS,),
+                       (n.winner, n.right_keys, n.disp, n.hist, n.counter, n.result, lr_max, median, fb, pct,
+                        min_valid, max_depth, np.uint64(0), np.int32(0), np.int32(0)),
+                       stream=s)
+        return (n.disp, np.int32(n.width_px), np.int32(n.height_px))
 
     def _near_blocks(self, block_px: int, erode_px: int) -> np.ndarray:
         f = self._preview_factor
@@ -1018,6 +1088,30 @@ class _Band:
     census: tuple[int, int]
     rows_per_block: int
     grid: tuple[int, int, int]
+
+
+@dataclass(frozen=True)
+class _Near:
+    """The near-range check's coarse pair on the device: its plan and module (the SGM kernels built
+    for ``width_px`` × ``height_px``), the shrunk eyes (uint8, ``pitch_bytes`` a row) and the SGM
+    buffers; ``disp`` (int16 × 16, -1 invalid) is what the full size's ``sgm_post`` reads."""
+
+    plan: SgmPlan
+    width_px: int
+    height_px: int
+    pitch_bytes: int
+    module: Any
+    kernels: dict[str, Any]
+    left: Any
+    right: Any
+    census: Any
+    volumes: Any
+    winner: Any
+    right_keys: Any
+    disp: Any
+    hist: Any
+    counter: Any
+    result: Any
 
 
 @dataclass(frozen=True)

@@ -27,6 +27,8 @@ import dataclasses
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
+from companion.core.disparity.sgm import NEAR_SCALE
+
 #: Static shared memory one block may use on every supported device (Jetson TX1 ... Orin), bytes.
 SMEM_BUDGET_BYTES = 48 * 1024
 
@@ -497,5 +499,6 @@ def sgm_defines(plan: SgmPlan, pitch_bytes: int, row_edges: Sequence[int], col_e
         "RE2": int(row_edges[2]),
         "CE1": int(col_edges[1]),
         "CE2": int(col_edges[2]),
+        "NEAR_S": NEAR_SCALE,
     }
     return "".join(f"#define {k} {v}\n" for k, v in values.items())

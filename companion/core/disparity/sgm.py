@@ -54,6 +54,22 @@ left and right images ``(H, W)``; ``D`` is the number of disparities (``d`` in `
     its 3×3 neighbourhood (inside the image), i.e. the element ``(n - 1) // 2`` of their ``n`` sorted
     values; an invalid pixel stays invalid.
 
+11. **Near-range check** (always, where the coarse pair below exists). A surface nearer than the rig's
+    range (true disparity above ``D - 1``) cannot be matched: rules 1–10 leave much of it invalid and
+    match the rest at a wrong, farther disparity inside the range. So the pair is also matched coarsely: both images are shrunk
+    :data:`NEAR_SCALE` (``s`` = 4) times, each coarse pixel the rounded mean of its ``s × s`` block,
+    ``(sum + s²/2) // s²``, over ``floor(H/s) × floor(W/s)`` pixels, and matched by rules 1–10 (the same
+    ``P1``, ``P2``, paths, ``u``, left-right tolerance and median) with ``Dc = D // 2`` disparities,
+    which reaches ``s · Dc`` (about ``2·D``) full-size pixels, twice the full-size range, at
+    ``1 / (s² · 2)`` of its cost. Each full-size pixel ``(y, x)`` reads its coarse pixel
+    ``(min(y // s, Hc - 1), min(x // s, Wc - 1))``; where rules 1–10 left the pixel invalid and that
+    coarse ``vc`` is valid with ``s · vc >= 16 · D`` (a surface beyond the full-size range), the output
+    is ``16 · (D - 1)``: the rig's nearest measurable depth. A valid full-size match (unique and
+    left-right consistent) is never overridden: a shrunk regular pattern (bars, a grid) can match a
+    wrong repeat beyond the range, and over a surface inside the range the full-size matcher finds it.
+    The check is skipped when the coarse pair is smaller than the census window (``Wc < 9`` or
+    ``Hc < 7``) or ``Dc < 2``.
+
 Output: int16 ``v`` (disparity × 16), ``-1`` where invalid. :class:`SgmReferenceMatcher` converts to
 float32 pixels with NaN for invalid.
 
@@ -95,6 +111,12 @@ PATH_DIRECTIONS: tuple[tuple[int, int], ...] = (
     (1, -1),
     (-1, -1),
 )
+
+#: Near-range check (rule 11): the coarse pair is the full-size one shrunk this many times per axis.
+NEAR_SCALE = 4
+#: Near-range check: the smallest coarse pair it runs on (the census window), width and height.
+NEAR_MIN_WIDTH_PX = 2 * CENSUS_HALF_W + 1
+NEAR_MIN_HEIGHT_PX = 2 * CENSUS_HALF_H + 1
 
 # "Absent" in path costs (an excluded disparity); larger than any real path cost + P1 + P2.
 _INF = 1 << 12
@@ -288,6 +310,62 @@ def median3x3_valid(disp: np.ndarray) -> np.ndarray:
     return np.where(disp >= 0, med, INVALID).astype(np.int16)
 
 
+def near_range_shape(height_px: int, width_px: int, num_disparities: int) -> tuple[int, int, int] | None:
+    """Rule 11's coarse pair: ``(Hc, Wc, Dc)``, or None where the check is skipped."""
+    hc, wc, dc = int(height_px) // NEAR_SCALE, int(width_px) // NEAR_SCALE, int(num_disparities) // 2
+    if wc < NEAR_MIN_WIDTH_PX or hc < NEAR_MIN_HEIGHT_PX or dc < 2:
+        return None
+    return hc, wc, dc
+
+
+def shrink(image: np.ndarray, scale: int = NEAR_SCALE) -> np.ndarray:
+    """Rule 11's coarse image: uint8 ``(H, W)`` -> uint8 ``(H // s, W // s)``, each pixel the rounded
+    mean of its ``s × s`` block (``(sum + s²/2) // s²``)."""
+    s = int(scale)
+    h, w = image.shape[0] // s, image.shape[1] // s
+    block = image[: h * s, : w * s].astype(np.int32).reshape(h, s, w, s).sum(axis=(1, 3))
+    return ((block + s * s // 2) // (s * s)).astype(np.uint8)
+
+
+def near_range_mask(coarse: np.ndarray, height_px: int, width_px: int, num_disparities: int) -> np.ndarray:
+    """Rule 11's test: bool ``(H, W)``, True where the coarse match (int16 ``(Hc, Wc)`` disparity × 16,
+    ``-1`` invalid) finds a surface beyond the full-size range ``[0, D)``."""
+    hc, wc = coarse.shape
+    ys = np.minimum(np.arange(int(height_px)) // NEAR_SCALE, hc - 1)
+    xs = np.minimum(np.arange(int(width_px)) // NEAR_SCALE, wc - 1)
+    beyond = NEAR_SCALE * coarse.astype(np.int32) >= SUBPIXEL_SCALE * int(num_disparities)
+    return beyond[ys][:, xs]
+
+
+def near_range_check(
+    left: np.ndarray,
+    right: np.ndarray,
+    disp: np.ndarray,
+    num_disparities: int,
+    *,
+    p1: int,
+    p2: int,
+    paths: int = 4,
+    uniqueness_ratio_pct: int = 10,
+    lr_max_diff_px: int = 1,
+    median: bool = True,
+) -> np.ndarray:
+    """Rule 11 on rules 1–10's output ``disp`` (int16 ``(H, W)`` disparity × 16, ``-1`` invalid): a new
+    int16 array, ``16 · (D - 1)`` where ``disp`` is invalid and the coarse match finds a surface nearer
+    than the range."""
+    h, w = disp.shape
+    shape = near_range_shape(h, w, num_disparities)
+    if shape is None:
+        return disp.copy()
+    coarse = sgm_match(
+        shrink(left), shrink(right), shape[2], p1=p1, p2=p2, paths=paths, uniqueness_ratio_pct=uniqueness_ratio_pct,
+        lr_max_diff_px=lr_max_diff_px, median=median, near_range=False,
+    )
+    out = disp.copy()
+    out[near_range_mask(coarse, h, w, num_disparities) & (disp < 0)] = SUBPIXEL_SCALE * (int(num_disparities) - 1)
+    return out
+
+
 def sgm_match(
     left: np.ndarray,
     right: np.ndarray,
@@ -299,6 +377,7 @@ def sgm_match(
     uniqueness_ratio_pct: int = 10,
     lr_max_diff_px: int = 1,
     median: bool = True,
+    near_range: bool = True,
 ) -> np.ndarray:
     """Exact census + SGM matching (the rules in this module's docstring).
 
@@ -310,6 +389,8 @@ def sgm_match(
         uniqueness_ratio_pct: ``u >= 0``, percent (rule 6).
         lr_max_diff_px: largest accepted ``|d* - dR|``, px; ``-1`` = no left-right check.
         median: apply the 3×3 median of rule 10.
+        near_range: apply the near-range check of rule 11 (the product always does; off gives rules
+            1–10 alone, the kernels' stages).
 
     Returns:
         int16 ``(H, W)`` disparity × 16 (:data:`SUBPIXEL_SCALE`), ``-1`` where invalid.
@@ -323,7 +404,13 @@ def sgm_match(
     sums = aggregate(cost, paths, p1, p2)
     del cost
     disp = select_disparity(sums, uniqueness_ratio_pct, lr_max_diff_px)
-    return median3x3_valid(disp) if median else disp
+    disp = median3x3_valid(disp) if median else disp
+    if not near_range:
+        return disp
+    return near_range_check(
+        left, right, disp, num_disparities, p1=p1, p2=p2, paths=paths, uniqueness_ratio_pct=uniqueness_ratio_pct,
+        lr_max_diff_px=lr_max_diff_px, median=median,
+    )
 
 
 def fixed_to_float(disp: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:

@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from companion.core.disparity.sgm import near_range_shape
 from companion.gpu.plan import (
     OBSTACLE_HIST_BINS,
     SGM_PATH_THREADS,
@@ -208,6 +209,20 @@ class HostSgmKernels:
         src = sgm_defines(p, self.pitch, row_edges, col_edges) + _SGM_KERNEL.read_text(encoding="utf-8")
         self._lib = _build(src, "harness_sgm.cpp")
         self.w, self.h = width_px, height_px
+        self._args = (num_disparities, paths, lanes_per_line, prefetch_steps)
+        self._coarse: HostSgmKernels | None = None
+
+    def coarse(self) -> HostSgmKernels | None:
+        """The kernels of the near-range check's coarse pair (reference rule 11), None where it is skipped."""
+        D, paths, lanes, prefetch = self._args
+        shape = near_range_shape(self.h, self.w, D)
+        if shape is None:
+            return None
+        if self._coarse is None:
+            hc, wc, dc = shape
+            self._coarse = HostSgmKernels(wc, hc, dc, paths, [0, hc // 3, 2 * hc // 3, hc],
+                                          [0, wc // 3, 2 * wc // 3, wc], lanes, prefetch)
+        return self._coarse
 
     @staticmethod
     def _ptr(a: np.ndarray) -> ctypes.c_void_p:
@@ -227,10 +242,13 @@ class HostSgmKernels:
         min_valid: float = 0.1,
         max_depth: float = 20.0,
         census_splits: tuple[int, ...] = (),
+        near_range: bool = True,
     ) -> dict[str, np.ndarray]:
         """Every stage's output: ``census_left``/``census_right`` (uint64), ``volumes`` (uint8
         ``(paths, H, W, DPAD)``), ``winner`` (int32), ``right_keys`` (uint32), ``disparity`` (int16 × 16,
-        -1 invalid) and ``regions`` (9 depths, 9 valid fractions). ``census_splits``: rows where the
+        -1 invalid) and ``regions`` (9 depths, 9 valid fractions); with ``near_range`` (the
+        estimator's way) also ``coarse_left``/``coarse_right`` (the shrunk pair, uint8) and
+        ``coarse_disparity`` (int16 × 16) where the check runs. ``census_splits``: rows where the
         census is cut into separate launches (the estimator's row bands)."""
         p, w, h = self.plan, self.w, self.h
         u32, f32, d = ctypes.c_uint32, ctypes.c_float, ctypes.c_double
@@ -255,9 +273,24 @@ class HostSgmKernels:
         self._lib.run_paths(self._ptr(cen), self._ptr(vols), u32(p1), u32(p2), -(-p.path_tasks // warps))
         self._lib.run_wta(self._ptr(vols), self._ptr(dl), self._ptr(drkey), u32(uniqueness_ratio_pct),
                           -(-p.wta_tasks // warps))
+        extra: dict[str, np.ndarray] = {}
+        near, nw, nh = ctypes.c_void_p(0), 0, 0
+        coarse = self.coarse() if near_range else None
+        if coarse is not None:
+            # the estimator's order: the coarse pair shrunk by this module's kernel, matched whole by the
+            # coarse module, then this module's post reads its disparity
+            cl = np.full((coarse.h, coarse.pitch), 0xAB, np.uint8)
+            cr = cl.copy()
+            self._lib.run_shrink(self._ptr(rl), self._ptr(rr), self._ptr(cl), self._ptr(cr), coarse.w, coarse.h,
+                                 coarse.pitch)
+            sub = coarse.run(cl[:, : coarse.w], cr[:, : coarse.w], p1, p2, uniqueness_ratio_pct, lr_max_diff_px,
+                             median, near_range=False)
+            cd = np.ascontiguousarray(sub["disparity"])
+            extra = {"coarse_left": cl[:, : coarse.w], "coarse_right": cr[:, : coarse.w], "coarse_disparity": cd}
+            near, nw, nh = self._ptr(cd), coarse.w, coarse.h
         self._lib.run_post(self._ptr(dl), self._ptr(drkey), self._ptr(disp), self._ptr(hist), self._ptr(counter),
                            self._ptr(result), int(lr_max_diff_px), int(bool(median)), f32(fb), d(pct), d(min_valid),
-                           d(max_depth), p.post_blocks)
+                           d(max_depth), near, nw, nh, p.post_blocks)
         if counter[0] != 0 or hist.any():
             raise AssertionError("the last block did not reset the histogram state")
         if cen[:, :, :pad].any() or cen[:2, :, pad + w :].any():
@@ -265,7 +298,7 @@ class HostSgmKernels:
         if not np.array_equal(cen[2, :, pad + 1 : pad + 1 + w], cen[1, :, pad : pad + w]):
             raise AssertionError("the shifted copy of the right census differs from it")
         return {"census_left": cen[0, :, pad : pad + w], "census_right": cen[1, :, pad : pad + w], "volumes": vols, "winner": dl, "right_keys": drkey,
-                "disparity": disp, "regions": result}
+                "disparity": disp, "regions": result, **extra}
 
 
 def _zeros_aligned(shape: tuple[int, ...], dtype: type, align: int = 256) -> np.ndarray:

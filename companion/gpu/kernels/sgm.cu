@@ -20,8 +20,9 @@
 // Passes: sgm_census (and the reset of the right view's disparity keys); sgm_paths (every direction in one
 // launch, each into its own volume); sgm_wta (per run of pixels of a row: the sum of all paths, the winner,
 // uniqueness, sub-pixel, and the right view's disparity by a shift register along d merged by atomicMin);
-// sgm_post (left-right check, median, disparity image, region histograms, and in the last block the 9
-// depths).
+// sgm_post (left-right check, median, the near-range check against the coarse pair's disparity, disparity
+// image, region histograms, and in the last block the 9 depths); sgm_shrink makes the coarse pair, which a
+// second module of these kernels, built for its size, matches first.
 //
 // Portability: nothing needs more than sm_53. __reduce_min_sync (sm_80+) and the Hopper DPX 3-way minimum
 // (sm_90, CUDA 12+) are used where present, with shuffles and __vminu2 otherwise. Static shared memory
@@ -617,8 +618,28 @@ extern "C" __global__ void __launch_bounds__(128) sgm_wta(const u8* __restrict__
 }
 
 // ------------------------------------------------------------------------------------------------
-// 5. Left-right check, median, disparity image, region histograms, and the 9 depths (reference rules
-// 9-10; regions as companion.core.regions.reduce_regions on the float disparity v / 16).
+// 4b. The near-range check's coarse pair (reference rule 11): both rectified eyes shrunk NEAR_S times, each
+// coarse pixel the rounded mean of its NEAR_S x NEAR_S block, into the coarse module's pitched images (this
+// module's PITCH is the source's). Grid (ceil(wc / 64), hc, 2), block 64: one coarse pixel per thread.
+
+extern "C" __global__ void __launch_bounds__(64) sgm_shrink(const u8* __restrict__ rl, const u8* __restrict__ rr,
+                                                            u8* __restrict__ cl, u8* __restrict__ cr, int wc, int hc,
+                                                            int dst_pitch) {
+  const int xc = (int)(blockIdx.x * 64 + threadIdx.x), yc = (int)blockIdx.y;
+  if (xc >= wc || yc >= hc) return;
+  const u8* src = blockIdx.z ? rr : rl;
+  u32 acc = 0;
+#pragma unroll
+  for (int i = 0; i < NEAR_S; ++i)
+#pragma unroll
+    for (int j = 0; j < NEAR_S; ++j) acc += src[(size_t)(yc * NEAR_S + i) * PITCH + xc * NEAR_S + j];
+  (blockIdx.z ? cr : cl)[(size_t)yc * dst_pitch + xc] = (u8)((acc + NEAR_S * NEAR_S / 2) / (NEAR_S * NEAR_S));
+}
+
+// ------------------------------------------------------------------------------------------------
+// 5. Left-right check, median, near-range check, disparity image, region histograms, and the 9 depths
+// (reference rules 9-11; near: the coarse module's disparity, near_w x near_h, or null for none; regions
+// as companion.core.regions.reduce_regions on the float disparity v / 16).
 //
 // A block owns a slab of SLAB_ROWS rows inside one row band of the regions (so its pixels fall in 3
 // regions). It first writes the left-right-checked v of its rows and the row above and below into shared
@@ -687,7 +708,8 @@ extern "C" __global__ void __launch_bounds__(POST_THREADS) sgm_post(const int* _
                                                                     u32* __restrict__ counter,
                                                                     double* __restrict__ result, int lr_max, int median,
                                                                     float fb, double pct, double min_valid,
-                                                                    double max_depth) {
+                                                                    double max_depth, const short* __restrict__ near,
+                                                                    int near_w, int near_h) {
   __shared__ SmemPost sm;
   const int tid = (int)threadIdx.x;
   int b = (int)blockIdx.x, band, ya, yb;
@@ -730,6 +752,11 @@ extern "C" __global__ void __launch_bounds__(POST_THREADS) sgm_post(const int* _
     const int r = idx / IMG_W + 1, x = idx % IMG_W;
     int v = sm.chk[r * IMG_W + x];
     if (median && v >= 0) v = median_valid_3x3(sm.chk, r, x);
+    if (near != nullptr && v < 0) {  // the near-range check (rule 11): the coarse match beyond [0, NDISP)
+      const int yc = min((ya + r - 1) / NEAR_S, near_h - 1), xc = min(x / NEAR_S, near_w - 1);
+      const int q = near[(size_t)yc * near_w + xc];
+      if (q >= 0 && NEAR_S * q >= 16 * NDISP) v = 16 * (NDISP - 1);
+    }
     disp[(size_t)(ya + r - 1) * IMG_W + x] = (short)v;
     if (v >= 0) {
       const int cb = x < CE1 ? 0 : (x < CE2 ? 1 : 2);
