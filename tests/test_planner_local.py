@@ -100,6 +100,25 @@ def test_one_false_match_is_not_an_obstacle_and_is_cleared_by_seeing_through() -
     assert fl.length_m[0] > 5.0
 
 
+def test_the_left_edge_clears_no_nearer_than_its_columns_can_match() -> None:
+    """The left image's column x matches disparities below x + 1 only: a wall at grazing angle at
+    the left edge read far there, rays through it cleared the wall from the map, and a flight at
+    0.7 m/s along it turned into its end. A ray is evidence of free space only beyond the nearest
+    depth its block's columns could have matched."""
+    far = np.full(BLOCKS, np.nan, dtype=np.float32)
+    far[:, :4] = GEOM.focal_baseline_px_m / 30.0  # the leftmost 16 px read 30 m
+    left = -math.atan(GEOM.cx_px / GEOM.focal_px) + math.radians(3.0)  # a ray of the leftmost columns
+    along = np.array([[math.cos(left), math.sin(left), 0.0]])
+    seen = []
+    for num_disparities in (None, 64):
+        m = _map()
+        for k in range(3):
+            m.integrate(far, GEOM, BLOCK_PX, Pose.at(0.0, 0.0, 1.5), 0.1 * k, num_disparities)
+        seen.append(float(m.free_lengths(np.array([0.0, 0.0, -1.5]), along).length_m[0]))
+    assert seen[0] > 3.0  # unlimited: cleared from the camera on
+    assert seen[1] < 0.5  # the matcher's range: the ray's first metres say nothing
+
+
 def test_the_map_rolls_with_the_vehicle_and_keeps_what_it_saw() -> None:
     m = _map()
     _see(m, _wall_blocks(6.0))
@@ -347,6 +366,18 @@ def test_a_command_outside_the_camera_s_view_flies_slower_the_farther_off_the_ax
     assert math.atan2(off.right_m_s, off.forward_m_s) == pytest.approx(math.atan2(2.6, 1.5))
     back = speed_law_limit(VelocitySetpoint(-0.3, 0.0, 0.0, 0.0), _ctx(holding=True))  # the hold's way back
     assert back.forward_m_s == pytest.approx(-0.3)
+
+
+def test_a_vehicle_that_cannot_stop_in_time_is_told_to_back_off() -> None:
+    """Told zero, PX4 creeps on for seconds (its velocity integrator): a flight at 0.7 m/s crept at
+    0.15 m/s on into a fence it had turned from. Moving toward a surface nearer than it can stop
+    from braking now, the setpoint reverses along the motion by the excess, at most the hold's speed."""
+    creeping = _ctx(velocity_ned_m_s=np.array([0.15, 0.0, 0.0]), free_along=lambda u: 0.1)
+    assert speed_law_limit(FAST, creeping).forward_m_s == pytest.approx(-0.15)
+    fast = _ctx(velocity_ned_m_s=np.array([3.0, 0.0, 0.0]), free_along=lambda u: 0.5)
+    assert speed_law_limit(FAST, fast).forward_m_s == pytest.approx(-0.5)
+    room = _ctx(velocity_ned_m_s=np.array([1.5, 0.0, 0.0]), free_along=lambda u: 2.0)  # stops in time
+    assert speed_law_limit(FAST, room).forward_m_s >= 0.0
 
 
 def test_the_unexplained_motion_comes_off_the_setpoint_and_a_hold_but_not_off_zero() -> None:

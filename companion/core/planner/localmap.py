@@ -169,11 +169,25 @@ class LocalMap:
             self._rays[key] = rays
         return rays
 
-    def integrate(self, blocks: np.ndarray, geometry: StereoGeometry, block_px: int, seen_from: Pose, t_s: float) -> None:
+    def integrate(
+        self,
+        blocks: np.ndarray,
+        geometry: StereoGeometry,
+        block_px: int,
+        seen_from: Pose,
+        t_s: float,
+        num_disparities: int | None = None,
+    ) -> None:
         """Enter one frame: ``blocks`` float32 ``(rows, cols)`` the largest valid disparity of each
         ``block_px`` square block (px, NaN none), seen with ``geometry`` from ``seen_from`` (the pose at
         capture) at ``t_s`` seconds. A block with no valid disparity says nothing (a plain wall stays
-        unknown); one beyond the map range clears its ray to the range."""
+        unknown); one beyond the map range clears its ray to the range.
+
+        A ray is evidence of free space only where the matcher could have seen a surface: the left
+        image's column ``x`` matches disparities below ``min(x + 1, num_disparities)`` (None: no
+        limit), so a surface nearer than ``f·B`` over that on the ray cannot be told from free space
+        (it reads farther, or not at all: at the left edge a wall at grazing angle reads far). The
+        ray's first stretch, to that depth from its block's leftmost column, is not cleared."""
         self.now_s = max(self.now_s, float(t_s))
         self.centre_on(np.asarray(seen_from.position_ned_m))
         pool = max(1, int(round(RAY_SPACING_PX / block_px)))
@@ -191,6 +205,13 @@ class LocalMap:
         r_cam = rays[valid]  # (n, 3), z = 1
         norm = np.linalg.norm(r_cam, axis=1)
         dist = depth * norm  # range along the ray to the surface, m
+        if num_disparities is None:
+            blind = np.zeros(len(dist))
+        else:  # the nearest depth a pooled block's leftmost column can match, along its ray
+            x0 = np.nonzero(valid)[1].astype(np.float64) * (pool * block_px)
+            top = np.minimum(x0, float(num_disparities - 1))
+            with np.errstate(divide="ignore"):
+                blind = np.where(top > 0.0, geometry.focal_baseline_px_m / top, np.inf) * norm
         unit_ned = (r_cam / norm[:, None]) @ seen_from.ned_from_camera().T
         origin = np.asarray(seen_from.position_ned_m, dtype=np.float64)
         t = np.float32(t_s)
@@ -203,7 +224,7 @@ class LocalMap:
         step = 0.7 * self.voxel_m
         s = np.arange(0.5 * step, self.range_m, step)
         end = np.minimum(dist, self.range_m) - self.voxel_m
-        take = s[None, :] < end[:, None]
+        take = (s[None, :] < end[:, None]) & (s[None, :] >= blind[:, None])
         ray, k = np.nonzero(take)  # only the samples short of each ray's surface
         f_idx, f_in = self._index(origin + unit_ned[ray] * s[k, None])
         f_idx = f_idx[f_in]

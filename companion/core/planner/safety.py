@@ -31,8 +31,9 @@ from companion.config.planner import PlannerConfig
 from companion.core.planner.local import HOLD_MAX_M_S, speed_law
 from companion.core.types import ZERO_SETPOINT, Decision, DecisionKind, VelocitySetpoint
 
-#: Below this speed the vehicle's motion has no direction worth checking, m/s.
-MOVING_M_S = 0.3
+#: Below this speed the vehicle's motion has no direction worth checking, m/s (a velocity
+#: estimate's noise).
+MOVING_M_S = 0.1
 #: Within this of the floor or ceiling a climb or descent slows in proportion, metres.
 BAND_SLOW_M = 1.0
 
@@ -129,7 +130,8 @@ def brake_hold(sp: VelocitySetpoint, ctx: SafetyContext) -> VelocitySetpoint:
 def speed_law_limit(sp: VelocitySetpoint, ctx: SafetyContext) -> VelocitySetpoint:
     """The commanded speed within the speed law on the free length along it, times
     :func:`view_factor` of the command's bearing off the camera's axis; and its component along the
-    vehicle's motion within the speed law on the free length along that. Holding, the command leads
+    vehicle's motion within the speed law on the free length along that, reversed where the vehicle
+    cannot stop in that length even braking now. Holding, the command leads
     back to the held point, where the vehicle's body was (the way back need not have been seen): only
     the motion is bounded."""
     v = to_ned(sp, ctx.yaw_rad)
@@ -150,7 +152,16 @@ def speed_law_limit(sp: VelocitySetpoint, ctx: SafetyContext) -> VelocitySetpoin
             # Faster than it can stop from: a lagging vehicle (first order, time constant within the
             # latency) decelerates at a only when the setpoint is a·t below its speed.
             p = ctx.planner
-            cap = max(0.0, min(cap, ms - p.braking_accel_m_s2 * p.latency_s))
+            a = p.braking_accel_m_s2
+            cap = max(0.0, min(cap, ms - a * p.latency_s))
+            # Too fast to stop even braking now: the setpoint reverses along the motion by the excess
+            # of the reported velocity (at most the hold's speed), so that an autopilot's velocity
+            # integrator is wound back too (told zero, PX4 creeps on for seconds); back is where the
+            # body just was. The unexplained motion is counter_unexplained's.
+            now = math.sqrt(2.0 * a * max(ctx.free_along(u) - p.stop_margin_m, 0.0))
+            reported = float((m - ctx.unexplained_ned_m_s) @ u)
+            if reported > now:
+                cap = -min(reported - now, HOLD_MAX_M_S)
         along = float(v @ u)
         if along > cap:
             v = v - (along - cap) * u

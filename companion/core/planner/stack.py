@@ -99,7 +99,7 @@ class LocalStack:
     def add_frame(self, blocks: np.ndarray, geometry: StereoGeometry, block_px: int, seen_from: Pose, t_s: float) -> None:
         """A frame's block image (float32 ``(rows, cols)`` px, NaN none) seen from ``seen_from`` at its
         capture time ``t_s`` into the map; its horizontal view sets what counts as looked at."""
-        self.map.integrate(blocks, geometry, block_px, seen_from, t_s)
+        self.map.integrate(blocks, geometry, block_px, seen_from, t_s, self.cfg.stereo.num_disparities)
         self.view_half_rad = math.atan(0.5 * geometry.width_px / geometry.focal_px) * 0.9
 
     def step(
