@@ -380,6 +380,17 @@ async def fly_course(
     )
 
 
+def warm_backend(cfg: CompanionConfig) -> None:
+    """Build the disparity backend of ``cfg`` once in this process and match one frame: a compiled
+    backend (cpu-sgm) fills its on-disk cache, so that each flight's service loads the kernels instead
+    of compiling them for a minute or more past the harness's wait for it to be ready."""
+    from companion.backends import make_pipeline
+
+    w, h = cfg.sim.eye_width_px, cfg.sim.eye_height_px
+    frame = np.random.default_rng(0).integers(0, 256, (h, 2 * w, 3), dtype=np.uint8)
+    make_pipeline(cfg, w, h).process(frame, 0.0)
+
+
 async def fly_courses(
     courses: Sequence[Course],
     cfg: CompanionConfig,
@@ -410,6 +421,7 @@ async def fly_courses(
     """
     ardupilot = isinstance(ports, ArduPilotPorts)
     build: Any = ardupilot_build if ardupilot else px4_build
+    await asyncio.to_thread(warm_backend, cfg)
     name = "ArduPilot" if ardupilot else "PX4"
     own_tmp = None
     if workdir is None:
