@@ -47,8 +47,9 @@ Type=notify
 NotifyAccess=main
 ExecStart={exec_start}
 ExecReload=/bin/kill -HUP $MAINPID
-# READY=1 once the camera delivers and the pipeline is built (GPU kernels may compile on first start).
-TimeoutStartSec=120
+# READY=1 once the camera delivers and the pipeline is built. The first start compiles the matcher's
+# kernels (GPU: seconds; cpu-sgm: about 1.5 min on 2 cores, then cached under NUMBA_CACHE_DIR).
+TimeoutStartSec=300
 # SIGTERM: zero setpoint, Hold if we own offboard, then exit; a second signal forces the exit.
 TimeoutStopSec=15
 # WATCHDOG=1 comes only from the control loop: a stalled loop gets the process killed (and MAVSDK's
