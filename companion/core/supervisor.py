@@ -695,8 +695,8 @@ class Supervisor:
             if not self._commanding():
                 return Reply(r, False, f"goto refused: not engaged ({m.state.value}); engage with a goal instead")
             m.goal = r.goal
-            m.course.set_goal(r.goal, v.position_ned_m, _finite_or_none(v.attitude_rad, 2))
             heading = _finite_or_none(v.attitude_rad, 2)
+            m.course.set_goal(r.goal, v.position_ned_m, heading)
             if m.local is not None and v.position_ned_m is not None and heading is not None:
                 m.local.set_goal(np.asarray(v.position_ned_m, dtype=np.float64), heading, r.goal)
             if m.stalled:

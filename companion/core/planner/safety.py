@@ -147,7 +147,8 @@ def speed_law_limit(sp: VelocitySetpoint, ctx: SafetyContext) -> VelocitySetpoin
     ms = float(np.linalg.norm(m))
     if ms > MOVING_M_S:
         u = m / ms
-        cap = float(speed_law(ctx.free_along(u), ctx.planner))
+        free_u = ctx.free_along(u)
+        cap = float(speed_law(free_u, ctx.planner))
         if ms > cap:
             # Faster than it can stop from: a lagging vehicle (first order, time constant within the
             # latency) decelerates at a only when the setpoint is a·t below its speed.
@@ -158,7 +159,7 @@ def speed_law_limit(sp: VelocitySetpoint, ctx: SafetyContext) -> VelocitySetpoin
             # of the reported velocity (at most the hold's speed), so that an autopilot's velocity
             # integrator is wound back too (told zero, PX4 creeps on for seconds); back is where the
             # body just was. The unexplained motion is counter_unexplained's.
-            now = math.sqrt(2.0 * a * max(ctx.free_along(u) - p.stop_margin_m, 0.0))
+            now = math.sqrt(2.0 * a * max(free_u - p.stop_margin_m, 0.0))
             reported = float((m - ctx.unexplained_ned_m_s) @ u)
             if reported > now:
                 cap = -min(reported - now, HOLD_MAX_M_S)
