@@ -32,6 +32,13 @@ from mavlink_peer import Px4Peer
 from peers.process import Notifications, finish, rss_bytes, spawn
 
 from companion import exitcodes
+from companion.bench.flood import (
+    STATUS_REQUEST,
+    oversize_request,
+    send_oversize,
+    send_round,
+    status_dealers,
+)
 from companion.config import ServiceConfig
 
 pytestmark = pytest.mark.slow
@@ -103,37 +110,21 @@ def _setpoint_rate_hz(health: Health, duration_s: float) -> float:
 
 
 def _flood(endpoint: str, deadline_s: float) -> dict[str, int]:
-    """The issue's cases, bounded: 20 DEALERs x 2000 status requests never read; 30 requests of 31 MB;
-    1100 raw TCP connections that never speak ZeroMQ. Returns what was sent."""
+    """The flood, bounded: 20 DEALERs x 2000 status requests never read; 30 requests of 31 MB; 1100 raw
+    TCP connections that never speak ZeroMQ. Returns what was sent."""
     ctx = zmq.Context()
     sent = {"status": 0, "big": 0, "raw": 0}
     host, port = endpoint.removeprefix("tcp://").rsplit(":", 1)
     raw: list[socket.socket] = []
     try:
-        dealers = []
-        for _ in range(20):
-            s = ctx.socket(zmq.DEALER)
-            s.setsockopt(zmq.LINGER, 0)
-            s.setsockopt(zmq.SNDHWM, 2000)
-            s.connect(endpoint)
-            dealers.append(s)
-        request = json.dumps({"cmd": "status"}).encode()
+        dealers = status_dealers(ctx, endpoint, 20)
         for _ in range(2000):
-            for s in dealers:
-                try:
-                    s.send(request, zmq.NOBLOCK)
-                    sent["status"] += 1
-                except zmq.Again:
-                    pass
+            sent["status"] += send_round(dealers, STATUS_REQUEST)
             if time.monotonic() > deadline_s:
                 break
-        big = b'{"cmd":"ping","pad":"' + b"x" * (31 * 1024 * 1024) + b'"}'
+        big = oversize_request(31 * 1024 * 1024)
         for _ in range(30):
-            s = ctx.socket(zmq.DEALER)
-            s.setsockopt(zmq.LINGER, 0)
-            s.connect(endpoint)
-            s.send(big, copy=False)
-            dealers.append(s)
+            dealers.append(send_oversize(ctx, endpoint, big))
             sent["big"] += 1
         for _ in range(1100):
             c = socket.create_connection((host, int(port)), timeout=5.0)

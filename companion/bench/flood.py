@@ -21,6 +21,55 @@ FLOOD_CONNECTIONS = 20
 OVERSIZE_BYTES = 8 * 1024 * 1024
 
 
+#: A ``status`` request, as the flood sends it.
+STATUS_REQUEST = json.dumps({"cmd": "status"}).encode()
+
+
+def oversize_request(body_bytes: int) -> bytes:
+    """A ``ping`` padded to ``body_bytes`` (far over ``bus.max_request_bytes``)."""
+    return b'{"cmd":"ping","pad":"' + b"x" * body_bytes + b'"}'
+
+
+def status_dealers(ctx: Any, endpoint: str, n: int = FLOOD_CONNECTIONS) -> list[Any]:
+    """``n`` DEALER sockets of ZeroMQ context ``ctx`` connected to ``endpoint``, each queueing up to
+    2000 requests it never reads the replies of (linger 0)."""
+    import zmq
+
+    dealers = []
+    for _ in range(n):
+        s = ctx.socket(zmq.DEALER)
+        s.setsockopt(zmq.LINGER, 0)
+        s.setsockopt(zmq.SNDHWM, 2000)
+        s.connect(endpoint)
+        dealers.append(s)
+    return dealers
+
+
+def send_round(dealers: list[Any], request: bytes) -> int:
+    """One ``request`` on each of ``dealers`` that takes it without blocking; returns how many went."""
+    import zmq
+
+    n = 0
+    for s in dealers:
+        try:
+            s.send(request, zmq.NOBLOCK)
+            n += 1
+        except zmq.Again:
+            pass
+    return n
+
+
+def send_oversize(ctx: Any, endpoint: str, message: bytes) -> Any:
+    """``message`` on a new DEALER connection (the relay cuts the one that sends it); returns the socket."""
+    import zmq
+
+    s = ctx.socket(zmq.DEALER)
+    s.setsockopt(zmq.LINGER, 0)
+    s.connect(endpoint)
+    s.send(message, copy=False)
+    return s
+
+
 def _flood(endpoint: str, stop: Any, counts: Any) -> None:
     """In the flooding process: flood ``endpoint`` until ``stop`` is set; ``counts`` gets what was sent."""
     import zmq
@@ -28,30 +77,14 @@ def _flood(endpoint: str, stop: Any, counts: Any) -> None:
     ctx = zmq.Context()
     sent = {"status": 0, "oversize": 0}
     try:
-        dealers = []
-        for _ in range(FLOOD_CONNECTIONS):
-            s = ctx.socket(zmq.DEALER)
-            s.setsockopt(zmq.LINGER, 0)
-            s.setsockopt(zmq.SNDHWM, 2000)
-            s.connect(endpoint)
-            dealers.append(s)
-        request = json.dumps({"cmd": "status"}).encode()
-        big = b'{"cmd":"ping","pad":"' + b"x" * OVERSIZE_BYTES + b'"}'
+        dealers = status_dealers(ctx, endpoint)
+        big = oversize_request(OVERSIZE_BYTES)
         next_big = time.monotonic()
         while not stop.is_set():
-            for s in dealers:
-                try:
-                    s.send(request, zmq.NOBLOCK)
-                    sent["status"] += 1
-                except zmq.Again:
-                    pass
+            sent["status"] += send_round(dealers, STATUS_REQUEST)
             if time.monotonic() >= next_big:
                 next_big += 1.0
-                s = ctx.socket(zmq.DEALER)  # a new connection each time: the relay cuts the one that sends it
-                s.setsockopt(zmq.LINGER, 0)
-                s.connect(endpoint)
-                s.send(big, copy=False)
-                dealers.append(s)
+                dealers.append(send_oversize(ctx, endpoint, big))
                 sent["oversize"] += 1
     finally:
         ctx.destroy(linger=0)
