@@ -49,8 +49,12 @@ def flying(tmp_path: Path):
     peer = ArduCopterPeer(mode="LOITER").start()
     camera = GatedCamera(avoid_scene_camera(15.0))
     # The rule stack: its setpoint is the frame's decision alone, which these tests check on the wire
-    # (the local planner's, the default, depends on the flight so far: tests/test_planner_local.py).
-    service, runner, client = _start(tmp_path, peer, camera, command={"failsafe_timeout_s": 1.5}, planner={"kind": "rules"})
+    # (the local planner's, the default, depends on the flight so far: tests/test_planner_local.py),
+    # without the track counter (it adds whatever motion the peer's position shows and its velocity
+    # does not: tests/test_track.py).
+    service, runner, client = _start(
+        tmp_path, peer, camera, command={"failsafe_timeout_s": 1.5, "track_counter_fraction": 0.0}, planner={"kind": "rules"}
+    )
     try:
         assert wait_until(lambda: _vehicle_ready(client), 10.0), _status(client)["vehicle"]
         yield peer, service, camera, client
