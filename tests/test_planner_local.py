@@ -186,6 +186,22 @@ def test_open_space_flies_at_the_goal_at_the_speed_the_free_length_allows() -> N
     assert np.linalg.norm(plan.velocity_ned_m_s) == pytest.approx(speed_law(plan.free_m, p.cfg))
 
 
+def test_level_flight_holds_the_goal_s_altitude_on_the_position() -> None:
+    """An autopilot in offboard velocity control holds a vertical speed, not a height: PX4 SITL
+    climbed 1.7 m over 10 m of an office under level setpoints, into the wall over a door. Flying
+    level, the planner takes an altitude error back on the position, however small (too small for
+    the next candidate climb), at most at the hold's slow speed."""
+    p = LocalPlanner(PlannerConfig(), 0.25)
+    for above_m, down_m_s in ((0.3, 0.3), (0.05, 0.05), (-0.2, -0.2), (1.2, 0.5)):
+        m = _map()
+        _see(m, _wall_blocks(30.0), pose=Pose.at(0.0, 0.0, 1.5 + above_m))
+        p.engage()
+        plan = p.plan(_snap(position_ned_m=np.array([0.0, 0.0, -1.5 - above_m])), m)
+        assert plan.direction_ned[2] == 0.0  # a level candidate
+        assert plan.velocity_ned_m_s[2] == pytest.approx(down_m_s)
+        assert plan.velocity_ned_m_s[0] > 1.0
+
+
 def test_a_wall_across_the_way_turns_the_planner_to_look_round() -> None:
     m = _map()
     _see(m, _wall_blocks(1.2))
@@ -450,6 +466,27 @@ def test_the_stack_flies_a_course_goal_and_needs_the_envelope_raised() -> None:
     assert step.setpoint.forward_m_s > 0.5
     with pytest.raises(ValueError, match="planner.cruise_speed_m_s"):
         CompanionConfig.model_validate({"planner": {"kind": "local"}, "envelope": {"max_horizontal_speed_m_s": 2.0}})
+
+
+def test_a_reload_in_flight_reaches_the_planner_and_keeps_the_map_unless_its_grid_changed() -> None:
+    """Users retune in flight: a reloaded planner setting flies from the next tick, with the map seen
+    so far; a new grid (voxel, range, radius, memories) starts the map afresh, and unknown is near."""
+    cfg = CompanionConfig.model_validate({"planner": {"kind": "local"}})
+    stack = LocalStack(cfg)
+    at = np.array([0.0, 0.0, -1.5])
+    stack.engage(at, 0.0, None)
+    for k in range(3):
+        stack.add_frame(_wall_blocks(30.0), GEOM, BLOCK_PX, Pose.at(0.0, 0.0, 1.5), 0.1 * k)
+    clear = Decision(DecisionKind.CLEAR, 0.0, 0.0, 1.0, "clear")
+
+    def forward(now_s: float) -> float:
+        return stack.step(now_s, 0.05, clear, np.full(9, 10.0), at, np.zeros(3), 0.0).setpoint.forward_m_s
+
+    assert forward(0.3) > 2.0
+    stack.reconfigure(CompanionConfig.model_validate({"planner": {"kind": "local", "cruise_speed_m_s": 1.2}}))
+    assert 0.5 < forward(0.35) <= 1.2 + 1e-9
+    stack.reconfigure(CompanionConfig.model_validate({"planner": {"kind": "local", "cruise_speed_m_s": 1.2, "voxel_m": 0.2}}))
+    assert forward(0.4) == 0.0
 
 
 @pytest.mark.parametrize("memory_s", [0.0, 8.0])

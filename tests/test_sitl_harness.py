@@ -186,7 +186,7 @@ def test_the_service_config_accepts_every_course_the_harness_flies() -> None:
     assert set(COURSE_KINDS) | {"head-on", "wall"} <= allowed
 
 
-def test_the_floor_moves_with_the_course_ground() -> None:
+def test_the_floor_and_the_planner_s_band_move_with_the_course_ground() -> None:
     """The course's ground lies where the hover put it, not at PX4's take-off point: the placement
     patch keeps the user's floor at its height over the ground the camera sees and the judge scores.
 
@@ -208,6 +208,12 @@ def test_the_floor_moves_with_the_course_ground() -> None:
     assert placement_patch(user, CoursePlacement((0.0, 0.0, 0.9), 0.0))["command"]["min_altitude_m"] == 0.01
     off = parse_config({"command": {"min_altitude_m": 0.0}})
     assert placement_patch(off, above)["command"]["min_altitude_m"] == 0.0
+    # The local planner's band moves with it: a 3 m ceiling left at the take-off point stood 0.6 m
+    # over an office's 3 m walls in a PX4 SITL flight, and the planner climbed over them into the top.
+    assert placed.planner.floor_m == pytest.approx(user.planner.floor_m + 0.17)
+    assert placed.planner.ceiling_m == pytest.approx(user.planner.ceiling_m + 0.17)
+    low = placement_patch(user, CoursePlacement((0.0, 0.0, 0.6), 0.0))["planner"]
+    assert low == {"floor_m": 0.0, "ceiling_m": pytest.approx(user.planner.ceiling_m - 0.6)}
 
 
 # ---------------------------------------------------------------- what the harness starts, it stops

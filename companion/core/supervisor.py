@@ -405,8 +405,11 @@ class Supervisor:
         }
 
     def reconfigure(self, cfg: SupervisorConfig) -> None:
-        """Swap the limits and timings; the state is kept (autostart is consumed only at start)."""
+        """Swap the limits and timings; the state is kept (autostart is consumed only at start). A
+        local planner in flight flies by the new settings from the next tick."""
         self._cfg = cfg
+        if self._m.local is not None and cfg.local is not None:
+            self._m.local.reconfigure(cfg.local)
 
     def step(
         self,

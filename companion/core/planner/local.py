@@ -253,12 +253,23 @@ class LocalPlanner:
     """
 
     def __init__(self, cfg: PlannerConfig, radius_m: float):
+        self._set(cfg, radius_m)
+        self.engage()
+
+    def _set(self, cfg: PlannerConfig, radius_m: float) -> None:
         self.cfg = cfg
         self.radius_m = float(radius_m)
         n_yaw = max(4, int(round(360.0 / cfg.yaw_step_deg)))
         self._yaw_off = np.arange(n_yaw) * (2.0 * math.pi / n_yaw)
         self._climbs = np.linspace(-1.0, 1.0, N_CLIMBS) * math.radians(cfg.max_climb_deg)
-        self.engage()
+
+    def reconfigure(self, cfg: PlannerConfig, radius_m: float) -> None:
+        """New settings from the next tick (a live reload), the flight's mode, choice and places kept;
+        where the looks are binned anew (``yaw_step_deg`` changed), no direction counts as looked at."""
+        n_before = len(self._yaw_off)
+        self._set(cfg, radius_m)
+        if len(self._yaw_off) != n_before:
+            self._looked_t = np.full(len(self._yaw_off), -np.inf)
 
     def engage(self) -> None:
         """Start a flight: forget the mode, the choice, the looks and the places."""
@@ -413,6 +424,11 @@ class LocalPlanner:
         speed = float(speed_law(free[i], cfg))
         u = dirs[i]
         vel = u * speed
+        if snap.goal_ned_m is not None and climb[i] == 0.0:
+            # Level flight holds the goal's altitude on the position: the autopilot holds a vertical
+            # speed, not a height (PX4 climbed 1.7 m over 10 m under level setpoints), and a climb
+            # error too small for the next candidate climb would otherwise never be taken back.
+            vel[2] = max(-HOLD_MAX_M_S, min(HOLD_MAX_M_S, HOLD_GAIN_PER_S * (float(snap.goal_ned_m[2]) - pos[2])))
         vmax = cfg.max_vertical_speed_m_s
         if abs(vel[2]) > vmax:
             vel = vel * (vmax / abs(vel[2]))

@@ -48,13 +48,31 @@ class LocalStack:
 
     def __init__(self, cfg: CompanionConfig):
         self.cfg = cfg
-        p = cfg.planner
-        self.map = LocalMap(p.voxel_m, p.map_range_m, cfg.vehicle.radius_m, p.occupied_memory_s, p.free_memory_s)
-        self.planner = LocalPlanner(p, cfg.vehicle.radius_m)
+        self.map = self._new_map(cfg)
+        self.planner = LocalPlanner(cfg.planner, cfg.vehicle.radius_m)
         self.goal_ned_m: np.ndarray | None = None
         self.view_half_rad = math.radians(40.0)
         self.track = TrackWatch()
         self._unexplained = np.zeros(3)
+
+    @staticmethod
+    def _new_map(cfg: CompanionConfig) -> LocalMap:
+        p = cfg.planner
+        return LocalMap(p.voxel_m, p.map_range_m, cfg.vehicle.radius_m, p.occupied_memory_s, p.free_memory_s)
+
+    def reconfigure(self, cfg: CompanionConfig) -> None:
+        """New settings in flight (a live reload): the planner and the chain fly by them from the next
+        tick, the flight's goal, mode and memories kept. The map keeps what it saw unless its grid or
+        its memory changed (voxel, range, radius, memories): then it starts afresh, and what it has not
+        seen is near."""
+        old = self.cfg
+        self.cfg = cfg
+        grid = ("voxel_m", "map_range_m", "occupied_memory_s", "free_memory_s")
+        if old.vehicle.radius_m != cfg.vehicle.radius_m or any(
+            getattr(old.planner, k) != getattr(cfg.planner, k) for k in grid
+        ):
+            self.map = self._new_map(cfg)
+        self.planner.reconfigure(cfg.planner, cfg.vehicle.radius_m)
 
     def engage(self, position_ned_m: np.ndarray, yaw_rad: float, goal: GoalSpec | None) -> None:
         """Start a flight at ``position_ned_m`` (float ``(3,)`` NED m) heading ``yaw_rad`` toward ``goal``
