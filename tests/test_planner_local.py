@@ -13,7 +13,7 @@ from companion.config.controller import ControllerConfig
 from companion.config.planner import PlannerConfig
 from companion.core.fuzzy.avoidance import AvoidanceController
 from companion.core.geometry import StereoGeometry
-from companion.core.planner.local import TRANSITIONS, LocalPlanner, Mode, Snapshot, predicted_paths, speed_law
+from companion.core.planner.local import ALTITUDE_RETURN_S, TRANSITIONS, LocalPlanner, Mode, Snapshot, predicted_paths, speed_law
 from companion.core.planner.localmap import LocalMap
 from companion.core.planner.safety import (
     CHAIN,
@@ -188,18 +188,22 @@ def test_open_space_flies_at_the_goal_at_the_speed_the_free_length_allows() -> N
 
 def test_level_flight_holds_the_goal_s_altitude_on_the_position() -> None:
     """An autopilot in offboard velocity control holds a vertical speed, not a height: PX4 SITL
-    climbed 1.7 m over 10 m of an office under level setpoints, into the wall over a door. Flying
-    level, the planner takes an altitude error back on the position, however small (too small for
-    the next candidate climb), at most at the hold's slow speed."""
-    p = LocalPlanner(PlannerConfig(), 0.25)
-    for above_m, down_m_s in ((0.3, 0.3), (0.05, 0.05), (-0.2, -0.2), (1.2, 0.5)):
+    climbed 1.7 m over 10 m of an office under level setpoints, into the wall over a door. The
+    planner's "level" candidate is the way back to the goal's altitude (at cruise, the error decays
+    with ALTITUDE_RETURN_S), however small the error: too small for the next candidate climb, it
+    would otherwise never be taken back."""
+    p = LocalPlanner(PlannerConfig(ceiling_m=6.0), 0.25)
+    cruise = p.cfg.cruise_speed_m_s
+    for above_m in (0.3, 0.05, -0.2, 3.0):
         m = _map()
         _see(m, _wall_blocks(30.0), pose=Pose.at(0.0, 0.0, 1.5 + above_m))
         p.engage()
         plan = p.plan(_snap(position_ned_m=np.array([0.0, 0.0, -1.5 - above_m])), m)
-        assert plan.direction_ned[2] == 0.0  # a level candidate
-        assert plan.velocity_ned_m_s[2] == pytest.approx(down_m_s)
-        assert plan.velocity_ned_m_s[0] > 1.0
+        speed = float(np.linalg.norm(plan.velocity_ned_m_s))
+        assert speed == pytest.approx(cruise)
+        # within half the steepest climb, so that a climb and a descent are left either way
+        back = min(math.atan2(above_m, cruise * ALTITUDE_RETURN_S), 0.5 * math.radians(p.cfg.max_climb_deg))
+        assert plan.velocity_ned_m_s[2] == pytest.approx(speed * math.sin(back))
 
 
 def test_a_wall_across_the_way_turns_the_planner_to_look_round() -> None:

@@ -3,7 +3,8 @@ speed law, and explicit modes (pure; time is passed in). docs/planner.md explain
 
 Each tick (:meth:`LocalPlanner.plan`) takes one frozen :class:`Snapshot` and the map, and:
 
-1. lays out candidate directions all round in yaw (``yaw_step_deg``) × five climbs (±``max_climb_deg``);
+1. lays out candidate directions all round in yaw (``yaw_step_deg``) × five climbs round the way back
+   to the goal's altitude (within ±``max_climb_deg``);
 2. asks the map how far each is free (:meth:`~companion.core.planner.localmap.LocalMap.free_lengths`:
    seen free, the surfaces inflated by the vehicle's radius), cut where it would leave the band
    between floor and ceiling;
@@ -31,7 +32,8 @@ from companion.config.planner import PlannerConfig
 from companion.core.planner.localmap import LocalMap
 from companion.core.types import Decision, DecisionKind
 
-#: Climbs per yaw: -max, -max/2, 0, +max/2, +max.
+#: Climbs per yaw: the way back to the goal's altitude, and that -max, -max/2, +max/2, +max (within
+#: ±max).
 N_CLIMBS = 5
 #: Added to the speed law's speed in the time term, m/s: a direction with no room to fly costs
 #: length / this seconds, much but finite, so that it stays comparable.
@@ -39,6 +41,9 @@ CREEP_M_S = 0.2
 #: Holding, the velocity back to the held point per metre away, 1/s, and at most, m/s.
 HOLD_GAIN_PER_S = 1.0
 HOLD_MAX_M_S = 0.5
+#: The goal's altitude is taken back over the distance flown at cruise in this time, seconds: at
+#: cruise, the altitude error decays with this time constant.
+ALTITUDE_RETURN_S = 3.0
 #: Side of the cells of the visited-places memory, metres.
 VISITED_CELL_M = 0.5
 #: The visited-places term looks this far along a candidate, metres.
@@ -85,6 +90,17 @@ def speed_law(free_m: np.ndarray | float, cfg: PlannerConfig) -> np.ndarray | fl
     v = a * (-t + np.sqrt(t * t + 2.0 * d / a))
     out = np.minimum(v, cfg.cruise_speed_m_s)
     return float(out) if np.ndim(out) == 0 else out
+
+
+def return_climb(below_goal_m: float, cfg: PlannerConfig) -> float:
+    """The climb back to the goal's altitude from ``below_goal_m`` metres below it (negative: above),
+    radians (positive up), within half ``max_climb_deg``: over the distance flown at cruise in
+    :data:`ALTITUDE_RETURN_S`. An autopilot in offboard velocity control holds a vertical speed, not
+    a height (PX4 SITL climbed 1.7 m over 10 m under level setpoints), so the altitude is held on
+    the position; slowly, since a climb or descent past something is the planner's to choose (a
+    return over a second pulled a vehicle up under an overhead block it was passing)."""
+    lim = 0.5 * math.radians(cfg.max_climb_deg)
+    return max(-lim, min(lim, math.atan2(below_goal_m, cfg.cruise_speed_m_s * ALTITUDE_RETURN_S)))
 
 
 @dataclass(frozen=True)
@@ -346,11 +362,13 @@ class LocalPlanner:
                 self.reason = "arrived at the goal"
                 return self._hold(self.reason, pos)
             goal_yaw = math.atan2(g[1] - pos[1], g[0] - pos[0])
-            # Back to the goal's altitude over a few metres, within the candidates' climbs.
-            lim = math.radians(cfg.max_climb_deg)
-            goal_climb = max(-lim, min(lim, math.atan2(pos[2] - g[2], max(goal_dist, 3.0))))
+            goal_climb = return_climb(float(pos[2] - g[2]), cfg)
+        # The climbs are laid round the goal's: "level" is the way back to the goal's altitude, so
+        # that the map judges that way too (it must not descend onto a wall it is passing over).
+        lim = math.radians(cfg.max_climb_deg)
+        base = goal_climb if snap.goal_ned_m is not None else 0.0  # within half the steepest: both ways stay
         yaw = (goal_yaw + self._yaw_off)[:, None] * np.ones((1, N_CLIMBS))
-        climb = np.ones((len(self._yaw_off), 1)) * self._climbs[None, :]
+        climb = np.ones((len(self._yaw_off), 1)) * np.clip(base + self._climbs, -lim, lim)[None, :]
         yaw, climb = yaw.reshape(-1), climb.reshape(-1)
         dirs = directions(yaw, climb)
         fl = lmap.free_lengths(pos, dirs)
@@ -424,11 +442,6 @@ class LocalPlanner:
         speed = float(speed_law(free[i], cfg))
         u = dirs[i]
         vel = u * speed
-        if snap.goal_ned_m is not None and climb[i] == 0.0:
-            # Level flight holds the goal's altitude on the position: the autopilot holds a vertical
-            # speed, not a height (PX4 climbed 1.7 m over 10 m under level setpoints), and a climb
-            # error too small for the next candidate climb would otherwise never be taken back.
-            vel[2] = max(-HOLD_MAX_M_S, min(HOLD_MAX_M_S, HOLD_GAIN_PER_S * (float(snap.goal_ned_m[2]) - pos[2])))
         vmax = cfg.max_vertical_speed_m_s
         if abs(vel[2]) > vmax:
             vel = vel * (vmax / abs(vel[2]))
