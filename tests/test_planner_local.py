@@ -410,6 +410,8 @@ def test_the_unexplained_motion_comes_off_the_setpoint_and_a_hold_but_not_off_ze
     held = counter_unexplained(ZERO_SETPOINT, _ctx(unexplained_ned_m_s=west, holding=True))
     assert held.forward_m_s == pytest.approx(0.0, abs=1e-9) and held.right_m_s == pytest.approx(0.3)
     assert apply_chain(FAST, _ctx(unexplained_ned_m_s=west, frame_age_s=9.0)) == ZERO_SETPOINT
+    sinking = counter_unexplained(FAST, _ctx(unexplained_ned_m_s=np.array([0.0, 0.0, 0.2])))
+    assert sinking.down_m_s == pytest.approx(-0.2) and sinking.forward_m_s == pytest.approx(3.0)
 
 
 def test_the_stack_measures_the_motion_the_reported_velocity_does_not_show() -> None:
@@ -435,6 +437,20 @@ def test_the_stack_measures_the_motion_the_reported_velocity_does_not_show() -> 
     assert last_setpoint(0.5).right_m_s == pytest.approx(0.3 - 0.02, abs=0.02)  # east, less the dead band
     assert last_setpoint(0.1).right_m_s == pytest.approx(0.1, abs=0.01)  # at most the setting
     assert last_setpoint(0.0).right_m_s == pytest.approx(0.0, abs=1e-9)
+
+
+def test_the_stack_counters_a_climb_the_reported_velocity_does_not_show() -> None:
+    """Vertically too: a vehicle sinking 0.3 m/s unseen by its velocity estimate, passing over a low
+    wall, is told to climb by that much (the altitude's own return is slow by design)."""
+    cfg = CompanionConfig.model_validate({"planner": {"kind": "local"}})
+    stack = LocalStack(cfg)
+    stack.engage(np.array([0.0, 0.0, -1.5]), 0.0, None)
+    for k in range(3):
+        stack.add_frame(_wall_blocks(30.0), GEOM, BLOCK_PX, Pose.at(0.0, 0.0, 1.5), 0.1 * k)
+    clear = Decision(DecisionKind.CLEAR, 0.0, 0.0, 1.0, "clear")
+    for k in range(12):  # the position sinks at 0.3 m/s; the reported velocity reads zero
+        step = stack.step(0.3 + 0.05 * k, 0.05, clear, np.full(9, 10.0), np.array([0.0, 0.0, -1.5 + 0.3 * 0.05 * k]), np.zeros(3), 0.0)
+    assert step.setpoint.down_m_s == pytest.approx(-(0.3 - 0.02), abs=0.03)  # up, less the dead band
 
 
 def test_floor_and_ceiling_stop_descent_and_climb() -> None:

@@ -204,8 +204,12 @@ class TrackWatch:
     brake can use the reported velocity plus this (``command.track_velocity_window_s``). Pure: time
     is passed in; the samples live in a fixed ring."""
 
-    def __init__(self) -> None:
-        self._rows = _Ring(5)  # time s, north m, east m, north m/s, east m/s
+    def __init__(self, axes: int = 2) -> None:
+        """``axes``: 2, north and east; 3, down too."""
+        if axes not in (2, 3):
+            raise ValueError(f"TrackWatch axes must be 2 or 3, not {axes}")
+        self._n = axes
+        self._rows = _Ring(1 + 2 * axes)  # time s, position m per axis, velocity m/s per axis
 
     def reset(self) -> None:
         """Forget every sample (a new engagement)."""
@@ -216,21 +220,22 @@ class TrackWatch:
         ``now_s`` seconds; a missing or non-finite one, or a time not after the last, is not kept."""
         if position_ned_m is None or velocity_ned_m_s is None or not math.isfinite(now_s):
             return
+        n = self._n
         p = np.asarray(position_ned_m, dtype=np.float64).reshape(-1)
         v = np.asarray(velocity_ned_m_s, dtype=np.float64).reshape(-1)
-        if p.size < 2 or v.size < 2 or not (np.all(np.isfinite(p[:2])) and np.all(np.isfinite(v[:2]))):
+        if p.size < n or v.size < n or not (np.all(np.isfinite(p[:n])) and np.all(np.isfinite(v[:n]))):
             return
         last = self._rows.last()
         if last is not None and now_s <= last[0]:
             return
         if last is not None:
-            step = p[:2] - last[1:3] - 0.5 * (v[:2] + last[3:5]) * (now_s - last[0])
-            if float(np.hypot(step[0], step[1])) > TRACK_RESET_STEP_M:
+            step = p[:n] - last[1 : 1 + n] - 0.5 * (v[:n] + last[1 + n :]) * (now_s - last[0])
+            if float(np.linalg.norm(step)) > TRACK_RESET_STEP_M:
                 self._rows.clear()
-        self._rows.push(float(now_s), float(p[0]), float(p[1]), float(v[0]), float(v[1]))
+        self._rows.push(float(now_s), *(float(x) for x in p[:n]), *(float(x) for x in v[:n]))
 
     def unexplained_m_s(self, now_s: float, window_s: float, max_m_s: float) -> np.ndarray | None:
-        """float ``(2,)`` north, east m/s: over the samples of the last ``window_s`` seconds before
+        """float ``(axes,)`` north, east (and down) m/s: over the samples of the last ``window_s`` seconds before
         ``now_s``, the position's change less the reported velocity's integral (trapezoid), per second
         (a least-squares slope over the samples), shortened by :data:`TRACK_DEADBAND_M_S` and at most
         ``max_m_s`` long; None with fewer than 3
@@ -248,11 +253,13 @@ class TrackWatch:
         # The position less the velocity's running integral (trapezoid) is what the velocity does not
         # explain; its slope, fitted over every sample rather than read from the two ends, is the
         # unexplained motion: telemetry timed by its arrival jitters by tens of milliseconds.
-        integral = np.concatenate([[[0.0, 0.0]], np.cumsum(0.5 * (rows[1:, 3:5] + rows[:-1, 3:5]) * np.diff(t)[:, None], axis=0)])
-        d = rows[:, 1:3] - integral
+        n = self._n
+        vel = rows[:, 1 + n :]
+        integral = np.concatenate([np.zeros((1, n)), np.cumsum(0.5 * (vel[1:] + vel[:-1]) * np.diff(t)[:, None], axis=0)])
+        d = rows[:, 1 : 1 + n] - integral
         tc = t - t.mean()
         unexplained = (tc @ (d - d.mean(axis=0))) / float(tc @ tc)
-        norm = float(np.hypot(unexplained[0], unexplained[1]))
+        norm = float(np.linalg.norm(unexplained))
         if norm <= TRACK_DEADBAND_M_S:
             return None
         return unexplained * (min(norm - TRACK_DEADBAND_M_S, max_m_s) / norm)

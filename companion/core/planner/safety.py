@@ -10,7 +10,7 @@ their order written once (:data:`CHAIN`).
    is actually moving (the autopilot follows late), no faster than the speed law on the free length
    the map sees along each; a command outside the camera's view slower still (fly where you look);
 4. :func:`counter_unexplained`: the motion the reported velocity does not explain (measured on the
-   position's track) taken off the horizontal setpoint, so that the vehicle moves as commanded;
+   position's track, vertical too) taken off the setpoint, so that the vehicle moves as commanded;
 5. :func:`floor_ceiling`: no descent below the floor nor climb above the ceiling, slowing on the last
    metre;
 6. :func:`envelope`: the horizontal and vertical speed and the yaw rate within the safety envelope.
@@ -170,15 +170,15 @@ def speed_law_limit(sp: VelocitySetpoint, ctx: SafetyContext) -> VelocitySetpoin
 
 
 def counter_unexplained(sp: VelocitySetpoint, ctx: SafetyContext) -> VelocitySetpoint:
-    """The unexplained motion taken off the horizontal setpoint (the autopilot tracks its velocity
-    estimate; the vehicle moves at the setpoint plus the estimate's error). Holding too: the hold
+    """The unexplained motion taken off the setpoint, vertical too (the autopilot tracks its velocity
+    estimate; the vehicle moves at the setpoint plus the estimate's error; PX4 drifted 0.4 m up in
+    4 s under zero vertical speed). Holding too: the hold
     steers back to its point on the position, which alone lags a drift by its speed over the hold's
     gain. Not on stale frames (zero is zero)."""
     u = ctx.unexplained_ned_m_s
-    if not ctx.frame_age_s <= ctx.stale_after_s or not (u[0] or u[1]):
+    if not ctx.frame_age_s <= ctx.stale_after_s or not np.any(u):
         return sp
-    v = to_ned(sp, ctx.yaw_rad)
-    v[:2] -= u[:2]
+    v = to_ned(sp, ctx.yaw_rad) - u
     return from_ned(v, ctx.yaw_rad, sp.yaw_rate_deg_s)
 
 

@@ -52,7 +52,7 @@ class LocalStack:
         self.planner = LocalPlanner(cfg.planner, cfg.vehicle.radius_m)
         self.goal_ned_m: np.ndarray | None = None
         self.view_half_rad = math.radians(40.0)
-        self.track = TrackWatch()
+        self.track = TrackWatch(axes=3)
         self._unexplained = np.zeros(3)
 
     @staticmethod
@@ -142,7 +142,7 @@ class LocalStack:
         unexplained = self._unexplained
         unexplained[:] = 0.0
         if u is not None:
-            unexplained[:2] = u
+            unexplained[:] = u
         vel = np.asarray(velocity_ned_m_s, dtype=np.float64) + unexplained
         self.map.mark_body_free(pos, now_s)
         snap = Snapshot(now_s, pos, vel, float(yaw_rad), self.goal_ned_m, decision, self.view_half_rad)
