@@ -187,8 +187,9 @@ def test_open_space_flies_at_the_goal_at_the_speed_the_free_length_allows() -> N
 
 
 def test_level_flight_holds_the_goal_s_altitude_on_the_position() -> None:
-    """An autopilot in offboard velocity control holds a vertical speed, not a height: PX4 SITL
-    climbed 1.7 m over 10 m of an office under level setpoints, into the wall over a door. The
+    """An autopilot in offboard velocity control holds a vertical speed, not a height, and a climb
+    chosen to look over a wall must be taken back: PX4 SITL flights climbed 1.7 m over 10 m of an
+    office and stayed there, into the wall over a door. The
     planner's "level" candidate is the way back to the goal's altitude (at cruise, the error decays
     with ALTITUDE_RETURN_S), however small the error: too small for the next candidate climb, it
     would otherwise never be taken back."""

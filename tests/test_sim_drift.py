@@ -23,9 +23,9 @@ def test_drifting_flights_that_flew_on_into_what_the_camera_saw_no_longer_collid
 
 
 def test_a_vehicle_drifting_in_height_keeps_the_goal_s_altitude_through_a_door() -> None:
-    """PX4 SITL at 3 m/s climbed 0.8-1.8 m under level setpoints and met the wall over a door
-    (doorway-1, office-0): an autopilot in offboard velocity control holds a vertical speed, not a
-    height. Here the simulated vehicle drifts in height unseen by its velocity estimate; the local
+    """PX4 SITL at 3 m/s climbed 0.8-1.8 m, never came back down and met the wall over a door
+    (doorway-1, office-0); an autopilot in offboard velocity control holds a vertical speed, not a
+    height (PX4 drifted 0.4 m up in 4 s under zero vertical speed). Here the simulated vehicle drifts in height unseen by its velocity estimate; the local
     planner holds the goal's altitude on the position and counters the drift, and flies through."""
     cfg = parse_config(
         {"stereo": {"backend": "opencv-bm"},

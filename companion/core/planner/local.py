@@ -96,8 +96,9 @@ def return_climb(below_goal_m: float, cfg: PlannerConfig) -> float:
     """The climb back to the goal's altitude from ``below_goal_m`` metres below it (negative: above),
     radians (positive up), within half ``max_climb_deg``: over the distance flown at cruise in
     :data:`ALTITUDE_RETURN_S`. An autopilot in offboard velocity control holds a vertical speed, not
-    a height (PX4 SITL climbed 1.7 m over 10 m under level setpoints), so the altitude is held on
-    the position; slowly, since a climb or descent past something is the planner's to choose (a
+    a height (PX4 SITL drifted 0.4 m up in 4 s under zero vertical speed), and a climb chosen to pass
+    over something must be taken back once past it (PX4 SITL flights climbed 1.7 m over 10 m and
+    stayed there, into the wall over a door), so the altitude is held on the position; slowly, since a climb or descent past something is the planner's to choose (a
     return over a second pulled a vehicle up under an overhead block it was passing)."""
     lim = 0.5 * math.radians(cfg.max_climb_deg)
     return max(-lim, min(lim, math.atan2(below_goal_m, cfg.cruise_speed_m_s * ALTITUDE_RETURN_S)))
