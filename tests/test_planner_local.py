@@ -13,7 +13,7 @@ from companion.config.controller import ControllerConfig
 from companion.config.planner import PlannerConfig
 from companion.core.fuzzy.avoidance import AvoidanceController
 from companion.core.geometry import StereoGeometry
-from companion.core.planner.local import ALTITUDE_RETURN_S, TRANSITIONS, LocalPlanner, Mode, Snapshot, predicted_paths, speed_law
+from companion.core.planner.local import ALTITUDE_RETURN_S, LOOKED_FROM_M, TRANSITIONS, LocalPlanner, Mode, Snapshot, predicted_paths, speed_law
 from companion.core.planner.localmap import LocalMap
 from companion.core.planner.safety import (
     CHAIN,
@@ -234,6 +234,23 @@ def test_a_closed_pocket_is_held_once_looked_round() -> None:
     p.resume()  # looks again: the pocket is still closed, so it is held again once confirmed
     assert p.plan(_snap(now_s=5.1), m).mode is not Mode.HOLD
     assert p.plan(_snap(now_s=5.7), m).mode is Mode.HOLD
+
+
+def test_a_direction_looked_along_from_elsewhere_is_worth_a_look_from_here() -> None:
+    """PX4 SITL, a wall across the way with an opening to one side: the planner looked toward the
+    goal from the start, flew along the wall past the opening (seen only at a grazing angle), and
+    the way through it, its space unknown, counted as looked at from 3.7 m away: closed. It held a
+    false dead end. Looked along from farther than LOOKED_FROM_M, a direction is worth a look again."""
+    m = _map()
+    p = LocalPlanner(PlannerConfig(), 0.25)
+    for k, yaw in enumerate((-math.pi / 2, -math.pi / 4, 0.0, math.pi / 4)):  # west to north-east, from the start
+        p.plan(_snap(now_s=1.0 + 0.01 * k, position_ned_m=np.array([0.0, 0.0, -1.5]), yaw_rad=yaw), m)
+    beside = np.array([0.0, 3.0, -1.5])
+    assert LOOKED_FROM_M < 3.0
+    for k in range(10):  # facing east, 3 m from where it looked north, within the look memory
+        plan = p.plan(_snap(now_s=1.2 + 0.1 * k, position_ned_m=beside, yaw_rad=math.pi / 2), m)
+    assert plan.mode is not Mode.HOLD, plan.reason
+    assert plan.yaw_rate_deg_s < -30.0  # turning left, to look north again from here
 
 
 def test_the_service_s_watchdog_stops_the_planner_at_the_point_it_holds() -> None:

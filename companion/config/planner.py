@@ -197,9 +197,10 @@ class PlannerConfig(StrictModel):
         gt=0.0,
         le=60.0,
         description=(
-            "A direction the camera looked along within this long counts as looked at, s: unknown "
-            "space there is not worth turning to look at again (a plain wall stays unknown); older, "
-            "unknown space is worth a look."
+            "A direction the camera looked along within this long, from within a metre of here, "
+            "counts as looked at, s: unknown space there is not worth turning to look at again (a "
+            "plain wall stays unknown); older, or looked at from elsewhere, unknown space is worth a "
+            "look."
         ),
     )
     dead_end_free_m: float = Field(

@@ -44,6 +44,10 @@ HOLD_MAX_M_S = 0.5
 #: The goal's altitude is taken back over the distance flown at cruise in this time, seconds: at
 #: cruise, the altitude error decays with this time constant.
 ALTITUDE_RETURN_S = 3.0
+#: A direction looked along from farther than this from here is not looked along from here, metres:
+#: the space a line from here ends in was out of that view (a wall's opening passed along the wall
+#: had been "looked at" from the start, 3.7 m away, and the way through it counted as closed).
+LOOKED_FROM_M = 1.0
 #: Side of the cells of the visited-places memory, metres.
 VISITED_CELL_M = 0.5
 #: The visited-places term looks this far along a candidate, metres.
@@ -287,6 +291,7 @@ class LocalPlanner:
         self._set(cfg, radius_m)
         if len(self._yaw_off) != n_before:
             self._looked_t = np.full(len(self._yaw_off), -np.inf)
+            self._looked_from = np.zeros((len(self._yaw_off), 2))
 
     def engage(self) -> None:
         """Start a flight: forget the mode, the choice, the looks and the places."""
@@ -294,6 +299,7 @@ class LocalPlanner:
         self.reason = ""
         self._prev: tuple[float, float] | None = None
         self._looked_t = np.full(len(self._yaw_off), -np.inf)  # per absolute yaw bin
+        self._looked_from = np.zeros((len(self._yaw_off), 2))  # north, east m the bin was looked along from
         self._visited: dict[tuple[int, int], float] = {}
         self._last_t: float | None = None
         self._closed_since: float | None = None
@@ -318,17 +324,15 @@ class LocalPlanner:
         return np.round(np.asarray(yaw) % (2.0 * math.pi) / (2.0 * math.pi / n)).astype(np.int64) % n
 
     def _remember(self, snap: Snapshot) -> None:
-        """Where the camera looks now and where the vehicle is (the visited places)."""
-        n = len(self._yaw_off)
-        bins = self._yaw_off
-        looked = _angle_diff(bins, snap.yaw_rad) <= snap.view_half_rad
+        """Where the camera looks now, from where, and where the vehicle is (the visited places)."""
+        looked = _angle_diff(self._yaw_off, snap.yaw_rad) <= snap.view_half_rad
         self._looked_t[looked] = snap.now_s
+        self._looked_from[looked] = snap.position_ned_m[:2]
         dt = 0.0 if self._last_t is None else max(0.0, min(snap.now_s - self._last_t, 0.5))
         self._last_t = snap.now_s
         p = snap.position_ned_m
         key = (int(math.floor(p[0] / VISITED_CELL_M)), int(math.floor(p[1] / VISITED_CELL_M)))
         self._visited[key] = self._visited.get(key, 0.0) + dt
-        del n
 
     def _visited_at(self, points: np.ndarray) -> np.ndarray:
         keys = np.floor(points[:, :2] / VISITED_CELL_M).astype(np.int64)
@@ -384,7 +388,9 @@ class LocalPlanner:
         free = np.minimum(free, to_band)
         blocked = fl.blocked | band_cut
         free_line, blocked_line = free, blocked  # on the lines themselves
-        unlooked = snap.now_s - self._looked_t[self._bin(yaw)] > cfg.look_memory_s
+        bins = self._bin(yaw)
+        moved = np.hypot(*(self._looked_from[bins] - pos[None, :2]).T)
+        unlooked = (snap.now_s - self._looked_t[bins] > cfg.look_memory_s) | (moved > LOOKED_FROM_M)
         v = np.asarray(snap.velocity_ned_m_s, dtype=np.float64)
         sp = float(np.linalg.norm(v))
         motion = None
