@@ -598,3 +598,51 @@ def test_the_service_flies_the_local_stack_when_planner_kind_is_local(memory_s: 
     out = sup.step(now, Seen(now - 0.01, clear, np.empty((0, 3)), _wall_blocks(30.0), GEOM), v, [Resume()], camera_ok=True)
     assert out.state is State.ENGAGED and planner.mode is not Mode.HOLD
     assert out.setpoint is not None and out.setpoint.forward_m_s > 0.5
+
+
+def test_the_service_s_watchdog_lets_the_local_planner_go_round_away_from_the_goal() -> None:
+    """Flying back from the goal is the rule stack's stall, not the local planner's: its way round
+    can lead away from the goal for seconds (PX4 SITL flights turning along an office's wall were
+    held by it). With the local planner only no progress for command.no_progress_timeout_s holds."""
+    from dataclasses import dataclass, replace
+
+    from companion.core.supervisor import Engage, State, Supervisor, SupervisorConfig
+    from companion.interfaces import VehicleState
+
+    @dataclass(frozen=True)
+    class Seen:
+        timestamp_s: float
+        decision: Decision
+        near_points_cam_m: object
+        near_blocks: object
+        geometry: object
+        refined: object = None
+
+    def fly_back(planner: dict[str, object]) -> State:
+        cfg = CompanionConfig.model_validate({"planner": planner, "envelope": {"max_horizontal_speed_m_s": 4.0}})
+        sup = Supervisor(SupervisorConfig.from_config(cfg))
+        clear = Decision(DecisionKind.CLEAR, 0.0, 0.0, 1.0, "clear")
+        v = VehicleState(connected=True, armed=True, flight_mode="POSCTL", in_offboard=False,
+                         position_ned_m=np.array([0.0, 0.0, -1.5]), velocity_ned_m_s=np.zeros(3),
+                         attitude_rad=np.zeros(3), position_timestamp_s=0.0)
+        now = 0.0
+        blind = Seen(now, clear, np.empty((0, 3)), np.full(BLOCKS, np.nan, dtype=np.float32), GEOM)
+        out = sup.step(now, blind, v, [Engage()], camera_ok=True)
+        for _ in range(12):
+            now += 0.05
+            v = replace(v, position_timestamp_s=now)
+            out = sup.step(now, replace(blind, timestamp_s=now - 0.02), v, [], camera_ok=True)
+        v = replace(v, flight_mode="OFFBOARD", in_offboard=True)
+        start = now
+        for _ in range(200):  # 10 s flying south, away from the course ahead, at 0.5 m/s
+            now += 0.05
+            v = replace(v, position_ned_m=np.array([-0.5 * (now - start), 0.0, -1.5]),
+                        velocity_ned_m_s=np.array([-0.5, 0.0, 0.0]), position_timestamp_s=now)
+            seen = Seen(now - 0.01, clear, np.empty((0, 3)), _wall_blocks(30.0), GEOM)
+            out = sup.step(now, seen, v, [], camera_ok=True)
+            if out.state is not State.ENGAGED:
+                break
+        return out.state
+
+    assert fly_back({"kind": "local"}) is State.ENGAGED
+    assert fly_back({"kind": "rules"}) is State.PAUSED

@@ -876,8 +876,12 @@ class Supervisor:
         return ZERO_SETPOINT  # degraded, paused
 
     def _no_progress(self, now_s: float, v: VehicleState) -> bool:
-        """The progress watchdog (:class:`~companion.core.command.ProgressWatch`) fed the position now."""
-        return self._m.course.no_progress(v.position_ned_m, now_s, self._cfg.command)
+        """The progress watchdog (:class:`~companion.core.command.ProgressWatch`) fed the position now.
+        Flying back is judged for the rule stack only: the local planner goes round by its own modes,
+        and the way round can lead away from the goal for seconds (it stopped PX4 SITL flights that
+        were turning along an office's wall); no progress for ``command.no_progress_timeout_s`` holds
+        either."""
+        return self._m.course.no_progress(v.position_ned_m, now_s, self._cfg.command, regress=self._m.local is None)
 
     def _holding_reason(self) -> str | None:
         """Why the flying stack holds (the goal reached, a dead end), or None: the local planner's

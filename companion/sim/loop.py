@@ -451,9 +451,12 @@ def fly(
             decision = latest.decision if latest is not None else None
             m = vehicle.model
             hold.observe(decision, latest.timestamp_s if latest is not None else None, m.position_ned_m)
-            if local is None and not stalled and hold.no_progress(m.position_ned_m, t, cmd):
+            if not stalled and hold.no_progress(m.position_ned_m, t, cmd, regress=local is None):
+                # The service's watchdog, as the service applies it (flying back: the rule stack only).
                 stalled = True
                 hold_reason = f"progress watchdog ({hold.progress.why})"
+                if local is not None:
+                    local.stop(hold_reason)
             if local is None and not stalled and hold.holding_reason is not None:
                 stalled = True
                 hold_reason = hold.holding_reason
