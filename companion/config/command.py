@@ -304,7 +304,8 @@ class CommandConfig(StrictModel):
             "for the course at engagement) than the nearest it has been is flying back; after "
             "regress_timeout_s of that it holds as for no progress, metres (0 = off). A vehicle that "
             "turned round at a dead end's closed end would otherwise fly back out of the channel until "
-            "the no-progress watchdog stopped it."
+            "the no-progress watchdog stopped it. The rule stack's only: the local planner holds its "
+            "own dead ends, and its way round can lead away from the goal."
         ),
     )
     regress_timeout_s: float = Field(
