@@ -4,6 +4,7 @@ dead end held, the fuzzy controller as a term and as the whole policy, and the s
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, replace
 
 import numpy as np
 import pytest
@@ -28,7 +29,9 @@ from companion.core.planner.safety import (
 )
 from companion.core.planner.stack import LocalStack
 from companion.core.pose import Pose
+from companion.core.supervisor import Engage, Resume, State, Supervisor, SupervisorConfig
 from companion.core.types import ZERO_SETPOINT, Decision, DecisionKind, VelocitySetpoint
+from companion.interfaces import VehicleState
 
 GEOM = StereoGeometry.ideal(336, 188, 90.0, 0.12)
 BLOCK_PX = 4
@@ -527,6 +530,37 @@ def test_a_reload_in_flight_reaches_the_planner_and_keeps_the_map_unless_its_gri
     assert forward(0.4) == 0.0
 
 
+@dataclass(frozen=True)
+class _Seen:
+    """The parts of a frame's outcome the supervisor's local stack reads."""
+
+    timestamp_s: float
+    decision: Decision
+    near_points_cam_m: object
+    near_blocks: object
+    geometry: object
+    refined: object = None
+
+
+def _switched_to_offboard(cfg: CompanionConfig) -> tuple[Supervisor, VehicleState, float, _Seen]:
+    """A supervisor asked to engage a vehicle hovering at 1.5 m in Position mode, fed clear frames
+    with no valid block for 0.6 s, and the vehicle then switched to Offboard (not yet stepped).
+    Returns (supervisor, vehicle, time s, that blind frame)."""
+    sup = Supervisor(SupervisorConfig.from_config(cfg))
+    clear = Decision(DecisionKind.CLEAR, 0.0, 0.0, 1.0, "clear")
+    v = VehicleState(connected=True, armed=True, flight_mode="POSCTL", in_offboard=False,
+                     position_ned_m=np.array([0.0, 0.0, -1.5]), velocity_ned_m_s=np.zeros(3),
+                     attitude_rad=np.zeros(3), position_timestamp_s=0.0)
+    now = 0.0
+    blind = _Seen(now, clear, np.empty((0, 3)), np.full(BLOCKS, np.nan, dtype=np.float32), GEOM)
+    sup.step(now, blind, v, [Engage()], camera_ok=True)
+    for _ in range(12):
+        now += 0.05
+        v = replace(v, position_timestamp_s=now)
+        sup.step(now, replace(blind, timestamp_s=now - 0.02), v, [], camera_ok=True)
+    return sup, replace(v, flight_mode="OFFBOARD", in_offboard=True), now, blind
+
+
 @pytest.mark.parametrize("memory_s", [0.0, 8.0])
 def test_the_service_flies_the_local_stack_when_planner_kind_is_local(memory_s: float) -> None:
     """The supervisor's engaged step runs the local stack: frames enter its map from the pose at
@@ -535,37 +569,13 @@ def test_the_service_flies_the_local_stack_when_planner_kind_is_local(memory_s: 
     with the planner's reason, as the rules stack's does, and holds the point where it stopped (told
     zero velocity, PX4 crept on at 0.2 m/s after a stop from 3 m/s and touched the dead end's wall);
     the operator's resume flies again."""
-    from dataclasses import dataclass, replace
-
-    from companion.core.supervisor import Engage, State, Supervisor, SupervisorConfig
-    from companion.interfaces import VehicleState
-
-    @dataclass(frozen=True)
-    class Seen:
-        timestamp_s: float
-        decision: Decision
-        near_points_cam_m: object
-        near_blocks: object
-        geometry: object
-        refined: object = None
-
     cfg = CompanionConfig.model_validate(
         {"planner": {"kind": "local"}, "envelope": {"max_horizontal_speed_m_s": 4.0}, "memory": {"duration_s": memory_s}}
         | ({"envelope": {"max_horizontal_speed_m_s": 4.0, "memory_may_be_off": True}} if memory_s == 0.0 else {})
     )
-    sup = Supervisor(SupervisorConfig.from_config(cfg))
-    clear = Decision(DecisionKind.CLEAR, 0.0, 0.0, 1.0, "clear")
-    at = np.array([0.0, 0.0, -1.5])
-    v = VehicleState(connected=True, armed=True, flight_mode="POSCTL", in_offboard=False,
-                     position_ned_m=at, velocity_ned_m_s=np.zeros(3), attitude_rad=np.zeros(3), position_timestamp_s=0.0)
-    now = 0.0
-    blind = Seen(now, clear, np.empty((0, 3)), np.full(BLOCKS, np.nan, dtype=np.float32), GEOM)
-    out = sup.step(now, blind, v, [Engage()], camera_ok=True)
-    for _ in range(12):
-        now += 0.05
-        v = replace(v, position_timestamp_s=now)
-        out = sup.step(now, replace(blind, timestamp_s=now - 0.02), v, [], camera_ok=True)
-    v = replace(v, flight_mode="OFFBOARD", in_offboard=True)
+    sup, v, now, blind = _switched_to_offboard(cfg)
+    clear = blind.decision
+    at = np.array(v.position_ned_m)
     now += 0.05
     out = sup.step(now, replace(blind, timestamp_s=now - 0.02), v, [], camera_ok=True)
     assert out.state is State.ENGAGED
@@ -573,7 +583,7 @@ def test_the_service_flies_the_local_stack_when_planner_kind_is_local(memory_s: 
     for _ in range(4):
         now += 0.05
         v = replace(v, position_timestamp_s=now)
-        seen = Seen(now - 0.01, clear, np.empty((0, 3)), _wall_blocks(30.0), GEOM)
+        seen = _Seen(now - 0.01, clear, np.empty((0, 3)), _wall_blocks(30.0), GEOM)
         out = sup.step(now, seen, v, [], camera_ok=True)
     assert out.setpoint is not None and out.setpoint.forward_m_s > 0.5
     # The planner declares a dead end: the service pauses (zero velocity) and says why.
@@ -581,7 +591,7 @@ def test_the_service_flies_the_local_stack_when_planner_kind_is_local(memory_s: 
     planner.mode, planner.reason = Mode.HOLD, "dead end: no direction within 100 deg of the goal is free for 1.5 m"
     now += 0.05
     v = replace(v, position_timestamp_s=now)
-    out = sup.step(now, Seen(now - 0.01, clear, np.empty((0, 3)), _wall_blocks(30.0), GEOM), v, [], camera_ok=True)
+    out = sup.step(now, _Seen(now - 0.01, clear, np.empty((0, 3)), _wall_blocks(30.0), GEOM), v, [], camera_ok=True)
     assert out.state is State.PAUSED and "dead end" in out.reason
     assert out.setpoint is not None and out.setpoint.forward_m_s == 0.0
     # Creeping on toward the wall at 0.2 m/s: back to the held point, without turning.
@@ -589,13 +599,11 @@ def test_the_service_flies_the_local_stack_when_planner_kind_is_local(memory_s: 
         now += 0.05
         v = replace(v, position_ned_m=at + np.array([0.01 * k, 0.0, 0.0]), velocity_ned_m_s=np.array([0.2, 0.0, 0.0]),
                     position_timestamp_s=now)
-        out = sup.step(now, Seen(now - 0.01, clear, np.empty((0, 3)), _wall_blocks(30.0), GEOM), v, [], camera_ok=True)
+        out = sup.step(now, _Seen(now - 0.01, clear, np.empty((0, 3)), _wall_blocks(30.0), GEOM), v, [], camera_ok=True)
     assert out.state is State.PAUSED and "dead end" in out.reason
     assert out.setpoint is not None and out.setpoint.forward_m_s < -0.15 and out.setpoint.yaw_rate_deg_s == 0.0
-    from companion.core.supervisor import Resume
-
     now += 0.05
-    out = sup.step(now, Seen(now - 0.01, clear, np.empty((0, 3)), _wall_blocks(30.0), GEOM), v, [Resume()], camera_ok=True)
+    out = sup.step(now, _Seen(now - 0.01, clear, np.empty((0, 3)), _wall_blocks(30.0), GEOM), v, [Resume()], camera_ok=True)
     assert out.state is State.ENGAGED and planner.mode is not Mode.HOLD
     assert out.setpoint is not None and out.setpoint.forward_m_s > 0.5
 
@@ -604,41 +612,15 @@ def test_the_service_s_watchdog_lets_the_local_planner_go_round_away_from_the_go
     """Flying back from the goal is the rule stack's stall, not the local planner's: its way round
     can lead away from the goal for seconds (PX4 SITL flights turning along an office's wall were
     held by it). With the local planner only no progress for command.no_progress_timeout_s holds."""
-    from dataclasses import dataclass, replace
-
-    from companion.core.supervisor import Engage, State, Supervisor, SupervisorConfig
-    from companion.interfaces import VehicleState
-
-    @dataclass(frozen=True)
-    class Seen:
-        timestamp_s: float
-        decision: Decision
-        near_points_cam_m: object
-        near_blocks: object
-        geometry: object
-        refined: object = None
-
     def fly_back(planner: dict[str, object]) -> State:
         cfg = CompanionConfig.model_validate({"planner": planner, "envelope": {"max_horizontal_speed_m_s": 4.0}})
-        sup = Supervisor(SupervisorConfig.from_config(cfg))
-        clear = Decision(DecisionKind.CLEAR, 0.0, 0.0, 1.0, "clear")
-        v = VehicleState(connected=True, armed=True, flight_mode="POSCTL", in_offboard=False,
-                         position_ned_m=np.array([0.0, 0.0, -1.5]), velocity_ned_m_s=np.zeros(3),
-                         attitude_rad=np.zeros(3), position_timestamp_s=0.0)
-        now = 0.0
-        blind = Seen(now, clear, np.empty((0, 3)), np.full(BLOCKS, np.nan, dtype=np.float32), GEOM)
-        out = sup.step(now, blind, v, [Engage()], camera_ok=True)
-        for _ in range(12):
-            now += 0.05
-            v = replace(v, position_timestamp_s=now)
-            out = sup.step(now, replace(blind, timestamp_s=now - 0.02), v, [], camera_ok=True)
-        v = replace(v, flight_mode="OFFBOARD", in_offboard=True)
-        start = now
+        sup, v, now, blind = _switched_to_offboard(cfg)
+        clear, start = blind.decision, now
         for _ in range(200):  # 10 s flying south, away from the course ahead, at 0.5 m/s
             now += 0.05
             v = replace(v, position_ned_m=np.array([-0.5 * (now - start), 0.0, -1.5]),
                         velocity_ned_m_s=np.array([-0.5, 0.0, 0.0]), position_timestamp_s=now)
-            seen = Seen(now - 0.01, clear, np.empty((0, 3)), _wall_blocks(30.0), GEOM)
+            seen = _Seen(now - 0.01, clear, np.empty((0, 3)), _wall_blocks(30.0), GEOM)
             out = sup.step(now, seen, v, [], camera_ok=True)
             if out.state is not State.ENGAGED:
                 break
