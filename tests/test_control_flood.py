@@ -39,7 +39,8 @@ from companion.bench.flood import (
     send_round,
     status_dealers,
 )
-from companion.config import ServiceConfig
+from companion.config import BusConfig
+from companion.service.bus import QUEUE_MESSAGES
 
 pytestmark = pytest.mark.slow
 
@@ -107,6 +108,20 @@ def _setpoint_rate_hz(health: Health, duration_s: float) -> float:
     time.sleep(duration_s)
     b = health.latest()
     return (b["setpoints_sent"] - a["setpoints_sent"]) / (b["time_s"] - a["time_s"])
+
+
+def _settled_rss(pid: int, timeout_s: float, window: int = 10, spread: float = 0.03) -> int:
+    """The resident size of process ``pid`` once it has settled, bytes: the largest of ``window`` samples
+    a second apart that lie within ``spread`` of each other. Fails when it keeps growing for ``timeout_s``."""
+    samples: list[int] = []
+    deadline = time.monotonic() + timeout_s
+    while True:
+        samples.append(rss_bytes(pid))
+        last = samples[-window:]
+        if len(last) == window and max(last) <= (1.0 + spread) * min(last):
+            return max(last)
+        assert time.monotonic() < deadline, f"the service's memory did not settle: {[s >> 20 for s in samples]} MiB"
+        time.sleep(1.0)
 
 
 def _flood(endpoint: str, deadline_s: float) -> dict[str, int]:
@@ -226,13 +241,12 @@ def test_a_control_flood_cannot_stall_the_flight_path(tmp_path: Path) -> None:
             # autostart: engaged once the first frames are processed (a minute at most on a loaded machine)
             assert peer.wait_for(lambda: peer.mode == "OFFBOARD", 90.0), peer.commands
             health = Health(ctx, f"ipc://{tmp_path}/h.sock")
-            # The local planner's map holds the rays of its free memory's frames (planner.free_memory_s,
-            # 6 s): the service's memory grows that long after engaging, then stays.
-            time.sleep(6.0)
+            # The local planner's map fills for its memories after engaging (more slowly on a loaded
+            # machine, which processes fewer frames): the memory before the flood is the settled one.
+            rss_before = _settled_rss(proc.pid, 180.0)
             t0 = time.monotonic()
             baseline_hz = _setpoint_rate_hz(health, 2.0)
             baseline_gaps = _watchdog_gaps_s(notify, t0, time.monotonic())
-            rss_before = rss_bytes(proc.pid)
 
             at_flood = health.latest()
             t_flood = time.monotonic()
@@ -280,13 +294,18 @@ def test_a_control_flood_cannot_stall_the_flight_path(tmp_path: Path) -> None:
     # it (engaged, or degraded for a moment of stale frames on a loaded machine: zero velocity, as it
     # must). How regular the loop stays is a figure (printed above; `companion bench --soak --flood`).
     assert gaps and len(gaps) >= 2, gaps
-    assert during["setpoints_sent"] > at_flood["setpoints_sent"] and during["engaged"], during
+    assert during["setpoints_sent"] > at_flood["setpoints_sent"], (at_flood["setpoints_sent"], during["setpoints_sent"])
+    assert during["engaged"], (during["state"], during["reason"])
     assert mode_during_flood == "OFFBOARD", mode_during_flood
     # The operator still stops it during the flood: disengage is answered and carried out.
     assert disengaged["ok"], disengaged
     assert left_offboard, peer.mode
     assert not after["engaged"], after
-    assert rss_after <= 1.2 * rss_before, (rss_before, rss_after)
+    # Memory: what the flood can leave is what the control socket may queue (every connection's queue
+    # full of the largest request it takes), kept by the allocator; a leak would keep the whole flood.
+    bus = BusConfig()
+    queued_bytes = bus.max_connections * QUEUE_MESSAGES * 2 * bus.max_request_bytes
+    assert rss_after <= rss_before + queued_bytes, (rss_before >> 20, rss_after >> 20, queued_bytes >> 20)
     assert after["control"]["rate_limited"] > 0, after["control"]
 
 
