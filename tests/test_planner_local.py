@@ -586,6 +586,10 @@ def test_the_service_flies_the_local_stack_when_planner_kind_is_local(memory_s: 
         seen = _Seen(now - 0.01, clear, np.empty((0, 3)), _wall_blocks(30.0), GEOM)
         out = sup.step(now, seen, v, [], camera_ok=True)
     assert out.setpoint is not None and out.setpoint.forward_m_s > 0.5
+    # The health message says what the planner does and why.
+    status = sup.planner_status()
+    assert status is not None and status["mode"] == "cruise" and "seen free" in status["reason"], status
+    assert status["speed_m_s"] > 0.5 and status["free_m"] > 1.0, status
     # The planner declares a dead end: the service pauses (zero velocity) and says why.
     planner = sup._m.local.planner
     planner.mode, planner.reason = Mode.HOLD, "dead end: no direction within 100 deg of the goal is free for 1.5 m"
@@ -594,6 +598,7 @@ def test_the_service_flies_the_local_stack_when_planner_kind_is_local(memory_s: 
     out = sup.step(now, _Seen(now - 0.01, clear, np.empty((0, 3)), _wall_blocks(30.0), GEOM), v, [], camera_ok=True)
     assert out.state is State.PAUSED and "dead end" in out.reason
     assert out.setpoint is not None and out.setpoint.forward_m_s == 0.0
+    assert sup.planner_status()["mode"] == "hold" and "dead end" in sup.planner_status()["reason"]
     # Creeping on toward the wall at 0.2 m/s: back to the held point, without turning.
     for k in range(1, 21):
         now += 0.05
@@ -606,6 +611,21 @@ def test_the_service_flies_the_local_stack_when_planner_kind_is_local(memory_s: 
     out = sup.step(now, _Seen(now - 0.01, clear, np.empty((0, 3)), _wall_blocks(30.0), GEOM), v, [Resume()], camera_ok=True)
     assert out.state is State.ENGAGED and planner.mode is not Mode.HOLD
     assert out.setpoint is not None and out.setpoint.forward_m_s > 0.5
+
+
+@pytest.mark.parametrize("kind", ["local", "rules"])
+def test_the_rules_obstacle_memory_takes_frames_only_for_the_rule_stack(kind: str) -> None:
+    """The obstacle memory is the rule stack's (its guard and detour map); the local planner keeps its
+    own map, and a memory nobody reads would cost the frame rate on a small computer."""
+    cfg = CompanionConfig.model_validate({"planner": {"kind": kind}, "envelope": {"max_horizontal_speed_m_s": 4.0}})
+    sup, v, now, blind = _switched_to_offboard(cfg)
+    wall = np.array([[x, y, 3.0] for x in np.linspace(-1.0, 1.0, 11) for y in np.linspace(-0.5, 0.5, 6)])
+    for _ in range(4):
+        now += 0.05
+        v = replace(v, position_timestamp_s=now)
+        sup.step(now, _Seen(now - 0.01, blind.decision, wall, _wall_blocks(3.0), GEOM), v, [], camera_ok=True)
+    assert (sup.memory_status()["points"] > 0) == (kind == "rules")
+    assert (sup.planner_status() is None) == (kind == "rules")
 
 
 def test_the_service_s_watchdog_lets_the_local_planner_go_round_away_from_the_goal() -> None:

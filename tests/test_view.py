@@ -106,11 +106,12 @@ def test_preview_only_while_watched_at_the_rate_asked_for(tmp_path: Path) -> Non
         sub.close(0)
         ctx.destroy(linger=0)
         assert len(got) == 6, len(got)
-        # 4 Hz asked, from a 15 fps camera: the pictures are frames a period apart on average, never every
-        # frame (on the service's clock, so a busy machine only spaces them further; one slow picture may
-        # let the next follow it closely, so the mean over the five gaps is what the rate bounds).
+        # 4 Hz asked, from a 15 fps camera: the pictures are frames about a period apart, never every frame
+        # (on the service's clock, so a busy machine only spaces them further). A late picture lets the
+        # next catch up by at most half a period, and a picture's frame may be a camera frame older than
+        # its turn: five gaps span at least 3.5 periods less a frame.
         gaps = np.diff([h["time_s"] for h, _ in got])
-        assert np.all(gaps > 0) and np.mean(gaps) >= 0.2, gaps
+        assert np.all(gaps > 0) and np.sum(gaps) >= 3.5 / 4.0 - 1.0 / 15.0, gaps
         assert [h["seq"] for h, _ in got] == sorted(h["seq"] for h, _ in got)
         header, jpeg = got[-1]
         assert header["width_px"] == 320 and header["near_m"] == 0.75 and header["decision"] == "avoid"

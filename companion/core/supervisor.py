@@ -385,8 +385,15 @@ class Supervisor:
         kind, distance and bearing from ``position_ned_m``, reached, the detour layer's phase)."""
         return self._m.course.goal_status(position_ned_m)
 
+    def planner_status(self) -> dict[str, object] | None:
+        """The local planner's last tick for the health message
+        (:meth:`~companion.core.planner.stack.LocalStack.status`); None when no local stack flies
+        (the rule stack, or not engaged since start)."""
+        return None if self._m.local is None else self._m.local.status()
+
     def memory_status(self) -> dict[str, float | int]:
-        """The obstacle memory for the health message: ``points`` remembered (5 cm cubes),
+        """The rule stack's obstacle memory for the health message (the local planner keeps its own
+        map: all 0 then): ``points`` remembered (5 cm cubes),
         ``guarding``: how many (one per 45° sector) pushed the last engaged setpoint, ``seen_past``:
         how many the detour layer's map leaves out because the camera has seen past them
         (:meth:`~companion.core.memory.ObstacleMemory.see_through`), ``guard_cleared``: how many no
@@ -495,8 +502,9 @@ class Supervisor:
             return
         t_seen, seen_from = min(m.poses, key=lambda tp: abs(tp[0] - latest.timestamp_s))
         if abs(t_seen - latest.timestamp_s) <= _POSE_MATCH_S:
-            if self._cfg.memory.duration_s > 0.0 and points is not None:
-                # With the viewpoint, so that the memory can trust points seen from two places (detours).
+            if self._cfg.memory.duration_s > 0.0 and points is not None and self._cfg.local is None:
+                # The rule stack's memory (the local planner keeps its own map); with the viewpoint,
+                # so that the memory can trust points seen from two places (detours).
                 m.obstacles.add_frame(points, seen_from, latest.timestamp_s, self._cfg.memory, getattr(latest, "far_view", None))
             # The local planner's map takes every frame, whatever the obstacle memory's setting.
             if m.local is not None and blocks is not None and geometry is not None:

@@ -196,6 +196,7 @@ class HealthReporter:
             "setpoint_age_ms": (now - sp.last_s) * 1e3 if sp.last_s is not None else None,
             "setpoints_sent": sp.sent,
             "override": supervisor.override_status(now),
+            "planner": supervisor.planner_status(),
             "memory": supervisor.memory_status(),
             "goal": supervisor.goal_status(v.position_ned_m if v is not None else None),
             "camera": (

@@ -54,6 +54,7 @@ class LocalStack:
         self.view_half_rad = math.radians(40.0)
         self.track = TrackWatch(axes=3)
         self._unexplained = np.zeros(3)
+        self._last: StackStep | None = None
 
     @staticmethod
     def _new_map(cfg: CompanionConfig) -> LocalMap:
@@ -184,4 +185,22 @@ class LocalStack:
             max_yaw_rate_deg_s=min(env.max_yaw_rate_deg_s, self.cfg.planner.max_yaw_rate_deg_s),
             view_half_rad=self.view_half_rad,
         )
-        return StackStep(apply_chain(sp, ctx), plan)
+        self._last = StackStep(apply_chain(sp, ctx), plan)
+        return self._last
+
+    def status(self) -> dict[str, object]:
+        """What the planner did at the last tick, for the health message: ``mode`` (cruise, avoid,
+        detour, hold), ``reason`` (the way it chose, or why it holds), ``free_m`` (seen free along that
+        way, metres), ``speed_m_s`` (the speed law's speed on it), ``unexplained_m_s`` (the motion of
+        the reported position its velocity does not show, NED m/s, which the setpoint counters)."""
+        last = self._last
+        if last is None:
+            return {"mode": self.planner.mode.value, "reason": self.planner.reason, "free_m": None,
+                    "speed_m_s": None, "unexplained_m_s": [0.0, 0.0, 0.0]}
+        return {
+            "mode": last.plan.mode.value,
+            "reason": last.plan.reason,
+            "free_m": last.plan.free_m if math.isfinite(last.plan.free_m) else None,
+            "speed_m_s": float(np.linalg.norm(last.plan.velocity_ned_m_s)),
+            "unexplained_m_s": [float(x) for x in self._unexplained],
+        }
