@@ -110,16 +110,19 @@ def _setpoint_rate_hz(health: Health, duration_s: float) -> float:
     return (b["setpoints_sent"] - a["setpoints_sent"]) / (b["time_s"] - a["time_s"])
 
 
-def _settled_rss(pid: int, timeout_s: float, window: int = 10, spread: float = 0.03) -> int:
-    """The resident size of process ``pid`` once it has settled, bytes: the largest of ``window`` samples
-    a second apart that lie within ``spread`` of each other. Fails when it keeps growing for ``timeout_s``."""
+def _settled_rss(pid: int, timeout_s: float, window: int = 15, spread: float = 0.03) -> int:
+    """The resident size of process ``pid`` once it has settled, bytes: its peak over ``window`` samples
+    a second apart, once that is within ``spread`` of the peak over the ``window`` before (on a loaded
+    machine the size saws up and down by ~30 MiB as the map's arrays are freed and taken again; the
+    peaks settle). Fails when the peaks keep rising for ``timeout_s``."""
     samples: list[int] = []
     deadline = time.monotonic() + timeout_s
     while True:
         samples.append(rss_bytes(pid))
-        last = samples[-window:]
-        if len(last) == window and max(last) <= (1.0 + spread) * min(last):
-            return max(last)
+        if len(samples) >= 2 * window:
+            last, before = max(samples[-window:]), max(samples[-2 * window : -window])
+            if last <= (1.0 + spread) * before:
+                return max(last, before)
         assert time.monotonic() < deadline, f"the service's memory did not settle: {[s >> 20 for s in samples]} MiB"
         time.sleep(1.0)
 
