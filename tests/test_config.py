@@ -287,3 +287,11 @@ def test_a_whole_number_is_a_number_of_metres_in_the_file(tmp_path: Path) -> Non
     path = tmp_path / "c.toml"
     path.write_text("[command]\ncruise_speed_m_s = 2\n", encoding="utf-8")
     assert load_config(path).command.cruise_speed_m_s == 2.0
+
+
+def test_the_flying_cruise_is_the_cruise_of_the_stack_that_flies() -> None:
+    local = CompanionConfig()
+    assert local.planner.kind == "local"
+    assert local.flying_cruise_speed_m_s == local.planner.cruise_speed_m_s
+    rules = CompanionConfig.model_validate({"planner": {"kind": "rules"}})
+    assert rules.flying_cruise_speed_m_s == rules.command.cruise_speed_m_s

@@ -29,9 +29,10 @@ from typing import Any
 import pytest
 import zmq
 from mavlink_peer import Px4Peer
-from peers.process import Notifications, finish, rss_bytes, spawn
+from peers.process import Notifications, finish, spawn
 
 from companion import exitcodes
+from companion.bench.common import rss_bytes
 from companion.bench.flood import (
     STATUS_REQUEST,
     oversize_request,

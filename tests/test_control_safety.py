@@ -299,7 +299,7 @@ def test_one_huge_multipart_message_is_cut_before_it_is_buffered(tmp_path: Path,
     import logging
     import threading
 
-    from peers.process import rss_bytes
+    from companion.bench.common import rss_bytes
 
     caplog.set_level(logging.WARNING)
     cfg = service_config(tmp_path)

@@ -78,10 +78,7 @@ def _speed(pilot: Pilot) -> float:
 
 
 def test_offboard_engages_and_px4_flies_the_setpoints(px4: Px4Sitl, tmp_path: Path) -> None:
-    # The cruise of the stack that flies (the local planner by default; the rule stack's is command's).
-    cfg = load_config(None)
-    cruise = cfg.planner.cruise_speed_m_s if cfg.planner.kind == "local" else cfg.command.cruise_speed_m_s
-    cruise = min(cruise, cfg.envelope.max_horizontal_speed_m_s)
+    cruise = load_config(None).flying_cruise_speed_m_s  # the local planner's by default
 
     async def scenario() -> None:
         pilot, service, t_on = await _engaged(px4, tmp_path)

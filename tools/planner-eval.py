@@ -35,8 +35,7 @@ def main() -> int:
     kinds = [k for k in args.kinds.split(",") if k]
     courses = [(k, s) for s in range(lo, hi + 1) for k in kinds]
     results = run_suite(cfg, courses, workers=args.workers)
-    cruise = cfg.planner.cruise_speed_m_s if cfg.planner.kind == "local" else cfg.command.cruise_speed_m_s
-    cruise = min(cruise, cfg.envelope.max_horizontal_speed_m_s)
+    cruise = cfg.flying_cruise_speed_m_s
     ratios, speeds, rows = [], [], []
     for r in results:
         course = make_course(r.course.kind, r.course.seed)

@@ -15,7 +15,25 @@ import cv2
 import numpy as np
 
 from companion.core.geometry import StereoGeometry
+from companion.errors import CompanionError
 from companion.sim.render import Photometry, Pose, StereoRenderer, corridor_scene
+
+
+def rss_bytes(pid: int | None = None) -> int:
+    """The resident set size of process ``pid`` (None: this process), bytes, from Linux's /proc.
+
+    Raises:
+        CompanionError: no VmRSS line (not Linux, or no such process).
+    """
+    where = Path("/proc") / ("self" if pid is None else str(pid)) / "status"
+    try:
+        lines = where.read_text(encoding="utf-8").splitlines()
+    except OSError as err:
+        raise CompanionError(f"no resident size of process {pid or 'self'}: {err}") from None
+    for line in lines:
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) * 1024
+    raise CompanionError(f"no VmRSS in {where} (Linux only)")
 
 
 @dataclass(frozen=True)

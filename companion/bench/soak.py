@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from companion.bench.common import rendered_frames, stats_ms
+from companion.bench.common import rendered_frames, rss_bytes, stats_ms
 from companion.bench.e2e import BenchVehicleLink, _write_recording
 from companion.config import parse_config
 from companion.errors import CompanionError
@@ -36,14 +36,6 @@ from companion.service.daemon import Service
 SOAK_FPS_HZ = 30.0
 #: How often the operator's client changes the cruise speed, seconds.
 SET_CONFIG_EVERY_S = 30.0
-
-
-def _rss_bytes() -> int:
-    with open("/proc/self/status", encoding="utf-8") as f:
-        for line in f:
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) * 1024
-    raise CompanionError("soak: no VmRSS in /proc/self/status (Linux only)")
 
 
 class _Operator:
@@ -178,7 +170,7 @@ def run_soak(args: argparse.Namespace, sizes: list[Any]) -> dict[str, Any]:
                 lat = stats_ms(window) if window.size else {"median_ms": float("nan"), "p99_ms": float("nan"), "max_ms": float("nan")}
                 sample = {
                     "t_s": round(t - t_start, 1),
-                    "rss_mib": _rss_bytes() / 2**20,
+                    "rss_mib": rss_bytes() / 2**20,
                     "setpoints_per_s": (h["setpoints_sent"] - h_prev["setpoints_sent"]) / (t - t_prev),
                     "processed_fps": (h["processed_frames"] - h_prev["processed_frames"]) / (t - t_prev),
                     "dropped": h["dropped_frames"] - h_prev["dropped_frames"],

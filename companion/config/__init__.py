@@ -133,6 +133,12 @@ class CompanionConfig(StrictModel):
         self._from_auto = auto
         return self
 
+    @property
+    def flying_cruise_speed_m_s(self) -> float:
+        """The top horizontal speed of the stack that flies, m/s: ``planner.cruise_speed_m_s`` with the
+        local planner, ``command.cruise_speed_m_s`` with the rule stack (the envelope bounds both)."""
+        return self.planner.cruise_speed_m_s if self.planner.kind == "local" else self.command.cruise_speed_m_s
+
 
 #: The settings whose "auto" means "as the backend's disparity map needs" (:func:`for_backend`).
 AUTO_FOR_BACKEND: tuple[tuple[str, str], ...] = (

@@ -45,14 +45,6 @@ cruise_speed_m_s = {cruise}
     )
 
 
-def rss_bytes(pid: int) -> int:
-    """The resident set size of process ``pid``, bytes (Linux /proc)."""
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1]) * 1024
-    raise AssertionError(f"no VmRSS for process {pid}")
-
-
 class Notifications:
     """A NOTIFY_SOCKET for the child, read at once by a thread of its own (as systemd reads it): its
     sd_notify datagrams with the time each arrived (monotonic seconds)."""
