@@ -26,6 +26,7 @@ from companion.core.planner.safety import (
     floor_ceiling,
     speed_law_limit,
     stale_to_zero,
+    trace_chain,
 )
 from companion.core.planner.stack import LocalStack
 from companion.core.pose import Pose
@@ -494,6 +495,15 @@ def test_the_chain_order_is_written_once() -> None:
     assert apply_chain(FAST, _ctx(frame_age_s=9.0)) == ZERO_SETPOINT
 
 
+def test_the_chain_names_the_filters_that_changed_the_planner_s_setpoint() -> None:
+    """A PX4 SITL flight planned 1.7 m/s past a box and flew 0.1 m/s: without the names of what cut
+    the setpoint, the health log could not tell a brake from the view from the motion's speed law."""
+    assert trace_chain(FAST, _ctx(frame_age_s=9.0)) == (ZERO_SETPOINT, ("stale_to_zero",))
+    out, names = trace_chain(FAST, _ctx(free_along=lambda u: 1.5))
+    assert names == ("speed_law_limit",) and out == speed_law_limit(FAST, _ctx(free_along=lambda u: 1.5))
+    assert trace_chain(VelocitySetpoint(2.0, 1.0, 0.0, 0.0), _ctx()) == (VelocitySetpoint(2.0, 1.0, 0.0, 0.0), ())
+
+
 def test_the_stack_flies_a_course_goal_and_needs_the_envelope_raised() -> None:
     cfg = CompanionConfig.model_validate(
         {"planner": {"kind": "local"}, "envelope": {"max_horizontal_speed_m_s": 4.0}}
@@ -590,6 +600,7 @@ def test_the_service_flies_the_local_stack_when_planner_kind_is_local(memory_s: 
     status = sup.planner_status()
     assert status is not None and status["mode"] == "cruise" and "seen free" in status["reason"], status
     assert status["speed_m_s"] > 0.5 and status["free_m"] > 1.0, status
+    assert status["limited_by"] == [], status  # open space ahead: flown as planned
     # The planner declares a dead end: the service pauses (zero velocity) and says why.
     planner = sup._m.local.planner
     planner.mode, planner.reason = Mode.HOLD, "dead end: no direction within 100 deg of the goal is free for 1.5 m"

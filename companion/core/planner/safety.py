@@ -217,6 +217,16 @@ CHAIN: tuple[Callable[[VelocitySetpoint, SafetyContext], VelocitySetpoint], ...]
 
 def apply_chain(sp: VelocitySetpoint, ctx: SafetyContext) -> VelocitySetpoint:
     """``sp`` through every filter of :data:`CHAIN`, in order."""
+    return trace_chain(sp, ctx)[0]
+
+
+def trace_chain(sp: VelocitySetpoint, ctx: SafetyContext) -> tuple[VelocitySetpoint, tuple[str, ...]]:
+    """:func:`apply_chain`, and the names of the filters that changed the setpoint, in order (what
+    made the vehicle fly otherwise than the planner chose: the health message's ``limited_by``)."""
+    changed = []
     for f in CHAIN:
-        sp = f(sp, ctx)
-    return sp
+        out = f(sp, ctx)
+        if out != sp:
+            changed.append(f.__name__)
+        sp = out
+    return sp, tuple(changed)

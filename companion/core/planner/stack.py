@@ -16,7 +16,7 @@ from companion.core.geometry import StereoGeometry
 from companion.core.goal import GoalSpec, resolve_goal
 from companion.core.planner.local import LocalPlanner, Mode, Plan, Snapshot
 from companion.core.planner.localmap import LocalMap
-from companion.core.planner.safety import SafetyContext, apply_chain, from_ned
+from companion.core.planner.safety import SafetyContext, from_ned, trace_chain
 from companion.core.pose import Pose
 from companion.core.types import REGION_INDEX, Decision, VelocitySetpoint
 
@@ -33,10 +33,12 @@ TRACK_WINDOW_S = 0.5
 
 @dataclass(frozen=True)
 class StackStep:
-    """One tick's outcome: the setpoint after the safety chain and the plan it came from."""
+    """One tick's outcome: the setpoint after the safety chain, the plan it came from, and the names of
+    the chain's filters that changed it (:func:`~companion.core.planner.safety.trace_chain`)."""
 
     setpoint: VelocitySetpoint
     plan: Plan
+    limited_by: tuple[str, ...] = ()
 
 
 class LocalStack:
@@ -185,22 +187,25 @@ class LocalStack:
             max_yaw_rate_deg_s=min(env.max_yaw_rate_deg_s, self.cfg.planner.max_yaw_rate_deg_s),
             view_half_rad=self.view_half_rad,
         )
-        self._last = StackStep(apply_chain(sp, ctx), plan)
+        setpoint, limited_by = trace_chain(sp, ctx)
+        self._last = StackStep(setpoint, plan, limited_by)
         return self._last
 
     def status(self) -> dict[str, object]:
         """What the planner did at the last tick, for the health message: ``mode`` (cruise, avoid,
         detour, hold), ``reason`` (the way it chose, or why it holds), ``free_m`` (seen free along that
         way, metres), ``speed_m_s`` (the speed law's speed on it), ``unexplained_m_s`` (the motion of
-        the reported position its velocity does not show, NED m/s, which the setpoint counters)."""
+        the reported position its velocity does not show, NED m/s, which the setpoint counters),
+        ``limited_by`` (the safety filters that changed the planner's setpoint, in the chain's order)."""
         last = self._last
         if last is None:
             return {"mode": self.planner.mode.value, "reason": self.planner.reason, "free_m": None,
-                    "speed_m_s": None, "unexplained_m_s": [0.0, 0.0, 0.0]}
+                    "speed_m_s": None, "unexplained_m_s": [0.0, 0.0, 0.0], "limited_by": []}
         return {
             "mode": last.plan.mode.value,
             "reason": last.plan.reason,
             "free_m": last.plan.free_m if math.isfinite(last.plan.free_m) else None,
             "speed_m_s": float(np.linalg.norm(last.plan.velocity_ned_m_s)),
             "unexplained_m_s": [float(x) for x in self._unexplained],
+            "limited_by": list(last.limited_by),
         }
