@@ -223,7 +223,7 @@ def apply_chain(sp: VelocitySetpoint, ctx: SafetyContext) -> VelocitySetpoint:
 def trace_chain(sp: VelocitySetpoint, ctx: SafetyContext) -> tuple[VelocitySetpoint, tuple[str, ...]]:
     """:func:`apply_chain`, and the names of the filters that changed the setpoint, in order (what
     made the vehicle fly otherwise than the planner chose: the health message's ``limited_by``)."""
-    changed = []
+    changed: list[str] = []
     for f in CHAIN:
         out = f(sp, ctx)
         if out != sp:
