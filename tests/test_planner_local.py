@@ -270,6 +270,30 @@ def test_the_service_s_watchdog_stops_the_planner_at_the_point_it_holds() -> Non
     assert away.velocity_ned_m_s[0] == pytest.approx(-0.3)  # back to the point held
 
 
+def test_a_hold_begun_within_the_radius_of_a_surface_backs_out_of_it() -> None:
+    """PX4 SITL, two office flights: a dead end declared 0.3 m from a wall (a lintel, a door's leaf)
+    was held there, and PX4's velocity loop crept on at 0.1 m/s into the surface while told to hold
+    the point. A hold that begins within the radius of a surface holds a point out of it, the way
+    the map leaves free; one that begins clear of every surface holds where it is."""
+    m = _map()
+    _see(m, _wall_blocks(1.0))  # a wall across the way 1 m north
+    near = np.array([0.85, 0.0, -1.5])
+    m.mark_body_free(near, 0.3)
+    assert bool(m.within_radius(near))
+    p = LocalPlanner(PlannerConfig(), 0.25)
+    p.stop("dead end")
+    plan = p.plan(_snap(position_ned_m=near), m)
+    assert plan.mode is Mode.HOLD
+    back = plan.velocity_ned_m_s
+    assert back[0] < -0.2 and abs(back[1]) < abs(back[0])  # back, away from the wall
+    assert np.linalg.norm(plan.velocity_ned_m_s) <= 0.5 + 1e-9
+    clear = np.array([0.0, 0.0, -1.5])
+    assert not bool(m.within_radius(clear))
+    p.engage()
+    p.stop("dead end")
+    assert np.allclose(p.plan(_snap(position_ned_m=clear), m).velocity_ned_m_s, 0.0)
+
+
 def test_the_predicted_path_swings_with_the_lagging_velocity() -> None:
     """A vehicle flying east at 3 m/s told to fly north carries on east for about its speed times
     the response time before its velocity turns; told to fly on as it flies, it flies the line."""

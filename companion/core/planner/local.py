@@ -348,7 +348,7 @@ class LocalPlanner:
         self._remember(snap)
         pos = np.asarray(snap.position_ned_m, dtype=np.float64)
         if self.mode is Mode.HOLD:
-            return self._hold(self.reason, pos)
+            return self._hold(self.reason, pos, lmap)
         # The goal: a point, or (none) the fuzzy controller's steer from the heading.
         d = snap.decision
         fuzzy = None
@@ -365,7 +365,7 @@ class LocalPlanner:
             if goal_dist < ARRIVED_M:
                 self.mode = TRANSITIONS[(self.mode, "arrived")]
                 self.reason = "arrived at the goal"
-                return self._hold(self.reason, pos)
+                return self._hold(self.reason, pos, lmap)
             goal_yaw = math.atan2(g[1] - pos[1], g[0] - pos[0])
             goal_climb = return_climb(float(pos[2] - g[2]), cfg)
         # The climbs are laid round the goal's: "level" is the way back to the goal's altitude, so
@@ -439,7 +439,7 @@ class LocalPlanner:
                     f"dead end: no direction within {cfg.dead_end_cone_deg:.0f} deg of the goal is free for "
                     f"{cfg.dead_end_free_m:.1f} m"
                 )
-                return self._hold(self.reason, pos)
+                return self._hold(self.reason, pos, lmap)
         else:
             self._closed_since = None
         if not np.any(np.isfinite(c)):
@@ -463,16 +463,38 @@ class LocalPlanner:
         )
         return Plan(self.mode, vel, rate, u, float(free[i]), self.reason, table)
 
-    def _hold(self, reason: str, pos: np.ndarray) -> Plan:
-        """Hold the point where the hold began: back toward it at HOLD_GAIN_PER_S times the distance
-        (the position estimate's drift moves a vehicle that is only told zero velocity)."""
+    def _hold(self, reason: str, pos: np.ndarray, lmap: LocalMap) -> Plan:
+        """Hold the point where the hold began (:meth:`_hold_point`): back toward it at
+        HOLD_GAIN_PER_S times the distance (the position estimate's drift moves a vehicle that is only
+        told zero velocity)."""
         if self._held_at is None:
-            self._held_at = pos.copy()
+            self._held_at = self._hold_point(pos, lmap)
         back = -HOLD_GAIN_PER_S * (pos - self._held_at)
         n = float(np.linalg.norm(back))
         if n > HOLD_MAX_M_S:
             back *= HOLD_MAX_M_S / n
         return Plan(Mode.HOLD, back, 0.0, np.zeros(3), 0.0, reason)
+
+    def _hold_point(self, pos: np.ndarray, lmap: LocalMap) -> np.ndarray:
+        """Where to hold, from ``pos`` (float ``(3,)`` NED m): there, unless a body there is within the
+        vehicle's radius of a surface seen (a stop that ended late). Then just out of it, by the
+        shortest level way out that the map leaves free from here (judged from inside: the way out is
+        open, the way in is not; of equally short ones, the one leading farthest free). PX4 SITL
+        flights held a dead end declared 0.3 m from a wall and crept on into it at 0.1 m/s while told
+        to hold that point: its velocity loop winds down over seconds, and a hold begun inside the
+        radius has no room for that."""
+        if not bool(lmap.within_radius(pos)):
+            return pos.copy()
+        dirs = directions(self._yaw_off, np.zeros(len(self._yaw_off)))
+        free = lmap.free_lengths(pos, dirs).length_m
+        s = np.arange(1, int(math.ceil(self.radius_m / lmap.voxel_m)) + 3) * lmap.voxel_m  # out to radius + 2 cubes
+        within = lmap.within_radius(pos + dirs[:, None, :] * s[None, :, None])  # (K, S)
+        out_at = np.where(within.all(axis=1), np.inf, s[np.argmin(within, axis=1)])
+        ok = np.isfinite(out_at) & (free >= out_at)
+        if not np.any(ok):
+            return pos.copy()  # boxed in: hold here
+        k = int(np.lexsort((-free, np.where(ok, out_at, np.inf)))[0])
+        return pos + dirs[k] * float(out_at[k])
 
     def _stop(self, reason: str) -> Plan:
         self.reason = reason

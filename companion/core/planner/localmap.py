@@ -355,6 +355,16 @@ class LocalMap:
     def _inflated_at(self, idx: np.ndarray) -> np.ndarray:
         return self._infl.reshape(-1)[idx] > 0
 
+    def within_radius(self, points_ned_m: np.ndarray) -> np.ndarray:
+        """Whether a body centred at each of ``points_ned_m`` (float ``(..., 3)`` NED m) would be within
+        the vehicle's radius (rounded up to whole cubes) of an occupied cube: touching, or nearly, a
+        surface seen (bool ``(...)``)."""
+        pts = np.asarray(points_ned_m, dtype=np.float64)
+        if self.origin is None:
+            return np.zeros(pts.shape[:-1], dtype=bool)
+        idx, inside = self._index(pts)
+        return inside & self._inflated_at(idx)
+
     def free_lengths(self, start_ned_m: np.ndarray, directions: np.ndarray, horizon_m: float | None = None) -> FreeLengths:
         """How far the centre may fly from ``start_ned_m`` (float ``(3,)`` NED m) along each of
         ``directions`` (float ``(K, 3)`` unit NED): up to the first sample whose cube is within the
