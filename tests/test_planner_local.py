@@ -271,7 +271,7 @@ def test_the_service_s_watchdog_stops_the_planner_at_the_point_it_holds() -> Non
 
 
 def test_a_hold_begun_within_the_radius_of_a_surface_backs_out_of_it() -> None:
-    """PX4 SITL, two office flights: a dead end declared 0.3 m from a wall (a lintel, a door's leaf)
+    """PX4 SITL, two office flights: a dead end declared 0.3 m from a surface (a lintel, a door jamb)
     was held there, and PX4's velocity loop crept on at 0.1 m/s into the surface while told to hold
     the point. A hold that begins within the radius of a surface holds a point out of it, the way
     the map leaves free; one that begins clear of every surface holds where it is."""
