@@ -386,8 +386,7 @@ class LocalMap:
         idx, inside = self._index(pts)
         infl = self._inflated_at(idx)
         free = self._free_at(idx)
-        s_idx, s_in = self._index(start)
-        if bool(s_in) and bool(self._inflated_at(s_idx)):
+        if bool(self.within_radius(start)):
             # Only the first radius of each line (a few samples) is judged so.
             n = int(np.count_nonzero(s <= self.radius_m + step))
             infl = infl.copy()
@@ -420,8 +419,7 @@ class LocalMap:
         idx, inside = self._index(pts)
         hit = self._inflated_at(idx) & inside & valid
         start = np.asarray(start_ned_m, dtype=np.float64)
-        s_idx, s_in = self._index(start)
-        if bool(s_in) and bool(self._inflated_at(s_idx)):
+        if bool(self.within_radius(start)):
             near = np.where(valid, arc, np.inf) <= self.radius_m + self.voxel_m
             hit = np.where(near, self.occupied().reshape(-1)[idx] & inside & valid, hit)
         any_hit = hit.any(axis=1)
