@@ -94,6 +94,25 @@ def test_a_plain_wall_with_no_valid_block_stays_unknown() -> None:
     assert fl.length_m[0] < 0.5 and not fl.blocked[0]
 
 
+def test_unknown_beside_the_path_is_near_a_jamb_in_a_plain_wall_bounds_the_line_past_it() -> None:
+    """A plain wall 4 m ahead (no valid block: unknown) with a door 1.2 m wide in it (seen through to
+    7.5 m). PX4 SITL flew the edge of such a door's free band at 1.7 m/s: the line's centre was seen
+    free through the door, the jamb 0.2 m beside it was not seen at all, and when it entered the map
+    1.4 m ahead the vehicle could not stop. The body's whole width must be seen free, not its centre."""
+    cols = slice(36, 48)  # the door's columns at 4 m: within ±0.6 m of the axis
+    door = np.full(BLOCKS, np.nan, dtype=np.float32)
+    door[:, cols] = GEOM.focal_baseline_px_m / 7.5
+    m = _map()
+    _see(m, door)
+    start = np.array([0.0, 0.0, -1.5])
+    centre = m.free_lengths(start, NORTH)
+    assert centre.length_m[0] > 6.0  # through the middle: the whole body's width seen free
+    ang = math.atan2(0.4, 4.0)  # through the door 0.4 m east of its middle: 0.2 m from the jamb
+    edge = m.free_lengths(start, np.array([[math.cos(ang), math.sin(ang), 0.0]]))
+    assert edge.length_m[0] < 4.0 and not edge.blocked[0]  # ends short of the wall, in unknown space
+    assert _seen_free_along(m, start, np.array([math.cos(ang), math.sin(ang), 0.0])) > 6.0  # its centre alone was seen free
+
+
 def test_one_false_match_is_not_an_obstacle_and_is_cleared_by_seeing_through() -> None:
     m = _map()
     m.integrate(_wall_blocks(2.0), GEOM, BLOCK_PX, Pose.at(0.0, 0.0, 1.5), 0.0)  # one frame only
@@ -118,9 +137,20 @@ def test_the_left_edge_clears_no_nearer_than_its_columns_can_match() -> None:
         m = _map()
         for k in range(3):
             m.integrate(far, GEOM, BLOCK_PX, Pose.at(0.0, 0.0, 1.5), 0.1 * k, num_disparities)
-        seen.append(float(m.free_lengths(np.array([0.0, 0.0, -1.5]), along).length_m[0]))
+        seen.append(_seen_free_along(m, np.array([0.0, 0.0, -1.5]), along[0]))
     assert seen[0] > 3.0  # unlimited: cleared from the camera on
     assert seen[1] < 0.5  # the matcher's range: the ray's first metres say nothing
+
+
+def _seen_free_along(m: LocalMap, start: np.ndarray, u: np.ndarray) -> float:
+    """How far the cubes on the line from ``start`` along ``u`` are seen free, metres (the centre
+    line alone: what the rays cleared, before the body's rim is judged)."""
+    free = m.seen_free()
+    for s in np.arange(m.voxel_m, m.range_m, m.voxel_m):
+        ijk = np.floor((start + u * s) / m.voxel_m).astype(np.int64) - m.origin
+        if not free[tuple(ijk)]:
+            return float(s - m.voxel_m)
+    return m.range_m
 
 
 def test_the_map_rolls_with_the_vehicle_and_keeps_what_it_saw() -> None:

@@ -12,8 +12,10 @@ with distance (the grid rolls with the vehicle and drops what falls off its edge
 
 Queries (:meth:`LocalMap.free_lengths`): how far the vehicle's centre can fly along a direction with
 every occupied cube at least the vehicle's radius away (the occupied cubes inflated by it), and
-**only as far as the centre line was seen free**: unknown space counts as near, so a speed law built on
-these lengths never flies fast into space the camera has not looked at.
+**only as far as the body's whole width was seen free**: the centre line and the body's rim round it
+(:data:`RIM_POINTS` points a radius off the line). Unknown space counts as near, beside the path as
+on it, so a speed law built on these lengths never flies fast into space the camera has not looked
+at, nor past it: a door's jamb in a plain wall is unknown, not free, until it is seen.
 
 Frames: NED metres (x north, y east, z down); grid index ``(i, j, k)`` = floor(ned / voxel) less the
 grid's origin index.
@@ -44,6 +46,8 @@ RAY_SPACING_PX = 8
 ROLL_SLACK_M = 2.0
 #: Half height of the grid round the vehicle, m.
 HALF_HEIGHT_M = 2.6
+#: Points of the body's rim checked round each sample of a line, evenly round it a radius off it.
+RIM_POINTS = 8
 
 
 @dataclass(frozen=True)
@@ -368,8 +372,12 @@ class LocalMap:
     def free_lengths(self, start_ned_m: np.ndarray, directions: np.ndarray, horizon_m: float | None = None) -> FreeLengths:
         """How far the centre may fly from ``start_ned_m`` (float ``(3,)`` NED m) along each of
         ``directions`` (float ``(K, 3)`` unit NED): up to the first sample whose cube is within the
-        radius of a surface, or whose cube on the line was not seen free (unknown is near), at most
-        ``horizon_m`` (default the map range). Samples every cube.
+        radius of a surface, or whose cube on the line, or on the body's rim round it, was not seen
+        free (unknown is near), at most ``horizon_m`` (default the map range). Samples every cube.
+
+        The rim is judged from two radii out: nearer, it is the vehicle's own surroundings, beside
+        and above a camera that looks ahead and cannot see them (it flies there only once the line
+        ahead has been judged, rim and all, from farther back).
 
         Where the start itself is within the radius of a surface (a gust, a late brake), the first
         radius of each line is judged on the surfaces alone, not their inflation, so that the way out
@@ -391,6 +399,13 @@ class LocalMap:
             n = int(np.count_nonzero(s <= self.radius_m + step))
             infl = infl.copy()
             infl[:, :n] = self._occ.reshape(-1)[idx[:, :n]] | _moves_closer(self, start, pts[:, :n])
+        # The rim, at the samples before the first bad one on the line itself (the rest is cut anyway).
+        ok = np.cumprod(free & ~infl & inside, axis=1, dtype=bool) & (s >= 2.0 * self.radius_m)[None, :]
+        kk, ss = np.nonzero(ok)
+        if len(kk):
+            rim = pts[kk, ss, None, :] + _rim_offsets(d, self.radius_m)[kk]  # (N, R, 3)
+            r_idx, r_in = self._index(rim)
+            free[kk, ss] = np.all(self._free_at(r_idx) | ~r_in, axis=1)  # off the grid: the line ends there anyway
         blocked_at = infl & inside
         bad = blocked_at | ~free | ~inside
         any_bad = bad.any(axis=1)
@@ -427,6 +442,18 @@ class LocalMap:
         rows = np.arange(arc.shape[0])
         before = np.where(first > 0, arc[rows, np.maximum(first - 1, 0)], 0.0)
         return np.where(any_hit, before, np.inf)
+
+
+def _rim_offsets(d: np.ndarray, radius_m: float) -> np.ndarray:
+    """float64 ``(K, RIM_POINTS, 3)``: points a radius off each line of directions ``d`` (float
+    ``(K, 3)`` unit NED), evenly round it, the first level with the line."""
+    up = np.array([0.0, 0.0, -1.0])
+    side = np.cross(up, d)  # level, perpendicular to the line
+    n = np.linalg.norm(side, axis=1, keepdims=True)
+    side = np.where(n > 1e-6, side / np.maximum(n, 1e-12), np.array([0.0, 1.0, 0.0]))  # a vertical line: any side
+    over = np.cross(d, side)  # perpendicular to both (up of a level line)
+    a = np.arange(RIM_POINTS) * (2.0 * math.pi / RIM_POINTS)
+    return radius_m * (np.cos(a)[None, :, None] * side[:, None, :] + np.sin(a)[None, :, None] * over[:, None, :])
 
 
 def _moves_closer(m: LocalMap, start: np.ndarray, pts: np.ndarray) -> np.ndarray:
