@@ -97,6 +97,18 @@ class Health:
             self.sock.poll(50)
         raise AssertionError("no health message")
 
+    def first_after(self, unix_time_s: float, timeout_s: float = 30.0) -> dict:
+        """The first health message published at or after ``unix_time_s`` (wall clock, s). What
+        :meth:`latest` returns may be older: on a loaded machine ZeroMQ hands over what has arrived
+        in batches, so the newest message received is not the newest one sent."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if self.sock.poll(50):
+                h = json.loads(self.sock.recv())
+                if h["unix_time_s"] >= unix_time_s:
+                    return h
+        raise AssertionError(f"no health message published after {unix_time_s:.3f} within {timeout_s} s")
+
 
 def _watchdog_gaps_s(notify: Notifications, t0: float, t1: float) -> list[float]:
     notify.poll()
@@ -262,10 +274,11 @@ def test_a_control_flood_cannot_stall_the_flight_path(tmp_path: Path) -> None:
                 t_disengage = time.monotonic()
                 disengaged = _disengage(ctx, endpoint, 60.0)
                 disengage_s = time.monotonic() - t_disengage
+                answered_unix_s = time.time()
                 left_offboard = peer.wait_for(lambda: peer.mode != "OFFBOARD", 30.0)
             finally:
                 sent = flood.result()
-            after = health.latest()
+            after = health.first_after(answered_unix_s)  # what the service says once it has answered
             gaps = _watchdog_gaps_s(notify, t_flood, t_disengage)
             flood_hz = (during["setpoints_sent"] - at_flood["setpoints_sent"]) / (during["time_s"] - at_flood["time_s"])
             time.sleep(2.0)  # let ZeroMQ drop what it queued
