@@ -713,3 +713,30 @@ def test_the_service_s_watchdog_lets_the_local_planner_go_round_away_from_the_go
 
     assert fly_back({"kind": "local"}) is State.ENGAGED
     assert fly_back({"kind": "rules"}) is State.PAUSED
+
+
+@pytest.mark.parametrize("cruise_m_s", [3.0, 0.7])
+def test_the_local_planner_s_watchdog_gives_a_slower_cruise_the_same_way_round(cruise_m_s: float) -> None:
+    """The progress watchdog of the local planner is a distance at cruise
+    (``planner.no_progress_distance_m``): a vehicle that gets no nearer its goal is held once it has
+    had the time to fly that far at cruise, whatever the cruise. A 20 s limit at every cruise held
+    detours at walking pace while they were still coming back from the wrong side of a wall (the
+    same way round at 3 m/s took 8 s), so 0.7 m/s got 86 s."""
+    cfg = CompanionConfig.model_validate(
+        {"planner": {"kind": "local", "cruise_speed_m_s": cruise_m_s}, "envelope": {"max_horizontal_speed_m_s": 4.0}}
+    )
+    limit_s = cfg.planner.no_progress_distance_m / cruise_m_s
+    sup, v, now, blind = _switched_to_offboard(cfg)
+    start = now
+    paused_at = None
+    while now - start < limit_s + 2.0:  # hovering beside the way, no nearer the goal ahead
+        now += 0.1
+        v = replace(v, position_timestamp_s=now)
+        out = sup.step(now, replace(blind, timestamp_s=now - 0.02), v, [], camera_ok=True)
+        if out.state is State.PAUSED:
+            paused_at = now - start
+            break
+        assert out.state is State.ENGAGED, (out.state, out.reason)
+    assert paused_at is not None and limit_s - 1.0 <= paused_at <= limit_s + 1.0, (paused_at, limit_s)
+    assert f"{cfg.planner.no_progress_distance_m:g} m at {cruise_m_s:g} m/s" in out.reason, out.reason
+    assert "no progress" in out.reason  # the announcement reads the watchdog by it

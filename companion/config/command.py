@@ -283,7 +283,8 @@ class CommandConfig(StrictModel):
             "heading it had then) for this long, the service stops trying: it holds position (as a "
             "brake does), its state becomes paused with the reason, and it waits for the pilot (resume "
             "tries again, or take over). A vehicle circling in front of an obstacle it cannot get past, "
-            "or following a wall away from the only opening, only spends battery near obstacles."
+            "or following a wall away from the only opening, only spends battery near obstacles. The "
+            "local planner's watchdog is planner.no_progress_distance_m."
         ),
     )
     progress_step_m: float = Field(

@@ -234,6 +234,24 @@ class PlannerConfig(StrictModel):
         ),
     )
 
+    no_progress_distance_m: float = Field(
+        default=60.0,
+        ge=0.0,
+        le=1000.0,
+        description=(
+            "Progress watchdog, metres flown at cruise (0 = off): the service holds position, paused "
+            "with the reason, once the vehicle has not come command.progress_step_m nearer its goal "
+            "in the time it takes to fly this far at cruise_speed_m_s (60 m: 20 s at 3 m/s, 86 s at "
+            "0.7 m/s). A way round can lead away from the goal and back; it is as long at any cruise, "
+            "so the watchdog's time grows as the cruise falls."
+        ),
+    )
+
+    @property
+    def no_progress_timeout_s(self) -> float:
+        """The progress watchdog's time, seconds (0 = off): ``no_progress_distance_m`` at cruise."""
+        return self.no_progress_distance_m / self.cruise_speed_m_s
+
     @model_validator(mode="after")
     def _floor_below_ceiling(self) -> PlannerConfig:
         if self.floor_m >= self.ceiling_m:

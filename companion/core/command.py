@@ -129,16 +129,27 @@ class ProgressWatch:
         self.why: str | None = None  #: ``no_progress`` or ``regress`` once :meth:`update` said True
 
     def update(
-        self, along_m: float | None, now_s: float, cmd: CommandConfig, *, pause: bool = False, regress: bool = True
+        self,
+        along_m: float | None,
+        now_s: float,
+        cmd: CommandConfig,
+        *,
+        pause: bool = False,
+        regress: bool = True,
+        timeout_s: float | None = None,
     ) -> bool:
         """Feed the progress now (metres; None = unknown) at ``now_s`` seconds; True once it has not
         grown by ``cmd.progress_step_m`` for more than ``cmd.no_progress_timeout_s``, or has stayed
         more than ``cmd.regress_distance_m`` below the best for ``cmd.regress_timeout_s`` (always
         False when ``no_progress_timeout_s`` is 0 or course hold is off). ``pause``: the clock stands
-        still; ``regress`` False: regress is not judged now (a detour, bounded by its own limits)."""
+        still; ``regress`` False: regress is not judged now (a detour, bounded by its own limits).
+        ``timeout_s``: the local planner's time in place of ``cmd.no_progress_timeout_s`` (its
+        :attr:`~companion.config.planner.PlannerConfig.no_progress_timeout_s`; 0 = off, and course
+        hold's gain does not switch it off)."""
+        limit_s = cmd.no_progress_timeout_s if timeout_s is None else timeout_s
         if (
-            cmd.no_progress_timeout_s <= 0.0
-            or cmd.heading_hold_gain_per_s == 0.0
+            limit_s <= 0.0
+            or (timeout_s is None and cmd.heading_hold_gain_per_s == 0.0)
             or along_m is None
             or not math.isfinite(along_m)
             or not math.isfinite(now_s)
@@ -159,7 +170,7 @@ class ProgressWatch:
         if self._regress_since_s is not None and now_s - self._regress_since_s >= cmd.regress_timeout_s:
             self.why = "regress"
             return True
-        if now_s - self._since_s > cmd.no_progress_timeout_s:
+        if now_s - self._since_s > limit_s:
             self.why = "no_progress"
             return True
         return False

@@ -198,14 +198,19 @@ class CourseHold:
             return along_course_m(position_ned_m, self.origin_ned_m, self.heading_rad)
         return None
 
-    def no_progress(self, position_ned_m: object, now_s: float, cmd: CommandConfig, regress: bool = True) -> bool:
+    def no_progress(
+        self, position_ned_m: object, now_s: float, cmd: CommandConfig, regress: bool = True, timeout_s: float | None = None
+    ) -> bool:
         """The progress watchdog fed the progress now (:meth:`progress_m`): True once the vehicle has
         got no ``cmd.progress_step_m`` nearer its goal for ``cmd.no_progress_timeout_s``, or (with
         ``regress``) has been flying back for ``cmd.regress_timeout_s``
         (:class:`~companion.core.command.ProgressWatch`, its ``why``). While a detour is under way
         the clock stands still and regress is not judged: a detour is bounded by its own limits
-        (``detour.max_time_s``, ``max_distance_m``, and ``max_detours_without_progress`` of them)."""
-        return self.progress.update(self.progress_m(position_ned_m), now_s, cmd, pause=self.detour.active, regress=regress)
+        (``detour.max_time_s``, ``max_distance_m``, and ``max_detours_without_progress`` of them).
+        ``timeout_s``: the local planner's watchdog time in place of ``cmd.no_progress_timeout_s``."""
+        return self.progress.update(
+            self.progress_m(position_ned_m), now_s, cmd, pause=self.detour.active, regress=regress, timeout_s=timeout_s
+        )
 
     def goal_bearing_rad(self, position_ned_m: object, yaw_rad: float | None, cmd: CommandConfig) -> float | None:
         """The direction toward the goal from here, radians from north: the bearing to a goal point,

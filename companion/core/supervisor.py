@@ -70,6 +70,7 @@ import numpy as np
 
 from companion.config.core import MemoryConfig
 from companion.config.detour import DetourConfig
+from companion.config.planner import PlannerConfig
 from companion.core.command import NO_PROGRESS_HOLD
 from companion.core.course import CourseHold
 from companion.core.detour import HistogramRequest, HistogramResult
@@ -887,9 +888,18 @@ class Supervisor:
         """The progress watchdog (:class:`~companion.core.command.ProgressWatch`) fed the position now.
         Flying back is judged for the rule stack only: the local planner goes round by its own modes,
         and the way round can lead away from the goal for seconds (it stopped PX4 SITL flights that
-        were turning along an office's wall); no progress for ``command.no_progress_timeout_s`` holds
-        either."""
-        return self._m.course.no_progress(v.position_ned_m, now_s, self._cfg.command, regress=self._m.local is None)
+        were turning along an office's wall); no progress holds either: for
+        ``command.no_progress_timeout_s`` (the rule stack), for the time to fly
+        ``planner.no_progress_distance_m`` at cruise (the local planner)."""
+        planner = self._local_planner_cfg()
+        return self._m.course.no_progress(
+            v.position_ned_m, now_s, self._cfg.command, regress=self._m.local is None,
+            timeout_s=None if planner is None else planner.no_progress_timeout_s,
+        )
+
+    def _local_planner_cfg(self) -> PlannerConfig | None:
+        """The local planner's settings while it flies, else None (the rule stack)."""
+        return self._cfg.local.planner if self._m.local is not None and self._cfg.local is not None else None
 
     def _holding_reason(self) -> str | None:
         """Why the flying stack holds (the goal reached, a dead end), or None: the local planner's
@@ -906,6 +916,13 @@ class Supervisor:
                 f"flying back: {cmd.regress_distance_m:g} m farther from the goal than the nearest it has been "
                 f"for {cmd.regress_timeout_s:g} s (command.regress_distance_m, regress_timeout_s): "
                 "holding position; resume to try again, or take over"
+            )
+        p = self._local_planner_cfg()
+        if p is not None:
+            return (
+                f"no progress along the course for {p.no_progress_timeout_s:.0f} s (less than {cmd.progress_step_m:g} m "
+                f"in the time to fly {p.no_progress_distance_m:g} m at {p.cruise_speed_m_s:g} m/s: "
+                "planner.no_progress_distance_m, command.progress_step_m): holding position; resume to try again, or take over"
             )
         return (
             f"no progress along the course for {cmd.no_progress_timeout_s:g} s "

@@ -451,7 +451,8 @@ def fly(
             decision = latest.decision if latest is not None else None
             m = vehicle.model
             hold.observe(decision, latest.timestamp_s if latest is not None else None, m.position_ned_m)
-            if not stalled and hold.no_progress(m.position_ned_m, t, cmd, regress=local is None):
+            watchdog_s = None if local is None else cfg.planner.no_progress_timeout_s
+            if not stalled and hold.no_progress(m.position_ned_m, t, cmd, regress=local is None, timeout_s=watchdog_s):
                 # The service's watchdog, as the service applies it (flying back: the rule stack only).
                 stalled = True
                 hold_reason = f"progress watchdog ({hold.progress.why})"
