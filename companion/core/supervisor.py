@@ -23,7 +23,8 @@ States (:class:`State`)::
 * **engaged**: the setpoint of the newest decision (:func:`~companion.core.command.setpoint_for`:
   zero on BRAKE; with the ``command`` course-hold gains set, steering back to the heading and altitude
   the vehicle had when it was engaged). **paused**: zero velocity in offboard until ``resume``; or,
-  by the progress watchdog (``command.no_progress_timeout_s``, :class:`~companion.core.command.ProgressWatch`:
+  by the progress watchdog (``command.no_progress_timeout_s``; the local planner's: ``planner.no_progress_distance_m``
+  at cruise; :class:`~companion.core.command.ProgressWatch`:
   engaged, the vehicle got no farther along the course for that long), a brake's position hold, with
   the guard, until ``resume``. **override**: a manual yaw/pitch/speed for a bounded time, then
   *engaged* again.
