@@ -369,6 +369,33 @@ class LocalMap:
         idx, inside = self._index(pts)
         return inside & self._inflated_at(idx)
 
+    def nearest_surface(self, position_ned_m: np.ndarray, within_m: float) -> tuple[float, np.ndarray] | None:
+        """The nearest surface seen to a point: the distance (metres) from ``position_ned_m`` (float
+        ``(3,)`` NED m) to the nearest point of the nearest occupied cube, and the unit NED direction
+        (float64 ``(3,)``) toward that point; None where no occupied cube comes within ``within_m``
+        (or the point is inside one: no direction)."""
+        if self.origin is None:
+            return None
+        p = np.asarray(position_ned_m, dtype=np.float64)
+        n = int(math.ceil(within_m / self.voxel_m)) + 1
+        c = self._cube(p) - self.origin
+        lo = np.maximum(c - n, 0)
+        hi = np.minimum(c + n + 1, self._grid_shape)
+        if np.any(hi <= lo):
+            return None
+        sub = self._occ[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]]
+        cubes = np.argwhere(sub)
+        if len(cubes) == 0:
+            return None
+        corner = (cubes + lo + self.origin) * self.voxel_m  # (N, 3) each cube's least corner, NED m
+        to = np.clip(p, corner, corner + self.voxel_m) - p  # to each cube's nearest point
+        dist = np.linalg.norm(to, axis=1)
+        i = int(np.argmin(dist))
+        d = float(dist[i])
+        if d > within_m or d <= 0.0:
+            return None
+        return d, to[i] / d
+
     def free_lengths(self, start_ned_m: np.ndarray, directions: np.ndarray, horizon_m: float | None = None) -> FreeLengths:
         """How far the centre may fly from ``start_ned_m`` (float ``(3,)`` NED m) along each of
         ``directions`` (float ``(K, 3)`` unit NED): up to the first sample whose cube is within the
