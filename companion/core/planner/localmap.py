@@ -116,6 +116,7 @@ class LocalMap:
         self._rays: dict[tuple, np.ndarray] = {}
         self._scratch = np.zeros(self.shape, dtype=bool)
         self.now_s = -math.inf
+        self.version = 0  # counts the changes of the layers (frames in, rolls): what a query may cache on
         g = np.arange(-radius_m, radius_m + 1e-9, 0.5 * voxel_m)
         body = np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1).reshape(-1, 3)
         self._body = body[np.linalg.norm(body, axis=1) <= radius_m]  # (B, 3) offsets inside the body, m
@@ -140,6 +141,7 @@ class LocalMap:
         for arr, fill in ((self.log_odds, 0.0), (self.hit_t, -np.inf), (self.free_t, -np.inf)):
             _shift_fill(arr, -shift, fill)
         self.origin = want
+        self.version += 1
         self._body_mask[...] = False  # marked again where the body is now
         self._body_idx = np.zeros(0, np.int64)
         self._rebuild = True
@@ -193,6 +195,7 @@ class LocalMap:
         (it reads farther, or not at all: at the left edge a wall at grazing angle reads far). The
         ray's first stretch, to that depth from its block's leftmost column, is not cleared."""
         self.now_s = max(self.now_s, float(t_s))
+        self.version += 1
         self.centre_on(np.asarray(seen_from.position_ned_m))
         pool = max(1, int(round(RAY_SPACING_PX / block_px)))
         b = np.asarray(blocks, dtype=np.float32)
@@ -358,6 +361,27 @@ class LocalMap:
 
     def _inflated_at(self, idx: np.ndarray) -> np.ndarray:
         return self._infl.reshape(-1)[idx] > 0
+
+    def blocked_columns(self, level_down_m: float, top_down_m: float, bottom_down_m: float) -> np.ndarray:
+        """bool ``(nx, ny)``: the grid's columns a centre at ``level_down_m`` (NED down, m) cannot pass
+        level, within the radius of a surface seen there, and cannot pass over or under either: no
+        cube of the column between ``top_down_m`` and ``bottom_down_m`` (the band the vehicle may fly
+        in) is both seen free and out of every surface's radius. A low wall the camera saw over is
+        passable; a wall whose top was never seen is not; unknown space at the level is (unknown is
+        near for the speed law, not a wall for the way)."""
+        nz = self.shape[2]
+        oz = int(self.origin[2]) if self.origin is not None else 0
+        k0 = int(math.floor(level_down_m / self.voxel_m)) - oz
+        if self.origin is None or not 0 <= k0 < nz:
+            return np.zeros(self.shape[:2], dtype=bool)
+        lo = max(0, int(math.floor(top_down_m / self.voxel_m)) - oz)
+        hi = min(nz, int(math.floor(bottom_down_m / self.voxel_m)) - oz + 1)
+        at_level = self._infl[:, :, k0] > 0
+        if hi <= lo:
+            return at_level
+        band = (slice(None), slice(None), slice(lo, hi))
+        free = (self._fcnt[band] > 0) & (self.log_odds[band] <= OCCUPIED_LOG_ODDS) & (self._infl[band] == 0)
+        return at_level & ~free.any(axis=2)
 
     def within_radius(self, points_ned_m: np.ndarray) -> np.ndarray:
         """Whether a body centred at each of ``points_ned_m`` (float ``(..., 3)`` NED m) would be within
