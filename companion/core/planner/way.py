@@ -28,6 +28,19 @@ from companion.core.planner.localmap import LocalMap
 WALK_CELLS = 40
 
 
+def compile_kernels() -> None:
+    """Compile the way's kernels now (about a second, once per process): a service does it at start-up,
+    so that the first tick of its first flight does not wait for the compiler."""
+    from companion.core.planner import _waykernels as k
+
+    blocked = np.zeros((3, 3), dtype=bool)
+    start = np.full((3, 3), np.inf)
+    start[0, 0] = 0.0
+    out = np.empty((3, 3))
+    k.dijkstra(blocked, start, 1.0, out, np.empty(73), np.empty(73, dtype=np.int64))
+    k.descend(out, 2, 2, 4, np.zeros((4, 2), dtype=np.int64))
+
+
 class WayToGoal:
     """The shortest way to a goal round the surfaces seen, recomputed when the map or the goal changes
     (one Dijkstra over the map's columns per frame)."""
