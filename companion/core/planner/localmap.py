@@ -379,9 +379,11 @@ class LocalMap:
         at_level = self._infl[:, :, k0] > 0
         if hi <= lo:
             return at_level
-        band = (slice(None), slice(None), slice(lo, hi))
+        i, j = np.nonzero(at_level)  # only these columns can be closed
+        band = (i[:, None], j[:, None], np.arange(lo, hi)[None, :])
         free = (self._fcnt[band] > 0) & (self.log_odds[band] <= OCCUPIED_LOG_ODDS) & (self._infl[band] == 0)
-        return at_level & ~free.any(axis=2)
+        at_level[i, j] = ~free.any(axis=1)
+        return at_level
 
     def within_radius(self, points_ned_m: np.ndarray) -> np.ndarray:
         """Whether a body centred at each of ``points_ned_m`` (float ``(..., 3)`` NED m) would be within
