@@ -11,6 +11,9 @@ import numba as nb
 import numpy as np
 
 _JIT = dict(cache=False, nogil=True, boundscheck=False)
+#: The 8 neighbours of a cell, row and column offsets.
+_DI = (-1, -1, -1, 0, 0, 1, 1, 1)
+_DJ = (-1, 0, 1, -1, 1, -1, 0, 1)
 
 
 @nb.njit(**_JIT)
@@ -73,19 +76,15 @@ def dijkstra(
         j = c - i * ny
         if d > out[i, j]:
             continue
-        for di in range(-1, 2):
-            for dj in range(-1, 2):
-                if di == 0 and dj == 0:
-                    continue
-                p = i + di
-                q = j + dj
-                if p < 0 or p >= nx or q < 0 or q >= ny or blocked[p, q]:
-                    continue
-                w = diag if (di != 0 and dj != 0) else cell_m
-                nd = d + w
-                if nd < out[p, q] and n < keys.shape[0]:
-                    out[p, q] = nd
-                    n = _push(keys, cells, n, nd, p * ny + q)
+        for k in range(8):
+            p = i + _DI[k]
+            q = j + _DJ[k]
+            if p < 0 or p >= nx or q < 0 or q >= ny or blocked[p, q]:
+                continue
+            nd = d + (diag if (_DI[k] != 0 and _DJ[k] != 0) else cell_m)
+            if nd < out[p, q] and n < keys.shape[0]:
+                out[p, q] = nd
+                n = _push(keys, cells, n, nd, p * ny + q)
 
 
 @nb.njit(**_JIT)
@@ -99,15 +98,12 @@ def descend(dist: np.ndarray, i0: int, j0: int, steps: int, path: np.ndarray) ->
     while k < steps:
         best = dist[i, j]
         bi, bj = -1, -1
-        for di in range(-1, 2):
-            for dj in range(-1, 2):
-                if di == 0 and dj == 0:
-                    continue
-                p = i + di
-                q = j + dj
-                if 0 <= p < nx and 0 <= q < ny and dist[p, q] < best:
-                    best = dist[p, q]
-                    bi, bj = p, q
+        for m in range(8):
+            p = i + _DI[m]
+            q = j + _DJ[m]
+            if 0 <= p < nx and 0 <= q < ny and dist[p, q] < best:
+                best = dist[p, q]
+                bi, bj = p, q
         if bi < 0:
             break
         i, j = bi, bj

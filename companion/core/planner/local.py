@@ -9,7 +9,8 @@ Each tick (:meth:`LocalPlanner.plan`) takes one frozen :class:`Snapshot` and the
    seen free, the surfaces inflated by the vehicle's radius), cut where it would leave the band
    between floor and ceiling;
 3. scores each by ONE cost (:func:`costs`), a weighted sum of named terms: turn from the goal's
-   direction, distance to the goal left after flying the candidate's length, shortness of that length,
+   direction (the way round the surfaces seen, :mod:`~companion.core.planner.way`), the way left after
+   flying the candidate's length, shortness of that length,
    change from the last choice, difference from the fuzzy controller's steer, and places already
    flown through. A direction the camera has not looked along lately and that ends in unknown space is
    scored on a *hoped-for* length (half the map range): the planner turns to look there, and the speed
