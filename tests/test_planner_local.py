@@ -24,6 +24,7 @@ from companion.core.planner.safety import (
     counter_unexplained,
     envelope,
     floor_ceiling,
+    keep_off,
     speed_law_limit,
     stale_to_zero,
     trace_chain,
@@ -529,6 +530,56 @@ def test_the_stack_counters_a_climb_the_reported_velocity_does_not_show() -> Non
     assert step.setpoint.down_m_s == pytest.approx(-(0.3 - 0.02), abs=0.03)  # up, less the dead band
 
 
+def test_within_the_margin_of_a_surface_the_vehicle_moves_off_it_and_not_toward_it() -> None:
+    """A flight at 0.7 m/s slid along a wall 0.1 m outside its inflation, turned in place there
+    with no speed to judge, and a drift the measure of the unexplained motion lagged by 0.1 m/s
+    carried it into the wall. Within the stop margin of the nearest surface, the setpoint has no
+    component toward it and moves off it at the hold's gain; along the surface it is left alone."""
+    margin = PlannerConfig().stop_margin_m
+    north = np.array([1.0, 0.0, 0.0])  # the wall is north
+    near = _ctx(surface_gap_m=0.1, surface_dir_ned=north)
+    still = keep_off(ZERO_SETPOINT, near)
+    assert still.forward_m_s == pytest.approx(-(margin - 0.1)) and still.right_m_s == pytest.approx(0.0)
+    sliding = keep_off(VelocitySetpoint(0.5, 2.0, 0.0, 5.0), near)  # into the wall and along it
+    assert sliding.forward_m_s == pytest.approx(-(margin - 0.1)) and sliding.right_m_s == pytest.approx(2.0)
+    assert sliding.yaw_rate_deg_s == 5.0
+    leaving = VelocitySetpoint(-0.5, 1.0, 0.0, 0.0)  # already off it faster than the push
+    assert keep_off(leaving, near) == leaving
+    facing_east = keep_off(ZERO_SETPOINT, _ctx(surface_gap_m=0.1, surface_dir_ned=north, yaw_rad=math.pi / 2))
+    assert facing_east.right_m_s == pytest.approx(margin - 0.1)  # north is body-left: right is away
+    assert keep_off(FAST, _ctx(surface_gap_m=margin + 0.01, surface_dir_ned=north)) == FAST  # outside the margin
+    assert keep_off(FAST, _ctx()) == FAST  # nothing near
+    assert apply_chain(FAST, _ctx(surface_gap_m=0.0, surface_dir_ned=north, frame_age_s=9.0)) == ZERO_SETPOINT
+
+
+def test_the_map_names_the_nearest_surface_seen_and_the_way_to_it() -> None:
+    m = _map()
+    _see(m, _wall_blocks(4.0))
+    near = m.nearest_surface(np.array([3.5, 0.0, -1.5]), 1.0)
+    assert near is not None
+    gap, toward = near
+    assert 0.3 <= gap <= 0.5 + 1e-9  # the wall's face at 4 m, in whole cubes
+    assert toward @ np.array([1.0, 0.0, 0.0]) > 0.95
+    assert m.nearest_surface(np.array([0.0, 0.0, -1.5]), 1.0) is None  # nothing within a metre
+    assert _map().nearest_surface(np.zeros(3), 1.0) is None  # an empty map
+
+
+def test_a_vehicle_turning_in_place_beside_a_wall_is_moved_off_it() -> None:
+    """The stack end to end: a wall seen about 0.45 m north of the vehicle (0.2 m from its body), the
+    vehicle still, its goal beyond the wall: the setpoint leads away from the wall."""
+    cfg = CompanionConfig.model_validate({"planner": {"kind": "local"}})
+    stack = LocalStack(cfg)
+    stack.engage(np.array([0.0, 0.0, -1.5]), 0.0, None)
+    for k in range(3):
+        stack.add_frame(_wall_blocks(4.0), GEOM, BLOCK_PX, Pose.at(0.0, 0.0, 1.5), 0.1 * k)
+    dist, _ = stack.map.nearest_surface(np.array([3.55, 0.0, -1.5]), 1.0)  # type: ignore[misc]
+    assert dist - cfg.vehicle.radius_m < cfg.planner.stop_margin_m
+    clear = Decision(DecisionKind.CLEAR, 0.0, 0.0, 1.0, "clear")
+    step = stack.step(0.4, 0.05, clear, np.full(9, 10.0), np.array([3.55, 0.0, -1.5]), np.zeros(3), 0.0)
+    assert "keep_off" in step.limited_by
+    assert step.setpoint.forward_m_s < -0.05
+
+
 def test_floor_and_ceiling_stop_descent_and_climb() -> None:
     down = VelocitySetpoint(0.0, 0.0, 1.0, 0.0)
     up = VelocitySetpoint(0.0, 0.0, -1.0, 0.0)
@@ -544,7 +595,8 @@ def test_envelope_bounds_speed_and_rate() -> None:
 
 def test_the_chain_order_is_written_once() -> None:
     assert [f.__name__ for f in CHAIN] == [
-        "stale_to_zero", "brake_hold", "speed_law_limit", "counter_unexplained", "floor_ceiling", "envelope"
+        "stale_to_zero", "brake_hold", "speed_law_limit", "keep_off", "counter_unexplained", "floor_ceiling",
+        "envelope",
     ]
     assert apply_chain(FAST, _ctx(frame_age_s=9.0)) == ZERO_SETPOINT
 

@@ -19,6 +19,7 @@ import numpy as np
 
 from companion.config import load_config
 from companion.core.planner.stack import LocalStack
+from companion.core.planner.way import compile_kernels
 from companion.sim.courses import make_course
 from companion.sim.loop import fly, simulator_config
 
@@ -40,6 +41,7 @@ def main() -> int:
     if cfg.planner.kind != "local":
         print("planner-tick: the config must set planner.kind = \"local\"", file=sys.stderr)
         return 2
+    compile_kernels()  # as the service does at start-up
     times: dict[str, list[float]] = {"add_frame": [], "step": []}
     originals = {name: getattr(LocalStack, name) for name in times}
 

@@ -61,9 +61,10 @@ class PlannerConfig(StrictModel):
         ge=0.0,
         le=5.0,
         description=(
-            "Seen-free length kept in hand after a planned stop, m, on top of the vehicle's radius "
-            "(the map is inflated by it): the depth error of stereo at a few metres and the position "
-            "estimate's drift during the stop."
+            "Room kept in hand beyond the vehicle's radius, m: the seen-free length left after a "
+            "planned stop (the map is inflated by the radius), and the gap to the nearest surface "
+            "seen the vehicle is moved back out to beside it: the depth error of stereo at a few "
+            "metres and the drift the position estimate shows before it is countered."
         ),
     )
     voxel_m: float = Field(

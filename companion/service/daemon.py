@@ -390,6 +390,10 @@ class Service:
         self.view.open(self.bus.health_endpoint)
         self.parts.started(self.vision)
         await self.vision.start(cfg)
+        from companion.core.planner.way import compile_kernels
+
+        # The local planner's compiled kernels now, not at the first tick of the first flight.
+        await asyncio.to_thread(compile_kernels)
         # The link before the camera: a simulated camera may render from the vehicle's telemetry.
         self.parts.started(self.vehicle)
         await self.vehicle.open()

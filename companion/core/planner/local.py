@@ -9,7 +9,8 @@ Each tick (:meth:`LocalPlanner.plan`) takes one frozen :class:`Snapshot` and the
    seen free, the surfaces inflated by the vehicle's radius), cut where it would leave the band
    between floor and ceiling;
 3. scores each by ONE cost (:func:`costs`), a weighted sum of named terms: turn from the goal's
-   direction, distance to the goal left after flying the candidate's length, shortness of that length,
+   direction (the way round the surfaces seen, :mod:`~companion.core.planner.way`), the way left after
+   flying the candidate's length, shortness of that length,
    change from the last choice, difference from the fuzzy controller's steer, and places already
    flown through. A direction the camera has not looked along lately and that ends in unknown space is
    scored on a *hoped-for* length (half the map range): the planner turns to look there, and the speed
@@ -30,6 +31,7 @@ import numpy as np
 
 from companion.config.planner import PlannerConfig
 from companion.core.planner.localmap import LocalMap
+from companion.core.planner.way import WayToGoal
 from companion.core.types import Decision, DecisionKind
 
 #: Climbs per yaw: the way back to the goal's altitude, and that -max, -max/2, +max/2, +max (within
@@ -214,13 +216,18 @@ def costs(
     visited: np.ndarray,
     motion: tuple[float, float, float] | None,
     cfg: PlannerConfig,
+    way_yaw: float | None = None,
+    way_left_m: np.ndarray | None = None,
 ) -> np.ndarray:
     """The one cost of each candidate (float64 ``(K,)``; lower is better): the weighted sum of
 
-    * goal: turn from the goal's direction (yaw and climb, per half turn);
+    * goal: turn from the way to the goal (``way_yaw``, the bearing of the way round the surfaces
+      seen, :class:`~companion.core.planner.way.WayToGoal`; None: the goal's bearing) and from the
+      goal's climb, per half turn;
     * time: the time to the goal along the candidate: its hoped-for length at the speed law's speed
       on it (plus :data:`CREEP_M_S`, so that a short length costs much but not infinitely), then the
-      distance left at cruise, or where the length ends at a surface (``blocked``) at that same speed; less the least possible, per time to fly the map range at cruise. One
+      rest of the way at cruise (``way_left_m``, float ``(K,)`` m from each candidate's end round the
+      surfaces seen; NaN or None: the straight line), or where the length ends at a surface (``blocked``) at that same speed; less the least possible, per time to fly the map range at cruise. One
       term for progress and for room: a way that must crawl is slow, a way round may be quicker;
     * clearance: 1 - hoped-for length / map range;
     * smooth: change from the last chosen direction, plus change from the direction of motion in
@@ -231,12 +238,15 @@ def costs(
     """
     r = cfg.map_range_m
     cruise = cfg.cruise_speed_m_s
-    goal = (_angle_diff(yaw, goal_yaw) + np.abs(climb - goal_climb)) / math.pi
+    toward = goal_yaw if way_yaw is None else way_yaw
+    goal = (_angle_diff(yaw, toward) + np.abs(climb - goal_climb)) / math.pi
     reach = np.minimum(hoped_m, goal_dist_m)
     # Distance left, in the plane of the candidate: law of cosines on the horizontal part.
     dh = reach * np.cos(climb)
     ang = _angle_diff(yaw, goal_yaw)
     left = np.sqrt(np.maximum(goal_dist_m**2 + dh**2 - 2.0 * goal_dist_m * dh * np.cos(ang), 0.0))
+    if way_left_m is not None:
+        left = np.where(np.isfinite(way_left_m), way_left_m, left)
     v = speed_law(hoped_m, cfg) + CREEP_M_S
     # A way that ends at a surface leads no farther at its own speed: the rest is costed at it too.
     t_go = np.where(blocked, (reach + left) / v, reach / v + left / cruise)
@@ -304,6 +314,7 @@ class LocalPlanner:
         self._last_t: float | None = None
         self._closed_since: float | None = None
         self._held_at: np.ndarray | None = None
+        self._way = WayToGoal()
 
     def stop(self, reason: str) -> None:
         """Hold the point where the vehicle is from the next tick on (the service's progress watchdog),
@@ -368,6 +379,7 @@ class LocalPlanner:
                 return self._hold(self.reason, pos, lmap)
             goal_yaw = math.atan2(g[1] - pos[1], g[0] - pos[0])
             goal_climb = return_climb(float(pos[2] - g[2]), cfg)
+            self._way.update(lmap, g, float(pos[2]), cfg.floor_m, cfg.ceiling_m)
         # The climbs are laid round the goal's: "level" is the way back to the goal's altitude, so
         # that the map judges that way too (it must not descend onto a wall it is passing over).
         lim = math.radians(cfg.max_climb_deg)
@@ -397,12 +409,25 @@ class LocalPlanner:
         if sp > 0.3:
             motion = (math.atan2(v[1], v[0]), math.asin(max(-1.0, min(1.0, -v[2] / sp))), min(sp, cfg.cruise_speed_m_s))
 
+        way_yaw = self._way.bearing(pos) if snap.goal_ned_m is not None else None
+        if way_yaw is not None and _angle_diff(way_yaw, goal_yaw) > math.radians(cfg.dead_end_cone_deg):
+            # A way that leads back beyond the dead end's cone is a closed pocket's: it is held (below),
+            # not flown out of; the operator chooses.
+            way_yaw = None
+
         def score(free: np.ndarray, blocked: np.ndarray, swung: np.ndarray | bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
             # Hoped-for length: unknown space not looked at lately is worth a look.
             hopeful = unlooked & ~blocked & ~swung & ~fl.horizon
             hoped = np.where(hopeful, np.maximum(free, 0.5 * cfg.map_range_m), free)
             visited = self._visited_at(pos + dirs * np.minimum(hoped, VISITED_LOOKAHEAD_M)[:, None])
-            c = costs(yaw, climb, hoped, blocked & (free < goal_dist), goal_yaw, goal_climb, goal_dist, self._prev, fuzzy, visited, motion, cfg)
+            way_left = None
+            if way_yaw is not None:  # from a cube short of each end: a line ends at a surface's radius
+                ends = pos + dirs * np.maximum(np.minimum(hoped, goal_dist) - lmap.voxel_m, 0.0)[:, None]
+                way_left = self._way.length_at(ends)
+            c = costs(
+                yaw, climb, hoped, blocked & (free < goal_dist), goal_yaw, goal_climb, goal_dist, self._prev, fuzzy,
+                visited, motion, cfg, way_yaw, way_left,
+            )
             # A candidate that cannot move a cube's length is out, unless hoped for.
             return hopeful, hoped, np.where(hoped < lmap.voxel_m, np.inf, c)
 

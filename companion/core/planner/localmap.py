@@ -116,6 +116,7 @@ class LocalMap:
         self._rays: dict[tuple, np.ndarray] = {}
         self._scratch = np.zeros(self.shape, dtype=bool)
         self.now_s = -math.inf
+        self.version = 0  # counts the changes of the layers (frames in, rolls): what a query may cache on
         g = np.arange(-radius_m, radius_m + 1e-9, 0.5 * voxel_m)
         body = np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1).reshape(-1, 3)
         self._body = body[np.linalg.norm(body, axis=1) <= radius_m]  # (B, 3) offsets inside the body, m
@@ -140,6 +141,7 @@ class LocalMap:
         for arr, fill in ((self.log_odds, 0.0), (self.hit_t, -np.inf), (self.free_t, -np.inf)):
             _shift_fill(arr, -shift, fill)
         self.origin = want
+        self.version += 1
         self._body_mask[...] = False  # marked again where the body is now
         self._body_idx = np.zeros(0, np.int64)
         self._rebuild = True
@@ -193,6 +195,7 @@ class LocalMap:
         (it reads farther, or not at all: at the left edge a wall at grazing angle reads far). The
         ray's first stretch, to that depth from its block's leftmost column, is not cleared."""
         self.now_s = max(self.now_s, float(t_s))
+        self.version += 1
         self.centre_on(np.asarray(seen_from.position_ned_m))
         pool = max(1, int(round(RAY_SPACING_PX / block_px)))
         b = np.asarray(blocks, dtype=np.float32)
@@ -359,6 +362,29 @@ class LocalMap:
     def _inflated_at(self, idx: np.ndarray) -> np.ndarray:
         return self._infl.reshape(-1)[idx] > 0
 
+    def blocked_columns(self, level_down_m: float, top_down_m: float, bottom_down_m: float) -> np.ndarray:
+        """bool ``(nx, ny)``: the grid's columns a centre at ``level_down_m`` (NED down, m) cannot pass
+        level, within the radius of a surface seen there, and cannot pass over or under either: no
+        cube of the column between ``top_down_m`` and ``bottom_down_m`` (the band the vehicle may fly
+        in) is both seen free and out of every surface's radius. A low wall the camera saw over is
+        passable; a wall whose top was never seen is not; unknown space at the level is (unknown is
+        near for the speed law, not a wall for the way)."""
+        nz = self.shape[2]
+        oz = int(self.origin[2]) if self.origin is not None else 0
+        k0 = int(math.floor(level_down_m / self.voxel_m)) - oz
+        if self.origin is None or not 0 <= k0 < nz:
+            return np.zeros(self.shape[:2], dtype=bool)
+        lo = max(0, int(math.floor(top_down_m / self.voxel_m)) - oz)
+        hi = min(nz, int(math.floor(bottom_down_m / self.voxel_m)) - oz + 1)
+        at_level = self._infl[:, :, k0] > 0
+        if hi <= lo:
+            return at_level
+        i, j = np.nonzero(at_level)  # only these columns can be closed
+        band = (i[:, None], j[:, None], np.arange(lo, hi)[None, :])
+        free = (self._fcnt[band] > 0) & (self.log_odds[band] <= OCCUPIED_LOG_ODDS) & (self._infl[band] == 0)
+        at_level[i, j] = ~free.any(axis=1)
+        return at_level
+
     def within_radius(self, points_ned_m: np.ndarray) -> np.ndarray:
         """Whether a body centred at each of ``points_ned_m`` (float ``(..., 3)`` NED m) would be within
         the vehicle's radius (rounded up to whole cubes) of an occupied cube: touching, or nearly, a
@@ -368,6 +394,33 @@ class LocalMap:
             return np.zeros(pts.shape[:-1], dtype=bool)
         idx, inside = self._index(pts)
         return inside & self._inflated_at(idx)
+
+    def nearest_surface(self, position_ned_m: np.ndarray, within_m: float) -> tuple[float, np.ndarray] | None:
+        """The nearest surface seen to a point: the distance (metres) from ``position_ned_m`` (float
+        ``(3,)`` NED m) to the nearest point of the nearest occupied cube, and the unit NED direction
+        (float64 ``(3,)``) toward that point; None where no occupied cube comes within ``within_m``
+        (or the point is inside one: no direction)."""
+        if self.origin is None:
+            return None
+        p = np.asarray(position_ned_m, dtype=np.float64)
+        n = int(math.ceil(within_m / self.voxel_m)) + 1
+        c = self._cube(p) - self.origin
+        lo = np.maximum(c - n, 0)
+        hi = np.minimum(c + n + 1, self._grid_shape)
+        if np.any(hi <= lo):
+            return None
+        sub = self._occ[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]]
+        cubes = np.argwhere(sub)
+        if len(cubes) == 0:
+            return None
+        corner = (cubes + lo + self.origin) * self.voxel_m  # (N, 3) each cube's least corner, NED m
+        to = np.clip(p, corner, corner + self.voxel_m) - p  # to each cube's nearest point
+        dist = np.linalg.norm(to, axis=1)
+        i = int(np.argmin(dist))
+        d = float(dist[i])
+        if d > within_m or d <= 0.0:
+            return None
+        return d, to[i] / d
 
     def free_lengths(self, start_ned_m: np.ndarray, directions: np.ndarray, horizon_m: float | None = None) -> FreeLengths:
         """How far the centre may fly from ``start_ned_m`` (float ``(3,)`` NED m) along each of

@@ -9,11 +9,14 @@ their order written once (:data:`CHAIN`).
 3. :func:`speed_law_limit`: the commanded velocity, and the component of it along the way the vehicle
    is actually moving (the autopilot follows late), no faster than the speed law on the free length
    the map sees along each; a command outside the camera's view slower still (fly where you look);
-4. :func:`counter_unexplained`: the motion the reported velocity does not explain (measured on the
+4. :func:`keep_off`: within ``stop_margin_m`` of the nearest surface seen (body to surface), no
+   component toward it, and off it at the hold's gain: the map's inflation is the radius alone, and a
+   vehicle beside a surface drifts by what the unexplained motion's measure has not caught yet;
+5. :func:`counter_unexplained`: the motion the reported velocity does not explain (measured on the
    position's track, vertical too) taken off the setpoint, so that the vehicle moves as commanded;
-5. :func:`floor_ceiling`: no descent below the floor nor climb above the ceiling, slowing on the last
+6. :func:`floor_ceiling`: no descent below the floor nor climb above the ceiling, slowing on the last
    metre;
-6. :func:`envelope`: the horizontal and vertical speed and the yaw rate within the safety envelope.
+7. :func:`envelope`: the horizontal and vertical speed and the yaw rate within the safety envelope.
 
 Setpoints are body-frame (FRD) :class:`~companion.core.types.VelocitySetpoint`; the context's yaw turns
 them into NED where a filter needs it.
@@ -28,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from companion.config.planner import PlannerConfig
-from companion.core.planner.local import HOLD_MAX_M_S, speed_law
+from companion.core.planner.local import HOLD_GAIN_PER_S, HOLD_MAX_M_S, speed_law
 from companion.core.types import ZERO_SETPOINT, Decision, DecisionKind, VelocitySetpoint
 
 #: Below this speed the vehicle's motion has no direction worth checking, m/s (a velocity
@@ -69,6 +72,9 @@ class SafetyContext:
         planner: the planner section (speed law, floor, ceiling).
         max_horizontal_m_s, max_vertical_m_s, max_yaw_rate_deg_s: the safety envelope.
         view_half_rad: half the camera's horizontal view, radians.
+        surface_gap_m: the gap between the body and the nearest surface seen, metres (inf: none
+            within reach).
+        surface_dir_ned: float ``(3,)`` unit NED direction toward that surface (None: none).
     """
 
     frame_age_s: float
@@ -86,6 +92,8 @@ class SafetyContext:
     max_vertical_m_s: float
     max_yaw_rate_deg_s: float
     view_half_rad: float = math.radians(40.0)
+    surface_gap_m: float = math.inf
+    surface_dir_ned: np.ndarray | None = None
 
 
 def to_ned(sp: VelocitySetpoint, yaw_rad: float) -> np.ndarray:
@@ -169,6 +177,27 @@ def speed_law_limit(sp: VelocitySetpoint, ctx: SafetyContext) -> VelocitySetpoin
     return from_ned(v, ctx.yaw_rad, sp.yaw_rate_deg_s)
 
 
+def keep_off(sp: VelocitySetpoint, ctx: SafetyContext) -> VelocitySetpoint:
+    """Within ``stop_margin_m`` of the nearest surface seen (the gap between the body and it): no
+    component toward it, and at least ``HOLD_GAIN_PER_S`` times the depth into the margin away from
+    it (at most :data:`HOLD_MAX_M_S`). The map inflates surfaces by the radius alone, so a path may
+    graze one; beside it the vehicle moves by what the unexplained motion's measure has not caught
+    yet (a drift that changes within the measure's window and the autopilot's response), and a
+    vehicle turning in place there has no speed law to stop it. The same margin as after a planned
+    stop, sideways: where two surfaces are both within it (a doorway) the nearer pushes, and the
+    vehicle settles between them. Not on stale frames (zero is zero)."""
+    n = ctx.surface_dir_ned
+    margin = ctx.planner.stop_margin_m
+    if n is None or not ctx.surface_gap_m < margin or not ctx.frame_age_s <= ctx.stale_after_s:
+        return sp
+    v = to_ned(sp, ctx.yaw_rad)
+    toward = float(v @ n)
+    off = min(HOLD_GAIN_PER_S * (margin - ctx.surface_gap_m), HOLD_MAX_M_S)
+    if toward <= -off:
+        return sp
+    return from_ned(v - (toward + off) * n, ctx.yaw_rad, sp.yaw_rate_deg_s)
+
+
 def counter_unexplained(sp: VelocitySetpoint, ctx: SafetyContext) -> VelocitySetpoint:
     """The unexplained motion taken off the setpoint, vertical too (the autopilot tracks its velocity
     estimate; the vehicle moves at the setpoint plus the estimate's error; PX4 drifted 0.4 m up in
@@ -209,6 +238,7 @@ CHAIN: tuple[Callable[[VelocitySetpoint, SafetyContext], VelocitySetpoint], ...]
     stale_to_zero,
     brake_hold,
     speed_law_limit,
+    keep_off,
     counter_unexplained,
     floor_ceiling,
     envelope,

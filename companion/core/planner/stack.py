@@ -170,6 +170,8 @@ class LocalStack:
                     return float(known[k])
             return float(lmap.free_lengths(pos, u[None, :]).length_m[0])
 
+        radius = self.cfg.vehicle.radius_m
+        near = lmap.nearest_surface(pos, radius + self.cfg.planner.stop_margin_m)
         ctx = SafetyContext(
             frame_age_s=frame_age_s,
             stale_after_s=self.cfg.command.stale_frame_timeout_s,
@@ -186,6 +188,8 @@ class LocalStack:
             max_vertical_m_s=min(env.max_vertical_speed_m_s, self.cfg.planner.max_vertical_speed_m_s),
             max_yaw_rate_deg_s=min(env.max_yaw_rate_deg_s, self.cfg.planner.max_yaw_rate_deg_s),
             view_half_rad=self.view_half_rad,
+            surface_gap_m=math.inf if near is None else near[0] - radius,
+            surface_dir_ned=None if near is None else near[1],
         )
         setpoint, limited_by = trace_chain(sp, ctx)
         self._last = StackStep(setpoint, plan, limited_by)

@@ -1,0 +1,113 @@
+"""Compiled kernels of the way to the goal (:mod:`companion.core.planner.way`): a Dijkstra over a 2D grid
+and the walk down its distances. Imported only when a way is first asked for (it loads Numba); each
+kernel compiles at its first call in a process, in memory (nothing is written to disk).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+
+_JIT = dict(cache=False, nogil=True, boundscheck=False)
+#: The 8 neighbours of a cell, row and column offsets.
+_DI = (-1, -1, -1, 0, 0, 1, 1, 1)
+_DJ = (-1, 0, 1, -1, 1, -1, 0, 1)
+
+
+@nb.njit(**_JIT)
+def _push(keys: np.ndarray, cells: np.ndarray, n: int, key: float, cell: int) -> int:
+    i = n
+    keys[i] = key
+    cells[i] = cell
+    while i > 0:
+        p = (i - 1) >> 1
+        if keys[p] <= keys[i]:
+            break
+        keys[p], keys[i] = keys[i], keys[p]
+        cells[p], cells[i] = cells[i], cells[p]
+        i = p
+    return n + 1
+
+
+@nb.njit(**_JIT)
+def _pop(keys: np.ndarray, cells: np.ndarray, n: int) -> int:
+    n -= 1
+    keys[0] = keys[n]
+    cells[0] = cells[n]
+    i = 0
+    while True:
+        a = 2 * i + 1
+        if a >= n:
+            break
+        b = a + 1
+        c = a if (b >= n or keys[a] <= keys[b]) else b
+        if keys[i] <= keys[c]:
+            break
+        keys[c], keys[i] = keys[i], keys[c]
+        cells[c], cells[i] = cells[i], cells[c]
+        i = c
+    return n
+
+
+@nb.njit(**_JIT)
+def dijkstra(
+    blocked: np.ndarray, start: np.ndarray, cell_m: float, out: np.ndarray, keys: np.ndarray, cells: np.ndarray
+) -> None:
+    """Shortest 8-connected distances (metres) over the cells not ``blocked`` (bool ``(nx, ny)``) from
+    sources whose own distance is ``start`` (float64 ``(nx, ny)``, inf: not a source), into ``out``
+    (float64 ``(nx, ny)``; inf where unreachable or blocked). ``keys`` (float64) and ``cells`` (int64),
+    each ``(8·nx·ny + 1,)``, are the heap's scratch: every cell is pushed at most once per neighbour."""
+    nx, ny = blocked.shape
+    n = 0
+    for i in range(nx):
+        for j in range(ny):
+            out[i, j] = math.inf
+            if not blocked[i, j] and start[i, j] < math.inf:
+                out[i, j] = start[i, j]
+                n = _push(keys, cells, n, start[i, j], i * ny + j)
+    diag = cell_m * math.sqrt(2.0)
+    while n > 0:
+        d = keys[0]
+        c = cells[0]
+        n = _pop(keys, cells, n)
+        i = c // ny
+        j = c - i * ny
+        if d > out[i, j]:
+            continue
+        for k in range(8):
+            p = i + _DI[k]
+            q = j + _DJ[k]
+            if p < 0 or p >= nx or q < 0 or q >= ny or blocked[p, q]:
+                continue
+            nd = d + (diag if (_DI[k] != 0 and _DJ[k] != 0) else cell_m)
+            if nd < out[p, q] and n < keys.shape[0]:
+                out[p, q] = nd
+                n = _push(keys, cells, n, nd, p * ny + q)
+
+
+@nb.njit(**_JIT)
+def descend(dist: np.ndarray, i0: int, j0: int, steps: int, path: np.ndarray) -> int:
+    """Walk down ``dist`` (float64 ``(nx, ny)``) from cell ``(i0, j0)`` to the least of the 8 neighbours,
+    at most ``steps`` times, while it falls; the cells visited into ``path`` (int64 ``(steps, 2)``).
+    Returns how many."""
+    nx, ny = dist.shape
+    i, j = i0, j0
+    k = 0
+    while k < steps:
+        best = dist[i, j]
+        bi, bj = -1, -1
+        for m in range(8):
+            p = i + _DI[m]
+            q = j + _DJ[m]
+            if 0 <= p < nx and 0 <= q < ny and dist[p, q] < best:
+                best = dist[p, q]
+                bi, bj = p, q
+        if bi < 0:
+            break
+        i, j = bi, bj
+        path[k, 0] = i
+        path[k, 1] = j
+        k += 1
+    return k

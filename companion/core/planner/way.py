@@ -1,0 +1,180 @@
+"""The way to the goal on the local map (pure; the map and the goal in, distances out).
+
+The cost's progress terms need more than the goal's bearing: beside a wall, a candidate that ends at the
+wall and one that leads back to the gap the camera saw in it are equally far from the goal as the crow
+flies, and the goal's bearing points into the wall. :class:`WayToGoal` keeps, for the map's horizontal
+plane at the vehicle's altitude, the length of the shortest way from each cell to the goal round every
+surface seen (Dijkstra, 8-connected, on cells of the map's columns, :data:`POOL` cubes a side): a column is closed where a surface's radius
+reaches the altitude and the camera saw no way over or under it within the floor and ceiling; unknown
+space is open (the way is hopeful, like the planner's looks; the speed law flies only on what was seen).
+Beyond the grid the way is the straight line: every cell on its edge starts at its straight distance
+to the goal.
+
+Two answers: :meth:`WayToGoal.length_at` (the rest of the way from a candidate's end) and
+:meth:`WayToGoal.bearing` (the way's direction from the vehicle: down the distances, then straight to
+the farthest point of that walk in plain view, so that the way in the open is the goal's bearing and
+not the grid's 45° steps).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from companion.core.planner.localmap import LocalMap
+
+#: The way's cells are this many of the map's cubes on a side (at 0.15 m cubes: 0.3 m), four times
+#: fewer cells to search than the map's columns; a cell is closed only where all its columns are, so
+#: a gap the cubes leave open stays open (the speed law and the free lengths judge the gap itself).
+POOL = 2
+#: The walk down the distances that sets the way's bearing, cells (at 0.3 m: 6 m).
+WALK_CELLS = 20
+
+
+def compile_kernels() -> None:
+    """Compile the way's kernels now (about a second, once per process): a service does it at start-up,
+    so that the first tick of its first flight does not wait for the compiler."""
+    from companion.core.planner import _waykernels as k
+
+    blocked = np.zeros((3, 3), dtype=bool)
+    start = np.full((3, 3), np.inf)
+    start[0, 0] = 0.0
+    out = np.empty((3, 3))
+    k.dijkstra(blocked, start, 1.0, out, np.empty(73), np.empty(73, dtype=np.int64))
+    k.descend(out, 2, 2, 4, np.zeros((4, 2), dtype=np.int64))
+
+
+class WayToGoal:
+    """The shortest way to a goal round the surfaces seen, recomputed when the map or the goal changes
+    (one Dijkstra over the map's columns per frame)."""
+
+    def __init__(self) -> None:
+        self._key: tuple | None = None
+        self.dist: np.ndarray | None = None  # float64 (nx, ny) metres to the goal, inf: no way
+        self.blocked: np.ndarray | None = None
+        self._origin = np.zeros(2)  # the grid's cell (0, 0), in cells from the NED origin
+        self._cell_m = 1.0
+        self._start: np.ndarray | None = None
+        self._keys: np.ndarray | None = None
+        self._cells: np.ndarray | None = None
+        self._path = np.zeros((WALK_CELLS, 2), dtype=np.int64)
+
+    def update(self, lmap: LocalMap, goal_ned_m: np.ndarray, level_down_m: float, floor_m: float, ceiling_m: float) -> None:
+        """The way over ``lmap`` to ``goal_ned_m`` (float ``(3,)`` NED m) at the altitude ``level_down_m``
+        (NED down, m), the band between ``floor_m`` and ``ceiling_m`` (altitudes, m) the ways over and
+        under; kept while the map, the goal and the level's cube are the ones it was made for."""
+        if lmap.origin is None:
+            self.dist = None
+            return
+        level = int(math.floor(level_down_m / lmap.voxel_m))
+        key = (id(lmap), lmap.version, float(goal_ned_m[0]), float(goal_ned_m[1]), level, floor_m, ceiling_m)
+        if key == self._key:
+            return
+        from companion.core.planner import _waykernels as k  # loads Numba at the first way
+
+        self._key = key
+        fine = lmap.blocked_columns(level_down_m, -ceiling_m, -floor_m)
+        fx, fy = fine.shape
+        if fx % POOL or fy % POOL:  # open past the map's edge
+            fine = np.pad(fine, ((0, -fx % POOL), (0, -fy % POOL)))
+        nx, ny = fine.shape[0] // POOL, fine.shape[1] // POOL
+        blocked = fine.reshape(nx, POOL, ny, POOL).all(axis=(1, 3))
+        v = POOL * lmap.voxel_m
+        # The map's origin is a whole number of cubes; the way's cells start there.
+        origin = lmap.origin[:2].astype(np.float64) / POOL
+        if self._start is None or self._start.shape != (nx, ny):
+            self._start = np.full((nx, ny), np.inf)
+            self.dist = np.full((nx, ny), np.inf)
+            self._keys = np.empty(8 * nx * ny + 1)
+            self._cells = np.empty(8 * nx * ny + 1, dtype=np.int64)
+        assert self.dist is not None and self._keys is not None and self._cells is not None
+        start = self._start
+        start[...] = np.inf
+        self._origin = origin
+        self._cell_m = v
+        # Edge cells: the straight line on from there; the goal's own cell, when on the grid: 0.
+        ii = np.arange(nx)
+        jj = np.arange(ny)
+        g = np.asarray(goal_ned_m, dtype=np.float64)
+        for sl, (ci, cj) in (
+            ((0, slice(None)), (np.zeros(ny), jj)),
+            ((nx - 1, slice(None)), (np.full(ny, nx - 1), jj)),
+            ((slice(None), 0), (ii, np.zeros(nx))),
+            ((slice(None), ny - 1), (ii, np.full(nx, ny - 1))),
+        ):
+            cn = (ci + self._origin[0] + 0.5) * v
+            ce = (cj + self._origin[1] + 0.5) * v
+            start[sl] = np.hypot(g[0] - cn, g[1] - ce)
+        gi = int(math.floor(g[0] / v - self._origin[0]))
+        gj = int(math.floor(g[1] / v - self._origin[1]))
+        if 0 <= gi < nx and 0 <= gj < ny:
+            start[gi, gj] = 0.0
+            blocked[gi, gj] = False
+        k.dijkstra(blocked, start, v, self.dist, self._keys, self._cells)
+        self.blocked = blocked
+
+    def _cell(self, points_ned_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        q = np.floor(np.asarray(points_ned_m, dtype=np.float64)[..., :2] / self._cell_m - self._origin)
+        assert self.dist is not None
+        nx, ny = self.dist.shape
+        inside = (q[..., 0] >= 0) & (q[..., 0] < nx) & (q[..., 1] >= 0) & (q[..., 1] < ny)
+        i = np.where(inside, q[..., 0], 0).astype(np.int64)
+        j = np.where(inside, q[..., 1], 0).astype(np.int64)
+        return i, j, inside
+
+    def length_at(self, points_ned_m: np.ndarray) -> np.ndarray:
+        """float64 ``(K,)``: the way's length from each of ``points_ned_m`` (float ``(K, 3)`` NED m) to
+        the goal, metres; NaN where the point is off the grid, closed or cut off (the caller falls back
+        on the straight line), or before the first :meth:`update`."""
+        pts = np.asarray(points_ned_m, dtype=np.float64)
+        if self.dist is None:
+            return np.full(len(pts), np.nan)
+        i, j, inside = self._cell(pts)
+        d = self.dist[i, j]
+        return np.where(inside & np.isfinite(d), d, np.nan)
+
+    def bearing(self, position_ned_m: np.ndarray) -> float | None:
+        """The way's bearing from ``position_ned_m`` (float ``(3,)`` NED m), radians clockwise from north:
+        toward the farthest cell of a walk down the distances (:data:`WALK_CELLS`) that the straight
+        line from here reaches through open cells only; None where there is no way from here (the
+        caller keeps the goal's bearing)."""
+        if self.dist is None or self.blocked is None:
+            return None
+        from companion.core.planner import _waykernels as k
+
+        p = np.asarray(position_ned_m, dtype=np.float64)
+        i0, j0, inside = self._cell(p[None, :])
+        if not bool(inside[0]):
+            return None
+        i0, j0 = int(i0[0]), int(j0[0])
+        dist = self.dist
+        if not math.isfinite(float(dist[i0, j0])):
+            # The vehicle's own cell is within a surface's radius (a pass close by): start from the
+            # nearest open one round it.
+            lo_i, lo_j = max(0, i0 - 2), max(0, j0 - 2)
+            win = dist[lo_i : i0 + 3, lo_j : j0 + 3]
+            if not np.isfinite(win).any():
+                return None
+            a, b = np.unravel_index(int(np.argmin(win)), win.shape)
+            i0, j0 = lo_i + int(a), lo_j + int(b)
+        n = int(k.descend(dist, i0, j0, WALK_CELLS, self._path))
+        if n == 0:
+            return None
+        path = self._path[:n]
+        here = p[:2] / self._cell_m - self._origin  # in cells, continuous
+        target = (path + 0.5).astype(np.float64)
+        # In plain view: the samples of the line from here to each cell of the walk, every half cell,
+        # all on open cells; the farthest such cell sets the bearing.
+        span = np.linalg.norm(target - here, axis=1)
+        m = int(np.ceil(span.max() * 2.0)) + 1
+        t = np.linspace(0.0, 1.0, m)
+        samples = here[None, None, :] + (target - here)[:, None, :] * t[None, :, None]  # (n, m, 2)
+        si = np.clip(np.floor(samples[..., 0]).astype(np.int64), 0, dist.shape[0] - 1)
+        sj = np.clip(np.floor(samples[..., 1]).astype(np.int64), 0, dist.shape[1] - 1)
+        open_ = ~self.blocked[si, sj]
+        open_[:, 0] = True  # the vehicle's own cell
+        clear = open_.all(axis=1)
+        far = int(np.nonzero(clear)[0].max()) if clear.any() else 0
+        d = target[far] - here
+        return math.atan2(float(d[1]), float(d[0]))
