@@ -62,6 +62,39 @@ def test_beside_a_wall_the_way_leads_to_the_gap_seen_in_it() -> None:
     assert way.length_at(here[None, :])[0] > straight + 1.0  # round the wall, not through it
 
 
+def _crossing_east_m(way: WayToGoal, here: np.ndarray, wall_north_m: float) -> float:
+    """Where the way's walk down its distances from ``here`` crosses north ``wall_north_m``, east m."""
+    from companion.core.planner import _waykernels as k
+
+    i, j, _ = way._cell(here[None, :])
+    path = np.zeros((60, 2), dtype=np.int64)
+    n = k.descend(way.dist, int(i[0]), int(j[0]), 60, path)
+    centres = (path[:n] + 0.5 + way._origin) * way._cell_m
+    at_wall = centres[np.abs(centres[:, 0] - wall_north_m) <= 0.5 * way._cell_m]
+    assert len(at_wall) > 0
+    return float(at_wall[0, 1])
+
+
+def test_doorway_1_the_way_goes_through_the_middle_of_a_door_off_the_line() -> None:
+    """ArduPilot SITL, doorway-1 at 3 m/s: a door 1.15 m wide centred 0.22 m east of the line. The
+    shortest way bent round the west jamb at the edge of its radius; the free length of the lines
+    there flickered from frame to frame, and ArduCopter's response to that swung the vehicle onto the
+    jamb. With the stop margin kept off surfaces the way crosses the door within a cell of its middle,
+    wherever the door sits; without it, at the edge nearest the line."""
+    here = np.array([0.5, 0.0, -1.5])
+    for centre in (-0.22, 0.1, 0.22, 0.3):
+        b = _blocks(3.0)
+        b[:, _column_of(centre - 0.575, 3.0) : _column_of(centre + 0.575, 3.0)] = GEOM.focal_baseline_px_m / 20.0
+        m = _seen(b)
+        way = WayToGoal()
+        way.update(m, GOAL, -1.5, 0.5, 3.0, clearance_m=0.25 + 0.3)
+        assert abs(_crossing_east_m(way, here, 3.15) - centre) <= 0.15, centre
+        if centre == 0.3:
+            edge = WayToGoal()
+            edge.update(m, GOAL, -1.5, 0.5, 3.0, clearance_m=0.0)
+            assert abs(_crossing_east_m(edge, here, 3.15) - centre) > 0.15
+
+
 def test_a_low_wall_the_camera_saw_over_is_no_way_round() -> None:
     """The same wall but only up to 1.3 m, the space over it seen free: the way is straight over it
     (the planner climbs), not along it to the gap."""

@@ -53,12 +53,19 @@ def _pop(keys: np.ndarray, cells: np.ndarray, n: int) -> int:
 
 @nb.njit(**_JIT)
 def dijkstra(
-    blocked: np.ndarray, start: np.ndarray, cell_m: float, out: np.ndarray, keys: np.ndarray, cells: np.ndarray
+    blocked: np.ndarray,
+    start: np.ndarray,
+    cell_m: float,
+    penalty: np.ndarray,
+    out: np.ndarray,
+    keys: np.ndarray,
+    cells: np.ndarray,
 ) -> None:
     """Shortest 8-connected distances (metres) over the cells not ``blocked`` (bool ``(nx, ny)``) from
     sources whose own distance is ``start`` (float64 ``(nx, ny)``, inf: not a source), into ``out``
-    (float64 ``(nx, ny)``; inf where unreachable or blocked). ``keys`` (float64) and ``cells`` (int64),
-    each ``(8·nx·ny + 1,)``, are the heap's scratch: every cell is pushed at most once per neighbour."""
+    (float64 ``(nx, ny)``; inf where unreachable or blocked). A step into a cell counts its length times
+    ``1 + penalty`` there (float64 ``(nx, ny)``, >= 0). ``keys`` (float64) and ``cells`` (int64), each
+    ``(8·nx·ny + 1,)``, are the heap's scratch: every cell is pushed at most once per neighbour."""
     nx, ny = blocked.shape
     n = 0
     for i in range(nx):
@@ -81,10 +88,46 @@ def dijkstra(
             q = j + _DJ[k]
             if p < 0 or p >= nx or q < 0 or q >= ny or blocked[p, q]:
                 continue
-            nd = d + (diag if (_DI[k] != 0 and _DJ[k] != 0) else cell_m)
+            nd = d + (diag if (_DI[k] != 0 and _DJ[k] != 0) else cell_m) * (1.0 + penalty[p, q])
             if nd < out[p, q] and n < keys.shape[0]:
                 out[p, q] = nd
                 n = _push(keys, cells, n, nd, p * ny + q)
+
+
+@nb.njit(**_JIT)
+def clearance(blocked: np.ndarray, cell_m: float, cap_m: float, out: np.ndarray) -> None:
+    """Distance from each cell's centre to the nearest ``blocked`` cell's centre (bool ``(nx, ny)``),
+    metres, at most ``cap_m``, into ``out`` (float64 ``(nx, ny)``; 0 on blocked cells): the two-pass
+    chamfer transform with steps of ``cell_m`` and ``cell_m·√2`` (within 8 % of the Euclidean)."""
+    nx, ny = blocked.shape
+    diag = cell_m * math.sqrt(2.0)
+    for i in range(nx):
+        for j in range(ny):
+            out[i, j] = 0.0 if blocked[i, j] else cap_m
+    for i in range(nx):
+        for j in range(ny):
+            d = out[i, j]
+            if i > 0:
+                d = min(d, out[i - 1, j] + cell_m)
+                if j > 0:
+                    d = min(d, out[i - 1, j - 1] + diag)
+                if j < ny - 1:
+                    d = min(d, out[i - 1, j + 1] + diag)
+            if j > 0:
+                d = min(d, out[i, j - 1] + cell_m)
+            out[i, j] = d
+    for i in range(nx - 1, -1, -1):
+        for j in range(ny - 1, -1, -1):
+            d = out[i, j]
+            if i < nx - 1:
+                d = min(d, out[i + 1, j] + cell_m)
+                if j > 0:
+                    d = min(d, out[i + 1, j - 1] + diag)
+                if j < ny - 1:
+                    d = min(d, out[i + 1, j + 1] + diag)
+            if j < ny - 1:
+                d = min(d, out[i, j + 1] + cell_m)
+            out[i, j] = d
 
 
 @nb.njit(**_JIT)

@@ -379,7 +379,8 @@ class LocalPlanner:
                 return self._hold(self.reason, pos, lmap)
             goal_yaw = math.atan2(g[1] - pos[1], g[0] - pos[0])
             goal_climb = return_climb(float(pos[2] - g[2]), cfg)
-            self._way.update(lmap, g, float(pos[2]), cfg.floor_m, cfg.ceiling_m)
+            # The way keeps the stop margin beyond the radius off surfaces where the gap allows.
+            self._way.update(lmap, g, float(pos[2]), cfg.floor_m, cfg.ceiling_m, lmap.radius_m + cfg.stop_margin_m)
         # The climbs are laid round the goal's: "level" is the way back to the goal's altitude, so
         # that the map judges that way too (it must not descend onto a wall it is passing over).
         lim = math.radians(cfg.max_climb_deg)

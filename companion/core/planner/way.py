@@ -4,9 +4,11 @@ The cost's progress terms need more than the goal's bearing: beside a wall, a ca
 wall and one that leads back to the gap the camera saw in it are equally far from the goal as the crow
 flies, and the goal's bearing points into the wall. :class:`WayToGoal` keeps, for the map's horizontal
 plane at the vehicle's altitude, the length of the shortest way from each cell to the goal round every
-surface seen (Dijkstra, 8-connected, on cells of the map's columns, :data:`POOL` cubes a side): a column is closed where a surface's radius
-reaches the altitude and the camera saw no way over or under it within the floor and ceiling; unknown
-space is open (the way is hopeful, like the planner's looks; the speed law flies only on what was seen).
+surface seen (Dijkstra, 8-connected, on cells of the map's columns, :data:`POOL` cubes a side): a
+column is closed where a surface's radius reaches the altitude and the camera saw no way over or under
+it within the floor and ceiling; unknown space is open (the way is hopeful, like the planner's looks;
+the speed law flies only on what was seen). A way close beside a closed cell counts longer than one
+in the open, so that the way goes through the middle of a gap.
 Beyond the grid the way is the straight line: every cell on its edge starts at its straight distance
 to the goal.
 
@@ -30,6 +32,11 @@ from companion.core.planner.localmap import LocalMap
 POOL = 2
 #: The walk down the distances that sets the way's bearing, cells (at 0.3 m: 6 m).
 WALK_CELLS = 20
+#: A metre of way beside a closed cell counts this many metres more, less in proportion to the
+#: clearance out to the caller's ``clearance_m``: the way keeps to the middle of a gap, not to the
+#: edge of a surface's radius, where the free length of a line flickers with each frame's cubes and
+#: the vehicle's response to that flicker carries it onto the surface.
+EDGE_PENALTY = 1.0
 
 
 def compile_kernels() -> None:
@@ -41,7 +48,8 @@ def compile_kernels() -> None:
     start = np.full((3, 3), np.inf)
     start[0, 0] = 0.0
     out = np.empty((3, 3))
-    k.dijkstra(blocked, start, 1.0, out, np.empty(73), np.empty(73, dtype=np.int64))
+    k.clearance(blocked, 1.0, 2.0, out)
+    k.dijkstra(blocked, start, 1.0, np.zeros((3, 3)), out, np.empty(73), np.empty(73, dtype=np.int64))
     k.descend(out, 2, 2, 4, np.zeros((4, 2), dtype=np.int64))
 
 
@@ -57,18 +65,29 @@ class WayToGoal:
         self._cell_m = 1.0
         self._start: np.ndarray | None = None
         self._keys: np.ndarray | None = None
+        self._clear = np.zeros((0, 0))  # float64, the map's columns: metres to the nearest closed one, then the share
+        self._penalty = np.zeros((0, 0))  # float64 (nx, ny): what a step into each cell costs extra, per metre
         self._cells: np.ndarray | None = None
         self._path = np.zeros((WALK_CELLS, 2), dtype=np.int64)
 
-    def update(self, lmap: LocalMap, goal_ned_m: np.ndarray, level_down_m: float, floor_m: float, ceiling_m: float) -> None:
+    def update(
+        self,
+        lmap: LocalMap,
+        goal_ned_m: np.ndarray,
+        level_down_m: float,
+        floor_m: float,
+        ceiling_m: float,
+        clearance_m: float = 0.0,
+    ) -> None:
         """The way over ``lmap`` to ``goal_ned_m`` (float ``(3,)`` NED m) at the altitude ``level_down_m``
         (NED down, m), the band between ``floor_m`` and ``ceiling_m`` (altitudes, m) the ways over and
-        under; kept while the map, the goal and the level's cube are the ones it was made for."""
+        under, kept ``clearance_m`` (m) off closed cells where the space allows (:data:`EDGE_PENALTY`);
+        kept while the map, the goal and the level's cube are the ones it was made for."""
         if lmap.origin is None:
             self.dist = None
             return
         level = int(math.floor(level_down_m / lmap.voxel_m))
-        key = (id(lmap), lmap.version, float(goal_ned_m[0]), float(goal_ned_m[1]), level, floor_m, ceiling_m)
+        key = (id(lmap), lmap.version, float(goal_ned_m[0]), float(goal_ned_m[1]), level, floor_m, ceiling_m, clearance_m)
         if key == self._key:
             return
         from companion.core.planner import _waykernels as k  # loads Numba at the first way
@@ -86,6 +105,8 @@ class WayToGoal:
         if self._start is None or self._start.shape != (nx, ny):
             self._start = np.full((nx, ny), np.inf)
             self.dist = np.full((nx, ny), np.inf)
+            self._clear = np.empty(fine.shape)
+            self._penalty = np.empty((nx, ny))
             self._keys = np.empty(8 * nx * ny + 1)
             self._cells = np.empty(8 * nx * ny + 1, dtype=np.int64)
         assert self.dist is not None and self._keys is not None and self._cells is not None
@@ -111,7 +132,22 @@ class WayToGoal:
         if 0 <= gi < nx and 0 <= gj < ny:
             start[gi, gj] = 0.0
             blocked[gi, gj] = False
-        k.dijkstra(blocked, start, v, self.dist, self._keys, self._cells)
+        # The clearance is judged on the map's own columns, finer than the way's cells: a door two
+        # cells wide has a cell nearer its middle. Between columns' edges (a column beside a closed one
+        # has none), as a share of clearance_m; a cell's penalty is its columns' mean.
+        penalty = self._penalty
+        if clearance_m > 0.0:
+            f, clear = lmap.voxel_m, self._clear
+            k.clearance(fine, f, clearance_m + f, clear)
+            clear -= f
+            clear *= -1.0 / clearance_m
+            clear += 1.0
+            np.clip(clear, 0.0, 1.0, out=clear)
+            np.mean(clear.reshape(nx, POOL, ny, POOL), axis=(1, 3), out=penalty)
+            penalty *= EDGE_PENALTY
+        else:
+            penalty[...] = 0.0
+        k.dijkstra(blocked, start, v, penalty, self.dist, self._keys, self._cells)
         self.blocked = blocked
 
     def _cell(self, points_ned_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -125,7 +161,7 @@ class WayToGoal:
 
     def length_at(self, points_ned_m: np.ndarray) -> np.ndarray:
         """float64 ``(K,)``: the way's length from each of ``points_ned_m`` (float ``(K, 3)`` NED m) to
-        the goal, metres; NaN where the point is off the grid, closed or cut off (the caller falls back
+        the goal, metres (those close beside a surface counted longer, :data:`EDGE_PENALTY`); NaN where the point is off the grid, closed or cut off (the caller falls back
         on the straight line), or before the first :meth:`update`."""
         pts = np.asarray(points_ned_m, dtype=np.float64)
         if self.dist is None:
