@@ -40,7 +40,7 @@ def test_ports_follow_px4s_startup_script() -> None:
 
 
 def test_the_service_config_renders_the_course_from_telemetry_and_round_trips(tmp_path: Path) -> None:
-    user = parse_config({"command": {"cruise_speed_m_s": 0.8}, "service": {"autostart": True}})
+    user = parse_config({"planner": {"cruise_speed_m_s": 0.8}, "service": {"autostart": True}})
     placement = CoursePlacement((1.0, -2.0, -0.3), math.radians(30.0))
     cfg = sitl_config(user, make_course("forest", 5), placement, "udpin://127.0.0.1:14541", tmp_path)
     cam = cfg.camera
@@ -51,7 +51,7 @@ def test_the_service_config_renders_the_course_from_telemetry_and_round_trips(tm
     assert cfg.vehicle.connection == "udpin://127.0.0.1:14541"
     assert cfg.bus.control_endpoint == f"ipc://{tmp_path}/control.sock"
     assert cfg.service.autostart is False  # engaged by the harness's request, as a user would
-    assert cfg.command.cruise_speed_m_s == 0.8  # the user's tuning flies
+    assert cfg.planner.cruise_speed_m_s == 0.8  # the user's tuning flies
     # What the harness writes for `companion run` loads back to the same config.
     assert parse_config(tomllib.loads(render_config_toml(cfg, ["# test"]))) == cfg
 
