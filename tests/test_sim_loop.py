@@ -176,7 +176,7 @@ def test_retuned_membership_functions_change_the_flight(bank, head_on: FlightRes
     from companion.core.fuzzy.avoidance import AvoidanceController
 
     assert head_on.frame_log is not None
-    default, retuned = (AvoidanceController(c.controller, c.command) for c in (CFG, cfg))
+    default, retuned = (AvoidanceController(c.controller) for c in (CFG, cfg))
 
     def out(c: AvoidanceController, depths: np.ndarray) -> tuple[DecisionKind, float, float]:
         d = c.decide(depths)
