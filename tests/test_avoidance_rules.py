@@ -10,13 +10,15 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from companion.config.core import CommandConfig, ControllerConfig, InputTerm
-from companion.core.command import setpoint_for
+from companion.config import parse_config
+from companion.config.core import ControllerConfig, InputTerm
+from companion.core.direct import decision_setpoint
 from companion.core.fuzzy import AvoidanceController
 from companion.core.types import REGION_INDEX, REGION_NAMES, ZERO_SETPOINT, Decision, DecisionKind
 
 NEAR, FAR = 0.3, 5.0  # metres: fully near (< 0.75) and fully far (> 2.25) with the paper's terms
-CMD = CommandConfig()
+CFG = parse_config({})
+CTL = ControllerConfig()
 
 
 def depths(default: float = FAR, **regions: float) -> np.ndarray:
@@ -27,7 +29,7 @@ def depths(default: float = FAR, **regions: float) -> np.ndarray:
 
 
 def controller(**cfg: object) -> AvoidanceController:
-    return AvoidanceController(ControllerConfig(**cfg), CMD)  # type: ignore[arg-type]
+    return AvoidanceController(ControllerConfig(**cfg))  # type: ignore[arg-type]
 
 
 @pytest.fixture(scope="module")
@@ -47,8 +49,8 @@ def test_rule1_centre_far_flies_straight(ctl: AvoidanceController, others: dict[
     assert d.kind is DecisionKind.CLEAR
     assert d.yaw == pytest.approx(0.0, abs=1e-9) and d.pitch == pytest.approx(0.0, abs=1e-9)
     # Full speed unless a speed region (by default the sides) is near.
-    sides_near = any(others.get(k, others.get("default", FAR)) < 2.25 for k in CMD.avoid_speed_regions)
-    assert d.speed_fraction == pytest.approx(CMD.avoid_speed_fraction if sides_near else 1.0)
+    sides_near = any(others.get(k, others.get("default", FAR)) < 2.25 for k in CTL.avoid_speed_regions)
+    assert d.speed_fraction == pytest.approx(CTL.avoid_speed_fraction if sides_near else 1.0)
     assert "R1" in d.rule_strengths
 
 
@@ -147,7 +149,7 @@ def test_centre_blocked_without_escape_brakes(ctl: AvoidanceController) -> None:
 
 
 def test_centre_slightly_near_without_escape_goes_straight_slower() -> None:
-    ctl = AvoidanceController(ControllerConfig(), CommandConfig(avoid_speed_fraction=0.5, avoid_speed_regions=[]))
+    ctl = AvoidanceController(ControllerConfig(avoid_speed_fraction=0.5, avoid_speed_regions=[]))
     d = ctl.decide(depths(default=NEAR, center=1.95))  # near 0.2 < brake_near_degree 0.5
     assert d.kind is DecisionKind.AVOID  # not CLEAR: CLEAR means the centre is far (see module doc)
     assert d.yaw == pytest.approx(0.0, abs=1e-9) and d.pitch == pytest.approx(0.0, abs=1e-9)
@@ -155,7 +157,7 @@ def test_centre_slightly_near_without_escape_goes_straight_slower() -> None:
 
 
 def test_speed_fraction_blends_with_centre_near_degree() -> None:
-    ctl = AvoidanceController(ControllerConfig(), CommandConfig(avoid_speed_fraction=0.4))
+    ctl = AvoidanceController(ControllerConfig(avoid_speed_fraction=0.4))
     assert ctl.decide(depths(center=NEAR)).speed_fraction == pytest.approx(0.4)
     assert ctl.decide(depths(center=1.5)).speed_fraction == pytest.approx(0.7)
     assert ctl.decide(depths()).speed_fraction == 1.0
@@ -165,7 +167,7 @@ def test_a_near_side_slows_the_vehicle_like_a_near_centre() -> None:
     # With the sides listed, a box passing beside the vehicle (centre clear, left at 1.5 m: near degree
     # 0.5) slows it as much as the same box ahead would.
     sides = AvoidanceController(
-        ControllerConfig(), CommandConfig(avoid_speed_fraction=0.4, avoid_speed_regions=["left", "right"])
+        ControllerConfig(avoid_speed_fraction=0.4, avoid_speed_regions=["left", "right"])
     )
     d = sides.decide(depths(left=1.5))
     assert d.kind is DecisionKind.CLEAR and d.yaw > 0.0  # steers away (side rule S1)
@@ -173,7 +175,7 @@ def test_a_near_side_slows_the_vehicle_like_a_near_centre() -> None:
     assert sides.decide(depths(right=NEAR)).speed_fraction == pytest.approx(0.4)
     assert sides.decide(depths(up=NEAR)).speed_fraction == 1.0  # not listed
     # The default (and the paper's): the centre only.
-    centre_only = AvoidanceController(ControllerConfig(), CommandConfig(avoid_speed_fraction=0.4))
+    centre_only = AvoidanceController(ControllerConfig(avoid_speed_fraction=0.4))
     assert centre_only.decide(depths(left=1.5)).speed_fraction == 1.0
 
 
@@ -308,30 +310,27 @@ def _decision(kind: DecisionKind = DecisionKind.AVOID, yaw: float = 0.5, pitch: 
 
 
 def test_setpoint_signs_and_scales() -> None:
-    cmd = CommandConfig(cruise_speed_m_s=2.0, max_yaw_rate_deg_s=40.0, max_vertical_speed_m_s=0.6)
-    sp = setpoint_for(_decision(yaw=0.5, pitch=0.5), 0.1, cmd)
+    """A decision flown directly (the offline tools' setpoint) scales by the planner's limits."""
+    cfg = parse_config({"planner": {"cruise_speed_m_s": 2.0, "max_yaw_rate_deg_s": 40.0, "max_vertical_speed_m_s": 0.6}})
+    sp = decision_setpoint(_decision(yaw=0.5, pitch=0.5), cfg)
     assert sp.forward_m_s == pytest.approx(1.6)
     assert sp.yaw_rate_deg_s == pytest.approx(20.0)  # positive yaw = turn right = positive rate
     assert sp.down_m_s == pytest.approx(-0.3)  # pitch up = climb = negative down
     assert sp.right_m_s == 0.0
-    sp = setpoint_for(_decision(yaw=-1.0, pitch=-1.0, speed=1.0), 0.1, cmd)
+    sp = decision_setpoint(_decision(yaw=-1.0, pitch=-1.0, speed=1.0), cfg)
     assert (sp.forward_m_s, sp.yaw_rate_deg_s, sp.down_m_s) == pytest.approx((2.0, -40.0, 0.6))
 
 
-def test_setpoint_zero_when_stale_missing_or_braking() -> None:
-    assert setpoint_for(None, 0.0, CMD) == ZERO_SETPOINT
-    assert setpoint_for(_decision(), CMD.stale_frame_timeout_s + 1e-3, CMD).is_zero
-    assert not setpoint_for(_decision(), CMD.stale_frame_timeout_s, CMD).is_zero  # stale is "older than"
-    for age in (math.inf, math.nan):
-        assert setpoint_for(_decision(), age, CMD).is_zero
-    assert setpoint_for(_decision(DecisionKind.BRAKE, 0.0, 0.0, 0.0), 0.0, CMD).is_zero
-    assert setpoint_for(_decision(yaw=math.nan), 0.0, CMD).is_zero
+def test_setpoint_zero_when_braking_or_not_finite() -> None:
+    assert decision_setpoint(_decision(DecisionKind.BRAKE, 0.0, 0.0, 0.0), CFG) == ZERO_SETPOINT
+    assert decision_setpoint(_decision(yaw=math.nan), CFG).is_zero
+    assert decision_setpoint(_decision(speed=math.inf), CFG).is_zero
 
 
 def test_setpoint_from_a_real_decision(ctl: AvoidanceController) -> None:
-    sp = setpoint_for(ctl.decide(depths(center=NEAR, left=NEAR, up=NEAR)), 0.05, CMD)
+    sp = decision_setpoint(ctl.decide(depths(center=NEAR, left=NEAR, up=NEAR)), CFG)
     assert sp.yaw_rate_deg_s > 0 and sp.down_m_s > 0 and sp.forward_m_s > 0  # right and down
-    assert setpoint_for(ctl.decide(depths(default=NEAR)), 0.05, CMD).is_zero
+    assert decision_setpoint(ctl.decide(depths(default=NEAR)), CFG).is_zero
 
 
 @pytest.mark.parametrize("wall_m", [0.9, 1.2, 1.4])

@@ -110,9 +110,9 @@ def test_fit_pools_makes_monotone_extends_and_refuses_too_little() -> None:
 
 
 def test_config_editor_keeps_the_file_and_refuses_what_it_cannot_edit() -> None:
-    text = "# top\n[lut]\n# the table\npoints_m = [\n  [0.2, 0.2],  # a comment ]\n  [40.0, 40.0],\n]\nmedian_frames = 3\n\n[command]\ncruise_speed_m_s = 0.5\n"
+    text = "# top\n[lut]\n# the table\npoints_m = [\n  [0.2, 0.2],  # a comment ]\n  [40.0, 40.0],\n]\nmedian_frames = 3\n\n[planner]\ncruise_speed_m_s = 0.5\n"
     out = set_config_value(text, "lut", "points_m", [[0.2, 0.25], [40.0, 46.0]])
-    assert out == "# top\n[lut]\n# the table\npoints_m = [[0.2, 0.25], [40.0, 46.0]]\nmedian_frames = 3\n\n[command]\ncruise_speed_m_s = 0.5\n"
+    assert out == "# top\n[lut]\n# the table\npoints_m = [[0.2, 0.25], [40.0, 46.0]]\nmedian_frames = 3\n\n[planner]\ncruise_speed_m_s = 0.5\n"
     assert set_config_value("", "calibration", "file", "/x/c.yaml") == '[calibration]\nfile = "/x/c.yaml"\n'
     assert set_config_value("[lut]\n", "lut", "median_frames", 5) == "[lut]\nmedian_frames = 5\n"
     with pytest.raises(ConfigError, match="set lut.points_m by hand"):

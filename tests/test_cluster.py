@@ -59,8 +59,8 @@ def ray_shutdown() -> Iterator[None]:
 
 
 def test_a_setting_is_a_dotted_path_and_a_range() -> None:
-    assert parse_setting("command.cruise_speed_m_s=0.5:1.5") == ("command.cruise_speed_m_s", 0.5, 1.5)
-    for bad in ("command.cruise_speed_m_s", "command.cruise_speed_m_s=1.5", "x=a:b", "x=2:1", "x=nan:1"):
+    assert parse_setting("planner.cruise_speed_m_s=0.5:1.5") == ("planner.cruise_speed_m_s", 0.5, 1.5)
+    for bad in ("planner.cruise_speed_m_s", "planner.cruise_speed_m_s=1.5", "x=a:b", "x=2:1", "x=nan:1"):
         with pytest.raises(InputError):
             parse_setting(bad)
 
@@ -70,19 +70,19 @@ def test_ranges_are_clipped_to_the_field_bounds_and_the_envelope() -> None:
     speed, weight, breakpoint_, resolution = resolve_settings(
         cfg,
         [
-            ("command.cruise_speed_m_s", 0.5, 9.0),  # envelope.max_horizontal_speed_m_s = 4
+            ("planner.cruise_speed_m_s", 0.5, 9.0),  # envelope.max_horizontal_speed_m_s = 4
             ("controller.main_rules.R7.weight", 0.2, 3.0),  # a rule by its name; weight <= 1
             ("controller.input_terms.near.params_m.1", 1.8, 2.6),  # a breakpoint: no bounds of its own
             ("controller.output_resolution", 10, 500),  # an integer >= 21
         ],
     )
-    assert (speed.low, speed.high, speed.start) == (0.5, cfg.envelope.max_horizontal_speed_m_s, cfg.command.cruise_speed_m_s)
+    assert (speed.low, speed.high, speed.start) == (0.5, cfg.envelope.max_horizontal_speed_m_s, cfg.planner.cruise_speed_m_s)
     assert (weight.low, weight.high, weight.start) == (0.2, 1.0, 0.5)
     assert (breakpoint_.low, breakpoint_.high, breakpoint_.start) == (1.8, 2.6, 2.25)
     assert (resolution.low, resolution.high, resolution.integer) == (21, 500, True)
     # A tighter envelope bounds the search tighter: the envelope of the config searched.
     tight = apply_patch(cfg, {"envelope": {"max_horizontal_speed_m_s": 1.0}, "planner": {"cruise_speed_m_s": 1.0}})
-    (clipped,) = resolve_settings(tight, [("command.cruise_speed_m_s", 0.5, 9.0)])
+    (clipped,) = resolve_settings(tight, [("planner.cruise_speed_m_s", 0.5, 9.0)])
     assert clipped.high == 1.0
 
 
@@ -104,8 +104,8 @@ def test_a_setting_that_cannot_be_searched_is_refused(path: str, lo: float, hi: 
 
 def test_a_candidate_is_validated_whole_before_it_flies() -> None:
     cfg = CompanionConfig()
-    ok = with_settings(cfg, {"controller.main_rules.R7.weight": 0.8, "command.cruise_speed_m_s": 1.1})
-    assert ok.controller.main_rules[6].weight == 0.8 and ok.command.cruise_speed_m_s == 1.1
+    ok = with_settings(cfg, {"controller.main_rules.R7.weight": 0.8, "planner.cruise_speed_m_s": 1.1})
+    assert ok.controller.main_rules[6].weight == 0.8 and ok.planner.cruise_speed_m_s == 1.1
     # "near" falling to 0 at 0.5 m, before it starts falling (0.75 m): not a membership function.
     with pytest.raises(ConfigError, match="non-decreasing"):
         with_settings(cfg, {"controller.input_terms.near.params_m.1": 0.5})
@@ -114,14 +114,14 @@ def test_a_candidate_is_validated_whole_before_it_flies() -> None:
 def test_the_space_file_reads_toml_and_yaml(tmp_path: Path) -> None:
     toml_file = tmp_path / "space.toml"
     toml_file.write_text(
-        '"command.cruise_speed_m_s" = [0.5, 1.5]\n[controller.main_rules.R7]\nweight = { low = 0.2, high = 1.0 }\n'
+        '"planner.cruise_speed_m_s" = [0.5, 1.5]\n[controller.main_rules.R7]\nweight = { low = 0.2, high = 1.0 }\n'
     )
     yaml_file = tmp_path / "space.yaml"
-    yaml_file.write_text("command.cruise_speed_m_s: [0.5, 1.5]\ncontroller.main_rules.R7.weight: {low: 0.2, high: 1.0}\n")
-    want = [("command.cruise_speed_m_s", 0.5, 1.5), ("controller.main_rules.R7.weight", 0.2, 1.0)]
+    yaml_file.write_text("planner.cruise_speed_m_s: [0.5, 1.5]\ncontroller.main_rules.R7.weight: {low: 0.2, high: 1.0}\n")
+    want = [("planner.cruise_speed_m_s", 0.5, 1.5), ("controller.main_rules.R7.weight", 0.2, 1.0)]
     assert load_space_file(toml_file) == want
     assert load_space_file(yaml_file) == want
-    (tmp_path / "bad.toml").write_text('"command.cruise_speed_m_s" = 1.5\n')
+    (tmp_path / "bad.toml").write_text('"planner.cruise_speed_m_s" = 1.5\n')
     with pytest.raises(InputError, match=r"expected \[LOW, HIGH\]"):
         load_space_file(tmp_path / "bad.toml")
 
@@ -129,13 +129,13 @@ def test_the_space_file_reads_toml_and_yaml(tmp_path: Path) -> None:
 def test_the_best_settings_fragment_loads_with_the_config_models() -> None:
     cfg = CompanionConfig()
     values = {
-        "command.cruise_speed_m_s": 1.2,
+        "planner.cruise_speed_m_s": 1.2,
         "controller.main_rules.R7.weight": 0.7,
         "controller.input_terms.near.params_m.1": 2.4,
     }
     patch = best_patch(cfg, values)
     # A value inside a list carries the list: a config's lists are replaced, not merged.
-    assert set(patch) == {"command.cruise_speed_m_s", "controller.main_rules", "controller.input_terms.near.params_m"}
+    assert set(patch) == {"planner.cruise_speed_m_s", "controller.main_rules", "controller.input_terms.near.params_m"}
     text = fragment_toml(patch, ["the best of 3 trials"])
     assert apply_patch(cfg, tomllib.loads(text)) == with_settings(cfg, values)
     from companion.service.client import parse_assignments
@@ -166,13 +166,13 @@ def test_a_collision_ranks_a_candidate_below_every_one_without() -> None:
 
 
 def test_the_report_lists_every_trial_best_first(tmp_path: Path) -> None:
-    (setting,) = resolve_settings(CompanionConfig(), [("command.cruise_speed_m_s", 0.5, 1.5)])
+    (setting,) = resolve_settings(CompanionConfig(), [("planner.cruise_speed_m_s", 0.5, 1.5)])
     rows: list[dict[str, Any]] = [
-        {"trial": 1, "command.cruise_speed_m_s": 0.7, "score": 90.0, "success_pct": 100.0, "goal_pct": 100.0,
+        {"trial": 1, "planner.cruise_speed_m_s": 0.7, "score": 90.0, "success_pct": 100.0, "goal_pct": 100.0,
          "collisions": 0, "mean_goal_time_s": 100.0, "flights": 2, "problem": ""},
-        {"trial": 2, "command.cruise_speed_m_s": 1.5, "score": -1.0, "success_pct": 50.0, "goal_pct": 50.0,
+        {"trial": 2, "planner.cruise_speed_m_s": 1.5, "score": -1.0, "success_pct": 50.0, "goal_pct": 50.0,
          "collisions": 1, "mean_goal_time_s": 10.0, "flights": 2, "problem": ""},
-        {"trial": 3, "command.cruise_speed_m_s": 1.0, "score": INVALID_SCORE, "success_pct": 0.0, "goal_pct": 0.0,
+        {"trial": 3, "planner.cruise_speed_m_s": 1.0, "score": INVALID_SCORE, "success_pct": 0.0, "goal_pct": 0.0,
          "collisions": 0, "mean_goal_time_s": 0.0, "flights": 0, "problem": "candidate: invalid config: ..."},
     ]
     files = write_report(rows, [setting], tmp_path, "a tune")
@@ -188,7 +188,7 @@ def test_without_ray_the_suite_says_how_to_install_it(
 ) -> None:
     real = importlib.util.find_spec
     monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "ray" else real(name, *a))
-    for argv in (["sim", "--suite", "quick", "--ray"], ["tune", "command.cruise_speed_m_s=0.5:1", "--suite", "quick",
+    for argv in (["sim", "--suite", "quick", "--ray"], ["tune", "planner.cruise_speed_m_s=0.5:1", "--suite", "quick",
                                                        "--out", "x"]):
         assert main(argv) == 2
         err = capsys.readouterr().err.strip()
@@ -202,9 +202,9 @@ def test_without_ray_the_suite_says_how_to_install_it(
         (["x=2:1"], "low 2 is above high 1"),
         (["planner.cruise_speed_m_s=4.5:5"], "inside the safety envelope"),
         ([], "name at least one setting"),
-        (["command.cruise_speed_m_s=0.5:1", "--trials", "0"], "--trials must be >= 1"),
-        (["command.cruise_speed_m_s=0.5:1", "--kinds", "maze"], "unknown course kind 'maze'"),
-        (["command.cruise_speed_m_s=0.5:1", "--resume"], "no tune to resume here"),
+        (["planner.cruise_speed_m_s=0.5:1", "--trials", "0"], "--trials must be >= 1"),
+        (["planner.cruise_speed_m_s=0.5:1", "--kinds", "maze"], "unknown course kind 'maze'"),
+        (["planner.cruise_speed_m_s=0.5:1", "--resume"], "no tune to resume here"),
     ],
 )
 def test_tune_input_errors_are_one_line_and_exit_2(

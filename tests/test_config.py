@@ -66,8 +66,7 @@ def test_every_field_has_a_description() -> None:
         ({"controller": {"main_rules": [{"name": "x", "when": "centre is far", "then": {"yaw": "left"}}]}}, "centre"),
         ({"controller": {"main_rules": [{"name": "x", "when": "center is far", "then": {"yaw": "up"}}]}}, "'up'"),
         ({"controller": {"input_terms": {"near": {"shape": "triangle", "params_m": [1.0, 0.5, 2.0]}}}}, "non-decreasing"),
-        ({"memory": {"push_baseline_m": 0.3}}, "push_baseline_m (0.3 m) must be 0 or at least 0.45 m"),
-        ({"memory": {"trust_cell_m": 0.5}}, "push_baseline_m"),
+        ({"planner": {"floor_m": 3.0}}, "floor_m (3.0) must be below ceiling_m (3.0)"),
     ],
 )
 def test_invalid_patch_names_the_field_and_keeps_the_old(patch: dict, expected: str) -> None:
@@ -110,81 +109,33 @@ def test_parse_config_rejects_unknown_top_level_keys() -> None:
         parse_config({"stereo": {}, "typo_section": {}})
 
 
-def test_a_renamed_key_is_refused_with_its_new_name() -> None:
-    """A config written before the guard's count became seconds names the new key and the conversion
-    rather than "unknown key"; nothing is silently dropped."""
-    with pytest.raises(ConfigError, match=r"memory\.guard_clear_after_frames: renamed memory\.guard_clear_after_s.*60 frames = 4 s.*got 120"):
-        parse_config({"memory": {"guard_clear_after_frames": 120}})
-    assert parse_config({"memory": {"guard_clear_after_s": 8.0}}).memory.guard_clear_after_s == 8.0
-
-
-def test_region_name_type_lists_the_regions_in_order() -> None:
-    from typing import get_args
-
-    from companion.config.core import RegionName
-    from companion.core.types import REGION_NAMES
-
-    assert get_args(RegionName) == REGION_NAMES
-
-
-# --------------------------------------------------------------------------------------------------
-# the stereo setting against the rig (issue 15, item 6)
-
-_RIG_640 = {"camera": {"width_px": 640, "height_px": 480},
-            "calibration": {"ideal_baseline_m": 0.075, "ideal_hfov_deg": 70.0}}
-
-
-def _patched(**sections: dict) -> dict:
-    data = {k: dict(v) for k, v in _RIG_640.items()}
-    for k, v in sections.items():
-        data.setdefault(k, {}).update(v)
-    return data
-
-
-def test_the_defaults_pass_the_rig_check_without_a_warning() -> None:
-    assert check_rig_config(CompanionConfig()) == []
-    assert check_rig_config(parse_config({"camera": {"width_px": 1280, "height_px": 720},
-                                          "stereo": {"num_disparities": 128}})) == []
-
-
-@pytest.mark.parametrize(
-    ("data", "expected"),
-    [
-        (_patched(stereo={"num_disparities": 256, "backend": "opencv-bm"}), "reach into the centre region"),
-        (_patched(stereo={"num_disparities": 256, "backend": "cupy", "matcher": "sad"}), "use at most 240"),
-        ({"regions": {"safe_window_width_m": 5.0}}, "wider or taller than the 672 x 376 px view"),
-        ({"stereo": {"num_disparities": 16}}, "nothing could ever read near"),
-        ({"camera": {"width_px": 100, "height_px": 60}, "stereo": {"num_disparities": 112}}, "not below"),
-    ],
-)
-def test_settings_that_cannot_work_are_errors_naming_the_nearest_depth(data: dict, expected: str) -> None:
-    with pytest.raises(ConfigError) as exc:
-        check_rig_config(parse_config(data, source="rig.toml"), "rig.toml")
-    msg = str(exc.value)
-    assert expected in msg and "the nearest depth this rig can measure is" in msg and msg.startswith("rig.toml: ")
-
-
-def test_settings_that_work_badly_are_warnings(caplog: pytest.LogCaptureFixture) -> None:
-    cfg = parse_config(_patched(stereo={"num_disparities": 128}))  # the issue's corridor setting
-    warnings = check_rig_config(cfg)
-    assert any("searches down to 0.27 m" in w and "96 would reach 0.36 m" in w for w in warnings)
-    assert any("CPU fallback" in w for w in warnings)  # auto on a machine without a GPU: opencv-bm
-    # the SGM matcher matches every column: only the depth-range warning remains
-    sgm = check_rig_config(parse_config(_patched(stereo={"num_disparities": 128, "backend": "cupy"})))
-    assert len(sgm) == 1 and "searches down to" in sgm[0]
-    far = check_rig_config(parse_config({"stereo": {"num_disparities": 48}}))
-    assert any("nearer than 0.86 m cannot be measured" in w for w in far)
-    with caplog.at_level("WARNING", logger="companion.core.rig_check"):
-        checked = parse_config(_patched(stereo={"num_disparities": 128}), source="x.toml")
-        check_rig_config(checked, "x.toml")
-    assert checked.stereo.num_disparities == 128
-    assert any(r.message.startswith("x.toml: ") for r in caplog.records)
-
-
-def test_a_calibration_that_cannot_be_loaded_is_left_to_the_estimator(tmp_path: Path) -> None:
-    cfg = parse_config({"calibration": {"file": str(tmp_path / "missing.yaml")}, "stereo": {"num_disparities": 16}})
-    assert check_rig_config(cfg) == []
-    assert cfg.stereo.num_disparities == 16  # not checked here: the estimator reports the missing file
+def test_a_config_of_the_rule_stack_is_refused_in_one_line_naming_what_to_do(tmp_path: Path) -> None:
+    """A config written for the removed rule stack names each removed setting and what replaces it, in
+    one line, rather than "unknown key"; a setting that moved names its new place. Nothing is silently
+    dropped, and a live change naming one is refused the same way."""
+    old = tmp_path / "old.toml"
+    old.write_text(
+        "[command]\ncruise_speed_m_s = 0.7\nheading_hold_gain_per_s = 0.8\nline_hold_gain_per_m = 0.5\n"
+        "[memory]\nduration_s = 30.0\n[detour]\nspeed_m_s = 0.5\n[planner]\nkind = \"rules\"\n",
+        encoding="utf-8",
+    )
+    with pytest.raises(ConfigError) as info:
+        load_config(old)
+    message = str(info.value)
+    assert "\n" not in message and str(old) in message
+    assert "[detour]: removed with the rule stack; the local planner ([planner]) replaces it" in message
+    assert "delete the section" in message
+    assert "[memory]: removed with the rule stack" in message and "planner.block_px" in message
+    assert "command.cruise_speed_m_s: moved to planner.cruise_speed_m_s" in message
+    assert "planner.kind: removed: the local planner is the only decision layer" in message
+    assert "command.heading_hold_gain_per_s, command.line_hold_gain_per_m: removed with the rule stack" in message
+    assert "unknown key" not in message
+    with pytest.raises(ConfigError, match=r"command\.max_yaw_rate_deg_s: moved to planner\.max_yaw_rate_deg_s"):
+        apply_patch(CompanionConfig(), {"command": {"max_yaw_rate_deg_s": 60.0}})
+    with pytest.raises(ConfigError, match=r"\[memory\]: removed with the rule stack"):
+        parse_config({"memory": {"duration_s": 0.0}})
+    with pytest.raises(ConfigError, match=r"command\.cruise_sped_m_s: unknown key"):  # a typo is still a typo
+        parse_config({"command": {"cruise_sped_m_s": 1.0}})
 
 
 @pytest.mark.parametrize(
@@ -198,35 +149,29 @@ def test_a_calibration_that_cannot_be_loaded_is_left_to_the_estimator(tmp_path: 
     ],
 )
 def test_the_auto_map_options_follow_the_matcher(backend: str, matcher: str, dense: bool) -> None:
-    """memory.block_erode_px, detour.cone_from_start and detour.through_squeeze default to "auto", which
-    the loader resolves for the backend: 1 px and on with the semi-global matcher's dense map, 0 and off
-    with the others; set values stay. No "auto" is left in a loaded config."""
+    """planner.block_erode_px defaults to "auto", which the loader resolves for the backend: 1 px with
+    the semi-global matcher's dense map, 0 with the others; a set value stays. No "auto" is left in a
+    loaded config."""
     from companion.config import as_written, for_backend, semi_global_map
 
     cfg = parse_config({"stereo": {"backend": backend, "matcher": matcher}})
     assert semi_global_map(cfg.stereo, backend) is dense
-    assert (cfg.memory.block_erode_px, cfg.detour.cone_from_start, cfg.detour.through_squeeze) == (int(dense), dense, dense)
+    assert cfg.planner.block_erode_px == int(dense)
     assert cfg.stereo.backend == backend
     assert for_backend(cfg, backend) is cfg  # nothing left to resolve
-    written = as_written(cfg)
-    assert (written["memory"]["block_erode_px"], written["detour"]["through_squeeze"]) == ("auto", "auto")
-    fixed = parse_config(
-        {"stereo": {"backend": backend, "matcher": matcher}, "memory": {"block_erode_px": 2},
-         "detour": {"cone_from_start": not dense}}
-    )
-    assert (fixed.memory.block_erode_px, fixed.detour.cone_from_start, fixed.detour.through_squeeze) == (2, not dense, dense)
-    assert as_written(fixed)["memory"]["block_erode_px"] == 2
+    assert as_written(cfg)["planner"]["block_erode_px"] == "auto"
+    fixed = parse_config({"stereo": {"backend": backend, "matcher": matcher}, "planner": {"block_erode_px": 2}})
+    assert fixed.planner.block_erode_px == 2
+    assert as_written(fixed)["planner"]["block_erode_px"] == 2
 
 
 def test_a_patch_resolves_the_auto_settings_again_for_a_new_matcher() -> None:
     """A live change of matcher re-resolves the settings written "auto"; one set by the patch stays."""
     sgm = parse_config({"stereo": {"backend": "reference", "matcher": "sgm"}})
-    assert sgm.detour.through_squeeze is True
-    sad = apply_patch(sgm, {"stereo": {"matcher": "sad"}})
-    assert (sad.memory.block_erode_px, sad.detour.through_squeeze) == (0, False)
-    kept = apply_patch(sgm, {"detour": {"through_squeeze": False}})
-    assert (kept.detour.through_squeeze, kept.detour.cone_from_start) == (False, True)
-    assert apply_patch(kept, {"stereo": {"matcher": "sad"}}).detour.through_squeeze is False
+    assert sgm.planner.block_erode_px == 1
+    assert apply_patch(sgm, {"stereo": {"matcher": "sad"}}).planner.block_erode_px == 0
+    kept = apply_patch(sgm, {"planner": {"block_erode_px": 2}})
+    assert apply_patch(kept, {"stereo": {"matcher": "sad"}}).planner.block_erode_px == 2
 
 
 def test_the_default_config_resolves_auto_for_the_backend_this_machine_gets() -> None:
@@ -236,7 +181,7 @@ def test_the_default_config_resolves_auto_for_the_backend_this_machine_gets() ->
     assert concrete_backend(cfg) in ("cupy", "cpu-sgm", "opencv-bm")
     dense = semi_global_map(cfg.stereo, concrete_backend(cfg))
     assert cfg.stereo.backend == "auto"  # the estimator resolves the backend itself
-    assert (cfg.memory.block_erode_px, cfg.detour.through_squeeze) == (int(dense), dense)
+    assert cfg.planner.block_erode_px == int(dense)
 
 
 def test_the_auto_map_options_need_a_concrete_backend_and_name_their_field_when_wrong() -> None:
@@ -244,10 +189,10 @@ def test_the_auto_map_options_need_a_concrete_backend_and_name_their_field_when_
 
     with pytest.raises(ValueError, match="concrete stereo.backend"):
         for_backend(CompanionConfig(), "auto")
-    with pytest.raises(ConfigError, match="memory.block_erode_px"):
-        parse_config({"memory": {"block_erode_px": "most"}})
-    with pytest.raises(ConfigError, match="memory.block_erode_px"):
-        parse_config({"memory": {"block_erode_px": 5}})
+    with pytest.raises(ConfigError, match="planner.block_erode_px"):
+        parse_config({"planner": {"block_erode_px": "most"}})
+    with pytest.raises(ConfigError, match="planner.block_erode_px"):
+        parse_config({"planner": {"block_erode_px": 5}})
 
 
 def test_a_byte_that_is_not_utf8_names_the_file_and_its_offset(tmp_path: Path) -> None:
@@ -267,7 +212,7 @@ def test_a_byte_that_is_not_utf8_names_the_file_and_its_offset(tmp_path: Path) -
 @pytest.mark.parametrize(
     ("text", "key"),
     [
-        ('[command]\ncruise_speed_m_s = "2"\n', "command.cruise_speed_m_s"),
+        ('[planner]\ncruise_speed_m_s = "2"\n', "planner.cruise_speed_m_s"),
         ('[vehicle]\nstatus_text = "yes"\n', "vehicle.status_text"),
         ("[camera]\nwidth_px = 640.0\n", "camera.width_px"),
     ],
@@ -285,13 +230,5 @@ def test_the_file_has_strict_types_as_live_changes_do(tmp_path: Path, text: str,
 
 def test_a_whole_number_is_a_number_of_metres_in_the_file(tmp_path: Path) -> None:
     path = tmp_path / "c.toml"
-    path.write_text("[command]\ncruise_speed_m_s = 2\n", encoding="utf-8")
-    assert load_config(path).command.cruise_speed_m_s == 2.0
-
-
-def test_the_flying_cruise_is_the_cruise_of_the_stack_that_flies() -> None:
-    local = CompanionConfig()
-    assert local.planner.kind == "local"
-    assert local.flying_cruise_speed_m_s == local.planner.cruise_speed_m_s
-    rules = CompanionConfig.model_validate({"planner": {"kind": "rules"}})
-    assert rules.flying_cruise_speed_m_s == rules.command.cruise_speed_m_s
+    path.write_text("[planner]\ncruise_speed_m_s = 2\n", encoding="utf-8")
+    assert load_config(path).planner.cruise_speed_m_s == 2.0

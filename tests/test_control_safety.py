@@ -57,31 +57,29 @@ def _error(reply: dict) -> str:
 
 def test_strict_types_on_the_wire() -> None:
     cfg = CompanionConfig()
-    with pytest.raises(ConfigError, match=r"command.cruise_speed_m_s: Input should be a valid number \(got '2.5'\)"):
-        apply_patch(cfg, {"command": {"cruise_speed_m_s": "2.5"}})
-    with pytest.raises(ConfigError, match="command.cruise_speed_m_s: Input should be a valid number"):
-        apply_patch(cfg, {"command": {"cruise_speed_m_s": True}})
+    with pytest.raises(ConfigError, match=r"planner.cruise_speed_m_s: Input should be a valid number \(got '2.5'\)"):
+        apply_patch(cfg, {"planner": {"cruise_speed_m_s": "2.5"}})
+    with pytest.raises(ConfigError, match="planner.cruise_speed_m_s: Input should be a valid number"):
+        apply_patch(cfg, {"planner": {"cruise_speed_m_s": True}})
     with pytest.raises(ConfigError, match="vehicle.require_armed_to_engage: Input should be a valid boolean"):
         apply_patch(cfg, {"vehicle": {"require_armed_to_engage": 0}})
     with pytest.raises(ConfigError, match="finite"):
-        apply_patch(cfg, {"command": {"cruise_speed_m_s": float("nan")}})
-    assert apply_patch(cfg, {"command": {"cruise_speed_m_s": 1}}).command.cruise_speed_m_s == 1.0  # an integer is a number
+        apply_patch(cfg, {"planner": {"cruise_speed_m_s": float("nan")}})
+    assert apply_patch(cfg, {"planner": {"cruise_speed_m_s": 1}}).planner.cruise_speed_m_s == 1.0  # an integer is a number
 
 
 @pytest.mark.parametrize(
     ("patch", "named"),
     [
-        ({"command": {"cruise_speed_m_s": 15.0}}, "envelope.max_horizontal_speed_m_s"),
+        ({"planner": {"cruise_speed_m_s": 15.0}}, "envelope.max_horizontal_speed_m_s"),
         ({"command": {"stale_frame_timeout_s": 2.0, "failsafe_timeout_s": 4.0}}, "envelope.max_stale_frame_timeout_s"),
         ({"command": {"failsafe_timeout_s": 30.0}}, "envelope.max_failsafe_timeout_s"),
         ({"vehicle": {"setpoint_rate_hz": 2.0}}, "envelope.min_setpoint_rate_hz"),
         ({"vehicle": {"require_armed_to_engage": False}}, "envelope.arming_check_may_be_off"),
         ({"service": {"override_max_duration_s": 300.0}}, "envelope.max_override_duration_s"),
         ({"service": {"override_respects_brake": False}}, "envelope.override_may_ignore_brake"),
-        ({"memory": {"duration_s": 0.0}}, "envelope.memory_may_be_off"),
-        ({"command": {"brake_hold_gain_per_s": 0.0}}, "envelope.brake_hold_may_be_off"),
-        ({"command": {"max_yaw_rate_deg_s": 200.0}}, "envelope.max_yaw_rate_deg_s"),
-        ({"command": {"max_vertical_speed_m_s": 3.0}}, "envelope.max_vertical_speed_m_s"),
+        ({"planner": {"max_yaw_rate_deg_s": 200.0}}, "envelope.max_yaw_rate_deg_s"),
+        ({"planner": {"max_vertical_speed_m_s": 3.0}}, "envelope.max_vertical_speed_m_s"),
     ],
 )
 def test_a_config_outside_its_envelope_is_refused_naming_the_limit(patch: dict, named: str) -> None:
@@ -91,12 +89,11 @@ def test_a_config_outside_its_envelope_is_refused_naming_the_limit(patch: dict, 
 
 
 def test_the_envelope_itself_widens_only_in_the_file() -> None:
-    wide = parse_config({"envelope": {"max_horizontal_speed_m_s": 5.0}, "command": {"cruise_speed_m_s": 4.0}})
+    wide = parse_config({"envelope": {"max_horizontal_speed_m_s": 5.0}, "planner": {"cruise_speed_m_s": 4.5}})
     assert envelope_violations(wide) == []
-    paper = ROOT / "config" / "paper.toml"
     from companion.config import load_config
 
-    assert load_config(paper).memory.duration_s == 0.0  # the paper's profile opens the two it needs
+    assert envelope_violations(load_config(ROOT / "config" / "paper.toml")) == []  # the paper's profile fits the defaults
 
 
 def test_a_controller_blind_to_near_is_refused() -> None:
@@ -123,15 +120,19 @@ def test_a_controller_blind_to_near_is_refused() -> None:
 
 def test_what_may_change_while_engaged() -> None:
     cfg = CompanionConfig()
-    faster = apply_patch(cfg, {"command": {"cruise_speed_m_s": 1.0}, "controller": {"preferred_yaw_side": "left"}})
-    assert live_change_refusal(cfg, faster, engaged=True, from_file=False) is None  # tuning
+    tuned = apply_patch(cfg, {"controller": {"preferred_yaw_side": "left"}, "lut": {"median_frames": 5}})
+    assert live_change_refusal(cfg, tuned, engaged=True, from_file=False) is None  # tuning
+    slower = apply_patch(cfg, {"planner": {"cruise_speed_m_s": 1.0}})
+    assert "disengage first to change planner.cruise_speed_m_s" in live_change_refusal(
+        cfg, slower, engaged=True, from_file=False
+    )
     later_stale = apply_patch(cfg, {"command": {"stale_frame_timeout_s": 0.4}})
     assert "disengage first to change command.stale_frame_timeout_s" in live_change_refusal(
         cfg, later_stale, engaged=True, from_file=False
     )
     assert live_change_refusal(cfg, later_stale, engaged=False, from_file=False) is None
-    smaller_memory = apply_patch(cfg, {"memory": {"guard_distance_m": 0.3}})
-    assert "memory.guard_distance_m" in live_change_refusal(cfg, smaller_memory, engaged=True, from_file=False)
+    later_watchdog = apply_patch(cfg, {"command": {"progress_step_m": 2.0}})
+    assert "command.progress_step_m" in live_change_refusal(cfg, later_watchdog, engaged=True, from_file=False)
     widened = apply_patch(cfg, {}).model_copy(
         update={"envelope": cfg.envelope.model_copy(update={"max_horizontal_speed_m_s": 3.0})}
     )
@@ -139,7 +140,7 @@ def test_what_may_change_while_engaged() -> None:
     assert "only while not engaged" in live_change_refusal(cfg, widened, engaged=True, from_file=True)
     assert live_change_refusal(cfg, widened, engaged=False, from_file=True) is None
     frozen = cfg.model_copy(update={"envelope": cfg.envelope.model_copy(update={"live_changes_while_engaged": "none"})})
-    assert "no live changes while engaged" in live_change_refusal(frozen, faster.model_copy(update={"envelope": frozen.envelope}), engaged=True, from_file=False)
+    assert "no live changes while engaged" in live_change_refusal(frozen, tuned.model_copy(update={"envelope": frozen.envelope}), engaged=True, from_file=False)
 
 
 # ---------------------------------------------------------------------------------------------- a running service
@@ -148,15 +149,16 @@ def test_what_may_change_while_engaged() -> None:
 def test_live_changes_while_engaged_over_the_wire(running) -> None:
     service, link, client, _ = running
     _engage(client, link)
-    assert client.call("set_config", patch={"command": {"cruise_speed_m_s": 0.9}})["ok"]  # tuning
-    assert "outside the safety envelope" in _error(client.call("set_config", patch={"command": {"cruise_speed_m_s": 15}}))
+    assert client.call("set_config", patch={"controller": {"avoid_speed_fraction": 0.2}})["ok"]  # tuning
+    assert "disengage first" in _error(client.call("set_config", patch={"planner": {"cruise_speed_m_s": 0.9}}))
+    assert "outside the safety envelope" in _error(client.call("set_config", patch={"planner": {"cruise_speed_m_s": 15}}))
     assert "disengage first" in _error(client.call("set_config", patch={"command": {"stale_frame_timeout_s": 0.3}}))
     assert "cannot change the safety envelope" in _error(
         client.call("set_config", patch={"envelope": {"max_horizontal_speed_m_s": 10.0}})
     )
     assert "not brake" in _error(client.call("set_config", patch={"lut": {"points_m": [[0.2, 2.5], [40.0, 60.0]]}}))
-    assert "valid number" in _error(client.call("set_config", patch={"command": {"cruise_speed_m_s": "0.8"}}))
-    assert service.config.command.cruise_speed_m_s == 0.9 and service.config.command.stale_frame_timeout_s == 0.5
+    assert "valid number" in _error(client.call("set_config", patch={"planner": {"cruise_speed_m_s": "0.8"}}))
+    assert service.config.controller.avoid_speed_fraction == 0.2 and service.config.command.stale_frame_timeout_s == 0.5
     assert client.call("disengage")["ok"]
     assert wait_until(lambda: client.call("status")["result"]["state"] == "disengaged", 3.0)
     assert client.call("set_config", patch={"command": {"stale_frame_timeout_s": 0.3}})["ok"]  # not engaged now
@@ -164,14 +166,14 @@ def test_live_changes_while_engaged_over_the_wire(running) -> None:
 
 def test_a_good_reload_clears_the_last_rejection(running) -> None:
     service, _, client, config_path = running
-    config_path.write_text("[command]\ncruise_speed_m_s = -1\n")
+    config_path.write_text("[planner]\ncruise_speed_m_s = -1\n")
     assert "cruise_speed_m_s" in _error(client.call("reload"))
     assert "reload rejected" in client.call("status")["result"]["last_error"]
     bus = service.config.bus
     config_path.write_text(
         f'[bus]\nhealth_endpoint = "{bus.health_endpoint}"\ncontrol_endpoint = "{bus.control_endpoint}"\n'
         f"requests_per_s_per_client = {bus.requests_per_s_per_client}\nmax_requests_per_s = {bus.max_requests_per_s}\n"
-        '[camera]\nsource = "sim"\nfps_hz = 15.0\n[stereo]\nbackend = "opencv-bm"\n[command]\ncruise_speed_m_s = 0.6\n'
+        '[camera]\nsource = "sim"\nfps_hz = 15.0\n[stereo]\nbackend = "opencv-bm"\n[planner]\ncruise_speed_m_s = 0.6\n'
     )
     assert client.call("reload")["ok"]
     assert client.call("status")["result"]["last_error"] is None
@@ -470,7 +472,7 @@ def test_ctl_finds_the_endpoint_in_a_file_whose_other_sections_are_invalid(runni
     broken = config_path.parent / "broken.toml"
     broken.write_text(
         f'[bus]\ncontrol_endpoint = "{service.bus.control_endpoint}"\nhealth_endpoint = "{service.bus.health_endpoint}"\n'
-        "[command]\ncruise_speed_m_s = -5\n[nonsense]\nx = 1\n"
+        "[planner]\ncruise_speed_m_s = -5\n[nonsense]\nx = 1\n"
     )
     assert load_bus_config(broken).control_endpoint == service.bus.control_endpoint
     out = subprocess.run(

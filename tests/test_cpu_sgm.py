@@ -191,7 +191,7 @@ def test_the_backend_makes_the_dense_map_and_refuses_the_core_factory() -> None:
     from companion.core.disparity import make_cpu_matcher
 
     got = CompanionConfig.model_validate({"stereo": {"backend": "cpu-sgm"}})
-    assert got.memory.block_erode_px == 1 and got.detour.cone_from_start is True
+    assert got.planner.block_erode_px == 1
     with pytest.raises(BackendError, match="cpu-sgm"):
         make_cpu_matcher(_cfg(backend="cpu-sgm").stereo)
 

@@ -247,11 +247,11 @@ def test_aloe_with_the_sgm_reference_and_opencv(tmp_path: Path) -> None:
     assert sgm["density_known"] > bm["density_known"] + 0.15
 
 
-def test_memory_block_report_tells_smeared_edges_from_spikes_on_plain_and_textured_surfaces() -> None:
+def test_map_block_report_tells_smeared_edges_from_spikes_on_plain_and_textured_surfaces() -> None:
     """A foreground edge smeared 3 px onto the background is too near at a jump; a lone spike is too
     near on a plain or a textured surface, by the left image's texture; near blocks left unmatched are
     not seen."""
-    from companion.core.evaluation import memory_block_report
+    from companion.core.evaluation import map_block_report
 
     h, w = 64, 96
     gt = np.full((h, w), 5.0, np.float32)
@@ -263,11 +263,11 @@ def test_memory_block_report_tells_smeared_edges_from_spikes_on_plain_and_textur
     out[56, 84] = 12.0  # a spike on the textured part
     left = np.full((h, w), 120, np.uint8)
     left[48:, 72:] = np.random.default_rng(0).integers(0, 256, (h - 48, w - 72), dtype=np.uint8)
-    r = memory_block_report(out, gt, 4, near_px=10.0, left=left)
+    r = map_block_report(out, gt, 4, near_px=10.0, left=left)
     assert r["too_near"] == 8 + 2  # the smear's column of 8 blocks (cols 36-39), two spikes
     assert r["too_near_at_jump"] == 8
     assert (r["too_near_plain"], r["too_near_textured"]) == (1, 1)
     assert r["near"] == 8 * 5 and r["near_seen"] == 4 * 5  # the box's lower half of blocks
     assert r["blocks"] == (h // 4) * (w // 4) - 4 * 5
-    bare = memory_block_report(out, gt, 4, near_px=10.0)
+    bare = map_block_report(out, gt, 4, near_px=10.0)
     assert np.isnan(bare["too_near_plain"]) and bare["too_near"] == r["too_near"]

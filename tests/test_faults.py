@@ -113,7 +113,7 @@ def test_autopilot_silent_then_back(flying) -> None:
 
 def test_bad_reload_while_engaged_changes_nothing_and_the_stream_goes_on(flying) -> None:
     peer, service, camera, client, config_path = flying
-    config_path.write_text("[command]\ncruise_speed_m_s = -1\n")
+    config_path.write_text("[planner]\ncruise_speed_m_s = -1\n")
     t0 = time.monotonic()
     reply = client.call("reload")
     assert not reply["ok"] and "cruise_speed_m_s" in reply["error"]["message"]
@@ -133,7 +133,7 @@ def test_bad_reload_while_engaged_changes_nothing_and_the_stream_goes_on(flying)
     )
     config_path.write_text(head + "[command]\nstale_frame_timeout_s = 0.3\n")
     assert "disengage first" in client.call("reload")["error"]["message"]
-    config_path.write_text(head + "[command]\ncruise_speed_m_s = 0.6\n")
+    config_path.write_text(head + "[controller]\navoid_speed_fraction = 0.2\n")  # tuning: applies while engaged
     assert client.call("reload")["ok"]
     status = _status(client)
     assert status["last_error"] is None and status["state"] == "engaged"

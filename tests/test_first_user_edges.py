@@ -49,7 +49,7 @@ class _ScriptedEstimator:
 
 
 def test_health_shows_unknown_as_null_and_marks_what_the_release_filter_made() -> None:
-    cfg = parse_config({"memory": {"duration_s": 0.0}, "envelope": {"memory_may_be_off": True}})
+    cfg = parse_config({})
     nan = float("nan")
     centre = [3.0, 3.0, 3.0, nan, nan, 3.0, 3.0, 3.0, 3.0]
     pipe = Pipeline(cfg, 64, 48, make_estimator=None, estimator=_ScriptedEstimator(centre))  # type: ignore[arg-type]

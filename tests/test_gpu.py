@@ -436,15 +436,15 @@ def test_disparity_preview_is_the_block_maximum() -> None:
 
 
 @pytest.mark.parametrize(("preview", "block"), [(4, 4), (4, 8), (0, 4), (2, 6)])
-def test_memory_blocks_equal_the_cpu_reference(preview: int, block: int) -> None:
-    """``near_blocks`` (the obstacle memory's input) is :func:`block_max` of the reference disparity,
+def test_map_blocks_equal_the_cpu_reference(preview: int, block: int) -> None:
+    """``near_blocks`` (the local planner's map input) is :func:`block_max` of the reference disparity,
     whether the device reduced it (preview factor) or the host did."""
-    from companion.core.memory import block_max
+    from companion.core.blocks import block_max
 
     w, h = 330, 190
     left, right = _textured_pair(h, w, np.random.default_rng(11))
     cfg = _cfg(D=64, disparity_preview_downsample=preview)
-    cfg = cfg.model_copy(update={"memory": cfg.memory.model_copy(update={"block_px": block})})
+    cfg = cfg.model_copy(update={"planner": cfg.planner.model_copy(update={"block_px": block})})
     res = _gpu(cfg, w, h).estimate(_grey_frame(left, right), near_block_px=block)
     assert res.disparity is None
     np.testing.assert_array_equal(res.near_blocks, block_max(_ref_float(left, right, cfg), block))
@@ -452,16 +452,16 @@ def test_memory_blocks_equal_the_cpu_reference(preview: int, block: int) -> None
 
 @pytest.mark.parametrize("matcher", ["sad", "sgm"])
 @pytest.mark.parametrize(("preview", "block", "erode"), [(4, 4, 1), (4, 8, 2), (0, 4, 1)])
-def test_eroded_memory_blocks_equal_the_cpu_reference(matcher: str, preview: int, block: int, erode: int) -> None:
-    """With ``memory.block_erode_px``, ``near_blocks`` is :func:`block_max` of the reference disparity
+def test_eroded_map_blocks_equal_the_cpu_reference(matcher: str, preview: int, block: int, erode: int) -> None:
+    """With ``planner.block_erode_px``, ``near_blocks`` is :func:`block_max` of the reference disparity
     eroded along rows, whether the device eroded and reduced it (preview factor) or the host did; the
     preview itself is not eroded."""
-    from companion.core.memory import block_max
+    from companion.core.blocks import block_max
 
     w, h = 330, 190
     left, right = _textured_pair(h, w, np.random.default_rng(14))
     cfg = _cfg(D=64, matcher=matcher, disparity_preview_downsample=preview)
-    cfg = cfg.model_copy(update={"memory": cfg.memory.model_copy(update={"block_px": block, "block_erode_px": erode})})
+    cfg = cfg.model_copy(update={"planner": cfg.planner.model_copy(update={"block_px": block, "block_erode_px": erode})})
     est = _gpu(cfg, w, h)
     frame = _grey_frame(left, right)
     res = est.estimate(frame, want_disparity=True, near_block_px=block, near_erode_px=erode)
@@ -474,16 +474,16 @@ def test_eroded_memory_blocks_equal_the_cpu_reference(matcher: str, preview: int
     np.testing.assert_array_equal(plain.near_blocks, block_max(ref, block))
 
 
-def test_memory_block_size_must_suit_the_preview_factor() -> None:
+def test_map_block_size_must_suit_the_preview_factor() -> None:
     from companion.errors import ConfigError
 
     cfg = _cfg(D=64, disparity_preview_downsample=4)
-    cfg = cfg.model_copy(update={"memory": cfg.memory.model_copy(update={"block_px": 6})})
-    with pytest.raises(ConfigError, match="memory.block_px"):
+    cfg = cfg.model_copy(update={"planner": cfg.planner.model_copy(update={"block_px": 6})})
+    with pytest.raises(ConfigError, match="planner.block_px"):
         _gpu(cfg, 160, 90)
 
 
-def test_pipeline_memory_points_equal_the_cpu_reference() -> None:
+def test_pipeline_map_blocks_equal_the_cpu_reference() -> None:
     w, h = 320, 180
     cfg = _cfg(D=64, disparity_preview_downsample=4)
     _, frames = rendered_frames(BenchSize(w, h, 64), 3)
@@ -491,8 +491,7 @@ def test_pipeline_memory_points_equal_the_cpu_reference() -> None:
     gpu, ref = make_pipeline(cfg, w, h), make_pipeline(ref_cfg, w, h)
     for k, frame in enumerate(frames):
         a, b = gpu.process(frame, timestamp_s=0.1 * k), ref.process(frame, timestamp_s=0.1 * k)
-        np.testing.assert_array_equal(a.near_points_cam_m, b.near_points_cam_m)
-        assert a.view_limits == b.view_limits
+        np.testing.assert_array_equal(a.near_blocks, b.near_blocks)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -721,13 +720,13 @@ def test_sgm_options_give_the_same_results(tmp_path: Path, gpu: dict[str, Any]) 
 
 
 @pytest.mark.parametrize(("preview", "block"), [(4, 4), (4, 8), (0, 4), (2, 6)])
-def test_sgm_preview_and_memory_blocks_equal_the_cpu_reference(preview: int, block: int) -> None:
-    from companion.core.memory import block_max
+def test_sgm_preview_and_map_blocks_equal_the_cpu_reference(preview: int, block: int) -> None:
+    from companion.core.blocks import block_max
 
     w, h = 330, 190
     left, right = _textured_pair(h, w, np.random.default_rng(13))
     cfg = _cfg(D=64, matcher="sgm", disparity_preview_downsample=preview)
-    cfg = cfg.model_copy(update={"memory": cfg.memory.model_copy(update={"block_px": block})})
+    cfg = cfg.model_copy(update={"planner": cfg.planner.model_copy(update={"block_px": block})})
     res = _gpu(cfg, w, h).estimate(_grey_frame(left, right), want_disparity=True, near_block_px=block)
     ref = fixed_to_float(_sgm_ref(left, right, cfg))
     np.testing.assert_array_equal(res.near_blocks, block_max(ref, block))
@@ -754,7 +753,7 @@ def test_sgm_is_the_default_and_the_pipelines_agree() -> None:
     for k, frame in enumerate(frames):
         a, b = gpu.process(frame, timestamp_s=0.1 * k), ref.process(frame, timestamp_s=0.1 * k)
         np.testing.assert_array_equal(a.raw.depth_m, b.raw.depth_m)
-        np.testing.assert_array_equal(a.near_points_cam_m, b.near_points_cam_m)
+        np.testing.assert_array_equal(a.near_blocks, b.near_blocks)
 
 
 def test_sgm_small_images_and_frame_errors() -> None:

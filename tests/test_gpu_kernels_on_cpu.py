@@ -71,11 +71,11 @@ def test_grey_kernel_source_equals_to_grey(w: int, channels: int) -> None:
     np.testing.assert_array_equal(gr, to_grey(right))
 
 
-# 4 px blocks as the memory's; 3 on 50 x 19: partial edge blocks; erosion reaching past a block and the
+# 4 px blocks as the map's; 3 on 50 x 19: partial edge blocks; erosion reaching past a block and the
 # image; k = 0: the preview's reduction (preview_max shares it)
 @pytest.mark.parametrize(("w", "h", "f", "k"), [(64, 20, 4, 1), (50, 19, 3, 2), (40, 9, 4, 4), (50, 19, 4, 0)])
-def test_memory_blocks_kernel_source_equals_block_max_of_the_eroded_disparity(w: int, h: int, f: int, k: int) -> None:
-    from companion.core.memory import block_max
+def test_map_blocks_kernel_source_equals_block_max_of_the_eroded_disparity(w: int, h: int, f: int, k: int) -> None:
+    from companion.core.blocks import block_max
     from companion.gpu.hostemu import HostKernels
 
     rng = np.random.default_rng([w, k])

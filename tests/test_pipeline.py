@@ -120,17 +120,17 @@ def test_reconfigure_changes_the_next_decision_without_rebuilding_the_estimator(
 
 
 def test_the_pipeline_flies_the_auto_map_options_resolved_on_every_config_it_gets() -> None:
-    """The loader resolves memory.block_erode_px "auto" for the backend (the reference SGM: 1 px) and the
-    pipeline flies it, on the first config and on every reconfigure; a config that only differs in the
-    controller changes only the controller."""
+    """The loader resolves planner.block_erode_px "auto" for the backend (the reference SGM: 1 px) and
+    the pipeline flies it, on the first config and on every reconfigure; a config that only differs in
+    the controller changes only the controller."""
     cfg = parse_config({"stereo": {"backend": "reference", "matcher": "sgm"}})
     pipeline = make_pipeline(cfg, W, H)
-    assert pipeline.config.memory.block_erode_px == 1 and pipeline.config.detour.through_squeeze is True
+    assert pipeline.config.planner.block_erode_px == 1
     cfg = apply_patch(cfg, {"controller": {"defuzzification": "bisector"}})
     assert pipeline.reconfigure(cfg) == ["controller"]
-    assert pipeline.config.memory.block_erode_px == 1
-    assert pipeline.reconfigure(apply_patch(cfg, {"memory": {"block_erode_px": 0}})) == ["memory"]
-    assert pipeline.config.memory.block_erode_px == 0
+    assert pipeline.config.planner.block_erode_px == 1
+    assert pipeline.reconfigure(apply_patch(cfg, {"planner": {"block_erode_px": 0}})) == ["planner"]
+    assert pipeline.config.planner.block_erode_px == 0
 
 
 def test_reconfigure_of_stereo_rebuilds_the_estimator() -> None:
@@ -151,52 +151,20 @@ def test_wrong_frame_size_is_a_frame_error() -> None:
         pipeline.process(frame[:, :-1], timestamp_s=0.0)  # odd side-by-side width
 
 
-def test_memory_points_land_on_the_obstacle_seen() -> None:
-    """A box 1 m ahead to the left: after memory.confirm_frames frames its near face comes back as
-    points, placed (through the pose) on that face; nothing comes from the open right side."""
-    from companion.core.memory import camera_points_to_ned
-
-    box = Box.on_ground(1.0 + 0.5, -1.0, (1.0, 1.6, 6.0))  # near face 1.0 m north, east -1.8 .. -0.2
-    cfg, pipeline, frame, _ = _render(Scene(obstacles=(box,)))
-    # The box, not the ground 1.5 m below (nor, with the detour map's depth, anything beyond 1.2 m).
-    cfg = apply_patch(cfg, {"memory": {"max_depth_m": 1.2, "map_depth_m": 1.2}})
-    pipeline.reconfigure(cfg)
-    results = [pipeline.process(frame, timestamp_s=0.1 * k) for k in range(cfg.memory.confirm_frames)]
-    assert all(r.near_points_cam_m is not None and r.view_limits is not None for r in results)
-    assert results[0].near_points_cam_m.shape == (0, 3)  # not confirmed yet
-    pts = camera_points_to_ned(results[-1].near_points_cam_m, POSE)
-    assert len(pts) >= 5
-    assert np.all(np.abs(pts[:, 0] - 1.0) < 0.1), pts  # on the near face
-    assert np.all((pts[:, 1] > -1.9) & (pts[:, 1] < -0.1)), pts
-    view = results[-1].view_limits
-    unmatched = cfg.stereo.num_disparities - 1  # the left columns block matching cannot search
-    assert view.left_rad == pytest.approx(np.arctan((W / 2 - 0.5 - unmatched) / pipeline.geometry.focal_px), rel=1e-3)
-    assert view.right_rad == pytest.approx(np.arctan((W / 2 - 0.5) / pipeline.geometry.focal_px), rel=1e-3)
-    assert view.min_range_m == pytest.approx(pipeline.geometry.focal_baseline_px_m / unmatched)
-
-
-def test_memory_off_gives_no_points_and_can_be_switched_live() -> None:
+def test_every_frame_carries_its_blocks_for_the_local_map() -> None:
+    """The local planner's map input: each ``planner.block_px`` block's nearest disparity (px, NaN
+    none), a copy the estimator does not reuse for the next frame; a wall 1 m ahead reads its
+    disparity there, and a live change of the block size applies on the next frame."""
     cfg, pipeline, frame, _ = _render(Scene(obstacles=(_wall(1.0),)))
-    off = apply_patch(cfg, {"memory": {"duration_s": 0.0}, "envelope": {"memory_may_be_off": True}})
-    pipeline.reconfigure(off)
-    r = pipeline.process(frame, timestamp_s=0.0)
-    assert r.near_points_cam_m is None and r.view_limits is None and "memory_ms" not in r.timings_ms
-    pipeline.reconfigure(cfg)
-    r = pipeline.process(frame, timestamp_s=0.1)
-    assert r.near_points_cam_m is not None and "memory_ms" in r.timings_ms
-
-
-def test_a_frame_carries_what_it_saw_past_only_for_the_detour_layer() -> None:
-    """The detour layer's map forgets what a frame sees past (memory.map_clear_after_frames): the
-    frame's block view comes with it when the layer is on, and costs nothing when it is off."""
-    cfg, pipeline, frame, _ = _render(Scene(obstacles=(_wall(1.0),)))
-    pipeline.reconfigure(apply_patch(cfg, {"detour": {"trigger_after_s": 0.0}}))  # the layer off
-    assert pipeline.process(frame, timestamp_s=0.0).far_view is None
-    pipeline.reconfigure(apply_patch(cfg, {"detour": {"trigger_after_s": 0.8}}))
-    fv = pipeline.process(frame, timestamp_s=0.1).far_view
-    assert fv is not None and fv.view == pipeline.process(frame, timestamp_s=0.2).view_limits
+    first = pipeline.process(frame, timestamp_s=0.0)
+    b = cfg.planner.block_px
+    assert first.near_blocks is not None and first.near_blocks.dtype == np.float32
+    assert first.near_blocks.shape == (-(-H // b), -(-W // b))
+    assert first.geometry is pipeline.geometry
     wall_d = pipeline.geometry.focal_baseline_px_m / 1.0  # the wall 1 m ahead fills the view
-    measured = fv.nearest_disparity_px[np.isfinite(fv.nearest_disparity_px)]
+    measured = first.near_blocks[np.isfinite(first.near_blocks)]
     assert measured.size > 0 and np.median(measured) == pytest.approx(wall_d, rel=0.15)
-    pipeline.reconfigure(apply_patch(cfg, {"detour": {"trigger_after_s": 0.8}, "memory": {"map_clear_after_frames": 0}}))
-    assert pipeline.process(frame, timestamp_s=0.3).far_view is None
+    second = pipeline.process(frame, timestamp_s=0.1)
+    assert not np.shares_memory(first.near_blocks, second.near_blocks)
+    assert pipeline.reconfigure(apply_patch(cfg, {"planner": {"block_px": 8}})) == ["planner"]
+    assert pipeline.process(frame, timestamp_s=0.2).near_blocks.shape == (-(-H // 8), -(-W // 8))

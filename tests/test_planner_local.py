@@ -376,14 +376,14 @@ def test_membership_functions_reloaded_change_the_flight() -> None:
     decision for the same region depths, and with it the planner's choice."""
     depths = np.array([4.0, 1.6, 4.0, 4.0, 1.6, 4.0, 4.0, 4.0, 4.0])
     base = CompanionConfig()
-    d1 = AvoidanceController(base.controller, base.command).decide(depths)
+    d1 = AvoidanceController(base.controller).decide(depths)
     # Every depth term's breakpoints halved (a live reload): 1.6 m now reads as far.
     terms = {
         n: t.model_copy(update={"params_m": tuple(0.5 * v for v in t.params_m)})
         for n, t in base.controller.input_terms.items()
     }
     reloaded = ControllerConfig.model_validate({**base.controller.model_dump(), "input_terms": {n: t.model_dump() for n, t in terms.items()}})
-    d2 = AvoidanceController(reloaded, base.command).decide(depths)
+    d2 = AvoidanceController(reloaded).decide(depths)
     assert (d1.kind, round(d1.yaw, 3), round(d1.pitch, 3)) != (d2.kind, round(d2.yaw, 3), round(d2.pitch, 3))
     m = _map()
     _see(m, _wall_blocks(30.0))
@@ -498,7 +498,7 @@ def test_the_stack_measures_the_motion_the_reported_velocity_does_not_show() -> 
     setpoint, at most ``vehicle.odometry_drift_m_s``."""
     def last_setpoint(drift_m_s: float) -> VelocitySetpoint:
         cfg = CompanionConfig.model_validate(
-            {"planner": {"kind": "local"}, "envelope": {"max_horizontal_speed_m_s": 4.0},
+            {"envelope": {"max_horizontal_speed_m_s": 4.0},
              "vehicle": {"odometry_drift_m_s": drift_m_s}}
         )
         stack = LocalStack(cfg)
@@ -519,7 +519,7 @@ def test_the_stack_measures_the_motion_the_reported_velocity_does_not_show() -> 
 def test_the_stack_counters_a_climb_the_reported_velocity_does_not_show() -> None:
     """Vertically too: a vehicle sinking 0.3 m/s unseen by its velocity estimate, passing over a low
     wall, is told to climb by that much (the altitude's own return is slow by design)."""
-    cfg = CompanionConfig.model_validate({"planner": {"kind": "local"}})
+    cfg = CompanionConfig.model_validate({})
     stack = LocalStack(cfg)
     stack.engage(np.array([0.0, 0.0, -1.5]), 0.0, None)
     for k in range(3):
@@ -567,7 +567,7 @@ def test_the_map_names_the_nearest_surface_seen_and_the_way_to_it() -> None:
 def test_a_vehicle_turning_in_place_beside_a_wall_is_moved_off_it() -> None:
     """The stack end to end: a wall seen about 0.45 m north of the vehicle (0.2 m from its body), the
     vehicle still, its goal beyond the wall: the setpoint leads away from the wall."""
-    cfg = CompanionConfig.model_validate({"planner": {"kind": "local"}})
+    cfg = CompanionConfig.model_validate({})
     stack = LocalStack(cfg)
     stack.engage(np.array([0.0, 0.0, -1.5]), 0.0, None)
     for k in range(3):
@@ -612,7 +612,7 @@ def test_the_chain_names_the_filters_that_changed_the_planner_s_setpoint() -> No
 
 def test_the_stack_flies_a_course_goal_and_needs_the_envelope_raised() -> None:
     cfg = CompanionConfig.model_validate(
-        {"planner": {"kind": "local"}, "envelope": {"max_horizontal_speed_m_s": 4.0}}
+        {"envelope": {"max_horizontal_speed_m_s": 4.0}}
     )
     stack = LocalStack(cfg)
     stack.engage(np.array([0.0, 0.0, -1.5]), 0.0, None)
@@ -622,13 +622,13 @@ def test_the_stack_flies_a_course_goal_and_needs_the_envelope_raised() -> None:
                       np.array([0.0, 0.0, -1.5]), np.zeros(3), 0.0)
     assert step.setpoint.forward_m_s > 0.5
     with pytest.raises(ValueError, match="planner.cruise_speed_m_s"):
-        CompanionConfig.model_validate({"planner": {"kind": "local"}, "envelope": {"max_horizontal_speed_m_s": 2.0}})
+        CompanionConfig.model_validate({"envelope": {"max_horizontal_speed_m_s": 2.0}})
 
 
 def test_a_reload_in_flight_reaches_the_planner_and_keeps_the_map_unless_its_grid_changed() -> None:
     """Users retune in flight: a reloaded planner setting flies from the next tick, with the map seen
     so far; a new grid (voxel, range, radius, memories) starts the map afresh, and unknown is near."""
-    cfg = CompanionConfig.model_validate({"planner": {"kind": "local"}})
+    cfg = CompanionConfig.model_validate({})
     stack = LocalStack(cfg)
     at = np.array([0.0, 0.0, -1.5])
     stack.engage(at, 0.0, None)
@@ -640,9 +640,9 @@ def test_a_reload_in_flight_reaches_the_planner_and_keeps_the_map_unless_its_gri
         return stack.step(now_s, 0.05, clear, np.full(9, 10.0), at, np.zeros(3), 0.0).setpoint.forward_m_s
 
     assert forward(0.3) > 2.0
-    stack.reconfigure(CompanionConfig.model_validate({"planner": {"kind": "local", "cruise_speed_m_s": 1.2}}))
+    stack.reconfigure(CompanionConfig.model_validate({"planner": {"cruise_speed_m_s": 1.2}}))
     assert 0.5 < forward(0.35) <= 1.2 + 1e-9
-    stack.reconfigure(CompanionConfig.model_validate({"planner": {"kind": "local", "cruise_speed_m_s": 1.2, "voxel_m": 0.2}}))
+    stack.reconfigure(CompanionConfig.model_validate({"planner": {"cruise_speed_m_s": 1.2, "voxel_m": 0.2}}))
     assert forward(0.4) == 0.0
 
 
@@ -652,7 +652,6 @@ class _Seen:
 
     timestamp_s: float
     decision: Decision
-    near_points_cam_m: object
     near_blocks: object
     geometry: object
     refined: object = None
@@ -668,7 +667,7 @@ def _switched_to_offboard(cfg: CompanionConfig) -> tuple[Supervisor, VehicleStat
                      position_ned_m=np.array([0.0, 0.0, -1.5]), velocity_ned_m_s=np.zeros(3),
                      attitude_rad=np.zeros(3), position_timestamp_s=0.0)
     now = 0.0
-    blind = _Seen(now, clear, np.empty((0, 3)), np.full(BLOCKS, np.nan, dtype=np.float32), GEOM)
+    blind = _Seen(now, clear, np.full(BLOCKS, np.nan, dtype=np.float32), GEOM)
     sup.step(now, blind, v, [Engage()], camera_ok=True)
     for _ in range(12):
         now += 0.05
@@ -677,18 +676,14 @@ def _switched_to_offboard(cfg: CompanionConfig) -> tuple[Supervisor, VehicleStat
     return sup, replace(v, flight_mode="OFFBOARD", in_offboard=True), now, blind
 
 
-@pytest.mark.parametrize("memory_s", [0.0, 8.0])
-def test_the_service_flies_the_local_stack_when_planner_kind_is_local(memory_s: float) -> None:
+def test_the_service_flies_the_local_stack() -> None:
     """The supervisor's engaged step runs the local stack: frames enter its map from the pose at
-    capture whatever the rules' obstacle memory is set to, and the setpoint is the stack's (forward
-    into space seen free; zero before any is seen). A dead end the planner holds pauses the flight
-    with the planner's reason, as the rules stack's does, and holds the point where it stopped (told
+    capture, and the setpoint is the stack's (forward into space seen free; zero before any is
+    seen). A dead end the planner holds pauses the flight with the planner's reason, and holds the
+    point where it stopped (told
     zero velocity, PX4 crept on at 0.2 m/s after a stop from 3 m/s and touched the dead end's wall);
     the operator's resume flies again."""
-    cfg = CompanionConfig.model_validate(
-        {"planner": {"kind": "local"}, "envelope": {"max_horizontal_speed_m_s": 4.0}, "memory": {"duration_s": memory_s}}
-        | ({"envelope": {"max_horizontal_speed_m_s": 4.0, "memory_may_be_off": True}} if memory_s == 0.0 else {})
-    )
+    cfg = CompanionConfig.model_validate({"envelope": {"max_horizontal_speed_m_s": 4.0}})
     sup, v, now, blind = _switched_to_offboard(cfg)
     clear = blind.decision
     at = np.array(v.position_ned_m)
@@ -699,7 +694,7 @@ def test_the_service_flies_the_local_stack_when_planner_kind_is_local(memory_s: 
     for _ in range(4):
         now += 0.05
         v = replace(v, position_timestamp_s=now)
-        seen = _Seen(now - 0.01, clear, np.empty((0, 3)), _wall_blocks(30.0), GEOM)
+        seen = _Seen(now - 0.01, clear, _wall_blocks(30.0), GEOM)
         out = sup.step(now, seen, v, [], camera_ok=True)
     assert out.setpoint is not None and out.setpoint.forward_m_s > 0.5
     # The health message says what the planner does and why.
@@ -708,11 +703,11 @@ def test_the_service_flies_the_local_stack_when_planner_kind_is_local(memory_s: 
     assert status["speed_m_s"] > 0.5 and status["free_m"] > 1.0, status
     assert status["limited_by"] == [], status  # open space ahead: flown as planned
     # The planner declares a dead end: the service pauses (zero velocity) and says why.
-    planner = sup._m.local.planner
+    planner = sup._flight.stack.planner
     planner.mode, planner.reason = Mode.HOLD, "dead end: no direction within 100 deg of the goal is free for 1.5 m"
     now += 0.05
     v = replace(v, position_timestamp_s=now)
-    out = sup.step(now, _Seen(now - 0.01, clear, np.empty((0, 3)), _wall_blocks(30.0), GEOM), v, [], camera_ok=True)
+    out = sup.step(now, _Seen(now - 0.01, clear, _wall_blocks(30.0), GEOM), v, [], camera_ok=True)
     assert out.state is State.PAUSED and "dead end" in out.reason
     assert out.setpoint is not None and out.setpoint.forward_m_s == 0.0
     assert sup.planner_status()["mode"] == "hold" and "dead end" in sup.planner_status()["reason"]
@@ -721,50 +716,34 @@ def test_the_service_flies_the_local_stack_when_planner_kind_is_local(memory_s: 
         now += 0.05
         v = replace(v, position_ned_m=at + np.array([0.01 * k, 0.0, 0.0]), velocity_ned_m_s=np.array([0.2, 0.0, 0.0]),
                     position_timestamp_s=now)
-        out = sup.step(now, _Seen(now - 0.01, clear, np.empty((0, 3)), _wall_blocks(30.0), GEOM), v, [], camera_ok=True)
+        out = sup.step(now, _Seen(now - 0.01, clear, _wall_blocks(30.0), GEOM), v, [], camera_ok=True)
     assert out.state is State.PAUSED and "dead end" in out.reason
     assert out.setpoint is not None and out.setpoint.forward_m_s < -0.15 and out.setpoint.yaw_rate_deg_s == 0.0
     now += 0.05
-    out = sup.step(now, _Seen(now - 0.01, clear, np.empty((0, 3)), _wall_blocks(30.0), GEOM), v, [Resume()], camera_ok=True)
+    out = sup.step(now, _Seen(now - 0.01, clear, _wall_blocks(30.0), GEOM), v, [Resume()], camera_ok=True)
     assert out.state is State.ENGAGED and planner.mode is not Mode.HOLD
     assert out.setpoint is not None and out.setpoint.forward_m_s > 0.5
 
 
-@pytest.mark.parametrize("kind", ["local", "rules"])
-def test_the_rules_obstacle_memory_takes_frames_only_for_the_rule_stack(kind: str) -> None:
-    """The obstacle memory is the rule stack's (its guard and detour map); the local planner keeps its
-    own map, and a memory nobody reads would cost the frame rate on a small computer."""
-    cfg = CompanionConfig.model_validate({"planner": {"kind": kind}, "envelope": {"max_horizontal_speed_m_s": 4.0}})
-    sup, v, now, blind = _switched_to_offboard(cfg)
-    wall = np.array([[x, y, 3.0] for x in np.linspace(-1.0, 1.0, 11) for y in np.linspace(-0.5, 0.5, 6)])
-    for _ in range(4):
-        now += 0.05
-        v = replace(v, position_timestamp_s=now)
-        sup.step(now, _Seen(now - 0.01, blind.decision, wall, _wall_blocks(3.0), GEOM), v, [], camera_ok=True)
-    assert (sup.memory_status()["points"] > 0) == (kind == "rules")
-    assert (sup.planner_status() is None) == (kind == "rules")
-
-
 def test_the_service_s_watchdog_lets_the_local_planner_go_round_away_from_the_goal() -> None:
-    """Flying back from the goal is the rule stack's stall, not the local planner's: its way round
-    can lead away from the goal for seconds (PX4 SITL flights turning along an office's wall were
-    held by it). With the local planner only no progress for command.no_progress_timeout_s holds."""
-    def fly_back(planner: dict[str, object]) -> State:
-        cfg = CompanionConfig.model_validate({"planner": planner, "envelope": {"max_horizontal_speed_m_s": 4.0}})
+    """Flying back from the goal is no stall by itself: the planner's way round can lead away from
+    the goal for seconds (PX4 SITL flights turning along an office's wall). Only no progress in the
+    time to fly planner.no_progress_distance_m at cruise holds."""
+    def fly_back() -> State:
+        cfg = CompanionConfig.model_validate({"envelope": {"max_horizontal_speed_m_s": 4.0}})
         sup, v, now, blind = _switched_to_offboard(cfg)
         clear, start = blind.decision, now
         for _ in range(200):  # 10 s flying south, away from the course ahead, at 0.5 m/s
             now += 0.05
             v = replace(v, position_ned_m=np.array([-0.5 * (now - start), 0.0, -1.5]),
                         velocity_ned_m_s=np.array([-0.5, 0.0, 0.0]), position_timestamp_s=now)
-            seen = _Seen(now - 0.01, clear, np.empty((0, 3)), _wall_blocks(30.0), GEOM)
+            seen = _Seen(now - 0.01, clear, _wall_blocks(30.0), GEOM)
             out = sup.step(now, seen, v, [], camera_ok=True)
             if out.state is not State.ENGAGED:
                 break
         return out.state
 
-    assert fly_back({"kind": "local"}) is State.ENGAGED
-    assert fly_back({"kind": "rules"}) is State.PAUSED
+    assert fly_back() is State.ENGAGED
 
 
 @pytest.mark.parametrize("cruise_m_s", [3.0, 0.7])
@@ -775,7 +754,7 @@ def test_the_local_planner_s_watchdog_gives_a_slower_cruise_the_same_way_round(c
     detours at walking pace while they were still coming back from the wrong side of a wall (the
     same way round at 3 m/s took 8 s), so 0.7 m/s got 86 s."""
     cfg = CompanionConfig.model_validate(
-        {"planner": {"kind": "local", "cruise_speed_m_s": cruise_m_s}, "envelope": {"max_horizontal_speed_m_s": 4.0}}
+        {"planner": {"cruise_speed_m_s": cruise_m_s}, "envelope": {"max_horizontal_speed_m_s": 4.0}}
     )
     limit_s = cfg.planner.no_progress_distance_m / cruise_m_s
     sup, v, now, blind = _switched_to_offboard(cfg)

@@ -37,12 +37,12 @@ def test_ctl_commands(service: Service, capsys) -> None:
     assert json.loads(capsys.readouterr().out)["pong"] is True
     assert main(_ctl(service, "status")) == 0
     assert json.loads(capsys.readouterr().out)["state"] == "passive"
-    assert main(_ctl(service, "get", "command")) == 0
-    assert json.loads(capsys.readouterr().out)["config"]["cruise_speed_m_s"] == CompanionConfig().command.cruise_speed_m_s
-    assert main(_ctl(service, "set", "command.cruise_speed_m_s=1.25", "controller.preferred_yaw_side=left")) == 0
-    assert json.loads(capsys.readouterr().out)["changed"] == ["controller", "command"]
-    assert main(_ctl(service, "set", "command.cruise_speed_m_s=-2")) == 2
-    assert "command.cruise_speed_m_s" in capsys.readouterr().err
+    assert main(_ctl(service, "get", "planner")) == 0
+    assert json.loads(capsys.readouterr().out)["config"]["cruise_speed_m_s"] == CompanionConfig().planner.cruise_speed_m_s
+    assert main(_ctl(service, "set", "planner.cruise_speed_m_s=1.25", "controller.preferred_yaw_side=left")) == 0
+    assert json.loads(capsys.readouterr().out)["changed"] == ["controller", "planner"]
+    assert main(_ctl(service, "set", "planner.cruise_speed_m_s=-2")) == 2
+    assert "planner.cruise_speed_m_s" in capsys.readouterr().err
     assert main(_ctl(service, "override", "--yaw", "0.5", "--duration", "2")) == 2
     assert "not engaged" in capsys.readouterr().err
     # engage as an operator would on a loaded machine: again while frames are not fresh yet

@@ -22,28 +22,33 @@ ROOT = Path(__file__).resolve().parent.parent
 def test_sighup_reload_and_sigterm_clean_shutdown_on_the_wire(tmp_path: Path) -> None:
     config = tmp_path / "companion.toml"
     notify = Notifications(tmp_path / "notify.sock")
-    # The rule stack: a reload of command.cruise_speed_m_s changes its speed while engaged (the local
-    # planner's settings wait for the next engagement).
-    rules = '[planner]\nkind = "rules"'
+    # A reload of planner.cruise_speed_m_s changes the top speed while engaged (the envelope lets any
+    # live change through while engaged here; by default the planner's settings wait for a disengage).
+    anything = '[envelope]\nlive_changes_while_engaged = "any"'
+
+    def top_speed() -> float:
+        return max(s.vx for s in peer.setpoints[-10:])
+
     with Px4Peer(heartbeat_hz=5.0) as peer:
         port = peer.port
-        _write_config(config, port, cruise=1.0, extra=rules)
+        _write_config(config, port, cruise=1.0, extra=anything)
         proc = _spawn(config, notify, watchdog_usec=1_000_000)
         try:
             assert notify.wait_for("READY=1", 30.0), "no READY=1"
-            # autostart: engaged on the wire, flying the corridor (clear ahead) at the cruise speed.
+            # autostart: engaged on the wire, flying the corridor (clear ahead) faster than the next cruise.
             assert peer.wait_for(lambda: peer.mode == "OFFBOARD", 15.0), peer.commands
-            assert peer.wait_for(lambda: peer.setpoints[-1].vx == pytest.approx(1.0), 3.0)
+            assert peer.wait_for(lambda: peer.setpoints[-1].vx > 0.5, 5.0)
+            assert top_speed() <= 1.0 + 1e-6
 
-            _write_config(config, port, cruise=0.7, extra=rules)
+            _write_config(config, port, cruise=0.4, extra=anything)
             proc.send_signal(signal.SIGHUP)
-            assert peer.wait_for(lambda: peer.setpoints[-1].vx == pytest.approx(0.7, abs=1e-6), 3.0)
+            assert peer.wait_for(lambda: 0.0 < top_speed() <= 0.4 + 1e-6, 3.0)
 
-            _write_config(config, port, cruise=-3.0, extra=rules)  # invalid: rejected, the old one stays
+            _write_config(config, port, cruise=-3.0, extra=anything)  # invalid: rejected, the old one stays
             proc.send_signal(signal.SIGHUP)
             time.sleep(0.7)
             assert proc.poll() is None
-            assert peer.setpoints[-1].vx == pytest.approx(0.7, abs=1e-6)
+            assert top_speed() <= 0.4 + 1e-6
 
             assert len(notify.lines("WATCHDOG=1")) >= 3
             assert any("engaged" in line for line in notify.lines("STATUS="))
@@ -136,7 +141,7 @@ def test_a_config_byte_that_is_not_utf8_is_a_startup_failure(tmp_path: Path) -> 
     """A Latin-1 ``# café`` once ended the service with a traceback and exit 1, so systemd kept
     restarting it; it is a startup failure (78) naming the file and the byte."""
     config = tmp_path / "companion.toml"
-    config.write_bytes(b"[command]\ncruise_speed_m_s = 1.0\n# caf\xe9\n")
+    config.write_bytes(b"[planner]\ncruise_speed_m_s = 1.0\n# caf\xe9\n")
     proc = _spawn(config, None)
     rc, err = _finish(proc)
     assert rc == exitcodes.STARTUP_FAILURE, err[-2000:]

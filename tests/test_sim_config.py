@@ -16,9 +16,13 @@ def test_paper_profile_is_the_papers_controller() -> None:
     cfg = load_config(PAPER)
     default = CompanionConfig()
     assert [r.name for r in cfg.controller.main_rules] == ["R1", "R2", "R3", "R4", "R5", "R6", "R7", "TIE"]
-    assert cfg.planner.kind == "rules" and default.planner.kind == "local"  # the decision, straight to a setpoint
-    assert cfg.command.avoid_speed_fraction == 1.0  # constant speed
-    assert cfg.command.heading_hold_gain_per_s == 0.0 and cfg.command.altitude_hold_gain_per_s == 0.0
+    assert cfg.controller.avoid_speed_fraction == 1.0  # constant speed
+    # The fuzzy controller's steering dominates the local planner's cost: its weight outweighs all
+    # the others together.
+    p = cfg.planner
+    others = p.weight_goal + p.weight_time + p.weight_clearance + p.weight_smooth + p.weight_visited
+    assert p.weight_fuzzy > 10.0 * others and default.planner.weight_fuzzy < default.planner.weight_goal
+    assert p.no_progress_distance_m == 0.0  # no watchdog: the paper's controller only avoids
     assert cfg.lut.release_time_constant_s == 0.0
     # The paper's values are the same in both.
     assert cfg.controller.input_terms == default.controller.input_terms
@@ -31,10 +35,10 @@ def test_paper_profile_is_the_papers_controller() -> None:
     assert {r.name: r.weight for r in paper_rules if r.weight != 1.0} == {"R7": 0.5}
 
 
-def test_defaults_add_side_rules_and_course_hold() -> None:
+def test_defaults_add_side_rules_and_a_speed_blend() -> None:
     cfg = CompanionConfig()
     assert [r.name for r in cfg.controller.main_rules][-4:] == ["S1", "S2", "S3", "S4"]
-    assert cfg.command.heading_hold_gain_per_s > 0 and cfg.command.avoid_speed_fraction < 1.0
+    assert cfg.controller.avoid_speed_fraction < 1.0
 
 
 @pytest.mark.parametrize(

@@ -1,5 +1,5 @@
 """A flight's trace: one CSV row per setpoint, joined to the frame whose decision was applied, with
-what the detour layer was doing; ``companion sim --trace`` and ``--trace-dir`` write it."""
+what the local planner was doing; ``companion sim --trace`` and ``--trace-dir`` write it."""
 
 from __future__ import annotations
 
@@ -17,13 +17,12 @@ from companion.sim.courses import head_on_course, make_course
 from companion.sim.loop import FlightResult, fly
 from companion.sim.trace import COLUMNS, trace_rows, write_trace
 
-BM = parse_config({"stereo": {"backend": "opencv-bm"}, "planner": {"kind": "rules"}})  # the detour layer's flights
+BM = parse_config({"stereo": {"backend": "opencv-bm"}})
 
 
 @pytest.fixture(scope="module")
 def detour_flight() -> FlightResult:
-    # detour-2 with StereoBM: braked at the wall, looked round, flew left along it and lined up with
-    # the opening (16 s wall on the 2-core VM).
+    # detour-2 with StereoBM: the wall across the course, the way round it through its opening.
     return fly(make_course("detour", 2), BM)
 
 
@@ -57,22 +56,16 @@ def test_every_setpoint_is_a_row_joined_to_the_frame_its_decision_came_from(deto
     assert float(rows[k]["heading_deg"]) == pytest.approx(math.degrees(log.attitude_rad[k, 2]), abs=0.1)
 
 
-def test_the_planner_column_tells_the_detour_from_its_look_round_to_the_hand_back(detour_flight: FlightResult) -> None:
+def test_the_planner_column_tells_the_local_planner_s_modes(detour_flight: FlightResult) -> None:
     assert detour_flight.outcome.value == "goal" and detour_flight.detours >= 1, detour_flight.reason
     rows = trace_rows(detour_flight)
     planner = [r[-1] for r in rows]
     kinds = [r[7] for r in rows]
-    phases = [p.split(":", 1)[0] for p in planner if p]
-    # The phases in the order they came, each once in a row.
-    order = [p for i, p in enumerate(phases) if i == 0 or p != phases[i - 1]]
-    assert order[0] == "scan" and "fly" in order and order[-1] == "idle", order
-    ended = next(p for p in planner if p.startswith("idle:"))
-    assert "handed back to course hold" in ended
-    # While a detour is under way the setpoint is the detour's (kind "detour"); before and after, none.
-    for p, k in zip(planner, kinds):
-        if p.split(":", 1)[0] in ("scan", "fly", "handback"):
-            assert k == "detour"
-    assert planner[0] == "" and planner[-1] == ""
+    modes = [p.split(":", 1)[0] for p in planner]
+    assert modes[0] == "cruise" and "detour" in modes and set(modes) <= {"cruise", "avoid", "detour", "hold"}, set(modes)
+    assert all(": " in p for p in planner)  # each names the way it chose, or why it holds
+    # While the planner is in its detour mode the row says so (kind "detour").
+    assert {k for m, k in zip(modes, kinds) if m == "detour"} <= {"detour", "stale"}
 
 
 def test_a_flight_without_logs_cannot_be_traced(detour_flight: FlightResult) -> None:
@@ -137,11 +130,11 @@ def test_a_trace_dir_that_is_a_file_is_an_error(tmp_path: Path, capsys: pytest.C
     assert "cannot make the trace directory" in capsys.readouterr().err
 
 
-def test_the_sitl_log_names_the_detour_and_the_hold() -> None:
+def test_the_sitl_log_names_the_planner_s_mode_and_the_hold() -> None:
     from companion.sitl.flight import _planner_text
 
-    assert _planner_text("engaged", {"goal": {"detour": {"phase": "fly", "reason": "round the left"}}}) == "fly: round the left"
-    assert _planner_text("engaged", {"goal": {"detour": {"phase": "idle", "reason": "no detour"}}}) == ""
+    assert _planner_text("engaged", {"planner": {"mode": "detour", "reason": "round the left"}}) == "detour: round the left"
+    assert _planner_text("engaged", {"planner": None}) == ""
     assert _planner_text("engaged", {}) == ""
     assert _planner_text("paused", {"reason": "dead end: no direction"}) == "held: dead end: no direction"
 

@@ -78,7 +78,7 @@ def _speed(pilot: Pilot) -> float:
 
 
 def test_offboard_engages_and_px4_flies_the_setpoints(px4: Px4Sitl, tmp_path: Path) -> None:
-    cruise = load_config(None).flying_cruise_speed_m_s  # the local planner's by default
+    cruise = load_config(None).planner.cruise_speed_m_s
 
     async def scenario() -> None:
         pilot, service, t_on = await _engaged(px4, tmp_path)

@@ -94,7 +94,7 @@ def _newest_frame_s(service) -> float:
 
 
 def test_guided_engages_and_arducopter_flies_the_setpoints(ardupilot: ArduPilotSitl, tmp_path: Path) -> None:
-    cruise = load_config(None).flying_cruise_speed_m_s  # the local planner's by default
+    cruise = load_config(None).planner.cruise_speed_m_s
 
     async def scenario() -> None:
         pilot, service, gate, t_on = await _engaged(ardupilot, tmp_path)

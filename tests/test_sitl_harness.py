@@ -40,7 +40,7 @@ def test_ports_follow_px4s_startup_script() -> None:
 
 
 def test_the_service_config_renders_the_course_from_telemetry_and_round_trips(tmp_path: Path) -> None:
-    user = parse_config({"command": {"cruise_speed_m_s": 0.8}, "service": {"autostart": True}})
+    user = parse_config({"planner": {"cruise_speed_m_s": 0.8}, "service": {"autostart": True}})
     placement = CoursePlacement((1.0, -2.0, -0.3), math.radians(30.0))
     cfg = sitl_config(user, make_course("forest", 5), placement, "udpin://127.0.0.1:14541", tmp_path)
     cam = cfg.camera
@@ -51,7 +51,7 @@ def test_the_service_config_renders_the_course_from_telemetry_and_round_trips(tm
     assert cfg.vehicle.connection == "udpin://127.0.0.1:14541"
     assert cfg.bus.control_endpoint == f"ipc://{tmp_path}/control.sock"
     assert cfg.service.autostart is False  # engaged by the harness's request, as a user would
-    assert cfg.command.cruise_speed_m_s == 0.8  # the user's tuning flies
+    assert cfg.planner.cruise_speed_m_s == 0.8  # the user's tuning flies
     # What the harness writes for `companion run` loads back to the same config.
     assert parse_config(tomllib.loads(render_config_toml(cfg, ["# test"]))) == cfg
 
@@ -186,32 +186,23 @@ def test_the_service_config_accepts_every_course_the_harness_flies() -> None:
     assert set(COURSE_KINDS) | {"head-on", "wall"} <= allowed
 
 
-def test_the_floor_and_the_planner_s_band_move_with_the_course_ground() -> None:
+def test_the_planner_s_band_moves_with_the_course_ground() -> None:
     """The course's ground lies where the hover put it, not at PX4's take-off point: the placement
-    patch keeps the user's floor at its height over the ground the camera sees and the judge scores.
-
-    A PX4 SITL office flight (2026-11-25) showed why: the hover put the course's ground 0.17-0.19 m
-    above the take-off ground, so a 0.5 m floor left at the take-off point stood ~0.32 m over the
-    course's ground, ~0.07 m over the collision sphere, and PX4's lag carried the vehicle that far
-    below it."""
-    user = parse_config({"command": {"min_altitude_m": 0.5}})
+    patch keeps the user's floor and ceiling (planner.floor_m, ceiling_m) at their height over the
+    ground the camera sees and the judge scores. The hover put the course's ground 0.17-0.19 m above
+    the take-off ground in a PX4 SITL office flight; a 3 m ceiling left at the take-off point stood
+    0.6 m over an office's 3 m walls in another, and the planner climbed over them into the top."""
+    user = parse_config({})
     course = make_course("office", 0)
     # hovering 0.17 m above the course's start altitude: the course's ground is 0.17 m above the origin
     above = CoursePlacement((1.0, 2.0, -0.17), 0.3)
     patch = placement_patch(user, above)
-    assert patch["command"]["min_altitude_m"] == pytest.approx(0.67)
+    assert set(patch) == {"camera", "planner"}
     placed = apply_patch(sitl_config(user, course, above, "udpin://127.0.0.1:14541", Path("/tmp")), patch)
     assert placed.camera.sim_origin_down_m == -0.17
-    assert placed.command.min_altitude_m == pytest.approx(0.67)
-    # below the start altitude: the floor comes down with the ground, never to 0 (off)
-    assert placement_patch(user, CoursePlacement((0.0, 0.0, 0.2), 0.0))["command"]["min_altitude_m"] == pytest.approx(0.3)
-    assert placement_patch(user, CoursePlacement((0.0, 0.0, 0.9), 0.0))["command"]["min_altitude_m"] == 0.01
-    off = parse_config({"command": {"min_altitude_m": 0.0}})
-    assert placement_patch(off, above)["command"]["min_altitude_m"] == 0.0
-    # The local planner's band moves with it: a 3 m ceiling left at the take-off point stood 0.6 m
-    # over an office's 3 m walls in a PX4 SITL flight, and the planner climbed over them into the top.
     assert placed.planner.floor_m == pytest.approx(user.planner.floor_m + 0.17)
     assert placed.planner.ceiling_m == pytest.approx(user.planner.ceiling_m + 0.17)
+    # below the start altitude: the band comes down with the ground, the floor never below 0
     low = placement_patch(user, CoursePlacement((0.0, 0.0, 0.6), 0.0))["planner"]
     assert low == {"floor_m": 0.0, "ceiling_m": pytest.approx(user.planner.ceiling_m - 0.6)}
 

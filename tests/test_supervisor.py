@@ -1,15 +1,20 @@
-"""The service's state machine, exhaustively, without asyncio: time, frames and the vehicle are arguments."""
+"""The service's state machine, exhaustively, without asyncio: time, frames and the vehicle are arguments.
+
+The frames show open space (a wall 30 m away across the whole view) and the vehicle hovers at 1.5 m
+facing north, so that the local stack the supervisor flies has space seen free to fly into."""
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
+import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from companion.config import CompanionConfig
+from companion.core.geometry import StereoGeometry
 from companion.core.supervisor import (
     Action,
     ActionResult,
@@ -32,32 +37,32 @@ AVOID = Decision(DecisionKind.AVOID, yaw=-0.5, pitch=0.25, speed_fraction=0.5, r
 BRAKE = Decision(DecisionKind.BRAKE, yaw=0.0, pitch=0.0, speed_fraction=0.0, reason="brake")
 
 
+GEOM = StereoGeometry.ideal(336, 188, 90.0, 0.12)
+#: The block image (4 px blocks) of a wall 30 m away across the whole view: open space ahead.
+OPEN = np.full((47, 84), GEOM.focal_baseline_px_m / 30.0, dtype=np.float32)
+
+
 @dataclass(frozen=True)
 class Result:
+    """The parts of a frame result the supervisor reads."""
+
     timestamp_s: float
     decision: Decision
+    near_blocks: np.ndarray = field(default_factory=lambda: OPEN)
+    geometry: StereoGeometry = GEOM
 
 
 def vehicle(mode: str = "POSCTL", *, connected: bool = True, armed: bool = True) -> VehicleState:
-    return VehicleState(connected=connected, armed=armed, flight_mode=mode, in_offboard=mode == "OFFBOARD")
+    """A vehicle hovering at 1.5 m at the origin, facing north, in ``mode``."""
+    return VehicleState(
+        connected=connected, armed=armed, flight_mode=mode, in_offboard=mode == "OFFBOARD",
+        position_ned_m=np.array([0.0, 0.0, -1.5]), velocity_ned_m_s=np.zeros(3), attitude_rad=np.zeros(3),
+    )
 
 
 def default_config(**overrides) -> SupervisorConfig:
     cfg = SupervisorConfig.from_config(CompanionConfig())
     return replace(cfg, **overrides)
-
-
-def rules_companion_config(patch: dict | None = None) -> CompanionConfig:
-    """The defaults with the rule stack (``planner.kind = "rules"``: course hold, the obstacle
-    memory's guard, the progress watchdog, the detour layer) and ``patch`` applied."""
-    from companion.config import parse_config
-
-    return parse_config({**(patch or {}), "planner": {"kind": "rules"}})
-
-
-def rules_config(**overrides) -> SupervisorConfig:
-    """:func:`default_config` of the rule stack."""
-    return replace(SupervisorConfig.from_config(rules_companion_config()), **overrides)
 
 
 class Harness:
@@ -100,6 +105,8 @@ class Harness:
         self.vehicle = vehicle("OFFBOARD")
         out = self.step(ActionResult(Action.START_OFFBOARD, True))
         assert out.state is State.ENGAGED, out.reason
+        # A few frames into the new flight's map: space seen free ahead, flown into.
+        assert self.run(0.3)[-1].setpoint.forward_m_s > 0.0
 
 
 # ---------------------------------------------------------------------------------------------- passive
@@ -172,22 +179,38 @@ def test_engage_streams_zero_before_offboard_start_then_commands() -> None:
     h.vehicle = vehicle("OFFBOARD")
     out = h.step(ActionResult(Action.START_OFFBOARD, True))
     assert out.state is State.ENGAGED and out.changed and h.sup.engaged
-    assert out.setpoint is not None and out.setpoint.forward_m_s == pytest.approx(CompanionConfig().command.cruise_speed_m_s)
+    assert out.setpoint is not None
+    out = h.run(0.3)[-1]
+    assert out.state is State.ENGAGED and out.setpoint.forward_m_s > 0.0  # the local stack's setpoint
 
 
-def test_engaged_follows_the_decision() -> None:
+def test_engaged_flies_the_local_stack_and_a_brake_stops_it() -> None:
     h = Harness()
     h.engage()
-    h.frame = Result(h.now, AVOID)
     out = h.step()
-    cmd = h.cfg.command
-    assert out.setpoint.forward_m_s == pytest.approx(cmd.cruise_speed_m_s * 0.5)
-    assert out.setpoint.yaw_rate_deg_s == pytest.approx(-0.5 * cmd.max_yaw_rate_deg_s)
-    assert out.setpoint.down_m_s == pytest.approx(-0.25 * cmd.max_vertical_speed_m_s)
-    assert out.setpoint.right_m_s == 0.0
+    assert 0.0 < out.setpoint.forward_m_s <= CompanionConfig().planner.cruise_speed_m_s
+    status = h.sup.planner_status()
+    assert status is not None and status["mode"] == "cruise", status
     h.frame = Result(h.now, BRAKE)
     out = h.step()
-    assert out.setpoint == ZERO_SETPOINT and out.state is State.ENGAGED
+    assert out.state is State.ENGAGED and out.setpoint.forward_m_s <= 0.0
+    assert "brake_hold" in h.sup.planner_status()["limited_by"]
+
+
+def test_without_a_position_the_engaged_vehicle_is_told_zero_until_one_is_known() -> None:
+    """No plan without a position, a velocity and a heading: zero velocity; the flight starts from the
+    pose once it is known."""
+    h = Harness()
+    h.vehicle = replace(vehicle(), position_ned_m=None)
+    h.step(Engage())
+    h.run(0.6)
+    h.vehicle = replace(vehicle("OFFBOARD"), position_ned_m=None)
+    out = h.step(ActionResult(Action.START_OFFBOARD, True))
+    assert out.state is State.ENGAGED
+    assert all(o.setpoint == ZERO_SETPOINT for o in h.run(0.5))
+    assert h.sup.planner_status() is None
+    h.vehicle = vehicle("OFFBOARD")
+    assert h.run(0.5)[-1].setpoint.forward_m_s > 0.0
 
 
 def test_engaged_streams_every_step() -> None:
@@ -460,14 +483,14 @@ def test_override_flies_the_manual_values_then_expires_to_automatic() -> None:
     h.engage()
     out = h.step(Override(yaw=0.5, pitch=-0.5, speed_fraction=0.25, duration_s=1.0))
     assert out.replies[0].ok and out.state is State.OVERRIDE
-    cmd = h.cfg.command
-    assert out.setpoint.forward_m_s == pytest.approx(0.25 * cmd.cruise_speed_m_s)
-    assert out.setpoint.yaw_rate_deg_s == pytest.approx(0.5 * cmd.max_yaw_rate_deg_s)
-    assert out.setpoint.down_m_s == pytest.approx(0.5 * cmd.max_vertical_speed_m_s)
+    p, env = CompanionConfig().planner, CompanionConfig().envelope
+    assert out.setpoint.forward_m_s == pytest.approx(0.25 * p.cruise_speed_m_s)
+    assert out.setpoint.yaw_rate_deg_s == pytest.approx(0.5 * min(p.max_yaw_rate_deg_s, env.max_yaw_rate_deg_s))
+    assert out.setpoint.down_m_s == pytest.approx(0.5 * min(p.max_vertical_speed_m_s, env.max_vertical_speed_m_s))
     remaining = h.sup.override_status(h.now)["remaining_s"]
     assert remaining == pytest.approx(1.0)
     outs = h.run(1.1)
-    assert outs[-1].state is State.ENGAGED and outs[-1].setpoint.forward_m_s == pytest.approx(CompanionConfig().command.cruise_speed_m_s)
+    assert outs[-1].state is State.ENGAGED and outs[-1].setpoint.forward_m_s > 0.0  # the local stack again
     assert h.sup.override_status(h.now) is None
 
 
@@ -480,7 +503,7 @@ def test_override_respects_brake() -> None:
     h2 = Harness(default_config(override_respects_brake=False))
     h2.engage()
     h2.frame = Result(h2.now, BRAKE)
-    assert h2.step(Override(1.0, 0.0, 1.0, 2.0)).setpoint.forward_m_s == pytest.approx(CompanionConfig().command.cruise_speed_m_s)
+    assert h2.step(Override(1.0, 0.0, 1.0, 2.0)).setpoint.forward_m_s == pytest.approx(CompanionConfig().planner.cruise_speed_m_s)
 
 
 @pytest.mark.parametrize(
@@ -632,164 +655,13 @@ def test_invariants_under_random_sequences(seq) -> None:
     assert prev_mode in ("POSCTL", "OFFBOARD", "HOLD", "ALTCTL", "LAND") and owned in (True, False)
 
 
-def test_course_hold_steers_back_to_the_heading_at_engagement_when_enabled() -> None:
-    import numpy as np
-
-    cfg = rules_companion_config(
-        {
-            "command": {
-                "heading_hold_gain_per_s": 1.0,
-                "line_hold_gain_per_m": 0.0,  # the heading alone here (line hold: test_sim_goal_seeking)
-                "line_hold_lateral_gain_per_s": 0.0,
-                "altitude_hold_gain_per_s": 0.5,
-                "hold_resume_delay_s": 1.0,
-                "hold_resume_distance_m": 1.0,
-                "max_heading_hold_rate_deg_s": 20.0,
-                "max_altitude_hold_speed_m_s": 0.3,
-            }
-        }
-    )
-    h = Harness(SupervisorConfig.from_config(cfg))
-    h.vehicle = replace(vehicle(), attitude_rad=np.array([0.0, 0.0, 0.3]), position_ned_m=np.array([0.0, 0.0, -2.0]))
-    h.step(Engage())
-    h.run(0.6)
-    h.vehicle = replace(h.vehicle, flight_mode="OFFBOARD", in_offboard=True)
-    assert h.step().state is State.ENGAGED
-    # The vehicle turned left by 0.2 rad and sank 0.4 m while avoiding.
-    h.vehicle = replace(h.vehicle, attitude_rad=np.array([0.0, 0.0, 0.1]), position_ned_m=np.array([5.0, 0.0, -1.6]))
-    h.frame = Result(h.now, AVOID)
-    h.step()
-    h.frame = Result(h.now, CLEAR)
-    early = h.step()
-    assert early.setpoint.yaw_rate_deg_s == pytest.approx(0.0, abs=1e-9)  # waits hold_resume_delay_s
-    # A climb back waits for nothing (nothing was seen overhead): 0.4 m at 0.5/s.
-    assert early.setpoint.down_m_s == pytest.approx(-0.2, rel=1e-6)
-    # Clear for long enough: back to the heading, not yet 1 m further on.
-    waiting = h.run(1.2)[-1].setpoint
-    assert waiting.yaw_rate_deg_s == pytest.approx(math.degrees(0.2), rel=1e-6)
-    assert waiting.down_m_s == pytest.approx(-0.2, rel=1e-6)
-    h.vehicle = replace(h.vehicle, position_ned_m=np.array([5.7, 0.8, -1.6]))  # 1.06 m on
-    later = h.step()
-    assert later.setpoint.yaw_rate_deg_s == pytest.approx(math.degrees(0.2), rel=1e-6)
-    assert later.setpoint.down_m_s == pytest.approx(-0.2, rel=1e-6)  # climb back 0.4 m at 0.5/s
-    h.frame = Result(h.now, BRAKE)
-    assert h.step().setpoint == ZERO_SETPOINT
-
-
-def test_course_hold_is_off_with_zero_gains() -> None:
-    import numpy as np
-
-    cfg = rules_companion_config({"command": {"heading_hold_gain_per_s": 0.0, "altitude_hold_gain_per_s": 0.0}})
-    h = Harness(SupervisorConfig.from_config(cfg))
-    h.vehicle = replace(vehicle(), attitude_rad=np.array([0.0, 0.0, 0.3]))
-    h.engage()
-    h.vehicle = replace(vehicle("OFFBOARD"), attitude_rad=np.array([0.0, 0.0, -0.5]))
-    assert h.run(2.0)[-1].setpoint.yaw_rate_deg_s == pytest.approx(0.0, abs=1e-9)
-
-
-def test_brake_holds_the_position_where_it_began() -> None:
-    import numpy as np
-
-    h = Harness(rules_config())
-    h.engage()
-    h.vehicle = replace(vehicle("OFFBOARD"), attitude_rad=np.array([0.0, 0.0, 0.0]), position_ned_m=np.array([4.0, 0.0, -1.5]))
-    h.frame = Result(h.now, BRAKE)
-    assert h.step().setpoint == ZERO_SETPOINT  # the brake begins here
-    # Drifting on with the velocity-estimate error: 0.2 m forward, 0.1 m left.
-    h.vehicle = replace(h.vehicle, position_ned_m=np.array([4.2, -0.1, -1.5]))
-    h.frame = Result(h.now, BRAKE)
-    sp = h.step().setpoint
-    assert (sp.forward_m_s, sp.right_m_s, sp.down_m_s) == pytest.approx((-0.2, 0.1, 0.0))
-    # Still turning left after the zero yaw rate (PX4 does for ~0.4 s): turn back to where it began.
-    h.vehicle = replace(h.vehicle, attitude_rad=np.array([0.0, 0.0, -0.1]))
-    h.frame = Result(h.now, BRAKE)
-    assert h.step().setpoint.yaw_rate_deg_s == pytest.approx(math.degrees(0.1))
-    h.frame = Result(h.now, CLEAR)
-    assert h.step().setpoint.forward_m_s > 0.0  # clear again: on, and the latch is forgotten
-    h.frame = Result(h.now, BRAKE)
-    assert h.step().setpoint == ZERO_SETPOINT  # a new brake begins where the vehicle is now
-
-
-def test_line_hold_steers_back_to_the_engagement_line() -> None:
-    import numpy as np
-
-    cfg = rules_companion_config({"command": {"heading_hold_gain_per_s": 1.0, "line_hold_gain_per_m": 0.5, "hold_resume_delay_s": 0.0}})
-    # Engagement records the heading and position the vehicle has when OFFBOARD is confirmed.
-    h2 = Harness(SupervisorConfig.from_config(cfg))
-    h2.vehicle = replace(vehicle(), attitude_rad=np.array([0.0, 0.0, 0.0]), position_ned_m=np.array([0.0, 0.0, -1.5]))
-    h2.step(Engage())
-    h2.run(0.6)
-    h2.vehicle = replace(h2.vehicle, flight_mode="OFFBOARD", in_offboard=True)
-    assert h2.step().state is State.ENGAGED
-    # 5 m on, 0.4 m left of the line, still on the heading: turn right toward the line.
-    h2.vehicle = replace(h2.vehicle, position_ned_m=np.array([5.0, -0.4, -1.5]))
-    sp = h2.run(0.5)[-1].setpoint
-    assert sp.yaw_rate_deg_s == pytest.approx(math.degrees(math.atan(0.2)), rel=1e-6)
-
-
-@dataclass(frozen=True)
-class SeenResult:
-    timestamp_s: float
-    decision: Decision
-    near_points_cam_m: object = None
-    view_limits: object = None
-
-
-def test_a_remembered_obstacle_beside_the_vehicle_pushes_it_away() -> None:
-    """A frame's near points go into the memory from the pose at capture; once out of view and
-    within memory.guard_distance_m, the engaged setpoint moves away from them."""
-    import numpy as np
-
-    from companion.core.memory import ViewLimits
-
-    view = ViewLimits(math.radians(32.0), math.radians(44.0), 0.3)
-    base = rules_companion_config()
-    leaning = base.model_copy(update={"memory": base.memory.model_copy(update={"counter_velocity_fraction": 1.0})})
-    h = Harness(SupervisorConfig.from_config(leaning))
-    h.engage()
-    # A box corner 0.3 m left of the line at north 0.5 m, seen from two places 0.6 m apart (in view:
-    # 15°, then 31°; more than memory.push_baseline_m), so it may push once it is out of view.
-    for north, ahead in ((-0.6, 1.1), (0.0, 0.5)):
-        at = np.array([north, 0.0, -1.5])
-        h.vehicle = replace(vehicle("OFFBOARD"), attitude_rad=np.zeros(3), position_ned_m=at, position_timestamp_s=h.now)
-        h.frame = SeenResult(h.now, CLEAR, np.array([[-0.3, 0.0, ahead]]), view)
-        sp = h.step(fresh_frame=False).setpoint
-        assert sp.right_m_s == 0.0  # in view: the live controller's business
-    # 0.5 m on, the corner is beside the vehicle, 0.3 m to its left and out of view.
-    h.vehicle = replace(h.vehicle, position_ned_m=np.array([0.5, 0.0, -1.5]), position_timestamp_s=h.now + 0.05)
-    h.frame = SeenResult(h.now + 0.03, CLEAR, np.empty((0, 3)), view)
-    sp = h.step(fresh_frame=False).setpoint
-    mem = leaning.memory
-    assert sp.right_m_s == pytest.approx(mem.guard_gain_per_s * (mem.guard_distance_m - 0.3))
-    assert sp.forward_m_s == pytest.approx(CompanionConfig().command.cruise_speed_m_s)
-    # Still sliding left toward it at 0.4 m/s (PX4's lag): the setpoint leans against that motion
-    # (counter_velocity_fraction).
-    h.vehicle = replace(h.vehicle, velocity_ned_m_s=np.array([0.0, -0.4, 0.0]))
-    sp = h.step(fresh_frame=False).setpoint
-    lean_and_push = mem.counter_velocity_fraction * 0.4 + mem.guard_gain_per_s * (mem.guard_distance_m - 0.3)
-    assert sp.right_m_s == pytest.approx(min(lean_and_push, mem.max_guard_speed_m_s))
-    assert sp.right_m_s > mem.guard_gain_per_s * (mem.guard_distance_m - 0.3)
-    # With the memory off nothing is remembered.
-    off = base.model_copy(update={"memory": mem.model_copy(update={"duration_s": 0.0})})
-    h2 = Harness(SupervisorConfig.from_config(off))
-    h2.engage()
-    h2.vehicle = replace(vehicle("OFFBOARD"), attitude_rad=np.zeros(3), position_ned_m=at, position_timestamp_s=h2.now)
-    h2.frame = SeenResult(h2.now, CLEAR, np.array([[-0.3, 0.0, 0.5]]), view)
-    h2.step(fresh_frame=False)
-    h2.vehicle = replace(h2.vehicle, position_ned_m=np.array([0.5, 0.0, -1.5]), position_timestamp_s=h2.now + 0.05)
-    h2.frame = SeenResult(h2.now + 0.03, CLEAR, np.empty((0, 3)), view)
-    assert h2.step(fresh_frame=False).setpoint.right_m_s == 0.0
-
-
 # ------------------------------------------------------------------------------------ progress watchdog
 
 
 def _engaged_at(position_ned_m, *, cfg: SupervisorConfig | None = None) -> Harness:
-    """A harness engaged with the rule stack's defaults (course hold on) at ``position_ned_m``, facing north."""
-    import numpy as np
-
-    h = Harness(cfg or rules_config())
-    h.vehicle = replace(vehicle(), attitude_rad=np.array([0.0, 0.0, 0.0]), position_ned_m=np.array(position_ned_m, dtype=float))
+    """A harness engaged with the defaults at ``position_ned_m``, facing north (the course: north)."""
+    h = Harness(cfg)
+    h.vehicle = replace(vehicle(), position_ned_m=np.array(position_ned_m, dtype=float))
     h.step(Engage())
     h.run(0.6)
     h.vehicle = replace(h.vehicle, flight_mode="OFFBOARD", in_offboard=True)
@@ -798,13 +670,12 @@ def _engaged_at(position_ned_m, *, cfg: SupervisorConfig | None = None) -> Harne
 
 
 def test_no_progress_pauses_with_a_position_hold_and_resume_goes_on() -> None:
-    import numpy as np
-
-    cmd = CompanionConfig().command
-    assert cmd.no_progress_timeout_s == 20.0 and cmd.progress_step_m == 1.0
+    cfg = CompanionConfig()
+    timeout_s = cfg.planner.no_progress_timeout_s
+    assert timeout_s == 20.0 and cfg.command.progress_step_m == 1.0  # 60 m at 3 m/s
     h = _engaged_at([0.0, 0.0, -1.5])
     # Circling in front of something: 0.8 m along the course at most, for the whole timeout.
-    for k in range(int(cmd.no_progress_timeout_s / 0.05) - 2):
+    for k in range(int(timeout_s / 0.05) - 2):
         a = k * 0.05
         h.vehicle = replace(h.vehicle, position_ned_m=np.array([0.4 + 0.4 * math.cos(a), 0.4 * math.sin(a), -1.5]))
         assert h.step().state is State.ENGAGED
@@ -812,41 +683,20 @@ def test_no_progress_pauses_with_a_position_hold_and_resume_goes_on() -> None:
     stalled = outs[-1]
     assert stalled.state is State.PAUSED and "no progress along the course for 20 s" in stalled.reason
     assert "resume" in stalled.reason
-    # The hold is a brake's: back toward where it began, here zero as the vehicle stays put.
+    assert h.sup.planner_status()["mode"] == "hold"
+    # The planner holds the point where it stopped: pushed on 0.2 m, it is told back.
     where = h.vehicle.position_ned_m.copy()
     h.vehicle = replace(h.vehicle, position_ned_m=where + np.array([0.2, 0.0, 0.0]))
-    sp = h.step().setpoint
-    assert sp.forward_m_s == pytest.approx(-0.2)
+    assert h.step().setpoint.forward_m_s < 0.0
     assert all(o.state is State.PAUSED and o.setpoint.forward_m_s <= 0.0 for o in h.run(30.0))
     out = h.step(Resume())
-    assert out.replies[0].ok and out.state is State.ENGAGED and out.setpoint.forward_m_s > 0.0
+    assert out.replies[0].ok and out.state is State.ENGAGED
+    assert h.run(0.3)[-1].setpoint.forward_m_s > 0.0
     # The clock starts again at resume: another full timeout before the next pause.
-    assert all(o.state is State.ENGAGED for o in h.run(cmd.no_progress_timeout_s - 1.0))
-
-
-def test_a_regress_pause_says_it_was_flying_back_and_keeps_saying_so() -> None:
-    """PX4 SITL detour-3 (2026-11-26): the watchdog held for a regress 16 s after engaging, and the
-    service said "no progress along the course for 20 s": the reason was read after the reset that
-    clears the watchdog's why. It is kept from the moment of the pause."""
-    import numpy as np
-
-    cmd = CompanionConfig().command
-    assert cmd.regress_distance_m == 1.5 and cmd.regress_timeout_s == 3.0
-    h = _engaged_at([0.0, 0.0, -1.5])
-    for k in range(40):  # 2 m along the course, then back 2 m past the start
-        h.vehicle = replace(h.vehicle, position_ned_m=np.array([0.05 * k, 0.0, -1.5]))
-        assert h.step().state is State.ENGAGED
-    h.vehicle = replace(h.vehicle, position_ned_m=np.array([0.0, 0.0, -1.5]))
-    outs = h.run(cmd.regress_timeout_s + 0.5)
-    paused = [o for o in outs if o.state is State.PAUSED]
-    assert paused, "regress never held"
-    assert all("flying back" in o.reason and "no progress" not in o.reason for o in paused)
-    assert all("flying back" in o.reason for o in h.run(2.0))
+    assert all(o.state is State.ENGAGED for o in h.run(timeout_s - 1.5))
 
 
 def test_progress_keeps_the_flight_going() -> None:
-    import numpy as np
-
     h = _engaged_at([0.0, 0.0, -1.5])
     # 1.1 m along the course every 15 s: slow, but progress.
     for k in range(int(60.0 / 0.05)):
@@ -854,19 +704,21 @@ def test_progress_keeps_the_flight_going() -> None:
         assert h.step().state is State.ENGAGED
 
 
-def test_no_progress_watchdog_off_without_course_hold_or_timeout() -> None:
-    import numpy as np
+def test_flying_away_from_the_goal_is_no_stall_by_itself() -> None:
+    """The planner's way round can lead away from the goal for seconds: only no progress holds."""
+    h = _engaged_at([0.0, 0.0, -1.5])
+    for k in range(200):  # 10 s flying south, away from the course ahead
+        h.vehicle = replace(h.vehicle, position_ned_m=np.array([-0.05 * k, 0.0, -1.5]))
+        assert h.step().state is State.ENGAGED
 
-    for patch in ({"no_progress_timeout_s": 0.0}, {"heading_hold_gain_per_s": 0.0}):
-        cfg = SupervisorConfig.from_config(rules_companion_config({"command": patch}))
-        h = _engaged_at([0.0, 0.0, -1.5], cfg=cfg)
-        h.vehicle = replace(h.vehicle, position_ned_m=np.array([0.0, 0.0, -1.5]))
-        assert all(o.state is State.ENGAGED for o in h.run(30.0))
+
+def test_no_progress_watchdog_off_with_a_zero_distance() -> None:
+    cfg = SupervisorConfig.from_config(CompanionConfig.model_validate({"planner": {"no_progress_distance_m": 0.0}}))
+    h = _engaged_at([0.0, 0.0, -1.5], cfg=cfg)
+    assert all(o.state is State.ENGAGED for o in h.run(30.0))
 
 
 def test_no_progress_clock_waits_while_paused_stale_or_overridden() -> None:
-    import numpy as np
-
     h = _engaged_at([0.0, 0.0, -1.5])
     h.run(15.0)
     h.step(Pause())
@@ -875,61 +727,29 @@ def test_no_progress_clock_waits_while_paused_stale_or_overridden() -> None:
     assert all(o.state is State.ENGAGED for o in h.run(15.0))  # 15 s since resume, not 60
     h.run(4.0, fresh_frame=False)  # stale: degraded, the clock restarts when frames return
     assert all(o.state is State.ENGAGED for o in h.run(15.0))
-    h.vehicle = replace(h.vehicle, position_ned_m=np.array([0.0, 0.0, -1.5]))
+    h.step(Override(0.0, 0.0, 0.5, 4.0))
+    h.run(4.1)  # overridden: not the automatic flight, the clock restarts after it
+    assert all(o.state is State.ENGAGED for o in h.run(15.0))
     assert h.run(6.0)[-1].state is State.PAUSED
     # An operator's pause replaces the watchdog's: zero velocity, the operator's reason.
     out = h.step(Pause())
     assert out.state is State.PAUSED and out.reason.startswith("paused by the operator") and out.setpoint == ZERO_SETPOINT
 
 
-def test_course_hold_waits_while_a_clear_decision_still_turns() -> None:
-    """The release filter lets an escape's yaw fade over a few CLEAR decisions. Course hold (and its
-    turning back in place) waits for straight CLEAR decisions, as in the simulator: acting at once,
-    it turned the vehicle back against the escape's last turn (PX4 SITL, corridor-0 and doorway-4).
-    A turn that lasts command.turn_back_after_clear_s is no fade: then turning back acts. (The detour
-    layer, off here, would take a vehicle facing this far from its goal round on its own.)"""
-    import numpy as np
+def test_goto_gives_a_new_goal_and_ends_a_hold() -> None:
+    from companion.core.goal import GoalSpec
+    from companion.core.supervisor import Goto
 
-    from companion.config.detour import DetourConfig
-
-    h = _engaged_at([0.0, 0.0, -1.5], cfg=rules_config(detour=DetourConfig(trigger_after_s=0.0)))
-    h.vehicle = replace(h.vehicle, attitude_rad=np.array([0.0, 0.0, math.radians(120.0)]))  # facing away
-    fading = Decision(DecisionKind.CLEAR, yaw=0.3, pitch=0.0, speed_fraction=1.0, reason="release")
-    escape = Decision(DecisionKind.AVOID, yaw=0.6, pitch=0.0, speed_fraction=0.5, reason="escape")
-    h.frame = Result(h.now, escape)
-    h.step()
-    h.frame = Result(h.now, fading)
-    cmd = h.cfg.command
-    for out in h.run(cmd.turn_back_after_clear_s - 0.5):
-        assert out.setpoint.yaw_rate_deg_s == pytest.approx(0.3 * cmd.max_yaw_rate_deg_s)
-        assert out.setpoint.forward_m_s == pytest.approx(cmd.cruise_speed_m_s)
-    h.frame = Result(h.now, CLEAR)
-    assert h.step().setpoint.yaw_rate_deg_s == 0.0  # straight and CLEAR: the wait starts now
-    turned = h.run(cmd.hold_resume_delay_s + 0.1)[-1].setpoint
-    assert turned.forward_m_s == 0.0 and turned.yaw_rate_deg_s == -cmd.max_heading_hold_rate_deg_s  # back in place
-    # A turn that goes on: after turn_back_after_clear_s of CLEAR decisions it turns back all the same.
-    h.frame = Result(h.now, escape)
-    h.step()
-    h.frame = Result(h.now, fading)
-    outs = h.run(cmd.turn_back_after_clear_s + 0.2)
-    assert outs[0].setpoint.forward_m_s == pytest.approx(cmd.cruise_speed_m_s)
-    assert outs[-1].setpoint.forward_m_s == 0.0 and outs[-1].setpoint.yaw_rate_deg_s == -cmd.max_heading_hold_rate_deg_s
-
-
-def test_a_clear_decision_that_only_climbs_lets_course_hold_turn_back() -> None:
-    """(The detour layer, off here, would turn a vehicle facing this far from its goal back on its own:
-    its passing look, with nothing on the map.)"""
-    import numpy as np
-
-    from companion.config.detour import DetourConfig
-
-    h = _engaged_at([0.0, 0.0, -1.5], cfg=rules_config(detour=DetourConfig(trigger_after_s=0.0)))
-    h.vehicle = replace(h.vehicle, attitude_rad=np.array([0.0, 0.0, math.radians(-120.0)]))  # facing away
-    h.frame = Result(h.now, Decision(DecisionKind.CLEAR, yaw=0.0, pitch=0.2, speed_fraction=1.0, reason="ground"))
-    cmd = h.cfg.command
-    out = h.run(cmd.hold_resume_delay_s + 0.2)[-1]
-    assert out.setpoint.forward_m_s == 0.0 and out.setpoint.yaw_rate_deg_s == cmd.max_heading_hold_rate_deg_s
-    assert out.setpoint.down_m_s == pytest.approx(-0.2 * cmd.max_vertical_speed_m_s)  # its climb kept
+    h = Harness()
+    assert not h.step(Goto(GoalSpec(kind="point", north_m=5.0, east_m=0.0))).replies[0].ok  # not engaged
+    h = _engaged_at([0.0, 0.0, -1.5])
+    h.run(20.5)
+    assert h.sup.state is State.PAUSED
+    out = h.step(Goto(GoalSpec(kind="point", north_m=10.0, east_m=2.0)))
+    assert out.replies[0].ok and out.state is State.ENGAGED
+    goal = h.sup.goal_status(h.vehicle.position_ned_m)
+    assert goal["kind"] == "point" and goal["north_m"] == 10.0 and goal["distance_m"] == pytest.approx(math.hypot(10.0, 2.0))
+    assert goal["reached"] is False
 
 
 # ---------------------------------------------------------------------------------------------- engage from the sticks
@@ -952,7 +772,7 @@ def test_ready_streams_zero_and_a_pilots_switch_engages_with_no_mode_command() -
     h.vehicle = vehicle("OFFBOARD")  # the pilot's RC switch (or QGC) onto the zero stream
     out = h.step()
     assert out.state is State.ENGAGED and "offboard switch" in out.reason and h.sup.engaged
-    assert out.setpoint is not None and out.setpoint.forward_m_s > 0  # the decision's setpoint at once
+    assert out.setpoint is not None  # the local stack's setpoint at once
     assert not h.actions()  # no START_OFFBOARD: the pilot did it
     # Switching away gives it back at once: zero, stream stopped, no mode command ...
     h.vehicle = vehicle("POSCTL")
@@ -1012,13 +832,3 @@ def test_no_ready_stream_after_a_failsafe_until_an_explicit_engage() -> None:
     h.run(0.5)
     assert h.sup.state is State.FAILSAFE and not h.sup.ready
     assert all(o.setpoint is None for o in h.run(1.0))
-
-
-def test_the_memory_status_says_how_many_points_the_detour_map_leaves_out() -> None:
-    # The health message's `memory` block: what is remembered, what guarded, and what the detour
-    # layer's map leaves out (seen past: tests/test_memory.py).
-    sup = Supervisor(default_config())
-    assert sup.memory_status() == {
-        "points": 0, "guarding": 0, "seen_past": 0, "guard_cleared": 0, "unseen_drift_m_s": 0.0,
-        "track_counter_m_s": 0.0,
-    }

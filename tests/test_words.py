@@ -66,8 +66,8 @@ def test_watch_shows_the_words_and_the_reason_only_with_verbose() -> None:
 def test_a_refused_change_reads_as_one_plain_sentence() -> None:
     from companion.core.words import error_words
 
-    assert error_words("patch: invalid config: command.cruise_speed_m_s: Input should be greater than or equal to 0 (got -1)") == (
-        "the change was refused (nothing changed): command.cruise_speed_m_s: Input should be greater than or equal to 0 (got -1)"
+    assert error_words("patch: invalid config: planner.cruise_speed_m_s: Input should be greater than or equal to 0 (got -1)") == (
+        "the change was refused (nothing changed): planner.cruise_speed_m_s: Input should be greater than or equal to 0 (got -1)"
     )
     assert error_words("engage refused: vehicle is disarmed (the service never arms it)") == (
         "engage refused: vehicle is disarmed (the service never arms it)"

@@ -119,7 +119,7 @@ def main() -> int:
             walls.append((amp, lw, rw))
     cfg = CompanionConfig()
     layout = region_layout(geometry, cfg.regions)
-    ctrl = AvoidanceController(cfg.controller, cfg.command)
+    ctrl = AvoidanceController(cfg.controller)
     _, frames = rendered_frames(BenchSize(672, 376, 64), 32)
     for name, st in SETTINGS.items():
         if args.names and not any(n in name for n in args.names):

@@ -1,28 +1,20 @@
 #!/usr/bin/env python3
-"""What the hard surfaces (plain walls, bars, glare) do to the obstacle memory, per backend.
+"""What the hard surfaces (plain walls, bars, glare) do to the disparity and the map's blocks, per backend.
 
-Flies courses of a suite closed-loop (as ``companion sim --suite`` does: same configs, same verdicts)
-and checks every near point the memory is given (``FrameResult.near_points_cam_m``, placed in NED
-from the pose the frame was seen from) against the ground truth: a point is **false** when no
-surface (obstacle or ground) lies within ``0.1 m + 10 %`` of its range (about one pixel of disparity
-error at 2.5 m, the memory's farthest point). Prints the suite table and, per course kind: points
-per frame, false points per frame, the false share, and the share of frames with a false point.
-
-With ``--frames``, instead: single frames of each kind's courses seen from fixed poses on the
-course line (the simulated camera's noise and eye gain mismatch, no flight), scored like ``companion
-eval`` against the renderer's depth: density and bad-2 over the pixels, and per region the classes
-(near / far / unknown) from the output and from the ground truth: a **phantom** is a region the output
-calls near that the ground truth calls far; **unknown** one the output leaves unknown (which the
-controller treats as near) that the ground truth knows. Then the obstacle memory's input, its
-blocks of nearest disparity (:func:`~companion.core.evaluation.memory_block_report`): the share too
-near, where they lie (a depth edge smeared onto what is behind it, a plain or a textured surface), and
-the share of near surfaces seen; with ``--block-erode-px 0,1,2``, also of the disparity eroded along
-rows first (``memory.block_erode_px``, under study).
+Single frames of each kind's courses seen from fixed poses on the course line (the simulated camera's
+noise and eye gain mismatch, no flight), scored like ``companion eval`` against the renderer's depth:
+density and bad-2 over the pixels, and per region the classes (near / far / unknown) from the output
+and from the ground truth: a **phantom** is a region the output calls near that the ground truth
+calls far; **unknown** one the output leaves unknown (which the controller treats as near) that the
+ground truth knows. Then the local planner's map input, its blocks of nearest disparity
+(:func:`~companion.core.evaluation.map_block_report`): the share too near, where they lie (a depth
+edge smeared onto what is behind it, a plain or a textured surface), and the share of near surfaces
+seen; with ``--block-erode-px 0,1,2``, also of the disparity eroded along rows first
+(``planner.block_erode_px``).
 
 Usage::
 
-    python tools/hard_surface_study.py --config C.toml [--suite standard] [--kinds office] [--workers 2]
-    python tools/hard_surface_study.py --frames [--backends opencv-bm,reference] [--kinds office,doorway]
+    python tools/hard_surface_study.py [--config C.toml] [--backends opencv-bm,reference] [--kinds office,doorway]
         [--block-erode-px 0,1]
 """
 
@@ -31,7 +23,6 @@ from __future__ import annotations
 import argparse
 import multiprocessing as mp
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -40,50 +31,10 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from companion.config import load_config  # noqa: E402
-from companion.sim.suite import select_kinds, single_thread_config, suite_courses, suite_table  # noqa: E402
+from companion.sim.suite import single_thread_config  # noqa: E402
 
-#: A point farther than this plus ``_TOL_FRACTION`` of its range from every surface is false, metres.
-_TOL_M = 0.1
-_TOL_FRACTION = 0.1
-
-
-def _fly(args: tuple[str, int, dict]) -> tuple[object, dict[str, float]]:
-    kind, seed, cfg_data = args
-    import dataclasses
-
-    from companion.config import parse_config
-    from companion.core.memory import camera_points_to_ned
-    from companion.sim.courses import make_course
-    from companion.sim.loop import fly
-    from companion.sim.render import Pose
-
-    cfg = parse_config(cfg_data, source="study")
-    course = make_course(kind, seed)
-    points: list[np.ndarray] = []
-
-    def on_frame(frame: object, res: object) -> None:
-        pts = getattr(res, "near_points_cam_m", None)
-        points.append(np.zeros((0, 3)) if pts is None else np.asarray(pts, dtype=np.float64).reshape(-1, 3))
-
-    result = fly(course, cfg, on_frame=on_frame)
-    log = result.frame_log
-    assert log is not None and len(points) == log.t_s.size
-    n_pts = n_false = frames_false = 0
-    for i, pts in enumerate(points):
-        if pts.shape[0] == 0:
-            continue
-        roll, pitch, yaw = log.attitude_rad[i]
-        pose = Pose(tuple(log.position_ned_m[i]), float(yaw), float(pitch), float(roll))
-        ned = camera_points_to_ned(pts, pose)
-        rng_m = np.linalg.norm(pts, axis=1)
-        dist = np.asarray(course.scene.distance_to_obstacles_m(ned, include_ground=True)).reshape(-1)
-        false = dist > _TOL_M + _TOL_FRACTION * rng_m
-        n_pts += pts.shape[0]
-        n_false += int(false.sum())
-        frames_false += bool(false.any())
-    stats = {"frames": float(log.t_s.size), "points": float(n_pts), "false": float(n_false),
-             "frames_false": float(frames_false)}
-    return dataclasses.replace(result, log=None, frame_log=None), stats
+#: A block whose ground truth is nearer than this counts as a near surface (for "near seen"), metres.
+_NEAR_M = 2.5
 
 
 def _frame_poses(kind: str, seed: int) -> list[tuple[float, float]]:
@@ -111,8 +62,8 @@ def _frames(args: tuple[str, int, dict, list[str], list[int]]) -> list[dict[str,
     kind, seed, cfg_data, backends, erosions = args
     from companion.backends import make_estimator
     from companion.config import apply_patch, parse_config
-    from companion.core.evaluation import GroundTruthPair, disparity_metrics, memory_block_report, region_report
-    from companion.core.memory import erode_rows
+    from companion.core.evaluation import GroundTruthPair, disparity_metrics, map_block_report, region_report
+    from companion.core.blocks import erode_rows
     from companion.sim.camera import make_texture_bank
     from companion.sim.courses import make_course
     from companion.sim.loop import simulator_config
@@ -140,8 +91,8 @@ def _frames(args: tuple[str, int, dict, list[str], list[int]]) -> list[dict[str,
             met = disparity_metrics(disp, gt, cfg.stereo.num_disparities)
             reg = region_report(disp, pair, cfg)
             blocks = {
-                k: memory_block_report(erode_rows(disp, k), gt, cfg.memory.block_px,
-                                       geo.focal_baseline_px_m / cfg.memory.max_depth_m, left=pair.left)
+                k: map_block_report(erode_rows(disp, k), gt, cfg.planner.block_px,
+                                    geo.focal_baseline_px_m / _NEAR_M, left=pair.left)
                 for k in erosions
             }
             rows.append({
@@ -156,7 +107,7 @@ def _frames(args: tuple[str, int, dict, list[str], list[int]]) -> list[dict[str,
 
 
 def frames_main(args: argparse.Namespace) -> int:
-    """The ``--frames`` study (module doc)."""
+    """The study (module doc)."""
     cfg = single_thread_config(load_config(args.config))
     kinds = [k.strip() for k in (args.kinds or "office").split(",") if k.strip()]
     backends = [b.strip() for b in args.backends.split(",") if b.strip()]
@@ -176,9 +127,9 @@ def frames_main(args: argparse.Namespace) -> int:
                   f"  {100 * np.nanmean([r['bad2'] for r in sel]):4.1f} %"
                   f"  {sum(r['phantom'] for r in sel):12d}  {sum(r['unknown'] for r in sel):7d}"
                   f"  {sum(r['missed'] for r in sel):11d}  {sum(r['decision_differs'] for r in sel):6d}")
-    print(f"\nthe memory's blocks ({cfg.memory.block_px} px, each its nearest disparity): too near = nearer than every "
+    print(f"\nthe map's blocks ({cfg.planner.block_px} px, each its nearest disparity): too near = nearer than every "
           f"surface in it by > 1 px; at a jump: within 6 px of a depth edge; plain: texture < 4 grey levels; "
-          f"seen: of the blocks with a surface nearer than {cfg.memory.max_depth_m} m, within 1 px")
+          f"seen: of the blocks with a surface nearer than {_NEAR_M} m, within 1 px")
     print("kind      backend       erode  blocks/frame  too near  at a jump  plain  textured  near seen")
     for kind in kinds:
         for b in backends:
@@ -195,43 +146,13 @@ def frames_main(args: argparse.Namespace) -> int:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--config", type=Path)
-    ap.add_argument("--suite", default="standard")
     ap.add_argument("--kinds")
     ap.add_argument("--workers", type=int, default=2)
-    ap.add_argument("--frames", action="store_true", help="single frames from fixed poses (module doc)")
-    ap.add_argument("--backends", default="opencv-bm,reference", help="--frames: backends to score")
-    ap.add_argument("--seeds", type=int, default=9, help="--frames: seeds 0..N-1 of each kind")
-    ap.add_argument("--block-erode-px", default="0", help="--frames: also score the memory's blocks of the "
-                    "disparity eroded along rows by these ±px (comma-separated; 0 = as the backend gives it)")
-    args = ap.parse_args()
-    if args.frames:
-        return frames_main(args)
-    cfg = single_thread_config(load_config(args.config))
-    courses = suite_courses(args.suite)
-    if args.kinds:
-        courses = select_kinds(courses, args.kinds)
-    data = cfg.model_dump(mode="json")
-    t0 = time.perf_counter()
-    with mp.get_context("spawn").Pool(args.workers) as pool:
-        out = pool.map(_fly, [(k, s, data) for k, s in courses], chunksize=1)
-    results = [r for r, _ in out]
-    for r, st in out:
-        print(f"{r.summary()}  points {st['points']:.0f}, false {st['false']:.0f} in {st['frames']:.0f} frames")
-    print()
-    print(suite_table(results))
-    print(f"\nwall time {time.perf_counter() - t0:.0f} s; false point: > {_TOL_M} m + {_TOL_FRACTION:.0%} of its range "
-          "from every surface")
-    print("kind      frames  points/frame  false/frame  false share  frames with a false point")
-    kinds = sorted({r.course.kind for r in results}, key=[k for k, _ in courses].index)
-    for kind in kinds + ["all"]:
-        sts = [st for r, st in out if kind in ("all", r.course.kind)]
-        fr = sum(s["frames"] for s in sts)
-        pts = sum(s["points"] for s in sts)
-        fa = sum(s["false"] for s in sts)
-        ff = sum(s["frames_false"] for s in sts)
-        print(f"{kind:9s} {fr:6.0f}  {pts / fr:12.2f}  {fa / fr:11.3f}  {100 * fa / max(pts, 1):10.1f} %  "
-              f"{100 * ff / fr:6.1f} %")
-    return 0
+    ap.add_argument("--backends", default="opencv-bm,reference", help="backends to score")
+    ap.add_argument("--seeds", type=int, default=9, help="seeds 0..N-1 of each kind")
+    ap.add_argument("--block-erode-px", default="0", help="also score the map's blocks of the disparity eroded "
+                    "along rows by these ±px (comma-separated; 0 = as the backend gives it)")
+    return frames_main(ap.parse_args())
 
 
 if __name__ == "__main__":

@@ -35,7 +35,7 @@ def main() -> int:
     kinds = [k for k in args.kinds.split(",") if k]
     courses = [(k, s) for s in range(lo, hi + 1) for k in kinds]
     results = run_suite(cfg, courses, workers=args.workers)
-    cruise = cfg.flying_cruise_speed_m_s
+    cruise = cfg.planner.cruise_speed_m_s
     ratios, speeds, rows = [], [], []
     for r in results:
         course = make_course(r.course.kind, r.course.seed)
@@ -49,7 +49,7 @@ def main() -> int:
              "min_clearance_m": round(r.min_clearance_m, 3), "path_m": round(r.path_length_m, 2), "reason": r.reason,
              "hold_reason": r.hold_reason}
         )
-    print(f"== {args.label} ({cfg.planner.kind}, cruise {cruise:g} m/s, seeds {args.seeds})")
+    print(f"== {args.label} (cruise {cruise:g} m/s, seeds {args.seeds})")
     print(suite_table(results))
     print(realization_line(cfg.sim.realization, results))
     if ratios:

@@ -11,7 +11,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from companion.config.core import CommandConfig, ControllerConfig
+from companion.config.core import ControllerConfig
 from companion.core.fuzzy.avoidance import AvoidanceController
 
 
@@ -24,7 +24,6 @@ def bench_fuzzy(
     n: int = 5000,
     *,
     cfg: ControllerConfig | None = None,
-    cmd: CommandConfig | None = None,
     seed: int = 0,
     clock: Callable[[], float] = time.perf_counter,
 ) -> dict[str, float]:
@@ -36,7 +35,7 @@ def bench_fuzzy(
 
     Args:
         n: calls per measurement, >= 1.
-        cfg, cmd: the configuration (defaults: ``ControllerConfig()``, ``CommandConfig()``).
+        cfg: the configuration (default ``ControllerConfig()``).
         seed: seed of the random inputs.
         clock: seconds, monotonic.
 
@@ -47,11 +46,9 @@ def bench_fuzzy(
     """
     if n < 1:
         raise ValueError(f"n must be >= 1, got {n}")
-    if cfg is None or cmd is None:
-        cfg = cfg if cfg is not None else ControllerConfig()
-        cmd = cmd if cmd is not None else CommandConfig()
+    cfg = cfg if cfg is not None else ControllerConfig()
     t0 = clock()
-    ctl = AvoidanceController(cfg, cmd)
+    ctl = AvoidanceController(cfg)
     build_s = clock() - t0
     rng = np.random.default_rng(seed)
     depth = rng.uniform(0.0, 4.0, (n, 9))

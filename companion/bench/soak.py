@@ -3,7 +3,7 @@
 The real service (capture thread, mailbox, pipeline thread, control loop, control server, health) replays
 rendered frames at the camera rate (``--sizes``' first size; 30 fps), engaged (autostart) on an in-memory
 vehicle link, while an operator's client asks ``status`` every second, a subscriber reads every health
-message, and a ``set_config`` changes the cruise speed every 30 s. Every ``--sample-s`` seconds it
+message, and a ``set_config`` changes a fuzzy controller setting every 30 s. Every ``--sample-s`` seconds it
 records the process's resident memory, the setpoints handed over per second, the frame-to-setpoint
 latency percentiles of that window, the longest gap between two setpoints handed to the vehicle, and
 the frames dropped; the summary says whether memory grew. With ``--flood`` another process floods the
@@ -34,7 +34,7 @@ from companion.service.daemon import Service
 
 #: The replayed camera rate, frames per second (a ZED at 672x376 runs at 15 to 100).
 SOAK_FPS_HZ = 30.0
-#: How often the operator's client changes the cruise speed, seconds.
+#: How often the operator's client changes a fuzzy controller setting (a live tuning change), seconds.
 SET_CONFIG_EVERY_S = 30.0
 
 
@@ -70,7 +70,7 @@ class _Operator:
         req = self._ctx.socket(zmq.DEALER)
         req.connect(self._control)
         next_status = next_set = time.monotonic()
-        speeds = (0.6, 0.7)
+        fractions = (0.1, 0.2)
         n = 0
         while not self._stop.is_set():
             while sub.poll(0):
@@ -83,7 +83,7 @@ class _Operator:
                 n += 1
             if now >= next_set:
                 next_set += SET_CONFIG_EVERY_S
-                patch = {"command": {"cruise_speed_m_s": speeds[n % 2]}}
+                patch = {"controller": {"avoid_speed_fraction": fractions[n % 2]}}
                 req.send(json.dumps({"cmd": "set_config", "id": n, "patch": patch}).encode())
                 n += 1
             while req.poll(0):

@@ -18,8 +18,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         description=(
             "Run the whole pipeline on one stereo frame (a ZED side-by-side image, or a left/right pair) "
             "and print JSON: the 9 region depths in metres (null = unknown), yaw, pitch, the decision and "
-            "what it means in words, the setpoint it gives, per-stage timings, and the nearest depth the "
-            "rig can measure (min_measurable_depth_m). Try it on the repository's sample: "
+            "what it means in words, the setpoint it gives flown directly (no map: at the planner's "
+            "limits), per-stage timings, and the nearest depth the rig can measure "
+            "(min_measurable_depth_m). Try it on the repository's sample: "
             "--sbs samples/frame.jpg --calib samples/frame-calib.yaml."
         ),
     )
@@ -80,7 +81,7 @@ def load_frame(args: argparse.Namespace) -> Any:
 
 def run(args: argparse.Namespace) -> int:
     from companion.config import apply_patch, load_config
-    from companion.core.command import setpoint_for
+    from companion.core.direct import decision_setpoint
     from companion.core.overlay import draw_overlay
     from companion.backends import make_pipeline
     from companion.core.rig_check import check_rig, near_unmeasurable, rig_check_lines
@@ -106,7 +107,7 @@ def run(args: argparse.Namespace) -> int:
     pipeline = make_pipeline(cfg, width, height)
     rig = check_rig(pipeline.geometry, cfg.stereo, cfg.regions, cfg.controller)
     result = pipeline.process(frame, timestamp_s=0.0, want_disparity=args.overlay is not None)
-    setpoint = setpoint_for(result.decision, since_last_frame_s=0.0, cmd=cfg.command)
+    setpoint = decision_setpoint(result.decision, cfg)
     g = pipeline.geometry
     out = {
         "backend": pipeline.estimator.name,

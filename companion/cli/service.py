@@ -62,7 +62,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     g = csub.add_parser("get", help="the config in force (or one section)")
     g.add_argument("section", nargs="?", help="e.g. controller, command")
     s = csub.add_parser("set", help="change config fields live: KEY=VALUE ...")
-    s.add_argument("assignments", nargs="+", metavar="KEY=VALUE", help="e.g. command.cruise_speed_m_s=1.5")
+    s.add_argument("assignments", nargs="+", metavar="KEY=VALUE", help="e.g. planner.cruise_speed_m_s=1.5")
     o = csub.add_parser("override", help="fly manual values for a bounded time, then automatic again")
     o.add_argument("--yaw", type=float, default=0.0, help="-1 (hard left) .. 1 (hard right); default 0")
     o.add_argument("--pitch", type=float, default=0.0, help="-1 (down) .. 1 (up); default 0")

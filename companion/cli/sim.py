@@ -21,7 +21,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="fly the pipeline closed-loop through simulated obstacle courses and score it",
         description=(
             "Closed-loop simulation: a simulated ZED renders what a simulated multicopter sees, the "
-            "product's pipeline decides, setpoint_for commands the vehicle at 20 Hz, in simulated time. "
+            "product's pipeline decides, the local planner commands the vehicle at 20 Hz, in simulated time. "
             "One course (--course KIND --seed N) reports the outcome (goal, collision, held, timeout, "
             "out_of_bounds), the minimum clearance, the path length and the time, and can draw a plot; a "
             "suite (--suite standard) flies many seeded courses and prints a table per course kind."
@@ -63,7 +63,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         help=(
             "--course: write the flight's trace, one CSV row per setpoint: pose, velocity, what drove the "
             "setpoint and the setpoint, the true clearance, the region depths and reason of the decision "
-            "applied, and the detour layer's phase and reason (docs/simulator.md)"
+            "applied, and the local planner's mode and reason (docs/simulator.md)"
         ),
     )
     p.add_argument(

@@ -13,7 +13,6 @@ import json
 import sys
 from collections.abc import Mapping
 from pathlib import Path
-from types import MappingProxyType
 from typing import Any, get_args
 
 from pydantic import Field, PrivateAttr, ValidationError, model_validator
@@ -25,18 +24,17 @@ from companion.config.core import (
     ControllerConfig,
     InputTerm,
     LutConfig,
-    MemoryConfig,
     OutputTerm,
     RegionsConfig,
     RuleConfig,
     StereoBackend,
     StereoConfig,
 )
-from companion.config.detour import DetourConfig
 from companion.config.envelope import EnvelopeConfig, envelope_violations
 from companion.config.gpu import GpuConfig
 from companion.config.obstacle import ObstacleDistanceConfig
 from companion.config.planner import PlannerConfig
+from companion.config.removed import is_removed, removed_message
 from companion.config.service import (
     BusConfig,
     CameraConfig,
@@ -60,12 +58,10 @@ __all__ = [
     "CommandConfig",
     "CompanionConfig",
     "ControllerConfig",
-    "DetourConfig",
     "EnvelopeConfig",
     "GpuConfig",
     "InputTerm",
     "LutConfig",
-    "MemoryConfig",
     "ObstacleDistanceConfig",
     "OutputTerm",
     "RegionsConfig",
@@ -96,8 +92,6 @@ class CompanionConfig(StrictModel):
     lut: LutConfig = Field(default_factory=LutConfig)
     controller: ControllerConfig = Field(default_factory=ControllerConfig)
     command: CommandConfig = Field(default_factory=CommandConfig)
-    memory: MemoryConfig = Field(default_factory=MemoryConfig)
-    detour: DetourConfig = Field(default_factory=DetourConfig)
     planner: PlannerConfig = Field(default_factory=PlannerConfig)
     obstacle_distance: ObstacleDistanceConfig = Field(default_factory=ObstacleDistanceConfig)
     camera: CameraConfig = Field(default_factory=CameraConfig)
@@ -133,31 +127,9 @@ class CompanionConfig(StrictModel):
         self._from_auto = auto
         return self
 
-    @property
-    def flying_cruise_speed_m_s(self) -> float:
-        """The top horizontal speed of the stack that flies, m/s: ``planner.cruise_speed_m_s`` with the
-        local planner, ``command.cruise_speed_m_s`` with the rule stack (the envelope bounds both)."""
-        return self.planner.cruise_speed_m_s if self.planner.kind == "local" else self.command.cruise_speed_m_s
-
 
 #: The settings whose "auto" means "as the backend's disparity map needs" (:func:`for_backend`).
-AUTO_FOR_BACKEND: tuple[tuple[str, str], ...] = (
-    ("memory", "block_erode_px"),
-    ("detour", "cone_from_start"),
-    ("detour", "through_squeeze"),
-)
-
-
-#: Settings that were renamed: the old key's path and what replaces it, so that a config written for an
-#: earlier version is refused with the way forward rather than "unknown key".
-RENAMED_KEYS: Mapping[str, str] = MappingProxyType(
-    {
-        "memory.guard_clear_after_frames": (
-            "renamed memory.guard_clear_after_s (seconds, default 4; the frames were counted at 15 Hz: "
-            "60 frames = 4 s)"
-        ),
-    }
-)
+AUTO_FOR_BACKEND: tuple[tuple[str, str], ...] = (("planner", "block_erode_px"),)
 
 
 def _short_repr(value: Any, limit: int = 80) -> str:
@@ -166,17 +138,24 @@ def _short_repr(value: Any, limit: int = 80) -> str:
 
 
 def format_validation_error(err: ValidationError, source: str) -> str:
-    """One line per problem: ``source: field.path: message (got VALUE)``, joined by '; '."""
+    """One line: ``source: field.path: message (got VALUE)`` per problem, joined by '; '. Settings that
+    were removed (:mod:`companion.config.removed`) come first, together, each with what to do."""
     parts = []
+    removed = []
     for e in err.errors(include_url=False):
         loc = ".".join(str(x) for x in e["loc"])
         msg = e["msg"].removeprefix("Value error, ")
         if e["type"] == "extra_forbidden":
-            msg = RENAMED_KEYS.get(loc, "unknown key (no such setting here; check the spelling)")
+            if is_removed(loc):
+                removed.append(loc)
+                continue
+            msg = "unknown key (no such setting here; check the spelling)"
         value = e.get("input")
         # A whole-model check (e.g. rule cross-references) already names the item in its message.
         got = "" if e["type"] == "missing" or isinstance(value, dict) else f" (got {_short_repr(value)})"
         parts.append(f"{loc}: {msg}{got}" if loc else msg)  # a whole-config check names its fields
+    if removed:
+        parts.insert(0, removed_message(removed))
     return f"{source}: invalid config: " + "; ".join(parts)
 
 
@@ -243,19 +222,18 @@ def as_written(cfg: CompanionConfig) -> dict[str, Any]:
 
 def semi_global_map(stereo: StereoConfig, backend: str) -> bool:
     """Whether ``backend`` (a concrete ``stereo.backend``, not "auto") with ``stereo`` makes the
-    semi-global matcher's dense map, the one the ``"auto"`` options of ``[memory]`` and ``[detour]``
-    were measured to help (:func:`for_backend`)."""
+    semi-global matcher's dense map, the one ``planner.block_erode_px = "auto"`` was measured to help
+    (:func:`for_backend`)."""
     return backend == "cpu-sgm" or (backend in _OWN_MATCHER_BACKENDS and stereo.matcher == "sgm")
 
 
 def for_backend(cfg: CompanionConfig, backend: str) -> CompanionConfig:
-    """``cfg`` with ``memory.block_erode_px``, ``detour.cone_from_start`` and
-    ``detour.through_squeeze`` resolved where they are "auto": 1 px and on with the semi-global
-    matcher's dense map (:func:`semi_global_map`), 0 and off with any other. The same object when
-    nothing is "auto".
+    """``cfg`` with ``planner.block_erode_px`` resolved where it is "auto": 1 px with the semi-global
+    matcher's dense map (:func:`semi_global_map`), 0 with any other. The same object when nothing is
+    "auto".
 
-    The map decides: the SGM smears depth edges onto what is behind them and fills plain walls, which
-    the three correct; StereoBM leaves holes, which they would read as ways through. Every validated
+    The map decides: the SGM smears depth edges onto what is behind them, which the erosion corrects;
+    StereoBM leaves holes, and its sparse near surfaces would be eroded away. Every validated
     :class:`CompanionConfig` is resolved this way for :func:`concrete_backend` of its backend.
 
     Raises:
@@ -263,19 +241,10 @@ def for_backend(cfg: CompanionConfig, backend: str) -> CompanionConfig:
     """
     if backend == "auto" or backend not in get_args(StereoBackend):
         raise ValueError(f"for_backend needs a concrete stereo.backend, got {backend!r}")
-    dense = semi_global_map(cfg.stereo, backend)
-    memory: dict[str, Any] = {}
-    detour: dict[str, Any] = {}
-    if cfg.memory.block_erode_px == "auto":
-        memory["block_erode_px"] = 1 if dense else 0
-    for name in ("cone_from_start", "through_squeeze"):
-        if getattr(cfg.detour, name) == "auto":
-            detour[name] = dense
-    if not memory and not detour:
+    if cfg.planner.block_erode_px != "auto":
         return cfg
-    return cfg.model_copy(
-        update={"memory": cfg.memory.model_copy(update=memory), "detour": cfg.detour.model_copy(update=detour)}
-    )
+    erode = 1 if semi_global_map(cfg.stereo, backend) else 0
+    return cfg.model_copy(update={"planner": cfg.planner.model_copy(update={"block_erode_px": erode})})
 
 
 def read_config_text(path: Path) -> str:

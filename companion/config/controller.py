@@ -8,7 +8,7 @@ from pydantic import Field, field_validator, model_validator
 
 from companion.config._base import StrictModel
 from companion.config.rules import parse_antecedent
-from companion.config.regions import REGION_NAMES
+from companion.config.regions import REGION_NAMES, RegionName
 
 MembershipShape = Literal["triangle", "trapezoid", "left_shoulder", "right_shoulder", "gaussian"]
 _SHAPE_ARITY = {"triangle": 3, "trapezoid": 4, "left_shoulder": 2, "right_shoulder": 2, "gaussian": 2}
@@ -156,7 +156,7 @@ def _default_main_rules() -> list[RuleConfig]:
         # Not in the paper. The centre region is a cone (0.5 m at 1.5 m) narrower than the vehicle
         # closer in, so an obstacle within reach can sit in a side region while the centre reads far
         # (the paper's Fig. 11 failure): the side rules keep steering away from a near side until it
-        # is passed. Their steering also pauses course hold (see command.hold_resume_delay_s).
+        # is passed.
         _r("S1", "center is far and left is near and right is far",
            "Side rule (not in the paper): centre clear but something near on the left: veer right.",
            yaw="right"),
@@ -263,6 +263,27 @@ class ControllerConfig(StrictModel):
         description=(
             "With no escape from either controller, brake once the centre is at least this near "
             "(membership of the first input term, 'near')."
+        ),
+    )
+
+    avoid_speed_fraction: float = Field(
+        default=0.1,
+        ge=0.0,
+        le=1.0,
+        description=(
+            "The decision's speed share (its speed_fraction: health, the preview, companion process) "
+            "while the centre is fully near, as a share of the cruise speed, blended linearly with the "
+            "centre's near degree; 1 = the paper's constant speed. The local planner sets the flown "
+            "speed itself, from the space seen free ([planner]); this is the fuzzy controller's own "
+            "reading of how fast the way ahead allows."
+        ),
+    )
+    avoid_speed_regions: list[RegionName] = Field(
+        default=[],
+        max_length=9,
+        description=(
+            "Regions whose 'near' degree also lowers the decision's speed (the largest of them and the "
+            "centre's drives the avoid_speed_fraction blend); [] = the centre only (the default)."
         ),
     )
 

@@ -1,16 +1,15 @@
 """The perception and decision core's config sections, one module per stage (kept as an import path).
 
-calibration → stereo → regions → LUT → fuzzy controller → command → obstacle memory: each section's model
+calibration → stereo → regions → LUT → fuzzy controller → command: each section's model
 lives in its own module (``companion.config.stereo`` and so on). This module re-exports them so that
 ``from companion.config.core import StereoConfig`` keeps working for users' scripts.
 
 Every field has a type, a default, bounds, its unit in its name and a description. The defaults are
 the paper's values where the paper gives one (near 0.75 m, far 2.25 m, a 0.5 m safe window at 1.5 m,
 the seven rules, a 45°-rotated corner controller). The knobs the paper leaves open are tuned in the
-closed-loop simulator (``companion sim --suite standard``, docs/benchmarks.md): the speed blend, yaw and
-vertical rates, the release filter, the escape threshold, four side rules and course hold.
-``config/paper.toml`` restores the paper's controller exactly (constant speed, no side rules, no
-course hold) for comparison.
+closed-loop simulator (``companion sim --suite standard``, docs/benchmarks.md): the release filter,
+the escape threshold and four side rules. ``config/paper.toml`` restores the paper's controller (no
+side rules, constant speed) and lets it dominate the local planner's choice, for comparison.
 """
 
 from __future__ import annotations
@@ -25,7 +24,6 @@ from companion.config.controller import (
     RuleConfig,
 )
 from companion.config.lut import LutConfig
-from companion.config.memory import MemoryConfig
 from companion.config.regions import RegionName, RegionsConfig
 from companion.config.stereo import StereoBackend, StereoConfig, StereoMatcher
 
@@ -36,7 +34,6 @@ __all__ = [
     "InputTerm",
     "LutConfig",
     "MembershipShape",
-    "MemoryConfig",
     "OutputTerm",
     "RegionName",
     "RegionsConfig",

@@ -30,11 +30,8 @@ class EnvelopeConfig(StrictModel):
         gt=0.0,
         le=20.0,
         description=(
-            "Upper bound of every horizontal speed the service may command, m/s: planner.cruise_speed_m_s "
-            "(with planner.kind 'local'), command.cruise_speed_m_s, brake_hold_max_speed_m_s, "
-            "max_line_hold_lateral_speed_m_s, max_standoff_speed_m_s, memory.max_guard_speed_m_s, "
-            "memory.max_gap_centering_speed_m_s, detour.speed_m_s. Also the last limit on each setpoint. "
-            "4 m/s: the local planner's 3 m/s cruise, plus the counter to motion the reported velocity "
+            "Upper bound of every horizontal speed the service may command, m/s: planner.cruise_speed_m_s, "
+            "and the last limit on each setpoint (an override's too). 4 m/s: the local planner's 3 m/s cruise, plus the counter to motion the reported velocity "
             "does not explain (up to vehicle.odometry_drift_m_s, 0.5 m/s) that is added to it, plus "
             "headroom for the autopilot's velocity controller, so that the envelope clips no setpoint "
             "the planner meant."
@@ -44,15 +41,13 @@ class EnvelopeConfig(StrictModel):
         default=1.0,
         gt=0.0,
         le=10.0,
-        description="Upper bound of command.max_vertical_speed_m_s and max_altitude_hold_speed_m_s, m/s.",
+        description="Upper bound of planner.max_vertical_speed_m_s and of every vertical speed commanded, m/s.",
     )
     max_yaw_rate_deg_s: float = Field(
         default=120.0,
         gt=0.0,
         le=720.0,
-        description=(
-            "Upper bound of command.max_yaw_rate_deg_s, max_heading_hold_rate_deg_s and detour.turn_rate_deg_s, deg/s."
-        ),
+        description="Upper bound of planner.max_yaw_rate_deg_s and of every yaw rate commanded, deg/s.",
     )
     max_stale_frame_timeout_s: float = Field(
         default=0.5,
@@ -82,17 +77,6 @@ class EnvelopeConfig(StrictModel):
         default=False,
         description="Whether service.override_respects_brake may be false (an override flying on into something near).",
     )
-    memory_may_be_off: bool = Field(
-        default=False,
-        description="Whether the obstacle memory may be switched off (memory.duration_s = 0; the paper's controller).",
-    )
-    brake_hold_may_be_off: bool = Field(
-        default=False,
-        description=(
-            "Whether the brake's position hold may be switched off (command.brake_hold_gain_per_s = 0: a brake "
-            "sends plain zero velocity, which a real multicopter drifts away from; the paper's controller)."
-        ),
-    )
     arming_check_may_be_off: bool = Field(
         default=False,
         description="Whether vehicle.require_armed_to_engage may be false (engage a disarmed vehicle: tests only).",
@@ -111,8 +95,8 @@ class EnvelopeConfig(StrictModel):
         default="tuning",
         description=(
             "What a live change (set_config, reload) may touch while the service is engaged: none; tuning "
-            "(controller, lut and the command speeds, rates and gains, within this envelope; not the "
-            "timeouts, the brake hold or the watchdog); any (every field, still within this envelope). "
+            "(the fuzzy controller and the lut, within this envelope; not the planner, the timeouts or "
+            "the watchdog); any (every field, still within this envelope). "
             "The envelope itself changes only by a reload while not engaged."
         ),
     )
@@ -121,38 +105,16 @@ class EnvelopeConfig(StrictModel):
 def envelope_violations(cfg: CompanionConfig) -> list[str]:
     """Every way ``cfg`` leaves its own envelope, one line each naming the field and the limit; [] = inside."""
     e = cfg.envelope
-    c, m, v, s = cfg.command, cfg.memory, cfg.vehicle, cfg.service
+    c, p, v, s = cfg.command, cfg.planner, cfg.vehicle, cfg.service
     out: list[str] = []
 
     def above(field: str, value: float, limit_name: str, limit: float) -> None:
         if value > limit:
             out.append(f"{field} = {value:g} is above envelope.{limit_name} = {limit:g}")
 
-    for field, value in (
-        ("command.cruise_speed_m_s", c.cruise_speed_m_s),
-        ("command.brake_hold_max_speed_m_s", c.brake_hold_max_speed_m_s),
-        ("command.max_line_hold_lateral_speed_m_s", c.max_line_hold_lateral_speed_m_s),
-        ("command.max_standoff_speed_m_s", c.max_standoff_speed_m_s),
-        ("memory.max_guard_speed_m_s", m.max_guard_speed_m_s),
-        ("memory.max_gap_centering_speed_m_s", m.max_gap_centering_speed_m_s),
-        ("detour.speed_m_s", cfg.detour.speed_m_s),
-    ):
-        above(field, value, "max_horizontal_speed_m_s", e.max_horizontal_speed_m_s)
-    for field, value in (
-        ("command.max_vertical_speed_m_s", c.max_vertical_speed_m_s),
-        ("command.max_altitude_hold_speed_m_s", c.max_altitude_hold_speed_m_s),
-    ):
-        above(field, value, "max_vertical_speed_m_s", e.max_vertical_speed_m_s)
-    for field, value in (
-        ("command.max_yaw_rate_deg_s", c.max_yaw_rate_deg_s),
-        ("command.max_heading_hold_rate_deg_s", c.max_heading_hold_rate_deg_s),
-        ("detour.turn_rate_deg_s", cfg.detour.turn_rate_deg_s),
-    ):
-        above(field, value, "max_yaw_rate_deg_s", e.max_yaw_rate_deg_s)
-    if cfg.planner.kind == "local":
-        above("planner.cruise_speed_m_s", cfg.planner.cruise_speed_m_s, "max_horizontal_speed_m_s", e.max_horizontal_speed_m_s)
-        above("planner.max_vertical_speed_m_s", cfg.planner.max_vertical_speed_m_s, "max_vertical_speed_m_s", e.max_vertical_speed_m_s)
-        above("planner.max_yaw_rate_deg_s", cfg.planner.max_yaw_rate_deg_s, "max_yaw_rate_deg_s", e.max_yaw_rate_deg_s)
+    above("planner.cruise_speed_m_s", p.cruise_speed_m_s, "max_horizontal_speed_m_s", e.max_horizontal_speed_m_s)
+    above("planner.max_vertical_speed_m_s", p.max_vertical_speed_m_s, "max_vertical_speed_m_s", e.max_vertical_speed_m_s)
+    above("planner.max_yaw_rate_deg_s", p.max_yaw_rate_deg_s, "max_yaw_rate_deg_s", e.max_yaw_rate_deg_s)
     above("command.stale_frame_timeout_s", c.stale_frame_timeout_s, "max_stale_frame_timeout_s", e.max_stale_frame_timeout_s)
     above("command.failsafe_timeout_s", c.failsafe_timeout_s, "max_failsafe_timeout_s", e.max_failsafe_timeout_s)
     above("service.override_max_duration_s", s.override_max_duration_s, "max_override_duration_s", e.max_override_duration_s)
@@ -163,13 +125,6 @@ def envelope_violations(cfg: CompanionConfig) -> list[str]:
         )
     if not s.override_respects_brake and not e.override_may_ignore_brake:
         out.append("service.override_respects_brake = false, but envelope.override_may_ignore_brake is false")
-    if m.duration_s <= 0.0 and not e.memory_may_be_off:
-        out.append("memory.duration_s = 0 switches the obstacle memory off, but envelope.memory_may_be_off is false")
-    if c.brake_hold_gain_per_s <= 0.0 and not e.brake_hold_may_be_off:
-        out.append(
-            "command.brake_hold_gain_per_s = 0 switches the brake's position hold off, but "
-            "envelope.brake_hold_may_be_off is false"
-        )
     if not v.require_armed_to_engage and not e.arming_check_may_be_off:
         out.append("vehicle.require_armed_to_engage = false, but envelope.arming_check_may_be_off is false")
     return out

@@ -7,7 +7,7 @@ the map's resolution and memory, and the cost's weights.
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal
 
 from pydantic import Field, model_validator
 
@@ -15,17 +15,8 @@ from companion.config._base import StrictModel
 
 
 class PlannerConfig(StrictModel):
-    """The local planner (used when ``kind`` is "local")."""
+    """The local planner: how fast, how near, what the map keeps, and how the way is chosen."""
 
-    kind: Literal["rules", "local"] = Field(
-        default="local",
-        description=(
-            "Which layer turns the fuzzy decision into setpoints: 'local' (one planner on a 3D local "
-            "map with a stopping-distance speed law, flying up to cruise_speed_m_s where the space "
-            "seen free allows, docs/planner.md) or 'rules' (course hold, the detour layer and the "
-            "command shapers, at command.cruise_speed_m_s: walking pace)."
-        ),
-    )
     cruise_speed_m_s: float = Field(
         default=3.0,
         gt=0.0,
@@ -84,6 +75,28 @@ class PlannerConfig(StrictModel):
             "Depth out to which a frame's measurements enter the map, m, and the horizon of the "
             "planner's free lengths: stereo's depth error grows with the square of the depth, and "
             "the speed law needs no more than the stopping distance at cruise."
+        ),
+    )
+    block_px: int = Field(
+        default=4,
+        ge=1,
+        le=16,
+        description=(
+            "The disparity image enters the map as the largest valid disparity (the nearest surface) "
+            "of each block of this many pixels square, pixels: one ray per block. The GPU reduces on "
+            "the device: a multiple of gpu.disparity_preview_downsample there."
+        ),
+    )
+    block_erode_px: Annotated[int, Field(ge=0, le=4)] | Literal["auto"] = Field(
+        default="auto",
+        description=(
+            "Before the blocks are reduced, each pixel takes the smallest disparity of its row's pixels "
+            "within this many pixels (an invalid one the smallest), pixels; 0 = off; auto = 1 with the "
+            "semi-global matcher (stereo.backend cpu-sgm, or cupy or reference with matcher sgm), 0 "
+            "with any other. A lone too-near pixel or a foreground edge smeared onto what is behind it "
+            "then gives no block its depth; a true surface loses this many pixels at each side. The "
+            "semi-global matcher smears depth edges and fills plain walls; StereoBM's sparse map has "
+            "few such blocks and would lose near surfaces to it."
         ),
     )
     occupied_memory_s: float = Field(

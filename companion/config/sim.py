@@ -221,7 +221,7 @@ class SimConfig(StrictModel):
         description=(
             "What the simulated flight is engaged with (as companion sitl sends it with engage): "
             "'point', the course's goal point (1 m past its goal line, on the start line); 'course', "
-            "no goal but the heading and line at the start (course hold as before goals existed)."
+            "no goal but the heading at the start (flown on along it)."
         ),
     )
     # -- scoring ---------------------------------------------------------------------------------

@@ -20,7 +20,7 @@ from companion.core.calibration import make_rectifier
 from companion.core.depth import disparity_to_depth
 from companion.core.disparity import DisparityMatcher, make_cpu_matcher
 from companion.core.geometry import StereoGeometry
-from companion.core.memory import BlockMax
+from companion.core.blocks import BlockMax
 from companion.core.obstacle import ObstacleDistance, obstacle_layout, reduce_obstacle_distance
 from companion.core.regions import RegionLayout, reduce_regions, region_layout
 from companion.core.stereo import split_frame, to_grey
@@ -40,7 +40,7 @@ class RegionEstimate:
             estimator may return a downsampled image.
         near_blocks: when asked for with ``near_block_px``: float32 ``(ceil(H/b), ceil(W/b))`` the
             largest valid disparity of each ``b``-pixel block, pixels, NaN none
-            (:class:`~companion.core.memory.BlockMax`, eroded by ``near_erode_px``); a buffer valid
+            (:class:`~companion.core.blocks.BlockMax`, eroded by ``near_erode_px``); a buffer valid
             until the next estimate.
         obstacle: the frame's OBSTACLE_DISTANCE bins (:mod:`companion.core.obstacle`), or None when
             ``obstacle_distance.send`` is off (or the backend does not compute them).
@@ -64,8 +64,8 @@ class RegionEstimator(Protocol):
         self, frame: np.ndarray, want_disparity: bool = False, near_block_px: int = 0, near_erode_px: int = 0
     ) -> RegionEstimate:
         """``frame``: uint8 (H, 2W, 3) BGR or (H, 2W) grey side-by-side image; ``near_block_px`` > 0
-        also returns the block-maximum disparity (the obstacle memory's input), of the disparity
-        eroded along rows by ``near_erode_px`` (:class:`~companion.core.memory.BlockMax`)."""
+        also returns the block-maximum disparity (the local planner's map input), of the disparity
+        eroded along rows by ``near_erode_px`` (:class:`~companion.core.blocks.BlockMax`)."""
         ...
 
 

@@ -42,7 +42,7 @@ from companion.config import CompanionConfig
 from companion.core.depth import disparity_to_depth
 from companion.core.fuzzy.avoidance import AvoidanceController
 from companion.core.geometry import StereoGeometry
-from companion.core.memory import block_max
+from companion.core.blocks import block_max
 from companion.core.regions import reduce_regions, region_layout
 from companion.core.types import REGION_NAMES
 from companion.errors import InputError
@@ -421,7 +421,7 @@ def disparity_metrics(disparity: np.ndarray, gt: np.ndarray, num_disparities: in
     return res
 
 
-def memory_block_report(
+def map_block_report(
     disparity: np.ndarray,
     gt: np.ndarray,
     block_px: int,
@@ -431,11 +431,11 @@ def memory_block_report(
     band_px: int = 6,
     plain_grey: float = 4.0,
 ) -> dict[str, float]:
-    """The obstacle memory's input (:func:`~companion.core.memory.block_max`: each block's nearest
+    """The local planner's map input (:func:`~companion.core.blocks.block_max`: each block's nearest
     disparity) from ``disparity`` against the same reduction of the ground truth.
 
     A block is **too near** when its disparity exceeds the ground truth's largest in the block by more
-    than 1 px (nearer than every surface in it): what narrows a door on the detour layer's map. It lies
+    than 1 px (nearer than every surface in it): what narrows a door on the local map. It lies
     **at a jump** when it touches a pixel within ``band_px`` of a ground-truth disparity jump of more
     than ``jump_px`` between neighbours (a foreground edge smeared onto what is behind it); else, with
     ``left``, on a **plain** surface when the block's texture (mean ``|horizontal grey difference|``)
@@ -445,7 +445,7 @@ def memory_block_report(
     Args:
         disparity: float32 ``(H, W)`` output, px, NaN = none.
         gt: float32 ``(H, W)`` ground truth, px, NaN = unknown.
-        block_px: the memory's block side, px.
+        block_px: the map's block side, px.
         near_px: ground-truth disparity of the farthest surface that counts as near, px.
         left: uint8 ``(H, W)`` the left image, for the plain/textured split; None: no split.
         jump_px, band_px, plain_grey: see above; px, px, grey levels.
@@ -521,7 +521,7 @@ def region_report(
     fb = geometry.focal_baseline_px_m
     out = reduce_regions(depth_from_disparity(disparity, fb, pair.doffs_px), layout, cfg.regions)
     ref = reduce_regions(depth_from_disparity(pair.disparity, fb, pair.doffs_px), layout, cfg.regions)
-    ctrl = AvoidanceController(cfg.controller, cfg.command)
+    ctrl = AvoidanceController(cfg.controller)
 
     def classes(depth: np.ndarray) -> list[str]:
         res = ctrl.main_system.infer(ctrl.prepare(depth))

@@ -1,4 +1,4 @@
-"""Frame rotations shared by the command and the obstacle memory (pure; no state)."""
+"""Frame rotations and positions for the progress watchdog and the goal (pure; no state)."""
 
 from __future__ import annotations
 

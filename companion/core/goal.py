@@ -2,15 +2,15 @@
 
 A goal is asked for (:class:`GoalSpec`, from ``engage`` or ``goto``) in one of three ways:
 
-* ``course``: the heading and the line the vehicle had when it was engaged (what course hold has
-  always done; the default): there is nothing to arrive at, the vehicle flies along the line;
+* ``course``: the heading the vehicle had when it was engaged (the default): there is nothing to
+  arrive at, the vehicle flies on along it (the local planner aims at a point far along it);
 * ``point``: a point in the autopilot's local frame, north and east metres;
 * ``bearing``: a bearing (degrees clockwise from north, or from the vehicle's heading) and a distance,
   from where the vehicle is when the goal is set.
 
 :func:`resolve_goal` turns a spec into a :class:`Goal` from the vehicle's position and heading at
-that moment: a point in the local frame, or none (the course). The goal is horizontal: course hold
-keeps the altitude the vehicle was engaged at.
+that moment: a point in the local frame, or none (the course). The goal is horizontal: the local
+planner keeps the altitude the vehicle was engaged at.
 """
 
 from __future__ import annotations

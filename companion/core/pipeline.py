@@ -9,7 +9,8 @@ Two layers:
   (:func:`companion.backends.make_pipeline` passes the backend registry's), so the core imports no
   backend.
 * :class:`Pipeline` owns an estimator and the cheap, host-side stages that both share: the depth
-  look-up table, the release filter and the avoidance controller.
+  look-up table, the release filter and the avoidance controller. The estimator also reduces the
+  disparity to blocks (``planner.block_px``), the local planner's map input (``near_blocks``).
 
 Nothing here reads a clock for logic: the frame timestamp is passed in (it drives the filter). Stage
 timings are instrumentation and use an injectable ``clock`` (default :func:`time.perf_counter`).
@@ -29,7 +30,6 @@ from companion.core.estimator import Clock, EstimatorFactory, RegionEstimator
 from companion.core.fuzzy.avoidance import AvoidanceController
 from companion.core.geometry import StereoGeometry
 from companion.core.lut import DepthLUT, median_filter, release_filter
-from companion.core.memory import FarView, NearCells, ViewLimits, view_limits
 from companion.core.obstacle import ObstacleDistance
 from companion.core.types import Decision, RegionDepths
 
@@ -51,14 +51,6 @@ class FrameResult:
         decision: the controller's decision.
         timings_ms: stage -> milliseconds, plus ``total_ms``.
         disparity: float32 disparity image when asked for (for overlays), else None.
-        near_points_cam_m: with the obstacle memory on (``memory.duration_s`` > 0): float64 ``(K, 3)``
-            confirmed near points in the camera frame (x right, y down, z forward), metres
-            (:class:`~companion.core.memory.NearCells`); else None.
-        view_limits: with the memory on, what the rig measures (:func:`~companion.core.memory.view_limits`),
-            for the guard; else None.
-        far_view: with the memory, the detour layer and ``memory.map_clear_after_frames`` on: what
-            this frame measured round each block (:class:`~companion.core.memory.FarView`), for the memory to
-            leave the points it sees past out of the detour layer's map; else None.
         measured: this frame's own region depths after the LUT, before the median and release
             filters, metres (NaN unknown): what the camera measured now.
         filtered: bool ``(9,)``: True where ``refined`` came out of the release filter (smoothing a
@@ -67,9 +59,9 @@ class FrameResult:
             frames' measurements, so it is not marked.)
         stand_in: bool ``(9,)``: True where ``refined`` is 0 m standing in for an unknown in the median
             window (unknown counts as near): not a depth at all, to be shown as unknown.
-        near_blocks: with the obstacle memory on and ``planner.kind`` "local": float32 ``(ceil(H/b),
-            ceil(W/b))`` the largest valid disparity of each ``memory.block_px`` block (px, NaN none), a
-            copy: the local planner's map input; else None.
+        near_blocks: float32 ``(ceil(H/b), ceil(W/b))`` the largest valid disparity of each
+            ``planner.block_px`` block (px, NaN none; :mod:`companion.core.blocks`), a copy: the local
+            planner's map input; None when the estimator computes none.
         geometry: the rectified rig the frame was seen with (the rays of ``near_blocks``).
         obstacle: the frame's OBSTACLE_DISTANCE bins (:class:`~companion.core.obstacle.ObstacleDistance`),
             or None when ``obstacle_distance.send`` is off or the estimator computes none.
@@ -81,9 +73,6 @@ class FrameResult:
     decision: Decision
     timings_ms: dict[str, float] = field(default_factory=dict)
     disparity: np.ndarray | None = None
-    near_points_cam_m: np.ndarray | None = None
-    view_limits: ViewLimits | None = None
-    far_view: FarView | None = None
     measured: RegionDepths | None = None
     filtered: np.ndarray | None = None
     stand_in: np.ndarray | None = None
@@ -98,15 +87,6 @@ class FrameResult:
         if self.stand_in is not None:
             out[self.stand_in] = np.nan
         return out
-
-
-def _near_cells(cfg: CompanionConfig, geometry: StereoGeometry, width_px: int, height_px: int) -> NearCells | None:
-    """The per-frame block stage of the obstacle memory and the local planner's map, or None when
-    neither is on (the memory off and ``planner.kind`` "rules")."""
-    if cfg.memory.duration_s <= 0.0 and cfg.planner.kind != "local":
-        return None
-    b = cfg.memory.block_px
-    return NearCells(cfg.memory, geometry, (-(-height_px // b), -(-width_px // b)))
 
 
 class Pipeline:
@@ -139,19 +119,18 @@ class Pipeline:
         self._filtered: np.ndarray | None = None
         self._history: deque[np.ndarray] = deque(maxlen=cfg.lut.median_frames - 1)
         self._last_timestamp_s: float | None = None
-        self._install(cfg, estimator, _near_cells(cfg, estimator.geometry, width_px, height_px))
+        self._install(cfg, estimator)
 
     @property
     def geometry(self) -> StereoGeometry:
         return self.estimator.geometry
 
-    def _install(self, cfg: CompanionConfig, estimator: RegionEstimator, near: NearCells | None) -> None:
+    def _install(self, cfg: CompanionConfig, estimator: RegionEstimator) -> None:
         """Build the LUT and the controller for ``cfg``, then swap in everything at once (if a build
         raises, nothing has changed)."""
         lut = DepthLUT(cfg.lut.points_m)
-        controller = AvoidanceController(cfg.controller, cfg.command)
-        self.estimator, self._lut, self._controller, self._near = estimator, lut, controller, near
-        self._view_limits = view_limits(estimator.geometry, cfg.stereo.num_disparities)
+        controller = AvoidanceController(cfg.controller)
+        self.estimator, self._lut, self._controller = estimator, lut, controller
         self._release_tau_s = cfg.lut.release_time_constant_s
         self.config = cfg
 
@@ -171,10 +150,7 @@ class Pipeline:
         estimator = self.estimator
         if any(s in changed for s in ESTIMATOR_SECTIONS):
             estimator = self._make_estimator(cfg, self.width_px, self.height_px, self._clock)
-        near = self._near
-        if estimator is not self.estimator or cfg.memory != self.config.memory or cfg.planner.kind != self.config.planner.kind:
-            near = _near_cells(cfg, estimator.geometry, self.width_px, self.height_px)
-        self._install(cfg, estimator, near)
+        self._install(cfg, estimator)
         if cfg.lut.median_frames - 1 != self._history.maxlen:
             self._history = deque(self._history, maxlen=cfg.lut.median_frames - 1)
         return changed
@@ -184,8 +160,6 @@ class Pipeline:
         self._filtered = None
         self._history.clear()
         self._last_timestamp_s = None
-        if self._near is not None:
-            self._near.reset()
 
     def process(self, frame: np.ndarray, timestamp_s: float, want_disparity: bool = False) -> FrameResult:
         """Run the whole pipeline on one side-by-side frame captured at ``timestamp_s`` (seconds).
@@ -195,17 +169,14 @@ class Pipeline:
         """
         clock = self._clock
         t0 = clock()
-        near = self._near
-        if near is None:
-            est = self.estimator.estimate(frame, want_disparity=want_disparity)
-        else:
-            erode = near.cfg.block_erode_px
-            est = self.estimator.estimate(
-                frame,
-                want_disparity=want_disparity,
-                near_block_px=near.cfg.block_px,
-                near_erode_px=erode if isinstance(erode, int) else 0,  # a model built without validation: off
-            )
+        planner = self.config.planner
+        erode = planner.block_erode_px
+        est = self.estimator.estimate(
+            frame,
+            want_disparity=want_disparity,
+            near_block_px=planner.block_px,
+            near_erode_px=erode if isinstance(erode, int) else 0,  # a model built without validation: off
+        )
         t1 = clock()
         looked_up = self._lut.apply(est.regions.depth_m)
         median = median_filter(self._history, looked_up, self.config.lut.median_frames)
@@ -222,19 +193,13 @@ class Pipeline:
         self._last_timestamp_s = timestamp_s
         t2 = clock()
         decision = self._controller.decide(refined)
+        # The estimator reuses its block buffer for the next frame: the local planner gets its own.
+        blocks = None if est.near_blocks is None else est.near_blocks.copy()
         t3 = clock()
-        points = far = None
-        if near is not None and est.near_blocks is not None and self.config.memory.duration_s > 0.0:
-            points = near.points(est.near_blocks)
-            if self.config.memory.map_clear_after_frames > 0 and self.config.detour.on:
-                far = near.far_view(est.near_blocks, self._view_limits)  # the map is the detour layer's alone
-        t4 = clock()
         timings = dict(est.timings_ms)
         timings["lut_ms"] = (t2 - t1) * 1e3
         timings["fuzzy_ms"] = (t3 - t2) * 1e3
-        if points is not None:
-            timings["memory_ms"] = (t4 - t3) * 1e3
-        timings["total_ms"] = (t4 - t0) * 1e3
+        timings["total_ms"] = (t3 - t0) * 1e3
         return FrameResult(
             timestamp_s=timestamp_s,
             raw=est.regions,
@@ -242,14 +207,10 @@ class Pipeline:
             decision=decision,
             timings_ms=timings,
             disparity=est.disparity,
-            near_points_cam_m=points,
-            far_view=far,
-            view_limits=None if points is None else self._view_limits,
             measured=RegionDepths(depth_m=np.asarray(looked_up, dtype=np.float64), valid_fraction=est.regions.valid_fraction),
             filtered=filtered,
             stand_in=stand_in,
             obstacle=getattr(est, "obstacle", None),
-            # The estimator reuses its block buffer for the next frame: the local planner gets its own.
-            near_blocks=est.near_blocks.copy() if est.near_blocks is not None and self.config.planner.kind == "local" else None,
+            near_blocks=blocks,
             geometry=self.estimator.geometry,
         )

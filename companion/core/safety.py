@@ -34,7 +34,7 @@ def near_blindness(cfg: CompanionConfig) -> str | None:
     """
     near_m = cfg.envelope.near_check_depth_m
     lut = DepthLUT(cfg.lut.points_m)
-    controller = AvoidanceController(cfg.controller, cfg.command)
+    controller = AvoidanceController(cfg.controller)
     wall = controller.decide(lut.apply(np.full(N_REGIONS, near_m, dtype=np.float64)))
     if wall.kind is not DecisionKind.BRAKE:
         return (

@@ -70,7 +70,7 @@ def decision_words(
         moves.append("climbing")
     elif pitch <= -TURN_WORDS_THRESHOLD:
         moves.append("descending")
-    if k == "clear":  # clear, yet steering: course hold, a detour's way, a descent back to altitude
+    if k == "clear":  # clear, yet steering: the controller's side rules, a descent back from a climb
         return "clear ahead" + (f" ({_metres(ahead)})" if ahead is not None else "") + (f", {' and '.join(moves)}" if moves else "")
     if not moves:
         moves.append("straight on")

@@ -18,9 +18,9 @@ event per band):
 3. the 9 depths and 9 valid fractions (144 bytes) come back to a pinned host buffer; with
    ``obstacle_distance.send`` on, ``obstacle_bins`` (``kernels/obstacle.cu``, a column of blocks per 5° bin)
    first reduces the device disparity to OBSTACLE_DISTANCE's 72 bins (144 more bytes, in the same copy), exactly
-   :func:`companion.core.obstacle.reduce_obstacle_distance`; when the obstacle memory or an overlay
+   :func:`companion.core.obstacle.reduce_obstacle_distance`; when the local planner's map or an overlay
    asks, ``preview_max`` reduces the disparity to blocks of ``gpu.disparity_preview_downsample`` px
-   (and, with ``memory.block_erode_px``, ``memory_max`` to the memory's eroded blocks) and they come
+   (and, with ``planner.block_erode_px``, ``memory_max`` to the map's eroded blocks) and they come
    back too.
 
 With ``stereo.matcher = "sgm"`` (the default) the bands carry the upload, grey, rectification and
@@ -54,7 +54,7 @@ from companion.config import CompanionConfig
 from companion.core.calibration import make_rectifier
 from companion.core.disparity.sgm import near_range_shape
 from companion.core.geometry import StereoGeometry
-from companion.core.memory import block_max
+from companion.core.blocks import block_max
 from companion.core.estimator import RegionEstimate
 from companion.core.obstacle import N_BINS, ObstacleDistance, ObstacleLayout, obstacle_layout
 from companion.core.regions import RegionLayout, region_layout
@@ -144,8 +144,7 @@ class CupyRegionEstimator:
         self._clock = clock
         self._gpu_cfg = cfg.gpu
         self._regions_cfg = cfg.regions
-        if cfg.memory.duration_s > 0.0:
-            _check_block_px(cfg.memory.block_px, cfg.gpu.disparity_preview_downsample)
+        _check_block_px(cfg.planner.block_px, cfg.gpu.disparity_preview_downsample)
         rectifier = make_rectifier(cfg.calibration, self.width_px, self.height_px)
         self.geometry: StereoGeometry = rectifier.geometry
         self.layout: RegionLayout = region_layout(self.geometry, cfg.regions)
@@ -324,7 +323,7 @@ class CupyRegionEstimator:
             self._preview_dev = cp.empty((oh, ow), dtype=cp.float32)
             self._preview_host_mem = cp.cuda.alloc_pinned_memory(oh * ow * 4)
             self._preview_host = np.frombuffer(self._preview_host_mem, dtype=np.float32, count=oh * ow).reshape(oh, ow)
-            # The memory's eroded blocks (memory.block_erode_px, which a reload may switch on: always here).
+            # The map's eroded blocks (planner.block_erode_px, which a reload may switch on: always here).
             self._memory_dev = cp.empty((oh, ow), dtype=cp.float32)
             self._memory_host_mem = cp.cuda.alloc_pinned_memory(oh * ow * 4)
             self._memory_host = np.frombuffer(self._memory_host_mem, dtype=np.float32, count=oh * ow).reshape(oh, ow)
@@ -527,11 +526,11 @@ class CupyRegionEstimator:
                 ``gpu.disparity_preview_downsample`` (each cell the largest valid disparity of its
                 block), or at full resolution when that is 0 or 1.
             near_block_px: > 0: also return ``near_blocks``, the largest valid disparity of each
-                block of this many pixels (the obstacle memory's input; a multiple of the preview
+                block of this many pixels (the local planner's map input; a multiple of the preview
                 factor, which the device computes); the CPU reference is
-                :func:`~companion.core.memory.block_max`.
-            near_erode_px: the memory's blocks of the disparity eroded along rows by this many pixels
-                (:class:`~companion.core.memory.BlockMax`; on the device with a preview).
+                :func:`~companion.core.blocks.block_max`.
+            near_erode_px: the map's blocks of the disparity eroded along rows by this many pixels
+                (:class:`~companion.core.blocks.BlockMax`; on the device with a preview).
 
         Returns:
             :class:`~companion.core.estimator.RegionEstimate` with ``timings_ms``: ``upload_ms`` (host
@@ -575,9 +574,9 @@ class CupyRegionEstimator:
         timings: dict[str, float],
     ) -> RegionEstimate:
         cp = self._cp
-        # The memory's blocks come from the same device disparity and preview as an overlay's.
+        # The map's blocks come from the same device disparity and preview as an overlay's.
         want_device_disparity = want_disparity or near_block_px > 0
-        # The device erodes and reduces the memory's blocks where it reduces the preview's.
+        # The device erodes and reduces the map's blocks where it reduces the preview's.
         erode = int(near_erode_px) if near_block_px > 0 and self._preview_factor > 1 else 0
         clock = self._clock
         comp = self._stream
@@ -989,10 +988,10 @@ class CupyRegionEstimator:
 
 
 def _check_block_px(block_px: int, preview_factor: int) -> None:
-    """The memory's blocks are built from the device's preview blocks: a multiple of their size."""
+    """The map's blocks are built from the device's preview blocks: a multiple of their size."""
     if preview_factor >= 2 and block_px % preview_factor != 0:
         raise ConfigError(
-            f"memory.block_px ({block_px}) must be a multiple of gpu.disparity_preview_downsample "
+            f"planner.block_px ({block_px}) must be a multiple of gpu.disparity_preview_downsample "
             f"({preview_factor}): the GPU reduces the disparity to blocks of that size"
         )
 

@@ -132,7 +132,7 @@ class ControlClient:
 
 
 def parse_assignments(items: list[str]) -> dict[str, Any]:
-    """``["command.cruise_speed_m_s=1.5", "controller.preferred_yaw_side=left"]`` -> a nested patch.
+    """``["planner.cruise_speed_m_s=1.5", "controller.preferred_yaw_side=left"]`` -> a nested patch.
 
     A value is read as JSON when it parses (numbers, true/false, lists, objects), else as a string.
 
@@ -144,7 +144,7 @@ def parse_assignments(items: list[str]) -> dict[str, Any]:
         key, sep, text = item.partition("=")
         parts = key.strip().split(".")
         if not sep or not all(parts):
-            raise InputError(f"expected KEY=VALUE with a dotted key (e.g. command.cruise_speed_m_s=1.5), got {item!r}")
+            raise InputError(f"expected KEY=VALUE with a dotted key (e.g. planner.cruise_speed_m_s=1.5), got {item!r}")
         try:
             value: Any = json.loads(text)
         except json.JSONDecodeError:
@@ -215,10 +215,10 @@ def render_health(h: dict[str, Any], verbose: bool = False) -> str:
     ]
     goal = h.get("goal") or {}
     if goal:
-        det = goal.get("detour") or {}
+        plan = h.get("planner") or {}
         lines.append(
             f"goal {goal.get('description')}  distance {_fmt(goal.get('distance_m'), ' m', 1)}  "
-            f"bearing {_fmt(goal.get('bearing_deg'), ' deg', 0)}  detour {det.get('phase')} ({det.get('reason')})"
+            f"bearing {_fmt(goal.get('bearing_deg'), ' deg', 0)}  planner {plan.get('mode')} ({plan.get('reason')})"
         )
     if h.get("override"):
         o = h["override"]

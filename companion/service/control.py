@@ -44,15 +44,8 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 #: What a live change may touch while engaged under ``envelope.live_changes_while_engaged = "tuning"``:
-#: these sections, except the command fields below (timeouts, the brake hold, the progress watchdog).
-_TUNING_SECTIONS = ("controller", "lut", "command", "sim")
-_SAFETY_COMMAND_FIELDS = (
-    "stale_frame_timeout_s",
-    "failsafe_timeout_s",
-    "brake_hold_gain_per_s",
-    "no_progress_timeout_s",
-    "progress_step_m",
-)
+#: these sections only (not the planner's physics, the frame timeouts or the progress watchdog).
+_TUNING_SECTIONS = ("controller", "lut", "sim")
 
 
 class RequestRefused(CompanionError):
@@ -127,7 +120,7 @@ def live_change_refusal(current: CompanionConfig, new: CompanionConfig, *, engag
 
     * The envelope changes only from the file, and only while not engaged.
     * While engaged, ``current.envelope.live_changes_while_engaged`` says what else may change: none,
-      tuning (controller, lut, command except its timeouts, brake hold and watchdog), or any.
+      tuning (the fuzzy controller, the lut and the simulated world), or any.
     """
     changed = changed_fields(current, new)
     envelope = [f for f in changed if f.startswith("envelope.")]
@@ -143,10 +136,7 @@ def live_change_refusal(current: CompanionConfig, new: CompanionConfig, *, engag
     if policy == "none":
         return f"no live changes while engaged (envelope.live_changes_while_engaged = none): {', '.join(changed)}"
     live_camera = {f"camera.{f}" for f in LIVE_CAMERA_FIELDS}  # they only move the simulated world
-    safety = {f"command.{f}" for f in _SAFETY_COMMAND_FIELDS}
-    refused = [
-        f for f in changed if f not in live_camera and (f.split(".")[0] not in _TUNING_SECTIONS or f in safety)
-    ]
+    refused = [f for f in changed if f not in live_camera and f.split(".")[0] not in _TUNING_SECTIONS]
     if refused:
         return (
             "while engaged only tuning may change (envelope.live_changes_while_engaged = tuning): "

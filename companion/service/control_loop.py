@@ -1,13 +1,10 @@
-"""The daemon's control loop part: the supervisor stepped at the setpoint rate, the setpoints sent, the
-detour layer's histogram worker and the systemd watchdog.
+"""The daemon's control loop part: the supervisor stepped at the setpoint rate, the setpoints sent, and
+the systemd watchdog.
 
 The loop never waits for the pipeline: it steps on a fixed grid (``vehicle.setpoint_rate_hz``)
 whatever the vision rate, and also as soon as a new result or a request arrives (:meth:`ControlLoop.wake`),
-so a decision reaches the vehicle without waiting for the next tick. Nor does it wait for the detour
-layer's histogram (tens of milliseconds with a full obstacle memory): the supervisor asks for it
-(``StepOutput.histogram_request``), one worker thread computes it from that immutable snapshot, and
-the result goes back into a later step on the loop, so every change to the supervisor's state stays
-on the loop. It is the ONLY place that feeds the systemd watchdog: if it stalls, systemd kills the
+so a decision reaches the vehicle without waiting for the next tick. Every change to the supervisor's
+state happens on the loop. It is the ONLY place that feeds the systemd watchdog: if it stalls, systemd kills the
 process (MAVSDK's re-sending dies with it) and the autopilot's offboard-loss failsafe takes over.
 
 What health reads of it is :meth:`ControlLoop.counts` (the setpoints and their latencies).
@@ -17,16 +14,12 @@ from __future__ import annotations
 
 import asyncio
 import collections
-import concurrent.futures
-import functools
 import logging
-import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
 from companion.config import CompanionConfig
-from companion.core.detour import Histogram, HistogramRequest, HistogramResult
 from companion.core.supervisor import Action, ActionResult, State, Supervisor
 from companion.core.types import ZERO_SETPOINT, VelocitySetpoint
 from companion.errors import VehicleError
@@ -34,7 +27,7 @@ from companion.interfaces import VehicleState
 from companion.service.aio import wait_event
 from companion.service.capture import CaptureStatus
 from companion.service.frames import Processed
-from companion.service.parts import TaskPart, stop_in_thread
+from companion.service.parts import TaskPart
 
 log = logging.getLogger(__name__)
 
@@ -65,8 +58,7 @@ class ControlLoop(TaskPart):
     """The control loop part: owns the supervisor and everything a step sends or starts.
 
     Args:
-        supervisor: the service's state machine (made with ``defer_histogram``: the histogram is
-            computed here, off the loop); only this part steps it.
+        supervisor: the service's state machine; only this part steps it.
         config: the config in force (read at each use: live changes apply).
         clock: monotonic seconds (the clock of frame timestamps).
         link: the vehicle link now, or None before there is one.
@@ -77,7 +69,6 @@ class ControlLoop(TaskPart):
         on_changed: called when the supervisor's state changed, with its output (health, sd_notify).
         on_error: records a one-line fault (health's ``last_error``).
         feed_watchdog: called after every step with its time (the systemd watchdog).
-        histogram_fn: computes the detour layer's histogram in the worker thread.
         on_died: see :class:`~companion.service.parts.TaskPart`.
     """
 
@@ -97,7 +88,6 @@ class ControlLoop(TaskPart):
         on_changed: Callable[[Any], None],
         on_error: Callable[[str], None],
         feed_watchdog: Callable[[float], None],
-        histogram_fn: Callable[[HistogramRequest], Histogram],
         on_died: Callable[[str, BaseException], None] | None = None,
     ) -> None:
         super().__init__(on_died)
@@ -105,12 +95,6 @@ class ControlLoop(TaskPart):
         self._capture, self._after_step, self._on_changed = capture, after_step, on_changed
         self._on_error, self._feed_watchdog = on_error, feed_watchdog
         self.supervisor = supervisor  # stepped here only, on the loop
-        self._histogram_fn = histogram_fn
-        self._histogram_pool: concurrent.futures.ThreadPoolExecutor | None = None  # one worker, made on first use
-        self._histogram_job: HistogramRequest | None = None  # the request being computed now
-        self._histogram_asked: int | None = None  # seq of the last request handed to the worker
-        self._histogram_done: HistogramResult | None = None  # computed, for the next step
-        self.histogram_stats = {"computed": 0, "failed": 0}
         self._loop: asyncio.AbstractEventLoop | None = None
         self._wake: asyncio.Event | None = None
         self._pending: list[tuple[Any, asyncio.Future | None]] = []
@@ -213,16 +197,13 @@ class ControlLoop(TaskPart):
         if vehicle is None:
             vehicle = VehicleState()
         camera_ok = capture.ok if capture is not None else False
-        histogram, self._histogram_done = self._histogram_done, None
         out = self.supervisor.step(
             now,
             latest.result if latest is not None else None,
             vehicle,
             [r for r, _ in pending],
             camera_ok=camera_ok,
-            histogram=histogram,
         )
-        self._plan_off_loop(out.histogram_request)
         replies = iter(out.replies)
         for _, fut in pending:
             if fut is None:
@@ -255,47 +236,6 @@ class ControlLoop(TaskPart):
         if out.changed:
             log.info("state %s: %s", out.state.value, out.reason)
             self._on_changed(out)
-
-    # ------------------------------------------------------------------------------ the histogram worker
-
-    def _plan_off_loop(self, request: HistogramRequest | None) -> None:
-        """Hand the detour layer's histogram request to the worker thread (one job at a time; a request
-        already handed over is not computed again). Its result is offered at the next step."""
-        if request is None or self._histogram_job is not None or request.seq == self._histogram_asked:
-            return
-        loop = self._loop
-        assert loop is not None
-        if self._histogram_pool is None:
-            self._histogram_pool = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="detour-histogram")
-        self._histogram_job = request
-        self._histogram_asked = request.seq
-        fut = loop.run_in_executor(self._histogram_pool, self._histogram_fn, request)
-        fut.add_done_callback(functools.partial(self._on_histogram, request))
-
-    def _on_histogram(self, request: HistogramRequest, fut: asyncio.Future) -> None:
-        """On the loop: the worker finished ``request``; keep the result (or the failure) for the next
-        step, which hands it to the supervisor (a stale one is dropped there)."""
-        self._histogram_job = None
-        if fut.cancelled():
-            return
-        err = fut.exception()
-        if err is None:
-            self.histogram_stats["computed"] += 1
-            self._histogram_done = HistogramResult(request.seq, fut.result())
-        else:
-            # Not swallowed: logged with its context, and the detour ends in a hold that says why.
-            self.histogram_stats["failed"] += 1
-            log.error(
-                "detour histogram failed (request %d asked at %.3f s, %d map points, goal bearing %.1f deg)",
-                request.seq,
-                request.asked_s,
-                len(request.points_ne_m),
-                math.degrees(request.goal_bearing_rad),
-                exc_info=err,
-            )
-            self._on_error(f"detour histogram: {type(err).__name__}: {err}")
-            self._histogram_done = HistogramResult(request.seq, None, f"{type(err).__name__}: {err}")
-        self.wake()
 
     # ------------------------------------------------------------------------------ the vehicle
 
@@ -350,8 +290,7 @@ class ControlLoop(TaskPart):
     # ------------------------------------------------------------------------------ stop
 
     async def stop(self, budget_s: float) -> bool:
-        """Cancel the loop and the actions under way, then let the histogram worker finish its job
-        (tens of milliseconds; its result is not wanted any more)."""
+        """Cancel the loop and the actions under way."""
         stopped = await super().stop(budget_s / 2.0)
         tasks = list(self._action_tasks)
         for task in tasks:
@@ -361,9 +300,4 @@ class ControlLoop(TaskPart):
             for task in stuck:
                 log.error("task %s did not stop within %.1f s; leaving it", task.get_name(), budget_s / 2.0)
         self._action_tasks.clear()
-        if self._histogram_pool is not None:
-            pool, self._histogram_pool = self._histogram_pool, None
-            stopped = await stop_in_thread(
-                "the detour histogram", lambda _: pool.shutdown(wait=True, cancel_futures=True), budget_s / 2.0
-            ) and stopped
         return stopped

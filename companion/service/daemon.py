@@ -12,15 +12,11 @@ Threads and tasks::
                                                        new result or request; the ONLY place that feeds
                                                        the systemd watchdog)
     health task (ZeroMQ PUB, 10 Hz + every state change)     vehicle connector task (waits for the autopilot)
-    detour histogram thread (one job at a time: the detour layer's polar histogram, asked for on a
-    step's output, computed here, its result handed to a later step on the loop)
 
 The control loop never waits for the pipeline: it steps on a fixed grid (``vehicle.setpoint_rate_hz``)
 whatever the vision rate, and also as soon as a new result arrives, so a decision reaches the vehicle
-without waiting for the next tick. Nor does it wait for the detour layer's histogram (tens of
-milliseconds with a full obstacle memory): the supervisor asks for it (``StepOutput.histogram_request``),
-one worker thread computes it from that immutable snapshot, and the result goes back into a later
-step on the loop, so every change to the supervisor's state stays on the loop. If the control loop stalls, the watchdog is not fed and systemd kills
+without waiting for the next tick. Every change to the supervisor's state happens on the loop. If the
+control loop stalls, the watchdog is not fed and systemd kills
 the process (MAVSDK's 20 Hz re-sending dies with it), and PX4's offboard-loss failsafe takes over.
 
 Shutdown (first SIGTERM/SIGINT): the supervisor sends zero and, if we own offboard, Hold; then the
@@ -52,7 +48,6 @@ from typing import Any
 
 from companion import exitcodes
 from companion.config import CompanionConfig, load_config
-from companion.core.detour import Histogram, HistogramRequest, compute_histogram
 from companion.core.rig_check import check_rig_config
 from companion.core.safety import near_blindness
 from companion.core.supervisor import Shutdown, Supervisor, SupervisorConfig
@@ -130,8 +125,6 @@ class Service:
         clock: monotonic clock, seconds (the clock of frame timestamps).
         install_signals: handle SIGTERM/SIGINT/SIGHUP (only possible in the main thread).
         notifier: sd_notify sender; default: from ``$NOTIFY_SOCKET`` (None when not under systemd).
-        histogram_fn: computes the detour layer's histogram in the worker thread (default
-            :func:`~companion.core.detour.compute_histogram`; tests inject a slow or failing one).
     """
 
     def __init__(
@@ -145,7 +138,6 @@ class Service:
         install_signals: bool = True,
         notifier: Notifier | None = None,
         environ: dict[str, str] | None = None,
-        histogram_fn: Callable[[HistogramRequest], Histogram] = compute_histogram,
     ) -> None:
         self._clock = clock
         self._install_signals = install_signals
@@ -185,8 +177,7 @@ class Service:
             mailbox, frame_buffers, camera=camera, on_status=self._on_camera_status_threadsafe, clock=clock
         )
         cfg = resolve_config_paths(cfg, config_path.parent if config_path else None)
-        # The detour layer's histograms are computed off the loop (the control loop's worker thread).
-        supervisor = Supervisor(SupervisorConfig.from_config(cfg), defer_histogram=True)
+        supervisor = Supervisor(SupervisorConfig.from_config(cfg))
         self.control = ControlPlane(
             cfg,
             config_path=config_path,
@@ -221,7 +212,6 @@ class Service:
             on_changed=self._state_changed,
             on_error=self.errors.record,
             feed_watchdog=self._feed_watchdog,
-            histogram_fn=histogram_fn,
             on_died=self._part_died,
         )
         self.health = HealthReporter(
@@ -272,10 +262,6 @@ class Service:
     @property
     def control_server(self) -> ControlServer | None:
         return self.control.server
-
-    @property
-    def histogram_stats(self) -> dict[str, int]:
-        return self.control_loop.histogram_stats
 
     @property
     def latencies_s(self) -> list[float]:

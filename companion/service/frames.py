@@ -243,10 +243,8 @@ class PipelinePart:
         pipeline = make_pipeline(cfg, cfg.camera.width_px, cfg.camera.height_px, clock=time.perf_counter)
         flown = pipeline.config
         log.info(
-            "disparity backend %s (matcher %s); memory.block_erode_px %s, detour.cone_from_start %s, "
-            "detour.through_squeeze %s",
-            resolve_backend(cfg), flown.stereo.matcher, flown.memory.block_erode_px,
-            flown.detour.cone_from_start, flown.detour.through_squeeze,
+            "disparity backend %s (matcher %s); planner.block_erode_px %s",
+            resolve_backend(cfg), flown.stereo.matcher, flown.planner.block_erode_px,
         )
         self.offer_frame_pool(pipeline, cfg)
         return pipeline

@@ -197,7 +197,6 @@ class HealthReporter:
             "setpoints_sent": sp.sent,
             "override": supervisor.override_status(now),
             "planner": supervisor.planner_status(),
-            "memory": supervisor.memory_status(),
             "goal": supervisor.goal_status(v.position_ned_m if v is not None else None),
             "camera": (
                 {

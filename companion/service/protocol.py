@@ -59,7 +59,7 @@ class SetConfigRequest(_Request):
     """A partial configuration, deep-merged into the one in force, validated whole before it applies."""
 
     cmd: Literal["set_config"]
-    patch: dict[str, Any] = Field(min_length=1, description="e.g. {'command': {'cruise_speed_m_s': 1.5}}.")
+    patch: dict[str, Any] = Field(min_length=1, description="e.g. {'planner': {'cruise_speed_m_s': 1.5}}.")
 
 
 class ReloadRequest(_Request):
@@ -128,9 +128,9 @@ class OverrideRequest(_Request):
     """Fly manual values for a bounded time, then automatic again."""
 
     cmd: Literal["override"]
-    yaw: float = Field(ge=-1.0, le=1.0, description="-1 hard left .. +1 hard right (times command.max_yaw_rate_deg_s).")
-    pitch: float = Field(ge=-1.0, le=1.0, description="-1 down .. +1 up (times command.max_vertical_speed_m_s).")
-    speed: float = Field(ge=0.0, le=1.0, description="Forward speed as a share of command.cruise_speed_m_s.")
+    yaw: float = Field(ge=-1.0, le=1.0, description="-1 hard left .. +1 hard right (times planner.max_yaw_rate_deg_s).")
+    pitch: float = Field(ge=-1.0, le=1.0, description="-1 down .. +1 up (times planner.max_vertical_speed_m_s).")
+    speed: float = Field(ge=0.0, le=1.0, description="Forward speed as a share of planner.cruise_speed_m_s.")
     duration_s: float = Field(gt=0.0, le=3600.0, description="How long, seconds (at most service.override_max_duration_s).")
 
 

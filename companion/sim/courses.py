@@ -30,7 +30,7 @@ coordinate within the course's east bounds. Kinds (:data:`COURSE_KINDS`):
   ahead, with one opening 1.5 to 1.9 m wide whose middle lies 3 m to one side of the start line:
   at the start its middle is beyond the camera's ±45° (on the left, beyond the 26° that block
   matching measures at all). The reactive controller only brakes in front of it; the way is round
-  (the detour layer, :mod:`companion.core.detour`). Holding is a failure here.
+  (the local planner's detour mode, :mod:`companion.core.planner`). Holding is a failure here.
 
 Pure: no clocks, no files; geometry in NED metres (x north, y east, z down; altitude = -z).
 """

@@ -1,4 +1,4 @@
-"""The closed loop: camera → the product's pipeline → setpoint_for → vehicle, in simulated time.
+"""The closed loop: camera → the product's pipeline → the local stack → vehicle, in simulated time.
 
 Timing (all simulated; deterministic for a course and config):
 
@@ -8,14 +8,12 @@ Timing (all simulated; deterministic for a course and config):
   seen from the pose at that instant, stamped with that time; the pipeline processes it at once
   (the result does not depend on when it runs) but its decision only **applies**
   ``sim.processing_latency_s`` later, as on the vehicle where the pipeline takes that long;
-* **setpoints** at ``sim.setpoint_rate_hz`` (20 Hz): the service's rule, exactly:
-  :func:`~companion.core.command.setpoint_for` on the newest applied decision with its age, so a
-  frame older than ``command.stale_frame_timeout_s`` gives zero velocity; older than
-  ``command.failsafe_timeout_s`` the vehicle is switched to HOLD. Course hold is the service's own
-  bookkeeping (:class:`~companion.core.course.CourseHold`, the course being the start pose), fed the
-  same clock as on the vehicle: a decision's timers run from its frame's capture time. With
-  ``planner.kind`` "local" the local stack (:class:`~companion.core.planner.stack.LocalStack`) takes
-  the place of course hold and the rules: each applied frame enters its map from the pose at capture.
+* **setpoints** at ``sim.setpoint_rate_hz`` (20 Hz): as the service makes them, the local stack
+  (:class:`~companion.core.planner.stack.LocalStack`) on the newest applied decision with its age, so
+  a frame older than ``command.stale_frame_timeout_s`` gives zero velocity; older than
+  ``command.failsafe_timeout_s`` the vehicle is switched to HOLD. Each applied frame enters the
+  stack's map from the pose at capture. The progress watchdog is the service's too
+  (:class:`~companion.core.progress.GoalProgress`, the course being the start pose), on the same clock.
 
 Events due at the same instant run in the order camera, decision, setpoint, physics. The flight ends
 on the first outcome (:mod:`companion.sim.scoring`). ``realtime=True`` sleeps so that simulated time
@@ -35,16 +33,13 @@ import numpy as np
 
 from companion.backends import make_pipeline
 from companion.config import CompanionConfig
-from companion.core.command import NO_PROGRESS_HOLD
-from companion.core.course import CourseHold
 from companion.core.goal import GoalSpec
-from companion.core.memory import ObstacleMemory
 from companion.core.pipeline import FrameResult, Pipeline
 from companion.core.planner.stack import LocalStack
+from companion.core.progress import NO_PROGRESS_HOLD, GoalProgress
 from companion.core.types import ZERO_SETPOINT, DecisionKind, VelocitySetpoint
 from companion.errors import CameraError
 from companion.interfaces import Frame
-from companion.sim.audit import add_counts, audit_points
 from companion.sim.camera import SimCamera
 from companion.sim.courses import Course
 from companion.sim.render import Pose, TextureBank
@@ -64,7 +59,7 @@ class LogKind(enum.IntEnum):
     BRAKE = 3
     STALE = 4  #: the newest decision is older than the stale timeout (zero velocity)
     HOLD = 5  #: the vehicle is in HOLD (failsafe)
-    DETOUR = 6  #: the detour layer drove the setpoint (looking round, turning, flying a detour)
+    DETOUR = 6  #: the planner was in its detour mode (going round, or turning to look)
 
 
 _KIND_OF = {DecisionKind.CLEAR: LogKind.CLEAR, DecisionKind.AVOID: LogKind.AVOID, DecisionKind.BRAKE: LogKind.BRAKE}
@@ -86,9 +81,8 @@ class FlightLog:
         clearance_m: float64 ``(N,)`` ground-truth clearance (see :mod:`companion.sim.scoring`), metres.
         frame_t_s: float64 ``(N,)`` capture time of the frame whose decision was applied (a row of
             :class:`FrameLog`), seconds; NaN before the first.
-        planner: what course hold's planner was doing, per row: the detour layer's ``phase: reason``
-            while a detour is under way and on the row it ends, ``held: reason`` once the flight holds
-            (the progress watchdog, a dead end, the goal), else "".
+        planner: what the local planner was doing, per row: ``mode: reason`` (cruise, avoid, detour,
+            hold), or "" before its first tick.
     """
 
     t_s: np.ndarray
@@ -171,9 +165,7 @@ class FlightResult:
         decisions: frames per decision kind ("clear", "avoid", "brake").
         reason: one line saying why the flight ended.
         hold_reason: why the flight held, when it did (the progress watchdog, a dead end), else "".
-        detours: detours the detour layer began.
-        memory_audit: with ``audit_memory``: the remembered points against the ground truth
-            (:func:`~companion.sim.audit.audit_points`), summed over the audited frames; else None.
+        detours: times the planner entered its detour mode.
         log: the setpoint-rate log.
         frame_log: the per-frame log.
         timing: wall-clock instrumentation (not compared).
@@ -193,7 +185,6 @@ class FlightResult:
     reason: str = ""
     hold_reason: str = ""
     detours: int = 0
-    memory_audit: dict[str, int] | None = field(default=None, compare=False)
     log: FlightLog | None = field(default=None, compare=False)
     frame_log: FrameLog | None = field(default=None, compare=False)
     timing: FlightTiming | None = field(default=None, compare=False)
@@ -307,7 +298,6 @@ def fly(
     on_step: Callable[[SimStep], None] | None = None,
     clock: Callable[[], float] = time.perf_counter,
     sleep: Callable[[float], None] = time.sleep,
-    audit_memory: bool = False,
 ) -> FlightResult:
     """Fly ``course`` closed-loop with the configuration ``cfg`` and score it.
 
@@ -321,8 +311,6 @@ def fly(
         want_disparity: ask the pipeline for the disparity image (for ``on_frame`` overlays).
         on_step: called at every setpoint tick with what was commanded (a live view).
         clock, sleep: wall clock and sleep, for ``realtime`` and the timing instrumentation.
-        audit_memory: judge the obstacle memory's points against the ground truth every 5th frame
-            (:func:`~companion.sim.audit.audit_points`; slow: a measurement, not for suites).
     """
     wall0 = clock()
     cfg = simulator_config(cfg)
@@ -358,25 +346,18 @@ def fly(
     latest: FrameResult | None = None
     camera_ok = True
     n_cam = n_sp = 0
-    # Course hold's bookkeeping, the service's own (core/course.py). The detour layer's histograms are
-    # computed at once, inside the step that asks (the service's worker thread answers a step later):
-    # in simulated time that costs nothing, and every flight stays the same, bit for bit.
-    hold = CourseHold(defer_histogram=False)
     goal = GoalSpec()  # the course: the start pose
     if sim.goal == "point":
         north, east, _ = course.goal_point_ned_m
         goal = GoalSpec(kind="point", north_m=north, east_m=east)
-    hold.engage(course.start.position_ned_m, course.start.yaw_rad, goal)
-    local = LocalStack(cfg) if cfg.planner.kind == "local" else None  # the local planner instead of the rules
-    if local is not None:
-        local.engage(np.asarray(course.start.position_ned_m), course.start.yaw_rad, goal)
+    start = np.asarray(course.start.position_ned_m, dtype=np.float64)
+    progress = GoalProgress()  # the service's progress watchdog
+    progress.engage(start, course.start.yaw_rad, goal)
+    local = LocalStack(cfg)
+    local.engage(start, course.start.yaw_rad, goal)
     stalled = False  # the progress watchdog (or a dead end) fired: the service pauses; here the flight holds
     hold_reason = ""
     detours = 0
-    audit: dict[str, int] | None = {} if audit_memory else None
-    # The rules' obstacle memory; the local planner keeps its own map.
-    memory = ObstacleMemory() if cfg.memory.duration_s > 0.0 and cfg.planner.kind == "rules" else None
-    prefer_right = cfg.controller.preferred_yaw_side == "right"
     judge = Judge(
         course,
         radius,
@@ -435,12 +416,8 @@ def fly(
                     on_frame(frame, res)
         while pending and pending[0][0] <= t + _EPS_S:
             _, latest, seen_from = pending.popleft()
-            if local is not None and latest.near_blocks is not None:
-                local.add_frame(latest.near_blocks, pipeline.geometry, cfg.memory.block_px, seen_from, latest.timestamp_s)
-            if memory is not None and latest.near_points_cam_m is not None:
-                memory.add_frame(latest.near_points_cam_m, seen_from, latest.timestamp_s, cfg.memory, latest.far_view)
-                if audit is not None and len(f_t) % 5 == 0:
-                    add_counts(audit, audit_points(memory, course, latest.timestamp_s, seen_from, cfg))
+            if latest.near_blocks is not None:
+                local.add_frame(latest.near_blocks, pipeline.geometry, cfg.planner.block_px, seen_from, latest.timestamp_s)
 
         # -- setpoint, at the service's rate and by the service's rule
         if t >= n_sp * sp_period - _EPS_S:
@@ -450,61 +427,20 @@ def fly(
                 vehicle.set_hold()
             decision = latest.decision if latest is not None else None
             m = vehicle.model
-            hold.observe(decision, latest.timestamp_s if latest is not None else None, m.position_ned_m)
-            watchdog_s = None if local is None else cfg.planner.no_progress_timeout_s
-            if not stalled and hold.no_progress(m.position_ned_m, t, cmd, regress=local is None, timeout_s=watchdog_s):
-                # The service's watchdog, as the service applies it (flying back: the rule stack only).
-                stalled = True
-                hold_reason = f"progress watchdog ({hold.progress.why})"
-                if local is not None:
-                    local.stop(hold_reason)
-            if local is None and not stalled and hold.holding_reason is not None:
-                stalled = True
-                hold_reason = hold.holding_reason
+            if not stalled and progress.no_progress(m.position_ned_m, t, cmd.progress_step_m, cfg.planner.no_progress_timeout_s):
+                stalled = True  # the service's watchdog, as the service applies it
+                hold_reason = "progress watchdog (no_progress)"
+                local.stop(hold_reason)
             if stalled and decision is not None:
                 decision = NO_PROGRESS_HOLD
-            if local is not None:
-                step = local.step(t, age, decision, latest.refined.depth_m if latest is not None else None,
-                                  m.position_ned_m, m.velocity_ned_m_s, m.yaw_rad)
-                sp = step.setpoint
-                if not stalled and local.holding_reason is not None:
-                    stalled, hold_reason = True, local.holding_reason
-                planner = f"{step.plan.mode.value}: {step.plan.reason}"
-                detours += int(step.plan.mode.value == "detour" and not detouring)
-                detouring = step.plan.mode.value == "detour"
-            guard = sides = gap = ahead = None
-            if local is None and memory is not None:
-                view = latest.view_limits if latest is not None else None
-                guard, sides, gap, ahead = memory.hold_inputs(m.position_ned_m, m.yaw_rad, t, cfg.memory, view)
-            sp = sp if local is not None else hold.setpoint(
-                decision,
-                t,
-                age if latest is not None else math.inf,
-                cmd,
-                position_ned_m=m.position_ned_m,
-                yaw_rad=m.yaw_rad,
-                velocity_ned_m_s=m.velocity_ned_m_s,
-                region_depths_m=latest.refined.depth_m if latest is not None else None,
-                guard_m=guard,
-                remembered_sides=sides,
-                gap=gap,
-                path_ahead_m=ahead,
-                memory_cfg=cfg.memory,
-                obstacles=memory,
-                detour_cfg=cfg.detour,
-                prefer_right=prefer_right,
-                planning=not stalled,
-            )
-            if local is None:
-                if hold.detour.active and not detouring:
-                    detours += 1
-                if stalled:
-                    planner = f"held: {hold_reason}"
-                elif hold.detour.active or detouring:  # under way, or the row it ended on (why it ended)
-                    planner = f"{hold.detour.phase.value}: {hold.detour.reason}"
-                else:
-                    planner = ""
-                detouring = hold.detour.active
+            step = local.step(t, age, decision, latest.refined.depth_m if latest is not None else None,
+                              m.position_ned_m, m.velocity_ned_m_s, m.yaw_rad)
+            sp = step.setpoint
+            if not stalled and local.holding_reason is not None:
+                stalled, hold_reason = True, local.holding_reason
+            planner = f"{step.plan.mode.value}: {step.plan.reason}"
+            detours += int(step.plan.mode.value == "detour" and not detouring)
+            detouring = step.plan.mode.value == "detour"
             if vehicle.in_offboard:
                 vehicle.set_setpoint(sp)
                 if decision is None:
@@ -593,7 +529,6 @@ def fly(
         reason=judge.reason,
         hold_reason=hold_reason,
         detours=detours,
-        memory_audit=audit,
         log=log,
         frame_log=frame_log,
         timing=timing,

@@ -2,10 +2,11 @@
 
 The plot (:mod:`companion.sim.plot`) shows where a flight went; the trace says why, step by step: the
 pose and velocity, what drove the setpoint and the setpoint itself, the true clearance, the nine
-region depths and the controller's reason of the frame whose decision was applied, and what course
-hold's planner was doing (a detour's phase and reason, a hold). ``companion sim --course K --trace
-OUT.csv`` writes one for a flight, ``companion sim --suite S --trace-dir DIR`` one (and a plot) for
-every flight that failed; a spreadsheet, pandas or ``grep`` reads it.
+region depths and the controller's reason of the frame whose decision was applied, and what the
+local planner was doing (its mode and reason: cruise, avoid, detour, hold).
+``companion sim --course K --trace OUT.csv`` writes one for a flight, ``companion sim --suite S
+--trace-dir DIR`` one (and a plot) for every flight that failed; a spreadsheet, pandas or ``grep``
+reads it.
 """
 
 from __future__ import annotations

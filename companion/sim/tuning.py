@@ -1,7 +1,7 @@
 """The tuner's settings, scores and results, without Ray (``companion tune``; Ray's side: :mod:`companion.sim.cluster`).
 
 A *setting* is a number in the config named by a dotted path, and the range to search it in:
-``command.cruise_speed_m_s=0.5:1.5``, ``controller.input_terms.near.params_m.1=1.8:2.6`` (a membership
+``planner.cruise_speed_m_s=2:3.5``, ``controller.input_terms.near.params_m.1=1.8:2.6`` (a membership
 function's breakpoint: its term, then the parameter's index), ``controller.main_rules.R7.weight=0.2:1``
 (a rule by its name). The range is clipped to the field's own bounds and to the safety envelope
 (:func:`resolve_settings`), and every candidate is validated whole by the config models before it flies
@@ -89,7 +89,7 @@ def parse_setting(text: str) -> tuple[str, float, float]:
     """
     m = _SETTING.match(text)
     if m is None:
-        raise InputError(f"setting {text!r}: expected PATH=LOW:HIGH, e.g. command.cruise_speed_m_s=0.5:1.5")
+        raise InputError(f"setting {text!r}: expected PATH=LOW:HIGH, e.g. planner.cruise_speed_m_s=2:3.5")
     return _range(m.group(1), m.group(2), m.group(3))
 
 

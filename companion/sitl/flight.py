@@ -213,13 +213,13 @@ class _Recorder:
 
 
 def _planner_text(state: object, health: dict[str, Any]) -> str:
-    """:attr:`FlightLog.planner` from a health message: ``held: reason`` while paused, the detour
-    layer's ``phase: reason`` while it is not idle, else ""."""
+    """:attr:`FlightLog.planner` from a health message: ``held: reason`` while paused, the local
+    planner's ``mode: reason`` while it flies, else ""."""
     if state == "paused":
         return f"held: {health.get('reason') or ''}"
-    detour = (health.get("goal") or {}).get("detour") or {}
-    phase = detour.get("phase")
-    return "" if phase in (None, "idle") else f"{phase}: {detour.get('reason') or ''}"
+    plan = health.get("planner") or {}
+    mode = plan.get("mode")
+    return "" if mode is None else f"{mode}: {plan.get('reason') or ''}"
 
 
 def placement_at(pilot: Pilot, course: Course) -> CoursePlacement:
@@ -267,27 +267,22 @@ async def start_and_place(service: ServiceProcess, pilot: Pilot, course: Course)
 
 def placement_patch(cfg: CompanionConfig, placement: CoursePlacement) -> dict[str, dict[str, float]]:
     """The live ``set_config`` patch that puts the service's course at ``placement``: the camera's
-    ``sim_origin_*``, and the floor (``command.min_altitude_m`` of ``cfg``, the user's) and the local
-    planner's band (``planner.floor_m``, ``planner.ceiling_m``) moved to the same height over the
-    course's ground as the user set over the take-off point.
+    ``sim_origin_*``, and the local planner's band (``planner.floor_m``, ``planner.ceiling_m`` of
+    ``cfg``, the user's) moved to the same height over the course's ground as the user set over the
+    take-off point.
 
     The course's ground lies ``placement.origin_ned_m[2]`` metres below the autopilot's local origin
     (:func:`placement_at`: wherever the hover put it, 0.17–0.19 m *above* PX4's take-off ground in
     one flight), and the rendered floor and the judge's are the course's. Left at the take-off point,
-    a 0.5 m floor stood ~0.32 m over that ground, within the autopilot's lag of the collision sphere.
-    0 (off) stays off.
+    a 0.5 m floor stood ~0.32 m over that ground, within the autopilot's lag of the collision sphere,
+    and a 3 m ceiling stood 0.6 m over the course's 3 m walls: the planner climbed to fly over them,
+    into the wall's top.
     """
     ground_down_m = float(placement.origin_ned_m[2])
-    floor = cfg.command.min_altitude_m
-    if floor > 0.0:
-        # over the local origin; at least 1 cm, since 0 would turn the floor off
-        floor = max(0.01, floor - ground_down_m)
-    # The local planner's band moves the same way: left over the take-off point, a 3 m ceiling stood
-    # 0.6 m over the course's 3 m walls and the planner climbed to fly over them, into the wall's top.
     p = cfg.planner
     band_floor = max(0.0, p.floor_m - ground_down_m)
     band = {"floor_m": band_floor, "ceiling_m": max(band_floor + 0.1, p.ceiling_m - ground_down_m)}
-    return {"camera": placement_fields(placement), "command": {"min_altitude_m": floor}, "planner": band}
+    return {"camera": placement_fields(placement), "planner": band}
 
 
 async def place_course(service: ServiceProcess, pilot: Pilot, course: Course) -> CoursePlacement:

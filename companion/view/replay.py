@@ -2,7 +2,7 @@
 
 :func:`replay_sequence` takes the pairs of an :mod:`~companion.recorded.sequence` sequence through the
 configured pipeline (calibration, matcher, regions, LUT and filters, the fuzzy controller) and the
-command layer's setpoint for each decision, and writes into one folder:
+decision's direct setpoint (:func:`~companion.core.direct.decision_setpoint`), and writes into one folder:
 
 * ``frames.jsonl`` (or ``frames.csv``): one record per pair: its time, the 9 region depths (metres,
   null/empty = unknown), the decision, yaw, pitch, the setpoint and the pipeline's time;
@@ -11,8 +11,9 @@ command layer's setpoint for each decision, and writes into one folder:
   and ``config.toml``: a run folder ``companion review`` reads; ``review.html``, its report;
 * ``calibration.yaml`` when the sequence's own calibration (``sensor.yaml``, ``camera_info``) was used.
 
-Time in all of them is the recording's, in seconds from the first pair. The goal and detour layers are
-not replayed: they need the vehicle's pose, which a camera recording does not hold.
+Time in all of them is the recording's, in seconds from the first pair. The local planner is not
+replayed: its map and goal need the vehicle's pose, which a camera recording does not hold; the
+setpoint is the decision flown directly at the planner's limits.
 """
 
 from __future__ import annotations
@@ -164,7 +165,7 @@ def replay_sequence(
     from companion.config import apply_patch
     from companion.config.document import render_config_toml
     from companion.core.calibration import make_rectifier, save_calibration
-    from companion.core.command import setpoint_for
+    from companion.core.direct import decision_setpoint
     from companion.core.overlay import draw_overlay
     from companion.service.preview_frame import near_far_m
     from companion.view.review import write_review
@@ -275,7 +276,7 @@ def replay_sequence(
                 continue
             d = result.decision
             kind = d.kind.value
-            setpoint = setpoint_for(d, since_last_frame_s=0.0, cmd=cfg.command)
+            setpoint = decision_setpoint(d, cfg)
             total_ms = float(result.timings_ms.get("total_ms", 0.0))
             totals_ms.append(total_ms)
             recent_ms.append(total_ms)

@@ -232,7 +232,6 @@ class SimViewBridge:
             "setpoint_age_ms": 0.0,
             "setpoints_sent": self._sent,
             "override": None,
-            "memory": None,
             "camera": {
                 "source": "sim (simulated flight)",
                 "status": "streaming" if self._state == "engaged" else "stopped",

@@ -7,6 +7,7 @@ import threading
 import time
 from dataclasses import dataclass, replace
 
+import numpy as np
 import zmq
 
 from companion.config import CompanionConfig, parse_config
@@ -23,11 +24,15 @@ class Sent:
 
 class FakeLink:
     """A VehicleLink that behaves like PX4 behind MAVSDK (offboard accepted after a setpoint, mode
-    changes on request or by the 'pilot') and records every call with its monotonic time."""
+    changes on request or by the 'pilot') and records every call with its monotonic time. The vehicle
+    hovers at 1.5 m at the origin, facing north (it does not fly the setpoints)."""
 
     def __init__(self, mode: str = "POSCTL", armed: bool = True, refuse_offboard: bool = False) -> None:
         self._lock = threading.Lock()
-        self._state = VehicleState(connected=False, armed=armed, flight_mode=mode, in_offboard=mode == "OFFBOARD")
+        self._state = VehicleState(
+            connected=False, armed=armed, flight_mode=mode, in_offboard=mode == "OFFBOARD",
+            position_ned_m=np.array([0.0, 0.0, -1.5]), velocity_ned_m_s=np.zeros(3), attitude_rad=np.zeros(3),
+        )
         self.refuse_offboard = refuse_offboard
         self.sent: list[Sent] = []
         self.calls: list[tuple[float, str]] = []
@@ -272,14 +277,14 @@ def avoid_scene_camera(fps_hz: float = 15.0, width_px: int = 672, height_px: int
 
 def expected_result(cfg: CompanionConfig, camera):
     """What the pipeline decides for the (fixed) frame of ``camera``: (FrameResult, setpoint)."""
-    from companion.core.command import setpoint_for
+    from companion.core.direct import decision_setpoint
     from companion.backends import make_pipeline
 
     camera.open()
     frame = camera.read()
     w, h = camera.eye_size_px
     result = make_pipeline(cfg, w, h).process(frame.image, 0.0)
-    return result, setpoint_for(result.decision, 0.0, cfg.command)
+    return result, decision_setpoint(result.decision, cfg)
 
 
 def avoid_scene_preview_inputs(cfg: CompanionConfig):

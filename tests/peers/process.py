@@ -16,7 +16,7 @@ def write_config(
     path: Path, port: int, extra: str = "", cruise: float = 1.0, bus: str = "", vehicle: str = "", service: str = ""
 ) -> None:
     """A config for a service on the sim camera that engages at once (autostart) with the peer on UDP
-    ``port``; ``bus``, ``vehicle``, ``service``: more lines of those tables; ``extra``: more lines after [command]
+    ``port``; ``bus``, ``vehicle``, ``service``: more lines of those tables; ``extra``: more lines after [planner]
     (more tables too)."""
     tmp = path.parent
     path.write_text(
@@ -37,7 +37,7 @@ connection = "udpin://127.0.0.1:{port}"
 [service]
 autostart = true
 {service}
-[command]
+[planner]
 cruise_speed_m_s = {cruise}
 {extra}
 """,

@@ -28,12 +28,12 @@ g. Else straight on with the engine's outputs (the main system's, or the corner'
    non-CLEAR decision into CLEAR.
 h. When one output fired and the other did not (e.g. a pure vertical escape), the controller sets the
    unfired one to 0 on purpose: the engine itself reports it as not fired (``None``), never as 0.
-i. ``speed_fraction = 1 + (cmd.avoid_speed_fraction - 1)·slow`` for CLEAR and AVOID, 0 for BRAKE, where
-   ``slow`` is the largest "near" degree of the centre and the regions in ``cmd.avoid_speed_regions``;
+i. ``speed_fraction = 1 + (cfg.avoid_speed_fraction - 1)·slow`` for CLEAR and AVOID, 0 for BRAKE, where
+   ``slow`` is the largest "near" degree of the centre and the regions in ``cfg.avoid_speed_regions``;
    yaw and pitch are clipped to [-1, 1]; BRAKE gives yaw = pitch = 0.
 
-:func:`~companion.core.command.setpoint_for` turns a :class:`~companion.core.types.Decision` into a
-body-frame velocity setpoint.
+The local planner (:mod:`companion.core.planner`) takes the :class:`~companion.core.types.Decision` as
+one term of its cost (``planner.weight_fuzzy``) and as a brake its safety chain obeys.
 """
 
 from __future__ import annotations
@@ -48,7 +48,7 @@ from companion.core.fuzzy.engine import (
     Rule,
     Term,
 )
-from companion.config.core import CommandConfig, ControllerConfig, RuleConfig
+from companion.config.core import ControllerConfig, RuleConfig
 from companion.core.types import N_REGIONS, REGION_NAMES, Decision, DecisionKind
 from companion.errors import ConfigError
 
@@ -130,15 +130,13 @@ class AvoidanceController:
 
     Args:
         cfg: the fuzzy controller's configuration.
-        cmd: the command mapping (only ``avoid_speed_fraction`` and ``avoid_speed_regions`` are used here).
 
     Raises:
         ConfigError: a rule base that cannot be compiled (e.g. an output term zero on every sample).
     """
 
-    def __init__(self, cfg: ControllerConfig, cmd: CommandConfig) -> None:
+    def __init__(self, cfg: ControllerConfig) -> None:
         self.cfg = cfg
-        self.cmd = cmd
         neutral = {"yaw": cfg.yaw_neutral_term, "pitch": cfg.pitch_neutral_term}
         try:
             self.main_system = build_system(cfg, cfg.main_rules)
@@ -148,12 +146,12 @@ class AvoidanceController:
         self._main = _Compiled(self.main_system, neutral, "", set())
         self._corner = _Compiled(self.corner_system, neutral, "corner:", set(self._main.names))
         self._near_c = self.main_system.atom("center", "near")
-        self._speed_atoms = [self.main_system.atom(region, "near") for region in cmd.avoid_speed_regions]
+        self._speed_atoms = [self.main_system.atom(region, "near") for region in cfg.avoid_speed_regions]
         self._unknown = float(cfg.unknown_depth_m)
         self._min_escape = float(cfg.min_escape_strength)
         self._min_command = float(cfg.min_escape_command)
         self._brake_near = float(cfg.brake_near_degree)
-        self._avoid_speed = float(cmd.avoid_speed_fraction)
+        self._avoid_speed = float(cfg.avoid_speed_fraction)
 
     def prepare(self, depth_m: np.ndarray) -> np.ndarray:
         """Depths as fed to the systems: float64 ``(9,)``, NaN -> ``unknown_depth_m``, clipped to >= 0."""
@@ -176,7 +174,7 @@ class AvoidanceController:
         d = self.prepare(depth_m)
         main = self.main_system.infer(d)
         near = float(main.memberships[self._near_c])
-        # The speed blend follows the nearest of the centre and cmd.avoid_speed_regions (none by
+        # The speed blend follows the nearest of the centre and cfg.avoid_speed_regions (none by
         # default; the sides slow the vehicle while a box passes beside it).
         slow = max([near, *(float(main.memberships[a]) for a in self._speed_atoms)])
         s_main = main.strengths.tolist()

@@ -1,6 +1,5 @@
 """The local stack for one flight: the map, the planner and the safety chain, fed one frame and one tick
-at a time (pure; time is passed in). The simulator's loop and the service's control step both use it
-when ``planner.kind`` is "local".
+at a time (pure; time is passed in). The simulator's loop and the service's control step both use it.
 """
 
 from __future__ import annotations
@@ -11,7 +10,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from companion.core.closing import TrackWatch
+from companion.core.track import TrackWatch
 from companion.core.geometry import StereoGeometry
 from companion.core.goal import GoalSpec, resolve_goal
 from companion.core.planner.local import LocalPlanner, Mode, Plan, Snapshot

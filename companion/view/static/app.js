@@ -221,10 +221,7 @@ function applyHealth(h) {
   setText("vehicle", `${v.link ?? "–"}, ${v.flight_mode ?? "–"}, ${v.armed ? "armed" : "disarmed"}`);
   const p = h.planner;
   setText("planner", p ? `${p.mode}: ${p.reason}` + (p.limited_by && p.limited_by.length ? `; limited by ${p.limited_by.join(", ")}` : "")
-    : "– (not flying the local planner)");
-  const m = h.memory || {};
-  setText("memory", m.points === undefined ? "–"
-    : `${m.points} points, ${m.guarding || 0} guarding` + (m.seen_past ? `, ${m.seen_past} seen past` : "") + (m.guard_cleared ? ` (${m.guard_cleared} no longer guarding)` : "") + (m.unseen_drift_m_s ? `, countering ${m.unseen_drift_m_s.toFixed(2)} m/s unseen drift` : "") + (m.track_counter_m_s ? `, countering ${m.track_counter_m_s.toFixed(2)} m/s the velocity estimate misses` : ""));
+    : "– (not flying)");
   setText("last-error", h.last_error || "none");
   $("last-error").className = h.last_error ? "err" : "";
   updateButtons();
