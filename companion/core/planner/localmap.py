@@ -2,7 +2,7 @@
 (pure NumPy; time is passed in).
 
 Perception only, no control law. Each frame's block image (the largest valid disparity of each
-``block_px`` square: the nearest surface on that block's ray, :class:`~companion.core.memory.BlockMax`)
+``block_px`` square: the nearest surface on that block's ray, :class:`~companion.core.blocks.BlockMax`)
 enters the map as rays from the camera (OctoMap's idea): the cubes a ray passes through before its
 surface are seen free, the cube at its surface is hit. A cube's evidence is a log-odds number (a hit
 adds :data:`HIT_LOG_ODDS`, a pass subtracts :data:`FREE_LOG_ODDS`), so that one false match is not an
