@@ -352,9 +352,7 @@ class LocalMap:
         """bool grid shape: cubes within a cube of one passed within free_memory_s, with no surface's
         evidence and not hit within :data:`MIXED_EVIDENCE_S`, or the body's; not occupied (a new
         array: queries read the counts at their samples instead)."""
-        recent_hit = self.hit_t >= np.float32(self.now_s - MIXED_EVIDENCE_S)
-        seen = (self._fcnt > 0) & (self.log_odds <= OCCUPIED_LOG_ODDS) & ~recent_hit
-        return (seen | self._body_mask) & ~self._occ
+        return self._free_at(np.arange(self.log_odds.size)).reshape(self.shape) & ~self._occ
 
     def _free_at(self, idx: np.ndarray) -> np.ndarray:
         # An occupied cube's evidence is above OCCUPIED_LOG_ODDS, and the body's cubes are never

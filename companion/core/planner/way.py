@@ -161,8 +161,9 @@ class WayToGoal:
 
     def length_at(self, points_ned_m: np.ndarray) -> np.ndarray:
         """float64 ``(K,)``: the way's length from each of ``points_ned_m`` (float ``(K, 3)`` NED m) to
-        the goal, metres (those close beside a surface counted longer, :data:`EDGE_PENALTY`); NaN where the point is off the grid, closed or cut off (the caller falls back
-        on the straight line), or before the first :meth:`update`."""
+        the goal, metres (those close beside a surface counted longer, :data:`EDGE_PENALTY`); NaN where
+        the point is off the grid, closed or cut off (the caller falls back on the straight line), or
+        before the first :meth:`update`."""
         pts = np.asarray(points_ned_m, dtype=np.float64)
         if self.dist is None:
             return np.full(len(pts), np.nan)
