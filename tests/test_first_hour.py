@@ -79,16 +79,23 @@ def test_endpoints_and_timeouts_get_one_line_and_exit_2(argv: list[str], words: 
     assert words in err and len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
 
 
-def test_the_service_removes_its_sockets_when_it_stops(tmp_path: Path) -> None:
+def test_the_service_keeps_its_sockets_in_its_runtime_directory_and_removes_them(private_runtime_dir: str) -> None:
+    """Every socket file, the relay's private one too, lies in the runtime directory (systemd removes
+    it when the service stops, even killed): nothing is left in /tmp, and a clean stop empties it."""
     from companion.config.service import BusConfig
     from companion.service.bus import Bus
 
-    env = {"XDG_RUNTIME_DIR": str(tmp_path)}
-    bus = Bus(BusConfig(), environ=env)
+    bus = Bus(BusConfig())
     bus.open()
-    folder = tmp_path / "companion"
-    assert sorted(p.name for p in folder.iterdir()) == ["control.sock", "health.sock"]
-    bus.close()
+    try:
+        folder = Path(private_runtime_dir) / "companion"
+        files = sorted(p.name for p in folder.iterdir() if not p.is_dir())
+        (private,) = [p for p in folder.iterdir() if p.is_dir()]
+        assert files == ["control.sock", "health.sock"]
+        assert private.stat().st_mode & 0o077 == 0  # the router's folder: private
+        assert [p.name for p in private.iterdir()] == ["router.sock"]
+    finally:
+        bus.close()
     assert list(folder.iterdir()) == []
 
 

@@ -35,7 +35,7 @@ from zmq.auth.thread import ThreadAuthenticator
 from companion.config import BusConfig
 from companion.errors import ConfigError
 from companion.service.relay import ControlRelay, RelayLimits, private_endpoint
-from companion.service.runtime import remove_socket, resolve_endpoint, restrict_socket
+from companion.service.runtime import remove_socket, resolve_endpoint, restrict_socket, runtime_dir
 
 log = logging.getLogger(__name__)
 
@@ -138,7 +138,9 @@ class Bus:
             self.health = self._bind(zmq.PUB, health_endpoint, "bus.health_endpoint", keys, HEALTH_DOMAIN)
             self.health.setsockopt(zmq.SNDHWM, HEALTH_QUEUE_MESSAGES)  # a slow subscriber loses old health
             # The ROUTER on a socket of its own in a private folder; clients come through the relay.
-            self._private_dir = Path(tempfile.mkdtemp(prefix="companion-control-"))
+            # The folder is in the runtime directory, which systemd removes when the service stops,
+            # even killed (a folder in /tmp would outlive a killed service).
+            self._private_dir = Path(tempfile.mkdtemp(prefix="control-", dir=runtime_dir(self._environ)))
             private = private_endpoint(self._private_dir)
             self.control = self._bind(zmq.ROUTER, private, "bus.control_endpoint", keys, CONTROL_DOMAIN)
             self.control.setsockopt(zmq.ROUTER_MANDATORY, 1)  # a reply to a gone client raises, never blocks

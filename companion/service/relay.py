@@ -289,4 +289,4 @@ class ControlRelay:
 
 def private_endpoint(folder: Path) -> str:
     """The ROUTER's own ``ipc://`` endpoint inside ``folder`` (a private folder, mode 0700)."""
-    return f"ipc://{folder / 'control-router.sock'}"
+    return f"ipc://{folder / 'router.sock'}"
