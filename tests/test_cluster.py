@@ -8,8 +8,10 @@ from __future__ import annotations
 
 import importlib.util
 import os
+import shutil
 import signal
 import sys
+import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -45,14 +47,19 @@ needs_ray = pytest.mark.skipif(
 
 
 @pytest.fixture
-def ray_shutdown() -> Iterator[None]:
-    """Whatever a test did with Ray, no Ray is left running after it."""
+def ray_shutdown(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
+    """Whatever a test did with Ray, no Ray is left running after it, and nothing of its files: Ray
+    keeps its sessions and locks in a folder of the test's own (short: Ray's socket paths live there)
+    instead of /tmp/ray."""
+    folder = tempfile.mkdtemp(prefix="ray-test-")
+    monkeypatch.setenv("RAY_TMPDIR", folder)
     try:
         yield
     finally:
         import ray
 
         ray.shutdown()
+        shutil.rmtree(folder, ignore_errors=True)
 
 
 # --- settings, scores, fragment: no Ray ---------------------------------------------------------------
