@@ -39,11 +39,11 @@ HIT_LOG_ODDS = 0.5
 FREE_LOG_ODDS = 0.3
 OCCUPIED_LOG_ODDS = 0.7
 CLAMP_LOG_ODDS = (-1.0, 2.5)
-#: A cube hit this recently is not seen free, whatever rays passed through it since, seconds: thin
-#: bars, a see-through fence, wires are hit in some frames and seen past in the others, so their
-#: log-odds sink while they stand there. Such mixed evidence is unknown, and unknown is near: the
-#: speed law does not fly into it (a fence of bars 10 cm apart read as free until 1.85 m off at
-#: 3 m/s). The cube's occupancy is untouched: a phantom still clears in a few frames.
+#: A cube hit twice within this time is not seen free, whatever rays passed through it since, s:
+#: thin bars, a see-through fence, wires are hit in some frames and seen past in others, so their
+#: log-odds sink while they stand there. Such mixed evidence is unknown, and unknown is near (a fence
+#: of bars 10 cm apart read as free until 1.85 m off at 3 m/s). One hit is not mixed evidence, as it
+#: is not a surface (a false match, depth noise at an edge); occupancy is untouched.
 MIXED_EVIDENCE_S = 0.5
 #: Rays are thinned to about this many pixels apart (the block image max-pooled: the nearer surface
 #: wins): a cube at 0.15 m subtends about 6 px at 4 m on a 336 px, 90° image.
@@ -93,6 +93,7 @@ class LocalMap:
         self.shape = (n_xy, n_xy, n_z)
         self.log_odds = np.zeros(self.shape, dtype=np.float32)
         self.hit_t = np.full(self.shape, -np.inf, dtype=np.float32)
+        self.prev_hit_t = np.full(self.shape, -np.inf, dtype=np.float32)  # the hit before the last
         self.free_t = np.full(self.shape, -np.inf, dtype=np.float32)
         self.origin = None  # int64 (3,): world cube index of grid cube (0, 0, 0); None before the first use
         # The layers the queries read, kept up to the evidence at each frame (not at each query):
@@ -144,7 +145,7 @@ class LocalMap:
         # Roll only when the vehicle is a quarter of the grid off its middle.
         if np.all(np.abs(shift) < np.array(self.shape) // 4):
             return
-        for arr, fill in ((self.log_odds, 0.0), (self.hit_t, -np.inf), (self.free_t, -np.inf)):
+        for arr, fill in ((self.log_odds, 0.0), (self.hit_t, -np.inf), (self.prev_hit_t, -np.inf), (self.free_t, -np.inf)):
             _shift_fill(arr, -shift, fill)
         self.origin = want
         self.version += 1
@@ -249,7 +250,9 @@ class LocalMap:
         lo[f_idx] = np.maximum(lo[f_idx] - FREE_LOG_ODDS, CLAMP_LOG_ODDS[0])
         self._pass(f_idx, t)
         lo[h_idx] = np.minimum(lo[h_idx] + HIT_LOG_ODDS, CLAMP_LOG_ODDS[1])
-        self.hit_t.reshape(-1)[h_idx] = t
+        hit_t = self.hit_t.reshape(-1)
+        self.prev_hit_t.reshape(-1)[h_idx] = hit_t[h_idx]  # read before any write: repeats agree
+        hit_t[h_idx] = t
         if len(h_idx):
             self._hit_log.append((t, h_idx.astype(np.int32)))
         self._refresh(np.concatenate([h_idx, f_idx]))
@@ -350,7 +353,7 @@ class LocalMap:
 
     def seen_free(self) -> np.ndarray:
         """bool grid shape: cubes within a cube of one passed within free_memory_s, with no surface's
-        evidence and not hit within :data:`MIXED_EVIDENCE_S`, or the body's; not occupied (a new
+        evidence and not hit twice within :data:`MIXED_EVIDENCE_S`, or the body's; not occupied (a new
         array: queries read the counts at their samples instead)."""
         return self._free_at(np.arange(self.log_odds.size)).reshape(self.shape) & ~self._occ
 
@@ -358,7 +361,7 @@ class LocalMap:
         # An occupied cube's evidence is above OCCUPIED_LOG_ODDS, and the body's cubes are never
         # occupied (a cube that turns occupied leaves the body's): no need to read the occupancy.
         seen = (self._fcnt.reshape(-1)[idx] > 0) & (self.log_odds.reshape(-1)[idx] <= OCCUPIED_LOG_ODDS)
-        seen &= self.hit_t.reshape(-1)[idx] < np.float32(self.now_s - MIXED_EVIDENCE_S)
+        seen &= self.prev_hit_t.reshape(-1)[idx] < np.float32(self.now_s - MIXED_EVIDENCE_S)
         return seen | self._body_mask.reshape(-1)[idx]
 
     def inflated(self) -> np.ndarray:
