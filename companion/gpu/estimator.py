@@ -52,10 +52,10 @@ from typing import Any
 import numpy as np
 
 from companion.config import CompanionConfig
-from companion.core.calibration import make_rectifier
 from companion.core.geometry import StereoGeometry
 from companion.core.estimator import RegionEstimate
 from companion.core.obstacle import N_BINS, ObstacleDistance, ObstacleLayout, obstacle_layout
+from companion.core.rectifier import make_rectifier
 from companion.core.regions import RegionLayout, region_layout
 from companion.core.stereo import split_frame
 from companion.core.types import N_REGIONS, RegionDepths
