@@ -4,7 +4,7 @@ The GPU backend reads a frame fastest from its own page-locked (pinned) host mem
 Jetson the kernels themselves, read it in place, with no host copy (5.5 MB per 1280×720 frame). So the
 estimator offers a few such buffers (:meth:`CupyRegionEstimator.frame_pool
 <companion.gpu.estimator.CupyRegionEstimator.frame_pool>`) and the camera decodes each frame into one
-(:class:`~companion.service.camera.UvcCamera`).
+(:class:`~companion.service.camera_v4l2.UvcCamera`).
 
 A buffer may be written again only when nothing holds the frame any more: the pipeline may still be
 reading it, a preview or a recording may hold it. So a buffer is lent as a fresh array over a

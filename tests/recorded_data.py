@@ -11,8 +11,9 @@ import cv2
 import numpy as np
 
 from calib_data import Rig
-from companion.core.calibration import Rectifier, StereoCalibration
+from companion.core.calibration import StereoCalibration
 from companion.core.geometry import StereoGeometry
+from companion.core.rectifier import Rectifier
 from companion.sim.render import Box, Pose, Scene, StereoRenderer
 
 #: The rendered rig: small eyes so that the tests run fast; a 11 cm baseline as the EuRoC MAV's.

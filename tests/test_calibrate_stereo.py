@@ -16,7 +16,8 @@ from companion.calib.views import StereoImage, capture_views, load_stereo_images
 from companion.cli import main
 from companion.config import load_config
 from companion.core.calibrate import BoardSpec, Thresholds, calibrate_stereo, coverage, detect_board, pair_views
-from companion.core.calibration import Rectifier, load_calibration
+from companion.core.calibration_files import load_calibration
+from companion.core.rectifier import Rectifier
 from companion.errors import CalibrationError, InputError
 from companion.interfaces import Frame
 

@@ -1,4 +1,5 @@
-"""Calibration loaders, Rectifier and IdentityRectifier (companion.core.calibration)."""
+"""Calibration loaders, Rectifier and IdentityRectifier (companion.core: calibration, calibration_files,
+zed_conf, rectifier)."""
 
 from __future__ import annotations
 
@@ -10,18 +11,11 @@ import numpy as np
 import pytest
 
 from companion.config.core import CalibrationConfig
-from companion.core.calibration import (
-    ZED_RESOLUTIONS,
-    IdentityRectifier,
-    Rectifier,
-    StereoCalibration,
-    load_calibration,
-    load_opencv_calibration,
-    load_zed_conf,
-    make_rectifier,
-    remap_linear_reference,
-)
+from companion.core.calibration import StereoCalibration
+from companion.core.calibration_files import load_calibration, load_opencv_calibration
 from companion.core.geometry import StereoGeometry
+from companion.core.rectifier import IdentityRectifier, Rectifier, make_rectifier, remap_linear_reference
+from companion.core.zed_conf import ZED_RESOLUTIONS, load_zed_conf
 from companion.errors import CalibrationError, FrameError
 
 DATA = Path(__file__).parent / "data"
@@ -667,7 +661,7 @@ def test_npz_with_python_objects_and_a_directory_are_named(tmp_path: Path) -> No
 
 @pytest.mark.parametrize("suffix", [".yaml", ".yml", ".xml", ".json", ".npz"])
 def test_save_calibration_writes_the_projects_format_in_every_container(tmp_path: Path, suffix: str) -> None:
-    from companion.core.calibration import save_calibration
+    from companion.core.calibration_files import save_calibration
 
     rig = _distorted_rig()
     path = save_calibration(rig, tmp_path / f"c{suffix}", {"rms_px": 0.21, "views": 14, "board": "chessboard:9x6:0.025"})

@@ -14,7 +14,9 @@ import yaml
 from calib_data import Rig, generic_rig
 from companion.calib.importers import import_calibration
 from companion.cli import main
-from companion.core.calibration import Rectifier, StereoCalibration, load_calibration
+from companion.core.calibration import StereoCalibration
+from companion.core.calibration_files import load_calibration
+from companion.core.rectifier import Rectifier
 
 # ------------------------------------------------------------------------------------------------ writers
 

@@ -20,7 +20,7 @@ from doc_blocks import blocks, commands, companion_commands
 
 from companion.cli import build_parser
 from companion.config import load_config
-from companion.core.calibration import load_calibration
+from companion.core.calibration_files import load_calibration
 
 ROOT = Path(__file__).resolve().parent.parent
 DOC = ROOT / "docs" / "first-flight.md"

@@ -23,7 +23,8 @@ from companion.core.types import REGION_NAMES, Decision, DecisionKind, RegionDep
 from companion.errors import CameraError, ConfigError, VehicleError
 from companion.interfaces import Frame
 from companion.service.backoff import LogBackoff
-from companion.service.camera import PairCamera, UvcCamera, make_camera
+from companion.service.camera import make_camera
+from companion.service.camera_v4l2 import PairCamera, UvcCamera
 from companion.service.capture import CaptureThread, FrameMailbox
 from companion.service.health import _regions
 

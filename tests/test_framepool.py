@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from companion.framepool import FrameBuffers, FramePool
-from companion.service.camera import UvcCamera
+from companion.service.camera_v4l2 import UvcCamera
 
 SHAPE = (4, 10, 3)
 

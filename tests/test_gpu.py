@@ -18,7 +18,8 @@ import pytest
 
 from companion.bench.common import BenchSize, rendered_frames
 from companion.config import CompanionConfig
-from companion.core.calibration import Rectifier, StereoCalibration, make_rectifier, remap_linear_reference
+from companion.core.calibration import StereoCalibration
+from companion.core.rectifier import Rectifier, make_rectifier, remap_linear_reference
 from companion.core.disparity.reference import sad_block_match
 from companion.backends import cuda_available, make_estimator, make_pipeline
 from companion.core.disparity.sgm import fixed_to_float, sgm_match

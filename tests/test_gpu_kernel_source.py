@@ -5,7 +5,7 @@ from __future__ import annotations
 import itertools
 import re
 
-from companion.gpu.estimator import kernel_source
+from companion.gpu.nvrtc import kernel_source
 
 
 def test_the_median_network_puts_the_five_smallest_in_order() -> None:

@@ -13,13 +13,10 @@ import pytest
 from companion.config import parse_config
 from companion.errors import CameraError, ConfigError
 from companion.interfaces import CameraSource, Frame
-from companion.service.camera import (
-    PoseUnavailable,
-    ReplayCamera,
-    UvcCamera,
-    make_camera,
-    sim_camera_from_config,
-)
+from companion.service.camera import make_camera
+from companion.service.camera_replay import ReplayCamera
+from companion.service.camera_sim import PoseUnavailable, sim_camera_from_config
+from companion.service.camera_v4l2 import UvcCamera
 from companion.service.capture import CaptureThread, FrameMailbox
 from companion.service.recording import (
     RecordingWriter,
@@ -194,7 +191,7 @@ class _Telemetry:
 
 
 def test_telemetry_pose_is_placed_in_the_scene_and_stamped_with_its_arrival() -> None:
-    from companion.service.camera import TelemetryPose
+    from companion.service.camera_sim import TelemetryPose
     from companion.core.placement import CoursePlacement
 
     now = [100.0]
@@ -218,7 +215,7 @@ def test_telemetry_pose_is_placed_in_the_scene_and_stamped_with_its_arrival() ->
 
 
 def test_sim_camera_on_telemetry_waits_for_a_pose_then_reports_it_missing() -> None:
-    from companion.service.camera import TelemetryPose
+    from companion.service.camera_sim import TelemetryPose
     from companion.core.placement import CoursePlacement
 
     cfg = parse_config(

@@ -189,7 +189,8 @@ def test_collision_prevention_stops_short_of_the_wall_and_at_zero_when_the_servi
     """Position mode, stick full forward at a wall, the service only sending OBSTACLE_DISTANCE: PX4's own
     Collision Prevention (CP_DIST 2 m) stops the vehicle about 2 m short; stopping the service then
     brings PX4 to zero velocity (`companion sitl --scenario collision-prevention`)."""
-    from companion.sitl.scenarios import StickPilot, fly_collision_prevention
+    from companion.sitl.px4_scenarios import fly_collision_prevention
+    from companion.sitl.sticks import StickPilot
 
     async def scenario():
         pilot = StickPilot(PILOT_URL, px4.ports.system_id)
@@ -209,7 +210,8 @@ def test_collision_prevention_stops_short_of_the_wall_and_at_zero_when_the_servi
 def test_the_pilots_offboard_switch_engages_and_position_mode_releases(px4: Px4Sitl, tmp_path: Path) -> None:
     """The ground station switches PX4 to Offboard while the service is ready: it takes over and avoids;
     Position mode hands the vehicle back at once (`companion sitl --scenario rc-engage`)."""
-    from companion.sitl.scenarios import StickPilot, fly_rc_engage
+    from companion.sitl.px4_scenarios import fly_rc_engage
+    from companion.sitl.sticks import StickPilot
 
     async def scenario():
         pilot = StickPilot(PILOT_URL, px4.ports.system_id)

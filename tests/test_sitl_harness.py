@@ -69,7 +69,7 @@ def test_sitl_cli_rejects_bad_arguments_with_one_line(capsys: pytest.CaptureFixt
 
 
 def test_placement_fields_are_the_inverse_of_placement_from_config() -> None:
-    from companion.service.camera import placement_fields, placement_from_config
+    from companion.service.camera_sim import placement_fields, placement_from_config
 
     placement = CoursePlacement((1.5, -2.0, -0.3), math.radians(-120.0))
     cfg = parse_config({"camera": placement_fields(placement)})

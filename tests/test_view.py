@@ -465,7 +465,7 @@ def test_the_page_and_the_terminal_give_the_rig_check_when_near_cannot_be_measur
     near is full; the view said nothing, and its bars showed such a rig's regions as far. The service's
     health carries the rig check (``rig``), the page data has its lines, and the view prints them in its
     terminal, in the same words as the other tools."""
-    from companion.core.calibration import make_rectifier
+    from companion.core.rectifier import make_rectifier
     from companion.core.rig_check import check_rig, rig_check_lines
 
     # The ideal rig (f 336 px, B 0.12 m) with 32 disparities measures nothing nearer than 1.30 m: the

@@ -156,7 +156,11 @@ def _stereo(args: argparse.Namespace) -> int:
     from companion.calib.views import capture_views, load_stereo_images, open_camera, save_view
     from companion.config import load_config
     from companion.core.calibrate import BoardSpec, Thresholds, calibrate_stereo, detect_board, pair_views
-    from companion.core.calibration import OPENCV_CALIBRATION_SUFFIXES, load_calibration, save_calibration
+    from companion.core.calibration_files import (
+        OPENCV_CALIBRATION_SUFFIXES,
+        load_calibration,
+        save_calibration,
+    )
 
     board = BoardSpec.parse(args.board)
     out = _check_out(args.out, OPENCV_CALIBRATION_SUFFIXES, "--out")
@@ -287,7 +291,7 @@ def _write_rectified(path: Path, report: Any, views: list[Any], paired: list[Any
     import cv2
     import numpy as np
 
-    from companion.core.calibration import Rectifier
+    from companion.core.rectifier import Rectifier
 
     _check_out(path, (".png", ".jpg", ".jpeg", ".bmp"), "--rectified")
     rect = Rectifier(report.calibration, alpha=alpha)

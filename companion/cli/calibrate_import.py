@@ -64,7 +64,7 @@ def rig_summary(calib: Any, cfg: Any) -> dict[str, Any]:
     import cv2
     import numpy as np
 
-    from companion.core.calibration import Rectifier
+    from companion.core.rectifier import Rectifier
 
     rect = Rectifier(calib, alpha=cfg.calibration.rectify_alpha)
     g = rect.geometry
@@ -105,7 +105,7 @@ def _import(args: argparse.Namespace) -> Any:
 def run(args: argparse.Namespace) -> int:
     from companion.calib.importers import FORMATS
     from companion.config import load_config
-    from companion.core.calibration import OPENCV_CALIBRATION_SUFFIXES, save_calibration
+    from companion.core.calibration_files import OPENCV_CALIBRATION_SUFFIXES, save_calibration
 
     out = args.out.expanduser()
     if out.suffix.lower() not in OPENCV_CALIBRATION_SUFFIXES:

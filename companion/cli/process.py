@@ -153,7 +153,7 @@ def run(args: argparse.Namespace) -> int:
     if args.overlay is not None:
         import cv2
 
-        from companion.core.calibration import make_rectifier
+        from companion.core.rectifier import make_rectifier
 
         # The regions are laid out on the rectified image: draw on that (the raw eye when there is
         # no calibration: the frame is then taken as rectified already).

@@ -142,7 +142,8 @@ def _view(args: argparse.Namespace) -> int:
     import signal
 
     from companion.service.client import curve_client_options
-    from companion.view.server import ViewOptions, is_loopback_host, serve
+    from companion.view.options import ViewOptions, is_loopback_host
+    from companion.view.server import serve
 
     token = read_token(args.token_file)
     health, preview, control = _endpoints(args)

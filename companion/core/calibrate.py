@@ -32,8 +32,9 @@ from typing import Final, Literal
 import cv2
 import numpy as np
 
-from companion.core.calibration import Rectifier, StereoCalibration
+from companion.core.calibration import StereoCalibration
 from companion.core.geometry import StereoGeometry
+from companion.core.rectifier import Rectifier
 from companion.errors import CalibrationError, InputError
 
 __all__ = [

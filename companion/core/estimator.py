@@ -16,12 +16,12 @@ from typing import Protocol
 import numpy as np
 
 from companion.config import CompanionConfig
-from companion.core.calibration import make_rectifier
 from companion.core.depth import disparity_to_depth
 from companion.core.disparity import DisparityMatcher, make_cpu_matcher
 from companion.core.geometry import StereoGeometry
 from companion.core.blocks import BlockMax
 from companion.core.obstacle import ObstacleDistance, obstacle_layout, reduce_obstacle_distance
+from companion.core.rectifier import make_rectifier
 from companion.core.regions import RegionLayout, reduce_regions, region_layout
 from companion.core.stereo import split_frame, to_grey
 from companion.core.types import RegionDepths

@@ -18,7 +18,7 @@ For the camera's eye size and the rig (the calibration file's rectified geometry
   block matcher's band covering more than half of the left regions' columns (they read unknown, i.e.
   near, most of the time).
 
-Pure: the geometry comes from :func:`~companion.core.calibration.make_rectifier`, which reads the
+Pure: the geometry comes from :func:`~companion.core.rectifier.make_rectifier`, which reads the
 calibration file when one is set.
 """
 
@@ -30,8 +30,8 @@ from dataclasses import dataclass
 
 from companion.config import CompanionConfig
 from companion.config.core import ControllerConfig, RegionsConfig, StereoConfig
-from companion.core.calibration import make_rectifier
 from companion.core.geometry import StereoGeometry
+from companion.core.rectifier import make_rectifier
 from companion.errors import CompanionError, ConfigError
 
 log = logging.getLogger(__name__)

@@ -35,76 +35,51 @@ that size and half the disparities, matches it; ``sgm_post`` then reads its disp
 
 Each band's GPU work is captured once as a CUDA graph and replayed. The results equal
 :class:`~companion.core.estimator.CpuRegionEstimator` with the ``reference`` backend and the same matcher.
+
+The estimator's parts: :mod:`~companion.gpu.upload` (step 1), :mod:`~companion.gpu.launch` (steps 2
+and 3, the graphs), :mod:`~companion.gpu.bands` (the row bands), :mod:`~companion.gpu.near` (the
+near-range check's coarse pair) and :mod:`~companion.gpu.nvrtc` (the kernel sources, compiled once
+per shape).
 """
 
 from __future__ import annotations
 
-import importlib.resources
 import logging
-import math
-import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from companion.config import CompanionConfig
-from companion.core.calibration import make_rectifier
-from companion.core.disparity.sgm import near_range_shape
 from companion.core.geometry import StereoGeometry
-from companion.core.blocks import block_max
 from companion.core.estimator import RegionEstimate
 from companion.core.obstacle import N_BINS, ObstacleDistance, ObstacleLayout, obstacle_layout
+from companion.core.rectifier import make_rectifier
 from companion.core.regions import RegionLayout, region_layout
 from companion.core.stereo import split_frame
 from companion.core.types import N_REGIONS, RegionDepths
-from companion.errors import BackendError, ConfigError
-from companion.framepool import FramePool
+from companion.errors import BackendError
+from companion.gpu.bands import Band, plan_bands
+from companion.gpu.launch import BandLaunch, check_block_px
+from companion.gpu.near import NearPair, build_near_pair
+from companion.gpu.nvrtc import import_cupy, obstacle_module, sgm_module, stereo_module
 from companion.gpu.plan import (
     OBSTACLE_HIST_BINS,
-    OBSTACLE_THREADS,
-    SGM_CENSUS_HALF_HEIGHT,
-    SGM_CENSUS_TILE,
-    SGM_PATH_THREADS,
-    SGM_POST_THREADS,
     DisparityPlan,
     SgmPlan,
-    kernel_defines,
-    obstacle_defines,
     obstacle_slices,
     plan_disparity,
     plan_sgm,
-    sgm_defines,
 )
+from companion.gpu.upload import CopyCrew, FrameUpload
 
 log = logging.getLogger(__name__)
 
 Clock = Callable[[], float]
 
-#: Threads per block of the element-wise kernels (grey, remap, preview).
-_EW_THREADS = 128
-#: Threads per block of the fallback kernels.
-_NAIVE_THREADS = 64
-_REGIONS_THREADS = 256
-_MAX_CHANNELS = 4
 
-
-def kernel_source(name: str = "stereo.cu") -> str:
-    """The CUDA source of a kernel file (``companion/gpu/kernels/stereo.cu`` or ``sgm.cu``), without the #defines."""
-    return (importlib.resources.files("companion.gpu") / "kernels" / name).read_text(encoding="utf-8")
-
-
-def _import_cupy() -> Any:
-    try:
-        import cupy
-    except ImportError as err:  # the caller asked for the GPU explicitly
-        raise BackendError(f"the cupy backend needs CuPy ({err}); install companion[gpu]") from None
-    return cupy
-
-
-class CupyRegionEstimator:
+class CupyRegionEstimator(FrameUpload, BandLaunch):
     """GPU implementation of the :class:`~companion.core.pipeline.RegionEstimator` contract.
 
     Built once per (config, resolution): compiles the kernels for this size and matcher setting
@@ -137,14 +112,14 @@ class CupyRegionEstimator:
     name = "cupy"
 
     def __init__(self, cfg: CompanionConfig, width_px: int, height_px: int, clock: Clock = time.perf_counter):
-        cp = _import_cupy()
+        cp = import_cupy()
         self._cp = cp
         self.width_px = int(width_px)
         self.height_px = int(height_px)
         self._clock = clock
         self._gpu_cfg = cfg.gpu
         self._regions_cfg = cfg.regions
-        _check_block_px(cfg.planner.block_px, cfg.gpu.disparity_preview_downsample)
+        check_block_px(cfg.planner.block_px, cfg.gpu.disparity_preview_downsample)
         rectifier = make_rectifier(cfg.calibration, self.width_px, self.height_px)
         self.geometry: StereoGeometry = rectifier.geometry
         self.layout: RegionLayout = region_layout(self.geometry, cfg.regions)
@@ -196,14 +171,11 @@ class CupyRegionEstimator:
         st = cfg.stereo
         # Only the shape is compiled in; the uniqueness and texture thresholds are kernel arguments,
         # so estimators that differ only in them share one compiled module.
-        defines = kernel_defines(p, self.layout.row_edges, self.layout.col_edges)
         self._match_args = (
             np.uint32(st.uniqueness_ratio_pct),
             np.uint32(st.texture_threshold_grey * st.block_size_px**2),
         )
-        # --fmad=false: the remap's float arithmetic must round exactly like OpenCV's (explicit fmaf
-        # only); nothing else in the module is floating point on the hot path.
-        self._module = cp.RawModule(code=defines + kernel_source(), options=("--std=c++17", "--fmad=false"))
+        self._module = stereo_module(cp, p, self.layout.row_edges, self.layout.col_edges)
         get = self._module.get_function
         self._k_grey = {
             (1, False): get("grey_c1"), (2, False): get("grey_c2"), (3, False): get("grey_c3"), (4, False): get("grey_c4"),
@@ -216,14 +188,10 @@ class CupyRegionEstimator:
         self._k_regions = get("regions_from_disp")
         self._k_preview = get("preview_max")
         self._k_memory = get("memory_max")
-        self._near: _Near | None = None
+        self._near: NearPair | None = None
         if self.sgm_plan is not None:
             sp = self.sgm_plan
-            self._sgm_module = cp.RawModule(
-                code=sgm_defines(sp, p.pitch_bytes, self.layout.row_edges, self.layout.col_edges)
-                + kernel_source("sgm.cu"),
-                options=("--std=c++17", "--fmad=false"),
-            )
+            self._sgm_module = sgm_module(cp, sp, p.pitch_bytes, self.layout.row_edges, self.layout.col_edges)
             sget = self._sgm_module.get_function
             self._k_sgm = {name: sget(name) for name in ("sgm_census", "sgm_paths", "sgm_wta", "sgm_post", "sgm_shrink")}
             self._sgm_args = (
@@ -233,14 +201,11 @@ class CupyRegionEstimator:
                 np.int32(st.sgm_lr_max_diff_px),
                 np.int32(1 if st.sgm_median else 0),
             )
-            self._near = self._build_near(cfg)
+            self._near = build_near_pair(cp, cfg, self.width_px, self.height_px, self.sm_count)
 
         if self.obstacle_layout is not None:
             lay = self.obstacle_layout
-            self._od_module = cp.RawModule(
-                code=obstacle_defines(OBSTACLE_THREADS) + kernel_source("obstacle.cu"),
-                options=("--std=c++17", "--fmad=false"),
-            )
+            self._od_module = obstacle_module(cp)
             self._k_obstacle = self._od_module.get_function("obstacle_bins")
             self._od_row_thr = cp.asarray(lay.row_threshold_px, dtype=cp.float32)
             self._od_col_fbk = cp.asarray(lay.column_fbk, dtype=cp.float32)
@@ -263,20 +228,15 @@ class CupyRegionEstimator:
         self._grid_fast = (p.tiles_x, p.tiles_y(self.rows_per_block), 1)
         self._rows_regions = max(1, -(-p.valid_rows // (2 * self.sm_count)))
         self._grid_regions = (max(1, -(-p.valid_rows // self._rows_regions)), 1, 1)
-        self._bands = self._plan_bands(cfg, rectifier)
+        self._bands: list[Band] = plan_bands(
+            p, self.sgm_plan is not None, h, rectifier, cfg.gpu, self.sm_count, self.blocks_per_sm
+        )
+        self._total_blocks = np.uint32(sum(b.grid[0] * b.grid[1] for b in self._bands))
 
         self._stream = cp.cuda.Stream(non_blocking=True)  # compute
         self._copy_stream = cp.cuda.Stream(non_blocking=True)  # host-to-device DMA
         self._band_events = [cp.cuda.Event(disable_timing=True) for _ in self._bands]
-        # Pinned staging for the largest frame (4 channels); per-channel views share it.
-        frame_bytes = h * 2 * w * _MAX_CHANNELS
-        self._host_frame_mem, self._host_frame, mapped_ptr = self._pinned(frame_bytes)
-        if self._gpu_cfg.zero_copy:
-            self._frame_dev_ptr = mapped_ptr
-            self._dev_frame = None
-        else:
-            self._dev_frame = cp.empty(frame_bytes, dtype=cp.uint8)
-            self._frame_dev_ptr = int(self._dev_frame.data.ptr)
+        self._build_staging()
 
         shape_p = (h, p.pitch_bytes)
         self._rect_l = cp.zeros(shape_p, dtype=cp.uint8)
@@ -339,23 +299,9 @@ class CupyRegionEstimator:
             np.float64(rc.min_valid_fraction),
             np.float64(rc.max_depth_m),
         )
-        self._registered = 0  # caller frame page-locked for the DMA in flight (register_frames)
-        # The pinned buffers a frame is read from in place (the staging buffer, frame_pool()'s): host
-        # pointer -> where the kernels read the frame (the device copy; zero copy: the buffer's mapping).
-        self._pool: FramePool | None = None
-        self._pool_mem: list[Any] = []
-        self._in_place_ptrs: dict[int, int] = {int(self._host_frame_mem.ptr): self._frame_dev_ptr}
-        self._frame_shapes = {self.frame_buffer(c).shape: c for c in (1, 2, 3, 4)}  # shape -> channels
-        self._kernel_frame_ptr = self._frame_dev_ptr  # where this frame's kernels read it
-        self._graphs: dict[tuple[int, int, bool, bool, int], Any] = {}
-        self._graph_ok = bool(self._gpu_cfg.use_cuda_graph) and not self._gpu_cfg.stage_timing
-        # a frame read in place (no host copy): one graph for the whole frame (_frame_graph)
-        self._frame_graphs: dict[tuple[int, bool, bool, int, int], Any] = {}
-        self._frame_graph_ok = self._graph_ok
-        self._fork_event = cp.cuda.Event(disable_timing=True)
-        self._events = [cp.cuda.Event() for _ in range(5)] if self._gpu_cfg.stage_timing else []
+        self._build_graphs()
         n_threads = self._gpu_cfg.host_copy_threads
-        self._crew = _CopyCrew(n_threads, self._device.id) if n_threads > 1 else None
+        self._crew = CopyCrew(n_threads, self._device.id) if n_threads > 1 else None
         if self.sgm_plan is None:
             log.info(
                 "cupy estimator on %s: %dx%d, D=%d, b=%d, %s kernel, tile %s, %d blocks/SM, bands %s",
@@ -372,147 +318,8 @@ class CupyRegionEstimator:
                 sum(sp.device_bytes().values()) / 1e6, [(b.src, b.rect) for b in self._bands],
             )
 
-    def _build_near(self, cfg: CompanionConfig) -> _Near | None:
-        """The near-range check's coarse pair (the reference's rule 11): a second module of the SGM
-        kernels built for the pair shrunk :data:`~companion.core.disparity.sgm.NEAR_SCALE` times with half the disparities, and its
-        buffers (1/32 of the full size's); None where the rule skips the check."""
-        cp = self._cp
-        st = cfg.stereo
-        shape = near_range_shape(self.height_px, self.width_px, st.num_disparities)
-        if shape is None:
-            return None
-        hc, wc, dc = shape
-        rows_e, cols_e = [0, hc // 3, 2 * hc // 3, hc], [0, wc // 3, 2 * wc // 3, wc]
-        plan = plan_sgm(wc, hc, dc, st.sgm_paths, rows_e, 0, cfg.gpu.sgm_prefetch_steps, self.sm_count)
-        pitch = -(-(wc + 16) // 16) * 16
-        module = cp.RawModule(
-            code=sgm_defines(plan, pitch, rows_e, cols_e) + kernel_source("sgm.cu"),
-            options=("--std=c++17", "--fmad=false"),
-        )
-        get = module.get_function
-        return _Near(
-            plan=plan,
-            width_px=wc,
-            height_px=hc,
-            pitch_bytes=pitch,
-            module=module,
-            kernels={name: get(name) for name in ("sgm_census", "sgm_paths", "sgm_wta", "sgm_post")},
-            left=cp.zeros((hc, pitch), dtype=cp.uint8),
-            right=cp.zeros((hc, pitch), dtype=cp.uint8),
-            census=cp.zeros((3, hc, plan.census_stride_px), dtype=cp.uint64),
-            volumes=cp.zeros((plan.paths, hc, wc, plan.dpad), dtype=cp.uint8),
-            winner=cp.zeros((hc, wc), dtype=cp.int32),
-            right_keys=cp.zeros((hc, wc), dtype=cp.uint32),
-            disp=cp.full((hc, wc), -1, dtype=cp.int16),
-            hist=cp.zeros(N_REGIONS * plan.nbins, dtype=cp.uint32),
-            counter=cp.zeros(1, dtype=cp.uint32),
-            result=cp.zeros(2 * N_REGIONS, dtype=cp.float64),
-        )
-
-    def _plan_bands(self, cfg: CompanionConfig, rectifier: Any) -> list[_Band]:
-        """Split the frame into row bands whose GPU work needs only the rows uploaded so far.
-
-        Disparity band k covers output rows ``[o_k, o_k+1)``; its windows read rectified rows up to
-        ``o_k+1 + r``; those read source rows up to the largest ``floor(map_y) + 2`` among them (the
-        two bilinear taps), or the same rows for an ideal rig. The upload of band k is the source rows
-        from the previous band's end to that row.
-        """
-        p, h = self.plan, self.height_px
-        k_bands = cfg.gpu.pipeline_bands
-        sgm = self.sgm_plan is not None
-        if sgm:
-            # The SGM kernels need the whole pair: bands only overlap the upload with grey + remap.
-            if cfg.gpu.stage_timing or h < 2 * k_bands:
-                k_bands = 1
-            r = 0
-            outs = [(h * k) // k_bands for k in range(k_bands + 1)]
-        else:
-            if not p.fast or cfg.gpu.stage_timing or p.valid_rows < 2 * k_bands:
-                k_bands = 1
-            r = p.radius
-            outs = [p.y_start + (p.valid_rows * k) // k_bands for k in range(k_bands + 1)]
-            if p.valid_rows == 0:
-                outs = [p.y_start, p.y_end]
-        rect_end = [h if k == k_bands - 1 else min(h, outs[k + 1] + r) for k in range(k_bands)]
-        if self._identity:
-            src_end = list(rect_end)
-        else:
-            row_max = np.maximum(rectifier.map_left_y.max(axis=1), rectifier.map_right_y.max(axis=1))
-            reach = np.maximum.accumulate(np.clip(np.floor(row_max) + 2, 0, h)).astype(int)
-            src_end = [h if k == k_bands - 1 else int(reach[rect_end[k] - 1]) for k in range(k_bands)]
-            src_end = [max(src_end[: k + 1]) for k in range(k_bands)]
-        # SGM: the census rows each band can run, those whose rows +-3 are rectified by then
-        census_end = [h if k == k_bands - 1 else max(0, rect_end[k] - SGM_CENSUS_HALF_HEIGHT) for k in range(k_bands)]
-        census_end = [max(census_end[: k + 1]) for k in range(k_bands)] if sgm else [0] * k_bands
-        bands = []
-        for k in range(k_bands):
-            rows = outs[k + 1] - outs[k]
-            rpb = p.choose_rows_per_block(self.sm_count, self.blocks_per_sm, cfg.gpu.rows_per_block, rows=rows)
-            bands.append(
-                _Band(
-                    src=(src_end[k - 1] if k else 0, src_end[k]),
-                    rect=(rect_end[k - 1] if k else 0, rect_end[k]),
-                    out=(outs[k], outs[k + 1]),
-                    census=(census_end[k - 1] if k else 0, census_end[k]),
-                    rows_per_block=rpb,
-                    grid=(p.tiles_x, max(1, -(-rows // rpb)), 1),
-                )
-            )
-        total = sum(b.grid[0] * b.grid[1] for b in bands)
-        self._total_blocks = np.uint32(total)
-        return bands
-
     # ----------------------------------------------------------------------------------------------
-    # public API
-
-    def frame_buffer(self, channels: int = 3) -> np.ndarray:
-        """The pinned staging buffer as a writable uint8 ``(H, 2W, channels)`` array (``(H, 2W)`` for 1;
-        2 is YUYV, the bytes a UVC camera sends, 3 BGR, 4 BGRA).
-
-        A camera that decodes straight into this array (e.g. ``VideoCapture.read(image=buf)``) and
-        passes it to :meth:`estimate` saves the host copy of the frame. Its content is overwritten by
-        every :meth:`estimate` of another array.
-        """
-        if channels not in (1, 2, 3, 4):
-            raise ValueError(f"channels must be 1, 2, 3 or 4, got {channels}")
-        shape = (self.height_px, 2 * self.width_px) + ((channels,) if channels > 1 else ())
-        return self._host_frame[: math.prod(shape)].reshape(shape)
-
-    def frame_pool(self, count: int = 3, channels: int = 3) -> FramePool:
-        """``count`` more pinned buffers of the frame's shape (``(H, 2W, channels)``, uint8) for a camera to
-        decode into (:mod:`companion.framepool`): a frame in one of them goes to the device with no host
-        copy, as from :meth:`frame_buffer`, but the camera may fill the next buffer while this frame is
-        processed. Made once; later calls return the same pool (``count`` and ``channels`` of the first).
-
-        Raises:
-            ValueError: ``count`` < 1, or ``channels`` not 1, 2, 3 or 4.
-        """
-        if self._pool is not None:
-            return self._pool
-        if count < 1:
-            raise ValueError(f"count must be >= 1, got {count}")
-        shape = self.frame_buffer(channels).shape
-        buffers = []
-        with self._device:
-            for _ in range(count):
-                mem, buf, mapped_ptr = self._pinned(math.prod(shape))
-                self._pool_mem.append(mem)
-                # zero copy: the kernels read the buffer through its mapping; else the DMA reads it
-                self._in_place_ptrs[int(mem.ptr)] = mapped_ptr if self._dev_frame is None else self._frame_dev_ptr
-                buffers.append(buf.reshape(shape))
-        self._pool = FramePool(buffers)
-        return self._pool
-
-    def _pinned(self, nbytes: int) -> tuple[Any, np.ndarray, int]:
-        """Page-locked host memory for frames (mapped with ``gpu.zero_copy``): the allocation, a uint8
-        ``(nbytes,)`` array over it, and its device-side pointer (0 when not mapped)."""
-        cp = self._cp
-        zero_copy = self._gpu_cfg.zero_copy
-        flags = cp.cuda.runtime.hostAllocMapped if zero_copy else cp.cuda.runtime.hostAllocPortable
-        mem = cp.cuda.PinnedMemory(nbytes, flags)
-        array = np.frombuffer(cp.cuda.PinnedMemoryPointer(mem, 0), dtype=np.uint8, count=nbytes)
-        mapped = int(cp.cuda.runtime.pointerGetAttributes(mem.ptr).devicePointer) if zero_copy else 0
-        return mem, array, mapped
+    # per frame (the frame's way to the device: FrameUpload; the kernels: BandLaunch)
 
     def estimate(
         self, frame: np.ndarray, want_disparity: bool = False, near_block_px: int = 0, near_erode_px: int = 0
@@ -629,21 +436,6 @@ class CupyRegionEstimator:
             regions=regions, timings_ms=timings, disparity=disparity, near_blocks=near, obstacle=obstacle
         )
 
-    def _enqueue_obstacle(self, stream: Any) -> None:
-        """Queue the OBSTACLE_DISTANCE kernel on the device disparity (its 72 bins come back with the
-        regions' copy)."""
-        lay = self.obstacle_layout
-        assert lay is not None
-        self._k_obstacle(
-            self._od_grid, (OBSTACLE_THREADS,),
-            (self._disp, np.int32(self.width_px), np.int32(self.height_px), np.float32(1.0 / self.disparity_scale),
-             self._od_row_thr, self._od_col_fbk, self._od_cols, np.float64(lay.percentile_pct),
-             np.int32(lay.min_points), np.float64(lay.min_valid_fraction), np.float32(lay.max_distance_m),
-             np.int32(lay.min_distance_cm), np.int32(lay.max_distance_cm), self._od_hist, self._od_counts,
-             self._od_out),
-            stream=stream,
-        )
-
     def rectified_pair(self) -> tuple[np.ndarray, np.ndarray]:
         """Copies of the last frame's rectified grey eyes, uint8 ``(H, W)`` each (tests, debugging)."""
         with self._device:
@@ -666,309 +458,6 @@ class CupyRegionEstimator:
             self._crew.close()
             self._crew = None
 
-    # ----------------------------------------------------------------------------------------------
-    # per-frame internals
-
-    def _in_place(self, frame: Any) -> tuple[int, int, int] | None:
-        """``(channels, host pointer, where the kernels read it)`` for a frame written into
-        :meth:`frame_buffer` or decoded into a :meth:`frame_pool` buffer, as a whole C-contiguous uint8
-        frame; else None."""
-        if type(frame) is not np.ndarray:
-            return None
-        ptr = frame.ctypes.data
-        kernel_ptr = self._in_place_ptrs.get(ptr)
-        if kernel_ptr is None or not frame.flags.c_contiguous or frame.dtype != np.uint8:
-            return None
-        channels = self._frame_shapes.get(frame.shape)
-        return None if channels is None else (channels, ptr, kernel_ptr)
-
-    def _source(self, frame: np.ndarray, channels: int, in_place: tuple[int, int, int] | None) -> _Source:
-        """How this frame reaches the device: host copy function, DMA source, channel order
-        (``in_place``: :meth:`_in_place`'s answer for it)."""
-        zero_copy = self._dev_frame is None
-        if in_place is not None:
-            # written into frame_buffer() or decoded into a frame_pool() buffer: DMA (zero copy: read) it there
-            return _Source(frame, frame, None, in_place[1], False, zero_copy, in_place[2])
-        staging = self.frame_buffer(channels)
-        host_ptr = self._host_frame_mem.ptr
-        if (
-            self._gpu_cfg.register_frames
-            and not zero_copy
-            and frame.flags.c_contiguous
-            and self._register(frame)
-        ):
-            # The caller's own pages are locked for this frame: DMA straight from them.
-            return _Source(frame, staging, None, frame.ctypes.data, False, zero_copy, self._frame_dev_ptr)
-        if self._gpu_cfg.host_copy_engine == "opencv" and channels in (3, 4):
-            import cv2
-
-            code = cv2.COLOR_BGR2RGB if channels == 3 else cv2.COLOR_BGRA2RGBA
-
-            def copy(dst: np.ndarray, src: np.ndarray) -> None:
-                out = cv2.cvtColor(src, code, dst=dst)
-                if out.__array_interface__["data"][0] != dst.__array_interface__["data"][0]:
-                    np.copyto(dst, out)  # cv2 reallocated (not expected for these layouts)
-
-            return _Source(frame, staging, copy, host_ptr, True, zero_copy, self._frame_dev_ptr)
-        return _Source(frame, staging, np.copyto, host_ptr, False, zero_copy, self._frame_dev_ptr)
-
-    def _upload_band(self, src: _Source, band: _Band, done: Any) -> None:
-        """Host-copy band rows into the staging buffer, queue their DMA, record ``done`` after it."""
-        cp = self._cp
-        a, b = band.src
-        copy_stream = self._copy_stream
-        row_bytes = src.staging.strides[0]
-        if b > a:
-
-            def rows(ra: int, rb: int) -> None:
-                if src.copy is not None:
-                    src.copy(src.staging[ra:rb], src.frame[ra:rb])
-                if self._events:  # stage timing (one band, no crew): h2d_ms is the DMA alone
-                    self._events[0].record(copy_stream)
-                if not src.zero_copy:
-                    off = ra * row_bytes
-                    cp.cuda.runtime.memcpyAsync(
-                        self._frame_dev_ptr + off, src.dma_ptr + off, (rb - ra) * row_bytes,
-                        cp.cuda.runtime.memcpyHostToDevice, copy_stream.ptr,
-                    )
-
-            crew = self._crew
-            if crew is None or src.copy is None or self._events:
-                rows(a, b)
-            else:
-                edges = [a + ((b - a) * i) // crew.size for i in range(crew.size + 1)]
-                crew.run([(lambda ra=ra, rb=rb: rows(ra, rb)) for ra, rb in zip(edges, edges[1:])])
-        elif self._events:
-            self._events[0].record(copy_stream)
-        done.record(copy_stream)
-
-    def _register(self, frame: np.ndarray) -> bool:
-        """Page-lock the caller's frame for one DMA (``gpu.register_frames``); False: use staging."""
-        cp = self._cp
-        try:
-            cp.cuda.runtime.hostRegister(frame.ctypes.data, frame.nbytes, 0)
-        except cp.cuda.runtime.CUDARuntimeError as err:
-            # e.g. part of the range is already registered (by the caller): the staged path works.
-            log.debug("could not page-lock the frame (%s); copying it into the staging buffer", err)
-            return False
-        self._registered = frame.ctypes.data
-        return True
-
-    def _unregister(self) -> None:
-        if self._registered:
-            ptr, self._registered = self._registered, 0
-            self._cp.cuda.runtime.hostUnregister(ptr)
-
-    def _graph(self, k: int, channels: int, swapped: bool, want_disparity: bool, erode: int) -> Any:
-        key = (k, channels, swapped, want_disparity, erode, self._kernel_frame_ptr)  # a pool buffer read in place: its own
-        graph = self._graphs.get(key)
-        if graph is None:
-            stream = self._stream
-            try:
-                stream.begin_capture()
-                try:
-                    self._enqueue_band(k, channels, swapped, want_disparity, erode)
-                finally:
-                    graph = stream.end_capture()
-            except Exception as err:  # capture unsupported here: plain launches from now on
-                log.warning("CUDA graph capture failed (%s); using plain kernel launches", err)
-                self._graph_ok = False
-                return _Direct(self, k, channels, swapped, want_disparity, erode)
-            self._graphs[key] = graph
-        return graph
-
-    def _frame_graph(self, src: _Source, channels: int, want_disparity: bool, erode: int) -> Any | None:
-        """One CUDA graph for a whole frame read in place from a pinned buffer (the staging buffer, a
-        pool buffer): every band's DMA on the copy stream's branch, every band's kernels on the compute
-        branch after its DMA, as the per-band path queues them, so band k's kernels still overlap band
-        k+1's DMA; one launch per frame instead of a copy, an event, a wait and a launch per band.
-        Captured on first use per (buffer, channels, order, disparity, erosion); None where capture fails (the
-        per-band path then runs, from then on)."""
-        key = (channels, src.swapped, want_disparity, erode, src.dma_ptr, src.kernel_ptr)
-        graph = self._frame_graphs.get(key)
-        if graph is not None:
-            return graph
-        s, cs = self._stream, self._copy_stream
-        try:
-            s.begin_capture()
-            try:
-                self._fork_event.record(s)  # the copy stream joins the capture here
-                cs.wait_event(self._fork_event)
-                for k, band in enumerate(self._bands):
-                    self._upload_band(src, band, self._band_events[k])
-                    s.wait_event(self._band_events[k])
-                    self._enqueue_band(k, channels, src.swapped, want_disparity, erode)
-            finally:
-                graph = s.end_capture()
-        except Exception as err:  # capture of two streams unsupported here: per-band launches from now on
-            log.warning("CUDA graph capture of a whole frame failed (%s); launching per band", err)
-            self._frame_graph_ok = False
-            return None
-        self._frame_graphs[key] = graph
-        return graph
-
-    def _enqueue_band(
-        self,
-        k: int,
-        channels: int,
-        swapped: bool,
-        want_disparity: bool,
-        erode: int = 0,
-        events: list[Any] | None = None,
-    ) -> None:
-        """Queue band k's GPU work (module doc, step 2; step 3 after the last band) on the compute stream."""
-        cp = self._cp
-        p, w, h = self.plan, self.width_px, self.height_px
-        band = self._bands[k]
-        last = k == len(self._bands) - 1
-        s = self._stream
-        if events:
-            events[1].record(s)
-        a, b = band.src
-        if b > a:
-            quads = -(-w // 4)
-            self._k_grey[(channels, swapped)](
-                (-(-quads // _EW_THREADS), b - a, 2), (_EW_THREADS,),
-                (np.uint64(self._kernel_frame_ptr), self._raw_l, self._raw_r, np.int32(a)), stream=s,
-            )
-        ra, rb = band.rect
-        if self._maps is not None and rb > ra:
-            self._k_remap(
-                (-(-w // _EW_THREADS), rb - ra, 2), (_EW_THREADS,),
-                (self._raw_l, self._raw_r, *self._maps, self._rect_l, self._rect_r, np.int32(ra)), stream=s,
-            )
-        if events:
-            events[2].record(s)
-        fb, pct, min_valid, max_depth = self._region_args
-        if self.sgm_plan is not None:
-            ca, cb = band.census
-            if cb > ca:  # this band's share of the census overlaps the next bands' upload
-                self._k_sgm["sgm_census"](self.sgm_plan.census_grid(cb - ca), SGM_CENSUS_TILE,
-                                          (self._rect_l, self._rect_r, self._census, self._right_keys,
-                                           np.int32(ca), np.int32(cb)), stream=s)
-            if last:
-                self._enqueue_sgm(s)
-        elif p.fast:
-            # The OBSTACLE_DISTANCE kernel reads the device disparity: the SAD kernel must write it
-            # (SGM's sgm_post always does).
-            self._k_fast[want_disparity or self.obstacle_layout is not None](
-                band.grid, (p.nt,),
-                (self._rect_l, self._rect_r, self._disp, self._hist, self._counter, self._result_dev,
-                 np.int32(band.out[0]), np.int32(band.out[1]), np.int32(band.rows_per_block), self._total_blocks,
-                 *self._match_args, fb, pct, min_valid, max_depth),
-                stream=s,
-            )
-        else:
-            if p.valid_cols > 0 and p.valid_rows > 0:
-                self._k_naive(
-                    (-(-p.valid_cols // _NAIVE_THREADS), p.valid_rows), (_NAIVE_THREADS,),
-                    (self._rect_l, self._rect_r, self._disp, *self._match_args), stream=s,
-                )
-            self._k_regions(
-                self._grid_regions, (_REGIONS_THREADS,),
-                (self._disp, self._hist, self._counter, self._result_dev, np.int32(self._rows_regions),
-                 fb, pct, min_valid, max_depth),
-                stream=s,
-            )
-        if last and self.obstacle_layout is not None:
-            self._enqueue_obstacle(s)
-        if events:
-            events[3].record(s)
-        if not last:
-            return
-        d2h = cp.cuda.runtime.memcpyDeviceToHost
-        cp.cuda.runtime.memcpyAsync(self._result_host.ptr, self._out_dev.data.ptr, self._out_bytes, d2h, s.ptr)
-        if want_disparity:
-            if self._preview_factor > 1:
-                oh, ow = self._preview_shape
-                self._k_preview(
-                    (-(-ow // _EW_THREADS), oh), (_EW_THREADS,),
-                    (self._disp, self._preview_dev, np.int32(self._preview_factor), np.int32(ow), np.int32(oh),
-                     np.float32(1.0 / self.disparity_scale)),
-                    stream=s,
-                )
-                cp.cuda.runtime.memcpyAsync(
-                    self._preview_host_mem.ptr, self._preview_dev.data.ptr, oh * ow * 4, d2h, s.ptr
-                )
-                if erode:
-                    self._k_memory(
-                        (-(-ow // _EW_THREADS), oh), (_EW_THREADS,),
-                        (self._disp, self._memory_dev, np.int32(self._preview_factor), np.int32(ow), np.int32(oh),
-                         np.float32(1.0 / self.disparity_scale), np.int32(erode)),
-                        stream=s,
-                    )
-                    cp.cuda.runtime.memcpyAsync(
-                        self._memory_host_mem.ptr, self._memory_dev.data.ptr, oh * ow * 4, d2h, s.ptr
-                    )
-            else:
-                cp.cuda.runtime.memcpyAsync(self._disp_host_mem.ptr, self._disp.data.ptr, h * w * 2, d2h, s.ptr)
-        if events:
-            events[4].record(s)
-
-    def _enqueue_sgm(self, s: Any) -> None:
-        """Queue the SGM kernels after the census on stream ``s`` (the rectified pair and its census
-        are complete)."""
-        sp = self.sgm_plan
-        assert sp is not None
-        k = self._k_sgm
-        p1, p2, uniq, lr_max, median = self._sgm_args
-        fb, pct, min_valid, max_depth = self._region_args
-        warps = SGM_PATH_THREADS // 32
-        k["sgm_paths"]((-(-sp.path_tasks // warps),), (SGM_PATH_THREADS,), (self._census, self._volumes, p1, p2),
-                       stream=s)
-        k["sgm_wta"]((-(-sp.wta_tasks // warps),), (SGM_PATH_THREADS,),
-                     (self._volumes, self._winner, self._right_keys, uniq), stream=s)
-        near_args = self._enqueue_near(s)
-        k["sgm_post"]((sp.post_blocks,), (SGM_POST_THREADS,),
-                      (self._winner, self._right_keys, self._disp, self._hist, self._counter, self._result_dev,
-                       lr_max, median, fb, pct, min_valid, max_depth, *near_args),
-                      stream=s)
-
-    def _enqueue_near(self, s: Any) -> tuple[Any, ...]:
-        """Queue the near-range check's coarse pair on stream ``s`` (after the rectification): shrink the
-        rectified pair and match it whole with the coarse module. Returns ``sgm_post``'s last three
-        arguments: the coarse disparity and its size, or a null pointer where the check is skipped."""
-        n = self._near
-        if n is None:
-            return (np.uint64(0), np.int32(0), np.int32(0))
-        k = self._k_sgm
-        p1, p2, uniq, lr_max, median = self._sgm_args
-        fb, pct, min_valid, max_depth = self._region_args
-        warps = SGM_PATH_THREADS // 32
-        k["sgm_shrink"]((-(-n.width_px // 64), n.height_px, 2), (64,),
-                        (self._rect_l, self._rect_r, n.left, n.right, np.int32(n.width_px),
-                         np.int32(n.height_px), np.int32(n.pitch_bytes)), stream=s)
-        nk, npl = n.kernels, n.plan
-        nk["sgm_census"](npl.census_grid(n.height_px), SGM_CENSUS_TILE,
-                         (n.left, n.right, n.census, n.right_keys, np.int32(0), np.int32(n.height_px)), stream=s)
-        nk["sgm_paths"]((-(-npl.path_tasks // warps),), (SGM_PATH_THREADS,), (n.census, n.volumes, p1, p2), stream=s)
-        nk["sgm_wta"]((-(-npl.wta_tasks // warps),), (SGM_PATH_THREADS,), (n.volumes, n.winner, n.right_keys, uniq),
-                      stream=s)
-        # the coarse module's own region results are not used; its post reads no coarser pair (null)
-        nk["sgm_post"]((npl.post_blocks,), (SGM_POST_THREADS,),
-                       (n.winner, n.right_keys, n.disp, n.hist, n.counter, n.result, lr_max, median, fb, pct,
-                        min_valid, max_depth, np.uint64(0), np.int32(0), np.int32(0)),
-                       stream=s)
-        return (n.disp, np.int32(n.width_px), np.int32(n.height_px))
-
-    def _near_blocks(self, block_px: int, erode_px: int) -> np.ndarray:
-        f = self._preview_factor
-        if f > 1:
-            _check_block_px(block_px, f)
-            src = self._memory_host if erode_px else self._preview_host
-            return src if block_px == f else block_max(src, block_px // f)
-        return block_max(self._host_disparity(), block_px, erode_px)
-
-    def _host_disparity(self) -> np.ndarray:
-        if self._preview_factor > 1:
-            return self._preview_host.copy()
-        d = self._disp_host
-        out = d.astype(np.float32)
-        if self.disparity_scale != 1:
-            out *= np.float32(1.0 / self.disparity_scale)  # exact: a power of two
-        out[d < 0] = np.nan
-        return out
-
     def _recover(self) -> None:
         """After a CUDA error: forget graphs and zero the histogram state a half-run kernel left."""
         self._graphs.clear()
@@ -985,144 +474,3 @@ class CupyRegionEstimator:
                     self._od_counts.fill(0)
         except Exception as err:  # the context may be unusable; the next frame reports it
             log.error("GPU estimator could not reset its state after an error: %s", err)
-
-
-def _check_block_px(block_px: int, preview_factor: int) -> None:
-    """The map's blocks are built from the device's preview blocks: a multiple of their size."""
-    if preview_factor >= 2 and block_px % preview_factor != 0:
-        raise ConfigError(
-            f"planner.block_px ({block_px}) must be a multiple of gpu.disparity_preview_downsample "
-            f"({preview_factor}): the GPU reduces the disparity to blocks of that size"
-        )
-
-
-class _CopyCrew:
-    """``size - 1`` persistent threads plus the caller run one job each, in parallel, per frame.
-
-    Started once (no per-frame thread or future objects); NumPy's copy and CuPy's memcpyAsync release
-    the GIL, so the copies run on several cores. Each worker makes the estimator's device current once.
-    """
-
-    def __init__(self, size: int, device_id: int):
-        self.size = size
-        self._jobs: list[Callable[[], Any] | None] = [None] * size
-        self._errors: list[BaseException | None] = [None] * size
-        self._start = [threading.Event() for _ in range(size)]
-        self._done = [threading.Event() for _ in range(size)]
-        self._stop = False
-        self._threads = [
-            threading.Thread(target=self._work, args=(i, device_id), name=f"companion-upload-{i}", daemon=True)
-            for i in range(1, size)
-        ]
-        for t in self._threads:
-            t.start()
-
-    def _work(self, i: int, device_id: int) -> None:
-        import cupy
-
-        cupy.cuda.runtime.setDevice(device_id)
-        while True:
-            self._start[i].wait()
-            self._start[i].clear()
-            if self._stop:
-                return
-            try:
-                job = self._jobs[i]
-                if job is not None:
-                    job()
-            except BaseException as err:  # handed to the caller of run()
-                self._errors[i] = err
-            finally:
-                self._done[i].set()
-
-    def run(self, jobs: list[Callable[[], Any]]) -> None:
-        """Run ``jobs[0]`` here and ``jobs[i]`` on worker i; return when all are done (re-raising)."""
-        for i in range(1, self.size):
-            self._jobs[i] = jobs[i]
-            self._start[i].set()
-        try:
-            jobs[0]()
-        finally:
-            for i in range(1, self.size):
-                self._done[i].wait()
-                self._done[i].clear()
-        for i in range(1, self.size):
-            err, self._errors[i] = self._errors[i], None
-            if err is not None:
-                raise err
-
-    def close(self) -> None:
-        self._stop = True
-        for i in range(1, self.size):
-            self._start[i].set()
-        for t in self._threads:
-            t.join(timeout=1.0)
-
-
-class _Direct:
-    """Stands in for a graph when capture is unavailable: ``launch`` queues the kernels directly."""
-
-    def __init__(self, est: CupyRegionEstimator, k: int, channels: int, swapped: bool, want_disparity: bool, erode: int):
-        self._est, self._args = est, (k, channels, swapped, want_disparity, erode)
-
-    def launch(self, stream: Any) -> None:
-        self._est._enqueue_band(*self._args)
-
-
-@dataclass(frozen=True)
-class _Band:
-    """One row band of the per-frame pipeline (half-open row ranges, px).
-
-    Attributes:
-        src: source rows uploaded (and converted to grey) with this band.
-        rect: rectified rows computed with this band (equal to ``src`` for an ideal rig).
-        out: disparity output rows matched with this band.
-        census: SGM: the census rows computed with this band (their rows ±3 are rectified by then).
-        rows_per_block, grid: the disparity launch of this band.
-    """
-
-    src: tuple[int, int]
-    rect: tuple[int, int]
-    out: tuple[int, int]
-    census: tuple[int, int]
-    rows_per_block: int
-    grid: tuple[int, int, int]
-
-
-@dataclass(frozen=True)
-class _Near:
-    """The near-range check's coarse pair on the device: its plan and module (the SGM kernels built
-    for ``width_px`` × ``height_px``), the shrunk eyes (uint8, ``pitch_bytes`` a row) and the SGM
-    buffers; ``disp`` (int16 × 16, -1 invalid) is what the full size's ``sgm_post`` reads."""
-
-    plan: SgmPlan
-    width_px: int
-    height_px: int
-    pitch_bytes: int
-    module: Any
-    kernels: dict[str, Any]
-    left: Any
-    right: Any
-    census: Any
-    volumes: Any
-    winner: Any
-    right_keys: Any
-    disp: Any
-    hist: Any
-    counter: Any
-    result: Any
-
-
-@dataclass(frozen=True)
-class _Source:
-    """Where one frame's bytes come from: host copy into ``staging`` (None: no copy), DMA source, and
-    where the kernels then read them."""
-
-    frame: np.ndarray
-    staging: np.ndarray
-    copy: Callable[[np.ndarray, np.ndarray], Any] | None
-    dma_ptr: int
-    swapped: bool
-    zero_copy: bool
-    kernel_ptr: int  # where the kernels read the frame (the device copy, or a mapped buffer in place)
-

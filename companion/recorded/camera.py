@@ -1,6 +1,6 @@
 """The service's camera source over a recorded sequence (an ASL/EuRoC folder or a rosbag): what
 ``camera.source = "replay"`` reads when ``camera.replay_path`` is one (``companion record``'s own
-recordings stay with :class:`companion.service.camera.ReplayCamera`)."""
+recordings stay with :class:`companion.service.camera_replay.ReplayCamera`)."""
 
 from __future__ import annotations
 

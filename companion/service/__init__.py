@@ -3,7 +3,8 @@ control plane, the asyncio daemon (``companion run``), systemd glue, and recordi
 
 Modules (each imported only by what needs it; nothing runs at import time):
 
-* :mod:`~companion.service.camera`: ``uvc`` / ``replay`` / ``sim`` camera sources (:class:`CameraSource`).
+* :mod:`~companion.service.camera`: ``uvc`` / ``replay`` / ``sim`` camera sources (:class:`CameraSource`),
+  built from the config; the sources in ``camera_v4l2``, ``camera_replay`` and ``camera_sim``.
 * :mod:`~companion.service.capture`: the capture thread and its one-slot mailbox.
 * :mod:`~companion.service.vehicle`: :class:`MavsdkVehicleLink` (``mavsdk`` >= 4.1, asyncio API).
 * :mod:`~companion.service.protocol`: the JSON control protocol (pydantic models).

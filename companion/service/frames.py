@@ -33,7 +33,7 @@ from companion.service.capture import CaptureStatus, CaptureThread, FrameMailbox
 from companion.service.parts import StartupError, call_on_loop, stop_in_thread
 
 if TYPE_CHECKING:
-    from companion.service.camera import TelemetryPose
+    from companion.service.camera_sim import TelemetryPose
 
 log = logging.getLogger(__name__)
 
@@ -107,7 +107,8 @@ class CapturePart:
             StartupError: its eyes are not ``camera.width_px`` x ``camera.height_px``.
         """
         if self.camera is None:
-            from companion.service.camera import TelemetryPose, make_camera, placement_from_config
+            from companion.service.camera import make_camera
+            from companion.service.camera_sim import TelemetryPose, placement_from_config
 
             if cfg.camera.source == "sim" and cfg.camera.sim_pose == "telemetry":
                 self._telemetry_pose = TelemetryPose(
@@ -148,7 +149,7 @@ class CapturePart:
     def place(self, cfg: CompanionConfig) -> None:
         """A new config's camera placement for the simulated camera's telemetry pose (one reference swap)."""
         if self._telemetry_pose is not None:
-            from companion.service.camera import placement_from_config
+            from companion.service.camera_sim import placement_from_config
 
             self._telemetry_pose.placement = placement_from_config(cfg)
 

@@ -79,7 +79,7 @@ def rig_status(cfg: Any) -> dict[str, Any] | None:
         line each, as :func:`~companion.core.rig_check.rig_check_lines` words them); None when the
         calibration cannot be loaded here (the pipeline reports that itself).
     """
-    from companion.core.calibration import make_rectifier
+    from companion.core.rectifier import make_rectifier
     from companion.core.rig_check import check_rig, near_unmeasurable, rig_check_lines
     from companion.errors import CompanionError
 

@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 
 from companion.config import CompanionConfig
-from companion.service.camera import placement_fields
+from companion.service.camera_sim import placement_fields
 from companion.sim.courses import Course
 from companion.sim.loop import (
     FlightLog,

@@ -164,9 +164,10 @@ def replay_sequence(
 
     from companion.config import apply_patch
     from companion.config.document import render_config_toml
-    from companion.core.calibration import make_rectifier, save_calibration
+    from companion.core.calibration_files import save_calibration
     from companion.core.direct import decision_setpoint
     from companion.core.overlay import draw_overlay
+    from companion.core.rectifier import make_rectifier
     from companion.service.preview_frame import near_far_m
     from companion.view.review import write_review
 

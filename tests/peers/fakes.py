@@ -264,7 +264,7 @@ def avoid_scene_camera(fps_hz: float = 15.0, width_px: int = 672, height_px: int
     left-front: the default controller avoids to the right (AVOID, yaw about +0.4)."""
     from companion.core.geometry import StereoGeometry
     from companion.sim.render import Box, Pose, Scene
-    from companion.service.camera import SimCamera
+    from companion.service.camera_sim import SimCamera
 
     geometry = StereoGeometry.ideal(width_px, height_px, hfov_deg=90.0, baseline_m=0.12)
     scene = Scene(

@@ -1,4 +1,4 @@
-"""Fuzzy logic: the rule parser, a generic compiled Mamdani engine, and the avoidance controller."""
+"""Fuzzy logic: the rule parser, fuzzy sets, a generic compiled Mamdani engine and the avoidance controller."""
 
 from companion.core.fuzzy.avoidance import AvoidanceController, build_system
 from companion.core.fuzzy.engine import (
@@ -8,6 +8,8 @@ from companion.core.fuzzy.engine import (
     OutputVariable,
     Rule,
     Term,
+)
+from companion.core.fuzzy.sets import (
     defuzzify,
     fuzzy_and,
     fuzzy_not,

@@ -9,11 +9,11 @@ How a frame is drawn (both eyes share one clipping pass; each eye has its own z-
    then split big faces at fixed camera-depth slabs that select the texture level of detail.
    Camera depth ``z`` is the same for both eyes (they differ by a shift along camera x), so both eyes
    make identical LOD choices for every surface point.
-3. Per eye and piece, over the piece's pixel bounding box: inverse depth ``1/z`` is affine in the
-   pixel coordinates for a plane (``1/z = (n . r) / delta`` with ``r = ((u-cx)/f, (v-cy)/f, 1)``);
-   mask the polygon (``cv2.fillConvexPoly``), z-test against the eye's inverse-depth buffer, and
-   sample the texture through the exact pixel -> texel homography (``cv2.warpPerspective``,
-   bilinear, wrap) only inside the visible part.
+3. Per eye and piece (:mod:`~companion.sim.render.raster`), over the piece's pixel bounding box:
+   inverse depth ``1/z`` is affine in the pixel coordinates for a plane (``1/z = (n . r) / delta``
+   with ``r = ((u-cx)/f, (v-cy)/f, 1)``); mask the polygon (``cv2.fillConvexPoly``), z-test against
+   the eye's inverse-depth buffer, and sample the texture through the exact pixel -> texel homography
+   (``cv2.warpPerspective``, bilinear, wrap) only inside the visible part.
 
 Hard surfaces (:class:`~companion.sim.render.scene.Surface`): a see-through bar face samples its
 texture before the z-test and leaves its holes (texels under ``BARS_ALPHA_THRESHOLD``) to whatever is
@@ -40,16 +40,14 @@ import numpy as np
 from companion.core.geometry import StereoGeometry
 from companion.sim.render.faces import FaceArrays, scene_faces
 from companion.core.pose import CAMERA_TO_BODY, Pose, _finite3
+from companion.sim.render.raster import StereoRaster, Vec3, clip_polygon
 from companion.sim.render.scene import Scene
-from companion.sim.render.texture import BARS_ALPHA_THRESHOLD, BarPattern, Material, TextureBank
+from companion.sim.render.texture import BarPattern, Material, TextureBank
 
 #: Extra pixels around the image inside the clip frustum: keeps clipped edges off the image.
 _GUARD_PX = 4.0
 #: Highest texture level of detail (a level-k texel spans 2**k level-0 texels).
 _MAX_LEVEL = 12
-#: Fixed-point bits for cv2.fillConvexPoly vertices (1/16 px).
-_SHIFT = 4
-_WARP_FLAGS = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
 
 
 @dataclass(frozen=True)
@@ -95,26 +93,6 @@ class RenderResult:
     def side_by_side(self) -> np.ndarray:
         """The ZED frame: uint8 ``(H, 2W, 3)``, left eye first."""
         return np.concatenate([self.left_bgr, self.right_bgr], axis=1)
-
-
-_Vec3 = tuple[float, float, float]
-
-
-def _clip(poly: list[_Vec3], a: float, b: float, c: float, e: float) -> list[_Vec3]:
-    """Sutherland-Hodgman: the part of a convex polygon where ``a x + b y + c z + e >= 0``."""
-    out: list[_Vec3] = []
-    prev = poly[-1]
-    dp = a * prev[0] + b * prev[1] + c * prev[2] + e
-    for cur in poly:
-        dc = a * cur[0] + b * cur[1] + c * cur[2] + e
-        if (dc >= 0.0) != (dp >= 0.0):
-            t = dp / (dp - dc)
-            x0, y0, z0 = prev
-            out.append((x0 + t * (cur[0] - x0), y0 + t * (cur[1] - y0), z0 + t * (cur[2] - z0)))
-        if dc >= 0.0:
-            out.append(cur)
-        prev, dp = cur, dc
-    return out
 
 
 class StereoRenderer:
@@ -165,7 +143,7 @@ class StereoRenderer:
         self.camera_offset_frd_m = np.asarray(_finite3("camera_offset_frd_m", camera_offset_frd_m))
         self.z_near_m = float(z_near_m)
         self._faces: FaceArrays = scene_faces(scene)
-        # Padding half a period: most warps then fit the stored array (see _draw).
+        # Padding half a period: most warps then fit the stored array (see StereoRaster.draw).
         if textures is None:
             textures = TextureBank(self.seed, texture_size, pad=texture_size // 2)
         self._textures = textures
@@ -211,17 +189,7 @@ class StereoRenderer:
         self._plane_arr = np.array(self._planes, dtype=np.float64)
         # Camera depth where LOD level 1 starts: one level-0 texel per pixel.
         self._z_lod0 = f / self.texels_per_m
-
-        self._xhat = ((np.arange(w, dtype=np.float64) - g.cx_px) / f).astype(np.float32)
-        self._yhat = ((np.arange(h, dtype=np.float64) - g.cy_px) / f).astype(np.float32)
-        # Per-eye inverse-depth buffers and grey targets, plus flat scratch reshaped per bounding box
-        # (flat so that every (h, w) view is contiguous).
-        self._invz = (np.zeros((h, w), np.float32), np.zeros((h, w), np.float32))
-        self._grey = (np.zeros((h, w), np.uint8), np.zeros((h, w), np.uint8))
-        self._scr_invz = np.empty(h * w, np.float32)
-        self._scr_mask = np.empty(h * w, np.uint8)
-        self._scr_vis = np.empty(h * w, np.uint8)
-        self._scr_tex = np.empty(h * w, np.uint8)
+        self._raster = StereoRaster(geometry, self._textures)
 
     # ------------------------------------------------------------------ public API
 
@@ -241,7 +209,7 @@ class StereoRenderer:
             rng: noise source; required when either eye has ``noise_std > 0``.
         """
         self._rasterise(pose)
-        depth = self._depth(np.empty(self._invz[0].shape, np.float32))
+        depth = self._depth(np.empty(self._raster.invz[0].shape, np.float32))
         grey_l, grey_r = self._photometry(left, right, rng)
         return RenderResult(
             left_bgr=cv2.cvtColor(grey_l, cv2.COLOR_GRAY2BGR),
@@ -267,7 +235,7 @@ class StereoRenderer:
             depth_out: optional float32 ``(H, W)``: receives the left eye's depth (metres).
             left, right, rng: as in :meth:`render`.
         """
-        h, w = self._invz[0].shape
+        h, w = self._raster.invz[0].shape
         if out is None:
             out = np.empty((h, 2 * w, 3), np.uint8)
         elif out.shape != (h, 2 * w, 3) or out.dtype != np.uint8:
@@ -306,14 +274,14 @@ class StereoRenderer:
 
     def _depth(self, out: np.ndarray) -> np.ndarray:
         with np.errstate(divide="ignore"):
-            np.reciprocal(self._invz[0], out=out)
+            np.reciprocal(self._raster.invz[0], out=out)
         return out
 
     def _photometry(
         self, left: Photometry, right: Photometry, rng: np.random.Generator | None
     ) -> tuple[np.ndarray, np.ndarray]:
         eyes = []
-        for grey, ph in zip(self._grey, (left, right)):
+        for grey, ph in zip(self._raster.grey, (left, right)):
             if ph.is_identity:
                 eyes.append(grey)
                 continue
@@ -334,8 +302,8 @@ class StereoRenderer:
         return min(_MAX_LEVEL, int(math.floor(math.log2(z / self._z_lod0))) + 1)
 
     def _lod_pieces(
-        self, poly: list[_Vec3], zmin: float, zmax: float
-    ) -> list[tuple[list[_Vec3], int]]:
+        self, poly: list[Vec3], zmin: float, zmax: float
+    ) -> list[tuple[list[Vec3], int]]:
         """Split a polygon at the camera-depth slab boundaries of the LOD levels (level ``k >= 1``
         covers ``z_lod0 * [2**(k-1), 2**k)``); each piece is textured at its slab's level, so a
         texel spans 1 to 2 pixels horizontally (never minified)."""
@@ -347,10 +315,10 @@ class StereoRenderer:
         rest = poly
         while k < k_far:
             z_cut = self._z_lod0 * 2.0**k  # where level k + 1 starts
-            near = _clip(rest, 0.0, 0.0, -1.0, z_cut)
+            near = clip_polygon(rest, 0.0, 0.0, -1.0, z_cut)
             if len(near) >= 3:
                 pieces.append((near, k))
-            rest = _clip(rest, 0.0, 0.0, 1.0, -z_cut)
+            rest = clip_polygon(rest, 0.0, 0.0, 1.0, -z_cut)
             if len(rest) < 3:
                 return pieces
             k += 1
@@ -358,7 +326,7 @@ class StereoRenderer:
         return pieces
 
     def _rasterise(self, pose: Pose) -> None:
-        """Draw both eyes into ``self._grey`` and ``self._invz`` (inverse depth, 0 = nothing)."""
+        """Draw both eyes into the raster's ``grey`` and ``invz`` (inverse depth, 0 = nothing)."""
         g = self.geometry
         fc = self._faces
         f = g.focal_px
@@ -375,10 +343,7 @@ class StereoRenderer:
         dmax = np.maximum.reduceat(dist, fc.starts, axis=0)
         keep = ((side_l > 1e-9) | (side_r > 1e-9)) & np.all(dmax >= 0.0, axis=1)
         idx = np.flatnonzero(keep)
-        for buf in self._invz:
-            buf.fill(0.0)
-        for buf in self._grey:
-            buf.fill(0)
+        self._raster.clear()
         if idx.size == 0:
             return
         # Front to back by nearest vertex: faces drawn later are often hidden, and skip texturing.
@@ -423,10 +388,10 @@ class StereoRenderer:
         fb = f * base
         for j in range(idx.size):
             s = starts[j]
-            poly: list[_Vec3] = list(map(tuple, vc[s : s + counts[j]].tolist()))
+            poly: list[Vec3] = list(map(tuple, vc[s : s + counts[j]].tolist()))
             if not inside[j]:
                 for plane in self._planes:
-                    poly = _clip(poly, *plane)
+                    poly = clip_polygon(poly, *plane)
                     if len(poly) < 3:
                         break
                 if len(poly) < 3:
@@ -442,11 +407,11 @@ class StereoRenderer:
                 us = [q[0] * k + cx for q, k in zip(piece, fz)]
                 vs = [q[1] * k + cy for q, k in zip(piece, fz)]
                 if vis_l[j]:
-                    self._draw(us, vs, 0, eye_params[0][j], tex, tpm, s_off, t_off, alphas[j],
+                    self._raster.draw(us, vs, 0, eye_params[0][j], tex, tpm, s_off, t_off, alphas[j],
                                None if glare is None else glare[0])
                 if vis_r[j]:
                     us_r = [uu - fb / q[2] for uu, q in zip(us, piece)]
-                    self._draw(us_r, vs, 1, eye_params[1][j], tex, tpm, s_off, t_off, alphas[j],
+                    self._raster.draw(us_r, vs, 1, eye_params[1][j], tex, tpm, s_off, t_off, alphas[j],
                                None if glare is None else glare[1])
 
     def _glares(
@@ -479,141 +444,3 @@ class StereoRenderer:
                 )
             out[j] = (per_eye[0], per_eye[1])
         return out
-
-    def _draw(
-        self, us: list[float], vs: list[float], eye: int, p: list[float],
-        tex: np.ndarray, tpm: float, s0: float, t0: float,
-        alpha: bool = False, glare: tuple[float, float, float, float] | None = None,
-    ) -> None:
-        """Draw one clipped convex piece, given by its vertices' pixel coordinates, into one eye.
-
-        ``alpha``: texels under ``BARS_ALPHA_THRESHOLD`` are holes (drawn neither into the image nor
-        the depth buffer); ``glare``: ``(u_px, v_px, sigma_px, peak_grey)`` of a highlight to add."""
-        u0 = max(0, math.floor(min(us)))
-        u1 = min(self.geometry.width_px, math.ceil(max(us)) + 1)
-        if u0 >= u1:
-            return
-        v0 = max(0, math.floor(min(vs)))
-        v1 = min(self.geometry.height_px, math.ceil(max(vs)) + 1)
-        if v0 >= v1:
-            return
-        bw, bh = u1 - u0, v1 - v0
-        n = bw * bh
-        zbuf = self._invz[eye][v0:v1, u0:u1]
-
-        # Inverse depth of the plane at every pixel centre of the box (affine in u, v).
-        iz = self._scr_invz[:n].reshape(bh, bw)
-        col = self._yhat[v0:v1] * np.float32(p[1])
-        col += np.float32(p[2])
-        np.add(col[:, None], self._xhat[u0:u1] * np.float32(p[0]), out=iz)
-
-        mask = self._scr_mask[:n].reshape(bh, bw)
-        mask.fill(0)
-        sc = float(1 << _SHIFT)
-        pts = np.array([(round((uu - u0) * sc), round((vv - v0) * sc)) for uu, vv in zip(us, vs)], np.int32)
-        cv2.fillConvexPoly(mask, pts, 255, cv2.LINE_8, _SHIFT)
-        vis = self._scr_vis[:n].reshape(bh, bw)
-        cv2.compare(iz, zbuf, cv2.CMP_GT, dst=vis)
-        cv2.bitwise_and(vis, mask, dst=vis)
-        rx, ry, rw, rh = cv2.boundingRect(vis)
-        if rw == 0:
-            return
-
-        # Pixel (x, y) of the visible sub-box -> texel: rows of M are (s, t, w) homogeneous.
-        ox, oy = u0 + rx, v0 + ry
-        ms0 = tpm * p[3] + s0 * p[9]
-        ms1 = tpm * p[4] + s0 * p[10]
-        ms2 = tpm * p[5] + s0 * p[11] + ms0 * ox + ms1 * oy
-        mt0 = tpm * p[6] + t0 * p[9]
-        mt1 = tpm * p[7] + t0 * p[10]
-        mt2 = tpm * p[8] + t0 * p[11] + mt0 * ox + mt1 * oy
-        mw0, mw1 = p[9], p[10]
-        mw2 = p[11] + mw0 * ox + mw1 * oy
-        sub = self._scr_tex[: rw * rh].reshape(rh, rw)
-        size = float(self._textures.size)
-        lim = self._textures.pad - 4
-        # Warp tile by tile; each tile's texel range is moved by whole periods into the stored,
-        # padded texture, which keeps OpenCV on its fast in-image path. Tiles whose texel range is
-        # too wide for the padding are split; tiny ones fall back to BORDER_WRAP on one period.
-        tiles = [(0, 0, rw, rh)]
-        if lim < 16:  # (almost) no padding: wrap everything
-            m = np.array([[ms0, ms1, ms2], [mt0, mt1, mt2], [mw0, mw1, mw2]])
-            period = tex[: self._textures.size, : self._textures.size]
-            cv2.warpPerspective(period, m, (rw, rh), dst=sub, flags=_WARP_FLAGS, borderMode=cv2.BORDER_WRAP)
-            tiles = []
-        while tiles:
-            tx, ty, tw, th = tiles.pop()
-            c2s = ms2 + ms0 * tx + ms1 * ty
-            c2t = mt2 + mt0 * tx + mt1 * ty
-            c2w = mw2 + mw0 * tx + mw1 * ty
-            ss = []
-            tt = []
-            ok = True
-            for x, y in ((0.0, 0.0), (tw - 1.0, 0.0), (0.0, th - 1.0), (tw - 1.0, th - 1.0)):
-                w = c2w + mw0 * x + mw1 * y
-                if w <= 1e-12:
-                    ok = False
-                    break
-                ss.append((c2s + ms0 * x + ms1 * y) / w)
-                tt.append((c2t + mt0 * x + mt1 * y) / w)
-            fits = ok and max(ss) - min(ss) <= lim and max(tt) - min(tt) <= lim
-            if not fits and (tw > 8 or th > 8):
-                if ok and tw > 1 and th > 1:
-                    # Split across the image axis along which the texel range grows fastest.
-                    ext_x = max(
-                        abs(ss[1] - ss[0]), abs(tt[1] - tt[0]), abs(ss[3] - ss[2]), abs(tt[3] - tt[2])
-                    )
-                    ext_y = max(
-                        abs(ss[2] - ss[0]), abs(tt[2] - tt[0]), abs(ss[3] - ss[1]), abs(tt[3] - tt[1])
-                    )
-                    split_x = ext_x >= ext_y
-                else:
-                    split_x = tw >= th
-                if split_x and tw > 1:
-                    half = tw // 2
-                    tiles.append((tx, ty, half, th))
-                    tiles.append((tx + half, ty, tw - half, th))
-                else:
-                    half = th // 2
-                    tiles.append((tx, ty, tw, half))
-                    tiles.append((tx, ty + half, tw, th - half))
-                continue
-            if fits:
-                ks = size * math.floor(min(ss) / size)
-                kt = size * math.floor(min(tt) / size)
-                src = tex
-            else:
-                ks = kt = 0.0
-                src = tex[: self._textures.size, : self._textures.size]
-            m = np.array(
-                [
-                    [ms0 - ks * mw0, ms1 - ks * mw1, c2s - ks * c2w],
-                    [mt0 - kt * mw0, mt1 - kt * mw1, c2t - kt * c2w],
-                    [mw0, mw1, c2w],
-                ]
-            )
-            dst = sub[ty : ty + th, tx : tx + tw]
-            cv2.warpPerspective(src, m, (tw, th), dst=dst, flags=_WARP_FLAGS, borderMode=cv2.BORDER_WRAP)
-        vis_sub = vis[ry : ry + rh, rx : rx + rw]
-        if alpha:  # holes of a see-through face: leave them to what lies behind
-            vis_sub[sub < BARS_ALPHA_THRESHOLD] = 0
-        if glare is not None:
-            self._add_glare(sub, ox, oy, glare)
-        cv2.copyTo(iz, vis, dst=zbuf)
-        cv2.copyTo(sub, vis_sub, dst=self._grey[eye][oy : oy + rh, ox : ox + rw])
-
-    @staticmethod
-    def _add_glare(sub: np.ndarray, ox: int, oy: int, glare: tuple[float, float, float, float]) -> None:
-        """Add a Gaussian highlight (saturating) to ``sub``, the uint8 block at image ``(ox, oy)``."""
-        u, v, sigma, peak = glare
-        rh, rw = sub.shape
-        reach = 3.0 * sigma
-        x0, x1 = max(0, math.floor(u - reach) - ox), min(rw, math.ceil(u + reach) + 1 - ox)
-        y0, y1 = max(0, math.floor(v - reach) - oy), min(rh, math.ceil(v + reach) + 1 - oy)
-        if x0 >= x1 or y0 >= y1:
-            return
-        gx = np.exp(-0.5 * ((np.arange(x0, x1, dtype=np.float32) + (ox - u)) / sigma) ** 2)
-        gy = np.exp(-0.5 * ((np.arange(y0, y1, dtype=np.float32) + (oy - v)) / sigma) ** 2) * np.float32(peak)
-        blob = np.rint(gy[:, None] * gx[None, :]).astype(np.uint8)
-        region = sub[y0:y1, x0:x1]
-        cv2.add(region, blob, dst=region)

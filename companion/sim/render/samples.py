@@ -145,7 +145,8 @@ def _write_image(path: Path, image: np.ndarray) -> None:
 
 def write_calibration(path: Path, rig: Rig) -> Path:
     """``rig``'s true calibration in the project's format (docs/calibration.md). Returns ``path``."""
-    from companion.core.calibration import StereoCalibration, save_calibration
+    from companion.core.calibration import StereoCalibration
+    from companion.core.calibration_files import save_calibration
 
     calib = StereoCalibration(rig.K1, rig.D1, rig.K2, rig.D2, rig.R, rig.T, rig.image_size, source="samples")
     return save_calibration(calib, path, {"made_by": "the rendered generic rig (companion.sim.render.samples)"})
