@@ -130,7 +130,7 @@ extern "C" __global__ void grey_c4_rgb(const u8* __restrict__ f, u8* __restrict_
 
 // ------------------------------------------------------------------------------------------------
 // 2. Rectification: cv2.remap(src, map_x, map_y, INTER_LINEAR, BORDER_CONSTANT, 0) on uint8, exactly
-// as companion.core.calibration.remap_linear_reference states it (OpenCV 5's float path):
+// as companion.core.rectifier.remap_linear_reference states it (OpenCV 5's float path):
 //   x0 = floor(mx), a = mx - x0 (exact), likewise y; p.. = src (0 outside);
 //   top = fma(a, p01 - p00, p00); bot = fma(a, p11 - p10, p10); out = sat(rint(fma(b, bot - top, top))).
 // raw_*: grey eyes (rows of PITCH bytes); maps: float32 (IMG_H, IMG_W); rect_*: rows of PITCH bytes.
