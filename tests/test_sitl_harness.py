@@ -247,6 +247,27 @@ def test_a_service_that_is_not_ready_in_time_is_stopped(tmp_path: Path) -> None:
     assert _gone(service.pid)
 
 
+def test_the_service_keeps_its_temporary_files_in_its_workdir(tmp_path: Path) -> None:
+    """MAVSDK leaves a folder of component metadata in the temporary directory of every run; a
+    service the harness kills must not leave it in the machine's /tmp."""
+    service = _service(tmp_path)
+    seen: list[str] = []
+
+    async def scenario() -> None:
+        start = asyncio.get_running_loop().create_task(service.start(timeout_s=3.0))
+        while service.pid is None and not start.done():
+            await asyncio.sleep(0.01)
+        if service.pid is not None:
+            environ = Path(f"/proc/{service.pid}/environ").read_bytes().split(b"\0")
+            seen.extend(e.decode() for e in environ if e.startswith(b"TMPDIR="))
+        with pytest.raises(SitlError):
+            await start
+
+    asyncio.run(scenario())
+    assert seen == [f"TMPDIR={tmp_path / 'tmp'}"]
+    assert _gone(service.pid)
+
+
 def test_a_cancelled_start_stops_the_service(tmp_path: Path) -> None:
     """The caller gives up (a test's overall timeout cancels the task): the process still goes."""
     service = _service(tmp_path)

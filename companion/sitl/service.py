@@ -82,8 +82,13 @@ class ServiceProcess:
         self._task = asyncio.get_running_loop().create_task(self._follow())
         cmd = [sys.executable, "-m", "companion", "--log-level", self.log_level, "run", "--config", str(self.config_path)]
         log.info("starting the service: %s", " ".join(cmd))
+        # Its temporary files (MAVSDK's component metadata) go in its workdir, as systemd's PrivateTmp
+        # keeps them in the unit's own /tmp: a killed service leaves nothing in the machine's /tmp.
+        tmp = self.workdir / "tmp"
+        tmp.mkdir(exist_ok=True)
+        env = {**os.environ, "TMPDIR": str(tmp)}
         with self.log_path.open("wb") as out:
-            self._proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT)
+            self._proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT, env=env)
 
         def ready() -> bool:
             h = self.health or {}
