@@ -4,6 +4,7 @@
   ``RUNTIME_DIRECTORY`` is unset: a test's service binds its ``auto`` sockets there, and a client
   looks only there (never in the user's own runtime directory, nor in the /tmp fallback), so no
   test sees another run's sockets or leaves one behind.
+* The kernels compiled for the CPU (``companion.gpu.hostemu``) are built in this run's own folder.
 * Every ``zmq.Context`` created during a test must be closed by the end of it (a few seconds of
   grace for threads that close their own): an open one fails the test, naming it, and is destroyed
   with linger 0 so that the interpreter's exit never waits in ``zmq_ctx_term``.
@@ -28,6 +29,7 @@ import threading
 import time
 import weakref
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -92,6 +94,18 @@ def no_threads_left(request: pytest.FixtureRequest) -> Iterator[None]:
 
 def _open_contexts(besides: weakref.WeakSet[zmq.Context] | None = None) -> list[zmq.Context]:
     return [c for c in list(_contexts) if not c.closed and (besides is None or c not in besides)]
+
+
+@pytest.fixture(autouse=True, scope="session")
+def hostemu_build_dir(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
+    """The kernels compiled for the CPU (companion.gpu.hostemu) are built in this run's own folder,
+    not in the shared cache in /tmp: nothing is left behind, and runs side by side do not share it."""
+    from companion.gpu.hostemu import BUILD_DIR_ENV
+
+    path = tmp_path_factory.mktemp("hostemu")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv(BUILD_DIR_ENV, str(path))
+        yield path
 
 
 @pytest.fixture(autouse=True)

@@ -40,8 +40,13 @@ _KERNEL = _HERE.parent / "kernels" / "stereo.cu"
 _SGM_KERNEL = _HERE.parent / "kernels" / "sgm.cu"
 
 
+#: The folder of the compiled kernels, when set (tests give each run its own); else one in the
+#: temporary directory, shared between runs as a cache.
+BUILD_DIR_ENV = "COMPANION_HOSTEMU_DIR"
+
+
 def _build_dir() -> Path:
-    d = Path(tempfile.gettempdir()) / "companion-hostemu"
+    d = Path(os.environ.get(BUILD_DIR_ENV) or Path(tempfile.gettempdir()) / "companion-hostemu")
     d.mkdir(exist_ok=True)
     return d
 
