@@ -157,8 +157,9 @@ def _seen_free_along(m: LocalMap, start: np.ndarray, u: np.ndarray) -> float:
 def test_office_15004_a_fence_hit_in_one_frame_of_three_is_not_seen_free() -> None:
     """Kinematic suite, office-15004 at 3 m/s: a see-through fence of bars 10 cm apart, 4.8 m ahead,
     was hit in some frames and seen through to the wall behind in the others; its cubes' log-odds sank
-    and they read as seen free until 1.85 m off, too late to stop. A cube hit lately is unknown, and
-    the free length ends before it; once frames stop hitting it, the space behind is free again."""
+    and they read as seen free until 1.85 m off, too late to stop. A cube hit twice within half a
+    second is unknown, and the free length ends before it; once frames stop hitting it, the space
+    behind is free again."""
     m = _map()
     bars, through = _wall_blocks(3.0), _wall_blocks(7.0)
     t = 0.0
