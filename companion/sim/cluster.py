@@ -78,6 +78,9 @@ def ray_session(address: str | None, num_cpus: int | None = None) -> Iterator[No
 
     kwargs: dict[str, Any] = {"include_dashboard": False, "logging_level": logging.WARNING}
     if address is None:
+        # "local": a Ray of its own even where `ray start` left one running (or $RAY_ADDRESS names
+        # one): Ray's default would join that one, and refuse num_cpus there.
+        kwargs["address"] = "local"
         if num_cpus is not None:
             kwargs["num_cpus"] = num_cpus
     else:
