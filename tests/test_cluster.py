@@ -199,7 +199,19 @@ def test_without_ray_the_suite_says_how_to_install_it(
                                                        "--out", "x"]):
         assert main(argv) == 2
         err = capsys.readouterr().err.strip()
-        assert "pip install 'companion[cluster]'" in err and "\n" not in err
+        assert "ray not installed" in err and "pip install 'companion[cluster]'" in err and "\n" not in err
+
+
+def test_a_suite_on_ray_does_not_need_the_tuners_search(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Optuna is the tuner's alone: without it a suite may still fly on Ray, and a tune says it is missing."""
+    from companion.sim.cluster import SUITE_MODULES, require_ray
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "optuna" else real(name, *a))
+    if real("ray") is not None and real("tqdm") is not None:
+        require_ray(SUITE_MODULES)
+    with pytest.raises(InputError, match="optuna not installed: pip install 'companion\\[cluster\\]'"):
+        require_ray()
 
 
 @needs_ray

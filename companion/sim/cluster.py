@@ -39,8 +39,12 @@ from companion.sim.tuning import Setting, TrialScore, score_flights, with_settin
 
 log = logging.getLogger(__name__)
 
-#: The line that says how to get Ray when it is missing.
-INSTALL_HINT = "Ray is not installed: pip install 'companion[cluster]' (ray[tune], optuna, tqdm)"
+#: How to get what ``--ray`` and ``companion tune`` need.
+INSTALL_HINT = "pip install 'companion[cluster]' (ray[tune], optuna, tqdm)"
+
+#: What a suite on Ray imports; a tune imports Optuna too.
+SUITE_MODULES: tuple[str, ...] = ("ray", "tqdm")
+TUNE_MODULES: tuple[str, ...] = (*SUITE_MODULES, "optuna")
 
 #: The experiment's folder under a tune's storage (``--out``).
 EXPERIMENT_DIR = "experiment"
@@ -49,15 +53,16 @@ EXPERIMENT_DIR = "experiment"
 FLIGHT_RETRIES = 1
 
 
-def ray_available() -> bool:
-    """Whether Ray (with Tune), Optuna and tqdm can be imported, without importing them."""
-    return all(importlib.util.find_spec(m) is not None for m in ("ray", "optuna", "tqdm"))
+def missing_modules(modules: Sequence[str] = TUNE_MODULES) -> list[str]:
+    """Those of ``modules`` that cannot be imported (looked up, not imported)."""
+    return [m for m in modules if importlib.util.find_spec(m) is None]
 
 
-def require_ray() -> None:
-    """Raise :class:`InputError` with :data:`INSTALL_HINT` unless Ray and Optuna can be imported."""
-    if not ray_available():
-        raise InputError(INSTALL_HINT)
+def require_ray(modules: Sequence[str] = TUNE_MODULES) -> None:
+    """Raise :class:`InputError` naming what of ``modules`` is missing and how to install it."""
+    missing = missing_modules(modules)
+    if missing:
+        raise InputError(f"{', '.join(missing)} not installed: {INSTALL_HINT}")
 
 
 @contextlib.contextmanager
@@ -73,7 +78,7 @@ def ray_session(address: str | None, num_cpus: int | None = None) -> Iterator[No
     Raises:
         InputError: Ray is missing, or the cluster at ``address`` cannot be reached.
     """
-    require_ray()
+    require_ray(SUITE_MODULES)
     import ray
 
     kwargs: dict[str, Any] = {"include_dashboard": False, "logging_level": logging.WARNING}
@@ -215,7 +220,7 @@ class SuiteOnRay:
     """
 
     def __init__(self, total_flights: int, address: str | None = None, num_cpus: int | None = None) -> None:
-        require_ray()
+        require_ray(SUITE_MODULES)
         self._total = total_flights
         self._session = ray_session(address, num_cpus)
         self._bar: Any = None
