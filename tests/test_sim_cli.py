@@ -14,7 +14,7 @@ from companion.cli import main
 from companion.config import CompanionConfig
 from companion.sim.courses import make_course
 from companion.sim.scoring import Outcome
-from companion.sim.suite import realization_line, run_suite, suite_rows, suite_table
+from companion.sim.suite import realization_line, run_suite, run_suites, suite_rows, suite_table
 
 
 def test_one_course_prints_the_verdict_and_draws_the_plot(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -117,6 +117,20 @@ def test_a_suite_over_two_realizations_scores_them_together_and_one_by_one(capsy
     for r in (0, 1):
         assert f"realization {r}: goal " in out
     assert "of 2 not dead ends, 0 collisions" in out
+
+
+@pytest.mark.slow
+def test_draws_flown_on_one_set_of_workers_give_what_each_gives_alone() -> None:
+    """Several configs (noise draws) share one set of workers; each flight's result is the one its own
+    config gives flown alone, and progress counts each config's flights apart."""
+    base = CompanionConfig()
+    draws = [base.model_copy(update={"sim": base.sim.model_copy(update={"realization": r})}) for r in (0, 1)]
+    seen: list[tuple[int, int, int, str]] = []
+    together = run_suites(draws, [("pitch", 0)], workers=2,
+                          progress=lambda j, done, total, r: seen.append((j, done, total, r.course.name)))
+    alone = [run_suite(d, [("pitch", 0)], workers=1) for d in draws]
+    assert together == alone
+    assert sorted(seen) == [(0, 1, 1, "pitch-0"), (1, 1, 1, "pitch-0")]
 
 
 def test_start_replays_a_course_from_another_pose(capsys: pytest.CaptureFixture[str]) -> None:

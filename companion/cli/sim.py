@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import functools
 import sys
 import time
 from pathlib import Path
@@ -287,7 +288,7 @@ def courses_of(args: argparse.Namespace) -> tuple[tuple[str, int], ...]:
 
 def _run_suite(args: argparse.Namespace, cfg: Any) -> int:
     from companion.report import machine_description
-    from companion.sim.suite import realization_line, run_suite, suite_table
+    from companion.sim.suite import realization_line, run_suites, suite_table
 
     if args.workers < 1:
         raise InputError(f"--workers must be >= 1, got {args.workers}")
@@ -305,34 +306,40 @@ def _run_suite(args: argparse.Namespace, cfg: Any) -> int:
              else f"Ray at {args.ray}" if args.ray else f"a local Ray of {args.workers} CPU(s)")
     print(f"suite {args.suite}: {len(courses) * n} flights{draws} on {where}; {machine_description()}")
     t0 = time.perf_counter()
+
+    def tag(j: int) -> str:
+        return f"r{first + j} " if n > 1 else ""
+
+    def progress(j: int, done: int, total: int, result: Any) -> None:
+        note = ""
+        if trace_dir is not None and not result.success:
+            stem = trace_dir / f"{tag(j).strip() + '-' if n > 1 else ''}{result.course.name}"
+            write_trace_file(result, stem.with_suffix(".csv"))
+            write_plot(result, stem.with_suffix(".png"), side_view=True)
+            note = f" (trace: {stem}.csv)"
+        print(f"{tag(j)}[{done:3d}/{total}] {result.summary()}{note}", flush=True)
+
+    def failed(j: int, done: int, total: int, failure: Any) -> None:
+        print(f"{tag(j)}[{done:3d}/{total}] {failure.line()} (FAILED, tried twice)", flush=True)
+
+    drawn = [cfg.model_copy(update={"sim": cfg.sim.model_copy(update={"realization": r})}) for r in range(first, first + n)]
+    keep = trace_dir is not None
+    with on_ray if on_ray is not None else contextlib.nullcontext():
+        if on_ray is None:  # one set of workers for every draw
+            got_all = run_suites(drawn, courses, workers=args.workers, keep_logs=keep, progress=progress)
+        else:
+            got_all = [
+                on_ray.fly(d, courses, keep_logs=keep, progress=functools.partial(progress, j),
+                           failed=functools.partial(failed, j))
+                for j, d in enumerate(drawn)
+            ]
     results: list[Any] = []
     per_draw: list[tuple[int, list[Any]]] = []
-    with on_ray if on_ray is not None else contextlib.nullcontext():
-        for r in range(first, first + n):
-            tag = f"r{r} " if n > 1 else ""
-
-            def progress(done: int, total: int, result: Any, tag: str = tag) -> None:
-                note = ""
-                if trace_dir is not None and not result.success:
-                    stem = trace_dir / f"{tag.strip() + '-' if tag else ''}{result.course.name}"
-                    write_trace_file(result, stem.with_suffix(".csv"))
-                    write_plot(result, stem.with_suffix(".png"), side_view=True)
-                    note = f" (trace: {stem}.csv)"
-                print(f"{tag}[{done:3d}/{total}] {result.summary()}{note}", flush=True)
-
-            def failed(done: int, total: int, failure: Any, tag: str = tag) -> None:
-                print(f"{tag}[{done:3d}/{total}] {failure.line()} (FAILED, tried twice)", flush=True)
-
-            drawn = cfg.model_copy(update={"sim": cfg.sim.model_copy(update={"realization": r})})
-            keep = trace_dir is not None
-            if on_ray is None:
-                got = run_suite(drawn, courses, workers=args.workers, keep_logs=keep, progress=progress)
-            else:
-                got = on_ray.fly(drawn, courses, keep_logs=keep, progress=progress, failed=failed)
-            if trace_dir is not None:  # written: the table needs no logs
-                got = [dataclasses.replace(x, log=None, frame_log=None) for x in got]
-            per_draw.append((r, got))
-            results.extend(got)
+    for j, got in enumerate(got_all):
+        if trace_dir is not None:  # written: the table needs no logs
+            got = [dataclasses.replace(x, log=None, frame_log=None) for x in got]
+        per_draw.append((first + j, got))
+        results.extend(got)
     wall = time.perf_counter() - t0
     print()
     if results:

@@ -1,9 +1,10 @@
 """Many seeded flights, in worker processes, and the table that scores them.
 
 A *suite* is a list of ``(kind, seed)`` courses (:data:`SUITES`); :func:`run_suite` flies each with
-one configuration, over ``workers`` processes (each with its own texture bank and one OpenCV thread,
-so a flight's result does not depend on how many workers ran it), and :func:`suite_table` summarises
-the results per course kind and overall.
+one configuration (:func:`run_suites` with several, e.g. one per noise draw), over ``workers``
+processes (each with its own texture bank and one OpenCV thread, so a flight's result does not depend
+on how many workers ran it), and :func:`suite_table` summarises the results per course kind and
+overall.
 """
 
 from __future__ import annotations
@@ -71,21 +72,24 @@ def fly_one(kind: str, seed: int, cfg: CompanionConfig, bank: Any, keep_logs: bo
     return result
 
 
-def _worker(cfg_data: dict[str, Any], keep_logs: bool, tasks: Any, results: Any) -> None:
-    """Worker process: fly tasks ``(index, kind, seed)`` until a ``None`` arrives."""
+def _worker(cfg_data: list[dict[str, Any]], keep_logs: bool, tasks: Any, results: Any) -> None:
+    """Worker process: fly tasks ``(draw, index, kind, seed)`` with ``cfg_data[draw]`` until a ``None``
+    arrives; each config is parsed once, on its first task."""
     from companion.sim.camera import make_texture_bank
 
-    cfg = parse_config(cfg_data, source="suite")
+    cfgs: dict[int, CompanionConfig] = {}
     bank = make_texture_bank()
     while True:
         task = tasks.get()
         if task is None:
             return
-        index, kind, seed = task
+        draw, index, kind, seed = task
         try:
-            results.put((index, fly_one(kind, seed, cfg, bank, keep_logs), None))
+            if draw not in cfgs:
+                cfgs[draw] = parse_config(cfg_data[draw], source="suite")
+            results.put((draw, index, fly_one(kind, seed, cfgs[draw], bank, keep_logs), None))
         except Exception as err:  # reported to the parent, which raises it
-            results.put((index, None, f"{kind}-{seed}: {type(err).__name__}: {err}"))
+            results.put((draw, index, None, f"{kind}-{seed}: {type(err).__name__}: {err}"))
 
 
 def run_suite(
@@ -108,53 +112,86 @@ def run_suite(
     Raises:
         RuntimeError: a flight raised in a worker (the message names the course).
     """
-    cfg = single_thread_config(cfg)
+    on_flight = None if progress is None else (lambda _draw, done, total, result: progress(done, total, result))
+    return run_suites([cfg], courses, workers=workers, keep_logs=keep_logs, progress=on_flight)[0]
+
+
+def run_suites(
+    cfgs: Sequence[CompanionConfig],
+    courses: Sequence[tuple[str, int]],
+    *,
+    workers: int = 2,
+    keep_logs: bool = False,
+    progress: Callable[[int, int, int, FlightResult], None] | None = None,
+) -> list[list[FlightResult]]:
+    """Fly every ``(kind, seed)`` of ``courses`` with each config of ``cfgs`` (e.g. one per noise draw,
+    ``sim.realization``) on one set of workers: the workers start once for all, and the next config's
+    flights fill the cores while the last ones of a config still fly.
+
+    Args:
+        cfgs: the configurations (every flight uses one OpenCV thread, see :func:`single_thread_config`).
+        courses: what to fly with each.
+        workers: processes (1 = in this process).
+        keep_logs: keep the per-step logs in the results (memory; default drop them).
+        progress: called after each flight with (config's index in ``cfgs``, flights of that config
+            done, its total, result).
+
+    Returns:
+        One list per config, in the order of ``cfgs``, of its results in the order of ``courses``.
+
+    Raises:
+        RuntimeError: a flight raised in a worker (the message names the course).
+    """
+    cfgs = [single_thread_config(c) for c in cfgs]
     total = len(courses)
-    out: list[FlightResult | None] = [None] * total
-    if workers <= 1 or total <= 1:
+    out: list[list[FlightResult | None]] = [[None] * total for _ in cfgs]
+    done = [0] * len(cfgs)
+    if workers <= 1 or total * len(cfgs) <= 1:
         from companion.core.disparity.opencv import set_cv_threads
         from companion.sim.camera import make_texture_bank
 
         bank = make_texture_bank()
         try:
-            for i, (kind, seed) in enumerate(courses):
-                out[i] = fly_one(kind, seed, cfg, bank, keep_logs)
-                if progress is not None:
-                    progress(i + 1, total, out[i])
+            for j, cfg in enumerate(cfgs):
+                for i, (kind, seed) in enumerate(courses):
+                    out[j][i] = result = fly_one(kind, seed, cfg, bank, keep_logs)
+                    done[j] += 1
+                    if progress is not None:
+                        progress(j, done[j], total, result)
         finally:
             set_cv_threads(0)
-        return [r for r in out if r is not None]
+        return [[r for r in draw if r is not None] for draw in out]
 
     # spawn: a clean interpreter per worker (no forked OpenCV thread pools).
     ctx = mp.get_context("spawn")
     tasks: Any = ctx.Queue()
     results: Any = ctx.Queue()
-    for i, (kind, seed) in enumerate(courses):
-        tasks.put((i, kind, int(seed)))
-    n = min(workers, total)
+    for j in range(len(cfgs)):
+        for i, (kind, seed) in enumerate(courses):
+            tasks.put((j, i, kind, int(seed)))
+    n = min(workers, total * len(cfgs))
     for _ in range(n):
         tasks.put(None)
-    data = cfg.model_dump(mode="json")
+    data = [c.model_dump(mode="json") for c in cfgs]
     procs = [ctx.Process(target=_worker, args=(data, keep_logs, tasks, results), daemon=True) for _ in range(n)]
     for p in procs:
         p.start()
-    done = 0
     error: str | None = None
     try:
-        while done < total:
+        while sum(done) < total * len(cfgs):
             try:
-                index, result, err = results.get(timeout=1.0)
+                j, index, result, err = results.get(timeout=1.0)
             except queue.Empty:
                 if not any(p.is_alive() for p in procs):
                     raise RuntimeError("suite workers exited before finishing the suite") from None
                 continue
-            done += 1
+            done[j] += 1
             if err is not None:
                 error = error or err
                 continue
-            out[index] = result
+            out[j][index] = result
             if progress is not None:
-                progress(done, total, result)
+                progress(j, done[j], total, result)
     finally:
         for p in procs:
             p.join(timeout=5.0)
@@ -162,7 +199,7 @@ def run_suite(
                 p.terminate()
     if error is not None:
         raise RuntimeError(f"a flight failed: {error}")
-    return [r for r in out if r is not None]
+    return [[r for r in draw if r is not None] for draw in out]
 
 
 @dataclass(frozen=True)
