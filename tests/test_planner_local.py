@@ -14,7 +14,17 @@ from companion.config.controller import ControllerConfig
 from companion.config.planner import PlannerConfig
 from companion.core.fuzzy.avoidance import AvoidanceController
 from companion.core.geometry import StereoGeometry
-from companion.core.planner.local import ALTITUDE_RETURN_S, LOOKED_FROM_M, TRANSITIONS, LocalPlanner, Mode, Snapshot, predicted_paths, speed_law
+from companion.core.planner.local import (
+    ALTITUDE_RETURN_S,
+    LOOKED_FROM_M,
+    TRANSITIONS,
+    LocalPlanner,
+    Mode,
+    Plan,
+    Snapshot,
+    predicted_paths,
+    speed_law,
+)
 from companion.core.planner.localmap import LocalMap
 from companion.core.planner.safety import (
     CHAIN,
@@ -388,6 +398,47 @@ def test_a_sharp_turn_at_speed_costs_speed_not_clearance() -> None:
     assert eastward[north_level, 2] < 0.5 * at_rest[north_level, 2]
     westward = LocalPlanner(PlannerConfig(), 0.25).plan(_snap(velocity_ned_m_s=np.array([0.0, -3.0, 0.0])), m).candidates
     assert westward[north_level, 2] == pytest.approx(at_rest[north_level, 2])
+
+
+def test_the_swing_is_predicted_from_the_setpoint_in_flight_too() -> None:
+    """An autopilot chases the setpoint it was sent until its delay has passed (ArduCopter: 0.36 s),
+    whatever the planner chooses now: a vehicle at rest that was just told to fly east toward a wall
+    will move east first. The turn north costs speed as it would at that velocity; a setpoint in
+    flight along the way chosen costs nothing."""
+    m = _map()
+    _see(m, _wall_blocks(1.0), pose=Pose.at(0.0, 0.0, 1.5, yaw_rad=math.pi / 2))  # a wall 1 m east
+    _see(m, _wall_blocks(30.0))  # north seen free to the range
+    north_level = 2
+    at_rest = LocalPlanner(PlannerConfig(), 0.25).plan(_snap(), m).candidates
+    told_east = LocalPlanner(PlannerConfig(), 0.25).plan(_snap(in_flight_ned_m_s=np.array([0.0, 3.0, 0.0])), m).candidates
+    assert told_east[north_level, 2] < 0.5 * at_rest[north_level, 2]
+    told_north = LocalPlanner(PlannerConfig(), 0.25).plan(_snap(in_flight_ned_m_s=np.array([3.0, 0.0, 0.0])), m).candidates
+    assert told_north[north_level, 2] == pytest.approx(at_rest[north_level, 2])
+
+
+def test_the_stack_tells_the_planner_the_setpoint_it_sent() -> None:
+    cfg = CompanionConfig.model_validate({})
+    stack = LocalStack(cfg)
+    stack.engage(np.array([0.0, 0.0, -1.5]), 0.0, None)
+    for k in range(3):
+        stack.add_frame(_wall_blocks(30.0), GEOM, BLOCK_PX, Pose.at(0.0, 0.0, 1.5), 0.1 * k)
+    seen: list[Snapshot] = []
+    plan = stack.planner.plan
+
+    def spy(snap: Snapshot, lmap: LocalMap) -> Plan:
+        seen.append(snap)
+        return plan(snap, lmap)
+
+    stack.planner.plan = spy  # type: ignore[method-assign]
+    clear = Decision(DecisionKind.CLEAR, 0.0, 0.0, 1.0, "clear")
+    first = stack.step(0.3, 0.05, clear, np.full(9, 10.0), np.array([0.0, 0.0, -1.5]), np.zeros(3), 0.0)
+    stack.step(0.35, 0.05, clear, np.full(9, 10.0), np.array([0.0, 0.0, -1.5]), np.zeros(3), 0.0)
+    assert seen[0].in_flight_ned_m_s is None  # nothing sent yet this flight
+    sent = first.setpoint
+    assert seen[1].in_flight_ned_m_s == pytest.approx([sent.forward_m_s, sent.right_m_s, sent.down_m_s])
+    stack.engage(np.array([0.0, 0.0, -1.5]), 0.0, None)
+    stack.step(0.4, 0.05, clear, np.full(9, 10.0), np.array([0.0, 0.0, -1.5]), np.zeros(3), 0.0)
+    assert seen[2].in_flight_ned_m_s is None  # a new flight starts from what it has
 
 
 def test_without_a_goal_the_fuzzy_controller_is_the_whole_policy() -> None:

@@ -122,6 +122,9 @@ class Snapshot:
             paper's flight: the fuzzy controller is the whole policy).
         decision: the newest fuzzy decision, or None before the first.
         view_half_rad: half the camera's horizontal view, radians (what counts as looked at).
+        in_flight_ned_m_s: float ``(3,)`` the velocity the vehicle was last told to fly (the
+            setpoint sent, as it moves it), NED m/s, or None (none yet). An autopilot follows a
+            setpoint late: for a while it chases the one sent, whatever the planner chooses now.
     """
 
     now_s: float
@@ -131,6 +134,7 @@ class Snapshot:
     goal_ned_m: np.ndarray | None
     decision: Decision | None
     view_half_rad: float = math.radians(40.0)
+    in_flight_ned_m_s: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -440,9 +444,15 @@ class LocalPlanner:
         top = np.argsort(c)[:SWING_CANDIDATES]
         top = top[np.isfinite(c[top])]
         if len(top):
-            offs, arc = predicted_paths(v, dirs[top], speed_law(free[top], cfg), cfg, lmap.voxel_m)
             clear = np.full(len(free), np.inf)
-            clear[top] = lmap.clear_along(pos, pos + offs, arc)
+            # From the velocity it has, and from the one it was last told to fly, which it chases
+            # until the autopilot's delay has passed: the vehicle lies between the two.
+            starts = [v]
+            if snap.in_flight_ned_m_s is not None:
+                starts.append(np.asarray(snap.in_flight_ned_m_s, dtype=np.float64))
+            for v0 in starts:
+                offs, arc = predicted_paths(v0, dirs[top], speed_law(free[top], cfg), cfg, lmap.voxel_m)
+                clear[top] = np.minimum(clear[top], lmap.clear_along(pos, pos + offs, arc))
             swung = clear < free
             if np.any(swung):
                 # Swung short, the way still leads on once slower: its time is the short length at

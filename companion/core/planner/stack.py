@@ -15,7 +15,7 @@ from companion.core.geometry import StereoGeometry
 from companion.core.goal import GoalSpec, resolve_goal
 from companion.core.planner.local import LocalPlanner, Mode, Plan, Snapshot
 from companion.core.planner.localmap import LocalMap
-from companion.core.planner.safety import SafetyContext, from_ned, trace_chain
+from companion.core.planner.safety import SafetyContext, from_ned, to_ned, trace_chain
 from companion.core.pose import Pose
 from companion.core.types import REGION_INDEX, Decision, VelocitySetpoint
 
@@ -56,6 +56,7 @@ class LocalStack:
         self.track = TrackWatch(axes=3)
         self._unexplained = np.zeros(3)
         self._last: StackStep | None = None
+        self._sent_ned: np.ndarray | None = None  # the last setpoint, NED m/s
 
     @staticmethod
     def _new_map(cfg: CompanionConfig) -> LocalMap:
@@ -83,6 +84,7 @@ class LocalStack:
         pos = np.asarray(position_ned_m, dtype=np.float64)
         self.planner.engage()
         self.track.reset()
+        self._sent_ned = None
         self.goal_ned_m = self._goal_point(pos, yaw_rad, goal)
 
     @staticmethod
@@ -147,7 +149,9 @@ class LocalStack:
             unexplained[:] = u
         vel = np.asarray(velocity_ned_m_s, dtype=np.float64) + unexplained
         self.map.mark_body_free(pos, now_s)
-        snap = Snapshot(now_s, pos, vel, float(yaw_rad), self.goal_ned_m, decision, self.view_half_rad)
+        # The last setpoint, as the vehicle flies it (plus the motion it does not explain).
+        in_flight = None if self._sent_ned is None else self._sent_ned + unexplained
+        snap = Snapshot(now_s, pos, vel, float(yaw_rad), self.goal_ned_m, decision, self.view_half_rad, in_flight)
         plan = self.planner.plan(snap, self.map)
         sp = from_ned(plan.velocity_ned_m_s, yaw_rad, plan.yaw_rate_deg_s)
         centre = math.nan if region_depths_m is None else float(region_depths_m[REGION_INDEX["center"]])
@@ -192,6 +196,7 @@ class LocalStack:
         )
         setpoint, limited_by = trace_chain(sp, ctx)
         self._last = StackStep(setpoint, plan, limited_by)
+        self._sent_ned = to_ned(setpoint, float(yaw_rad))
         return self._last
 
     def status(self) -> dict[str, object]:
