@@ -181,9 +181,9 @@ SWING_TIME_CONSTANTS = 3.0
 def predicted_paths(
     velocity_ned_m_s: np.ndarray, dirs: np.ndarray, speed_m_s: np.ndarray, cfg: PlannerConfig, step_m: float
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Where the vehicle will fly for each candidate: its velocity now blending into the command
-    ``dirs * speed_m_s`` (float ``(K, 3)`` unit NED, ``(K,)`` m/s) as a first-order lag, then on along
-    the candidate to the map range.
+    """Where the vehicle will fly for each candidate: its velocity now (float ``(3,)`` NED m/s, or
+    ``(K, 3)``, one per candidate) blending into the command ``dirs * speed_m_s`` (float ``(K, 3)``
+    unit NED, ``(K,)`` m/s) as a first-order lag, then on along the candidate to the map range.
 
     The lag's time constant is ``latency_s`` (the planner's own response setting: a frame, the
     pipeline and the autopilot's velocity response), the old velocity decaying as ``exp(-t/τ)``:
@@ -191,7 +191,7 @@ def predicted_paths(
 
     Returns ``(offsets, arc)``: float64 ``(K, S, 3)`` NED metres from the vehicle and ``(K, S)`` arc
     length from it, metres, increasing (NaN past the map range)."""
-    v0 = np.asarray(velocity_ned_m_s, dtype=np.float64)[None, :]
+    v0 = np.broadcast_to(np.asarray(velocity_ned_m_s, dtype=np.float64), dirs.shape)
     vc = dirs * np.asarray(speed_m_s, dtype=np.float64)[:, None]
     dv = v0 - vc
     tau = np.full(len(dirs), max(cfg.latency_s, 1e-3))
@@ -447,12 +447,15 @@ class LocalPlanner:
             clear = np.full(len(free), np.inf)
             # From the velocity it has, and from the one it was last told to fly, which it chases
             # until the autopilot's delay has passed: the vehicle lies between the two.
-            starts = [v]
+            starts = v[None, :]
             if snap.in_flight_ned_m_s is not None:
-                starts.append(np.asarray(snap.in_flight_ned_m_s, dtype=np.float64))
-            for v0 in starts:
-                offs, arc = predicted_paths(v0, dirs[top], speed_law(free[top], cfg), cfg, lmap.voxel_m)
-                clear[top] = np.minimum(clear[top], lmap.clear_along(pos, pos + offs, arc))
+                starts = np.stack([v, np.asarray(snap.in_flight_ned_m_s, dtype=np.float64)])
+            n = len(starts)
+            offs, arc = predicted_paths(
+                np.repeat(starts, len(top), axis=0), np.tile(dirs[top], (n, 1)),
+                np.tile(speed_law(free[top], cfg), n), cfg, lmap.voxel_m,
+            )
+            clear[top] = lmap.clear_along(pos, pos + offs, arc).reshape(n, len(top)).min(axis=0)
             swung = clear < free
             if np.any(swung):
                 # Swung short, the way still leads on once slower: its time is the short length at
