@@ -376,7 +376,7 @@ class Service:
         self.view.open(self.bus.health_endpoint)
         self.parts.started(self.vision)
         await self.vision.start(cfg)
-        from companion.core.planner.way import compile_kernels
+        from companion.core.planner import compile_kernels
 
         # The local planner's compiled kernels now, not at the first tick of the first flight.
         await asyncio.to_thread(compile_kernels)

@@ -127,6 +127,8 @@ class LocalMap:
         g = np.arange(-radius_m, radius_m + 1e-9, 0.5 * voxel_m)
         body = np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1).reshape(-1, 3)
         self._body = body[np.linalg.norm(body, axis=1) <= radius_m]  # (B, 3) offsets inside the body, m
+        rim_a = np.arange(RIM_POINTS) * (2.0 * math.pi / RIM_POINTS)  # round the line from its level side
+        self._rim_cos, self._rim_sin = np.cos(rim_a), np.sin(rim_a)
 
     # -- the grid round the vehicle ------------------------------------------------------------
     def _cube(self, ned_m: np.ndarray) -> np.ndarray:
@@ -384,16 +386,13 @@ class LocalMap:
         k0 = int(math.floor(level_down_m / self.voxel_m)) - oz
         if self.origin is None or not 0 <= k0 < nz:
             return np.zeros(self.shape[:2], dtype=bool)
+        from companion.core.planner import _mapkernels
+
         lo = max(0, int(math.floor(top_down_m / self.voxel_m)) - oz)
         hi = min(nz, int(math.floor(bottom_down_m / self.voxel_m)) - oz + 1)
-        at_level = self._infl[:, :, k0] > 0
-        if hi <= lo:
-            return at_level
-        i, j = np.nonzero(at_level)  # only these columns can be closed
-        band = (i[:, None], j[:, None], np.arange(lo, hi)[None, :])
-        free = (self._fcnt[band] > 0) & (self.log_odds[band] <= OCCUPIED_LOG_ODDS) & (self._infl[band] == 0)
-        at_level[i, j] = ~free.any(axis=1)
-        return at_level
+        out = np.empty(self.shape[:2], dtype=bool)
+        _mapkernels.blocked_columns(k0, lo, hi, self._infl, self._fcnt, self.log_odds, np.float32(OCCUPIED_LOG_ODDS), out)
+        return out
 
     def within_radius(self, points_ned_m: np.ndarray) -> np.ndarray:
         """Whether a body centred at each of ``points_ned_m`` (float ``(..., 3)`` NED m) would be within
@@ -445,38 +444,36 @@ class LocalMap:
         Where the start itself is within the radius of a surface (a gust, a late brake), the first
         radius of each line is judged on the surfaces alone, not their inflation, so that the way out
         is open and the way in is not."""
+        from companion.core.planner import _mapkernels
+
         h = self.range_m if horizon_m is None else float(horizon_m)
-        d = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
-        start = np.asarray(start_ned_m, dtype=np.float64)
+        d = np.ascontiguousarray(np.asarray(directions, dtype=np.float64).reshape(-1, 3))
+        start = np.ascontiguousarray(np.asarray(start_ned_m, dtype=np.float64).reshape(3))
         if self.origin is None:
             z = np.zeros(len(d))
             return FreeLengths(z, np.zeros(len(d), bool), np.zeros(len(d), bool))
         step = self.voxel_m
         s = np.arange(step, h + 1e-9, step)
-        pts = start + d[:, None, :] * s[None, :, None]  # (K, S, 3)
-        idx, inside = self._index(pts)
-        infl = self._inflated_at(idx)
-        free = self._free_at(idx)
         if bool(self.within_radius(start)):
             # Only the first radius of each line (a few samples) is judged so.
             n = int(np.count_nonzero(s <= self.radius_m + step))
-            infl = infl.copy()
-            infl[:, :n] = self._occ.reshape(-1)[idx[:, :n]] | _moves_closer(self, start, pts[:, :n])
-        # The rim, at the samples before the first bad one on the line itself (the rest is cut anyway).
-        ok = np.cumprod(free & ~infl & inside, axis=1, dtype=bool) & (s >= 2.0 * self.radius_m)[None, :]
-        kk, ss = np.nonzero(ok)
-        if len(kk):
-            rim = pts[kk, ss, None, :] + _rim_offsets(d, self.radius_m)[kk]  # (N, R, 3)
-            r_idx, r_in = self._index(rim)
-            free[kk, ss] = np.all(self._free_at(r_idx) | ~r_in, axis=1)  # off the grid: the line ends there anyway
-        blocked_at = infl & inside
-        bad = blocked_at | ~free | ~inside
-        any_bad = bad.any(axis=1)
-        first = np.where(any_bad, bad.argmax(axis=1), len(s))
+            pts = start + d[:, None, :] * s[None, :n, None]  # (K, n, 3)
+            idx, _ = self._index(pts)
+            near = self._occ.reshape(-1)[idx] | _moves_closer(self, start, pts)
+        else:
+            near = np.zeros((len(d), 0), dtype=bool)
+        first = np.empty(len(d), dtype=np.int64)
+        blocked = np.empty(len(d), dtype=bool)
+        _mapkernels.free_lengths(
+            start, d, s, self.radius_m, self._rim_cos, self._rim_sin, 2.0 * self.radius_m, np.ascontiguousarray(near),
+            self.voxel_m, np.asarray(self.origin, dtype=np.int64), self._grid_shape,
+            self._infl.reshape(-1), self._fcnt.reshape(-1), self.log_odds.reshape(-1), self.prev_hit_t.reshape(-1),
+            self._body_mask.reshape(-1), np.float32(OCCUPIED_LOG_ODDS), np.float32(self.now_s - MIXED_EVIDENCE_S),
+            first, blocked,
+        )  # fmt: skip
+        any_bad = first < len(s)
         length = np.where(first > 0, s[np.maximum(first - 1, 0)], 0.0)
         length = np.where(any_bad, length, h)
-        rows = np.arange(len(d))
-        blocked = any_bad & blocked_at[rows, np.minimum(first, len(s) - 1)]
         return FreeLengths(length_m=length, blocked=blocked, horizon=~any_bad)
 
 
@@ -507,16 +504,12 @@ class LocalMap:
         return np.where(any_hit, before, np.inf)
 
 
-def _rim_offsets(d: np.ndarray, radius_m: float) -> np.ndarray:
-    """float64 ``(K, RIM_POINTS, 3)``: points a radius off each line of directions ``d`` (float
-    ``(K, 3)`` unit NED), evenly round it, the first level with the line."""
-    up = np.array([0.0, 0.0, -1.0])
-    side = np.cross(up, d)  # level, perpendicular to the line
-    n = np.linalg.norm(side, axis=1, keepdims=True)
-    side = np.where(n > 1e-6, side / np.maximum(n, 1e-12), np.array([0.0, 1.0, 0.0]))  # a vertical line: any side
-    over = np.cross(d, side)  # perpendicular to both (up of a level line)
-    a = np.arange(RIM_POINTS) * (2.0 * math.pi / RIM_POINTS)
-    return radius_m * (np.cos(a)[None, :, None] * side[:, None, :] + np.sin(a)[None, :, None] * over[:, None, :])
+def compile_kernels() -> None:
+    """Compile the map's query kernels now (about a second, once per process)."""
+    m = LocalMap(voxel_m=0.5, range_m=1.0, radius_m=0.25, occupied_memory_s=1.0, free_memory_s=1.0)
+    m.centre_on(np.zeros(3))
+    m.free_lengths(np.zeros(3), np.array([[1.0, 0.0, 0.0]]))
+    m.blocked_columns(0.0, -0.5, 0.5)
 
 
 def _moves_closer(m: LocalMap, start: np.ndarray, pts: np.ndarray) -> np.ndarray:
