@@ -90,11 +90,11 @@ def free_lengths(
     A sample is bad off the grid, within a surface's radius (``infl`` > 0, or for the first
     ``near.shape[1]`` samples ``near`` bool ``(K, n)`` instead), or not seen free; from ``rim_from_m``
     out, also where a point of the body's rim on the grid is not seen free: R points ``radius_m`` off
-    the line, at angles of cosine ``rim_cos`` and sine ``rim_sin`` (float64 ``(R,)``) from the level
-    side (:func:`rim_offsets`). The layers are the map's flat arrays (``infl`` int16, ``fcnt`` int8, ``log_odds``
-    and ``prev_hit_t`` float32, ``body`` bool); a cube is seen free where the body is, or where its
-    count is positive, its log-odds at most ``occupied_log_odds`` and its hit before the last earlier
-    than ``mixed_before`` (s)."""
+    the line, at angles of cosine ``rim_cos`` and sine ``rim_sin`` (float64 ``(R,)``) round it from
+    its level side (:func:`_rim_of`). The layers are the map's flat arrays (``infl`` int16, ``fcnt``
+    int8, ``log_odds`` and ``prev_hit_t`` float32, ``body`` bool); a cube is seen free where the body
+    is, or where its count is positive, its log-odds at most ``occupied_log_odds`` and its hit before
+    the last earlier than ``mixed_before`` (s)."""
     nx, ny, nz = shape[0], shape[1], shape[2]
     n_near = near.shape[1]
     rim = np.empty((rim_cos.shape[0], 3))
