@@ -38,14 +38,8 @@ def _free_lengths_numpy(m: LocalMap, start: np.ndarray, d: np.ndarray) -> tuple[
     s = np.arange(m.voxel_m, h + 1e-9, m.voxel_m)
     pts = start + d[:, None, :] * s[None, :, None]
     idx, inside = m._index(pts)
-
-    def seen_free(i: np.ndarray) -> np.ndarray:
-        seen = (m._fcnt.reshape(-1)[i] > 0) & (m.log_odds.reshape(-1)[i] <= np.float32(OCCUPIED_LOG_ODDS))
-        seen &= m.prev_hit_t.reshape(-1)[i] < np.float32(m.now_s - MIXED_EVIDENCE_S)
-        return seen | m._body_mask.reshape(-1)[i]
-
-    infl = m._infl.reshape(-1)[idx] > 0
-    free = seen_free(idx)
+    infl = m._inflated_at(idx)
+    free = m._free_at(idx)
     if bool(m.within_radius(start)):
         n = int(np.count_nonzero(s <= m.radius_m + m.voxel_m))
         infl[:, :n] = m._occ.reshape(-1)[idx[:, :n]] | _moves_closer(m, start, pts[:, :n])
@@ -54,7 +48,7 @@ def _free_lengths_numpy(m: LocalMap, start: np.ndarray, d: np.ndarray) -> tuple[
     if len(kk):
         rim = pts[kk, ss, None, :] + _rim_offsets(d, m.radius_m)[kk]
         r_idx, r_in = m._index(rim)
-        free[kk, ss] = np.all(seen_free(r_idx) | ~r_in, axis=1)
+        free[kk, ss] = np.all(m._free_at(r_idx) | ~r_in, axis=1)
     blocked_at = infl & inside
     bad = blocked_at | ~free | ~inside
     any_bad = bad.any(axis=1)

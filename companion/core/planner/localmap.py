@@ -465,7 +465,7 @@ class LocalMap:
         first = np.empty(len(d), dtype=np.int64)
         blocked = np.empty(len(d), dtype=bool)
         _mapkernels.free_lengths(
-            start, d, s, self.radius_m, self._rim_cos, self._rim_sin, 2.0 * self.radius_m, np.ascontiguousarray(near),
+            start, d, s, self.radius_m, self._rim_cos, self._rim_sin, 2.0 * self.radius_m, near,
             self.voxel_m, np.asarray(self.origin, dtype=np.int64), self._grid_shape,
             self._infl.reshape(-1), self._fcnt.reshape(-1), self.log_odds.reshape(-1), self.prev_hit_t.reshape(-1),
             self._body_mask.reshape(-1), np.float32(OCCUPIED_LOG_ODDS), np.float32(self.now_s - MIXED_EVIDENCE_S),
