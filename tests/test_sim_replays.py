@@ -38,3 +38,18 @@ def test_arducopter_s_late_response_does_not_carry_it_into_a_door_s_leaf() -> No
     )
     result = fly(make_course("office", 0), cfg)
     assert result.outcome is Outcome.GOAL, result.reason
+
+
+def test_a_turn_within_arducopter_s_delay_does_not_swing_it_onto_a_door_jamb() -> None:
+    """office-17000 on ArduCopter's fitted vehicle with StereoBM met its door's jamb at 3 m/s while a
+    simulator turned each body-frame setpoint into NED with the yaw the vehicle had once the 0.36 s
+    delay had passed: turning at 60 deg/s toward the door, every setpoint flew 20 deg further round
+    than sent, and the vehicle drifted onto the jamb. ArduCopter and PX4 turn it on receipt; so does
+    the simulator, and the flight reaches the goal."""
+    cfg = parse_config(
+        {"stereo": {"backend": "opencv-bm"},
+         "sim": {"response_delay_s": 0.36, "velocity_time_constant_s": 0.39, "max_horizontal_accel_m_s2": 2.75,
+                 "slow_response_fraction": 0.0, "processing_latency_s": 0.12}}
+    )
+    result = fly(make_course("office", 17000), cfg)
+    assert result.outcome is Outcome.GOAL, result.reason

@@ -90,14 +90,17 @@ def test_acceleration_limits_hold_horizontally_vertically_and_in_yaw() -> None:
     assert math.hypot(*rows[99][1][:2]) == pytest.approx(1.0, rel=0.02)
     assert m.velocity_ned_m_s[2] == pytest.approx(-2.0, abs=0.02)
     assert math.degrees(m.yaw_rate_rad_s) == pytest.approx(60.0, abs=0.5)
-    # Turning at 60 deg/s, 3.6 m/s would need 3.8 m/s² of centripetal acceleration: it lags behind.
-    # Without the turn it gets there.
-    m.command(VelocitySetpoint(forward_m_s=3.0, right_m_s=2.0, down_m_s=-2.0))
-    _run(m, 3.0)
+    # The setpoint became a NED velocity when it was commanded: turning does not move it.
     assert math.hypot(*m.velocity_ned_m_s[:2]) == pytest.approx(math.hypot(3.0, 2.0), rel=0.01)
+    # Sent again every 50 ms as the service does while turning at 60 deg/s, 3.6 m/s would need
+    # 3.8 m/s² of centripetal acceleration: it lags behind.
+    for _ in range(40):
+        m.command(VelocitySetpoint(forward_m_s=3.0, right_m_s=2.0, down_m_s=-2.0, yaw_rate_deg_s=60.0))
+        _run(m, 0.05)
+    assert math.hypot(*m.velocity_ned_m_s[:2]) < 0.95 * math.hypot(3.0, 2.0)
 
 
-def test_body_frame_setpoints_map_to_ned_with_the_current_yaw() -> None:
+def test_body_frame_setpoints_map_to_ned_with_the_yaw_when_commanded() -> None:
     p = VehicleParams(velocity_time_constant_s=0.05, max_horizontal_accel_m_s2=50.0, max_vertical_accel_m_s2=50.0)
     m = VehicleModel(p, Pose.at(0, 0, 2, yaw_rad=math.pi / 2))  # facing east
     m.command(VelocitySetpoint(forward_m_s=1.0, right_m_s=0.5, down_m_s=0.2))
@@ -107,6 +110,23 @@ def test_body_frame_setpoints_map_to_ned_with_the_current_yaw() -> None:
     assert v[0] == pytest.approx(-0.5, abs=1e-3)  # right of east = south
     assert v[2] == pytest.approx(0.2, abs=1e-3)  # down: altitude falls
     assert m.altitude_m < 2.0
+
+
+def test_a_delayed_setpoint_flies_where_it_was_meant_while_the_vehicle_turns() -> None:
+    """An autopilot turns a body-frame setpoint into NED on receipt; its response delay acts after
+    that. A vehicle turning at 90 deg/s while a setpoint waits out a 0.36 s delay must fly it in the
+    NED direction of the moment it was sent, not 32 deg further round (the yaw when it acts)."""
+    p = VehicleParams(velocity_time_constant_s=0.05, max_horizontal_accel_m_s2=50.0, yaw_rate_time_constant_s=0.01,
+                      max_yaw_accel_deg_s2=10000.0, response_delay_s=0.36)
+    m = VehicleModel(p, Pose.at(0, 0, 2, yaw_rad=0.0))  # facing north
+    m.command(VelocitySetpoint(forward_m_s=1.0, yaw_rate_deg_s=90.0))
+    _run(m, 0.36)
+    assert abs(math.degrees(m.yaw_rad)) < 1.0  # the turn has not started yet: delayed too
+    _run(m, 0.5)
+    assert math.degrees(m.yaw_rad) > 30.0  # turning now
+    v = m.velocity_ned_m_s
+    assert math.degrees(math.atan2(v[1], v[0])) == pytest.approx(0.0, abs=1.0)  # still due north
+    np.testing.assert_allclose(m.commanded_velocity_ned_m_s(), [1.0, 0.0, 0.0], atol=1e-12)
 
 
 def test_yaw_rate_positive_turns_clockwise_and_wraps() -> None:

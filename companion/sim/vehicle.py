@@ -8,8 +8,11 @@ flight modes: outside OFFBOARD (before :meth:`SimVehicle.start_offboard`, after 
 the vehicle holds position, i.e. tracks zero velocity.
 
 Frames: world NED (x north, y east, z down, metres); body FRD; yaw positive clockwise seen from
-above. A body-frame setpoint is turned into NED with the *current* yaw at every physics step, as PX4
-does with ``VelocityBodyYawspeed`` (level body frame: the tilt does not rotate the setpoint).
+above. A body-frame setpoint is turned into NED with the yaw at the moment it is commanded (level body
+frame: the tilt does not rotate it), as PX4 and ArduCopter do with a body-frame
+``SET_POSITION_TARGET_LOCAL_NED`` on receipt; the response delay then acts on that NED velocity. A
+vehicle turning while its setpoints wait out the delay flies them where they were meant, not turned
+by the yaw it has when they act.
 
 Nothing here reads a clock: time advances only through :meth:`VehicleModel.step`.
 """
@@ -136,30 +139,34 @@ class VehicleModel:
         self.roll_rad = 0.0
         self.accel_ned_m_s2 = np.zeros(3)
         self.setpoint: VelocitySetpoint = ZERO_SETPOINT  # the one the dynamics follow now
-        self._pending: deque[tuple[float, VelocitySetpoint]] = deque()  # (when it takes effect s, setpoint)
+        self._target_ned_m_s = np.zeros(3)  # its velocity, NED at the yaw it was commanded at
+        # (when it takes effect s, setpoint, its NED velocity)
+        self._pending: deque[tuple[float, VelocitySetpoint, np.ndarray]] = deque()
         key = realization_key(seed, realization)
         self._rng = np.random.default_rng(list(key))  # [seed] draws as seed did: realization 0 unchanged
         self._vrng = np.random.default_rng([*key, 1])  # the vertical drift's own draws
         self.drift_ned_m_s = np.zeros(3)  # the estimator-like drift now, m/s
 
     def command(self, setpoint: VelocitySetpoint) -> None:
-        """Set the velocity/yaw-rate setpoint tracked from now on, or ``response_delay_s`` from now
-        (non-finite values are refused)."""
+        """Set the velocity/yaw-rate setpoint tracked from now on, or ``response_delay_s`` from now;
+        its velocity is turned into NED with the yaw now, as an autopilot does on receipt (non-finite
+        values are refused)."""
         vals = (setpoint.forward_m_s, setpoint.right_m_s, setpoint.down_m_s, setpoint.yaw_rate_deg_s)
         if not all(math.isfinite(v) for v in vals):
             raise VehicleError(f"non-finite setpoint {setpoint}")
+        c, s = math.cos(self.yaw_rad), math.sin(self.yaw_rad)
+        ned = np.array(
+            [c * setpoint.forward_m_s - s * setpoint.right_m_s, s * setpoint.forward_m_s + c * setpoint.right_m_s,
+             setpoint.down_m_s]
+        )
         if self.params.response_delay_s > 0.0:
-            self._pending.append((self.time_s + self.params.response_delay_s, setpoint))
+            self._pending.append((self.time_s + self.params.response_delay_s, setpoint, ned))
         else:
-            self.setpoint = setpoint
+            self.setpoint, self._target_ned_m_s = setpoint, ned
 
     def commanded_velocity_ned_m_s(self) -> np.ndarray:
-        """The setpoint turned into NED with the current yaw, float64 ``(3,)`` m/s."""
-        sp = self.setpoint
-        c, s = math.cos(self.yaw_rad), math.sin(self.yaw_rad)
-        return np.array(
-            [c * sp.forward_m_s - s * sp.right_m_s, s * sp.forward_m_s + c * sp.right_m_s, sp.down_m_s]
-        )
+        """The velocity of the setpoint in effect, NED as it was commanded, float64 ``(3,)`` m/s."""
+        return self._target_ned_m_s.copy()
 
     def step(self, dt_s: float) -> None:
         """Advance the state by ``dt_s`` seconds (> 0; keep it well below the time constants)."""
@@ -167,8 +174,8 @@ class VehicleModel:
             raise ValueError(f"dt_s must be finite and > 0, got {dt_s}")
         p = self.params
         while self._pending and self._pending[0][0] <= self.time_s + 1e-9:
-            self.setpoint = self._pending.popleft()[1]
-        v_cmd = self.commanded_velocity_ned_m_s()
+            _, self.setpoint, self._target_ned_m_s = self._pending.popleft()
+        v_cmd = self._target_ned_m_s
         v = self.velocity_ned_m_s
         # Exact discrete first-order lag over dt, expressed as the acceleration that realises it,
         # then clipped to the limits (the limit wins during large steps, the lag near the target).
