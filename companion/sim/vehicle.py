@@ -27,6 +27,7 @@ import numpy as np
 
 from companion.sim import realization_key
 from companion.sim.render import Pose
+from companion.core.planner.safety import to_ned
 from companion.core.types import ZERO_SETPOINT, VelocitySetpoint
 from companion.errors import VehicleError
 from companion.interfaces import VehicleState
@@ -154,11 +155,7 @@ class VehicleModel:
         vals = (setpoint.forward_m_s, setpoint.right_m_s, setpoint.down_m_s, setpoint.yaw_rate_deg_s)
         if not all(math.isfinite(v) for v in vals):
             raise VehicleError(f"non-finite setpoint {setpoint}")
-        c, s = math.cos(self.yaw_rad), math.sin(self.yaw_rad)
-        ned = np.array(
-            [c * setpoint.forward_m_s - s * setpoint.right_m_s, s * setpoint.forward_m_s + c * setpoint.right_m_s,
-             setpoint.down_m_s]
-        )
+        ned = to_ned(setpoint, self.yaw_rad)
         if self.params.response_delay_s > 0.0:
             self._pending.append((self.time_s + self.params.response_delay_s, setpoint, ned))
         else:
