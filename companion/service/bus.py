@@ -20,6 +20,7 @@ both sockets are CURVE servers and only clients whose public certificate is in t
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import shutil
 import tempfile
@@ -30,7 +31,8 @@ from typing import Any
 
 import zmq
 import zmq.auth
-from zmq.auth.thread import ThreadAuthenticator
+from zmq.auth.base import Authenticator
+from zmq.utils.monitor import recv_monitor_message
 
 from companion.config import BusConfig
 from companion.errors import ConfigError
@@ -55,6 +57,8 @@ MAX_MESSAGE_FRAMES = 4
 #: The ZAP domains of the two sockets (the gatekeeper counts the control socket's connections).
 CONTROL_DOMAIN = "companion-control"
 HEALTH_DOMAIN = "companion-health"
+#: How long closing the bus waits for the gatekeeper's thread, seconds.
+STOP_TIMEOUT_S = 2.0
 
 
 def load_server_keys(secret_file: Path) -> tuple[bytes, bytes]:
@@ -74,23 +78,102 @@ def load_server_keys(secret_file: Path) -> tuple[bytes, bytes]:
     return public, secret
 
 
-class Gatekeeper(ThreadAuthenticator):
-    """The ZAP handler of both sockets, in its own thread: CURVE (when configured), and a limit on the
-    control socket's live connections (counted by :class:`~companion.service.control.ControlServer`
-    from the socket's monitor events)."""
+class Gatekeeper(Authenticator):
+    """The ZAP handler of both sockets, in a thread of its own: CURVE (when configured), and a limit on
+    the control socket's connections.
+
+    The gatekeeper counts the control socket's connections itself, from the socket's monitor, and reads
+    every event queued before it decides on a handshake. A connection's ``ACCEPTED`` event is queued
+    before its handshake asks for a decision, so the count a decision reads is never behind: a burst of
+    handshakes on a loaded machine cannot slip past the limit, as it could while another (lower
+    priority) thread kept the count. The count includes the connection asking, so ``bus.max_connections``
+    are let in and the next is refused.
+
+    Lifecycle: :meth:`start` (the ZAP socket; handshakes wait), :meth:`watch` (count the control socket
+    and start answering), :meth:`stop`.
+    """
 
     def __init__(self, context: zmq.Context, max_connections: int) -> None:
         super().__init__(context)
         self.max_connections = max_connections
-        self.live_connections = 0  # written by the control server's thread; an int, read here
-        self.refused = 0
+        self.live_connections = 0  # written by the gatekeeper's thread only
+        self.refused = 0  # likewise
+        self.error: BaseException | None = None  # what ended the thread, if it died
+        self._monitor: zmq.Socket | None = None
+        self._wake: zmq.Socket | None = None
+        self._thread: threading.Thread | None = None
 
-    async def handle_zap_message(self, msg: list[bytes]) -> None:
-        if len(msg) >= 6 and msg[2] == CONTROL_DOMAIN.encode() and self.live_connections > self.max_connections:
-            self.refused += 1
-            self._send_zap_reply(msg[1], b"400", b"too many connections")
-            return
-        await super().handle_zap_message(msg)
+    def watch(self, control: zmq.Socket) -> None:
+        """Count ``control``'s connections and start answering handshakes; call once, before a client
+        can reach ``control``. The sockets pass to the gatekeeper's thread here (its start is the
+        memory barrier ZeroMQ asks of a socket changing threads)."""
+        assert self._thread is None and self.zap_socket is not None
+        self._monitor = control.get_monitor_socket(zmq.EVENT_ACCEPTED | zmq.EVENT_DISCONNECTED)
+        endpoint = f"inproc://companion-gatekeeper-{id(self)}"
+        self._wake = self.context.socket(zmq.PAIR)
+        self._wake.bind(endpoint)
+        woken = self.context.socket(zmq.PAIR)
+        woken.connect(endpoint)
+        self._thread = threading.Thread(target=self._run, args=(woken,), name="gatekeeper", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        """End the thread and close the gatekeeper's sockets (after the control socket is closed)."""
+        if self._thread is not None:
+            assert self._wake is not None
+            self._wake.send(b"stop")
+            self._thread.join(STOP_TIMEOUT_S)
+            if self._thread.is_alive():
+                log.error("the gatekeeper's thread did not stop within %.1f s", STOP_TIMEOUT_S)
+            self._thread = None
+        for sock in (self._monitor, self._wake):
+            if sock is not None:
+                sock.close(linger=0)
+        self._monitor = self._wake = None
+        super().stop()
+
+    def _run(self, woken: zmq.Socket) -> None:
+        assert self._monitor is not None
+        loop = asyncio.new_event_loop()  # the base class's ZAP handler is a coroutine
+        poller = zmq.Poller()
+        for sock in (woken, self.zap_socket, self._monitor):
+            poller.register(sock, zmq.POLLIN)
+        try:
+            while True:
+                ready = dict(poller.poll())
+                if woken in ready:
+                    return
+                if self._monitor in ready:
+                    self._count()
+                if self.zap_socket in ready:
+                    loop.run_until_complete(self._answer(self.zap_socket.recv_multipart()))
+        except Exception as err:  # a bug: every handshake now waits unanswered, so say so loudly
+            self.error = err
+            log.exception("the gatekeeper's thread failed: no connection is let in any more")
+        finally:
+            woken.close(linger=0)
+            loop.close()
+
+    def _count(self) -> None:
+        assert self._monitor is not None
+        while True:
+            try:
+                event = recv_monitor_message(self._monitor, zmq.NOBLOCK)
+            except zmq.Again:
+                return
+            if event["event"] == zmq.EVENT_ACCEPTED:
+                self.live_connections += 1
+            elif event["event"] == zmq.EVENT_DISCONNECTED:
+                self.live_connections = max(0, self.live_connections - 1)
+
+    async def _answer(self, msg: list[bytes]) -> None:
+        if len(msg) >= 6 and msg[2] == CONTROL_DOMAIN.encode():
+            self._count()  # every connection accepted until now, the one asking included
+            if self.live_connections > self.max_connections:
+                self.refused += 1
+                self._send_zap_reply(msg[1], b"400", b"too many connections")
+                return
+        await self.handle_zap_message(msg)
 
 
 class Bus:
@@ -146,6 +229,7 @@ class Bus:
             self.control.setsockopt(zmq.ROUTER_MANDATORY, 1)  # a reply to a gone client raises, never blocks
             self.control.setsockopt(zmq.SNDHWM, QUEUE_MESSAGES)
             self.control.setsockopt(zmq.RCVHWM, QUEUE_MESSAGES)
+            self.gatekeeper.watch(self.control)  # before the relay: no client can reach the socket yet
             limits = RelayLimits(
                 max_frame_bytes=2 * self.cfg.max_request_bytes,
                 max_message_frames=MAX_MESSAGE_FRAMES,
@@ -232,6 +316,7 @@ class Bus:
             self._private_dir = None
 
     def stats(self) -> dict[str, Any]:
-        """The gatekeeper's counts, for health (live control connections, refused handshakes)."""
+        """The gatekeeper's counts, for health (control connections open or in their handshake, refused
+        handshakes)."""
         g = self.gatekeeper
         return {"connections": g.live_connections if g else 0, "refused_connections": g.refused if g else 0}

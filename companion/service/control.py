@@ -243,7 +243,6 @@ class ControlPlane:
             self.handle_local,
             self.handle_request,
             on_internal_error=self._server_error,
-            gatekeeper=bus.gatekeeper,
             clock=self._clock,
         )
         self.server.start()
@@ -272,14 +271,15 @@ class ControlPlane:
         if server is None:
             return None
         st = server.stats
+        bus_stats = self._bus.stats() if self._bus is not None else {"connections": 0, "refused_connections": 0}
         return ControlCounts(
-            connections=server.connections,
+            connections=bus_stats["connections"],
             received=st.received,
             rate_limited=st.rate_limited,
             busy=st.busy,
             bad=st.bad,
             replies_dropped=st.replies_dropped,
-            refused_connections=self._bus.stats()["refused_connections"] if self._bus is not None else 0,
+            refused_connections=bus_stats["refused_connections"],
         )
 
     # ------------------------------------------------------------------------------ requests

@@ -22,7 +22,6 @@ from dataclasses import dataclass
 from typing import Any
 
 import zmq
-from zmq.utils.monitor import recv_monitor_message
 
 from companion.config import BusConfig
 from companion.errors import CompanionError, ProtocolError
@@ -99,7 +98,6 @@ class ControlServer:
         handle: a request's coroutine on the flight loop (:meth:`ControlPlane.handle_request`).
         on_internal_error: called (from this thread) with a one-line message when a request failed
             with a bug.
-        gatekeeper: told the live connection count (:class:`~companion.service.bus.Gatekeeper`), or None.
         clock: monotonic seconds, for the budgets.
     """
 
@@ -111,7 +109,6 @@ class ControlServer:
         handle_local: Callable[[Any], dict[str, Any] | None],
         handle: Callable[[Any], Coroutine[Any, Any, dict[str, Any]]],
         on_internal_error: Callable[[str], None],
-        gatekeeper: Any = None,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self._sock = sock
@@ -120,7 +117,6 @@ class ControlServer:
         self._handle_local = handle_local
         self._handle = handle
         self._on_internal_error = on_internal_error
-        self._gatekeeper = gatekeeper
         self._clock = clock
         self._adapter = protocol.request_adapter()
         self._refusals = {
@@ -159,7 +155,6 @@ class ControlServer:
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="control server", daemon=True)
         self.stats = ControlStats()
-        self.connections = 0
         self.error: BaseException | None = None  # what ended the thread, if it died
 
     # ------------------------------------------------------------------------------------ lifecycle
@@ -199,16 +194,12 @@ class ControlServer:
             os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), os.getpriority(os.PRIO_PROCESS, 0) + _NICENESS)
         except (AttributeError, OSError) as err:  # not Linux, or not allowed: the budgets still bound it
             log.debug("control thread niceness unchanged: %s", err)
-        monitor = self._sock.get_monitor_socket(zmq.EVENT_ACCEPTED | zmq.EVENT_DISCONNECTED)
         poller = zmq.Poller()
         poller.register(self._sock, zmq.POLLIN)
-        poller.register(monitor, zmq.POLLIN)
         poller.register(self._wake_r, zmq.POLLIN)
         try:
             while not self._stop.is_set():
                 ready = dict(poller.poll(200))
-                if monitor in ready:
-                    self._read_monitor(monitor)
                 if self._wake_r in ready:
                     try:
                         os.read(self._wake_r, 4096)
@@ -221,25 +212,6 @@ class ControlServer:
             self.error = err
             log.exception("the control server's thread failed")
             self._on_internal_error(f"control server: {type(err).__name__}: {err}")
-        finally:
-            try:
-                self._sock.disable_monitor()
-            except zmq.ZMQError:
-                pass  # the socket is already closed
-            monitor.close(0)
-
-    def _read_monitor(self, monitor: zmq.Socket) -> None:
-        while True:
-            try:
-                event = recv_monitor_message(monitor, zmq.NOBLOCK)
-            except zmq.Again:
-                break
-            if event["event"] == zmq.EVENT_ACCEPTED:
-                self.connections += 1
-            elif event["event"] == zmq.EVENT_DISCONNECTED:
-                self.connections = max(0, self.connections - 1)
-        if self._gatekeeper is not None:
-            self._gatekeeper.live_connections = self.connections
 
     def _receive(self) -> int:
         """Read and handle up to :data:`_RECV_BATCH` messages; returns how many."""
