@@ -270,6 +270,20 @@ def test_a_suite_on_ray_gives_the_local_pools_verdicts(ray_shutdown: None, monke
     assert "unknown course 'maze'" in failures[0].line() and failures[0].line().startswith("maze-0: ")
 
 
+@needs_ray
+@pytest.mark.slow
+def test_a_ray_started_here_flies_at_this_process_s_priority(ray_shutdown: None) -> None:
+    """Ray's workers default to a niceness 15 above their driver's: beside any other work on the
+    machine, the flights of a local Ray yielded to it, where the local pool's (at this process's
+    priority) did not."""
+    import ray
+
+    from companion.sim.cluster import ray_session
+
+    with ray_session(None, num_cpus=1):
+        assert ray.get(ray.remote(lambda: os.nice(0)).remote()) == os.nice(0)
+
+
 def _ctrl_c_after_first_trial() -> Any:
     """A Ray Tune callback that presses Ctrl-C (SIGINT to this process) when the experiment's first trial
     finishes; a resumed experiment, which already has a finished trial, is let run."""

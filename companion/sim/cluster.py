@@ -88,6 +88,10 @@ def ray_session(address: str | None, num_cpus: int | None = None) -> Iterator[No
         kwargs["address"] = "local"
         if num_cpus is not None:
             kwargs["num_cpus"] = num_cpus
+        # Flights at the priority the local pool's run at: Ray's workers default to niceness 15, and
+        # on a machine with other work they yield to all of it (beside one busy process, the flights
+        # of a local Ray got a quarter of the CPU the pool's got). A cluster keeps its own setting.
+        kwargs["_system_config"] = {"worker_niceness": 0}
     else:
         kwargs["address"] = address
     try:
