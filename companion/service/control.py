@@ -271,7 +271,7 @@ class ControlPlane:
         if server is None:
             return None
         st = server.stats
-        bus_stats = self._bus.stats() if self._bus is not None else {"connections": 0, "refused_connections": 0}
+        bus_stats = self._bus.stats()  # the bus is set before the server starts
         return ControlCounts(
             connections=bus_stats["connections"],
             received=st.received,
