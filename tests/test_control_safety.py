@@ -379,6 +379,31 @@ def test_connections_beyond_the_limit_are_refused(tmp_path: Path) -> None:
             again.close()
 
 
+def test_a_failed_gatekeeper_stops_the_service_cleanly(tmp_path: Path, monkeypatch) -> None:
+    """The gatekeeper answers every handshake; if its thread dies (a bug), no operator without a
+    connection open could command or stop the service any more. The service says what failed and
+    stops as it does on a signal (zero, Hold if ours), exiting with the internal-error code."""
+    from companion import exitcodes
+    from companion.service.bus import Gatekeeper
+
+    def broken(self) -> None:
+        raise RuntimeError("a bug in the gatekeeper")
+
+    monkeypatch.setattr(Gatekeeper, "_count", broken)  # the first control connection ends the thread
+    cfg = service_config(tmp_path)
+    service = Service(cfg, camera=avoid_scene_camera(10.0), link=FakeLink(), install_signals=False, environ={})
+    runner = ServiceRunner(service).start()
+    client = Client(service.bus.control_endpoint)
+    try:
+        client.sock.send(json.dumps({"cmd": "ping"}).encode())
+        assert wait_until(service.stopped.is_set, 30.0), "the service did not stop"
+    finally:
+        client.close()
+        code = runner.stop()
+    assert code == exitcodes.INTERNAL_ERROR
+    assert "gatekeeper failed: RuntimeError('a bug in the gatekeeper')" in (service.errors.message or "")
+
+
 def test_a_client_beyond_the_limit_gets_an_error_not_a_hang(tmp_path: Path) -> None:
     """``companion ctl``'s client against a service whose connections are all taken: each call
     returns, with a reply or a ClientError naming the endpoint, within its timeout (a refused

@@ -99,6 +99,8 @@ class Gatekeeper(Authenticator):
         self.live_connections = 0  # written by the gatekeeper's thread only
         self.refused = 0  # likewise
         self.error: BaseException | None = None  # what ended the thread, if it died
+        #: Called from the gatekeeper's thread with what ended it, if it dies (see :attr:`error`).
+        self.on_failure: Callable[[BaseException], None] | None = None
         self._monitor: zmq.Socket | None = None
         self._wake: zmq.Socket | None = None
         self._thread: threading.Thread | None = None
@@ -121,7 +123,11 @@ class Gatekeeper(Authenticator):
         """End the thread and close the gatekeeper's sockets (after the control socket is closed)."""
         if self._thread is not None:
             assert self._wake is not None
-            self._wake.send(b"stop")
+            if self._thread.is_alive():
+                try:
+                    self._wake.send(b"stop", zmq.NOBLOCK)
+                except zmq.Again:
+                    pass  # the thread's end of the pair is closed: it has ended already
             self._thread.join(STOP_TIMEOUT_S)
             if self._thread.is_alive():
                 log.error("the gatekeeper's thread did not stop within %.1f s", STOP_TIMEOUT_S)
@@ -150,6 +156,9 @@ class Gatekeeper(Authenticator):
         except Exception as err:  # a bug: every handshake now waits unanswered, so say so loudly
             self.error = err
             log.exception("the gatekeeper's thread failed: no connection is let in any more")
+            on_failure = self.on_failure
+            if on_failure is not None:
+                on_failure(err)
         finally:
             woken.close(linger=0)
             loop.close()

@@ -184,7 +184,8 @@ class ControlPlane:
         capture: the capture part (a new config's camera placement).
         errors: health's ``last_error`` (a rejected reload stays there until a good change).
         on_applied: called after a change was applied (health publishes at once).
-        on_server_failed: called on the loop when the control server's thread died (the service stops).
+        on_server_failed: called on the loop with what failed when the control server's thread or the
+            bus's gatekeeper died: no operator could command or stop the service any more, so it stops.
     """
 
     name = "control server"
@@ -204,7 +205,7 @@ class ControlPlane:
         capture: CapturePart,
         errors: LastError,
         on_applied: Callable[[], None],
-        on_server_failed: Callable[[], None],
+        on_server_failed: Callable[[str], None],
     ) -> None:
         self.config = config
         self.config_version = 1
@@ -246,6 +247,10 @@ class ControlPlane:
             clock=self._clock,
         )
         self.server.start()
+        gatekeeper = bus.gatekeeper
+        gatekeeper.on_failure = self._gatekeeper_failed
+        if gatekeeper.error is not None:  # it died before it had anyone to tell
+            self._gatekeeper_failed(gatekeeper.error)
 
     async def stop(self, budget_s: float) -> bool:
         """Stop the server's thread (requests in progress get no reply) and any reload under way."""
@@ -263,7 +268,13 @@ class ControlPlane:
         call_on_loop(self._loop, self._errors.record, message)
         if self.server is not None and self.server.error is not None:
             # Nobody could command or stop the service any more: stop cleanly (zero, Hold if ours).
-            call_on_loop(self._loop, self._on_server_failed)
+            call_on_loop(self._loop, self._on_server_failed, "control server failed")
+
+    def _gatekeeper_failed(self, err: BaseException) -> None:
+        """From the gatekeeper's thread as it dies: no new connection is let in, so an operator
+        without one open could no longer command or stop the service; it stops cleanly."""
+        call_on_loop(self._loop, self._errors.record, f"the control socket's gatekeeper failed: {err!r}")
+        call_on_loop(self._loop, self._on_server_failed, "control socket's gatekeeper failed")
 
     def counts(self) -> ControlCounts | None:
         """The control server's counts, or None before it started."""

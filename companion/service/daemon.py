@@ -190,7 +190,7 @@ class Service:
             capture=self.capture,
             errors=self.errors,
             on_applied=self._kick_health,
-            on_server_failed=lambda: self.request_shutdown("control server failed", exitcodes.INTERNAL_ERROR),
+            on_server_failed=lambda what: self.request_shutdown(what, exitcodes.INTERNAL_ERROR),
         )
         self.presence = Presence(
             config=config,
