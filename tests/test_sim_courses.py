@@ -19,8 +19,11 @@ def test_every_kind_is_deterministic_and_starts_clear(kind: str) -> None:
         assert a.name == f"{kind}-{seed}"
         start = np.asarray(a.start.position_ned_m)
         assert -start[2] == START_ALTITUDE_M
-        # Nothing is nearer the start than the ground below it.
-        assert ClearanceField(a.scene).distance_m(start) == pytest.approx(START_ALTITUDE_M)
+        clear = ClearanceField(a.scene).distance_m(start)
+        if kind == "deadend":  # it starts inside its channel, whose walls are at least 0.8 m off
+            assert 0.8 <= clear <= START_ALTITUDE_M
+        else:  # nothing is nearer the start than the ground below it
+            assert clear == pytest.approx(START_ALTITUDE_M)
         assert a.goal_north_m > 5.0 and a.in_bounds(start) and not a.in_goal(start)
         assert a.time_limit_s >= 30.0
     assert make_course(kind, 0) != make_course(kind, 1)
@@ -65,9 +68,13 @@ def test_doorway_has_a_door_and_deadend_is_closed() -> None:
     assert field.distance_m(np.array([wall_n, door_e + 3.0, -1.5])) < 0.0
     dead = make_course("deadend", 1)
     field = ClearanceField(dead.scene)
-    # Straight down the channel there is no way through the end wall.
+    # Straight down the channel there is no way through the end wall...
     samples = [field.distance_m(np.array([n, 0.0, -1.5])) for n in np.linspace(0, dead.goal_north_m, 200)]
     assert min(samples) < 0.0
+    # ...nor out to either side from the start: the way out is behind.
+    for side in (-1.0, 1.0):
+        samples = [field.distance_m(np.array([0.0, side * e, -1.5])) for e in np.linspace(0, 4.0, 100)]
+        assert min(samples) < 0.0
 
 
 def test_success_rule() -> None:

@@ -20,8 +20,9 @@ coordinate within the course's east bounds. Kinds (:data:`COURSE_KINDS`):
 * ``side``: a long block reaching in from one side, its inner corner 0.03 to 0.2 m inside the
   vehicle's swept width: the obstacle stays in a side region until it is close (the paper's
   failure case, Fig. 11).
-* ``deadend``: a closed channel 1.6 to 3 m wide; the goal lies beyond its end wall, so the right
-  answer is to brake and hold (holding counts as success).
+* ``deadend``: a closed channel 1.6 to 3 m wide that the vehicle starts 2 m inside; the goal lies
+  beyond its end wall and the way out is behind, so the right answer is to brake and hold (holding
+  counts as success).
 * ``office``: the hard surfaces real stereo fails on: a room of plain painted walls (nearly
   textureless, some glossy, with a lamp's glare), a see-through fence of thin bars (a room divider)
   reaching across the line, a plain cabinet, a radiator's fins under a window, and a door in the
@@ -298,12 +299,17 @@ def side_course(seed: int) -> Course:
 
 
 def deadend_course(seed: int) -> Course:
-    """A closed channel; the goal lies beyond its end wall: the right answer is to brake and hold."""
+    """A closed channel the vehicle starts in; the goal lies beyond its end wall, and the way out is
+    behind: the right answer is to brake and hold.
+
+    The vehicle starts 2 m inside the channel. A channel that begins ahead of it is no dead end: with
+    room round its outside, the way to the goal is round it (as round the detour course's wall).
+    """
     rng = _rng("deadend", seed)
     width = float(rng.uniform(1.6, 3.0))
     end = float(rng.uniform(6.0, 9.0))
     half = 0.5 * width
-    height, entry = 3.0, 1.5
+    height, entry = 3.0, -2.0
     length = end - entry
     obstacles: list[Obstacle] = [
         Box.on_ground(entry + 0.5 * length, -half - 0.15, (length, 0.3, height)),
