@@ -9,6 +9,7 @@ import numpy as np
 from companion.core.disparity.base import check_grey_pair, check_out
 from companion.core.disparity.sgm import NEAR_SCALE, check_sgm_params, near_range_shape
 from companion.errors import FrameError
+from companion.interrupts import interrupt_after
 
 log = logging.getLogger(__name__)
 
@@ -103,9 +104,11 @@ class CpuSgmMatcher:
                 wc, hc, dc, p1=p1, p2=p2, paths=paths, uniqueness_ratio_pct=uniqueness_ratio_pct,
                 lr_max_diff_px=lr_max_diff_px, median=median, threads=self.threads, near_range=False,
             )
-        # Compile (or load the cached machine code) now, not on the first frame.
+        # Compile (or load the cached machine code) now, not on the first frame; a Ctrl-C meanwhile
+        # is delivered after (the compiler's callbacks would drop it).
         zeros = np.zeros((h, w), np.uint8)
-        self._run(zeros, zeros, self._out)
+        with interrupt_after():
+            self._run(zeros, zeros, self._out)
 
     def _run(self, left: np.ndarray, right: np.ndarray, out: np.ndarray) -> None:
         k = self._k

@@ -35,11 +35,13 @@ from companion.backends import make_pipeline
 from companion.config import CompanionConfig
 from companion.core.goal import GoalSpec
 from companion.core.pipeline import FrameResult, Pipeline
+from companion.core.planner import compile_kernels
 from companion.core.planner.stack import LocalStack
 from companion.core.progress import NO_PROGRESS_HOLD, GoalProgress
 from companion.core.types import ZERO_SETPOINT, DecisionKind, VelocitySetpoint
 from companion.errors import CameraError
 from companion.interfaces import Frame
+from companion.interrupts import interrupt_after
 from companion.sim.camera import SimCamera
 from companion.sim.courses import Course
 from companion.sim.render import Pose, TextureBank
@@ -312,6 +314,10 @@ def fly(
         on_step: called at every setpoint tick with what was commanded (a live view).
         clock, sleep: wall clock and sleep, for ``realtime`` and the timing instrumentation.
     """
+    # The planner's kernels compile once per process, before the flight's clock starts; a Ctrl-C
+    # meanwhile is delivered after (the compiler's callbacks would drop it).
+    with interrupt_after():
+        compile_kernels()
     wall0 = clock()
     cfg = simulator_config(cfg)
     sim, cmd = cfg.sim, cfg.command
