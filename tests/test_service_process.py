@@ -4,11 +4,13 @@ wire, a second SIGTERM forces the exit, startup failures exit 78."""
 from __future__ import annotations
 
 import signal
+import statistics
 import time
 from pathlib import Path
 
 import pytest
 from mavlink_peer import Px4Peer
+from peers.fakes import Client
 from peers.process import Notifications
 from peers.process import finish as _finish
 from peers.process import spawn as _spawn
@@ -47,11 +49,21 @@ def test_sighup_reload_and_sigterm_clean_shutdown_on_the_wire(tmp_path: Path) ->
             proc.send_signal(signal.SIGHUP)
             assert peer.wait_for(lambda: 0.0 < top_speed() <= 0.4 + 1e-6, 3.0)
 
-            _write_config(config, port, cruise=-3.0, extra=anything, vehicle=exact)  # invalid: rejected, the old one stays
-            proc.send_signal(signal.SIGHUP)
-            time.sleep(0.7)
-            assert proc.poll() is None
-            assert top_speed() <= 0.4 + 1e-6
+            client = Client(f"ipc://{tmp_path}/c.sock")
+            try:
+                version = client.call("status")["result"]["config_version"]
+                _write_config(config, port, cruise=-3.0, extra=anything, vehicle=exact)  # invalid: rejected, the old one stays
+                proc.send_signal(signal.SIGHUP)
+                time.sleep(0.7)
+                assert proc.poll() is None
+                assert client.call("status")["result"]["config_version"] == version
+                planner = client.call("get_config", section="planner")["result"]["config"]
+                assert planner["cruise_speed_m_s"] == 0.4
+            finally:
+                client.close()
+            # And flown: the planner's speed is the cruise (a tick's push off a surface within the stop
+            # margin, keep_off's, may add to one setpoint's, not to most).
+            assert 0.0 < statistics.median(s.vx for s in peer.setpoints[-10:]) <= 0.4 + 1e-6
 
             assert len(notify.lines("WATCHDOG=1")) >= 3
             assert any("engaged" in line for line in notify.lines("STATUS="))
