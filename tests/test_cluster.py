@@ -235,6 +235,36 @@ def test_tune_input_errors_are_one_line_and_exit_2(
     assert message in err and "\n" not in err
 
 
+@needs_ray
+def test_a_resume_that_searches_otherwise_names_what_differs(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A tune moved to a machine whose 'auto' backend resolves otherwise (here: a config that names
+    another matcher) would mix trials that do not compare: refused, in one line saying what differs."""
+    out = tmp_path / "t"
+    argv = ["tune", "planner.cruise_speed_m_s=0.5:1", "--suite", "quick", "--out", str(out)]
+    here = tmp_path / "here.toml"
+    here.write_text('[stereo]\nbackend = "opencv-sgbm"\n', encoding="utf-8")
+    there = tmp_path / "there.toml"
+    there.write_text('[stereo]\nbackend = "opencv-bm"\n', encoding="utf-8")
+    from companion.cli.tune import _check_same_search
+    from companion.config import load_config
+    from companion.sim.cluster import TuneSpec
+    from companion.sim.tuning import parse_setting, resolve_settings
+
+    cfg = load_config(there)
+    spec = TuneSpec(base=cfg, settings=resolve_settings(cfg, [parse_setting("planner.cruise_speed_m_s=0.5:1")]),
+                    courses=tuple(SUITES["quick"]), trials=20)
+    # The search kept beside an experiment, as a tune on the other machine wrote it.
+    out.mkdir()
+    _check_same_search(out / "search.json", spec, resume=False)
+    (out / "experiment").mkdir()
+    assert main([*argv, "--config", str(here), "--resume"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.endswith('differs: base.stereo.backend: "opencv-bm" there, "opencv-sgbm" here'), err  # only that
+    assert "\n" not in err
+
+
 def test_ray_goes_with_a_suite(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["sim", "--course", "doorway", "--ray"]) == 2
     assert "--ray goes with --suite" in capsys.readouterr().err

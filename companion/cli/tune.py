@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from companion import exitcodes
 from companion.errors import InputError
@@ -143,7 +144,6 @@ def _check_same_search(path: Path, spec: TuneSpec, resume: bool) -> None:
     """Keep what a tune searches beside its experiment; a resume must search the same (settings,
     ranges, courses, trials, seed, score, base config), else its trials would not compare."""
     import dataclasses
-    import json
 
     from companion.sim.cluster import EXPERIMENT_DIR
     data = {f.name: getattr(spec, f.name) for f in dataclasses.fields(spec) if f.name != "base"}
@@ -160,8 +160,37 @@ def _check_same_search(path: Path, spec: TuneSpec, resume: bool) -> None:
         kept = path.read_text(encoding="utf-8")
     except OSError:
         raise InputError(f"{path.parent}: no tune to resume here") from None
-    if kept != text:
+    try:
+        differs = _differences(json.loads(kept), json.loads(text))
+    except ValueError as err:
+        differs = [f"{path.name} is not JSON ({err})"]
+    if differs:
         raise InputError(
             f"{path.parent}: --resume must search what the tune there searched (the same settings, ranges, "
-            "suite, --kinds, --trials, --seed, --time-weight-per-s and --config)"
+            "suite, --kinds, --trials, --seed, --time-weight-per-s and --config, on a machine whose "
+            f"'auto' settings resolve alike); differs: {'; '.join(differs)}"
         )
+
+
+def _differences(there: Any, here: Any, key: str = "", limit: int = 3) -> list[str]:
+    """The first ``limit`` dotted keys whose values differ between two JSON values (the kept search's,
+    this one's), each as ``key: <there> there, <here> here`` with long values cut short."""
+    if isinstance(there, dict) and isinstance(here, dict):
+        out: list[str] = []
+        for k in sorted(set(there) | set(here)):
+            sub = f"{key}.{k}" if key else str(k)
+            if k not in there or k not in here:
+                out.append(f"{sub}: {'missing there' if k not in there else 'missing here'}")
+            else:
+                out += _differences(there[k], here[k], sub, limit - len(out))
+            if len(out) >= limit:
+                break
+        return out[:limit]
+    if there != here:
+        return [f"{key}: {_short(there)} there, {_short(here)} here"]
+    return []
+
+
+def _short(value: Any, chars: int = 60) -> str:
+    text = json.dumps(value)
+    return text if len(text) <= chars else text[: chars - 3] + "..."
