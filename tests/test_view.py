@@ -460,6 +460,60 @@ def test_sim_course_with_the_view(tmp_path: Path) -> None:
         urllib.request.urlopen(url, timeout=2)
 
 
+def test_a_killed_sim_takes_its_page_down(tmp_path: Path) -> None:
+    """``companion sim --view`` killed outright (SIGKILL: no cleanup of its own) leaves no page serving:
+    the view's input is a pipe the sim held, and the view stops when it closes. Before, the view served
+    on, orphaned, holding its port."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "companion", "sim", "--course", "head-on", "--seed", "1", "--view", "--view-port", "0"],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=tmp_path,
+    )
+    url = None
+    assert proc.stdout is not None
+    try:
+        for line in proc.stdout:
+            if "view:          open " in line:
+                url = line.split("open ", 1)[1].strip()
+                break
+        assert url
+        assert _get(url + "api/health")[0] == 200
+    finally:
+        proc.kill()
+        proc.communicate()
+
+    def down() -> bool:
+        try:
+            urllib.request.urlopen(url, timeout=1)
+        except urllib.error.URLError:
+            return True
+        return False
+
+    assert wait_until(down, 15.0), "the page still serves after its sim was killed"
+
+
+def test_the_view_stops_when_its_input_closes(tmp_path: Path) -> None:
+    """``companion view --until-input-closes``: the end of its standard input ends it, exit 0."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "companion", "view", "--no-control", "--health-endpoint", f"ipc://{tmp_path}/h.sock",
+         "--port", "0", "--until-input-closes"],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=tmp_path,
+    )
+    assert proc.stdin is not None and proc.stdout is not None
+    try:
+        for line in proc.stdout:
+            if "companion view: open " in line:
+                break
+        proc.stdin.close()
+        rc = proc.wait(timeout=15)
+        out = proc.stdout.read()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        proc.stdout.close()
+    assert rc == 0, out
+
+
 def test_the_page_and_the_terminal_give_the_rig_check_when_near_cannot_be_measured(tmp_path: Path) -> None:
     """``process``, ``eval`` and ``run`` say when the rig cannot measure down to where the controller's
     near is full; the view said nothing, and its bars showed such a rig's regions as far. The service's

@@ -43,6 +43,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--port", type=int, default=8080, help="TCP port (default 8080; 0 = any free one)")
     p.add_argument("--token-file", type=Path, help=f"a file (mode 600 or 640) holding the access token (else ${TOKEN_ENV}, else one is made up)")
     p.add_argument("--title", default="companion", help="the page's title (e.g. the vehicle's name)")
+    p.add_argument(
+        "--until-input-closes", action="store_true",
+        help="stop when standard input closes: a parent that holds it open (companion sim --view) takes the page "
+        "down with it however it ends",
+    )
     p.set_defaults(func=_view)
 
     p = sub.add_parser(
@@ -168,6 +173,15 @@ def _view(args: argparse.Namespace) -> int:
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.add_signal_handler(sig, stop.set)
+        if args.until_input_closes:
+            fd = sys.stdin.fileno()
+
+            def readable() -> None:
+                if not os.read(fd, 4096):  # end of input: the parent is gone (killed too)
+                    loop.remove_reader(fd)
+                    stop.set()
+
+            loop.add_reader(fd, readable)
 
         def ready(server: object) -> None:
             urls = getattr(server, "urls")

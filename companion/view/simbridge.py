@@ -88,9 +88,11 @@ class SimViewBridge:
         cmd = [
             sys.executable, "-m", "companion", "view", "--no-control",
             "--health-endpoint", health_endpoint, "--preview-endpoint", self.publisher.endpoint,
-            "--host", self.host, "--port", str(self.port), "--title", self.title,
+            "--host", self.host, "--port", str(self.port), "--title", self.title, "--until-input-closes",
         ]
-        self._proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, text=True)
+        # Its input is a pipe this process holds: however this process ends (killed too), the pipe
+        # closes and the page goes with it, instead of serving on with nobody feeding it.
+        self._proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.PIPE, text=True)
         lines: list[str] = []
         found = threading.Event()
 
@@ -153,6 +155,8 @@ class SimViewBridge:
         self._stop.set()
         if self._linger is not None:
             self._linger.join(2.0)
+        if self._proc is not None and self._proc.stdin is not None:
+            self._proc.stdin.close()
         if self._proc is not None and self._proc.poll() is None:
             self._proc.terminate()
             try:
