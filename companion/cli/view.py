@@ -174,6 +174,8 @@ def _view(args: argparse.Namespace) -> int:
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.add_signal_handler(sig, stop.set)
         if args.until_input_closes:
+            if sys.stdin is None:
+                raise InputError("--until-input-closes: this process has no standard input")
             fd = sys.stdin.fileno()
 
             def readable() -> None:
