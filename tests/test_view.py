@@ -426,21 +426,26 @@ def test_review_of_a_bounded_recording_and_of_a_sitl_workdir(tmp_path: Path) -> 
 # ---------------------------------------------------------------------------------------------- the simulator
 
 
-def test_sim_course_with_the_view(tmp_path: Path) -> None:
+def _sim_with_view(tmp_path: Path, *extra: str) -> tuple[subprocess.Popen[str], str | None, list[str]]:
+    """``companion sim --view`` on head-on-1 as a process; its page's URL (None: it printed none) and
+    the lines it printed up to it."""
     proc = subprocess.Popen(
         [sys.executable, "-m", "companion", "sim", "--course", "head-on", "--seed", "1", "--view", "--view-port", "0",
-         "--view-linger-s", "3"],
+         *extra],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=tmp_path,
     )
-    url = None
-    lines = []
     assert proc.stdout is not None
+    lines: list[str] = []
+    for line in proc.stdout:
+        lines.append(line)
+        if "view:          open " in line:
+            return proc, line.split("open ", 1)[1].strip(), lines
+    return proc, None, lines
+
+
+def test_sim_course_with_the_view(tmp_path: Path) -> None:
+    proc, url, lines = _sim_with_view(tmp_path, "--view-linger-s", "3")
     try:
-        for line in proc.stdout:
-            lines.append(line)
-            if "view:          open " in line:
-                url = line.split("open ", 1)[1].strip()
-                break
         assert url, "".join(lines)
         assert wait_until(lambda: (json.loads(_get(url + "api/health")[1])["health"] or {}).get("state") == "engaged", 10.0)
         h = json.loads(_get(url + "api/health")[1])
@@ -464,18 +469,9 @@ def test_a_killed_sim_takes_its_page_down(tmp_path: Path) -> None:
     """``companion sim --view`` killed outright (SIGKILL: no cleanup of its own) leaves no page serving:
     the view's input is a pipe the sim held, and the view stops when it closes. Before, the view served
     on, orphaned, holding its port."""
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "companion", "sim", "--course", "head-on", "--seed", "1", "--view", "--view-port", "0"],
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=tmp_path,
-    )
-    url = None
-    assert proc.stdout is not None
+    proc, url, lines = _sim_with_view(tmp_path)
     try:
-        for line in proc.stdout:
-            if "view:          open " in line:
-                url = line.split("open ", 1)[1].strip()
-                break
-        assert url
+        assert url, "".join(lines)
         assert _get(url + "api/health")[0] == 200
     finally:
         proc.kill()
