@@ -21,7 +21,7 @@ import pytest
 from companion.cli import main
 from companion.config import CompanionConfig, apply_patch
 from companion.errors import ConfigError, InputError
-from companion.sim.suite import SUITES, run_suite, select_kinds
+from companion.sim.suite import SUITES, run_suite, run_suites, select_kinds
 from companion.sim.tuning import (
     INVALID_SCORE,
     best_patch,
@@ -298,6 +298,43 @@ def test_a_suite_on_ray_gives_the_local_pools_verdicts(ray_shutdown: None, monke
     assert sorted(seen) == sorted(r.course.name for r in pool)
     assert [(f.kind, f.seed) for f in failures] == [("maze", 0)]
     assert "unknown course 'maze'" in failures[0].line() and failures[0].line().startswith("maze-0: ")
+
+
+def _kill_a_busy_flier() -> bool:
+    """SIGKILL one process of this machine flying a flight on a Ray actor (its title is
+    ``ray::_Flier.fly``); whether there was one."""
+    for pid in (int(p) for p in os.listdir("/proc") if p.isdigit()):
+        try:
+            title = Path(f"/proc/{pid}/cmdline").read_bytes()
+        except OSError:
+            continue
+        if title.startswith(b"ray::_Flier.fly"):
+            os.kill(pid, signal.SIGKILL)
+            return True
+    return False
+
+
+@needs_ray
+@pytest.mark.slow
+def test_a_flight_whose_process_dies_is_flown_again_on_a_new_actor(ray_shutdown: None) -> None:
+    """An actor's process killed mid-flight (a node lost, the kernel's OOM killer) costs that flight one
+    try: a new actor flies it, and every config's results are those of the local pool."""
+    from companion.sim.cluster import fly_suites, ray_session
+
+    base = CompanionConfig()
+    cfgs = [base, base.model_copy(update={"sim": base.sim.model_copy(update={"realization": 1})})]
+    courses = select_kinds(SUITES["quick"], "pitch")
+    killed: list[int] = []
+
+    def kill_once(j: int, done: int, total: int, result: Any) -> None:
+        if not killed and _kill_a_busy_flier():
+            killed.append(j)
+
+    with ray_session(None, num_cpus=2):
+        on_ray, failures = fly_suites(cfgs, courses, progress=kill_once)
+    assert killed, "no flight was in the air to kill"
+    assert failures == []
+    assert on_ray == run_suites(cfgs, courses, workers=2)
 
 
 @needs_ray

@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
-import functools
 import sys
 import time
 from pathlib import Path
@@ -325,14 +324,11 @@ def _run_suite(args: argparse.Namespace, cfg: Any) -> int:
     drawn = [cfg.model_copy(update={"sim": cfg.sim.model_copy(update={"realization": r})}) for r in range(first, first + n)]
     keep = trace_dir is not None
     with on_ray if on_ray is not None else contextlib.nullcontext():
-        if on_ray is None:  # one set of workers for every draw
+        # One set of workers for every draw, locally or on Ray.
+        if on_ray is None:
             got_all = run_suites(drawn, courses, workers=args.workers, keep_logs=keep, progress=progress)
         else:
-            got_all = [
-                on_ray.fly(d, courses, keep_logs=keep, progress=functools.partial(progress, j),
-                           failed=functools.partial(failed, j))
-                for j, d in enumerate(drawn)
-            ]
+            got_all = on_ray.fly(drawn, courses, keep_logs=keep, progress=progress, failed=failed)
     results: list[Any] = []
     per_draw: list[tuple[int, list[Any]]] = []
     for j, got in enumerate(got_all):

@@ -4,10 +4,10 @@ Ray is an optional extra (``pip install 'companion[cluster]'``: ``ray[tune]``, `
 module is imported only when a command asks for Ray, and :func:`require_ray` turns its absence into one
 line that says how to install it.
 
-* :func:`run_suite_ray` flies a suite's courses as Ray tasks (one CPU each), the results streamed to a
-  callback as flights finish, a flight that fails retried once (on any node) and then reported with its
-  course. A flight's result does not depend on where it flew: every flight uses one OpenCV thread and its
-  own texture bank, as in :func:`companion.sim.suite.run_suite`.
+* :func:`fly_suites` flies suites' courses on long-lived Ray actors (one CPU each, each with its texture
+  bank, as a local pool's worker), the results streamed to a callback as flights finish, a flight that
+  fails retried once (on any node) and then reported with its course. A flight's result does not depend
+  on where it flew: every flight uses one OpenCV thread, as in :func:`companion.sim.suite.run_suite`.
 * :func:`run_tune` searches settings with Optuna (:class:`ray.tune.search.optuna.OptunaSearch`) through
   Ray Tune, each trial a candidate config validated whole (:mod:`companion.sim.tuning`) and flown on the
   suite's courses; the experiment lives under a storage folder and a killed or interrupted run resumes
@@ -124,13 +124,24 @@ class FlightFailure:
         return f"{self.kind}-{self.seed}: {self.error}"
 
 
-def _fly_task(cfg_data: dict[str, Any], kind: str, seed: int, keep_logs: bool) -> FlightResult:
-    """One flight on a Ray worker (a fresh texture bank: a quarter second, against a flight's many)."""
-    from companion.sim.camera import make_texture_bank
-    from companion.sim.suite import fly_one
+class _Flier:
+    """A flight actor: one CPU, its texture bank built once and the config parsed once per suite, as a
+    local pool's worker does (a task of its own per flight paid both, and Ray's start of a worker, for
+    every flight)."""
 
-    cfg = parse_config(cfg_data, source="suite")
-    return fly_one(kind, seed, cfg, make_texture_bank(), keep_logs)
+    def __init__(self) -> None:
+        from companion.sim.camera import make_texture_bank
+
+        self._bank = make_texture_bank()
+        self._cfgs: dict[int, CompanionConfig] = {}
+
+    def fly(self, draw: int, cfg_data: dict[str, Any], kind: str, seed: int, keep_logs: bool) -> FlightResult:
+        """Fly ``kind``-``seed`` with the config of suite ``draw`` (``cfg_data``, parsed on first use)."""
+        from companion.sim.suite import fly_one
+
+        if draw not in self._cfgs:
+            self._cfgs[draw] = parse_config(cfg_data, source="suite")
+        return fly_one(kind, seed, self._cfgs[draw], self._bank, keep_logs)
 
 
 def _one_line(err: BaseException) -> str:
@@ -149,7 +160,7 @@ def run_suite_ray(
     keep_logs: bool = False,
     progress: Callable[[int, int, FlightResult], None] | None = None,
 ) -> tuple[list[FlightResult], list[FlightFailure]]:
-    """Fly every ``(kind, seed)`` of ``courses`` with ``cfg`` as Ray tasks.
+    """Fly every ``(kind, seed)`` of ``courses`` with ``cfg`` on a Ray connected for the call.
 
     Args:
         cfg: the configuration (every flight uses one OpenCV thread, as in the local pool).
@@ -159,8 +170,7 @@ def run_suite_ray(
         progress: called as each flight finishes, in finishing order, with (done, total, result).
 
     Returns:
-        The results of the flights that finished, in the order of ``courses``, and the flights that
-        raised on every try (each tried ``1 + FLIGHT_RETRIES`` times), in the order of ``courses``.
+        As :func:`fly_suite`.
 
     Raises:
         InputError: Ray is missing or unreachable.
@@ -177,46 +187,109 @@ def fly_suite(
     progress: Callable[[int, int, FlightResult], None] | None = None,
     failed: Callable[[int, int, FlightFailure], None] | None = None,
 ) -> tuple[list[FlightResult], list[FlightFailure]]:
-    """:func:`run_suite_ray` inside a :func:`ray_session` the caller holds (several suites, one Ray);
-    ``failed`` is called with (done, total, failure) as a flight fails its last try."""
+    """One suite on the Ray this process is connected to (:func:`fly_suites` with one config).
+
+    Returns:
+        The results of the flights that finished, in the order of ``courses``, and the flights that
+        raised on every try (each tried ``1 + FLIGHT_RETRIES`` times), in the order of ``courses``.
+    """
+    results, failures = fly_suites(
+        [cfg],
+        courses,
+        keep_logs=keep_logs,
+        progress=None if progress is None else (lambda _j, done, total, r: progress(done, total, r)),
+        failed=None if failed is None else (lambda _j, done, total, f: failed(done, total, f)),
+    )
+    return results[0], failures
+
+
+def fly_suites(
+    cfgs: Sequence[CompanionConfig],
+    courses: Sequence[tuple[str, int]],
+    *,
+    keep_logs: bool = False,
+    progress: Callable[[int, int, int, FlightResult], None] | None = None,
+    failed: Callable[[int, int, int, FlightFailure], None] | None = None,
+) -> tuple[list[list[FlightResult]], list[FlightFailure]]:
+    """Fly every ``(kind, seed)`` of ``courses`` with each config of ``cfgs`` on the Ray this process is
+    connected to (inside a :func:`ray_session`), as the local pool does (:func:`companion.sim.suite.run_suites`).
+
+    The flights run on long-lived actors, one per CPU Ray has free (at most one per flight), fed from
+    one queue: the next config's flights fill the CPUs while the last ones of a config still fly. A
+    flight that raises is tried again on the next free actor; an actor whose process died is replaced
+    and its flight tried again; after ``1 + FLIGHT_RETRIES`` tries the flight is reported.
+
+    Args:
+        cfgs: the configurations (e.g. one per noise draw); each flight uses one OpenCV thread.
+        courses: what to fly with each.
+        keep_logs: keep the per-step logs in the results (memory and transfer; default drop them).
+        progress: called as each flight finishes, in finishing order, with (config's index, flights of
+            that config done, its total, result).
+        failed: called likewise with a flight that failed its last try.
+
+    Returns:
+        One list per config of the results of its flights that finished, in the order of ``courses``;
+        and the flights that failed every try, in the order of ``cfgs`` then ``courses``.
+    """
     import ray
 
-    # retry_exceptions: a flight that raises is tried again, as is one whose worker died (max_retries).
-    task = ray.remote(num_cpus=1, max_retries=FLIGHT_RETRIES, retry_exceptions=True)(_fly_task)
-    cfg_ref = ray.put(single_thread_config(cfg).model_dump(mode="json"))
-    pending = {task.remote(cfg_ref, kind, int(seed), keep_logs): i for i, (kind, seed) in enumerate(courses)}
     total = len(courses)
-    out: list[FlightResult | None] = [None] * total
-    failures: dict[int, FlightFailure] = {}
-    done = 0
+    queue = [(j, i) for j in range(len(cfgs)) for i in range(total)]
+    if not queue:
+        return [[] for _ in cfgs], []
+    flier = ray.remote(num_cpus=1, max_restarts=0)(_Flier)
+    cfg_refs = [ray.put(single_thread_config(c).model_dump(mode="json")) for c in cfgs]
+    size = max(1, min(int(ray.available_resources().get("CPU", 1)), len(queue)))
+    idle = [flier.remote() for _ in range(size)]
+    queue.reverse()  # popped from the end: courses in order
+    tries: dict[tuple[int, int], int] = {}
+    pending: dict[Any, tuple[Any, tuple[int, int]]] = {}  # call -> (actor, (config, course))
+    out: list[list[FlightResult | None]] = [[None] * total for _ in cfgs]
+    failures: dict[tuple[int, int], FlightFailure] = {}
+    done = [0] * len(cfgs)
     try:
-        while pending:
+        while queue or pending:
+            while queue and idle:
+                actor = idle.pop()
+                j, i = key = queue.pop()
+                kind, seed = courses[i]
+                pending[actor.fly.remote(j, cfg_refs[j], kind, int(seed), keep_logs)] = (actor, key)
             ready, _ = ray.wait(list(pending), num_returns=1)
-            index = pending.pop(ready[0])
-            kind, seed = courses[index]
+            actor, key = pending.pop(ready[0])
+            j, i = key
             try:
                 result = ray.get(ready[0])
-            except Exception as err:  # the flight's own error or its worker's death, after its retry: reported
-                failures[index] = FlightFailure(kind, int(seed), _one_line(err))
-                log.debug("flight %s-%s failed after %d tries: %s", kind, seed, 1 + FLIGHT_RETRIES, failures[index].error)
-                done += 1
+            except Exception as err:  # the flight's own error or its actor's death: tried again, then reported
+                if isinstance(err, ray.exceptions.RayActorError):
+                    ray.kill(actor)
+                    actor = flier.remote()
+                idle.append(actor)
+                tries[key] = tries.get(key, 1) + 1
+                if tries[key] <= 1 + FLIGHT_RETRIES:
+                    queue.append(key)
+                    continue
+                kind, seed = courses[i]
+                failures[key] = FlightFailure(kind, int(seed), _one_line(err))
+                log.debug("flight %s-%s failed after %d tries: %s", kind, seed, 1 + FLIGHT_RETRIES, failures[key].error)
+                done[j] += 1
                 if failed is not None:
-                    failed(done, total, failures[index])
+                    failed(j, done[j], total, failures[key])
                 continue
-            done += 1
-            out[index] = result
+            idle.append(actor)
+            done[j] += 1
+            out[j][i] = result
             if progress is not None:
-                progress(done, total, result)
-    finally:
-        for ref in pending:  # an interrupted suite leaves no flight running
-            ray.cancel(ref, force=True)
-    return [r for r in out if r is not None], [failures[i] for i in sorted(failures)]
+                progress(j, done[j], total, result)
+    finally:  # an interrupted suite leaves no flight running
+        for actor in [*idle, *(a for a, _ in pending.values())]:
+            ray.kill(actor)
+    return [[r for r in draw if r is not None] for draw in out], [failures[k] for k in sorted(failures)]
 
 
 class SuiteOnRay:
     """Suites flown on one Ray session, with a progress bar (on a terminal) over all their flights.
 
-    ``with SuiteOnRay(total, address, num_cpus) as ray_suites:`` then :meth:`fly` once per suite (e.g.
+    ``with SuiteOnRay(total, address, num_cpus) as ray_suites:`` then :meth:`fly` with every config (e.g.
     one per noise realization); :attr:`failures` collects the flights that failed every try.
 
     Raises:
@@ -245,29 +318,29 @@ class SuiteOnRay:
 
     def fly(
         self,
-        cfg: CompanionConfig,
+        cfgs: Sequence[CompanionConfig],
         courses: Sequence[tuple[str, int]],
         *,
         keep_logs: bool = False,
-        progress: Callable[[int, int, FlightResult], None] | None = None,
-        failed: Callable[[int, int, FlightFailure], None] | None = None,
-    ) -> list[FlightResult]:
-        """Fly one suite (:func:`fly_suite`); the callbacks' printing goes above the bar."""
+        progress: Callable[[int, int, int, FlightResult], None] | None = None,
+        failed: Callable[[int, int, int, FlightFailure], None] | None = None,
+    ) -> list[list[FlightResult]]:
+        """Fly the suites (:func:`fly_suites`); the callbacks' printing goes above the bar."""
 
-        def on_result(done: int, total: int, result: FlightResult) -> None:
+        def on_result(j: int, done: int, total: int, result: FlightResult) -> None:
             if progress is not None:
                 with self._bar.external_write_mode():
-                    progress(done, total, result)
+                    progress(j, done, total, result)
             self._bar.update(1)
 
-        def on_failure(done: int, total: int, failure: FlightFailure) -> None:
+        def on_failure(j: int, done: int, total: int, failure: FlightFailure) -> None:
             self.failures.append(failure)
             if failed is not None:
                 with self._bar.external_write_mode():
-                    failed(done, total, failure)
+                    failed(j, done, total, failure)
             self._bar.update(1)
 
-        results, _ = fly_suite(cfg, courses, keep_logs=keep_logs, progress=on_result, failed=on_failure)
+        results, _ = fly_suites(cfgs, courses, keep_logs=keep_logs, progress=on_result, failed=on_failure)
         return results
 
 
