@@ -301,14 +301,16 @@ def test_a_suite_on_ray_gives_the_local_pools_verdicts(ray_shutdown: None, monke
 
 
 def _kill_a_busy_flier() -> bool:
-    """SIGKILL one process of this machine flying a flight on a Ray actor (its title is
-    ``ray::_Flier.fly``); whether there was one."""
+    """SIGKILL one process of this test's Ray (its environment names the test's ``RAY_TMPDIR``) flying a
+    flight on an actor (its title is ``ray::_Flier.fly``); whether there was one."""
+    mine = f"RAY_TMPDIR={os.environ['RAY_TMPDIR']}".encode()
     for pid in (int(p) for p in os.listdir("/proc") if p.isdigit()):
         try:
             title = Path(f"/proc/{pid}/cmdline").read_bytes()
-        except OSError:
+            env = Path(f"/proc/{pid}/environ").read_bytes().split(b"\0") if title.startswith(b"ray::_Flier.fly") else []
+        except OSError:  # gone, or another user's
             continue
-        if title.startswith(b"ray::_Flier.fly"):
+        if mine in env:
             os.kill(pid, signal.SIGKILL)
             return True
     return False
