@@ -8,9 +8,23 @@ import os
 import signal
 import threading
 
+from collections.abc import Iterator
+
 import pytest
 
 from companion.interrupts import interrupt_after
+
+
+@pytest.fixture(autouse=True)
+def python_handles_sigint() -> Iterator[None]:
+    """SIGINT raises KeyboardInterrupt, as in a command started from a terminal, even where this test
+    process was started with SIGINT ignored (a shell's background job); the disposition it had is put
+    back after."""
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, before)
 
 
 def _sort_interrupted_in_a_callback() -> None:
