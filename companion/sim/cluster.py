@@ -125,22 +125,20 @@ class FlightFailure:
 
 
 class _Flier:
-    """A flight actor: one CPU, its texture bank built once and the config parsed once per suite, as a
-    local pool's worker does (a task of its own per flight paid both, and Ray's start of a worker, for
-    every flight)."""
+    """A flight actor: one CPU, its texture bank built and the suites' configs (``cfg_data``, one JSON
+    dict each) parsed once, as a local pool's worker does (a task of its own per flight paid both, and
+    Ray's start of a worker, for every flight)."""
 
-    def __init__(self) -> None:
+    def __init__(self, cfg_data: list[dict[str, Any]]) -> None:
         from companion.sim.camera import make_texture_bank
 
         self._bank = make_texture_bank()
-        self._cfgs: dict[int, CompanionConfig] = {}
+        self._cfgs = [parse_config(d, source="suite") for d in cfg_data]
 
-    def fly(self, draw: int, cfg_data: dict[str, Any], kind: str, seed: int, keep_logs: bool) -> FlightResult:
-        """Fly ``kind``-``seed`` with the config of suite ``draw`` (``cfg_data``, parsed on first use)."""
+    def fly(self, draw: int, kind: str, seed: int, keep_logs: bool) -> FlightResult:
+        """Fly ``kind``-``seed`` with the config of suite ``draw``."""
         from companion.sim.suite import fly_one
 
-        if draw not in self._cfgs:
-            self._cfgs[draw] = parse_config(cfg_data, source="suite")
         return fly_one(kind, seed, self._cfgs[draw], self._bank, keep_logs)
 
 
@@ -238,9 +236,9 @@ def fly_suites(
     if not queue:
         return [[] for _ in cfgs], []
     flier = ray.remote(num_cpus=1, max_restarts=0)(_Flier)
-    cfg_refs = [ray.put(single_thread_config(c).model_dump(mode="json")) for c in cfgs]
+    cfg_ref = ray.put([single_thread_config(c).model_dump(mode="json") for c in cfgs])  # sent once per actor
     size = max(1, min(int(ray.available_resources().get("CPU", 1)), len(queue)))
-    idle = [flier.remote() for _ in range(size)]
+    idle = [flier.remote(cfg_ref) for _ in range(size)]
     queue.reverse()  # popped from the end: courses in order
     tries: dict[tuple[int, int], int] = {}
     pending: dict[Any, tuple[Any, tuple[int, int]]] = {}  # call -> (actor, (config, course))
@@ -253,7 +251,7 @@ def fly_suites(
                 actor = idle.pop()
                 j, i = key = queue.pop()
                 kind, seed = courses[i]
-                pending[actor.fly.remote(j, cfg_refs[j], kind, int(seed), keep_logs)] = (actor, key)
+                pending[actor.fly.remote(j, kind, int(seed), keep_logs)] = (actor, key)
             ready, _ = ray.wait(list(pending), num_returns=1)
             actor, key = pending.pop(ready[0])
             j, i = key
@@ -262,7 +260,7 @@ def fly_suites(
             except Exception as err:  # the flight's own error or its actor's death: tried again, then reported
                 if isinstance(err, ray.exceptions.RayActorError):
                     ray.kill(actor)
-                    actor = flier.remote()
+                    actor = flier.remote(cfg_ref)
                 idle.append(actor)
                 tries[key] = tries.get(key, 1) + 1
                 if tries[key] <= 1 + FLIGHT_RETRIES:
