@@ -149,34 +149,6 @@ def _one_line(err: BaseException) -> str:
     return f"{type(err).__name__}: {text[-1] if text else ''}".rstrip(": ")
 
 
-def run_suite_ray(
-    cfg: CompanionConfig,
-    courses: Sequence[tuple[str, int]],
-    *,
-    address: str | None = None,
-    num_cpus: int | None = None,
-    keep_logs: bool = False,
-    progress: Callable[[int, int, FlightResult], None] | None = None,
-) -> tuple[list[FlightResult], list[FlightFailure]]:
-    """Fly every ``(kind, seed)`` of ``courses`` with ``cfg`` on a Ray connected for the call.
-
-    Args:
-        cfg: the configuration (every flight uses one OpenCV thread, as in the local pool).
-        courses: what to fly.
-        address, num_cpus: where Ray runs (:func:`ray_session`).
-        keep_logs: keep the per-step logs in the results (memory and transfer; default drop them).
-        progress: called as each flight finishes, in finishing order, with (done, total, result).
-
-    Returns:
-        As :func:`fly_suite`.
-
-    Raises:
-        InputError: Ray is missing or unreachable.
-    """
-    with ray_session(address, num_cpus):
-        return fly_suite(cfg, courses, keep_logs=keep_logs, progress=progress)
-
-
 def fly_suite(
     cfg: CompanionConfig,
     courses: Sequence[tuple[str, int]],
