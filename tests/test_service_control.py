@@ -19,6 +19,7 @@ from peers.fakes import (
     FakeLink,
     GatedCamera,
     ServiceRunner,
+    StallMeter,
     avoid_scene_camera,
     engage_and_wait,
     service_config,
@@ -55,7 +56,15 @@ def running(tmp_path: Path):
 
 
 @pytest.fixture(scope="module")
-def engaged(tmp_path_factory):
+def stall_meter():
+    """How long this test process as a whole was held, for as long as the module's service runs."""
+    meter = StallMeter().start()
+    yield meter
+    meter.stop()
+
+
+@pytest.fixture(scope="module")
+def engaged(tmp_path_factory, stall_meter):
     """One engaged service shared by the read-only and fuzz tests."""
     tmp = tmp_path_factory.mktemp("engaged")
     # The fake vehicle hovers where it is: the progress watchdog would hold it after 20 s.
@@ -119,25 +128,26 @@ def test_engage_pause_resume_override_disengage(running) -> None:
     before = [s for s in link.sent if s.t_s < t_start]
     assert len(before) >= 5 and all(s.setpoint.is_zero for s in before)
     # Engaged: the local planner flies (its last tick in health).
-    assert wait_until(lambda: client.call("status")["result"]["planner"] is not None, 2.0)
+    assert wait_until(lambda: client.call("status")["result"]["planner"] is not None, 10.0)
 
     assert client.call("pause")["ok"]
-    assert wait_until(lambda: link.sent[-1].setpoint.is_zero, 2.0)
+    assert wait_until(lambda: link.sent[-1].setpoint.is_zero, 10.0)
     assert client.call("status")["result"]["state"] == "paused"
     assert client.call("resume")["ok"]
     assert client.call("status")["result"]["state"] == "engaged"
 
-    reply = client.call("override", yaw=-0.5, pitch=0.5, speed=0.5, duration_s=0.6)
+    # Long enough that a loaded machine still sees it in force; its expiry is waited for below.
+    reply = client.call("override", yaw=-0.5, pitch=0.5, speed=0.5, duration_s=3.0)
     assert reply["ok"] and reply["result"]["state"] == "override"
-    time.sleep(0.15)
-    sp = link.sent[-1].setpoint
     p, env = cfg.planner, cfg.envelope
-    assert sp.yaw_rate_deg_s == pytest.approx(-0.5 * min(p.max_yaw_rate_deg_s, env.max_yaw_rate_deg_s))
+    yaw_rate = -0.5 * min(p.max_yaw_rate_deg_s, env.max_yaw_rate_deg_s)
+    assert wait_until(lambda: link.sent[-1].setpoint.yaw_rate_deg_s == pytest.approx(yaw_rate), 10.0), link.sent[-1]
+    sp = link.sent[-1].setpoint
     assert sp.down_m_s == pytest.approx(-0.5 * min(p.max_vertical_speed_m_s, env.max_vertical_speed_m_s))
     assert sp.forward_m_s in (0.0, pytest.approx(0.5 * p.cruise_speed_m_s))  # 0 while the decision brakes
     override = client.call("status")["result"]["override"]
-    assert override["yaw"] == -0.5 and 0 < override["remaining_s"] <= 0.6
-    assert wait_until(lambda: client.call("status")["result"]["state"] == "engaged", 2.0)  # expired
+    assert override["yaw"] == -0.5 and 0 < override["remaining_s"] <= 3.0
+    assert wait_until(lambda: client.call("status")["result"]["state"] == "engaged", 10.0)  # expired
 
     too_long = client.call("override", yaw=0, pitch=0, speed=0.5, duration_s=60)
     assert not too_long["ok"] and "override_max_duration_s" in too_long["error"]["message"]
@@ -149,7 +159,7 @@ def test_engage_pause_resume_override_disengage(running) -> None:
     assert not again["ok"] and "already engaged" in again["error"]["message"]
     reply = client.call("disengage")
     assert reply["ok"] and reply["result"]["state"] == "disengaged"
-    assert wait_until(lambda: "stop_setpoints" in link.call_names(), 2.0)
+    assert wait_until(lambda: "stop_setpoints" in link.call_names(), 10.0)
     assert link.call_names()[given_up:] == ["start_offboard", "hold", "stop_setpoints"]
     n = len(link.sent)
     time.sleep(0.3)
@@ -233,7 +243,7 @@ def test_reload_validates_whole_keeps_old_on_error_and_new_membership_changes_th
         t_reload = time.monotonic()
         after = client.health(predicate=lambda h: h["config_version"] == reply["result"]["config_version"] and h["decision"]["kind"] == "clear")
         assert after["yaw"] == pytest.approx(0.0, abs=1e-9)
-        assert wait_until(lambda: link.sent[-1].setpoint.yaw_rate_deg_s == pytest.approx(0.0, abs=1e-9), 1.0)
+        assert wait_until(lambda: link.sent[-1].setpoint.yaw_rate_deg_s == pytest.approx(0.0, abs=1e-9), 10.0)
         # the next frame, not a restart: the service kept its clock and its engagement
         assert after["state"] == "engaged" and t_reload > 0
         client.close()
@@ -282,7 +292,7 @@ def test_a_config_byte_that_is_not_utf8_is_refused_on_reload_and_sighup(tmp_path
 
         path.write_bytes(endpoints.encode() + b"# \xff\n")
         service._loop.call_soon_threadsafe(service._on_hup)  # what SIGHUP runs
-        assert wait_until(lambda: "byte" in (client.health().get("last_error") or ""), 3.0)
+        assert wait_until(lambda: "byte" in (client.health().get("last_error") or ""), 10.0)
         assert client.call("get_config", section="planner")["result"]["config"]["cruise_speed_m_s"] == cruise
         client.close()
     gc.collect()
@@ -368,25 +378,31 @@ def test_malformed_messages_get_error_replies_and_the_setpoint_stream_never_paus
 OFFBOARD_LOSS_S = 1.0
 
 
-def test_setpoint_stream_did_not_pause_during_the_fuzz(engaged) -> None:
-    """Runs after the fuzz (file order): the whole time engaged, through the fuzz, the setpoint stream
-    never paused as long as PX4's offboard-loss timeout, and the service is (back) engaged.
+def test_setpoint_stream_did_not_pause_during_the_fuzz(engaged, stall_meter) -> None:
+    """Runs after the fuzz (file order): the whole time engaged, through the fuzz, the service never
+    paused its setpoint stream as long as PX4's offboard-loss timeout, and it is (back) engaged.
 
-    In the full suite on a loaded 2-core machine this once failed: the service was degraded after the
-    fuzz. The cause was this process, not the control plane: the suite's per-test check for open ZeroMQ
-    contexts ran a full garbage collection of the test process's heap after every test, which held the
-    interpreter lock 0.5-0.9 s there, every thread of the in-process service waiting, longer than the
-    0.5 s stale-frame timeout (the service degraded to zero velocity, as it must). The suite now freezes
-    its start-up heap out of the collector, and so does the service after its own start-up.
+    The service runs inside the test process, whose own work (hypothesis, a full garbage collection of
+    the test's heap) and a loaded machine's scheduler can hold every thread of the process at once: a
+    stall meter thread measures that, and what the service is answerable for is each gap less the time
+    the whole process was held within it. A service that blocked its own loop (a control handler
+    running long on it) pauses the stream while the meter's thread runs on.
     """
     service, link, client = engaged
     t_start = next(t for t, c in link.calls if c == "start_offboard")
     times = np.array([s.t_s for s in link.sent if s.t_s >= t_start])
+    assert len(times) > 2, len(times)
     gaps = np.diff(times)
+    held = np.array([stall_meter.held_s(a, b) if g > 0.25 else 0.0 for a, b, g in zip(times[:-1], times[1:], gaps)])
+    own = gaps - held
+    worst = int(np.argmax(own))
     # Its regularity is a figure of `companion bench --soak`, not this test's: on a loaded machine the
     # scheduler sets it. A pause of PX4's offboard-loss timeout is what the vehicle would act on.
-    print(f"setpoints while engaged: {len(times) / (times[-1] - times[0]):.1f} per second, largest gap {gaps.max():.3f} s")
-    assert len(times) > 2 and gaps.max() < OFFBOARD_LOSS_S, f"the setpoint stream paused {gaps.max():.3f} s"
+    print(
+        f"setpoints while engaged: {len(times) / (times[-1] - times[0]):.1f} per second, largest gap {gaps.max():.3f} s, "
+        f"largest with the process held subtracted {own[worst]:.3f} s ({held[worst]:.3f} s held)"
+    )
+    assert own[worst] < OFFBOARD_LOSS_S, f"the setpoint stream paused {gaps[worst]:.3f} s, the process held {held[worst]:.3f} s of it"
     # Stale frames (0.5 s) would have degraded it, as they must; with fresh frames it is engaged again.
     assert wait_until(lambda: client.call("status")["result"]["state"] == "engaged", 5.0), client.call("status")["result"]
     assert link.state().in_offboard and service.supervisor.engaged
@@ -544,14 +560,14 @@ def test_camera_gone_gives_zero_at_once_and_it_reconnects(tmp_path: Path) -> Non
     with _engaged_with_gated_camera(tmp_path, camera=camera_cfg) as (link, camera, client):
         camera.fail()  # unplugged: the next read fails, reopening fails
         t_gone = time.monotonic()
-        assert wait_until(lambda: client.call("status")["result"]["camera"]["status"] == "reconnecting", 1.0)
+        assert wait_until(lambda: client.call("status")["result"]["camera"]["status"] == "reconnecting", 10.0)
         status = client.call("status")["result"]
         assert status["state"] == "degraded" and "camera lost" in status["reason"]
         assert "unplugged" in status["last_error"]
         # zero at once: the camera's loss, not the 0.5 s stale timeout, stopped the vehicle
         assert any(s.setpoint.is_zero for s in link.sent_since(t_gone)) and "camera lost" in status["reason"]
         camera.thaw()
-        assert wait_until(lambda: client.call("status")["result"]["state"] == "engaged", 3.0)
+        assert wait_until(lambda: client.call("status")["result"]["state"] == "engaged", 10.0)
         assert client.call("status")["result"]["camera"]["reconnects"] == 1
         assert not link.sent[-1].setpoint.is_zero
 
@@ -565,7 +581,7 @@ def test_the_stale_zero_goes_out_when_the_frame_turns_stale_not_at_the_next_tick
         assert wait_until(lambda: link.sent and not link.sent[-1].setpoint.is_zero, 5.0)
         camera.freeze()
         t_freeze = time.monotonic()
-        assert wait_until(lambda: any(s.setpoint.is_zero for s in link.sent_since(t_freeze)), 1.5)
+        assert wait_until(lambda: any(s.setpoint.is_zero for s in link.sent_since(t_freeze)), 10.0)
         last_frame_s = camera.last_timestamp_s
         assert last_frame_s is not None
         first_zero = next(s for s in link.sent_since(t_freeze) if s.setpoint.is_zero)

@@ -201,6 +201,42 @@ class ServiceRunner:
             self.stop()
 
 
+class StallMeter:
+    """A thread of the test process that wakes every ``period_s`` and stamps the monotonic clock: where
+    its stamps are far apart, the whole process was held (a garbage collection, the test's own work
+    holding the interpreter lock, the machine's scheduler), not any one part of it.
+
+    An in-process service shares the interpreter with the test: ``held_s(a, b)`` is how much of the
+    interval [a, b] (monotonic seconds) this process was held, which the service could not have used.
+    """
+
+    def __init__(self, period_s: float = 0.02) -> None:
+        self.period_s = period_s
+        self.stamps: list[float] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="stall-meter", daemon=True)
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.period_s):
+            self.stamps.append(time.monotonic())
+
+    def start(self) -> StallMeter:
+        self.stamps.append(time.monotonic())
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(5.0)
+
+    def held_s(self, a: float, b: float) -> float:
+        """The longest stretch inside [a, b] (seconds) between two stamps, less one period."""
+        t = np.asarray(self.stamps + [time.monotonic()] if self._thread.is_alive() else self.stamps)
+        lo, hi = np.maximum(t[:-1], a), np.minimum(t[1:], b)
+        overlap = np.clip(hi - lo, 0.0, None)
+        return float(max(overlap.max(initial=0.0) - self.period_s, 0.0))
+
+
 class Client:
     """A synchronous ZeroMQ control client (REQ or DEALER) and health subscriber."""
 
