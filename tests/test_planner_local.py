@@ -854,3 +854,41 @@ def test_the_local_planner_s_watchdog_gives_a_slower_cruise_the_same_way_round(c
     assert paused_at is not None and limit_s - 1.0 <= paused_at <= limit_s + 1.0, (paused_at, limit_s)
     assert f"{cfg.planner.no_progress_distance_m:g} m at {cruise_m_s:g} m/s" in out.reason, out.reason
     assert "no progress" in out.reason  # the announcement reads the watchdog by it
+
+
+def test_a_descent_cut_by_the_floor_flies_on_under_an_overhead_block() -> None:
+    """Simulated pitch courses: a block overhead whose bottom edge is too low to pass at the cruise
+    altitude, open beneath. Every way under it descends to the floor before it is past; counted as
+    closed there, the planner flew along the block and was held by the watchdog. A descent cut by the
+    floor levels off along it: it is closed only where that level line meets a surface."""
+    m = _map()
+    edge_row = 28  # the block's bottom edge: 1.25 m high at 2.5 m ahead, seen from 1.5 m
+    blocks = np.full(BLOCKS, GEOM.focal_baseline_px_m / 2.5, dtype=np.float32)
+    blocks[edge_row:] = GEOM.focal_baseline_px_m / 20.0  # beneath it, open beyond the map's range
+    _see(m, blocks)
+    cfg = PlannerConfig()
+    alt = 1.5
+    # The level line is closed by the block; the steepest descent passes beneath it and meets the floor.
+    down = math.radians(-cfg.max_climb_deg)
+    level_free = m.free_lengths(np.array([0.0, 0.0, -alt]), NORTH)
+    assert level_free.blocked[0] and level_free.length_m[0] < 2.5
+    to_floor = (alt - cfg.floor_m) / math.sin(-down)
+    steep = m.free_lengths(np.array([0.0, 0.0, -alt]), np.array([[math.cos(down), 0.0, -math.sin(down)]]))
+    assert steep.length_m[0] > to_floor
+    p = LocalPlanner(cfg, 0.25)
+    plan = p.plan(_snap(), m)
+    assert plan.mode is not Mode.HOLD, plan.reason
+    v = plan.velocity_ned_m_s
+    # Straight on toward the goal, descending beneath the block (not round it).
+    assert v[0] > 0.5 and v[2] > 0.2 and abs(v[1]) < 0.1 * v[0], plan.reason
+
+
+def test_a_descent_cut_by_the_floor_before_a_wall_down_to_the_ground_is_closed() -> None:
+    """The other side of the same principle: where the level line along the floor meets a surface (a
+    wall down to the ground), the descent is closed as the wall itself is, and the way round is sought."""
+    m = _map()
+    _see(m, _wall_blocks(3.0))
+    p = LocalPlanner(PlannerConfig(), 0.25)
+    plan = p.plan(_snap(), m)
+    climb = math.degrees(math.asin(-plan.direction_ned[2])) if np.linalg.norm(plan.direction_ned) else 0.0
+    assert climb > -5.0, plan.reason  # no dive toward the foot of the wall

@@ -115,6 +115,32 @@ def test_compiled_free_lengths_equal_numpy_on_random_layers(seed: int) -> None:
         _assert_same(m, start, d)
 
 
+@pytest.mark.parametrize("seed", range(2))
+def test_lines_from_their_own_starts_equal_each_line_from_its_start(seed: int) -> None:
+    """``free_lengths_from``: each line as the whole-array NumPy query from its own start, except that
+    a start within a surface's radius ends its line there, blocked."""
+    rng = np.random.default_rng(100 + seed)
+    m = LocalMap(voxel_m=0.2, range_m=5.0, radius_m=0.3, occupied_memory_s=20.0, free_memory_s=6.0)
+    m.centre_on(np.zeros(3))
+    m.now_s = 10.0
+    m._fcnt[...] = (rng.random(m.shape) < 0.997).astype(np.int8)
+    m._occ[...] = rng.random(m.shape) < 0.0005
+    m._infl[...] = (rng.random(m.shape) < 0.002).astype(np.int16) + m._occ
+    d = _directions(rng, 64)
+    starts = rng.uniform(-1.5, 1.5, size=(64, 3))
+    occ_cube = np.argwhere(m._occ)[0]
+    starts[0] = (occ_cube + m.origin + 0.5) * m.voxel_m + 0.03
+    fl = m.free_lengths_from(starts, d)
+    inside = m.within_radius(starts)
+    assert inside[0] and not inside.all()
+    for k in range(len(d)):
+        if inside[k]:
+            assert fl.length_m[k] == 0.0 and fl.blocked[k] and not fl.horizon[k]
+            continue
+        length, blocked, horizon = _free_lengths_numpy(m, starts[k], d[k : k + 1])
+        assert (fl.length_m[k], fl.blocked[k], fl.horizon[k]) == (length[0], blocked[0], horizon[0]), k
+
+
 def _blocked_columns_numpy(m: LocalMap, k0: int, lo: int, hi: int) -> np.ndarray:
     at_level = m._infl[:, :, k0] > 0
     if hi <= lo:

@@ -53,3 +53,15 @@ def test_a_turn_within_arducopter_s_delay_does_not_swing_it_onto_a_door_jamb() -
     )
     result = fly(make_course("office", 17000), cfg)
     assert result.outcome is Outcome.GOAL, result.reason
+
+
+def test_a_block_whose_way_under_meets_the_floor_is_passed_under() -> None:
+    """pitch-21005 (the GPU matcher's disparities, made bit for bit by ``cpu-sgm``; 0.14 m/s drift): an
+    overhead block with its bottom at 1.37 m, below the vehicle's centre at its 1.5 m altitude. Every
+    line that fits under it meets the floor first; scored as ending there, closed, the planner flew up
+    and down along the block until the no-progress watchdog held it. A descent cut by the floor is
+    scored on the path that levels off along it, and the flight passes under to the goal."""
+    cfg = parse_config({"stereo": {"backend": "cpu-sgm"}, "sim": {"drift_speed_m_s": 0.14}})
+    result = fly(make_course("pitch", 21005), cfg)
+    assert result.outcome is Outcome.GOAL, result.reason
+    assert result.min_clearance_m > 0.0

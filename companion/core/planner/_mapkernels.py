@@ -62,7 +62,7 @@ def _rim_of(d0: float, d1: float, d2: float, radius_m: float, cos_a: np.ndarray,
 
 @nb.njit(**_JIT)
 def free_lengths(
-    start: np.ndarray,
+    starts: np.ndarray,
     d: np.ndarray,
     s: np.ndarray,
     radius_m: float,
@@ -83,7 +83,7 @@ def free_lengths(
     first: np.ndarray,
     blocked: np.ndarray,
 ) -> None:
-    """For each line k of ``d`` (float64 ``(K, 3)`` unit NED) from ``start`` (float64 ``(3,)`` NED m),
+    """For each line k of ``d`` (float64 ``(K, 3)`` unit NED) from ``starts[k]`` (float64 ``(K, 3)`` NED m),
     sampled at ``s`` (float64 ``(S,)`` m): ``first[k]`` (int64) the index of its first bad sample (S:
     none) and ``blocked[k]`` (bool) whether that sample is within a surface's radius.
 
@@ -103,9 +103,9 @@ def free_lengths(
         first[k] = s.shape[0]
         blocked[k] = False
         for j in range(s.shape[0]):
-            px = start[0] + d[k, 0] * s[j]
-            py = start[1] + d[k, 1] * s[j]
-            pz = start[2] + d[k, 2] * s[j]
+            px = starts[k, 0] + d[k, 0] * s[j]
+            py = starts[k, 1] + d[k, 1] * s[j]
+            pz = starts[k, 2] + d[k, 2] * s[j]
             c = _cube_at(px, py, pz, voxel, origin, nx, ny, nz)
             if c < 0:
                 first[k] = j

@@ -7,7 +7,8 @@ Each tick (:meth:`LocalPlanner.plan`) takes one frozen :class:`Snapshot` and the
    to the goal's altitude (within ±``max_climb_deg``);
 2. asks the map how far each is free (:meth:`~companion.core.planner.localmap.LocalMap.free_lengths`:
    seen free, the surfaces inflated by the vehicle's radius), cut where it would leave the band
-   between floor and ceiling;
+   between floor and ceiling (a descent cut by the floor is scored on the path that levels off
+   along it);
 3. scores each by ONE cost (:func:`costs`), a weighted sum of named terms: turn from the goal's
    direction (the way round the surfaces seen, :mod:`~companion.core.planner.way`), the way left after
    flying the candidate's length, shortness of that length,
@@ -403,8 +404,21 @@ class LocalPlanner:
         to_band = np.maximum(to_band, 0.0)
         band_cut = to_band < free
         free = np.minimum(free, to_band)
+        # A climb cut by the ceiling ends there, closed (no way over a wall that high). A descent cut
+        # by the floor levels off and flies on along it: the cost scores that bent path, its length and
+        # whether it ends at a surface (a wall down to the ground) or passes on (under an overhead
+        # block). The speed law flies the line itself, slowing toward the floor until level.
+        path = free.copy()
+        floor_cut = np.flatnonzero(band_cut & (vz < 0.0))
+        if len(floor_cut):
+            knees = pos + dirs[floor_cut] * to_band[floor_cut, None]
+            on = lmap.free_lengths_from(knees, directions(yaw[floor_cut], np.zeros(len(floor_cut))))
+            # Judged, as every line is, within the map's range along it.
+            bent = to_band[floor_cut] + on.length_m
+            band_cut[floor_cut] = on.blocked & (bent < lmap.range_m)
+            path[floor_cut] = np.minimum(bent, lmap.range_m)
         blocked = fl.blocked | band_cut
-        free_line, blocked_line = free, blocked  # on the lines themselves
+        path_line, blocked_line = path, blocked  # on the lines themselves (a descent's bent at the floor)
         bins = self._bin(yaw)
         moved = np.hypot(*(self._looked_from[bins] - pos[None, :2]).T)
         unlooked = (snap.now_s - self._looked_t[bins] > cfg.look_memory_s) | (moved > LOOKED_FROM_M)
@@ -420,10 +434,12 @@ class LocalPlanner:
             # not flown out of; the operator chooses.
             way_yaw = None
 
-        def score(free: np.ndarray, blocked: np.ndarray, swung: np.ndarray | bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        def score(
+            free: np.ndarray, path: np.ndarray, blocked: np.ndarray, swung: np.ndarray | bool = False
+        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
             # Hoped-for length: unknown space not looked at lately is worth a look.
             hopeful = unlooked & ~blocked & ~swung & ~fl.horizon
-            hoped = np.where(hopeful, np.maximum(free, 0.5 * cfg.map_range_m), free)
+            hoped = np.where(hopeful, np.maximum(path, 0.5 * cfg.map_range_m), path)
             visited = self._visited_at(pos + dirs * np.minimum(hoped, VISITED_LOOKAHEAD_M)[:, None])
             way_left = None
             if way_yaw is not None:  # from a cube short of each end: a line ends at a surface's radius
@@ -434,9 +450,9 @@ class LocalPlanner:
                 visited, motion, cfg, way_yaw, way_left,
             )
             # A candidate that cannot move a cube's length is out, unless hoped for.
-            return hopeful, hoped, np.where(hoped < lmap.voxel_m, np.inf, c)
+            return hopeful, hoped, np.where((free < lmap.voxel_m) & ~hopeful, np.inf, c)
 
-        hopeful, hoped, c = score(free, blocked)
+        hopeful, hoped, c = score(free, path, blocked)
         # The path the vehicle will fly (its velocity lags the command), for the cheapest candidates:
         # a swing that enters a surface's inflation shortens the candidate like a surface on its line,
         # so that a sharp turn at speed costs speed, not clearance. The others cost more already, and
@@ -462,13 +478,13 @@ class LocalPlanner:
                 # the low speed, then the rest at cruise (not the rest at the low speed, as past a
                 # surface on the line).
                 free = np.where(swung, clear, free)
-                hopeful, hoped, c = score(free, blocked, swung)
+                hopeful, hoped, c = score(free, np.minimum(path, clear), blocked, swung)
                 blocked = blocked | swung
         table = np.stack([yaw, climb, free, hoped, c], axis=1)
         # A dead end: every direction within the cone of the goal's is closed short by surfaces seen.
         in_cone = _angle_diff(yaw, goal_yaw) <= math.radians(cfg.dead_end_cone_deg)
         # On the lines themselves (a swing at speed is no dead end).
-        closed = in_cone & (free_line < cfg.dead_end_free_m) & (blocked_line | ~unlooked)
+        closed = in_cone & (path_line < cfg.dead_end_free_m) & (blocked_line | ~unlooked)
         if snap.goal_ned_m is not None and np.all(closed[in_cone]):
             if self._closed_since is None:
                 self._closed_since = snap.now_s

@@ -444,28 +444,52 @@ class LocalMap:
         Where the start itself is within the radius of a surface (a gust, a late brake), the first
         radius of each line is judged on the surfaces alone, not their inflation, so that the way out
         is open and the way in is not."""
-        from companion.core.planner import _mapkernels
-
-        h = self.range_m if horizon_m is None else float(horizon_m)
         d = np.ascontiguousarray(np.asarray(directions, dtype=np.float64).reshape(-1, 3))
         start = np.ascontiguousarray(np.asarray(start_ned_m, dtype=np.float64).reshape(3))
         if self.origin is None:
-            z = np.zeros(len(d))
-            return FreeLengths(z, np.zeros(len(d), bool), np.zeros(len(d), bool))
-        step = self.voxel_m
-        s = np.arange(step, h + 1e-9, step)
+            return self._nothing_free(len(d))
+        h = self.range_m if horizon_m is None else float(horizon_m)
+        s = np.arange(self.voxel_m, h + 1e-9, self.voxel_m)
         if bool(self.within_radius(start)):
             # Only the first radius of each line (a few samples) is judged so.
-            n = int(np.count_nonzero(s <= self.radius_m + step))
+            n = int(np.count_nonzero(s <= self.radius_m + self.voxel_m))
             pts = start + d[:, None, :] * s[None, :n, None]  # (K, n, 3)
             idx, _ = self._index(pts)
             near = self._occ.reshape(-1)[idx] | _moves_closer(self, start, pts)
         else:
             near = np.zeros((len(d), 0), dtype=bool)
+        return self._walk(np.repeat(start[None, :], len(d), axis=0), d, s, h, near)  # writable: one compiled kernel
+
+    def free_lengths_from(self, starts_ned_m: np.ndarray, directions: np.ndarray, horizon_m: float | None = None) -> FreeLengths:
+        """:meth:`free_lengths` of K lines each from its own start (``starts_ned_m`` float ``(K, 3)``
+        NED m), judged alike from the first sample: a start within a surface's radius ends its line
+        there, blocked (the way out of a surface is judged only from where the vehicle is)."""
+        d = np.ascontiguousarray(np.asarray(directions, dtype=np.float64).reshape(-1, 3))
+        starts = np.ascontiguousarray(np.asarray(starts_ned_m, dtype=np.float64).reshape(-1, 3))
+        if self.origin is None:
+            return self._nothing_free(len(d))
+        h = self.range_m if horizon_m is None else float(horizon_m)
+        s = np.arange(self.voxel_m, h + 1e-9, self.voxel_m)
+        blocked_at_start = self.within_radius(starts)
+        fl = self._walk(starts, d, s, h, np.zeros((len(d), 0), dtype=bool))
+        return FreeLengths(
+            np.where(blocked_at_start, 0.0, fl.length_m), fl.blocked | blocked_at_start, fl.horizon & ~blocked_at_start
+        )
+
+    @staticmethod
+    def _nothing_free(k: int) -> FreeLengths:
+        return FreeLengths(np.zeros(k), np.zeros(k, bool), np.zeros(k, bool))
+
+    def _walk(self, starts: np.ndarray, d: np.ndarray, s: np.ndarray, h: float, near: np.ndarray) -> FreeLengths:
+        """The compiled walk of :meth:`free_lengths`: lines from ``starts`` (float64 ``(K, 3)``) along
+        ``d`` (float64 ``(K, 3)``) sampled at ``s`` (float64 ``(S,)`` m) up to the horizon ``h`` (m);
+        ``near`` (bool ``(K, n)``) replaces the inflation for the first n samples."""
+        from companion.core.planner import _mapkernels
+
         first = np.empty(len(d), dtype=np.int64)
         blocked = np.empty(len(d), dtype=bool)
         _mapkernels.free_lengths(
-            start, d, s, self.radius_m, self._rim_cos, self._rim_sin, 2.0 * self.radius_m, near,
+            starts, d, s, self.radius_m, self._rim_cos, self._rim_sin, 2.0 * self.radius_m, near,
             self.voxel_m, np.asarray(self.origin, dtype=np.int64), self._grid_shape,
             self._infl.reshape(-1), self._fcnt.reshape(-1), self.log_odds.reshape(-1), self.prev_hit_t.reshape(-1),
             self._body_mask.reshape(-1), np.float32(OCCUPIED_LOG_ODDS), np.float32(self.now_s - MIXED_EVIDENCE_S),
@@ -475,7 +499,6 @@ class LocalMap:
         length = np.where(first > 0, s[np.maximum(first - 1, 0)], 0.0)
         length = np.where(any_bad, length, h)
         return FreeLengths(length_m=length, blocked=blocked, horizon=~any_bad)
-
 
     def clear_along(self, start_ned_m: np.ndarray, points_ned_m: np.ndarray, arc_m: np.ndarray) -> np.ndarray:
         """How far along each of K sampled paths (``points_ned_m`` float ``(K, S, 3)`` NED m at arc
