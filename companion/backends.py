@@ -5,7 +5,8 @@ imports a backend; the GPU backend (:mod:`companion.gpu`) depends on the core, n
 This module plugs them together: :data:`BACKENDS` maps each ``stereo.backend`` name to a
 :class:`Backend`, :func:`make_estimator` builds the one a config asks for, and :func:`make_pipeline`
 builds a :class:`~companion.core.pipeline.Pipeline` that rebuilds its estimator through the same
-registry when the config changes. A new backend is one entry here.
+registry when the config changes, and matches with :func:`cpu_fallback` once a GPU fault has lost the
+device. A new backend is one entry here.
 """
 
 from __future__ import annotations
@@ -22,7 +23,9 @@ from companion.core.pipeline import Pipeline
 from companion.devices import cuda_available, numba_available
 from companion.errors import BackendError
 
-__all__ = ["BACKENDS", "Backend", "cuda_available", "make_estimator", "make_pipeline", "resolve_backend"]
+__all__ = [
+    "BACKENDS", "Backend", "cpu_fallback", "cuda_available", "make_estimator", "make_pipeline", "resolve_backend",
+]
 
 log = logging.getLogger(__name__)
 
@@ -99,6 +102,21 @@ def make_estimator(
     return BACKENDS[name].factory(cfg, width_px, height_px, clock)
 
 
+def cpu_fallback(
+    cfg: CompanionConfig, width_px: int, height_px: int, clock: Clock = time.perf_counter
+) -> RegionEstimator:
+    """The estimator that matches once the GPU is lost to the process: the CPU engine of the same census
+    + SGM (``cpu-sgm``), whose disparities are the GPU's bit for bit, so the map and every setting
+    resolved for the GPU's dense map still hold; StereoBM where Numba cannot load.
+
+    Raises:
+        BackendError: it cannot be built (e.g. the calibration no longer loads).
+    """
+    name = "cpu-sgm" if numba_available() else "opencv-bm"
+    cfg = cfg.model_copy(update={"stereo": cfg.stereo.model_copy(update={"backend": name})})
+    return BACKENDS[name].factory(cfg, width_px, height_px, clock)
+
+
 def make_pipeline(
     cfg: CompanionConfig,
     width_px: int,
@@ -107,6 +125,10 @@ def make_pipeline(
     clock: Clock = time.perf_counter,
 ) -> Pipeline:
     """A :class:`~companion.core.pipeline.Pipeline` whose estimator (built now, and again when a config
-    change needs a new one) comes from :func:`make_estimator`; ``estimator`` replaces the first one.
-    The config's backend-dependent settings were resolved when it was loaded."""
-    return Pipeline(cfg, width_px, height_px, make_estimator=make_estimator, estimator=estimator, clock=clock)
+    change needs a new one) comes from :func:`make_estimator`; ``estimator`` replaces the first one;
+    once a GPU fault loses the device, :func:`cpu_fallback` builds them. The config's
+    backend-dependent settings were resolved when it was loaded."""
+    return Pipeline(
+        cfg, width_px, height_px, make_estimator=make_estimator, estimator=estimator, fallback=cpu_fallback,
+        clock=clock,
+    )

@@ -180,6 +180,39 @@ def test_the_service_gives_the_camera_the_gpu_backends_pool_and_none_otherwise(t
     assert service.vision.frame_buffers.pool is None
 
 
+def test_a_lost_gpu_takes_its_pool_from_the_camera_and_health_names_the_cpu_engine(tmp_path: Path) -> None:
+    """A fault that loses the GPU: the pipeline matches with the CPU engine from the next frame on, the
+    camera stops decoding into the lost backend's pinned buffers, and health's counters say which
+    backend matches and what lost the device."""
+    from companion.backends import make_pipeline
+    from companion.core.estimator import CpuRegionEstimator
+    from companion.errors import BackendError
+    from companion.interfaces import Frame
+    from companion.service.daemon import Service
+
+    from peers.fakes import FakeLink, FaultingEstimator, avoid_scene_camera, service_config
+
+    cfg = service_config(tmp_path)
+    w, h = cfg.camera.width_px, cfg.camera.height_px
+    service = Service(cfg, camera=avoid_scene_camera(10.0), link=FakeLink(), install_signals=False, environ={})
+
+    class _Gpu(FaultingEstimator):  # with the GPU backend's pinned pool for the camera
+        def frame_pool(self, count: int, channels: int = 3) -> FramePool:
+            return FramePool([np.zeros((h, 2 * w, channels), np.uint8) for _ in range(count)])
+
+    pipeline = make_pipeline(cfg, w, h, estimator=_Gpu(CpuRegionEstimator(cfg, w, h), good_frames=0, device_lost=True))
+    vision = service.vision
+    vision.pipeline = pipeline
+    vision.offer_frame_pool(pipeline, cfg)
+    assert vision.frame_buffers.pool is not None and vision.counts(0.0).backend == "cupy"
+    with pytest.raises(BackendError, match="illegal memory access"):
+        vision._process(Frame(np.zeros((h, 2 * w, 3), np.uint8), 0.0, 1))
+    assert vision.frame_buffers.pool is None
+    counts = vision.counts(0.0)
+    assert counts.backend == "cpu-sgm" and "illegal memory access" in counts.device_lost
+    assert vision._process(Frame(np.zeros((h, 2 * w, 3), np.uint8), 0.1, 2)).refined.depth_m.shape == (9,)
+
+
 def test_a_uvc_camera_takes_yuyv_bytes_only_where_the_driver_gives_yuyv(caplog: pytest.LogCaptureFixture) -> None:
     cap = _DecodingCapture(2 * 8, 6)
     cam = UvcCamera("/dev/video0", 8, 6, 30.0, model="sbs", fourcc="YUYV", capture_factory=lambda d: cap)

@@ -866,3 +866,53 @@ def test_obstacle_distance_kernel_times_at_1280x720() -> None:
         return float(np.median(ts[10:]))
     on_ms, off_ms = gpu_ms(est), gpu_ms(off)
     print(f"frame at {w}x{h}: {on_ms:.3f} ms with OBSTACLE_DISTANCE, {off_ms:.3f} ms without (+{on_ms - off_ms:.3f} ms)")
+
+
+_POISON = r'''
+import sys
+import numpy as np
+import cupy as cp
+from companion.backends import make_pipeline
+from companion.bench.common import BenchSize, rendered_frames
+from companion.config import parse_config
+from companion.devices import numba_available
+from companion.errors import BackendError
+
+cfg = parse_config({"stereo": {"backend": "cupy", "matcher": "sgm"}})
+w, h = 336, 188
+frame = rendered_frames(BenchSize(w, h, 64), 1)[1][0]
+pipeline = make_pipeline(cfg, w, h)
+before = pipeline.process(frame, 0.0).raw.depth_m
+# A kernel that writes through a wild pointer: the sticky fault (an illegal address) a bug or a
+# failing device leaves behind, after which every CUDA call in the process fails.
+wild = cp.RawKernel('extern "C" __global__ void wild(int* p) { p[threadIdx.x] = 1; }', "wild")
+wild((1,), (32,), (cp.uint64(1 << 40),))
+try:
+    pipeline.process(frame, 0.1)
+except BackendError as err:
+    assert err.context.get("device_lost") is True, err.context
+else:
+    sys.exit("the frame after the fault did not raise")
+expected = "cpu-sgm" if numba_available() else "opencv-bm"
+assert pipeline.estimator.name == expected and pipeline.device_lost, (pipeline.estimator.name, pipeline.device_lost)
+after = pipeline.process(frame, 0.2).raw.depth_m
+if expected == "cpu-sgm":
+    np.testing.assert_array_equal(after, before)  # the CPU engine: the GPU's depths bit for bit
+print("fell back to", expected)
+'''
+
+
+def test_a_sticky_cuda_fault_loses_the_device_and_the_cpu_engine_matches_the_same(tmp_path: Path) -> None:
+    """A real illegal address in the estimator's context (in a child process: the context stays
+    broken): the frame it struck raises ``device_lost``, and the pipeline matches with cpu-sgm, whose
+    region depths equal the GPU's before the fault (StereoBM where Numba cannot load)."""
+    import os
+    import subprocess
+    import sys
+
+    script = tmp_path / "poison.py"
+    script.write_text(_POISON)
+    root = Path(__file__).resolve().parents[1]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(root), os.environ.get("PYTHONPATH", "")])}
+    done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, env=env, timeout=600)
+    assert done.returncode == 0 and "fell back" in done.stdout, done.stderr[-3000:]

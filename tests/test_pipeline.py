@@ -11,6 +11,8 @@ from companion.core.estimator import CpuRegionEstimator
 from companion.core.regions import reduce_regions
 from companion.sim.render import Box, Pose, Scene, StereoRenderer
 from companion.core.types import REGION_INDEX, DecisionKind
+from companion.errors import BackendError
+from peers.fakes import FaultingEstimator
 
 W, H = 672, 376
 ALT_M = 1.5
@@ -168,3 +170,32 @@ def test_every_frame_carries_its_blocks_for_the_local_map() -> None:
     assert not np.shares_memory(first.near_blocks, second.near_blocks)
     assert pipeline.reconfigure(apply_patch(cfg, {"planner": {"block_px": 8}})) == ["planner"]
     assert pipeline.process(frame, timestamp_s=0.2).near_blocks.shape == (-(-H // 8), -(-W // 8))
+
+
+def test_a_gpu_fault_that_loses_the_device_loses_one_frame_then_the_cpu_engine_matches() -> None:
+    """A sticky CUDA fault costs the frame it struck; from the next frame on the CPU engine of the same
+    census + SGM matches, and every later rebuild (a live stereo change) builds the CPU engine too,
+    not the configured backend (the StereoBM here stands in for a configured GPU)."""
+    cfg, pipeline, frame, _ = _render(Scene(obstacles=(_wall(2.0),)))
+    cfg = apply_patch(cfg, {"stereo": {"backend": "opencv-bm"}})
+    faulty = FaultingEstimator(CpuRegionEstimator(cfg, W, H), good_frames=1, device_lost=True)
+    pipeline = make_pipeline(cfg, W, H, estimator=faulty)
+    assert pipeline.process(frame, timestamp_s=0.0).refined.depth_m.size == 9
+    with pytest.raises(BackendError, match="illegal memory access"):
+        pipeline.process(frame, timestamp_s=0.1)
+    assert pipeline.device_lost is not None and "illegal memory access" in pipeline.device_lost
+    assert faulty.closed and pipeline.estimator.name == "cpu-sgm"
+    centre = pipeline.process(frame, timestamp_s=0.2).refined.depth_m[REGION_INDEX["center"]]
+    assert centre == pytest.approx(2.0, rel=0.05)
+    assert pipeline.reconfigure(apply_patch(cfg, {"stereo": {"num_disparities": 96}})) == ["stereo"]
+    assert pipeline.estimator.name == "cpu-sgm"
+    assert pipeline.process(frame, timestamp_s=0.3).refined.depth_m[REGION_INDEX["center"]] == pytest.approx(2.0, rel=0.05)
+
+
+def test_a_gpu_error_that_leaves_the_device_usable_loses_only_its_frame() -> None:
+    cfg, _, frame, _ = _render(Scene(obstacles=(_wall(2.0),)))
+    faulty = FaultingEstimator(CpuRegionEstimator(cfg, W, H), good_frames=0, device_lost=False)
+    pipeline = make_pipeline(cfg, W, H, estimator=faulty)
+    with pytest.raises(BackendError):
+        pipeline.process(frame, timestamp_s=0.0)
+    assert pipeline.estimator is faulty and pipeline.device_lost is None and not faulty.closed

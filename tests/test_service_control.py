@@ -34,7 +34,7 @@ HEALTH_FIELDS = {
     "type", "seq", "time_s", "unix_time_s", "state", "reason", "engaged", "config_version", "fps",
     "frame_age_ms", "stages_ms", "frame_to_setpoint_ms", "regions_m", "yaw", "pitch", "decision",
     "setpoint", "setpoint_age_ms", "setpoints_sent", "override", "camera", "vehicle", "processed_frames",
-    "dropped_frames", "processed_twice", "frame_errors", "last_error", "rig",
+    "dropped_frames", "processed_twice", "frame_errors", "backend", "device_lost", "last_error", "rig",
 }
 
 
@@ -100,6 +100,7 @@ def test_ping_status_and_health_carry_every_field(engaged) -> None:
     assert health["frame_to_setpoint_ms"]["last"] is not None and health["frame_to_setpoint_ms"]["last"] > 0
     assert {"disparity_ms", "total_ms", "fuzzy_ms"} <= set(health["stages_ms"])
     assert health["processed_twice"] == 0 and health["fps"] > 0  # its rate is `companion bench`'s figure
+    assert health["backend"] == service.vision.pipeline.estimator.name and health["device_lost"] is None
     # Health keeps coming, one message after another (its rate is a figure: companion bench).
     seqs = [client.health(timeout_s=30.0)["seq"] for _ in range(5)]
     assert seqs == sorted(seqs) and len(set(seqs)) == 5

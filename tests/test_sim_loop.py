@@ -216,3 +216,36 @@ def test_the_progress_watchdog_holds_the_flight(bank) -> None:
     assert braking.size and braking[0] == pytest.approx(3.0, abs=0.1)
     assert np.all(log.kind[log.t_s > braking[0]] == LogKind.BRAKE)
     assert result.min_clearance_m > 1.0
+
+
+def _pipelines_that_fault(monkeypatch, good_frames: int, device_lost: bool) -> None:
+    """The flights' pipelines match ``good_frames`` frames, then every frame raises the error a CUDA
+    fault becomes (:class:`peers.fakes.FaultingEstimator`)."""
+    from companion.sim import loop
+    from peers.fakes import FaultingEstimator
+
+    real = loop.make_pipeline
+
+    def make(cfg, width_px, height_px, **kwargs):
+        pipeline = real(cfg, width_px, height_px, **kwargs)
+        pipeline.estimator = FaultingEstimator(pipeline.estimator, good_frames, device_lost)
+        return pipeline
+
+    monkeypatch.setattr(loop, "make_pipeline", make)
+
+
+def test_a_gpu_fault_mid_flight_costs_one_frame_and_the_cpu_engine_flies_on(bank, monkeypatch) -> None:
+    _pipelines_that_fault(monkeypatch, good_frames=30, device_lost=True)
+    result = fly(head_on_course(seed=1, box_north_m=4.0, box_width_m=0.6), CFG, textures=bank)
+    assert result.success and result.outcome is Outcome.GOAL and result.min_clearance_m > 0.0
+    assert result.frames_lost == 1 and "illegal memory access" in result.reason
+
+
+def test_frames_the_pipeline_keeps_failing_on_stop_the_flight_safely(bank, monkeypatch) -> None:
+    """Every frame failing from 1 s on (an error that leaves no fallback): the frames go stale, the
+    vehicle stops, and the flight ends held, as the service would, saying why."""
+    _pipelines_that_fault(monkeypatch, good_frames=15, device_lost=False)
+    cfg = apply_patch(CFG, {"sim": {"held_after_s": 10.0}})
+    result = fly(head_on_course(seed=2, box_north_m=25.0), cfg, textures=bank)
+    assert result.outcome is Outcome.HELD and result.min_clearance_m > 1.0
+    assert result.frames == 15 and result.frames_lost > 0 and "frames lost" in result.reason

@@ -11,6 +11,9 @@ Two layers:
 * :class:`Pipeline` owns an estimator and the cheap, host-side stages that both share: the depth
   look-up table, the release filter and the avoidance controller. The estimator also reduces the
   disparity to blocks (``planner.block_px``), the local planner's map input (``near_blocks``).
+  Where the estimator reports its device lost (a GPU fault that leaves CUDA unusable in the
+  process), the pipeline builds the ``fallback`` estimator (the CPU engine) and matches with it
+  from the next frame on, instead of losing every frame to the dead device.
 
 Nothing here reads a clock for logic: the frame timestamp is passed in (it drives the filter). Stage
 timings are instrumentation and use an injectable ``clock`` (default :func:`time.perf_counter`).
@@ -32,6 +35,7 @@ from companion.core.geometry import StereoGeometry
 from companion.core.lut import DepthLUT, median_filter, release_filter
 from companion.core.obstacle import ObstacleDistance
 from companion.core.types import Decision, RegionDepths
+from companion.errors import BackendError
 
 log = logging.getLogger(__name__)
 
@@ -98,7 +102,13 @@ class Pipeline:
         make_estimator: builds the estimator for a config (now, unless ``estimator`` is given, and
             again when a change needs a new one); :func:`companion.backends.make_estimator`.
         estimator: an estimator to use instead of building one from ``cfg`` (tests, GPU sharing).
+        fallback: builds the estimator to match with once the device is lost (a
+            :class:`~companion.errors.BackendError` whose context says ``device_lost``), then and
+            on every later rebuild; None: such an error is only raised.
         clock: timing clock for the per-stage figures.
+
+    Attributes:
+        device_lost: the error that lost the device, one line; None while it works.
     """
 
     def __init__(
@@ -109,12 +119,15 @@ class Pipeline:
         *,
         make_estimator: EstimatorFactory,
         estimator: RegionEstimator | None = None,
+        fallback: EstimatorFactory | None = None,
         clock: Clock = time.perf_counter,
     ):
         self.width_px = width_px
         self.height_px = height_px
         self._clock = clock
         self._make_estimator = make_estimator
+        self._fallback = fallback
+        self.device_lost: str | None = None
         estimator = estimator or make_estimator(cfg, width_px, height_px, clock)
         self._filtered: np.ndarray | None = None
         self._history: deque[np.ndarray] = deque(maxlen=cfg.lut.median_frames - 1)
@@ -149,11 +162,32 @@ class Pipeline:
         ]
         estimator = self.estimator
         if any(s in changed for s in ESTIMATOR_SECTIONS):
-            estimator = self._make_estimator(cfg, self.width_px, self.height_px, self._clock)
+            make = self._make_estimator if self.device_lost is None or self._fallback is None else self._fallback
+            estimator = make(cfg, self.width_px, self.height_px, self._clock)
         self._install(cfg, estimator)
         if cfg.lut.median_frames - 1 != self._history.maxlen:
             self._history = deque(self._history, maxlen=cfg.lut.median_frames - 1)
         return changed
+
+    def _fall_back(self, err: BackendError) -> None:
+        """Swap in the fallback estimator after ``err`` lost the device (the frame itself is lost).
+
+        Raises:
+            BackendError: the fallback could not be built either (both causes in one line).
+        """
+        self.device_lost = str(err)
+        old = self.estimator
+        try:
+            self.estimator = self._fallback(self.config, self.width_px, self.height_px, self._clock)
+        except BackendError as build_err:
+            raise BackendError(f"{err}; the fallback matcher could not be built: {build_err}", device_lost=True) from None
+        log.error("%s: matching with %s from now on", err, self.estimator.name)
+        closer = getattr(old, "close", None)
+        if closer is not None:
+            try:
+                closer()
+            except Exception as close_err:  # noqa: BLE001 - the lost device's threads; the fallback runs on
+                log.error("releasing the lost backend failed: %s", close_err)
 
     def reset(self) -> None:
         """Forget the filter's memory (e.g. after a camera reconnect)."""
@@ -166,17 +200,24 @@ class Pipeline:
 
         Raises:
             FrameError: the frame has the wrong shape, dtype or size.
+            BackendError: the estimator failed on this frame; where it lost its device and a
+                ``fallback`` is given, the next frame is matched by the fallback estimator.
         """
         clock = self._clock
         t0 = clock()
         planner = self.config.planner
         erode = planner.block_erode_px
-        est = self.estimator.estimate(
-            frame,
-            want_disparity=want_disparity,
-            near_block_px=planner.block_px,
-            near_erode_px=erode if isinstance(erode, int) else 0,  # a model built without validation: off
-        )
+        try:
+            est = self.estimator.estimate(
+                frame,
+                want_disparity=want_disparity,
+                near_block_px=planner.block_px,
+                near_erode_px=erode if isinstance(erode, int) else 0,  # a model built without validation: off
+            )
+        except BackendError as err:
+            if err.context.get("device_lost") and self._fallback is not None and self.device_lost is None:
+                self._fall_back(err)
+            raise
         t1 = clock()
         looked_up = self._lut.apply(est.regions.depth_m)
         median = median_filter(self._history, looked_up, self.config.lut.median_frames)

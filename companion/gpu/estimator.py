@@ -347,7 +347,9 @@ class CupyRegionEstimator(FrameUpload, BandLaunch):
 
         Raises:
             FrameError: wrong dtype, layout or size.
-            BackendError: a CUDA error.
+            BackendError: a CUDA error; its context's ``device_lost`` is True where the error left
+                the GPU unusable in this process (an illegal address, a launch failure), so that
+                the caller matches on the CPU from then on.
         """
         t0 = self._clock()
         in_place = self._in_place(frame)
@@ -420,8 +422,12 @@ class CupyRegionEstimator(FrameUpload, BandLaunch):
                     timings["disparity_regions_ms"] = elapsed(ev[2], ev[3])
                     timings["d2h_ms"] = elapsed(ev[3], ev[4])
         except (cp.cuda.runtime.CUDARuntimeError, cp.cuda.driver.CUDADriverError) as err:
-            self._recover()
-            raise BackendError(f"CUDA error in the GPU estimator: {err}") from None
+            if self._recover():
+                raise BackendError(f"CUDA error in the GPU estimator: {err}", device_lost=False) from None
+            # A fault such as an illegal address leaves the context unusable for the rest of the process.
+            raise BackendError(
+                f"CUDA error in the GPU estimator: {err}; the GPU is unusable in this process", device_lost=True
+            ) from None
         timings["upload_ms"] = (t1 - t0) * 1e3
         timings["gpu_ms"] = (t2 - t1) * 1e3
         res = self._result
@@ -458,8 +464,9 @@ class CupyRegionEstimator(FrameUpload, BandLaunch):
             self._crew.close()
             self._crew = None
 
-    def _recover(self) -> None:
-        """After a CUDA error: forget graphs and zero the histogram state a half-run kernel left."""
+    def _recover(self) -> bool:
+        """After a CUDA error: forget graphs and zero the histogram state a half-run kernel left.
+        False when that fails: the error was one that leaves the context unusable (it is sticky)."""
         self._graphs.clear()
         self._frame_graphs.clear()
         try:
@@ -472,5 +479,7 @@ class CupyRegionEstimator(FrameUpload, BandLaunch):
                 if self.obstacle_layout is not None:
                     self._od_hist.fill(0)
                     self._od_counts.fill(0)
-        except Exception as err:  # the context may be unusable; the next frame reports it
+        except Exception as err:  # noqa: BLE001 - any failure here means the context is gone
             log.error("GPU estimator could not reset its state after an error: %s", err)
+            return False
+        return True

@@ -59,6 +59,10 @@ class FrameCounts:
         frame_errors: frames rejected or failed in a stage.
         skipped: late frames skipped for a fresher one (``service.skip_late_frames``).
         fps: results in the last second, per second.
+        backend: the disparity backend matching the frames now (``cupy``, ``cpu-sgm``, ...), or None
+            before the pipeline is built.
+        device_lost: the GPU fault that put the CPU engine in its place, one line; None while the
+            backend configured works.
     """
 
     processed: int
@@ -66,6 +70,8 @@ class FrameCounts:
     frame_errors: int
     skipped: int
     fps: float
+    backend: str | None = None
+    device_lost: str | None = None
 
 
 class CapturePart:
@@ -302,7 +308,13 @@ class PipelinePart:
         self._last_processed_key = key
         view = self._view()
         want = view is not None and view.wants_frame()  # a viewer watches and a preview is due
-        result = self.pipeline.process(frame.image, frame.timestamp_s, want_disparity=want)
+        pipeline = self.pipeline
+        estimator = pipeline.estimator
+        try:
+            result = pipeline.process(frame.image, frame.timestamp_s, want_disparity=want)
+        finally:
+            if pipeline.estimator is not estimator:  # the device was lost: the fallback has no pinned pool
+                self.offer_frame_pool(pipeline, pipeline.config)
         if want:
             view.offer(frame, result, self.pipeline)  # references only; drawn in the preview thread
         return result
@@ -336,10 +348,13 @@ class PipelinePart:
     def counts(self, now_s: float) -> FrameCounts:
         """The counters at ``now_s`` (monotonic seconds)."""
         recent = sum(1 for t in self._processed_times if now_s - t <= 1.0)
+        pipeline = self.pipeline
         return FrameCounts(
             processed=self._processed,
             processed_twice=self._processed_twice,
             frame_errors=self._frame_errors,
             skipped=self._thread.skipped if self._thread is not None else 0,
             fps=float(recent),
+            backend=pipeline.estimator.name if pipeline is not None else None,
+            device_lost=pipeline.device_lost if pipeline is not None else None,
         )

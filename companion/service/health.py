@@ -227,6 +227,8 @@ class HealthReporter:
             "dropped_frames": (capture.dropped if capture is not None else 0) + frames.skipped,
             "processed_twice": frames.processed_twice,
             "frame_errors": frames.frame_errors,
+            "backend": frames.backend,
+            "device_lost": frames.device_lost,
             "last_error": src.last_error(),
             "control": dataclasses.asdict(control) if control is not None else None,
             "mavlink": src.mavlink(),

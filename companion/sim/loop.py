@@ -39,7 +39,7 @@ from companion.core.planner import compile_kernels
 from companion.core.planner.stack import LocalStack
 from companion.core.progress import NO_PROGRESS_HOLD, GoalProgress
 from companion.core.types import ZERO_SETPOINT, DecisionKind, VelocitySetpoint
-from companion.errors import CameraError
+from companion.errors import CameraError, CompanionError
 from companion.interfaces import Frame
 from companion.interrupts import interrupt_after
 from companion.sim.camera import SimCamera
@@ -168,6 +168,8 @@ class FlightResult:
         reason: one line saying why the flight ended.
         hold_reason: why the flight held, when it did (the progress watchdog, a dead end), else "".
         detours: times the planner entered its detour mode.
+        frames_lost: frames the pipeline failed on (a broken frame, a GPU fault), which the service
+            would lose too; ``reason`` then says the last.
         log: the setpoint-rate log.
         frame_log: the per-frame log.
         timing: wall-clock instrumentation (not compared).
@@ -187,6 +189,7 @@ class FlightResult:
     reason: str = ""
     hold_reason: str = ""
     detours: int = 0
+    frames_lost: int = 0
     log: FlightLog | None = field(default=None, compare=False)
     frame_log: FrameLog | None = field(default=None, compare=False)
     timing: FlightTiming | None = field(default=None, compare=False)
@@ -364,6 +367,8 @@ def fly(
     stalled = False  # the progress watchdog (or a dead end) fired: the service pauses; here the flight holds
     hold_reason = ""
     detours = 0
+    frames_lost = 0
+    last_loss = ""
     judge = Judge(
         course,
         radius,
@@ -405,21 +410,27 @@ def fly(
                 camera_ok = False  # a camera that stopped delivering: the setpoint rule takes over
             else:
                 p0 = clock()
-                res = pipeline.process(frame.image, frame.timestamp_s, want_disparity=want_disparity)
+                try:
+                    res = pipeline.process(frame.image, frame.timestamp_s, want_disparity=want_disparity)
+                except CompanionError as err:  # lost, as the service loses it: the frames age, the filters act
+                    frames_lost += 1
+                    last_loss = str(err)
+                    res = None
                 p1 = clock()
-                render_ms.append((p0 - r0) * 1e3)
-                pipe_ms.append((p1 - p0) * 1e3)
-                pending.append((frame.timestamp_s + sim.processing_latency_s, res, vehicle.pose()))
-                f_t.append(frame.timestamp_s)
-                f_pos.append(vehicle.model.position_ned_m.copy())
-                f_att.append((vehicle.model.roll_rad, vehicle.model.pitch_rad, vehicle.model.yaw_rad))
-                f_depth.append(np.asarray(res.refined.depth_m, dtype=np.float64).copy())
-                f_kind.append(int(_KIND_OF[res.decision.kind]))
-                f_yaw.append(res.decision.yaw)
-                f_pitch.append(res.decision.pitch)
-                f_reason.append(res.decision.reason)
-                if on_frame is not None:
-                    on_frame(frame, res)
+                if res is not None:
+                    render_ms.append((p0 - r0) * 1e3)
+                    pipe_ms.append((p1 - p0) * 1e3)
+                    pending.append((frame.timestamp_s + sim.processing_latency_s, res, vehicle.pose()))
+                    f_t.append(frame.timestamp_s)
+                    f_pos.append(vehicle.model.position_ned_m.copy())
+                    f_att.append((vehicle.model.roll_rad, vehicle.model.pitch_rad, vehicle.model.yaw_rad))
+                    f_depth.append(np.asarray(res.refined.depth_m, dtype=np.float64).copy())
+                    f_kind.append(int(_KIND_OF[res.decision.kind]))
+                    f_yaw.append(res.decision.yaw)
+                    f_pitch.append(res.decision.pitch)
+                    f_reason.append(res.decision.reason)
+                    if on_frame is not None:
+                        on_frame(frame, res)
         while pending and pending[0][0] <= t + _EPS_S:
             _, latest, seen_from = pending.popleft()
             if latest.near_blocks is not None:
@@ -532,8 +543,9 @@ def fly(
         collision_radius_m=radius,
         frames=len(f_t),
         decisions=counts,
-        reason=judge.reason,
+        reason=judge.reason + (f"; {frames_lost} frames lost, the last: {last_loss}" if frames_lost else ""),
         hold_reason=hold_reason,
+        frames_lost=frames_lost,
         detours=detours,
         log=log,
         frame_log=frame_log,

@@ -12,7 +12,7 @@ import zmq
 
 from companion.config import CompanionConfig, parse_config
 from companion.core.types import VelocitySetpoint
-from companion.errors import CameraError, VehicleError
+from companion.errors import BackendError, CameraError, VehicleError
 from companion.interfaces import Frame, VehicleState
 
 
@@ -387,3 +387,30 @@ def wait_until(predicate, timeout_s: float, poll_s: float = 0.01) -> bool:
             return True
         time.sleep(poll_s)
     return bool(predicate())
+
+
+class FaultingEstimator:
+    """Stands in for the GPU estimator: matches with ``inner`` for ``good_frames`` frames, then every
+    frame raises the error a CUDA fault becomes (``device_lost``: a sticky one such as an illegal
+    address, which leaves the context unusable)."""
+
+    name = "cupy"
+
+    def __init__(self, inner, good_frames: int, device_lost: bool) -> None:
+        self._inner = inner
+        self.geometry, self.layout = inner.geometry, inner.layout
+        self._left = good_frames
+        self._device_lost = device_lost
+        self.closed = False
+
+    def estimate(self, frame, **kwargs):
+        if self._left > 0:
+            self._left -= 1
+            return self._inner.estimate(frame, **kwargs)
+        raise BackendError(
+            "CUDA error in the GPU estimator: cudaErrorIllegalAddress: an illegal memory access was encountered",
+            device_lost=self._device_lost,
+        )
+
+    def close(self) -> None:
+        self.closed = True
