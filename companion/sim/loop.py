@@ -415,9 +415,8 @@ def fly(
                 except CompanionError as err:  # lost, as the service loses it: the frames age, the filters act
                     frames_lost += 1
                     last_loss = str(err)
-                    res = None
-                p1 = clock()
-                if res is not None:
+                else:
+                    p1 = clock()
                     render_ms.append((p0 - r0) * 1e3)
                     pipe_ms.append((p1 - p0) * 1e3)
                     pending.append((frame.timestamp_s + sim.processing_latency_s, res, vehicle.pose()))
