@@ -4,7 +4,8 @@
   ``RUNTIME_DIRECTORY`` is unset: a test's service binds its ``auto`` sockets there, and a client
   looks only there (never in the user's own runtime directory, nor in the /tmp fallback), so no
   test sees another run's sockets or leaves one behind.
-* The kernels compiled for the CPU (``companion.gpu.hostemu``) are built in this run's own folder.
+* The kernels compiled for the CPU (``companion.gpu.hostemu``) are built in this run's own folder,
+  and the processes the tests start (MAVSDK's server) keep their temporary files in another.
 * Every ``zmq.Context`` created during a test must be closed by the end of it (a few seconds of
   grace for threads that close their own): an open one fails the test, naming it, and is destroyed
   with linger 0 so that the interpreter's exit never waits in ``zmq_ctx_term``.
@@ -105,6 +106,17 @@ def hostemu_build_dir(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path
     path = tmp_path_factory.mktemp("hostemu")
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv(BUILD_DIR_ENV, str(path))
+        yield path
+
+
+@pytest.fixture(autouse=True, scope="session")
+def private_tmpdir(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
+    """The processes the tests start write their temporary files in this run's own folder, not in
+    /tmp: MAVSDK's server leaves a component-metadata folder in its temporary directory on every start
+    (as the service's does under systemd's PrivateTmp)."""
+    path = tmp_path_factory.mktemp("tmp")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("TMPDIR", str(path))
         yield path
 
 
