@@ -888,6 +888,12 @@ before = pipeline.process(frame, 0.0).raw.depth_m
 wild = cp.RawKernel('extern "C" __global__ void wild(int* p) { p[threadIdx.x] = 1; }', "wild")
 wild((1,), (32,), (cp.uint64(1 << 40),))
 try:
+    cp.cuda.runtime.deviceSynchronize()
+except cp.cuda.runtime.CUDARuntimeError as err:  # the fault is reported here first, and stays
+    assert "illegal" in str(err).lower(), err
+else:
+    sys.exit("the wild write did not fault")
+try:
     pipeline.process(frame, 0.1)
 except BackendError as err:
     assert err.context.get("device_lost") is True, err.context
