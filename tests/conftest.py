@@ -113,7 +113,7 @@ def hostemu_build_dir(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path
 def private_tmpdir(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
     """The processes the tests start write their temporary files in this run's own folder, not in
     /tmp: MAVSDK's server leaves a component-metadata folder in its temporary directory on every start
-    (as the service's does under systemd's PrivateTmp)."""
+    (under systemd the service's server writes it in a /tmp of the service's own: PrivateTmp)."""
     path = tmp_path_factory.mktemp("tmp")
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv("TMPDIR", str(path))
