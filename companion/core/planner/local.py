@@ -418,7 +418,7 @@ class LocalPlanner:
             band_cut[floor_cut] = on.blocked & (bent < lmap.range_m)
             path[floor_cut] = np.minimum(bent, lmap.range_m)
         blocked = fl.blocked | band_cut
-        path_line, blocked_line = path, blocked  # on the lines themselves (a descent's bent at the floor)
+        blocked_line = blocked  # on the lines themselves (the swing below widens ``blocked``)
         bins = self._bin(yaw)
         moved = np.hypot(*(self._looked_from[bins] - pos[None, :2]).T)
         unlooked = (snap.now_s - self._looked_t[bins] > cfg.look_memory_s) | (moved > LOOKED_FROM_M)
@@ -484,7 +484,7 @@ class LocalPlanner:
         # A dead end: every direction within the cone of the goal's is closed short by surfaces seen.
         in_cone = _angle_diff(yaw, goal_yaw) <= math.radians(cfg.dead_end_cone_deg)
         # On the lines themselves (a swing at speed is no dead end).
-        closed = in_cone & (path_line < cfg.dead_end_free_m) & (blocked_line | ~unlooked)
+        closed = in_cone & (path < cfg.dead_end_free_m) & (blocked_line | ~unlooked)
         if snap.goal_ned_m is not None and np.all(closed[in_cone]):
             if self._closed_since is None:
                 self._closed_since = snap.now_s
