@@ -883,16 +883,17 @@ w, h = 336, 188
 frame = rendered_frames(BenchSize(w, h, 64), 1)[1][0]
 pipeline = make_pipeline(cfg, w, h)
 before = pipeline.process(frame, 0.0).raw.depth_m
-# A kernel that writes through a wild pointer: the sticky fault (an illegal address) a bug or a
-# failing device leaves behind, after which every CUDA call in the process fails.
-wild = cp.RawKernel('extern "C" __global__ void wild(int* p) { p[threadIdx.x] = 1; }', "wild")
-wild((1,), (32,), (cp.uint64(1 << 40),))
+# A kernel that traps: the sticky fault (a launch failure, like the illegal address a bug or a
+# failing device leaves behind) after which every CUDA call in the process fails. A trap, not a wild
+# write: where the driver maps host memory for the device (HMM), a wild address may not fault.
+trap = cp.RawKernel('extern "C" __global__ void trap() { asm("trap;"); }', "trap")
+trap((1,), (1,), ())
 try:
     cp.cuda.runtime.deviceSynchronize()
 except cp.cuda.runtime.CUDARuntimeError as err:  # the fault is reported here first, and stays
-    assert "illegal" in str(err).lower(), err
+    print("fault:", err)
 else:
-    sys.exit("the wild write did not fault")
+    sys.exit("the trap did not fault")
 try:
     pipeline.process(frame, 0.1)
 except BackendError as err:
@@ -909,7 +910,7 @@ print("fell back to", expected)
 
 
 def test_a_sticky_cuda_fault_loses_the_device_and_the_cpu_engine_matches_the_same(tmp_path: Path) -> None:
-    """A real illegal address in the estimator's context (in a child process: the context stays
+    """A real sticky fault (a trapped kernel) in the estimator's context (in a child process: the context stays
     broken): the frame it struck raises ``device_lost``, and the pipeline matches with cpu-sgm, whose
     region depths equal the GPU's before the fault (StereoBM where Numba cannot load)."""
     import os
