@@ -172,3 +172,32 @@ def test_compiled_blocked_columns_equal_numpy(seed: int) -> None:
         np.testing.assert_array_equal(m.blocked_columns(level, top, bottom), expected)
         closed.append(int(expected.sum()))
     assert min(closed[:3]) > 0 and max(closed) < expected.size
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_compiled_swings_equal_predicted_paths_judged_by_clear_along(seed: int) -> None:
+    """``clear_along_swings``: for every command, the least over the velocities of ``clear_along`` on
+    ``predicted_paths``, bit for bit; from a start within a surface's radius too."""
+    from companion.config.planner import PlannerConfig
+    from companion.core.planner.local import predicted_paths, swing_profile
+
+    rng = np.random.default_rng(200 + seed)
+    cfg = PlannerConfig()
+    m = LocalMap(voxel_m=0.15, range_m=cfg.map_range_m, radius_m=0.25, occupied_memory_s=20.0, free_memory_s=6.0)
+    m.centre_on(np.zeros(3))
+    m._occ[...] = rng.random(m.shape) < 0.002
+    m._infl[...] = (rng.random(m.shape) < 0.003).astype(np.int16) + m._occ
+    d = _directions(rng, 24)
+    speeds = rng.uniform(0.0, cfg.cruise_speed_m_s, size=len(d))
+    velocities = rng.uniform(-3.0, 3.0, size=(2, 3))
+    t, lag, tail = swing_profile(cfg, m.voxel_m)
+    occ_cube = np.argwhere(m._occ)[0]
+    starts = [rng.uniform(-1.0, 1.0, size=3), (occ_cube + m.origin + 0.5) * m.voxel_m + 0.03]
+    assert m.within_radius(starts[1])
+    for start in starts:
+        got = m.clear_along_swings(start, velocities, d, speeds, t, lag, tail, cfg.map_range_m)
+        n = len(velocities)
+        offs, arc = predicted_paths(np.repeat(velocities, len(d), axis=0), np.tile(d, (n, 1)), np.tile(speeds, n), cfg, m.voxel_m)
+        expected = m.clear_along(start, start + offs, arc).reshape(n, len(d)).min(axis=0)
+        np.testing.assert_array_equal(got, expected)
+        assert np.isfinite(expected).any() and np.isinf(expected).any()

@@ -136,3 +136,69 @@ def test_passing_a_trunk_while_drifting_keeps_the_margin_sideways() -> None:
     result = fly(make_course("forest", 3002), parse_config(WALKING))
     assert result.outcome is Outcome.GOAL, result.reason
     assert result.min_clearance_m > 0.15
+
+
+def test_a_frame_that_leaves_the_closed_columns_as_they_were_keeps_the_distances() -> None:
+    """The map changes with every frame, its closed columns at one level seldom: the way's search
+    runs again only when they (or the goal, the level or the grid's place) change, and the distances
+    it keeps are those a fresh way makes."""
+    from companion.core.planner import _waykernels as k
+
+    m = _wall_with_gap()
+    way = WayToGoal()
+    way.update(m, GOAL, -1.5, 0.5, 3.0, 0.4)
+    kept = way.dist.copy()
+    runs = []
+    original = k.dijkstra
+
+    def counted(*args):
+        runs.append(1)
+        return original(*args)
+
+    k.dijkstra = counted
+    try:
+        version = m.version
+        b = _blocks(3.0)
+        b[:, _column_of(-2.5, 3.0) : _column_of(-1.5, 3.0)] = GEOM.focal_baseline_px_m / 20.0
+        m.integrate(b, GEOM, BLOCK_PX, Pose.at(0.0, 0.0, 1.5), 0.4, 64)  # the same wall seen again
+        assert m.version > version
+        way.update(m, GOAL, -1.5, 0.5, 3.0, 0.4)
+        assert runs == [] and np.array_equal(way.dist, kept)
+        way.update(m, GOAL + np.array([0.0, 1.0, 0.0]), -1.5, 0.5, 3.0, 0.4)  # a new goal: searched again
+        assert runs == [1]
+    finally:
+        k.dijkstra = original
+    fresh = WayToGoal()
+    fresh.update(m, GOAL + np.array([0.0, 1.0, 0.0]), -1.5, 0.5, 3.0, 0.4)
+    np.testing.assert_array_equal(way.dist, fresh.dist)
+
+
+def _bearing_numpy(blocked: np.ndarray, here: np.ndarray, path: np.ndarray) -> int:
+    """The walk's farthest cell in plain view, as whole-array NumPy (the compiled kernel's statement)."""
+    target = (path + 0.5).astype(np.float64)
+    span = np.linalg.norm(target - here, axis=1)
+    m = int(np.ceil(span.max() * 2.0)) + 1
+    t = np.linspace(0.0, 1.0, m)
+    samples = here[None, None, :] + (target - here)[:, None, :] * t[None, :, None]
+    si = np.clip(np.floor(samples[..., 0]).astype(np.int64), 0, blocked.shape[0] - 1)
+    sj = np.clip(np.floor(samples[..., 1]).astype(np.int64), 0, blocked.shape[1] - 1)
+    open_ = ~blocked[si, sj]
+    open_[:, 0] = True
+    clear = open_.all(axis=1)
+    return int(np.nonzero(clear)[0].max()) if clear.any() else 0
+
+
+def test_the_compiled_line_of_sight_equals_numpy_on_random_grids() -> None:
+    from companion.core.planner import _waykernels as k
+
+    rng = np.random.default_rng(5)
+    seen = set()
+    for _ in range(300):
+        blocked = rng.random((30, 30)) < rng.uniform(0.0, 0.3)
+        here = rng.uniform(0.0, 30.0, size=2)
+        steps = rng.integers(-1, 2, size=(int(rng.integers(1, 20)), 2))
+        path = np.clip(np.floor(here).astype(np.int64) + np.cumsum(steps, axis=0), 0, 29)
+        expected = _bearing_numpy(blocked, here, path)
+        assert k.farthest_in_view(blocked, here[0], here[1], path) == expected
+        seen.add(expected == len(path) - 1)
+    assert seen == {True, False}

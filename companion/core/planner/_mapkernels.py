@@ -148,3 +148,60 @@ def blocked_columns(
                         closed = False
                         break
             out[i, j] = closed
+
+
+@nb.njit(**_JIT)
+def swing_clear(
+    start: np.ndarray, v0s: np.ndarray, dirs: np.ndarray, speeds: np.ndarray, t: np.ndarray, lag: np.ndarray,
+    step_m: float, n_tail: int, arc_limit_m: float, near_m: float, voxel: float, origin: np.ndarray,
+    shape: np.ndarray, infl: np.ndarray, occ: np.ndarray, out: np.ndarray,
+) -> None:
+    """The predicted paths of :func:`~companion.core.planner.local.predicted_paths` from each velocity of
+    ``v0s`` (float64 ``(P, 3)`` NED m/s) toward each command ``dirs · speeds`` (float64 ``(K, 3)``,
+    ``(K,)``), judged as :meth:`~companion.core.planner.localmap.LocalMap.clear_along` judges them from
+    ``start``: ``out`` float64 ``(K,)`` the least over the velocities of the arc length (m) before the
+    first sample in a surface's inflation (``infl`` flat > 0; within ``near_m`` of arc, where
+    ``near_m >= 0``, on the surfaces alone, ``occ`` flat), inf where none is. ``t``, ``lag`` (float64
+    ``(M,)``): the swing's times (s) and its lag factor ``τ(1 - exp(-t/τ))`` (s); then ``n_tail``
+    samples ``step_m`` apart on along the command; samples past ``arc_limit_m`` of arc are not
+    judged. Each sample is the same float64 operations, in NumPy's order, as the two NumPy functions
+    (a test compares them)."""
+    nx, ny, nz = shape[0], shape[1], shape[2]
+    m_swing = t.shape[0]
+    for k in range(dirs.shape[0]):
+        d0, d1, d2 = dirs[k, 0], dirs[k, 1], dirs[k, 2]
+        sp = speeds[k]
+        vc0, vc1, vc2 = d0 * sp, d1 * sp, d2 * sp
+        best = math.inf
+        for p in range(v0s.shape[0]):
+            dv0, dv1, dv2 = v0s[p, 0] - vc0, v0s[p, 1] - vc1, v0s[p, 2] - vc2
+            prev0, prev1, prev2 = 0.0, 0.0, 0.0
+            last0, last1, last2 = 0.0, 0.0, 0.0
+            arc = 0.0
+            before = 0.0
+            res = math.inf
+            for m in range(m_swing + n_tail):
+                if m < m_swing:
+                    x0 = vc0 * t[m] + dv0 * lag[m]
+                    x1 = vc1 * t[m] + dv1 * lag[m]
+                    x2 = vc2 * t[m] + dv2 * lag[m]
+                    last0, last1, last2 = x0, x1, x2
+                else:
+                    s = step_m * float(m - m_swing + 1)
+                    x0 = last0 + d0 * s
+                    x1 = last1 + d1 * s
+                    x2 = last2 + d2 * s
+                g0, g1, g2 = x0 - prev0, x1 - prev1, x2 - prev2
+                arc = arc + math.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
+                if not arc <= arc_limit_m:  # past the map's range: the arc only grows
+                    break
+                c = _cube_at(start[0] + x0, start[1] + x1, start[2] + x2, voxel, origin, nx, ny, nz)
+                if c >= 0:
+                    hit = occ[c] if (near_m >= 0.0 and arc <= near_m) else infl[c] > 0
+                    if hit:
+                        res = before
+                        break
+                before = arc
+                prev0, prev1, prev2 = x0, x1, x2
+            best = min(best, res)
+        out[k] = best

@@ -131,6 +131,73 @@ def clearance(blocked: np.ndarray, cell_m: float, cap_m: float, out: np.ndarray)
 
 
 @nb.njit(**_JIT)
+def pool_all(fine: np.ndarray, pool: int, out: np.ndarray) -> None:
+    """Each ``pool × pool`` block of ``fine`` (bool ``(nx·pool, ny·pool)``) into ``out`` (bool
+    ``(nx, ny)``): True where all of the block is."""
+    nx, ny = out.shape
+    for i in range(nx):
+        for j in range(ny):
+            v = True
+            for a in range(pool):
+                for b in range(pool):
+                    v = v and fine[i * pool + a, j * pool + b]
+            out[i, j] = v
+
+
+@nb.njit(**_JIT)
+def pool_penalty(clear: np.ndarray, cell_m: float, clearance_m: float, pool: int, scale: float, out: np.ndarray) -> None:
+    """The way's penalty per cell into ``out`` (float64 ``(nx, ny)``): ``scale`` times the mean over its
+    ``pool × pool`` columns of ``clip(1 - (clear - cell_m) / clearance_m, 0, 1)``, where ``clear``
+    (float64 ``(nx·pool, ny·pool)``, metres) is each column's :func:`clearance` (from its centre: less a
+    column, from its edge), so 1 beside a closed column and 0 from ``clearance_m`` out."""
+    nx, ny = out.shape
+    inv = -1.0 / clearance_m
+    for i in range(nx):
+        for j in range(ny):
+            acc = 0.0
+            for a in range(pool):
+                row = 0.0  # summed by rows, then the rows: NumPy's order, so the same bits
+                for b in range(pool):
+                    v = (clear[i * pool + a, j * pool + b] - cell_m) * inv + 1.0
+                    row += min(max(v, 0.0), 1.0)
+                acc += row
+            out[i, j] = scale * (acc / (pool * pool))
+
+
+@nb.njit(**_JIT)
+def farthest_in_view(blocked: np.ndarray, hi: float, hj: float, path: np.ndarray) -> int:
+    """Of the cells of a walk (int64 ``(n, 2)``, n >= 1), the last whose centre the straight line from
+    ``(hi, hj)`` (cells, continuous) reaches over open cells only (not ``blocked``, bool ``(nx, ny)``):
+    the line sampled at ``m`` evenly spaced points, ``m`` one more than twice the longest such line in
+    cells (so at most half a cell apart), rounded up; the first sample (the vehicle's own cell) counts
+    as open. 0 where none does."""
+    nx, ny = blocked.shape
+    n = path.shape[0]
+    span = 0.0
+    for c in range(n):
+        di = (path[c, 0] + 0.5) - hi
+        dj = (path[c, 1] + 0.5) - hj
+        span = max(span, math.sqrt(di * di + dj * dj))
+    m = int(math.ceil(span * 2.0)) + 1
+    step = 1.0 / (m - 1) if m > 1 else 0.0
+    far = 0
+    for c in range(n):
+        di = (path[c, 0] + 0.5) - hi
+        dj = (path[c, 1] + 0.5) - hj
+        clear = True
+        for s in range(1, m):
+            t = 1.0 if s == m - 1 else s * step
+            i = min(max(int(math.floor(hi + di * t)), 0), nx - 1)
+            j = min(max(int(math.floor(hj + dj * t)), 0), ny - 1)
+            if blocked[i, j]:
+                clear = False
+                break
+        if clear:
+            far = c
+    return far
+
+
+@nb.njit(**_JIT)
 def descend(dist: np.ndarray, i0: int, j0: int, steps: int, path: np.ndarray) -> int:
     """Walk down ``dist`` (float64 ``(nx, ny)``) from cell ``(i0, j0)`` to the least of the 8 neighbours,
     at most ``steps`` times, while it falls; the cells visited into ``path`` (int64 ``(steps, 2)``).

@@ -179,6 +179,16 @@ SWING_CANDIDATES = 24
 SWING_TIME_CONSTANTS = 3.0
 
 
+def swing_profile(cfg: PlannerConfig, step_m: float) -> tuple[np.ndarray, np.ndarray, int]:
+    """The swing of :func:`predicted_paths`: its sample times ``t`` (float64 ``(M,)`` s, over
+    :data:`SWING_TIME_CONSTANTS` time constants), the old velocity's share flown by each, ``τ(1 -
+    exp(-t/τ))`` (float64 ``(M,)`` s), and the tail's samples, ``step_m`` apart to the map range."""
+    tau = max(cfg.latency_s, 1e-3)
+    t = (SWING_TIME_CONSTANTS * tau) * np.linspace(0.0, 1.0, SWING_SAMPLES + 1)[1:]
+    lag = tau * (1.0 - np.exp(-t / tau))
+    return t, lag, int(math.ceil(cfg.map_range_m / step_m))
+
+
 def predicted_paths(
     velocity_ned_m_s: np.ndarray, dirs: np.ndarray, speed_m_s: np.ndarray, cfg: PlannerConfig, step_m: float
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -195,11 +205,8 @@ def predicted_paths(
     v0 = np.broadcast_to(np.asarray(velocity_ned_m_s, dtype=np.float64), dirs.shape)
     vc = dirs * np.asarray(speed_m_s, dtype=np.float64)[:, None]
     dv = v0 - vc
-    tau = np.full(len(dirs), max(cfg.latency_s, 1e-3))
-    t = (SWING_TIME_CONSTANTS * tau)[:, None] * np.linspace(0.0, 1.0, SWING_SAMPLES + 1)[None, 1:]  # (K, M)
-    lag = (tau[:, None] * (1.0 - np.exp(-t / tau[:, None])))[..., None]
-    swing = vc[:, None, :] * t[..., None] + dv[:, None, :] * lag  # (K, M, 3)
-    n_tail = int(math.ceil(cfg.map_range_m / step_m))
+    t, lag, n_tail = swing_profile(cfg, step_m)
+    swing = vc[:, None, :] * t[None, :, None] + dv[:, None, :] * lag[None, :, None]  # (K, M, 3)
     tail = swing[:, -1:, :] + dirs[:, None, :] * (step_m * np.arange(1, n_tail + 1))[None, :, None]
     pts = np.concatenate([swing, tail], axis=1)
     seg = np.diff(np.concatenate([np.zeros((len(dirs), 1, 3)), pts], axis=1), axis=1)
@@ -466,12 +473,10 @@ class LocalPlanner:
             starts = v[None, :]
             if snap.in_flight_ned_m_s is not None:
                 starts = np.stack([v, np.asarray(snap.in_flight_ned_m_s, dtype=np.float64)])
-            n = len(starts)
-            offs, arc = predicted_paths(
-                np.repeat(starts, len(top), axis=0), np.tile(dirs[top], (n, 1)),
-                np.tile(speed_law(free[top], cfg), n), cfg, lmap.voxel_m,
+            t, lag, tail = swing_profile(cfg, lmap.voxel_m)
+            clear[top] = lmap.clear_along_swings(
+                pos, starts, dirs[top], speed_law(free[top], cfg), t, lag, tail, cfg.map_range_m
             )
-            clear[top] = lmap.clear_along(pos, pos + offs, arc).reshape(n, len(top)).min(axis=0)
             swung = clear < free
             if np.any(swung):
                 # Swung short, the way still leads on once slower: its time is the short length at

@@ -401,6 +401,13 @@ class LocalMap:
         pts = np.asarray(points_ned_m, dtype=np.float64)
         if self.origin is None:
             return np.zeros(pts.shape[:-1], dtype=bool)
+        if pts.shape == (3,) and all(math.isfinite(x) for x in pts.tolist()):
+            # One point (each tick asks of the vehicle's): the same cube, without the arrays' overhead.
+            nx, ny, nz = self.shape
+            i, j, k = (math.floor(x / self.voxel_m) - int(o) for x, o in zip(pts.tolist(), self.origin.tolist()))
+            if not (0 <= i < nx and 0 <= j < ny and 0 <= k < nz):
+                return np.bool_(False)
+            return np.bool_(self._infl.reshape(-1)[(i * ny + j) * nz + k] > 0)
         idx, inside = self._index(pts)
         return inside & self._inflated_at(idx)
 
@@ -526,6 +533,35 @@ class LocalMap:
         before = np.where(first > 0, arc[rows, np.maximum(first - 1, 0)], 0.0)
         return np.where(any_hit, before, np.inf)
 
+    def clear_along_swings(
+        self, start_ned_m: np.ndarray, velocities_ned_m_s: np.ndarray, directions: np.ndarray, speeds_m_s: np.ndarray,
+        t_s: np.ndarray, lag_s: np.ndarray, tail: int, range_m: float,
+    ) -> np.ndarray:
+        """:meth:`clear_along` of the predicted paths from ``start_ned_m`` (float ``(3,)`` NED m), for
+        each command (``directions`` float ``(K, 3)`` unit NED, ``speeds_m_s`` ``(K,)``) the least over
+        the velocities (float ``(P, 3)`` NED m/s) it may start from; float64 ``(K,)`` m. The paths are
+        those of :func:`~companion.core.planner.local.predicted_paths`: its swing's times ``t_s`` and
+        lag factors ``lag_s`` (float64 ``(M,)``), then ``tail`` samples a cube apart, judged within
+        ``range_m`` of arc (m); compiled, and
+        equal to that function's paths judged by :meth:`clear_along` (a test compares them)."""
+        d = np.ascontiguousarray(np.asarray(directions, dtype=np.float64).reshape(-1, 3))
+        out = np.empty(len(d))
+        if self.origin is None:
+            out[...] = 0.0
+            return out
+        from companion.core.planner import _mapkernels
+
+        start = np.ascontiguousarray(np.asarray(start_ned_m, dtype=np.float64).reshape(3))
+        near_m = self.radius_m + self.voxel_m if bool(self.within_radius(start)) else -1.0
+        _mapkernels.swing_clear(
+            start, np.ascontiguousarray(np.asarray(velocities_ned_m_s, dtype=np.float64).reshape(-1, 3)), d,
+            np.ascontiguousarray(np.asarray(speeds_m_s, dtype=np.float64).reshape(-1)),
+            np.ascontiguousarray(t_s, dtype=np.float64), np.ascontiguousarray(lag_s, dtype=np.float64),
+            self.voxel_m, int(tail), float(range_m) + 1e-9, near_m, self.voxel_m,
+            np.asarray(self.origin, dtype=np.int64), self._grid_shape, self._infl.reshape(-1), self._occ.reshape(-1), out,
+        )  # fmt: skip
+        return out
+
 
 def compile_kernels() -> None:
     """Compile the map's query kernels now (about a second, once per process)."""
@@ -533,6 +569,7 @@ def compile_kernels() -> None:
     m.centre_on(np.zeros(3))
     m.free_lengths(np.zeros(3), np.array([[1.0, 0.0, 0.0]]))
     m.blocked_columns(0.0, -0.5, 0.5)
+    m.clear_along_swings(np.zeros(3), np.zeros((1, 3)), np.array([[1.0, 0.0, 0.0]]), np.ones(1), np.ones(1), np.ones(1), 1, 1.0)
 
 
 def _moves_closer(m: LocalMap, start: np.ndarray, pts: np.ndarray) -> np.ndarray:

@@ -49,13 +49,17 @@ def compile_kernels() -> None:
     start[0, 0] = 0.0
     out = np.empty((3, 3))
     k.clearance(blocked, 1.0, 2.0, out)
+    k.pool_all(blocked, 1, blocked.copy())
+    k.pool_penalty(out, 1.0, 1.0, 1, 1.0, np.empty((3, 3)))
     k.dijkstra(blocked, start, 1.0, np.zeros((3, 3)), out, np.empty(73), np.empty(73, dtype=np.int64))
-    k.descend(out, 2, 2, 4, np.zeros((4, 2), dtype=np.int64))
+    path = np.zeros((4, 2), dtype=np.int64)
+    k.descend(out, 2, 2, 4, path)
+    k.farthest_in_view(blocked, 0.5, 0.5, path)
 
 
 class WayToGoal:
-    """The shortest way to a goal round the surfaces seen, recomputed when the map or the goal changes
-    (one Dijkstra over the map's columns per frame)."""
+    """The shortest way to a goal round the surfaces seen: one Dijkstra over the map's columns, searched
+    again when the closed columns at the level, the goal, the level or the grid's place change."""
 
     def __init__(self) -> None:
         self._key: tuple | None = None
@@ -65,10 +69,12 @@ class WayToGoal:
         self._cell_m = 1.0
         self._start: np.ndarray | None = None
         self._keys: np.ndarray | None = None
-        self._clear = np.zeros((0, 0))  # float64, the map's columns: metres to the nearest closed one, then the share
+        self._clear = np.zeros((0, 0))  # float64, the map's columns: metres to the nearest closed one
         self._penalty = np.zeros((0, 0))  # float64 (nx, ny): what a step into each cell costs extra, per metre
         self._cells: np.ndarray | None = None
         self._path = np.zeros((WALK_CELLS, 2), dtype=np.int64)
+        self._search: tuple | None = None  # the goal, level, band, clearance and grid place of ``dist``
+        self._fine: np.ndarray | None = None  # bool: the map's closed columns ``dist`` was made from
 
     def update(
         self,
@@ -94,11 +100,19 @@ class WayToGoal:
 
         self._key = key
         fine = lmap.blocked_columns(level_down_m, -ceiling_m, -floor_m)
+        # A frame changes the map's cubes, seldom its closed columns at one level: where they, the
+        # grid's place and the goal are the ones the distances were made from, they stand.
+        search = (key[2:], tuple(lmap.origin[:2]))
+        if search == self._search and self._fine is not None and np.array_equal(fine, self._fine):
+            return
+        self._search = search
+        self._fine = fine
         fx, fy = fine.shape
         if fx % POOL or fy % POOL:  # open past the map's edge
             fine = np.pad(fine, ((0, -fx % POOL), (0, -fy % POOL)))
         nx, ny = fine.shape[0] // POOL, fine.shape[1] // POOL
-        blocked = fine.reshape(nx, POOL, ny, POOL).all(axis=(1, 3))
+        blocked = np.empty((nx, ny), dtype=bool)
+        k.pool_all(fine, POOL, blocked)
         v = POOL * lmap.voxel_m
         # The map's origin is a whole number of cubes; the way's cells start there.
         origin = lmap.origin[:2].astype(np.float64) / POOL
@@ -139,12 +153,7 @@ class WayToGoal:
         if clearance_m > 0.0:
             f, clear = lmap.voxel_m, self._clear
             k.clearance(fine, f, clearance_m + f, clear)
-            clear -= f
-            clear *= -1.0 / clearance_m
-            clear += 1.0
-            np.clip(clear, 0.0, 1.0, out=clear)
-            np.mean(clear.reshape(nx, POOL, ny, POOL), axis=(1, 3), out=penalty)
-            penalty *= EDGE_PENALTY
+            k.pool_penalty(clear, f, clearance_m, POOL, EDGE_PENALTY, penalty)
         else:
             penalty[...] = 0.0
         k.dijkstra(blocked, start, v, penalty, self.dist, self._keys, self._cells)
@@ -200,18 +209,9 @@ class WayToGoal:
             return None
         path = self._path[:n]
         here = p[:2] / self._cell_m - self._origin  # in cells, continuous
-        target = (path + 0.5).astype(np.float64)
         # In plain view: the samples of the line from here to each cell of the walk, every half cell,
         # all on open cells; the farthest such cell sets the bearing.
-        span = np.linalg.norm(target - here, axis=1)
-        m = int(np.ceil(span.max() * 2.0)) + 1
-        t = np.linspace(0.0, 1.0, m)
-        samples = here[None, None, :] + (target - here)[:, None, :] * t[None, :, None]  # (n, m, 2)
-        si = np.clip(np.floor(samples[..., 0]).astype(np.int64), 0, dist.shape[0] - 1)
-        sj = np.clip(np.floor(samples[..., 1]).astype(np.int64), 0, dist.shape[1] - 1)
-        open_ = ~self.blocked[si, sj]
-        open_[:, 0] = True  # the vehicle's own cell
-        clear = open_.all(axis=1)
-        far = int(np.nonzero(clear)[0].max()) if clear.any() else 0
-        d = target[far] - here
-        return math.atan2(float(d[1]), float(d[0]))
+        far = int(k.farthest_in_view(self.blocked, here[0], here[1], path))
+        dn = (path[far, 0] + 0.5) - here[0]
+        de = (path[far, 1] + 0.5) - here[1]
+        return math.atan2(float(de), float(dn))
