@@ -207,7 +207,8 @@ def test_the_layers_kept_up_frame_by_frame_equal_the_layers_computed_whole() -> 
     """The occupancy, its inflation and the seen-free layer are updated round the cubes that change
     (hits, passes, hits and passes that age out, the grid rolling): they equal the layers computed
     from the evidence at once."""
-    from companion.core.planner.localmap import MIXED_EVIDENCE_S, OCCUPIED_LOG_ODDS, _box_count
+    from companion.core.planner._layers import box_count
+    from companion.core.planner.localmap import MIXED_EVIDENCE_S, OCCUPIED_LOG_ODDS
 
     m = LocalMap(voxel_m=0.15, range_m=8.0, radius_m=0.25, occupied_memory_s=1.0, free_memory_s=0.8)
     t = 0.0
@@ -222,10 +223,10 @@ def test_the_layers_kept_up_frame_by_frame_equal_the_layers_computed_whole() -> 
             occ = (m.log_odds > OCCUPIED_LOG_ODDS) & (m.hit_t >= m.now_s - m.occupied_memory_s)
             assert k != 12 or occ.any()
             assert np.array_equal(m.occupied(), occ)
-            assert np.array_equal(m.inflated(), _box_count(occ, 2) > 0)
+            assert np.array_equal(m.inflated(), box_count(occ, 2) > 0)
             recent = m.free_t >= m.now_s - m.free_memory_s
             mixed = m.prev_hit_t >= m.now_s - MIXED_EVIDENCE_S
-            free = (_box_count(recent, 1) > 0) & (m.log_odds <= OCCUPIED_LOG_ODDS) & ~mixed & ~occ
+            free = (box_count(recent, 1) > 0) & (m.log_odds <= OCCUPIED_LOG_ODDS) & ~mixed & ~occ
             assert np.array_equal(m.seen_free(), free)
     assert len(origins) > 1  # the grid rolled
 

@@ -1,6 +1,7 @@
 """The local map's compiled queries against a NumPy statement of the same query: for the free lengths,
 the same length and verdict (blocked, horizon) for every line, on maps seen through frames and on random
-layers; for the columns the way cannot pass, the same columns."""
+layers; for the columns the way cannot pass, the same columns; for the swings of the predicted paths,
+the same clearance."""
 
 from __future__ import annotations
 
@@ -174,10 +175,24 @@ def test_compiled_blocked_columns_equal_numpy(seed: int) -> None:
     assert min(closed[:3]) > 0 and max(closed) < expected.size
 
 
+def _clear_along_numpy(m: LocalMap, start: np.ndarray, points: np.ndarray, arc: np.ndarray) -> np.ndarray:
+    """How far along each sampled path (``points`` float ``(K, S, 3)`` NED m at arc lengths ``arc``
+    ``(K, S)``, NaN past its end) the centre stays out of every inflation, as whole-array NumPy."""
+    valid = np.isfinite(arc)
+    idx, inside = m._index(points)
+    hit = m._inflated_at(idx) & inside & valid
+    if bool(m.within_radius(start)):
+        near = np.where(valid, arc, np.inf) <= m.radius_m + m.voxel_m
+        hit = np.where(near, m.occupied().reshape(-1)[idx] & inside & valid, hit)
+    first = hit.argmax(axis=1)
+    before = np.where(first > 0, arc[np.arange(len(arc)), np.maximum(first - 1, 0)], 0.0)
+    return np.where(hit.any(axis=1), before, np.inf)
+
+
 @pytest.mark.parametrize("seed", range(3))
-def test_compiled_swings_equal_predicted_paths_judged_by_clear_along(seed: int) -> None:
-    """``clear_along_swings``: for every command, the least over the velocities of ``clear_along`` on
-    ``predicted_paths``, bit for bit; from a start within a surface's radius too."""
+def test_compiled_swings_equal_predicted_paths_judged_by_numpy(seed: int) -> None:
+    """``clear_along``: for every command, the least over the velocities of the whole-array NumPy
+    judgement of ``predicted_paths``, bit for bit; from a start within a surface's radius too."""
     from companion.config.planner import PlannerConfig
     from companion.core.planner.local import predicted_paths, swing_profile
 
@@ -195,9 +210,9 @@ def test_compiled_swings_equal_predicted_paths_judged_by_clear_along(seed: int) 
     starts = [rng.uniform(-1.0, 1.0, size=3), (occ_cube + m.origin + 0.5) * m.voxel_m + 0.03]
     assert m.within_radius(starts[1])
     for start in starts:
-        got = m.clear_along_swings(start, velocities, d, speeds, t, lag, tail, cfg.map_range_m)
+        got = m.clear_along(start, velocities, d, speeds, t, lag, tail, cfg.map_range_m)
         n = len(velocities)
         offs, arc = predicted_paths(np.repeat(velocities, len(d), axis=0), np.tile(d, (n, 1)), np.tile(speeds, n), cfg, m.voxel_m)
-        expected = m.clear_along(start, start + offs, arc).reshape(n, len(d)).min(axis=0)
+        expected = _clear_along_numpy(m, start, start + offs, arc).reshape(n, len(d)).min(axis=0)
         np.testing.assert_array_equal(got, expected)
         assert np.isfinite(expected).any() and np.isinf(expected).any()

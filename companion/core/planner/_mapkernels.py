@@ -158,14 +158,14 @@ def swing_clear(
 ) -> None:
     """The predicted paths of :func:`~companion.core.planner.local.predicted_paths` from each velocity of
     ``v0s`` (float64 ``(P, 3)`` NED m/s) toward each command ``dirs · speeds`` (float64 ``(K, 3)``,
-    ``(K,)``), judged as :meth:`~companion.core.planner.localmap.LocalMap.clear_along` judges them from
-    ``start``: ``out`` float64 ``(K,)`` the least over the velocities of the arc length (m) before the
+    ``(K,)``), judged as :meth:`~companion.core.planner.localmap.LocalMap.clear_along` states, from
+    ``start``: ``out`` float64 ``(K,)``, the least over the velocities of the arc length (m) before the
     first sample in a surface's inflation (``infl`` flat > 0; within ``near_m`` of arc, where
     ``near_m >= 0``, on the surfaces alone, ``occ`` flat), inf where none is. ``t``, ``lag`` (float64
     ``(M,)``): the swing's times (s) and its lag factor ``τ(1 - exp(-t/τ))`` (s); then ``n_tail``
     samples ``step_m`` apart on along the command; samples past ``arc_limit_m`` of arc are not
-    judged. Each sample is the same float64 operations, in NumPy's order, as the two NumPy functions
-    (a test compares them)."""
+    judged. Each sample is the same float64 operations, in NumPy's order, as ``predicted_paths`` and
+    the grid's ``floor(p / voxel) - origin`` (a test compares them with whole-array NumPy)."""
     nx, ny, nz = shape[0], shape[1], shape[2]
     m_swing = t.shape[0]
     for k in range(dirs.shape[0]):

@@ -474,7 +474,7 @@ class LocalPlanner:
             if snap.in_flight_ned_m_s is not None:
                 starts = np.stack([v, np.asarray(snap.in_flight_ned_m_s, dtype=np.float64)])
             t, lag, tail = swing_profile(cfg, lmap.voxel_m)
-            clear[top] = lmap.clear_along_swings(
+            clear[top] = lmap.clear_along(
                 pos, starts, dirs[top], speed_law(free[top], cfg), t, lag, tail, cfg.map_range_m
             )
             swung = clear < free

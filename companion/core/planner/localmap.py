@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from companion.core.geometry import StereoGeometry
+from companion.core.planner._layers import box_count, count_box, log_of, shift_fill
 from companion.core.pose import Pose
 
 #: Log-odds added by a hit and taken by a pass; a cube is occupied above OCCUPIED_LOG_ODDS: two hits
@@ -148,7 +149,7 @@ class LocalMap:
         if np.all(np.abs(shift) < np.array(self.shape) // 4):
             return
         for arr, fill in ((self.log_odds, 0.0), (self.hit_t, -np.inf), (self.prev_hit_t, -np.inf), (self.free_t, -np.inf)):
-            _shift_fill(arr, -shift, fill)
+            shift_fill(arr, -shift, fill)
         self.origin = want
         self.version += 1
         self._body_mask[...] = False  # marked again where the body is now
@@ -273,7 +274,7 @@ class LocalMap:
         if len(rising):
             rising = self._unique(rising)
             rec[rising] = True
-            _count_box(self._fcnt, rising, self._box1, self._grid_shape, 1)
+            count_box(self._fcnt, rising, self._box1, self._grid_shape, 1)
 
     def _refresh(self, touched: np.ndarray | None) -> None:
         """Bring the layers up to the evidence at ``now_s``: the occupancy of the ``touched`` cubes
@@ -285,12 +286,12 @@ class LocalMap:
         occ = self._occ.reshape(-1)
         if self._rebuild:
             self._occ[...] = (self.log_odds > OCCUPIED_LOG_ODDS) & (self.hit_t >= now - self.occupied_memory_s)
-            self._infl[...] = _box_count(self._occ, self._inflate_n)
+            self._infl[...] = box_count(self._occ, self._inflate_n)
             self._body_mask &= ~self._occ
             self._recent[...] = self.free_t >= now - self.free_memory_s
-            self._fcnt[...] = _box_count(self._recent, 1)
-            self._hit_log = _log_of(occ, hit_t)
-            self._pass_log = _log_of(self._recent.reshape(-1), self.free_t.reshape(-1))
+            self._fcnt[...] = box_count(self._recent, 1)
+            self._hit_log = log_of(occ, hit_t)
+            self._pass_log = log_of(self._recent.reshape(-1), self.free_t.reshape(-1))
             self._rebuild = False
             return
         aged = self._aged(self._hit_log, occ, hit_t, now - self.occupied_memory_s)
@@ -303,12 +304,12 @@ class LocalMap:
         occ[rising] = True
         occ[falling] = False
         self._body_mask.reshape(-1)[rising] = False
-        _count_box(self._infl, rising, self._box, self._grid_shape, 1)
-        _count_box(self._infl, falling, self._box, self._grid_shape, -1)
+        count_box(self._infl, rising, self._box, self._grid_shape, 1)
+        count_box(self._infl, falling, self._box, self._grid_shape, -1)
         rec = self._recent.reshape(-1)
         stale = self._aged(self._pass_log, rec, self.free_t.reshape(-1), now - self.free_memory_s)
         rec[stale] = False
-        _count_box(self._fcnt, stale, self._box1, self._grid_shape, -1)
+        count_box(self._fcnt, stale, self._box1, self._grid_shape, -1)
 
     def _aged(self, log: deque, flag: np.ndarray, times: np.ndarray, since: float) -> np.ndarray:
         """The cubes (int64 flat, unique) still ``flag``-ged whose time (``times``) is now before
@@ -507,43 +508,23 @@ class LocalMap:
         length = np.where(any_bad, length, h)
         return FreeLengths(length_m=length, blocked=blocked, horizon=~any_bad)
 
-    def clear_along(self, start_ned_m: np.ndarray, points_ned_m: np.ndarray, arc_m: np.ndarray) -> np.ndarray:
-        """How far along each of K sampled paths (``points_ned_m`` float ``(K, S, 3)`` NED m at arc
-        lengths ``arc_m`` float ``(K, S)`` from ``start_ned_m``, increasing; NaN: past the path's end)
-        the centre stays out of every surface's inflation, metres (float64 ``(K,)``; inf where it
-        never enters one).
+    def clear_along(
+        self, start_ned_m: np.ndarray, velocities_ned_m_s: np.ndarray, directions: np.ndarray, speeds_m_s: np.ndarray,
+        t_s: np.ndarray, lag_s: np.ndarray, tail: int, range_m: float,
+    ) -> np.ndarray:
+        """How far along the path the vehicle will fly from ``start_ned_m`` (float ``(3,)`` NED m) toward
+        each command (``directions`` float ``(K, 3)`` unit NED, ``speeds_m_s`` ``(K,)``) the centre stays
+        out of every surface's inflation, the least over the velocities it may start from (float
+        ``(P, 3)`` NED m/s): arc length, metres (float64 ``(K,)``; inf where it never enters one). The
+        paths are :func:`~companion.core.planner.local.predicted_paths`: the swing's times ``t_s`` and
+        lag factors ``lag_s`` (float64 ``(M,)``, :func:`~companion.core.planner.local.swing_profile`),
+        then ``tail`` samples a cube apart, judged within ``range_m`` of arc (m). Compiled: each path is
+        followed to its first sample in a surface's inflation (a test compares it with whole-array
+        NumPy).
 
         Only surfaces seen block here, not unknown space: this judges the swing of a lagging vehicle
         round a line whose own seen-free length is judged by :meth:`free_lengths`. As there, where the
         start is within the radius of a surface the first radius is judged on the surfaces alone."""
-        arc = np.asarray(arc_m, dtype=np.float64)
-        valid = np.isfinite(arc)
-        if self.origin is None:
-            return np.zeros(arc.shape[0])
-        pts = np.asarray(points_ned_m, dtype=np.float64)
-        idx, inside = self._index(pts)
-        hit = self._inflated_at(idx) & inside & valid
-        start = np.asarray(start_ned_m, dtype=np.float64)
-        if bool(self.within_radius(start)):
-            near = np.where(valid, arc, np.inf) <= self.radius_m + self.voxel_m
-            hit = np.where(near, self.occupied().reshape(-1)[idx] & inside & valid, hit)
-        any_hit = hit.any(axis=1)
-        first = hit.argmax(axis=1)
-        rows = np.arange(arc.shape[0])
-        before = np.where(first > 0, arc[rows, np.maximum(first - 1, 0)], 0.0)
-        return np.where(any_hit, before, np.inf)
-
-    def clear_along_swings(
-        self, start_ned_m: np.ndarray, velocities_ned_m_s: np.ndarray, directions: np.ndarray, speeds_m_s: np.ndarray,
-        t_s: np.ndarray, lag_s: np.ndarray, tail: int, range_m: float,
-    ) -> np.ndarray:
-        """:meth:`clear_along` of the predicted paths from ``start_ned_m`` (float ``(3,)`` NED m), for
-        each command (``directions`` float ``(K, 3)`` unit NED, ``speeds_m_s`` ``(K,)``) the least over
-        the velocities (float ``(P, 3)`` NED m/s) it may start from; float64 ``(K,)`` m. The paths are
-        those of :func:`~companion.core.planner.local.predicted_paths`: its swing's times ``t_s`` and
-        lag factors ``lag_s`` (float64 ``(M,)``), then ``tail`` samples a cube apart, judged within
-        ``range_m`` of arc (m); compiled, and
-        equal to that function's paths judged by :meth:`clear_along` (a test compares them)."""
         d = np.ascontiguousarray(np.asarray(directions, dtype=np.float64).reshape(-1, 3))
         out = np.empty(len(d))
         if self.origin is None:
@@ -569,7 +550,7 @@ def compile_kernels() -> None:
     m.centre_on(np.zeros(3))
     m.free_lengths(np.zeros(3), np.array([[1.0, 0.0, 0.0]]))
     m.blocked_columns(0.0, -0.5, 0.5)
-    m.clear_along_swings(np.zeros(3), np.zeros((1, 3)), np.array([[1.0, 0.0, 0.0]]), np.ones(1), np.ones(1), np.ones(1), 1, 1.0)
+    m.clear_along(np.zeros(3), np.zeros((1, 3)), np.array([[1.0, 0.0, 0.0]]), np.ones(1), np.ones(1), np.ones(1), 1, 1.0)
 
 
 def _moves_closer(m: LocalMap, start: np.ndarray, pts: np.ndarray) -> np.ndarray:
@@ -587,67 +568,3 @@ def _moves_closer(m: LocalMap, start: np.ndarray, pts: np.ndarray) -> np.ndarray
     d0 = np.min(np.linalg.norm(centres - start, axis=1))
     dp = np.min(np.linalg.norm(pts[:, :, None, :] - centres[None, None, :, :], axis=-1), axis=-1)
     return dp < d0 - 1e-9
-
-
-def _count_box(counts: np.ndarray, cubes: np.ndarray, box: np.ndarray, shape: np.ndarray, delta: int) -> None:
-    """Add ``delta`` to ``counts`` (integer 3-D) at every cube of ``box`` (int ``(B, 3)`` offsets)
-    round each of ``cubes`` (int64 flat indices, unique) inside the grid of ``shape``."""
-    if len(cubes) == 0:
-        return
-    ny, nz = counts.shape[1], counts.shape[2]
-    r = int(np.abs(box).max())
-    ijk = np.stack(np.unravel_index(cubes, counts.shape), axis=-1)
-    inner = np.all((ijk >= r) & (ijk < shape - r), axis=1)
-    # Inside the grid by the box's reach: flat offsets alone; at the edge, each cube of the box checked.
-    flat = (cubes[inner][:, None] + ((box[:, 0] * ny + box[:, 1]) * nz + box[:, 2])[None, :]).reshape(-1)
-    if not np.all(inner):
-        q = (ijk[~inner][:, None, :] + box[None, :, :]).reshape(-1, 3)
-        q = q[np.all((q >= 0) & (q < shape), axis=1)]
-        flat = np.concatenate([flat, (q[:, 0] * ny + q[:, 1]) * nz + q[:, 2]])
-    np.add.at(counts.reshape(-1), flat, counts.dtype.type(delta))
-
-
-def _log_of(flag: np.ndarray, times: np.ndarray) -> deque:
-    """The flagged cubes of a rebuilt layer as a log: (time, int64 flat indices) per distinct time
-    (``times``, float32 per cube), in time order."""
-    idx = np.flatnonzero(flag)
-    if len(idx) == 0:
-        return deque()
-    t = times[idx]
-    order = np.argsort(t, kind="stable")
-    idx, t = idx[order], t[order]
-    cuts = np.flatnonzero(np.diff(t)) + 1
-    return deque(zip(t[np.concatenate([[0], cuts])], np.split(idx.astype(np.int32), cuts)))
-
-
-def _box_count(mask: np.ndarray, n: int) -> np.ndarray:
-    """int16 grid: the number of True cubes of ``mask`` (bool 3-D) within ``n`` cubes along each axis
-    (a cube of side 2n+1; separable sums)."""
-    out = mask.astype(np.int16)
-    for axis in range(3):
-        src = out.copy()
-        for k in range(1, n + 1):
-            sl_a = [slice(None)] * 3
-            sl_b = [slice(None)] * 3
-            sl_a[axis], sl_b[axis] = slice(k, None), slice(None, -k)
-            out[tuple(sl_a)] += src[tuple(sl_b)]
-            out[tuple(sl_b)] += src[tuple(sl_a)]
-    return out
-
-
-def _shift_fill(arr: np.ndarray, shift: np.ndarray, fill: float) -> None:
-    """Shift ``arr`` in place by integer ``shift`` (3,) cubes, filling what enters with ``fill``."""
-    src = arr.copy()
-    arr[...] = fill
-    dst_sl, src_sl = [], []
-    for ax, k in enumerate(int(v) for v in shift):
-        n = arr.shape[ax]
-        if abs(k) >= n:
-            return
-        if k >= 0:
-            dst_sl.append(slice(k, n))
-            src_sl.append(slice(0, n - k))
-        else:
-            dst_sl.append(slice(0, n + k))
-            src_sl.append(slice(-k, n))
-    arr[tuple(dst_sl)] = src[tuple(src_sl)]
