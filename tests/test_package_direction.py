@@ -144,3 +144,17 @@ def test_loading_and_changing_a_config_loads_nothing_above_it(tmp_path) -> None:
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]", out.stdout
+
+
+#: A module longer than this is two modules: split it where its parts meet (a reader holds one module
+#: in mind at a time).
+MAX_MODULE_LINES = 600
+
+
+def test_no_module_is_longer_than_a_reader_holds_at_once() -> None:
+    long = {
+        str(p.relative_to(PACKAGE)): n
+        for p in PACKAGE.rglob("*.py")
+        if (n := len(p.read_text(encoding="utf-8").splitlines())) > MAX_MODULE_LINES
+    }
+    assert not long, f"modules over {MAX_MODULE_LINES} lines: {long}"
