@@ -202,3 +202,24 @@ def test_the_compiled_line_of_sight_equals_numpy_on_random_grids() -> None:
         assert k.farthest_in_view(blocked, here[0], here[1], path) == expected
         seen.add(expected == len(path) - 1)
     assert seen == {True, False}
+
+
+def test_office_25008_a_door_reached_off_its_middle_is_flown_through_not_held_as_a_dead_end() -> None:
+    """office-25008 at 3 m/s with the GPU's matcher (``cpu-sgm`` makes its disparities bit for bit): the
+    vehicle reached the far wall's door 0.4 m off its middle at speed and braked a step from the wall;
+    from there every line within 100° of the goal met the radius of a jamb or of the wall within
+    1.5 m, and it held a dead end while the way round the surfaces seen led on through the door. A dead
+    end is now one where the way does not lead on within the cone either."""
+    cfg = parse_config({"stereo": {"backend": "cpu-sgm"}})
+    result = fly(make_course("office", 25008), cfg)
+    assert result.outcome is Outcome.GOAL, result.reason
+
+
+def test_a_closed_channel_is_held_though_the_way_once_led_through_its_unseen_sides() -> None:
+    """The dead end's other half: started inside a closed channel, with its sides beside and behind
+    the vehicle unseen at first (the way counts unknown space open), the channel is still held as a
+    dead end once seen closed."""
+    cfg = parse_config({"stereo": {"backend": "cpu-sgm"}})
+    result = fly(make_course("deadend", 25008), cfg)
+    assert result.outcome is Outcome.HELD, result.reason
+    assert "dead end" in result.hold_reason

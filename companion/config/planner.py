@@ -223,7 +223,8 @@ class PlannerConfig(StrictModel):
         le=20.0,
         description=(
             "The flight holds where no direction within dead_end_cone_deg of the goal's is free for "
-            "this long and every one of them ends at a surface seen, m: a closed pocket."
+            "this long, every one of them ends at a surface seen, and no way round the surfaces seen "
+            "leads on within the cone, m: a closed pocket."
         ),
     )
     dead_end_cone_deg: float = Field(

@@ -486,18 +486,20 @@ class LocalPlanner:
                 hopeful, hoped, c = score(free, np.minimum(path, clear), blocked, swung)
                 blocked = blocked | swung
         table = np.stack([yaw, climb, free, hoped, c], axis=1)
-        # A dead end: every direction within the cone of the goal's is closed short by surfaces seen.
+        # A dead end: every direction within the cone of the goal's is closed short by surfaces seen,
+        # and no way round them leads on within the cone (a door off the line is no dead end, nor a
+        # fence's end beside a gap, though every straight line from here meets a surface's radius).
         in_cone = _angle_diff(yaw, goal_yaw) <= math.radians(cfg.dead_end_cone_deg)
         # On the lines themselves (a swing at speed is no dead end).
         closed = in_cone & (path < cfg.dead_end_free_m) & (blocked_line | ~unlooked)
-        if snap.goal_ned_m is not None and np.all(closed[in_cone]):
+        if snap.goal_ned_m is not None and way_yaw is None and np.all(closed[in_cone]):
             if self._closed_since is None:
                 self._closed_since = snap.now_s
             if snap.now_s - self._closed_since >= DEAD_END_CONFIRM_S:
                 self.mode = TRANSITIONS[(self.mode, "dead_end")]
                 self.reason = (
                     f"dead end: no direction within {cfg.dead_end_cone_deg:.0f} deg of the goal is free for "
-                    f"{cfg.dead_end_free_m:.1f} m"
+                    f"{cfg.dead_end_free_m:.1f} m, nor does a way round what was seen lead on within them"
                 )
                 return self._hold(self.reason, pos, lmap)
         else:
