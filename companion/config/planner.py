@@ -94,7 +94,9 @@ class PlannerConfig(StrictModel):
             "within this many pixels (an invalid one the smallest), pixels; 0 = off; auto = 1 with the "
             "semi-global matcher (stereo.backend cpu-sgm, or cupy or reference with matcher sgm), 0 "
             "with any other. A lone too-near pixel or a foreground edge smeared onto what is behind it "
-            "then gives no block its depth; a true surface loses this many pixels at each side. The "
+            "then gives no block its depth; a true surface loses this many pixels at each side, and "
+            "one narrower than twice that plus one pixel vanishes (at 1: a 2 cm bar beyond about a "
+            "metre with the simulated 336x188 rig; see docs/planner.md, known limits). The "
             "semi-global matcher smears depth edges and fills plain walls; StereoBM's sparse map has "
             "few such blocks and would lose near surfaces to it."
         ),
