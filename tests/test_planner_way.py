@@ -215,7 +215,7 @@ def test_office_25008_a_door_reached_off_its_middle_is_flown_through_not_held_as
     assert result.outcome is Outcome.GOAL, result.reason
 
 
-def test_a_closed_channel_is_held_though_the_way_once_led_through_its_unseen_sides() -> None:
+def test_a_closed_channel_started_inside_with_its_sides_unseen_is_still_held() -> None:
     """The dead end's other half: started inside a closed channel, with its sides beside and behind
     the vehicle unseen at first (the way counts unknown space open), the channel is still held as a
     dead end once seen closed."""
