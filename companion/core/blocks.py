@@ -14,11 +14,10 @@ class BlockMax:
     """The largest valid disparity of each ``block_px × block_px`` block (the nearest surface in it),
     into buffers allocated once for one image shape.
 
-    With ``erode_px`` = k > 0, each pixel first takes the smallest disparity of its row's pixels
-    ``x - k .. x + k`` inside the image (an invalid one, NaN, is the smallest): a pixel counts only
-    where its neighbours see something as near. A lone too-near pixel and a foreground edge smeared
-    ``k`` px onto what is behind it (a semi-global matcher's, across a door's jamb) then give no block
-    its depth; a true surface loses ``k`` px at each side.
+    With ``erode_px`` = k > 0, each pixel is first eroded along its row (:func:`erode_rows`): a
+    foreground edge smeared ``k`` px onto what is behind it (a semi-global matcher's, across a door's
+    jamb) and a lone too-near pixel then give no block its depth, while a thin upright thing (a bar
+    of a see-through fence, a pole) keeps it.
 
     Args:
         shape: ``(H, W)`` of the disparity images, pixels.
@@ -37,7 +36,7 @@ class BlockMax:
         self.shape = (h, w)
         self.block_px = b
         self.erode_px = k
-        self._eroded = np.empty((h, w), dtype=np.float32) if k else None
+        self._erode = RowErosion((h, w), k) if k else None
         self.out_shape = (-(-h // b), -(-w // b))
         oh, ow = self.out_shape
         # Partial edge blocks: the image is copied into a NaN-filled buffer of whole blocks; an image
@@ -54,8 +53,8 @@ class BlockMax:
         h, w = self.shape
         b = self.block_px
         src = disparity
-        if self._eroded is not None:
-            src = erode_rows(disparity, self.erode_px, out=self._eroded)
+        if self._erode is not None:
+            return self._erode.block_max(disparity, b, self._out)
         if self._pad is not None:
             np.copyto(self._pad[:h, :w], src, casting="same_kind")
             src = self._pad
@@ -80,14 +79,85 @@ def block_max(disparity: np.ndarray, block_px: int, erode_px: int = 0) -> np.nda
     return BlockMax((d.shape[0], d.shape[1]), block_px, erode_px)(d).copy()
 
 
-def erode_rows(disparity: np.ndarray, erode_px: int, out: np.ndarray | None = None) -> np.ndarray:
-    """Each pixel the smallest of its row's ``x - k .. x + k`` inside the image, NaN (invalid) the
-    smallest of all: float32 ``(H, W)`` px, into ``out`` (a new array if None; not ``disparity``)."""
-    d = disparity
-    if out is None:
-        out = np.empty(d.shape, dtype=np.float32)
-    np.copyto(out, d, casting="same_kind")
-    for j in range(1, int(erode_px) + 1):
-        np.minimum(out[:, j:], d[:, :-j], out=out[:, j:])  # np.minimum propagates NaN
-        np.minimum(out[:, :-j], d[:, j:], out=out[:, :-j])
-    return out
+def erode_rows(disparity: np.ndarray, erode_px: int) -> np.ndarray:
+    """:class:`RowErosion` of one image, as a new float32 ``(H, W)`` array, pixels, NaN invalid (a
+    copy of it with ``erode_px`` = 0)."""
+    d = np.asarray(disparity, dtype=np.float32)
+    if d.ndim != 2:
+        raise ValueError(f"disparity must be 2-D, got shape {d.shape}")
+    if int(erode_px) == 0:
+        return d.copy()
+    return RowErosion((d.shape[0], d.shape[1]), erode_px)(d).copy()
+
+
+class RowErosion:
+    """A disparity image with its smeared edges taken off and its thin upright things kept, into a
+    buffer allocated once for one image shape: the CPU reference of the GPU's ``memory_max``.
+
+    A semi-global matcher smears a near surface's disparity a pixel or two onto what lies behind
+    its edge. Each pixel therefore takes the smallest disparity of its row's pixels ``x - k .. x + k``
+    inside the image (an invalid one, NaN, the smallest): a wide surface loses ``k`` px at each side,
+    and with them the smear. A thing narrower than ``2k + 1`` px would vanish whole, so a pixel
+    that stands in front of what is on *both* sides of it keeps its own disparity: some pixel within
+    ``2k`` to its left and some within ``2k`` to its right are more than an eighth farther
+    (``8·d(neighbour) < 7·d(x)``; an invalid one counts as farther; the image's edge does not). A
+    smeared pixel has its surface on one side, so it is still taken off; a slanted wall changes its
+    disparity by far less than an eighth over ``2k`` px. Such a thin pixel counts only as far as the
+    rows above and below it see something as near within one pixel of its column (the nearest of
+    those three pixels in each row; a row outside the image does not count): a bar is tall, a lone
+    false match is not. In disparities, for a pixel ``x`` of row ``y``::
+
+        e    = min d[y, x-k .. x+k]
+        thin = any(8 d[y, x-2k .. x-1] < 7 d[y, x]) and any(8 d[y, x+1 .. x+2k] < 7 d[y, x])
+        s    = min(d[y, x], max d[y-1, x-1 .. x+1], max d[y+1, x-1 .. x+1])
+        out  = max(e, s) if thin else e
+
+    Every step is a comparison, a min or a max of the input's values (times 7 or 8 in float32, exact
+    for the matchers' fixed-point disparities), so the GPU's integer kernel equals it bit for bit.
+    A compiled kernel computes it (``companion.core._blockkernels``); the statement above in NumPy
+    is in the tests, which compare the two.
+
+    Args:
+        shape: ``(H, W)`` of the disparity images, pixels.
+        erode_px: k, pixels (>= 1).
+    """
+
+    def __init__(self, shape: tuple[int, int], erode_px: int) -> None:
+        k = int(erode_px)
+        if k < 1:
+            raise ValueError(f"erode_px must be >= 1, got {erode_px}")
+        from companion.core import _blockkernels
+
+        self._kernels = _blockkernels
+        self.shape, self.erode_px = (int(shape[0]), int(shape[1])), k
+        self._scratch = np.empty(self.shape, dtype=np.float32)
+        self._rows = np.empty((7, self.shape[1]), dtype=np.float32)
+        self._out: np.ndarray | None = None
+
+    def __call__(self, disparity: np.ndarray) -> np.ndarray:
+        """``disparity``: float32 ``(H, W)`` pixels, NaN invalid → float32 ``(H, W)`` pixels, NaN
+        invalid: a buffer reused by the next call."""
+        if disparity.shape != self.shape:
+            raise ValueError(f"disparity must be {self.shape}, got {disparity.shape}")
+        if self._out is None:
+            self._out = np.empty(self.shape, dtype=np.float32)
+        self._kernels.erode(np.ascontiguousarray(disparity, dtype=np.float32), self.erode_px, self._scratch,
+                            self._rows, self._out)
+        return self._out
+
+    def block_max(self, disparity: np.ndarray, block_px: int, out: np.ndarray) -> np.ndarray:
+        """:class:`BlockMax` of the eroded ``disparity`` (float32 ``(H, W)`` px, NaN invalid) into
+        ``out``, float32 ``(ceil(H/b), ceil(W/b))`` px, NaN where a block has none; no image between."""
+        if disparity.shape != self.shape:
+            raise ValueError(f"disparity must be {self.shape}, got {disparity.shape}")
+        self._kernels.eroded_block_max(np.ascontiguousarray(disparity, dtype=np.float32), self.erode_px,
+                                       int(block_px), self._scratch, self._rows, out)
+        return out
+
+
+def compile_kernels() -> None:
+    """Compile the erosion's kernels now (about a second, once per process)."""
+    erosion = RowErosion((3, 5), 1)
+    d = np.arange(15, dtype=np.float32).reshape(3, 5)
+    erosion(d)
+    erosion.block_max(d, 2, np.empty((2, 3), dtype=np.float32))

@@ -3,9 +3,12 @@
 
 
 def compile_kernels() -> None:
-    """Compile the local planner's kernels now (a few seconds, once per process): a service does it at
-    start-up, so that the first tick of its first flight does not wait for the compiler."""
+    """Compile the local planner's kernels, and those of its map's input (the eroded blocks of the
+    disparity), now (a few seconds, once per process): a service does it at start-up, so that the
+    first frame and tick of its first flight do not wait for the compiler."""
+    from companion.core import blocks
     from companion.core.planner import localmap, way
 
+    blocks.compile_kernels()
     localmap.compile_kernels()
     way.compile_kernels()

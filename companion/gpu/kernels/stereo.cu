@@ -641,19 +641,39 @@ extern "C" __global__ void regions_from_disp(const short* __restrict__ disp, u32
 // valid disparity of its f x f block (the nearest surface: the conservative summary) times `scale`
 // (1 for the SAD matcher's integer pixels, 1/16 for the SGM matcher's fixed point), NaN when none.
 
-// The block's largest disparity after each pixel took the smallest of its row's pixels x - k .. x + k
-// inside the image (k = 0: the pixel itself), times `scale`; NaN when none is valid (-1 is the smallest).
+// One pixel of the map's eroded disparity (k = 0: the pixel itself; -1 invalid, the smallest): the
+// smallest of its row's pixels x - k .. x + k inside the image, unless it stands more than an eighth
+// nearer than some pixel within 2k on each side (a thin upright thing, not a smeared edge); then the
+// larger of that and the nearest within one column of it in the row above and the row below, capped
+// at itself (a bar is tall; a lone false match is not). CPU reference: RowErosion in
+// companion/core/blocks.py.
+__device__ __forceinline__ int eroded_px(const short* __restrict__ disp, int x, int y, int k) {
+  const short* row = disp + (size_t)y * IMG_W;
+  const int d0 = row[x];
+  int m = d0;
+  for (int j = max(0, x - k); j <= min(IMG_W - 1, x + k); ++j) m = min(m, (int)row[j]);
+  if (m == d0) return m;  // k = 0, or nothing nearer to take off
+  bool left = false, right = false;
+  for (int j = max(0, x - 2 * k); j < x; ++j) left |= 8 * (int)row[j] < 7 * d0;
+  for (int j = x + 1; j <= min(IMG_W - 1, x + 2 * k); ++j) right |= 8 * (int)row[j] < 7 * d0;
+  if (!(left && right)) return m;
+  int s = d0;
+  for (int dy = -1; dy <= 1; dy += 2) {
+    if (y + dy < 0 || y + dy >= IMG_H) continue;
+    const short* nb = row + dy * IMG_W;
+    int n = -1;
+    for (int j = max(0, x - 1); j <= min(IMG_W - 1, x + 1); ++j) n = max(n, (int)nb[j]);
+    s = min(s, n);
+  }
+  return max(m, s);
+}
+
+// The block's largest eroded disparity (eroded_px), times `scale`; NaN when none is valid.
 __device__ __forceinline__ float eroded_block_max(const short* __restrict__ disp, int f, int ox, int oy,
                                                   float scale, int k) {
   int best = -1;
-  for (int y = oy * f; y < min(oy * f + f, IMG_H); ++y) {
-    const short* row = disp + (size_t)y * IMG_W;
-    for (int x = ox * f; x < min(ox * f + f, IMG_W); ++x) {
-      int m = row[x];
-      for (int j = max(0, x - k); j <= min(IMG_W - 1, x + k); ++j) m = min(m, (int)row[j]);
-      best = max(best, m);
-    }
-  }
+  for (int y = oy * f; y < min(oy * f + f, IMG_H); ++y)
+    for (int x = ox * f; x < min(ox * f + f, IMG_W); ++x) best = max(best, eroded_px(disp, x, y, k));
   return best >= 0 ? (float)best * scale : nan_f32();
 }
 
@@ -666,9 +686,8 @@ extern "C" __global__ void preview_max(const short* __restrict__ disp, float* __
 }
 
 // ------------------------------------------------------------------------------------------------
-// 8. The obstacle memory's blocks with memory.block_erode_px = k > 0: as preview_max, but each pixel
-// first takes the smallest disparity of its row's pixels x - k .. x + k inside the image (-1, invalid,
-// the smallest). CPU reference: BlockMax(erode_px=k) in companion/core/memory.py.
+// 8. The local map's blocks with planner.block_erode_px = k > 0: as preview_max, of the eroded
+// disparity (eroded_px). CPU reference: BlockMax(erode_px=k) in companion/core/blocks.py.
 
 extern "C" __global__ void memory_max(const short* __restrict__ disp, float* __restrict__ out, int f, int ow,
                                       int oh, float scale, int k) {
