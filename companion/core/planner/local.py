@@ -305,6 +305,7 @@ class LocalPlanner:
         n_yaw = max(4, int(round(360.0 / cfg.yaw_step_deg)))
         self._yaw_off = np.arange(n_yaw) * (2.0 * math.pi / n_yaw)
         self._climbs = np.linspace(-1.0, 1.0, N_CLIMBS) * math.radians(cfg.max_climb_deg)
+        self._swing: tuple[float, tuple[np.ndarray, np.ndarray, int]] | None = None  # (step_m, swing_profile)
 
     def reconfigure(self, cfg: PlannerConfig, radius_m: float) -> None:
         """New settings from the next tick (a live reload), the flight's mode, choice and places kept;
@@ -473,7 +474,9 @@ class LocalPlanner:
             starts = v[None, :]
             if snap.in_flight_ned_m_s is not None:
                 starts = np.stack([v, np.asarray(snap.in_flight_ned_m_s, dtype=np.float64)])
-            t, lag, tail = swing_profile(cfg, lmap.voxel_m)
+            if self._swing is None or self._swing[0] != lmap.voxel_m:
+                self._swing = (lmap.voxel_m, swing_profile(cfg, lmap.voxel_m))
+            t, lag, tail = self._swing[1]
             clear[top] = lmap.clear_along(
                 pos, starts, dirs[top], speed_law(free[top], cfg), t, lag, tail, cfg.map_range_m
             )

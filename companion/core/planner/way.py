@@ -65,6 +65,7 @@ class WayToGoal:
         self._key: tuple | None = None
         self.dist: np.ndarray | None = None  # float64 (nx, ny) metres to the goal, inf: no way
         self.blocked: np.ndarray | None = None
+        self._blocked = np.zeros((0, 0), dtype=bool)  # the buffer ``blocked`` is (nx, ny) once searched
         self._origin = np.zeros(2)  # the grid's cell (0, 0), in cells from the NED origin
         self._cell_m = 1.0
         self._start: np.ndarray | None = None
@@ -111,12 +112,8 @@ class WayToGoal:
         if fx % POOL or fy % POOL:  # open past the map's edge
             fine = np.pad(fine, ((0, -fx % POOL), (0, -fy % POOL)))
         nx, ny = fine.shape[0] // POOL, fine.shape[1] // POOL
-        blocked = np.empty((nx, ny), dtype=bool)
-        k.pool_all(fine, POOL, blocked)
-        v = POOL * lmap.voxel_m
-        # The map's origin is a whole number of cubes; the way's cells start there.
-        origin = lmap.origin[:2].astype(np.float64) / POOL
         if self._start is None or self._start.shape != (nx, ny):
+            self._blocked = np.empty((nx, ny), dtype=bool)
             self._start = np.full((nx, ny), np.inf)
             self.dist = np.full((nx, ny), np.inf)
             self._clear = np.empty(fine.shape)
@@ -124,6 +121,11 @@ class WayToGoal:
             self._keys = np.empty(8 * nx * ny + 1)
             self._cells = np.empty(8 * nx * ny + 1, dtype=np.int64)
         assert self.dist is not None and self._keys is not None and self._cells is not None
+        blocked = self._blocked
+        k.pool_all(fine, POOL, blocked)
+        v = POOL * lmap.voxel_m
+        # The map's origin is a whole number of cubes; the way's cells start there.
+        origin = lmap.origin[:2].astype(np.float64) / POOL
         start = self._start
         start[...] = np.inf
         self._origin = origin
