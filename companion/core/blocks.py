@@ -39,10 +39,12 @@ class BlockMax:
         self._erode = RowErosion((h, w), k) if k else None
         self.out_shape = (-(-h // b), -(-w // b))
         oh, ow = self.out_shape
-        # Partial edge blocks: the image is copied into a NaN-filled buffer of whole blocks; an image
-        # of whole blocks (ZED VGA and HD at 4 px) is reduced in place.
-        self._pad = None if (h % b == 0 and w % b == 0) else np.full((oh * b, ow * b), np.nan, dtype=np.float32)
-        self._cols = np.empty((oh * b, ow), dtype=np.float32)
+        # Eroded, the kernel reduces straight into the blocks. Plain, partial edge blocks: the image is
+        # copied into a NaN-filled buffer of whole blocks; an image of whole blocks (ZED VGA and HD at
+        # 4 px) is reduced in place.
+        whole = k or (h % b == 0 and w % b == 0)
+        self._pad = None if whole else np.full((oh * b, ow * b), np.nan, dtype=np.float32)
+        self._cols = np.empty((0 if k else oh * b, ow), dtype=np.float32)
         self._out = np.empty((oh, ow), dtype=np.float32)
 
     def __call__(self, disparity: np.ndarray) -> np.ndarray:
