@@ -204,6 +204,52 @@ def test_the_compiled_line_of_sight_equals_numpy_on_random_grids() -> None:
     assert seen == {True, False}
 
 
+def _dijkstra_heapq(blocked: np.ndarray, start: np.ndarray, cell_m: float, penalty: np.ndarray) -> np.ndarray:
+    """The way's distances stated plainly: Python's heap, the same 8 steps and the same sums."""
+    import heapq
+
+    nx, ny = blocked.shape
+    out = np.full((nx, ny), np.inf)
+    heap = []
+    for i in range(nx):
+        for j in range(ny):
+            if not blocked[i, j] and start[i, j] < np.inf:
+                out[i, j] = start[i, j]
+                heap.append((float(start[i, j]), i, j))
+    heapq.heapify(heap)
+    diag = cell_m * math.sqrt(2.0)
+    while heap:
+        d, i, j = heapq.heappop(heap)
+        if d > out[i, j]:
+            continue
+        for di in (-1, 0, 1):
+            for dj in (-1, 0, 1):
+                p, q = i + di, j + dj
+                if (di, dj) == (0, 0) or not (0 <= p < nx and 0 <= q < ny) or blocked[p, q]:
+                    continue
+                nd = d + (diag if di and dj else cell_m) * (1.0 + penalty[p, q])
+                if nd < out[p, q]:
+                    out[p, q] = nd
+                    heapq.heappush(heap, (nd, p, q))
+    return out
+
+
+def test_the_compiled_search_equals_a_plain_dijkstra_on_random_grids() -> None:
+    from companion.core.planner import _waykernels as k
+
+    rng = np.random.default_rng(11)
+    for _ in range(60):
+        nx, ny = (int(v) for v in rng.integers(1, 40, size=2))
+        blocked = rng.random((nx, ny)) < rng.uniform(0.0, 0.5)
+        start = np.where(rng.random((nx, ny)) < 0.05, rng.uniform(0.0, 20.0, (nx, ny)), np.inf)
+        penalty = np.where(rng.random((nx, ny)) < 0.5, rng.uniform(0.0, 3.0, (nx, ny)), 0.0)
+        out = np.empty((nx, ny))
+        keys = np.empty(8 * nx * ny + 1)
+        cells = np.empty(8 * nx * ny + 1, dtype=np.int64)
+        k.dijkstra(blocked, start, 0.3, penalty, out, keys, cells)
+        np.testing.assert_array_equal(out, _dijkstra_heapq(blocked, start, 0.3, penalty))
+
+
 def test_office_25008_a_door_reached_off_its_middle_is_flown_through_not_held_as_a_dead_end() -> None:
     """office-25008 at 3 m/s with the GPU's matcher (``cpu-sgm`` makes its disparities bit for bit): the
     vehicle reached the far wall's door 0.4 m off its middle at speed and braked a step from the wall;

@@ -21,13 +21,15 @@ _JIT = dict(cache=False, nogil=True, boundscheck=False)
 
 @nb.njit(**_JIT)
 def _cube_at(px: float, py: float, pz: float, voxel: float, origin: np.ndarray, nx: int, ny: int, nz: int) -> int:
-    """The flat index of the grid cube that holds the point, or -1 off the grid."""
-    i = math.floor(px / voxel) - float(origin[0])
-    j = math.floor(py / voxel) - float(origin[1])
-    k = math.floor(pz / voxel) - float(origin[2])
-    if i < 0 or i >= nx or j < 0 or j >= ny or k < 0 or k >= nz:
+    """The flat index of the grid cube that holds the point, or -1 off the grid (or not a number)."""
+    # Floored as floats, compared, then made integers: a float-to-integer conversion per axis, not
+    # one per axis and back, and a NaN fails every comparison.
+    i = np.floor(px / voxel) - origin[0]
+    j = np.floor(py / voxel) - origin[1]
+    k = np.floor(pz / voxel) - origin[2]
+    if not (i >= 0.0 and i < nx and j >= 0.0 and j < ny and k >= 0.0 and k < nz):
         return -1
-    return int((i * ny + j) * nz + k)
+    return (int(i) * ny + int(j)) * nz + int(k)
 
 
 @nb.njit(**_JIT)

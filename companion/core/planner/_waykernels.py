@@ -18,24 +18,28 @@ _DJ = (-1, 0, 1, -1, 1, -1, 0, 1)
 
 @nb.njit(**_JIT)
 def _push(keys: np.ndarray, cells: np.ndarray, n: int, key: float, cell: int) -> int:
+    """Add ``key``, ``cell`` to the binary min-heap of ``n`` entries; returns its new size. The parents
+    larger than the key move down into the hole it leaves, and the key is written once, at the end."""
     i = n
-    keys[i] = key
-    cells[i] = cell
     while i > 0:
         p = (i - 1) >> 1
-        if keys[p] <= keys[i]:
+        if keys[p] <= key:
             break
-        keys[p], keys[i] = keys[i], keys[p]
-        cells[p], cells[i] = cells[i], cells[p]
+        keys[i] = keys[p]
+        cells[i] = cells[p]
         i = p
+    keys[i] = key
+    cells[i] = cell
     return n + 1
 
 
 @nb.njit(**_JIT)
 def _pop(keys: np.ndarray, cells: np.ndarray, n: int) -> int:
+    """Remove the heap's least entry (read ``keys[0]``, ``cells[0]`` before); returns its new size. The
+    last entry sinks from the root through the hole, the smaller child moving up each level."""
     n -= 1
-    keys[0] = keys[n]
-    cells[0] = cells[n]
+    key = keys[n]
+    cell = cells[n]
     i = 0
     while True:
         a = 2 * i + 1
@@ -43,11 +47,13 @@ def _pop(keys: np.ndarray, cells: np.ndarray, n: int) -> int:
             break
         b = a + 1
         c = a if (b >= n or keys[a] <= keys[b]) else b
-        if keys[i] <= keys[c]:
+        if key <= keys[c]:
             break
-        keys[c], keys[i] = keys[i], keys[c]
-        cells[c], cells[i] = cells[i], cells[c]
+        keys[i] = keys[c]
+        cells[i] = cells[c]
         i = c
+    keys[i] = key
+    cells[i] = cell
     return n
 
 
@@ -83,15 +89,18 @@ def dijkstra(
         j = c - i * ny
         if d > out[i, j]:
             continue
-        for k in range(8):
-            p = i + _DI[k]
-            q = j + _DJ[k]
-            if p < 0 or p >= nx or q < 0 or q >= ny or blocked[p, q]:
+        for di in range(-1, 2):
+            p = i + di
+            if p < 0 or p >= nx:
                 continue
-            nd = d + (diag if (_DI[k] != 0 and _DJ[k] != 0) else cell_m) * (1.0 + penalty[p, q])
-            if nd < out[p, q] and n < keys.shape[0]:
-                out[p, q] = nd
-                n = _push(keys, cells, n, nd, p * ny + q)
+            for dj in range(-1, 2):
+                q = j + dj
+                if (di == 0 and dj == 0) or q < 0 or q >= ny or blocked[p, q]:
+                    continue
+                nd = d + (diag if (di != 0 and dj != 0) else cell_m) * (1.0 + penalty[p, q])
+                if nd < out[p, q] and n < keys.shape[0]:
+                    out[p, q] = nd
+                    n = _push(keys, cells, n, nd, p * ny + q)
 
 
 @nb.njit(**_JIT)
