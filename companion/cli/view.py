@@ -189,13 +189,14 @@ def _view(args: argparse.Namespace) -> int:
             urls = getattr(server, "urls")
             print(f"companion view: following {health}" + (f" and {preview}" if preview else "")
                   + ("" if control else " (read-only)"), flush=True)
+            # Before the URL, so a reader that stops at the URL has seen what the token in it is.
+            if made_up:
+                print(f"companion view: the token was made up for this run (set ${TOKEN_ENV} or --token-file to keep one)", flush=True)
             for url in urls:
                 print(f"companion view: open {url}", flush=True)
             if not _service_there(health):
                 print(f"companion view: no running service at {health} yet: the page says so, and follows it once it starts",
                       flush=True)
-            if made_up:
-                print(f"companion view: the token was made up for this run (set ${TOKEN_ENV} or --token-file to keep one)", flush=True)
 
         await serve(options, ready=ready, stop=stop)
 
