@@ -5,7 +5,8 @@
   looks only there (never in the user's own runtime directory, nor in the /tmp fallback), so no
   test sees another run's sockets or leaves one behind.
 * The kernels compiled for the CPU (``companion.gpu.hostemu``) are built in this run's own folder,
-  and the processes the tests start (MAVSDK's server) keep their temporary files in another.
+  Numba's in pytest's cache folder, and the processes the tests start (MAVSDK's server) keep their
+  temporary files in another.
 * Every ``zmq.Context`` created during a test must be closed by the end of it (a few seconds of
   grace for threads that close their own): an open one fails the test, naming it, and is destroyed
   with linger 0 so that the interpreter's exit never waits in ``zmq_ctx_term``.
@@ -106,6 +107,22 @@ def hostemu_build_dir(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path
     path = tmp_path_factory.mktemp("hostemu")
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv(BUILD_DIR_ENV, str(path))
+        yield path
+
+
+@pytest.fixture(autouse=True, scope="session")
+def numba_cache_dir(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
+    """The compiled kernels (the planner's, the CPU matcher's) are cached in pytest's own cache folder
+    (a temporary one without it), for this process and the services it starts, never in the user's:
+    each kernel compiles once per checkout, not once per process started."""
+    import sys
+
+    cache = getattr(request.config, "cache", None)
+    path = cache.mkdir("companion-numba") if cache is not None else tmp_path_factory.mktemp("numba-cache")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("NUMBA_CACHE_DIR", str(path))
+        if "numba" in sys.modules:  # imported while collecting: its config has read the environment already
+            mp.setattr(sys.modules["numba"].config, "CACHE_DIR", str(path))
         yield path
 
 

@@ -2,7 +2,8 @@
 in whole-row passes of selects that the compiler vectorises (the GPU's ``eroded_px`` computes each
 pixel alone; a loop per pixel over its neighbours ran about four times slower here), straight into the
 map's blocks. Imported when an erosion is first built (it loads Numba); each compiles at its first
-call in a process, in memory.
+call in a process, or loads from the cache folder a service or simulator points Numba at
+(:mod:`companion.jitcache`).
 
 The arithmetic is float32 as in NumPy's statement of the rule (``8·d`` and ``7·d`` rounded to float32),
 so the kernels equal it bit for bit on any input (a test compares them on random images)."""
@@ -14,7 +15,7 @@ import math
 import numba as nb
 import numpy as np
 
-_JIT = dict(cache=False, nogil=True, boundscheck=False)
+_JIT = dict(cache=bool(nb.config.CACHE_DIR), nogil=True, boundscheck=False)
 
 _SEVEN = np.float32(7.0)
 _EIGHT = np.float32(8.0)

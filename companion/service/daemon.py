@@ -377,8 +377,11 @@ class Service:
         self.parts.started(self.vision)
         await self.vision.start(cfg)
         from companion.core.planner import compile_kernels
+        from companion.jitcache import use_cache_dir_or_memory
 
-        # The local planner's compiled kernels now, not at the first tick of the first flight.
+        # The local planner's compiled kernels now, not at the first tick of the first flight; loaded
+        # from the cache folder after the first start.
+        use_cache_dir_or_memory(log)
         await asyncio.to_thread(compile_kernels)
         # The link before the camera: a simulated camera may render from the vehicle's telemetry.
         self.parts.started(self.vehicle)

@@ -47,8 +47,8 @@ Type=notify
 NotifyAccess=main
 ExecStart={exec_start}
 ExecReload=/bin/kill -HUP $MAINPID
-# READY=1 once the camera delivers and the pipeline is built. The first start compiles the matcher's
-# kernels (GPU: seconds; cpu-sgm: about 1.5 min on 2 cores, then cached under NUMBA_CACHE_DIR).
+# READY=1 once the camera delivers and the pipeline is built. The first start compiles the kernels
+# (GPU: seconds; planner: 10 s and cpu-sgm: 1.5 min on 2 cores; then cached under NUMBA_CACHE_DIR).
 TimeoutStartSec=300
 # SIGTERM: zero setpoint, Hold if we own offboard, then exit; a second signal forces the exit.
 TimeoutStopSec=15

@@ -23,6 +23,7 @@ keeps pace with the wall clock (the only place that reads a clock for anything b
 from __future__ import annotations
 
 import enum
+import logging
 import math
 import time
 from collections import deque
@@ -42,11 +43,14 @@ from companion.core.types import ZERO_SETPOINT, DecisionKind, VelocitySetpoint
 from companion.errors import CameraError, CompanionError
 from companion.interfaces import Frame
 from companion.interrupts import interrupt_after
+from companion.jitcache import use_cache_dir_or_memory
 from companion.sim.camera import SimCamera
 from companion.sim.courses import Course
 from companion.sim.render import Pose, TextureBank
 from companion.sim.scoring import HELD_RADIUS_M, Judge, Outcome
 from companion.sim.vehicle import SimVehicle, VehicleParams
+
+logger = logging.getLogger(__name__)
 
 #: Events scheduled at k/rate fire when the simulated time is within this of it (float steps).
 _EPS_S = 1e-9
@@ -320,6 +324,7 @@ def fly(
     # The planner's kernels compile once per process, before the flight's clock starts; a Ctrl-C
     # meanwhile is delivered after (the compiler's callbacks would drop it).
     with interrupt_after():
+        use_cache_dir_or_memory(logger)
         compile_kernels()
     wall0 = clock()
     cfg = simulator_config(cfg)

@@ -117,7 +117,9 @@ def spawn(config: Path, notify: Notifications | None, watchdog_usec: int | None 
     )
 
 
-def finish(proc: subprocess.Popen, timeout_s: float = 15.0) -> tuple[int, str]:
+def finish(proc: subprocess.Popen, timeout_s: float = 120.0) -> tuple[int, str]:
+    """The exit status and stderr of ``proc``; ``timeout_s`` only tells a hung process from a slow start
+    on a loaded machine (a first start compiles the planner's kernels, 10 s on 2 quiet cores)."""
     try:
         _, err = proc.communicate(timeout=timeout_s)
     except subprocess.TimeoutExpired:

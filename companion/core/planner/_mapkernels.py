@@ -1,8 +1,8 @@
 """Compiled kernels of the local map's queries (:class:`companion.core.planner.localmap.LocalMap`): the
 free lengths, each line walked cube by cube to its first bad sample, so that the body's rim is read
 only where the line itself is still free; and the columns the way to the goal cannot pass. Imported
-when the map is first asked (it loads Numba); each compiles at its first call in a process, in memory
-(nothing is written to disk).
+when the map is first asked (it loads Numba); each compiles at its first call in a process, or loads
+from the cache folder a service or simulator points Numba at (:mod:`companion.jitcache`).
 
 Every sample is computed with the same float64 operations, in the same order, as NumPy's broadcast of
 ``start + d * s`` and ``floor(p / voxel) - origin`` would: a line ends at the same cube as it would in
@@ -16,7 +16,7 @@ import math
 import numba as nb
 import numpy as np
 
-_JIT = dict(cache=False, nogil=True, boundscheck=False)
+_JIT = dict(cache=bool(nb.config.CACHE_DIR), nogil=True, boundscheck=False)
 
 
 @nb.njit(**_JIT)

@@ -1,6 +1,7 @@
 """Compiled kernels of the way to the goal (:mod:`companion.core.planner.way`): a Dijkstra over a 2D grid
 and the walk down its distances. Imported only when a way is first asked for (it loads Numba); each
-kernel compiles at its first call in a process, in memory (nothing is written to disk).
+kernel compiles at its first call in a process, or loads from the cache folder a service or simulator
+points Numba at (:mod:`companion.jitcache`).
 """
 
 from __future__ import annotations
@@ -10,7 +11,7 @@ import math
 import numba as nb
 import numpy as np
 
-_JIT = dict(cache=False, nogil=True, boundscheck=False)
+_JIT = dict(cache=bool(nb.config.CACHE_DIR), nogil=True, boundscheck=False)
 #: The 8 neighbours of a cell, row and column offsets.
 _DI = (-1, -1, -1, 0, 0, 1, 1, 1)
 _DJ = (-1, 0, 1, -1, 1, -1, 0, 1)
