@@ -893,3 +893,26 @@ def test_a_descent_cut_by_the_floor_before_a_wall_down_to_the_ground_is_closed()
     plan = p.plan(_snap(), m)
     climb = math.degrees(math.asin(-plan.direction_ned[2])) if np.linalg.norm(plan.direction_ned) else 0.0
     assert climb > -5.0, plan.reason  # no dive toward the foot of the wall
+
+
+def test_the_visited_memory_is_the_seconds_flown_in_each_cell() -> None:
+    """The seconds remembered per cell, read for many points at once, equal a plain sum per cell
+    (negative cells too, each tick's time at most 0.5 s)."""
+    from companion.core.planner.local import VISITED_CELL_M
+
+    rng = np.random.default_rng(3)
+    p = LocalPlanner(PlannerConfig(), 0.25)
+    plain: dict[tuple[int, int], float] = {}
+    t, last = 0.0, None
+    for _ in range(400):
+        t += float(rng.choice([0.02, 0.1, 0.9]))
+        pos = np.array([*rng.uniform(-3.0, 3.0, 2), -1.5])
+        p._remember(_snap(now_s=t, position_ned_m=pos))
+        dt = 0.0 if last is None else min(t - last, 0.5)
+        last = t
+        key = (math.floor(pos[0] / VISITED_CELL_M), math.floor(pos[1] / VISITED_CELL_M))
+        plain[key] = plain.get(key, 0.0) + dt
+    points = np.column_stack([rng.uniform(-4.0, 4.0, (500, 2)), np.full(500, -1.5)])
+    want = [plain.get((math.floor(n / VISITED_CELL_M), math.floor(e / VISITED_CELL_M)), 0.0) for n, e, _ in points]
+    assert p._visited_at(points).tolist() == want
+    assert LocalPlanner(PlannerConfig(), 0.25)._visited_at(points).tolist() == [0.0] * 500

@@ -278,6 +278,13 @@ def costs(
     )
 
 
+def _cell_codes(north_east_m: np.ndarray) -> np.ndarray:
+    """One int64 code per visited-memory cell of each point (float64 ``(N, 2)`` north, east m): the
+    cell's north index in the high 32 bits, its east index in the low (each well within 2^31)."""
+    keys = np.floor(north_east_m / VISITED_CELL_M).astype(np.int64)
+    return (keys[:, 0] << 32) + (keys[:, 1] & 0xFFFFFFFF)
+
+
 def event_of(turn_from_goal_rad: float, looking: bool) -> str:
     """The event a choice is: "direct" within 15° of the goal, "steer" within 60°, else "round"
     (and "round" while turning to look)."""
@@ -323,7 +330,9 @@ class LocalPlanner:
         self._prev: tuple[float, float] | None = None
         self._looked_t = np.full(len(self._yaw_off), -np.inf)  # per absolute yaw bin
         self._looked_from = np.zeros((len(self._yaw_off), 2))  # north, east m the bin was looked along from
-        self._visited: dict[tuple[int, int], float] = {}
+        # The visited places: each cell's code (see _cell_codes), sorted, and its seconds flown in it.
+        self._visited_codes = np.empty(0, dtype=np.int64)
+        self._visited_s = np.empty(0, dtype=np.float64)
         self._last_t: float | None = None
         self._closed_since: float | None = None
         self._held_at: np.ndarray | None = None
@@ -354,17 +363,22 @@ class LocalPlanner:
         self._looked_from[looked] = snap.position_ned_m[:2]
         dt = 0.0 if self._last_t is None else max(0.0, min(snap.now_s - self._last_t, 0.5))
         self._last_t = snap.now_s
-        p = snap.position_ned_m
-        key = (int(math.floor(p[0] / VISITED_CELL_M)), int(math.floor(p[1] / VISITED_CELL_M)))
-        self._visited[key] = self._visited.get(key, 0.0) + dt
+        code = _cell_codes(np.asarray(snap.position_ned_m, dtype=np.float64)[None, :2])[0]
+        i = int(np.searchsorted(self._visited_codes, code))
+        if i < len(self._visited_codes) and self._visited_codes[i] == code:
+            self._visited_s[i] += dt
+        else:  # a cell entered for the first time (a few a second at most)
+            self._visited_codes = np.insert(self._visited_codes, i, code)
+            self._visited_s = np.insert(self._visited_s, i, dt)
 
     def _visited_at(self, points: np.ndarray) -> np.ndarray:
-        keys = np.floor(points[:, :2] / VISITED_CELL_M).astype(np.int64)
-        # A few cells round the vehicle: one code per cell (north, east each well within 2^31).
-        codes = (keys[:, 0] << 32) + (keys[:, 1] & 0xFFFFFFFF)
-        cells, first, back = np.unique(codes, return_index=True, return_inverse=True)
-        seconds = np.array([self._visited.get((int(keys[i, 0]), int(keys[i, 1])), 0.0) for i in first])
-        return seconds[back]
+        """Seconds flown in the cell of each of ``points`` (float64 ``(N, 3)`` NED m) → float64 ``(N,)``."""
+        codes = _cell_codes(points[:, :2])
+        known = self._visited_codes
+        if len(known) == 0:
+            return np.zeros(len(points))
+        i = np.minimum(np.searchsorted(known, codes), len(known) - 1)
+        return np.where(known[i] == codes, self._visited_s[i], 0.0)
 
     def plan(self, snap: Snapshot, lmap: LocalMap) -> Plan:
         """One tick (see the module doc)."""
