@@ -456,17 +456,31 @@ class LocalPlanner:
             # not flown out of; the operator chooses.
             way_yaw = None
 
+        # What lies where each candidate leads, by its hoped-for length: the seconds already flown there
+        # and the way left from its end (from a cube short of it: a line ends at a surface's radius).
+        # Kept between the two scorings, and looked up again only where the length changed.
+        led_to: dict[str, np.ndarray] = {}
+
+        def look_up(hoped: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+            at = np.flatnonzero(hoped != led_to["hoped"]) if led_to else slice(None)
+            h, d = hoped[at], dirs[at]
+            visited = led_to["visited"].copy() if led_to else np.empty(len(hoped))
+            visited[at] = self._visited_at(pos + d * np.minimum(h, VISITED_LOOKAHEAD_M)[:, None])
+            way_left = None
+            if way_yaw is not None:
+                way_left = led_to["way_left"].copy() if led_to else np.empty(len(hoped))
+                way_left[at] = self._way.length_at(pos + d * np.maximum(np.minimum(h, goal_dist) - lmap.voxel_m, 0.0)[:, None])
+                led_to["way_left"] = way_left
+            led_to["hoped"], led_to["visited"] = hoped, visited
+            return visited, way_left
+
         def score(
             free: np.ndarray, path: np.ndarray, blocked: np.ndarray, swung: np.ndarray | bool = False
         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
             # Hoped-for length: unknown space not looked at lately is worth a look.
             hopeful = unlooked & ~blocked & ~swung & ~fl.horizon
             hoped = np.where(hopeful, np.maximum(path, 0.5 * cfg.map_range_m), path)
-            visited = self._visited_at(pos + dirs * np.minimum(hoped, VISITED_LOOKAHEAD_M)[:, None])
-            way_left = None
-            if way_yaw is not None:  # from a cube short of each end: a line ends at a surface's radius
-                ends = pos + dirs * np.maximum(np.minimum(hoped, goal_dist) - lmap.voxel_m, 0.0)[:, None]
-                way_left = self._way.length_at(ends)
+            visited, way_left = look_up(hoped)
             c = costs(
                 yaw, climb, hoped, blocked & (free < goal_dist), goal_yaw, goal_climb, goal_dist, self._prev, fuzzy,
                 visited, motion, cfg, way_yaw, way_left,
