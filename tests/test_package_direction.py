@@ -1,5 +1,5 @@
 """Packages import in one direction: cli -> (sitl, view, bench) -> service -> recorded -> (sim, calib)
--> backends -> (gpu, cpu) -> core -> config -> base types (errors, exitcodes, interfaces, report, framepool, pacing, devices, interrupts). Module-level and
+-> backends -> (gpu, cpu) -> core -> (config, jitcache) -> base types (errors, exitcodes, interfaces, report, framepool, pacing, devices, interrupts). Module-level and
 function-level imports alike: a circle hidden inside a function is still a circle. Imports under
 ``if TYPE_CHECKING`` name types for annotations and load nothing; they may name any part.
 
@@ -31,6 +31,7 @@ RANK: dict[str, int] = {
     "devices": 0,
     "interrupts": 0,
     "config": 1,
+    "jitcache": 1,
     "core": 2,
     "gpu": 3,
     "cpu": 3,
