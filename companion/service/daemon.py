@@ -374,14 +374,16 @@ class Service:
         self.view = ViewPlane(lambda: self.config, clock=self._clock, on_error=self.errors.record, environ=self._environ)
         self.parts.started(_Closing("the preview", self._close_view, in_thread=True))
         self.view.open(self.bus.health_endpoint)
+        from companion.jitcache import use_cache_dir_or_memory
+
+        # Before the pipeline is built (its map input's kernels bind their cache when first imported).
+        use_cache_dir_or_memory(log)
         self.parts.started(self.vision)
         await self.vision.start(cfg)
         from companion.core.planner import compile_kernels
-        from companion.jitcache import use_cache_dir_or_memory
 
         # The local planner's compiled kernels now, not at the first tick of the first flight; loaded
         # from the cache folder after the first start.
-        use_cache_dir_or_memory(log)
         await asyncio.to_thread(compile_kernels)
         # The link before the camera: a simulated camera may render from the vehicle's telemetry.
         self.parts.started(self.vehicle)
