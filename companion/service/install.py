@@ -30,6 +30,8 @@ SERVICE_GROUPS = ("video", "dialout")
 CONFIG_PATH = Path("/etc/companion/companion.toml")
 UNIT_PATH = Path("/etc/systemd/system/companion.service")
 DEFAULT_EXEC_START = f"/opt/companion/venv/bin/companion run --config {CONFIG_PATH}"
+#: How long a start may take, seconds: a first start compiles the kernels (cpu-sgm: 1.5 min on 2 cores).
+START_TIMEOUT_S = 300
 
 UNIT_TEMPLATE = """\
 # companion: stereo-vision obstacle avoidance for PX4 (ZED -> 9 regions -> fuzzy -> MAVSDK offboard).
@@ -49,7 +51,7 @@ ExecStart={exec_start}
 ExecReload=/bin/kill -HUP $MAINPID
 # READY=1 once the camera delivers and the pipeline is built. The first start compiles the kernels
 # (GPU: seconds; planner: 10 s and cpu-sgm: 1.5 min on 2 cores; then cached under NUMBA_CACHE_DIR).
-TimeoutStartSec=300
+TimeoutStartSec={start_timeout_s}
 # SIGTERM: zero setpoint, Hold if we own offboard, then exit; a second signal forces the exit.
 TimeoutStopSec=15
 # WATCHDOG=1 comes only from the control loop: a stalled loop gets the process killed (and MAVSDK's
@@ -122,6 +124,7 @@ def render_unit(exec_start: str = DEFAULT_EXEC_START, user: str = SERVICE_USER) 
         startup_failure=exitcodes.STARTUP_FAILURE,
         user=user,
         groups=" ".join(SERVICE_GROUPS),
+        start_timeout_s=START_TIMEOUT_S,
     )
 
 

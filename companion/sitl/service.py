@@ -24,6 +24,7 @@ from companion.config import CompanionConfig
 from companion.config.document import render_config_toml
 from companion.service.aio import cancel_and_wait
 from companion.service.client import ClientError, ControlClient
+from companion.service.install import START_TIMEOUT_S
 from companion.sitl.px4 import SitlError, log_tail
 
 log = logging.getLogger(__name__)
@@ -53,9 +54,10 @@ class ServiceProcess:
         self._sub: Any = None
         self._task: asyncio.Task | None = None
 
-    async def start(self, timeout_s: float = 30.0) -> None:
+    async def start(self, timeout_s: float = START_TIMEOUT_S) -> None:
         """Write the config, start the process, wait until its health says the camera streams and the
-        vehicle link is connected with the flight mode known (what ``engage`` needs). Whatever ends
+        vehicle link is connected with the flight mode known (what ``engage`` needs): at most as long
+        as systemd lets the service start (a first start compiles the kernels). Whatever ends
         the wait early (not ready, an error, a cancelled task) stops the process first (:meth:`stop`):
         a start that fails leaves nothing running.
 
