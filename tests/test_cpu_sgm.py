@@ -24,21 +24,12 @@ pytest.importorskip("numba")
 
 
 @pytest.fixture(scope="module", autouse=True)
-def _numba_cache(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> None:
-    """Numba's cache in pytest's own cache folder (so the kernels compile once per checkout, not once
-    per session), or a temporary folder without it: the tests leave nothing in the user's cache."""
-    import numba
-
+def _numba_cache() -> None:
+    """The kernels bound to the session's cache folder (``numba_cache_dir`` in conftest: pytest's own,
+    so they compile once per checkout), never the user's."""
     from companion.cpu import load_kernels
 
-    cache = getattr(request.config, "cache", None)
-    folder = cache.mkdir("companion-numba") if cache is not None else tmp_path_factory.mktemp("numba-cache")
-    old = numba.config.CACHE_DIR
-    numba.config.CACHE_DIR = str(folder)
-    try:
-        load_kernels()  # binds the cache location of the kernels for this process
-    finally:
-        numba.config.CACHE_DIR = old
+    load_kernels()
 
 
 def _matcher(w: int, h: int, d: int, **kw):

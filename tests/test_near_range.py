@@ -185,21 +185,13 @@ def test_the_opencv_matchers_do_not_read_a_too_near_wall_far(backend: str) -> No
 
 
 @pytest.fixture(scope="module")
-def _numba_cache(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> None:
-    """Numba's cache in pytest's cache folder (or a temporary one): nothing in the user's cache."""
+def _numba_cache() -> None:
+    """The kernels bound to the session's cache folder (``numba_cache_dir`` in conftest): nothing in
+    the user's cache."""
     pytest.importorskip("numba")
-    import numba
-
     from companion.cpu import load_kernels
 
-    cache = getattr(request.config, "cache", None)
-    folder = cache.mkdir("companion-numba") if cache is not None else tmp_path_factory.mktemp("numba-cache")
-    old = numba.config.CACHE_DIR
-    numba.config.CACHE_DIR = str(folder)
-    try:
-        load_kernels()
-    finally:
-        numba.config.CACHE_DIR = old
+    load_kernels()
 
 
 @pytest.mark.usefixtures("_numba_cache")
