@@ -231,3 +231,48 @@ def descend(dist: np.ndarray, i0: int, j0: int, steps: int, path: np.ndarray) ->
         path[k, 1] = j
         k += 1
     return k
+
+
+@nb.njit(**_JIT)
+def bearings(
+    dist: np.ndarray,
+    blocked: np.ndarray,
+    points: np.ndarray,
+    cell_m: float,
+    origin: np.ndarray,
+    path: np.ndarray,
+    out: np.ndarray,
+) -> None:
+    """The way's bearing from each of ``points`` (float64 ``(K, 2)``, north and east m) into ``out``
+    (float64 ``(K,)``, radians clockwise from north; NaN where there is none): from the point's cell
+    (``cell_m`` m cells, cell (0, 0) at ``origin``, float64 ``(2,)`` cells from the NED origin) or,
+    where that one has no way (within a surface's radius), the nearest open one of the 5 × 5 round
+    it, :func:`descend` ``dist`` (float64 ``(nx, ny)``) up to ``path``'s length (int64 ``(steps, 2)``
+    scratch), and toward the :func:`farthest_in_view` of that walk over ``blocked``."""
+    nx, ny = dist.shape
+    for k in range(points.shape[0]):
+        out[k] = math.nan
+        hi = points[k, 0] / cell_m - origin[0]
+        hj = points[k, 1] / cell_m - origin[1]
+        qi = math.floor(hi)
+        qj = math.floor(hj)
+        if not (qi >= 0 and qi < nx and qj >= 0 and qj < ny):
+            continue
+        i0, j0 = int(qi), int(qj)
+        if not dist[i0, j0] < math.inf:
+            # The first least of the window, in rows then columns (NumPy's argmin order).
+            best = math.inf
+            bi, bj = -1, -1
+            for i in range(max(0, i0 - 2), min(nx, i0 + 3)):
+                for j in range(max(0, j0 - 2), min(ny, j0 + 3)):
+                    if dist[i, j] < best:
+                        best = dist[i, j]
+                        bi, bj = i, j
+            if bi < 0:
+                continue
+            i0, j0 = bi, bj
+        n = descend(dist, i0, j0, path.shape[0], path)
+        if n == 0:
+            continue
+        far = farthest_in_view(blocked, hi, hj, path[:n])
+        out[k] = math.atan2((path[far, 1] + 0.5) - hj, (path[far, 0] + 0.5) - hi)

@@ -55,6 +55,7 @@ def compile_kernels() -> None:
     path = np.zeros((4, 2), dtype=np.int64)
     k.descend(out, 2, 2, 4, path)
     k.farthest_in_view(blocked, 0.5, 0.5, path)
+    k.bearings(out, blocked, np.zeros((1, 2)), 1.0, np.zeros(2), path, np.empty(1))
 
 
 class WayToGoal:
@@ -187,33 +188,18 @@ class WayToGoal:
         toward the farthest cell of a walk down the distances (:data:`WALK_CELLS`) that the straight
         line from here reaches through open cells only; None where there is no way from here (the
         caller keeps the goal's bearing)."""
-        if self.dist is None or self.blocked is None:
-            return None
+        b = float(self.bearings(np.asarray(position_ned_m, dtype=np.float64)[None, :])[0])
+        return None if math.isnan(b) else b
+
+    def bearings(self, points_ned_m: np.ndarray) -> np.ndarray:
+        """float64 ``(K,)``: :meth:`bearing` from each of ``points_ned_m`` (float ``(K, 3)`` NED m), NaN
+        where there is no way (or before the first :meth:`update`). A point within a surface's radius
+        (a pass close by) starts from the nearest open cell round it."""
+        pts = np.asarray(points_ned_m, dtype=np.float64)
+        out = np.full(len(pts), np.nan)
+        if self.dist is None or self.blocked is None or len(pts) == 0:
+            return out
         from companion.core.planner import _waykernels as k
 
-        p = np.asarray(position_ned_m, dtype=np.float64)
-        i0, j0, inside = self._cell(p[None, :])
-        if not bool(inside[0]):
-            return None
-        i0, j0 = int(i0[0]), int(j0[0])
-        dist = self.dist
-        if not math.isfinite(float(dist[i0, j0])):
-            # The vehicle's own cell is within a surface's radius (a pass close by): start from the
-            # nearest open one round it.
-            lo_i, lo_j = max(0, i0 - 2), max(0, j0 - 2)
-            win = dist[lo_i : i0 + 3, lo_j : j0 + 3]
-            if not np.isfinite(win).any():
-                return None
-            a, b = np.unravel_index(int(np.argmin(win)), win.shape)
-            i0, j0 = lo_i + int(a), lo_j + int(b)
-        n = int(k.descend(dist, i0, j0, WALK_CELLS, self._path))
-        if n == 0:
-            return None
-        path = self._path[:n]
-        here = p[:2] / self._cell_m - self._origin  # in cells, continuous
-        # In plain view: the samples of the line from here to each cell of the walk, every half cell,
-        # all on open cells; the farthest such cell sets the bearing.
-        far = int(k.farthest_in_view(self.blocked, here[0], here[1], path))
-        dn = (path[far, 0] + 0.5) - here[0]
-        de = (path[far, 1] + 0.5) - here[1]
-        return math.atan2(float(de), float(dn))
+        k.bearings(self.dist, self.blocked, np.ascontiguousarray(pts[:, :2]), self._cell_m, self._origin, self._path, out)
+        return out
