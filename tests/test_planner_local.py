@@ -22,10 +22,10 @@ from companion.core.planner.local import (
     Mode,
     Plan,
     Snapshot,
-    predicted_paths,
     speed_law,
 )
 from companion.core.planner.localmap import LocalMap
+from companion.core.planner.paths import predicted_paths
 from companion.core.planner.safety import (
     CHAIN,
     SafetyContext,

@@ -194,7 +194,7 @@ def test_compiled_swings_equal_predicted_paths_judged_by_numpy(seed: int) -> Non
     """``clear_along``: for every command, the least over the velocities of the whole-array NumPy
     judgement of ``predicted_paths``, bit for bit; from a start within a surface's radius too."""
     from companion.config.planner import PlannerConfig
-    from companion.core.planner.local import predicted_paths, swing_profile
+    from companion.core.planner.paths import predicted_paths, swing_profile
 
     rng = np.random.default_rng(200 + seed)
     cfg = PlannerConfig()

@@ -6,10 +6,12 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
 from companion.config import parse_config
 from companion.core.geometry import StereoGeometry
 from companion.core.planner.localmap import LocalMap
+from companion.core.planner.paths import bend_onto_way, directions
 from companion.core.planner.way import WayToGoal
 from companion.core.pose import Pose
 from companion.sim.courses import make_course
@@ -60,6 +62,39 @@ def test_beside_a_wall_the_way_leads_to_the_gap_seen_in_it() -> None:
     assert west < east
     straight = math.hypot(*(GOAL[:2] - here[:2]))
     assert way.length_at(here[None, :])[0] > straight + 1.0  # round the wall, not through it
+
+
+def test_a_line_into_a_wall_is_scored_on_along_the_way_to_the_gap_from_where_it_would_stop() -> None:
+    """The goal lies through the wall; the line straight at it ends at the wall's radius. The vehicle
+    flying it would stop a stop margin short and turn along the way, toward the gap: that bent path is
+    what it leads to, longer than the line. A line that leads away from the way is not bent onto it."""
+    m = _wall_with_gap()
+    way = WayToGoal()
+    way.update(m, GOAL, -1.5, 0.5, 3.0)
+    here = np.array([0.0, 0.0, -1.5])
+    yaw = np.radians([0.0, 180.0])
+    dirs = directions(yaw, np.zeros(2))
+    fl = m.free_lengths(here, dirs)
+    assert fl.blocked[0] and fl.length_m[0] < 3.0  # the line meets the wall
+    path, blocked = fl.length_m.copy(), fl.blocked.copy()
+    knee, onward = np.full(2, np.inf), dirs.copy()
+    bend_onto_way(m, way, here, yaw, dirs, np.ones(2, bool), 0.0, float(GOAL[0]), 0.3, blocked, path, knee, onward)
+    assert knee[0] == pytest.approx(fl.length_m[0] - 0.3)  # where the speed law stops on the line
+    assert onward[0, 1] < -0.5  # on toward the gap, west
+    assert path[0] > fl.length_m[0] + 1.0
+    assert not np.isfinite(knee[1]) and path[1] == fl.length_m[1]  # south: away from the way, unbent
+
+
+def test_corridor_32004_beside_a_box_flies_round_it_instead_of_dithering_until_the_watchdog() -> None:
+    """corridor-32004 with 0.14 m/s drift at 3 m/s with the GPU's matcher (``cpu-sgm`` makes its
+    disparities bit for bit): 1.5 m short of its first box (1.2 m wide, near the middle of a corridor
+    4.2 m wide), the lines toward either side ended at the box's or the walls' radius and were scored
+    as stops there; the vehicle turned from one to another and wandered back for 40 s until the
+    no-progress watchdog held it (PX4 SITL's corridor-4 did the same). A line into the box now leads
+    on along the way round it, from where it would stop, and the flight reaches the goal."""
+    cfg = parse_config({"stereo": {"backend": "cpu-sgm"}, "sim": {"drift_speed_m_s": 0.14}})
+    result = fly(make_course("corridor", 32004), cfg)
+    assert result.outcome is Outcome.GOAL, result.reason
 
 
 def _crossing_east_m(way: WayToGoal, here: np.ndarray, wall_north_m: float) -> float:

@@ -158,7 +158,7 @@ def swing_clear(
     step_m: float, n_tail: int, arc_limit_m: float, near_m: float, voxel: float, origin: np.ndarray,
     shape: np.ndarray, infl: np.ndarray, occ: np.ndarray, out: np.ndarray,
 ) -> None:
-    """The predicted paths of :func:`~companion.core.planner.local.predicted_paths` from each velocity of
+    """The predicted paths of :func:`~companion.core.planner.paths.predicted_paths` from each velocity of
     ``v0s`` (float64 ``(P, 3)`` NED m/s) toward each command ``dirs · speeds`` (float64 ``(K, 3)``,
     ``(K,)``), judged as :meth:`~companion.core.planner.localmap.LocalMap.clear_along` states, from
     ``start``: ``out`` float64 ``(K,)``, the least over the velocities of the arc length (m) before the

@@ -7,8 +7,9 @@ Each tick (:meth:`LocalPlanner.plan`) takes one frozen :class:`Snapshot` and the
    to the goal's altitude (within ±``max_climb_deg``);
 2. asks the map how far each is free (:meth:`~companion.core.planner.localmap.LocalMap.free_lengths`:
    seen free, the surfaces inflated by the vehicle's radius), cut where it would leave the band
-   between floor and ceiling (a descent cut by the floor is scored on the path that levels off
-   along it);
+   between floor and ceiling; a line is scored on where it leads (:mod:`~companion.core.planner.paths`):
+   a descent cut by the floor levels off along it, a level line that ends at a surface turns onto
+   the way round it;
 3. scores each by ONE cost (:func:`costs`), a weighted sum of named terms: turn from the goal's
    direction (the way round the surfaces seen, :mod:`~companion.core.planner.way`), the way left after
    flying the candidate's length, shortness of that length,
@@ -32,6 +33,15 @@ import numpy as np
 
 from companion.config.planner import PlannerConfig
 from companion.core.planner.localmap import LocalMap
+from companion.core.planner.paths import (
+    SWING_CANDIDATES,
+    along,
+    angle_diff,
+    bend_at_floor,
+    bend_onto_way,
+    directions,
+    swing_profile,
+)
 from companion.core.planner.way import WayToGoal
 from companion.core.types import Decision, DecisionKind
 
@@ -161,60 +171,6 @@ class Plan:
     candidates: np.ndarray = field(repr=False, default_factory=lambda: np.zeros((0, 5)))
 
 
-def _angle_diff(a: np.ndarray | float, b: np.ndarray | float) -> np.ndarray:
-    return np.abs((np.asarray(a) - np.asarray(b) + math.pi) % (2.0 * math.pi) - math.pi)
-
-
-def directions(yaw_rad: np.ndarray, climb_rad: np.ndarray) -> np.ndarray:
-    """Unit NED vectors float64 ``(K, 3)`` of yaws and climbs (radians, climb positive up)."""
-    c = np.cos(climb_rad)
-    return np.stack([c * np.cos(yaw_rad), c * np.sin(yaw_rad), -np.sin(climb_rad)], axis=-1)
-
-
-#: Samples of a candidate's swing (the lagging part of its predicted path), per path.
-SWING_SAMPLES = 32
-#: The cheapest candidates (on their lines) whose predicted paths are checked each tick.
-SWING_CANDIDATES = 24
-#: The swing is followed for this many time constants (the velocity is then within 5 % of the command).
-SWING_TIME_CONSTANTS = 3.0
-
-
-def swing_profile(cfg: PlannerConfig, step_m: float) -> tuple[np.ndarray, np.ndarray, int]:
-    """The swing of :func:`predicted_paths`: its sample times ``t`` (float64 ``(M,)`` s, over
-    :data:`SWING_TIME_CONSTANTS` time constants), the old velocity's share flown by each, ``τ(1 -
-    exp(-t/τ))`` (float64 ``(M,)`` s), and the tail's samples, ``step_m`` apart to the map range."""
-    tau = max(cfg.latency_s, 1e-3)
-    t = (SWING_TIME_CONSTANTS * tau) * np.linspace(0.0, 1.0, SWING_SAMPLES + 1)[1:]
-    lag = tau * (1.0 - np.exp(-t / tau))
-    return t, lag, int(math.ceil(cfg.map_range_m / step_m))
-
-
-def predicted_paths(
-    velocity_ned_m_s: np.ndarray, dirs: np.ndarray, speed_m_s: np.ndarray, cfg: PlannerConfig, step_m: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """Where the vehicle will fly for each candidate: its velocity now (float ``(3,)`` NED m/s, or
-    ``(K, 3)``, one per candidate) blending into the command ``dirs * speed_m_s`` (float ``(K, 3)``
-    unit NED, ``(K,)`` m/s) as a first-order lag, then on along the candidate to the map range.
-
-    The lag's time constant is ``latency_s`` (the planner's own response setting: a frame, the
-    pipeline and the autopilot's velocity response), the old velocity decaying as ``exp(-t/τ)``:
-    told to turn, the vehicle carries on along its motion about its speed times ``τ``.
-
-    Returns ``(offsets, arc)``: float64 ``(K, S, 3)`` NED metres from the vehicle and ``(K, S)`` arc
-    length from it, metres, increasing (NaN past the map range)."""
-    v0 = np.broadcast_to(np.asarray(velocity_ned_m_s, dtype=np.float64), dirs.shape)
-    vc = dirs * np.asarray(speed_m_s, dtype=np.float64)[:, None]
-    dv = v0 - vc
-    t, lag, n_tail = swing_profile(cfg, step_m)
-    swing = vc[:, None, :] * t[None, :, None] + dv[:, None, :] * lag[None, :, None]  # (K, M, 3)
-    tail = swing[:, -1:, :] + dirs[:, None, :] * (step_m * np.arange(1, n_tail + 1))[None, :, None]
-    pts = np.concatenate([swing, tail], axis=1)
-    seg = np.diff(np.concatenate([np.zeros((len(dirs), 1, 3)), pts], axis=1), axis=1)
-    arc = np.cumsum(np.linalg.norm(seg, axis=2), axis=1)
-    arc = np.where(arc <= cfg.map_range_m + 1e-9, arc, np.nan)
-    return pts, arc
-
-
 def costs(
     yaw: np.ndarray,
     climb: np.ndarray,
@@ -251,11 +207,11 @@ def costs(
     r = cfg.map_range_m
     cruise = cfg.cruise_speed_m_s
     toward = goal_yaw if way_yaw is None else way_yaw
-    goal = (_angle_diff(yaw, toward) + np.abs(climb - goal_climb)) / math.pi
+    goal = (angle_diff(yaw, toward) + np.abs(climb - goal_climb)) / math.pi
     reach = np.minimum(hoped_m, goal_dist_m)
     # Distance left, in the plane of the candidate: law of cosines on the horizontal part.
     dh = reach * np.cos(climb)
-    ang = _angle_diff(yaw, goal_yaw)
+    ang = angle_diff(yaw, goal_yaw)
     left = np.sqrt(np.maximum(goal_dist_m**2 + dh**2 - 2.0 * goal_dist_m * dh * np.cos(ang), 0.0))
     if way_left_m is not None:
         left = np.where(np.isfinite(way_left_m), way_left_m, left)
@@ -264,10 +220,10 @@ def costs(
     t_go = np.where(blocked, (reach + left) / v, reach / v + left / cruise)
     time = (t_go - goal_dist_m / cruise) / (r / cruise)
     clearance = 1.0 - np.minimum(hoped_m, r) / r
-    smooth = 0.0 if prev is None else (_angle_diff(yaw, prev[0]) + np.abs(climb - prev[1])) / math.pi
+    smooth = 0.0 if prev is None else (angle_diff(yaw, prev[0]) + np.abs(climb - prev[1])) / math.pi
     if motion is not None:  # momentum: turning the velocity costs in proportion to the speed
-        smooth = smooth + motion[2] / cruise * (_angle_diff(yaw, motion[0]) + np.abs(climb - motion[1])) / math.pi
-    steer = 0.0 if fuzzy is None else (_angle_diff(yaw, fuzzy[0]) + np.abs(climb - fuzzy[1])) / math.pi
+        smooth = smooth + motion[2] / cruise * (angle_diff(yaw, motion[0]) + np.abs(climb - motion[1])) / math.pi
+    steer = 0.0 if fuzzy is None else (angle_diff(yaw, fuzzy[0]) + np.abs(climb - fuzzy[1])) / math.pi
     return (
         cfg.weight_goal * goal
         + cfg.weight_time * time
@@ -358,7 +314,7 @@ class LocalPlanner:
 
     def _remember(self, snap: Snapshot) -> None:
         """Where the camera looks now, from where, and where the vehicle is (the visited places)."""
-        looked = _angle_diff(self._yaw_off, snap.yaw_rad) <= snap.view_half_rad
+        looked = angle_diff(self._yaw_off, snap.yaw_rad) <= snap.view_half_rad
         self._looked_t[looked] = snap.now_s
         self._looked_from[looked] = snap.position_ned_m[:2]
         dt = 0.0 if self._last_t is None else max(0.0, min(snap.now_s - self._last_t, 0.5))
@@ -431,14 +387,9 @@ class LocalPlanner:
         # whether it ends at a surface (a wall down to the ground) or passes on (under an overhead
         # block). The speed law flies the line itself, slowing toward the floor until level.
         path = free.copy()
-        floor_cut = np.flatnonzero(band_cut & (vz < 0.0))
-        if len(floor_cut):
-            knees = pos + dirs[floor_cut] * to_band[floor_cut, None]
-            on = lmap.free_lengths_from(knees, directions(yaw[floor_cut], np.zeros(len(floor_cut))))
-            # Judged, as every line is, within the map's range along it.
-            bent = to_band[floor_cut] + on.length_m
-            band_cut[floor_cut] = on.blocked & (bent < lmap.range_m)
-            path[floor_cut] = np.minimum(bent, lmap.range_m)
+        knee = np.full(len(free), np.inf)  # where each path leaves its line (m), and its direction on
+        onward = dirs.copy()
+        bend_at_floor(lmap, pos, yaw, dirs, to_band, band_cut, path, knee, onward)
         blocked = fl.blocked | band_cut
         blocked_line = blocked  # on the lines themselves (the swing below widens ``blocked``)
         bins = self._bin(yaw)
@@ -451,10 +402,17 @@ class LocalPlanner:
             motion = (math.atan2(v[1], v[0]), math.asin(max(-1.0, min(1.0, -v[2] / sp))), min(sp, cfg.cruise_speed_m_s))
 
         way_yaw = self._way.bearing(pos) if snap.goal_ned_m is not None else None
-        if way_yaw is not None and _angle_diff(way_yaw, goal_yaw) > math.radians(cfg.dead_end_cone_deg):
+        if way_yaw is not None and angle_diff(way_yaw, goal_yaw) > math.radians(cfg.dead_end_cone_deg):
             # A way that leads back beyond the dead end's cone is a closed pocket's: it is held (below),
             # not flown out of; the operator chooses.
             way_yaw = None
+        if way_yaw is not None:
+            # A level line that ends at a surface short of the goal leads on along the way round it.
+            level = np.broadcast_to(self._climbs == 0.0, (len(self._yaw_off), N_CLIMBS)).reshape(-1) & ~band_cut
+            blocked = blocked.copy()
+            bend_onto_way(
+                lmap, self._way, pos, yaw, dirs, level, way_yaw, goal_dist, cfg.stop_margin_m, blocked, path, knee, onward
+            )
 
         # What lies where each candidate leads, by its hoped-for length: the seconds already flown there
         # and the way left from its end (from a cube short of it: a line ends at a surface's radius).
@@ -463,13 +421,13 @@ class LocalPlanner:
 
         def look_up(hoped: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
             at = np.flatnonzero(hoped != led_to["hoped"]) if led_to else slice(None)
-            h, d = hoped[at], dirs[at]
+            h, d, kn, on = hoped[at], dirs[at], knee[at], onward[at]
             visited = led_to["visited"].copy() if led_to else np.empty(len(hoped))
-            visited[at] = self._visited_at(pos + d * np.minimum(h, VISITED_LOOKAHEAD_M)[:, None])
+            visited[at] = self._visited_at(along(pos, d, kn, on, np.minimum(h, VISITED_LOOKAHEAD_M)))
             way_left = None
             if way_yaw is not None:
                 way_left = led_to["way_left"].copy() if led_to else np.empty(len(hoped))
-                way_left[at] = self._way.length_at(pos + d * np.maximum(np.minimum(h, goal_dist) - lmap.voxel_m, 0.0)[:, None])
+                way_left[at] = self._way.length_at(along(pos, d, kn, on, np.maximum(np.minimum(h, goal_dist) - lmap.voxel_m, 0.0)))
                 led_to["way_left"] = way_left
             led_to["hoped"], led_to["visited"] = hoped, visited
             return visited, way_left
@@ -520,7 +478,7 @@ class LocalPlanner:
         # A dead end: every direction within the cone of the goal's is closed short by surfaces seen,
         # and no way round them leads on within the cone (a door off the line is no dead end, nor a
         # fence's end beside a gap, though every straight line from here meets a surface's radius).
-        in_cone = _angle_diff(yaw, goal_yaw) <= math.radians(cfg.dead_end_cone_deg)
+        in_cone = angle_diff(yaw, goal_yaw) <= math.radians(cfg.dead_end_cone_deg)
         # On the lines themselves (a swing at speed is no dead end).
         closed = in_cone & (path < cfg.dead_end_free_m) & (blocked_line | ~unlooked)
         if snap.goal_ned_m is not None and way_yaw is None and np.all(closed[in_cone]):
@@ -548,7 +506,7 @@ class LocalPlanner:
         err = float((yaw[i] - snap.yaw_rad + math.pi) % (2.0 * math.pi) - math.pi)
         rate = max(-cfg.max_yaw_rate_deg_s, min(cfg.max_yaw_rate_deg_s, math.degrees(YAW_GAIN_PER_S * err)))
         looking = bool(hopeful[i]) and free[i] < cfg.dead_end_free_m
-        turn = float(_angle_diff(yaw[i], goal_yaw))
+        turn = float(angle_diff(yaw[i], goal_yaw))
         self.mode = TRANSITIONS[(self.mode, event_of(turn, looking))]
         self.reason = (
             f"{'looking' if looking else 'flying'} {math.degrees(turn):.0f} deg off the goal, climb "

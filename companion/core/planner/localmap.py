@@ -516,8 +516,8 @@ class LocalMap:
         each command (``directions`` float ``(K, 3)`` unit NED, ``speeds_m_s`` ``(K,)``) the centre stays
         out of every surface's inflation, the least over the velocities it may start from (float
         ``(P, 3)`` NED m/s): arc length, metres (float64 ``(K,)``; inf where it never enters one). The
-        paths are :func:`~companion.core.planner.local.predicted_paths`: the swing's times ``t_s`` and
-        lag factors ``lag_s`` (float64 ``(M,)``, :func:`~companion.core.planner.local.swing_profile`),
+        paths are :func:`~companion.core.planner.paths.predicted_paths`: the swing's times ``t_s`` and
+        lag factors ``lag_s`` (float64 ``(M,)``, :func:`~companion.core.planner.paths.swing_profile`),
         then ``tail`` samples a cube apart, judged within ``range_m`` of arc (m). Compiled: each path is
         followed to its first sample in a surface's inflation (a test compares it with whole-array
         NumPy).

@@ -1,0 +1,170 @@
+"""Where a candidate leads (pure; arrays in, arrays out): its direction, the path it is scored along, and
+the path the vehicle will fly to it.
+
+A candidate is a straight line from the vehicle, but the cost scores where the line *leads*: a line
+that ends where the vehicle would not stop is bent there and scored on, as a path of two legs (its
+line to a knee, then straight on from the knee):
+
+- a descent cut by the floor levels off there and flies on along it (:func:`bend_at_floor`);
+- a level line that ends at a surface short of the goal turns, where the speed law would stop on it,
+  onto the way to the goal round what was seen (:func:`bend_onto_way`): the vehicle slides along a wall toward the
+  gap, it does not stop at the wall. Beside a long wall, the lines into it are otherwise scored as
+  dead stops, and the one along it as a turn away from the goal: the planner dithers between them.
+
+The speed law flies only the line itself; the bend is what the cost hopes for beyond it. The
+vehicle's own path to a candidate swings from its motion into the new direction
+(:func:`predicted_paths`): that is what the map's clearance judges.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from companion.config.planner import PlannerConfig
+from companion.core.planner.localmap import LocalMap
+from companion.core.planner.way import WayToGoal
+
+#: A bend onto the way turns at most this much from its line, radians: a line that leads away from
+#: the way is no start of it.
+BEND_MAX_RAD = math.pi / 2.0
+
+
+def angle_diff(a: np.ndarray | float, b: np.ndarray | float) -> np.ndarray:
+    """The absolute difference of angles ``a`` and ``b`` (radians), wrapped to [0, π]."""
+    return np.abs((np.asarray(a) - np.asarray(b) + math.pi) % (2.0 * math.pi) - math.pi)
+
+
+def directions(yaw_rad: np.ndarray, climb_rad: np.ndarray) -> np.ndarray:
+    """Unit NED vectors float64 ``(K, 3)`` of yaws and climbs (radians, climb positive up)."""
+    c = np.cos(climb_rad)
+    return np.stack([c * np.cos(yaw_rad), c * np.sin(yaw_rad), -np.sin(climb_rad)], axis=-1)
+
+
+#: Samples of a candidate's swing (the lagging part of its predicted path), per path.
+SWING_SAMPLES = 32
+#: The cheapest candidates (on their lines) whose predicted paths are checked each tick.
+SWING_CANDIDATES = 24
+#: The swing is followed for this many time constants (the velocity is then within 5 % of the command).
+SWING_TIME_CONSTANTS = 3.0
+
+
+def swing_profile(cfg: PlannerConfig, step_m: float) -> tuple[np.ndarray, np.ndarray, int]:
+    """The swing of :func:`predicted_paths`: its sample times ``t`` (float64 ``(M,)`` s, over
+    :data:`SWING_TIME_CONSTANTS` time constants), the old velocity's share flown by each, ``τ(1 -
+    exp(-t/τ))`` (float64 ``(M,)`` s), and the tail's samples, ``step_m`` apart to the map range."""
+    tau = max(cfg.latency_s, 1e-3)
+    t = (SWING_TIME_CONSTANTS * tau) * np.linspace(0.0, 1.0, SWING_SAMPLES + 1)[1:]
+    lag = tau * (1.0 - np.exp(-t / tau))
+    return t, lag, int(math.ceil(cfg.map_range_m / step_m))
+
+
+def predicted_paths(
+    velocity_ned_m_s: np.ndarray, dirs: np.ndarray, speed_m_s: np.ndarray, cfg: PlannerConfig, step_m: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Where the vehicle will fly for each candidate: its velocity now (float ``(3,)`` NED m/s, or
+    ``(K, 3)``, one per candidate) blending into the command ``dirs * speed_m_s`` (float ``(K, 3)``
+    unit NED, ``(K,)`` m/s) as a first-order lag, then on along the candidate to the map range.
+
+    The lag's time constant is ``latency_s`` (the planner's own response setting: a frame, the
+    pipeline and the autopilot's velocity response), the old velocity decaying as ``exp(-t/τ)``:
+    told to turn, the vehicle carries on along its motion about its speed times ``τ``.
+
+    Returns ``(offsets, arc)``: float64 ``(K, S, 3)`` NED metres from the vehicle and ``(K, S)`` arc
+    length from it, metres, increasing (NaN past the map range)."""
+    v0 = np.broadcast_to(np.asarray(velocity_ned_m_s, dtype=np.float64), dirs.shape)
+    vc = dirs * np.asarray(speed_m_s, dtype=np.float64)[:, None]
+    dv = v0 - vc
+    t, lag, n_tail = swing_profile(cfg, step_m)
+    swing = vc[:, None, :] * t[None, :, None] + dv[:, None, :] * lag[None, :, None]  # (K, M, 3)
+    tail = swing[:, -1:, :] + dirs[:, None, :] * (step_m * np.arange(1, n_tail + 1))[None, :, None]
+    pts = np.concatenate([swing, tail], axis=1)
+    seg = np.diff(np.concatenate([np.zeros((len(dirs), 1, 3)), pts], axis=1), axis=1)
+    arc = np.cumsum(np.linalg.norm(seg, axis=2), axis=1)
+    arc = np.where(arc <= cfg.map_range_m + 1e-9, arc, np.nan)
+    return pts, arc
+
+
+def along(
+    pos: np.ndarray, dirs: np.ndarray, knee_m: np.ndarray, onward: np.ndarray, length_m: np.ndarray
+) -> np.ndarray:
+    """float64 ``(K, 3)`` NED m: the point ``length_m`` (float ``(K,)`` m) along each candidate's path
+    from ``pos`` (float ``(3,)`` NED m): along its line ``dirs`` (unit, ``(K, 3)``) up to its knee
+    ``knee_m`` (``(K,)`` m; at least its length where it does not bend), then along ``onward``."""
+    first = np.minimum(length_m, knee_m)
+    return pos + dirs * first[:, None] + onward * (length_m - first)[:, None]
+
+
+def bend_at_floor(
+    lmap: LocalMap,
+    pos: np.ndarray,
+    yaw: np.ndarray,
+    dirs: np.ndarray,
+    to_band_m: np.ndarray,
+    band_cut: np.ndarray,
+    path_m: np.ndarray,
+    knee_m: np.ndarray,
+    onward: np.ndarray,
+) -> None:
+    """Level off, in place, the descents cut by the floor (``band_cut`` and descending; ``to_band_m``
+    float ``(K,)`` m to the band's edge along each line): the knee where the line meets the floor, on
+    along it at the line's yaw, the path's length ``path_m`` that of both legs (within the map's range);
+    ``band_cut`` stays only where the level leg ends at a surface short of the range (a wall down to the
+    ground) and not where it passes on (under an overhead block)."""
+    cut = np.flatnonzero(band_cut & (dirs[:, 2] > 0.0))
+    if len(cut) == 0:
+        return
+    knees = pos + dirs[cut] * to_band_m[cut, None]
+    level = directions(yaw[cut], np.zeros(len(cut)))
+    on = lmap.free_lengths_from(knees, level)
+    bent = to_band_m[cut] + on.length_m
+    band_cut[cut] = on.blocked & (bent < lmap.range_m)
+    path_m[cut] = np.minimum(bent, lmap.range_m)
+    knee_m[cut] = to_band_m[cut]
+    onward[cut] = level
+
+
+def bend_onto_way(
+    lmap: LocalMap,
+    way: WayToGoal,
+    pos: np.ndarray,
+    yaw: np.ndarray,
+    dirs: np.ndarray,
+    may_bend: np.ndarray,
+    way_yaw: float,
+    goal_m: float,
+    stop_m: float,
+    blocked: np.ndarray,
+    path_m: np.ndarray,
+    knee_m: np.ndarray,
+    onward: np.ndarray,
+) -> None:
+    """Bend, in place, the lines that ``may_bend`` (bool ``(K,)``: those level with the goal's altitude)
+    within :data:`BEND_MAX_RAD` of the way's bearing
+    ``way_yaw`` (radians) that end at a surface (``blocked``) short of the goal (``goal_m``, m): where
+    the speed law stops on the line, ``stop_m`` (m) short of its end, onto the way's bearing from that
+    knee. Where that path is longer than the line,
+    ``path_m`` becomes its length (within the map's range) and ``blocked`` whether its second leg ends
+    at a surface short of the range."""
+    ends = np.flatnonzero(
+        may_bend & blocked & (path_m > stop_m) & (path_m < goal_m) & (angle_diff(yaw, way_yaw) <= BEND_MAX_RAD)
+    )
+    if len(ends) == 0:
+        return
+    knee = path_m[ends] - stop_m
+    knees = pos + dirs[ends] * knee[:, None]
+    bearing = way.bearings(knees)
+    ok = np.isfinite(bearing)
+    if not np.any(ok):
+        return
+    ends, knee, knees, bearing = ends[ok], knee[ok], knees[ok], bearing[ok]
+    leg = directions(bearing, np.zeros(len(ends)))
+    on = lmap.free_lengths_from(knees, leg)
+    bent = knee + on.length_m
+    longer = bent > path_m[ends]
+    ends, bent = ends[longer], bent[longer]
+    path_m[ends] = np.minimum(bent, lmap.range_m)
+    blocked[ends] = on.blocked[longer] & (bent < lmap.range_m)
+    knee_m[ends] = knee[longer]
+    onward[ends] = leg[longer]
