@@ -533,6 +533,34 @@ def test_speed_law_limits_the_command_and_brakes_the_motion() -> None:
     assert out.right_m_s > 1.5  # the sideways part stays (within cruise)
 
 
+def test_a_vehicle_a_hair_over_the_law_brakes_by_a_hair_and_fully_only_with_no_latency_left() -> None:
+    """pitch-17001 at 3 m/s, descending under an overhead block: the speed reported along the motion
+    crossed the law on the length ahead by 0.01 m/s, and the setpoint stepped from 1.9 m/s to zero
+    (a·t below its speed), then back: 0.6 s lost on a 6 s flight. The braking now grows with the
+    latency the law budgets that is already spent at this speed: continuous at the law, a·t below
+    the speed when none is left."""
+    cfg = PlannerConfig()
+    a, t, margin = cfg.braking_accel_m_s2, cfg.latency_s, cfg.stop_margin_m
+    free = 3.0
+    law = float(speed_law(free, cfg))
+    over = law + 0.01
+    ctx = _ctx(velocity_ned_m_s=np.array([over, 0.0, 0.0]), free_along=lambda u: free)
+    out = speed_law_limit(VelocitySetpoint(over, 0.0, 0.0, 0.0), ctx).forward_m_s
+    assert law - 0.05 < out < law  # a hair below the law, not zero
+    # Faster, with less of the latency left at that speed: more braking, continuously.
+    outs = []
+    for ms in np.linspace(over, 3.0, 20):
+        ctx = _ctx(velocity_ned_m_s=np.array([ms, 0.0, 0.0]), free_along=lambda u: free)
+        outs.append(speed_law_limit(VelocitySetpoint(3.0, 0.0, 0.0, 0.0), ctx).forward_m_s)
+        left = max((free - margin - ms * ms / (2 * a)) / ms, 0.0)
+        assert outs[-1] == pytest.approx(max(0.0, ms - a * (t - left)))
+    assert np.all(np.diff(outs) < 0.1)  # no step
+    # None left (it just stops braking at a now): the full a·t below the speed.
+    edge = math.sqrt(2.0 * a * (2.0 - margin)) - 1e-9
+    ctx = _ctx(velocity_ned_m_s=np.array([edge, 0.0, 0.0]), free_along=lambda u: 2.0)
+    assert speed_law_limit(FAST, ctx).forward_m_s == pytest.approx(edge - a * t)
+
+
 def test_a_command_outside_the_camera_s_view_flies_slower_the_farther_off_the_axis() -> None:
     """Fly where you look. A flight at 0.7 m/s round an overhead block turned the camera east along
     its edge; the goal then lay north, and the planner flew body-left at once into space it had seen

@@ -158,11 +158,19 @@ def speed_law_limit(sp: VelocitySetpoint, ctx: SafetyContext) -> VelocitySetpoin
         free_u = ctx.free_along(u)
         cap = float(speed_law(free_u, ctx.planner))
         if ms > cap:
-            # Faster than it can stop from: a lagging vehicle (first order, time constant within the
-            # latency) decelerates at a only when the setpoint is a·t below its speed.
+            # Faster than the law allows on this length: of the latency it budgets before braking at a,
+            # only ``left`` is still there at this speed. A lagging vehicle (first order, time constant
+            # within the latency) decelerates at once by the setpoint's shortfall over the latency, so
+            # the setpoint drops a·(latency − left) below its speed: braking in proportion to the
+            # latency spent, a when none is left, where ``left`` stops falling (it falls a second a
+            # second unbraked, and no faster than braking at a repays it), so it stops in the length.
+            # All at once at the first excess, the setpoint stepped from cruise to zero each time the
+            # speed reported crossed the law by a hair.
             p = ctx.planner
             a = p.braking_accel_m_s2
-            cap = max(0.0, min(cap, ms - a * p.latency_s))
+            room = max(free_u - p.stop_margin_m, 0.0)
+            left = min(max((room - ms * ms / (2.0 * a)) / ms, 0.0), p.latency_s)
+            cap = max(0.0, min(cap, ms - a * (p.latency_s - left)))
             # Too fast to stop even braking now: the setpoint reverses along the motion by the excess
             # of the reported velocity (at most the hold's speed), so that an autopilot's velocity
             # integrator is wound back too (told zero, PX4 creeps on for seconds); back is where the
