@@ -7,9 +7,9 @@ line to a knee, then straight on from the knee):
 
 - a descent cut by the floor levels off there and flies on along it (:func:`bend_at_floor`);
 - a level line that ends at a surface short of the goal turns, where the speed law would stop on it,
-  onto the way to the goal round what was seen (:func:`bend_onto_way`): the vehicle slides along a wall toward the
-  gap, it does not stop at the wall. Beside a long wall, the lines into it are otherwise scored as
-  dead stops, and the one along it as a turn away from the goal: the planner dithers between them.
+  onto the way to the goal round what was seen (:func:`bend_onto_way`): the vehicle slides along a
+  wall toward the gap, it does not stop at the wall. Scored as stops, the lines toward either side
+  of a box all look alike and short, and the planner turns between them.
 
 The speed law flies only the line itself; the bend is what the cost hopes for beyond it. The
 vehicle's own path to a candidate swings from its motion into the new direction
@@ -26,8 +26,8 @@ from companion.config.planner import PlannerConfig
 from companion.core.planner.localmap import LocalMap
 from companion.core.planner.way import WayToGoal
 
-#: A bend onto the way turns at most this much from its line, radians: a line that leads away from
-#: the way is no start of it.
+#: Only a line within this of the way's bearing from the vehicle bends onto the way, radians: a line
+#: that leads away from the way is no start of it.
 BEND_MAX_RAD = math.pi / 2.0
 
 
