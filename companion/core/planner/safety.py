@@ -162,8 +162,8 @@ def speed_law_limit(sp: VelocitySetpoint, ctx: SafetyContext) -> VelocitySetpoin
             # only ``left`` is still there at this speed. A lagging vehicle (first order, time constant
             # within the latency) decelerates at once by the setpoint's shortfall over the latency, so
             # the setpoint drops a·(latency − left) below its speed: braking in proportion to the
-            # latency spent, a when none is left, where ``left`` stops falling (it falls a second a
-            # second unbraked, and no faster than braking at a repays it), so it stops in the length.
+            # latency spent, a when none is left: there ``left`` no longer falls (braking at a), and
+            # the vehicle stops in the length.
             # All at once at the first excess, the setpoint stepped from cruise to zero each time the
             # speed reported crossed the law by a hair.
             p = ctx.planner
