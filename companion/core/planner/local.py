@@ -268,6 +268,8 @@ class LocalPlanner:
         n_yaw = max(4, int(round(360.0 / cfg.yaw_step_deg)))
         self._yaw_off = np.arange(n_yaw) * (2.0 * math.pi / n_yaw)
         self._climbs = np.linspace(-1.0, 1.0, N_CLIMBS) * math.radians(cfg.max_climb_deg)
+        # Which candidates (yaw-major, as ``plan`` lays them) are level with the goal's altitude.
+        self._level = np.broadcast_to(self._climbs == 0.0, (n_yaw, N_CLIMBS)).reshape(-1)
         self._swing: tuple[float, tuple[np.ndarray, np.ndarray, int]] | None = None  # (step_m, swing_profile)
 
     def reconfigure(self, cfg: PlannerConfig, radius_m: float) -> None:
@@ -408,10 +410,9 @@ class LocalPlanner:
             way_yaw = None
         if way_yaw is not None:
             # A level line that ends at a surface short of the goal leads on along the way round it.
-            level = np.broadcast_to(self._climbs == 0.0, (len(self._yaw_off), N_CLIMBS)).reshape(-1) & ~band_cut
             blocked = blocked.copy()
             bend_onto_way(
-                lmap, self._way, pos, yaw, dirs, level, way_yaw, goal_dist, cfg.stop_margin_m, blocked, path, knee, onward
+                lmap, self._way, pos, yaw, dirs, self._level & ~band_cut, way_yaw, goal_dist, cfg.stop_margin_m, blocked, path, knee, onward
             )
 
         # What lies where each candidate leads, by its hoped-for length: the seconds already flown there

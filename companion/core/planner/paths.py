@@ -96,6 +96,34 @@ def along(
     return pos + dirs * first[:, None] + onward * (length_m - first)[:, None]
 
 
+def _bend(
+    lmap: LocalMap,
+    idx: np.ndarray,
+    knee: np.ndarray,
+    knees: np.ndarray,
+    leg: np.ndarray,
+    path_m: np.ndarray,
+    knee_m: np.ndarray,
+    onward: np.ndarray,
+    only_longer: bool,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Bend, in place, the candidates ``idx`` (int ``(N,)``) at ``knee`` (float ``(N,)`` m along their
+    lines; the points ``knees``, float ``(N, 3)`` NED m) onto ``leg`` (unit NED, ``(N, 3)``): their
+    knee, their direction on, and ``path_m`` the length of both legs within the map's range. With
+    ``only_longer``, only those whose bent path is longer than ``path_m`` now.
+
+    Returns the candidates bent (int) and, for each, whether its second leg ends at a surface short
+    of the map's range (bool): the length compared is the unclipped one."""
+    on = lmap.free_lengths_from(knees, leg)
+    bent = knee + on.length_m
+    keep = bent > path_m[idx] if only_longer else np.ones(len(idx), dtype=bool)
+    idx, bent = idx[keep], bent[keep]
+    path_m[idx] = np.minimum(bent, lmap.range_m)
+    knee_m[idx] = knee[keep]
+    onward[idx] = leg[keep]
+    return idx, on.blocked[keep] & (bent < lmap.range_m)
+
+
 def bend_at_floor(
     lmap: LocalMap,
     pos: np.ndarray,
@@ -115,14 +143,11 @@ def bend_at_floor(
     cut = np.flatnonzero(band_cut & (dirs[:, 2] > 0.0))
     if len(cut) == 0:
         return
-    knees = pos + dirs[cut] * to_band_m[cut, None]
+    knee = to_band_m[cut]
+    knees = pos + dirs[cut] * knee[:, None]
     level = directions(yaw[cut], np.zeros(len(cut)))
-    on = lmap.free_lengths_from(knees, level)
-    bent = to_band_m[cut] + on.length_m
-    band_cut[cut] = on.blocked & (bent < lmap.range_m)
-    path_m[cut] = np.minimum(bent, lmap.range_m)
-    knee_m[cut] = to_band_m[cut]
-    onward[cut] = level
+    cut, at_surface = _bend(lmap, cut, knee, knees, level, path_m, knee_m, onward, only_longer=False)
+    band_cut[cut] = at_surface
 
 
 def bend_onto_way(
@@ -140,13 +165,12 @@ def bend_onto_way(
     knee_m: np.ndarray,
     onward: np.ndarray,
 ) -> None:
-    """Bend, in place, the lines that ``may_bend`` (bool ``(K,)``: those level with the goal's altitude)
-    within :data:`BEND_MAX_RAD` of the way's bearing
-    ``way_yaw`` (radians) that end at a surface (``blocked``) short of the goal (``goal_m``, m): where
-    the speed law stops on the line, ``stop_m`` (m) short of its end, onto the way's bearing from that
-    knee. Where that path is longer than the line,
-    ``path_m`` becomes its length (within the map's range) and ``blocked`` whether its second leg ends
-    at a surface short of the range."""
+    """Bend, in place, the lines that ``may_bend`` (bool ``(K,)``: those level with the goal's
+    altitude) within :data:`BEND_MAX_RAD` of the way's bearing ``way_yaw`` (radians) that end at a
+    surface (``blocked``) short of the goal (``goal_m``, m): where the speed law stops on the line,
+    ``stop_m`` (m) short of its end, onto the way's bearing from that knee. Where that path is longer
+    than the line, ``path_m`` becomes its length (within the map's range) and ``blocked`` whether its
+    second leg ends at a surface short of the range."""
     ends = np.flatnonzero(
         may_bend & blocked & (path_m > stop_m) & (path_m < goal_m) & (angle_diff(yaw, way_yaw) <= BEND_MAX_RAD)
     )
@@ -160,11 +184,5 @@ def bend_onto_way(
         return
     ends, knee, knees, bearing = ends[ok], knee[ok], knees[ok], bearing[ok]
     leg = directions(bearing, np.zeros(len(ends)))
-    on = lmap.free_lengths_from(knees, leg)
-    bent = knee + on.length_m
-    longer = bent > path_m[ends]
-    ends, bent = ends[longer], bent[longer]
-    path_m[ends] = np.minimum(bent, lmap.range_m)
-    blocked[ends] = on.blocked[longer] & (bent < lmap.range_m)
-    knee_m[ends] = knee[longer]
-    onward[ends] = leg[longer]
+    ends, at_surface = _bend(lmap, ends, knee, knees, leg, path_m, knee_m, onward, only_longer=True)
+    blocked[ends] = at_surface
