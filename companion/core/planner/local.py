@@ -411,8 +411,9 @@ class LocalPlanner:
         if way_yaw is not None:
             # A level line that ends at a surface short of the goal leads on along the way round it.
             blocked = blocked.copy()
+            may_bend = self._level & ~band_cut
             bend_onto_way(
-                lmap, self._way, pos, yaw, dirs, self._level & ~band_cut, way_yaw, goal_dist, cfg.stop_margin_m, blocked, path, knee, onward
+                lmap, self._way, pos, yaw, dirs, may_bend, way_yaw, goal_dist, cfg.stop_margin_m, blocked, path, knee, onward
             )
 
         # What lies where each candidate leads, by its hoped-for length: the seconds already flown there
