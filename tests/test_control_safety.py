@@ -205,6 +205,41 @@ def test_request_budgets_answer_a_flooding_client_and_spare_the_others(tmp_path:
         ctx.destroy(linger=0)
 
 
+def test_a_flood_over_connections_each_under_its_budget_leaves_the_operator_in() -> None:
+    """On a loaded machine the server read each flooding connection at under its own budget, so all
+    eight counted as light, drained the reserve, and the operator's ping was refused. The
+    reserve is for connections under their fair share of the budget of all, whatever rate each is
+    read at; the flood's connections are refused and the total stays bounded."""
+    import asyncio
+
+    from companion.config import BusConfig
+    from companion.service.control_server import ControlServer
+
+    cfg = BusConfig(requests_per_s_per_client=50.0, max_requests_per_s=100.0)
+    loop = asyncio.new_event_loop()
+    server = ControlServer(None, cfg, loop, lambda r: None, None, lambda m: None, clock=lambda: 0.0)  # type: ignore[arg-type]
+    try:
+        admitted = {"flood": 0, "operator": 0}
+        refused = {"flood": 0, "operator": 0}
+        flooders = [f"flood-{i}".encode() for i in range(8)]
+        for tick in range(6000):  # 6 s in 1 ms steps
+            now_s = tick / 1000.0
+            # Each flooding connection is read at 40 requests/s (under its own 50/s), 320/s in all.
+            for i, ident in enumerate(flooders):
+                if (tick + 3 * i) % 25 == 0:
+                    (admitted if server._admit(ident, now_s) is None else refused)["flood"] += 1
+            if tick % 500 == 250:  # the operator: 2 requests a second
+                (admitted if server._admit(b"operator", now_s) is None else refused)["operator"] += 1
+        assert refused["operator"] == 0, (admitted, refused)
+        assert admitted["operator"] == 12
+        assert refused["flood"] > 0
+        assert admitted["flood"] + admitted["operator"] <= 2 * 100.0 * 6.0 + 2 * 100.0
+    finally:
+        loop.close()
+        for fd in (server._wake_r, server._wake_w):
+            os.close(fd)
+
+
 def test_one_clients_flood_does_not_lock_out_another_operator(tmp_path: Path) -> None:
     """One group member flooding from several connections once spent the budget of all clients, and
     another operator's requests, disengage included, got RateLimited. The connections that spent it

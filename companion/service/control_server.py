@@ -13,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import concurrent.futures
 import logging
+import math
 import os
 import queue
 import threading
@@ -48,6 +49,11 @@ _MAX_TRACKED_PEERS = 1024
 STOP_COMMANDS = frozenset({"disengage", "pause"})
 #: A stop request is at most this long (a longer message is not looked at before the budgets).
 _MAX_STOP_BYTES = 256
+#: A connection's request rate is averaged over about this long, seconds; one that sent within it is
+#: active (it shares the budget of all).
+_RATE_WINDOW_S = 1.0
+#: The active connections are counted again at most this often, seconds (a count is O(connections)).
+_RECOUNT_S = 0.1
 
 @dataclass
 class _Bucket:
@@ -63,6 +69,21 @@ class _Bucket:
             return False
         self.tokens -= 1.0
         return True
+
+
+@dataclass
+class _Peer:
+    """One connection: its budget, and the rate at which it has sent requests (refused ones too)."""
+
+    bucket: _Bucket
+    rate_per_s: float = 0.0  # requests per second, averaged over about _RATE_WINDOW_S, at t_s
+    t_s: float = -math.inf  # when it last sent
+
+    def sent(self, now_s: float) -> float:
+        """Count one request at ``now_s``; returns the connection's rate, requests per second."""
+        self.rate_per_s = self.rate_per_s * math.exp(-(now_s - self.t_s) / _RATE_WINDOW_S) + 1.0 / _RATE_WINDOW_S
+        self.t_s = now_s
+        return self.rate_per_s
 
 
 @dataclass
@@ -146,9 +167,11 @@ class ControlServer:
         }
         self._done: queue.SimpleQueue[tuple[list[bytes], str, Any, concurrent.futures.Future]] = queue.SimpleQueue()
         self._pending: set[concurrent.futures.Future] = set()
-        self._peers: dict[bytes, _Bucket] = {}
+        self._peers: dict[bytes, _Peer] = {}
         self._all = _Bucket(cfg.max_requests_per_s, clock())
         self._reserve = _Bucket(cfg.max_requests_per_s, clock())  # the light users' share (_admit)
+        self._active = 1  # connections that sent within _RATE_WINDOW_S, counted at _counted_s
+        self._counted_s = -math.inf
         self._wake_r, self._wake_w = os.pipe()
         os.set_blocking(self._wake_r, False)
         os.set_blocking(self._wake_w, False)
@@ -242,36 +265,50 @@ class ControlServer:
         """None when this connection, and all together, are within their request budgets; else the
         error reply, encoded (the same bytes for every refusal of a kind: a flood costs no JSON).
 
-        Fair shares: when the budget of all connections is spent, a connection that has used less than
-        half its own budget in the last second still gets in, from a reserve as large as that budget
-        (the connections that spent it are refused; the total stays bounded at twice it). A ``stop``
-        request (:data:`STOP_COMMANDS`) is never refused by a budget, only when even its own places in
+        Fair shares: when the budget of all connections is spent, a connection that sends at less than
+        its fair share of it (the budget of all divided among the connections active in the last
+        second) still gets in, from a reserve as large as that budget; the connections that send more
+        are refused, and the total stays bounded at twice the budget. The rate counts every request a
+        connection sent, refused ones too: a flood over many connections, each under its own budget,
+        is still a flood, however slowly a loaded machine reads it. A ``stop`` request
+        (:data:`STOP_COMMANDS`) is never refused by a budget, only when even its own places in
         progress are taken.
         """
         now_s = self._clock() if now_s is None else now_s
         per = self._cfg.requests_per_s_per_client
         total = self._cfg.max_requests_per_s
-        bucket = self._peers.get(identity)
-        if bucket is None:
+        peer = self._peers.get(identity)
+        if peer is None:
             if len(self._peers) >= _MAX_TRACKED_PEERS:
                 self._forget_idle(now_s)
-            bucket = self._peers[identity] = _Bucket(per, now_s)
+            peer = self._peers[identity] = _Peer(_Bucket(per, now_s))
+        rate = peer.sent(now_s)
         if stop:
-            bucket.take(now_s, per)  # counted, never refused
+            peer.bucket.take(now_s, per)  # counted, never refused
             if len(self._pending) >= MAX_IN_FLIGHT + len(STOP_COMMANDS) * 2:
                 self.stats.busy += 1
                 return self._refusals["busy"]
             return None
-        if not bucket.take(now_s, per):
+        if not peer.bucket.take(now_s, per):
             self.stats.rate_limited += 1
             return self._refusals["client"]
-        if not self._all.take(now_s, total) and (bucket.tokens < per / 2.0 or not self._reserve.take(now_s, total)):
+        if not self._all.take(now_s, total) and (
+            rate >= total / self._active_connections(now_s) or not self._reserve.take(now_s, total)
+        ):
             self.stats.rate_limited += 1
             return self._refusals["all"]
         if len(self._pending) >= MAX_IN_FLIGHT:
             self.stats.busy += 1
             return self._refusals["busy"]
         return None
+
+    def _active_connections(self, now_s: float) -> int:
+        """Connections that sent within the last :data:`_RATE_WINDOW_S` (at least 1), counted again at
+        most every :data:`_RECOUNT_S`."""
+        if now_s - self._counted_s >= _RECOUNT_S:
+            self._active = max(1, sum(1 for p in self._peers.values() if now_s - p.t_s < _RATE_WINDOW_S))
+            self._counted_s = now_s
+        return self._active
 
     def _is_stop(self, raw: bytes) -> bool:
         """Whether ``raw`` is a valid stop request (:data:`STOP_COMMANDS`); only a short message that
@@ -285,7 +322,7 @@ class ControlServer:
 
     def _forget_idle(self, now_s: float) -> None:
         per = self._cfg.requests_per_s_per_client
-        idle = [k for k, b in self._peers.items() if b.tokens + (now_s - b.t_s) * per >= per]
+        idle = [k for k, p in self._peers.items() if p.bucket.tokens + (now_s - p.bucket.t_s) * per >= per]
         for k in idle or list(self._peers)[: len(self._peers) // 2]:
             del self._peers[k]
 
