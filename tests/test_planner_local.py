@@ -184,6 +184,25 @@ def test_office_15004_a_fence_hit_in_one_frame_of_three_is_not_seen_free() -> No
     assert m.free_lengths(np.array([0.0, 0.0, -1.5]), NORTH).length_m[0] > 5.0
 
 
+def test_office_40170_a_fence_seen_from_a_banked_vehicle_is_not_flown_into() -> None:
+    """office-40170 at 3 m/s with 0.14 m/s drift and StereoBM (the default without a GPU): the simulator drew
+    the fence's bars, thinner than a pixel 4 m off, as broken dashes under the vehicle's slight bank (a
+    pixel partly covered came out dark or not at all). No matcher paired the dashes; the ceiling read
+    through the gaps cleared the fence's upper cubes, and the vehicle climbed into them at 2.2 m/s. A
+    camera's pixel adds up what covers it, and so does the simulator now: the bars are faint unbroken
+    lines, and the flight passes the fence."""
+    from companion.config import parse_config
+    from companion.sim.courses import make_course
+    from companion.sim.loop import fly
+    from companion.sim.scoring import Outcome
+
+    cfg = parse_config({"stereo": {"backend": "opencv-bm"}, "sim": {"drift_speed_m_s": 0.14, "camera_rate_hz": 30.0}})
+    course = replace(make_course("office", 40170), time_limit_s=8.0)  # the fence was met at 3.2 s
+    result = fly(course, cfg)
+    assert result.outcome is not Outcome.COLLISION, result.reason
+    assert result.min_clearance_m > 0.0
+
+
 def test_one_false_match_on_seen_free_space_is_not_mixed_evidence() -> None:
     """A single hit on space seen free over and over (a false match, depth noise at a surface's edge)
     is not a thin thing hit in some frames: the line stays seen free in the frames that follow, as

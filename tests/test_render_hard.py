@@ -22,6 +22,7 @@ from companion.sim.render import (
     Surface,
     TextureBank,
 )
+from companion.sim.render.texture import BARS_TONE
 
 GEO = StereoGeometry.ideal(336, 188, hfov_deg=90.0, baseline_m=0.12)  # the simulator's eye
 FB = GEO.focal_baseline_px_m
@@ -98,7 +99,7 @@ def test_bar_pattern_snaps_the_period_and_keeps_the_duty() -> None:
 def test_see_through_fence_shows_what_is_behind_with_the_right_period() -> None:
     period, width, z = 0.1, 0.025, FB / 10.0  # an integer disparity: the eyes compare pixel for pixel
     fence = Box((z + 0.01, 0.0, -ALT), (0.02, 6.0, 3.0), surface=Surface("bars", bar_period_m=period, bar_width_m=width))
-    res = render(Scene((fence, wall(6.0, Surface()))))
+    res = render(Scene((fence, wall(6.0, Surface("plain")))))
     rows = slice(70, 120)
     depth = res.depth_m[rows, 20:316]
     on_bars = np.abs(depth - z) < 0.05
@@ -111,10 +112,31 @@ def test_see_through_fence_shows_what_is_behind_with_the_right_period() -> None:
     spectrum = np.abs(np.fft.rfft(col))
     k = int(np.argmax(spectrum[1:])) + 1
     assert col.size / k == pytest.approx(GEO.focal_px * period / z, rel=0.05)
-    # Same depth in both eyes' geometry: the right eye sees the bars f*B/z further left.
+    # Same depth in both eyes' geometry: the right eye sees the bars f*B/z further left. (A pixel the
+    # bar covers in part also holds some of the wall, which each eye sees elsewhere: a plain wall
+    # behind keeps that small.)
     g_l, g_r = grey(res.left_bgr)[rows], grey(res.right_bgr)[rows]
     shift = round(FB / z)
     assert np.abs(g_l[:, 40 + shift : 300] - g_r[:, 40 : 300 - shift])[on_bars[:, 20 + shift : 280]].mean() < 1.0
+
+
+def test_bars_thinner_than_a_pixel_are_faint_unbroken_lines() -> None:
+    """A see-through fence's bars once came out of the renderer as dashes darker than the bars (a
+    pixel partly covered was drawn as the bar's grey times its coverage, over black, or not at all),
+    and a slightly rolled vehicle 4 m from an office fence saw dashes no matcher could pair. A
+    camera's pixel adds up what covers it: a bar thinner than a pixel is a faint line in every row,
+    never darker than the bar itself."""
+    period, width, z = 0.125, 0.02, 4.0  # bars 0.84 px wide, 5.25 px apart
+    fence = Box((z + 0.01, 0.0, -ALT), (0.02, 6.0, 3.0), surface=Surface("bars", bar_period_m=period, bar_width_m=width))
+    res = render(Scene((fence, wall(8.0, Surface("plain")))), Pose.at(0.0, 0.0, ALT, roll_rad=math.radians(2.0)))
+    g = grey(res.left_bgr)[60:120, 60:276]  # above where the ground shows under the wall
+    assert g.min() >= BARS_TONE[0] - 3.0 * BARS_TONE[1]  # no pixel darker than a bar
+    # Every row crosses every bar: one dip below the wall's grey per period along the row.
+    bars_in_view = 216 / (GEO.focal_px * period / z)
+    for row in g:
+        wall_grey = np.median(row)
+        dips = np.flatnonzero((row[1:-1] < row[:-2]) & (row[1:-1] <= row[2:]) & (row[1:-1] < wall_grey - 4.0))
+        assert len(dips) >= bars_in_view - 2, len(dips)
 
 
 def test_opaque_bars_have_no_holes() -> None:

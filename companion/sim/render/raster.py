@@ -4,7 +4,10 @@ Over the piece's pixel bounding box: inverse depth ``1/z`` is affine in the pixe
 plane, so it is evaluated from the pixel rays' tables; the polygon is masked (``cv2.fillConvexPoly``,
 1/16 px vertices), z-tested against the eye's inverse-depth buffer, and the texture is sampled through
 the exact pixel -> texel homography (``cv2.warpPerspective``, bilinear, wrap) only inside the visible
-part. A see-through face leaves its holes to what lies behind; a glossy face gets its highlight added.
+part. A see-through face is laid over what lies behind it as a pixel integrates it (its texel is the
+bar's grey times the bar's coverage of the pixel, and the rest of the pixel is what is behind), and
+only where a bar covers most of a pixel is it in the depth buffer; a glossy face gets its highlight
+added.
 :func:`clip_polygon` is the Sutherland-Hodgman clip the renderer cuts pieces with.
 """
 
@@ -16,7 +19,7 @@ import cv2
 import numpy as np
 
 from companion.core.geometry import StereoGeometry
-from companion.sim.render.texture import BARS_ALPHA_THRESHOLD, TextureBank
+from companion.sim.render.texture import BARS_ALPHA_THRESHOLD, BARS_TONE, TextureBank
 
 #: Fixed-point bits for cv2.fillConvexPoly vertices (1/16 px).
 _SHIFT = 4
@@ -87,8 +90,11 @@ class StereoRaster:
         ``tex``: the texture at the piece's level of detail, ``tpm`` its texels per metre, ``(s0, t0)``
         the face's texture offset, texels.
 
-        ``alpha``: texels under ``BARS_ALPHA_THRESHOLD`` are holes (drawn neither into the image nor
-        the depth buffer); ``glare``: ``(u_px, v_px, sigma_px, peak_grey)`` of a highlight to add."""
+        ``alpha``: a see-through face, drawn after everything behind it: each visible pixel becomes
+        ``texel + (1 - coverage) · behind``, with the bar's coverage ``texel / BARS_TONE[0]`` (at most
+        1), so that a bar thinner than a pixel is a faint unbroken line, as a camera sees it, not a
+        dashed one; only texels at or over ``BARS_ALPHA_THRESHOLD`` enter the depth buffer (the pixel's
+        depth is the bar's where the bar covers most of it); ``glare``: ``(u_px, v_px, sigma_px, peak_grey)`` of a highlight to add."""
         u0 = max(0, math.floor(min(us)))
         u1 = min(self.geometry.width_px, math.ceil(max(us)) + 1)
         if u0 >= u1:
@@ -195,12 +201,18 @@ class StereoRaster:
             dst = sub[ty : ty + th, tx : tx + tw]
             cv2.warpPerspective(src, m, (tw, th), dst=dst, flags=_WARP_FLAGS, borderMode=cv2.BORDER_WRAP)
         vis_sub = vis[ry : ry + rh, rx : rx + rw]
-        if alpha:  # holes of a see-through face: leave them to what lies behind
-            vis_sub[sub < BARS_ALPHA_THRESHOLD] = 0
         if glare is not None:
             self._add_glare(sub, ox, oy, glare)
+        grey = self.grey[eye][oy : oy + rh, ox : ox + rw]
+        if alpha:
+            tex_f = sub.astype(np.float32)
+            behind = grey.astype(np.float32) * np.maximum(0.0, 1.0 - tex_f * np.float32(1.0 / BARS_TONE[0]))
+            cv2.copyTo(np.clip(np.rint(tex_f + behind), 0, 255).astype(np.uint8), vis_sub, dst=grey)
+            vis_sub[sub < BARS_ALPHA_THRESHOLD] = 0  # mostly what is behind: its depth stays
+            cv2.copyTo(iz, vis, dst=zbuf)
+            return
         cv2.copyTo(iz, vis, dst=zbuf)
-        cv2.copyTo(sub, vis_sub, dst=self.grey[eye][oy : oy + rh, ox : ox + rw])
+        cv2.copyTo(sub, vis_sub, dst=grey)
 
     @staticmethod
     def _add_glare(sub: np.ndarray, ox: int, oy: int, glare: tuple[float, float, float, float]) -> None:

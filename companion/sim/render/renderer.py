@@ -15,9 +15,10 @@ How a frame is drawn (both eyes share one clipping pass; each eye has its own z-
    the eye's inverse-depth buffer, and sample the texture through the exact pixel -> texel homography
    (``cv2.warpPerspective``, bilinear, wrap) only inside the visible part.
 
-Hard surfaces (:class:`~companion.sim.render.scene.Surface`): a see-through bar face samples its
-texture before the z-test and leaves its holes (texels under ``BARS_ALPHA_THRESHOLD``) to whatever is
-behind; a glossy face adds the scene light's specular highlight, a Gaussian blob centred, in each
+Hard surfaces (:class:`~companion.sim.render.scene.Surface`): see-through bar faces are drawn after
+every other face, back to front, each laid over what lies behind it as a pixel integrates it (a bar
+thinner than a pixel is a faint unbroken line, as in a camera, not a dashed one), and in the depth
+buffer only where a bar covers most of a pixel (texels from ``BARS_ALPHA_THRESHOLD``); a glossy face adds the scene light's specular highlight, a Gaussian blob centred, in each
 eye, on the projection of the light's mirror image in the face's plane (so the highlight moves with
 the eye and has the disparity of that virtual image, not the surface's).
 
@@ -169,6 +170,7 @@ class StereoRenderer:
             key = bar_keys[i] if mat == Material.BARS else (plain_keys[i] if mat == Material.PLAIN else None)
             self._face_pattern.append(key)
             self._face_alpha.append(mat == Material.BARS and bool(key[2]))
+        self._alpha_arr = np.array(self._face_alpha, dtype=bool)
         light = scene.light_ned_m
         gloss = np.array([sf.gloss for sf in fc.surfaces])[fc.surface]
         self._glossy = (gloss > 0.0) if light is not None else np.zeros(fc.n_faces, bool)
@@ -347,8 +349,10 @@ class StereoRenderer:
         if idx.size == 0:
             return
         # Front to back by nearest vertex: faces drawn later are often hidden, and skip texturing.
+        # See-through faces last, back to front: each is laid over what lies behind it.
         zmin_all = np.minimum.reduceat(vc[:, 2], fc.starts)[idx]
-        idx = idx[np.argsort(zmin_all, kind="stable")]
+        see_through = self._alpha_arr[idx]
+        idx = idx[np.lexsort((np.where(see_through, -zmin_all, zmin_all), see_through))]
 
         n_c = fc.normal[idx] @ r_cn.T
         es_c = fc.axis_s[idx] @ r_cn.T
