@@ -94,7 +94,8 @@ class StereoRaster:
         ``texel + (1 - coverage) · behind``, with the bar's coverage ``texel / BARS_TONE[0]`` (at most
         1), so that a bar thinner than a pixel is a faint unbroken line, as a camera sees it, not a
         dashed one; only texels at or over ``BARS_ALPHA_THRESHOLD`` enter the depth buffer (the pixel's
-        depth is the bar's where the bar covers most of it); ``glare``: ``(u_px, v_px, sigma_px, peak_grey)`` of a highlight to add."""
+        depth is the bar's where the bar covers most of it); ``glare``: ``(u_px, v_px, sigma_px,
+        peak_grey)`` of a highlight to add."""
         u0 = max(0, math.floor(min(us)))
         u1 = min(self.geometry.width_px, math.ceil(max(us)) + 1)
         if u0 >= u1:

@@ -18,9 +18,10 @@ How a frame is drawn (both eyes share one clipping pass; each eye has its own z-
 Hard surfaces (:class:`~companion.sim.render.scene.Surface`): see-through bar faces are drawn after
 every other face, back to front, each laid over what lies behind it as a pixel integrates it (a bar
 thinner than a pixel is a faint unbroken line, as in a camera, not a dashed one), and in the depth
-buffer only where a bar covers most of a pixel (texels from ``BARS_ALPHA_THRESHOLD``); a glossy face adds the scene light's specular highlight, a Gaussian blob centred, in each
-eye, on the projection of the light's mirror image in the face's plane (so the highlight moves with
-the eye and has the disparity of that virtual image, not the surface's).
+buffer only where a bar covers most of a pixel (texels from ``BARS_ALPHA_THRESHOLD``); a glossy face
+adds the scene light's specular highlight, a Gaussian blob centred, in each eye, on the projection
+of the light's mirror image in the face's plane (so the highlight moves with the eye and has the
+disparity of that virtual image, not the surface's).
 
 Pixel centres are at integer coordinates (:class:`~companion.core.geometry.StereoGeometry`), both
 for the depth buffer and for the texture lookup, so a point seen by both eyes is sampled at the

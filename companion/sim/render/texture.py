@@ -53,9 +53,9 @@ PLAIN_TONE = (182.0, 5.0)
 #: this fraction of the bars' grey (a shadowed recess).
 BARS_TONE = (150.0, 6.0, 1.5)
 BARS_GAP_FRACTION = 0.35
-#: See-through bars: a sampled value below this is a hole (grey 0 in the texture; bilinear
-#: interpolation makes a bar edge's texels ``coverage × grey``, so this keeps texels at least half
-#: covered by a bar).
+#: See-through bars: a texel is ``coverage × grey`` (0 in a gap; bilinear interpolation keeps that at a
+#: bar's edge); a pixel sampled below this is mostly what lies behind and keeps that depth (a bar
+#: covering at least about half of it gives the pixel the bar's depth).
 BARS_ALPHA_THRESHOLD = 60
 
 #: Gaussian blur of the finished noise, texels: takes the texel-to-texel white noise off the pixel
