@@ -86,9 +86,16 @@ def test_offboard_engages_and_px4_flies_the_setpoints(px4: Px4Sitl, tmp_path: Pa
             await asyncio.sleep(5.0)  # the box is 30 m ahead: forward at (up to) the cruise speed
             assert pilot.flight_mode == "OFFBOARD" and service.state == "engaged"
             window = (t_on + 3.0, t_on + 5.0)
-            sent = [h["setpoint"]["forward_m_s"] for t, h in service.health_history if window[0] <= t <= window[1] and h.get("setpoint")]
+            ticks = [h for t, h in service.health_history if window[0] <= t <= window[1] and h.get("setpoint")]
+            sent = [h["setpoint"]["forward_m_s"] for h in ticks]
             flown = [float(np.linalg.norm(s.velocity_ned_m_s[:2])) for s in pilot.samples if window[0] <= s.time_s <= window[1]]
-            assert 0.5 * cruise <= np.median(sent) <= cruise
+            # The plan flies at (up to) the cruise speed; what is sent is the plan less the motion the
+            # reported velocity does not explain (PX4's estimate off), so it may exceed the cruise by that.
+            planned = [h["planner"]["speed_m_s"] for h in ticks if (h.get("planner") or {}).get("speed_m_s") is not None]
+            assert 0.5 * cruise <= np.median(planned) <= cruise + 1e-6
+            for h in ticks:
+                counter = float(np.linalg.norm(h["planner"]["unexplained_m_s"][:2])) if h.get("planner") else 0.0
+                assert h["setpoint"]["forward_m_s"] <= cruise + counter + 1e-6
             # PX4 flies what it is sent (its own velocity estimate, median over 2 s).
             assert 0.6 * np.median(sent) < np.median(flown) < 1.25 * np.median(sent)
             await service.request({"cmd": "disengage"})
