@@ -185,9 +185,9 @@ def test_office_15004_a_fence_hit_in_one_frame_of_three_is_not_seen_free() -> No
 
 
 def test_office_40170_a_fence_seen_from_a_banked_vehicle_is_not_flown_into() -> None:
-    """office-40170 at 3 m/s with 0.14 m/s drift and StereoBM (the default without a GPU): the simulator drew
-    the fence's bars, thinner than a pixel 4 m off, as broken dashes under the vehicle's slight bank (a
-    pixel partly covered came out dark or not at all). No matcher paired the dashes; the ceiling read
+    """office-40170 at 3 m/s with 0.14 m/s drift and StereoBM (the default without a GPU): the simulator
+    drew the fence's bars, thinner than a pixel 4 m off, as broken dashes under the vehicle's slight
+    bank (a pixel partly covered came out dark or not at all). No matcher paired the dashes; the ceiling read
     through the gaps cleared the fence's upper cubes, and the vehicle climbed into them at 2.2 m/s. A
     camera's pixel adds up what covers it, and so does the simulator now: the bars are faint unbroken
     lines, and the flight passes the fence."""
