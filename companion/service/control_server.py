@@ -73,17 +73,17 @@ class _Bucket:
 
 @dataclass
 class _Peer:
-    """One connection: its budget, and the rate at which it has sent requests (refused ones too)."""
+    """One connection: its budget (its bucket's ``t_s`` is when it last sent), and the rate at which
+    it sends requests, refused ones too."""
 
     bucket: _Bucket
-    rate_per_s: float = 0.0  # requests per second, averaged over about _RATE_WINDOW_S, at t_s
-    t_s: float = -math.inf  # when it last sent
+    rate_per_s: float = 0.0  # requests per second, averaged over about _RATE_WINDOW_S, at bucket.t_s
 
-    def sent(self, now_s: float) -> float:
-        """Count one request at ``now_s``; returns the connection's rate, requests per second."""
-        self.rate_per_s = self.rate_per_s * math.exp(-(now_s - self.t_s) / _RATE_WINDOW_S) + 1.0 / _RATE_WINDOW_S
-        self.t_s = now_s
-        return self.rate_per_s
+    def take(self, now_s: float, rate: float) -> bool:
+        """Count one request at ``now_s`` in the rate, and take it from the budget (``rate`` per
+        second); whether the budget had it."""
+        self.rate_per_s = self.rate_per_s * math.exp(-(now_s - self.bucket.t_s) / _RATE_WINDOW_S) + 1.0 / _RATE_WINDOW_S
+        return self.bucket.take(now_s, rate)
 
 
 @dataclass
@@ -282,18 +282,17 @@ class ControlServer:
             if len(self._peers) >= _MAX_TRACKED_PEERS:
                 self._forget_idle(now_s)
             peer = self._peers[identity] = _Peer(_Bucket(per, now_s))
-        rate = peer.sent(now_s)
-        if stop:
-            peer.bucket.take(now_s, per)  # counted, never refused
+        within = peer.take(now_s, per)
+        if stop:  # counted, never refused
             if len(self._pending) >= MAX_IN_FLIGHT + len(STOP_COMMANDS) * 2:
                 self.stats.busy += 1
                 return self._refusals["busy"]
             return None
-        if not peer.bucket.take(now_s, per):
+        if not within:
             self.stats.rate_limited += 1
             return self._refusals["client"]
         if not self._all.take(now_s, total) and (
-            rate >= total / self._active_connections(now_s) or not self._reserve.take(now_s, total)
+            peer.rate_per_s >= total / self._active_connections(now_s) or not self._reserve.take(now_s, total)
         ):
             self.stats.rate_limited += 1
             return self._refusals["all"]
@@ -306,7 +305,7 @@ class ControlServer:
         """Connections that sent within the last :data:`_RATE_WINDOW_S` (at least 1), counted again at
         most every :data:`_RECOUNT_S`."""
         if now_s - self._counted_s >= _RECOUNT_S:
-            self._active = max(1, sum(1 for p in self._peers.values() if now_s - p.t_s < _RATE_WINDOW_S))
+            self._active = max(1, sum(1 for p in self._peers.values() if now_s - p.bucket.t_s < _RATE_WINDOW_S))
             self._counted_s = now_s
         return self._active
 

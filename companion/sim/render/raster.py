@@ -210,10 +210,9 @@ class StereoRaster:
             behind = grey.astype(np.float32) * np.maximum(0.0, 1.0 - tex_f * np.float32(1.0 / BARS_TONE[0]))
             cv2.copyTo(np.clip(np.rint(tex_f + behind), 0, 255).astype(np.uint8), vis_sub, dst=grey)
             vis_sub[sub < BARS_ALPHA_THRESHOLD] = 0  # mostly what is behind: its depth stays
-            cv2.copyTo(iz, vis, dst=zbuf)
-            return
+        else:
+            cv2.copyTo(sub, vis_sub, dst=grey)
         cv2.copyTo(iz, vis, dst=zbuf)
-        cv2.copyTo(sub, vis_sub, dst=grey)
 
     @staticmethod
     def _add_glare(sub: np.ndarray, ox: int, oy: int, glare: tuple[float, float, float, float]) -> None:

@@ -166,12 +166,12 @@ class StereoRenderer:
         ]
         plain_keys = [(round(10.0 * sf.grain_grey),) for sf in fc.surfaces]
         self._face_pattern: list[tuple[int, ...] | None] = []
-        self._face_alpha: list[bool] = []
+        face_alpha: list[bool] = []
         for i, mat in zip(fc.surface.tolist(), fc.material.tolist()):
             key = bar_keys[i] if mat == Material.BARS else (plain_keys[i] if mat == Material.PLAIN else None)
             self._face_pattern.append(key)
-            self._face_alpha.append(mat == Material.BARS and bool(key[2]))
-        self._alpha_arr = np.array(self._face_alpha, dtype=bool)
+            face_alpha.append(mat == Material.BARS and bool(key[2]))
+        self._face_alpha = np.array(face_alpha, dtype=bool)  # see-through faces
         light = scene.light_ned_m
         gloss = np.array([sf.gloss for sf in fc.surfaces])[fc.surface]
         self._glossy = (gloss > 0.0) if light is not None else np.zeros(fc.n_faces, bool)
@@ -352,7 +352,7 @@ class StereoRenderer:
         # Front to back by nearest vertex: faces drawn later are often hidden, and skip texturing.
         # See-through faces last, back to front: each is laid over what lies behind it.
         zmin_all = np.minimum.reduceat(vc[:, 2], fc.starts)[idx]
-        see_through = self._alpha_arr[idx]
+        see_through = self._face_alpha[idx]
         idx = idx[np.lexsort((np.where(see_through, -zmin_all, zmin_all), see_through))]
 
         n_c = fc.normal[idx] @ r_cn.T
@@ -385,7 +385,7 @@ class StereoRenderer:
         counts = fc.counts[idx].tolist()
         materials = fc.material[idx].tolist()
         patterns = [self._face_pattern[i] for i in idx.tolist()]
-        alphas = [self._face_alpha[i] for i in idx.tolist()]
+        alphas = self._face_alpha[idx].tolist()
         glares = self._glares(idx, c_l, c_r, r_cn)
 
         # --- per face: clip, split by LOD, draw in each eye
