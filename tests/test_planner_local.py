@@ -184,6 +184,44 @@ def test_office_15004_a_fence_hit_in_one_frame_of_three_is_not_seen_free() -> No
     assert m.free_lengths(np.array([0.0, 0.0, -1.5]), NORTH).length_m[0] > 5.0
 
 
+def test_a_surface_seen_solid_is_not_erased_by_reads_that_land_where_nothing_stands() -> None:
+    """A fence seen solid for a third of a second, then read through at a depth that moves with the
+    vehicle (a matcher's alias: three times the fence's distance), never at a surface the map holds:
+    the fence stays. Reads of the same wall behind, frame after frame, clear it as before."""
+    m = _map()
+    t = 0.0
+    for k in range(10):
+        t = k / 30.0
+        m.integrate(_wall_blocks(3.0 - 0.1 * k), GEOM, BLOCK_PX, Pose.at(0.1 * k, 0.0, 1.5), t)
+    for k in range(10, 30):  # the alias: 3x the distance, nearer by 0.3 m each frame
+        t = k / 30.0
+        m.integrate(_wall_blocks(3.0 * (3.0 - 0.1 * k)), GEOM, BLOCK_PX, Pose.at(0.1 * k, 0.0, 1.5), t)
+    start = np.array([1.9, 0.0, -1.5])  # the vehicle's last frame: the fence 1.1 m ahead
+    fl = m.free_lengths(start, NORTH)
+    assert fl.blocked[0] and fl.length_m[0] < 1.1
+    for k in range(30, 50):  # the fence gone: the wall 5 m behind it, read where it stands
+        m.integrate(_wall_blocks(6.1), GEOM, BLOCK_PX, Pose.at(1.9, 0.0, 1.5), k / 30.0)
+    assert m.free_lengths(start, NORTH).length_m[0] > 4.0
+
+
+def test_office_40123_a_fence_read_at_its_alias_is_not_flown_into() -> None:
+    """office-40123 at 3 m/s with 0.14 m/s drift and the GPU's matcher (``cpu-sgm``, bit for bit the
+    same): its fence's bars are 8 cm apart, under the 12 cm baseline. From 2.5 m the census window
+    pairs each bar with its neighbour's image and the wall behind with itself, every ray through the
+    fence reads three times farther, and those reads cleared the fence the map had seen solid: the
+    vehicle flew into it at 4.6 s. Reads that end where no surface stands no longer clear a surface
+    seen solid."""
+    from companion.config import parse_config
+    from companion.sim.courses import make_course
+    from companion.sim.loop import fly
+    from companion.sim.scoring import Outcome
+
+    cfg = parse_config({"stereo": {"backend": "cpu-sgm"}, "sim": {"drift_speed_m_s": 0.14, "camera_rate_hz": 30.0}})
+    result = fly(replace(make_course("office", 40123), time_limit_s=7.0), cfg)
+    assert result.outcome is not Outcome.COLLISION, result.reason
+    assert result.min_clearance_m > 0.0
+
+
 def test_office_40170_a_fence_seen_from_a_banked_vehicle_is_not_flown_into() -> None:
     """office-40170 at 3 m/s with 0.14 m/s drift and StereoBM (the default without a GPU): the simulator
     drew the fence's bars, thinner than a pixel 4 m off, as broken dashes under the vehicle's slight

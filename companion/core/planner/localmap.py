@@ -46,6 +46,13 @@ CLAMP_LOG_ODDS = (-1.0, 2.5)
 #: of bars 10 cm apart read as free until 1.85 m off at 3 m/s). One hit is not mixed evidence, as it
 #: is not a surface (a false match, depth noise at an edge); occupancy is untouched.
 MIXED_EVIDENCE_S = 0.5
+#: A cube whose evidence is this high (four hits more than passes: a surface seen solid over several
+#: frames) is seen through only by a ray that ends at a surface already in the map, or beyond the
+#: range. A matcher reads a fence of bars closer than the baseline at its alias, three times farther,
+#: in open space (the whole census window pairs each bar with its neighbour and the wall behind
+#: with itself); the alias moves with the vehicle and is never a surface twice, so it cannot erase
+#: the fence. A real opening shows what lies behind it frame after frame, and clears as before.
+SOLID_LOG_ODDS = 2.0
 #: Rays are thinned to about this many pixels apart (the block image max-pooled: the nearer surface
 #: wins): a cube at 0.15 m subtends about 6 px at 4 m on a 336 px, 90° image.
 RAY_SPACING_PX = 8
@@ -244,12 +251,15 @@ class LocalMap:
         take = (s[None, :] < end[:, None]) & (s[None, :] >= blind[:, None])
         ray, k = np.nonzero(take)  # only the samples short of each ray's surface
         f_idx, f_in = self._index(origin + unit_ned[ray] * s[k, None])
-        f_idx = f_idx[f_in]
+        lo = self.log_odds.reshape(-1)
+        ends_known = ~hit  # beyond the range, or at a surface the map holds (as of the last frame)
+        ends_known[np.nonzero(hit)[0][h_in]] = self._occ.reshape(-1)[h_idx]
+        f_idx, f_ray = f_idx[f_in], ray[f_in]
+        f_idx = f_idx[ends_known[f_ray] | (lo[f_idx] < np.float32(SOLID_LOG_ODDS))]
         mark = self._scratch.reshape(-1)
         mark[h_idx] = True  # a cube hit in this frame is not passed in it
         f_idx = f_idx[~mark[f_idx]]
         mark[h_idx] = False
-        lo = self.log_odds.reshape(-1)
         lo[f_idx] = np.maximum(lo[f_idx] - FREE_LOG_ODDS, CLAMP_LOG_ODDS[0])
         self._pass(f_idx, t)
         lo[h_idx] = np.minimum(lo[h_idx] + HIT_LOG_ODDS, CLAMP_LOG_ODDS[1])
