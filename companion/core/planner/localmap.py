@@ -6,7 +6,8 @@ Perception only, no control law. Each frame's block image (the largest valid dis
 enters the map as rays from the camera (OctoMap's idea): the cubes a ray passes through before its
 surface are seen free, the cube at its surface is hit. A cube's evidence is a log-odds number (a hit
 adds :data:`HIT_LOG_ODDS`, a pass subtracts :data:`FREE_LOG_ODDS`), so that one false match is not an
-obstacle and a surface once seen is cleared only after a few frames that see through it. Evidence
+obstacle and a surface once seen is cleared only after a few frames that see through it (a surface
+seen solid, only by rays that end at a surface: :data:`SOLID_LOG_ODDS`). Evidence
 decays with time (``occupied_memory_s`` after the last hit, ``free_memory_s`` after the last pass) and
 with distance (the grid rolls with the vehicle and drops what falls off its edge).
 
