@@ -206,11 +206,11 @@ def test_a_surface_seen_solid_is_not_erased_by_reads_that_land_where_nothing_sta
 
 def test_office_40123_a_fence_read_at_its_alias_is_not_flown_into() -> None:
     """office-40123 at 3 m/s with 0.14 m/s drift and the GPU's matcher (``cpu-sgm``, bit for bit the
-    same): its fence's bars are 8 cm apart, under the 12 cm baseline. From 2.5 m the census window
-    pairs each bar with its neighbour's image and the wall behind with itself, every ray through the
-    fence reads three times farther, and those reads cleared the fence the map had seen solid: the
-    vehicle flew into it at 4.6 s. Reads that end where no surface stands no longer clear a surface
-    seen solid."""
+    same): its fence's bars are 8 cm apart, under the 12 cm baseline. Within about 2.5 m the census
+    window pairs each bar with its neighbour's image and the wall behind with itself (from 2.2 m every
+    ray through the fence reads three times farther), and those reads cleared the fence the map had
+    seen solid: the vehicle flew into it at 4.6 s. Reads that end where no surface stands no longer
+    clear a surface seen solid."""
     from companion.config import parse_config
     from companion.sim.courses import make_course
     from companion.sim.loop import fly

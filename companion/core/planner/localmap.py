@@ -51,8 +51,9 @@ MIXED_EVIDENCE_S = 0.5
 #: frames) is seen through only by a ray that ends at a surface already in the map, or beyond the
 #: range. A matcher reads a fence of bars closer than the baseline at its alias, three times farther,
 #: in open space (the whole census window pairs each bar with its neighbour and the wall behind
-#: with itself); the alias moves with the vehicle and is never a surface twice, so it cannot erase
-#: the fence. A real opening shows what lies behind it frame after frame, and clears as before.
+#: with itself); the alias moves three times as fast as the vehicle and seldom lands on a surface the
+#: map holds, so it does not erase the fence. A real opening shows what lies behind it frame after
+#: frame, and clears as before.
 SOLID_LOG_ODDS = 2.0
 #: Rays are thinned to about this many pixels apart (the block image max-pooled: the nearer surface
 #: wins): a cube at 0.15 m subtends about 6 px at 4 m on a 336 px, 90° image.
