@@ -25,7 +25,7 @@ from companion.core.planner.local import (
     speed_law,
 )
 from companion.core.planner.localmap import LocalMap
-from companion.core.planner.paths import predicted_paths
+from companion.core.planner.paths import floor_bent_lengths, predicted_paths
 from companion.core.planner.safety import (
     CHAIN,
     SafetyContext,
@@ -978,6 +978,51 @@ def test_a_descent_cut_by_the_floor_before_a_wall_down_to_the_ground_is_closed()
     plan = p.plan(_snap(), m)
     climb = math.degrees(math.asin(-plan.direction_ned[2])) if np.linalg.norm(plan.direction_ned) else 0.0
     assert climb > -5.0, plan.reason  # no dive toward the foot of the wall
+
+
+def _ground_blocks(alt_m: float) -> np.ndarray:
+    """A block image of flat ground ``alt_m`` below the camera (px disparity), open above the horizon."""
+    b = np.full(BLOCKS, GEOM.focal_baseline_px_m / 20.0, dtype=np.float32)
+    f = GEOM.focal_px
+    for r in range(BLOCKS[0]):
+        down_px = (BLOCK_PX * r + 0.5 * (BLOCK_PX - 1)) - GEOM.cy_px
+        if down_px > 0:
+            b[r] = GEOM.focal_baseline_px_m / min(alt_m * f / down_px, 20.0)
+    return b
+
+
+def test_pitch_42007_a_vehicle_sinking_toward_the_floor_is_judged_on_the_path_it_levels_onto() -> None:
+    """Simulated pitch courses: descending beneath an overhead block, the vehicle levelled off near the
+    floor while still sinking 0.3 m/s, and the chain's speed law judged that motion on the straight
+    line into the ground 2.7 m on: the setpoint's forward speed fell from 3 to 1.6 m/s under an open
+    way. The floor filter takes a descent off over the last metre: a motion reaching the floor before
+    any surface levels off there and flies on, as a planned descent does."""
+    alt = 0.7
+    m = _map()
+    _see(m, _ground_blocks(alt), pose=Pose.at(0.0, 0.0, alt))
+    pos = np.array([0.0, 0.0, -alt])
+    sinking = np.array([[math.cos(math.radians(11.0)), 0.0, math.sin(math.radians(11.0))]])
+    line = m.free_lengths(pos, sinking)
+    assert line.blocked[0] and line.length_m[0] < 2.5  # the straight line meets the ground
+    floor = PlannerConfig().floor_m
+    flown = floor_bent_lengths(m, pos, sinking, line.length_m, floor)
+    assert flown[0] > 6.0  # levelled at the floor, the way on is open
+    # A level line is as it was, and so is a descent that meets a surface before the floor.
+    assert floor_bent_lengths(m, pos, NORTH, m.free_lengths(pos, NORTH).length_m, floor)[0] == pytest.approx(
+        m.free_lengths(pos, NORTH).length_m[0]
+    )
+    assert floor_bent_lengths(m, pos, sinking, line.length_m, 0.0)[0] == pytest.approx(line.length_m[0])
+
+    cfg = CompanionConfig.model_validate({"envelope": {"max_horizontal_speed_m_s": 4.0}})
+    stack = LocalStack(cfg)
+    stack.engage(pos, 0.0, None)
+    for k in range(3):
+        stack.add_frame(_ground_blocks(alt), GEOM, BLOCK_PX, Pose.at(0.0, 0.0, alt), 0.1 * k)
+    clear = Decision(DecisionKind.CLEAR, 0.0, 0.0, 1.0, "clear")
+    step = stack.step(0.3, 0.05, clear, np.full(9, 10.0), pos, 2.5 * sinking[0], 0.0)
+    assert step.plan.velocity_ned_m_s[0] > 2.5, step.plan.reason
+    assert "speed_law_limit" not in step.limited_by
+    assert step.setpoint.forward_m_s > 2.5
 
 
 def test_the_visited_memory_is_the_seconds_flown_in_each_cell() -> None:

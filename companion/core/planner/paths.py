@@ -12,7 +12,9 @@ line to a knee, then straight on from the knee):
   of a box all look alike and short, and the planner turns between them.
 
 The speed law flies only the line itself; the bend is what the cost hopes for beyond it. The
-vehicle's own path to a candidate swings from its motion into the new direction
+vehicle's *motion*, which the safety chain judges, is no choice: a motion that reaches the floor
+before a surface levels off there (the floor filter takes the descent off) and flies on
+(:func:`floor_bent_lengths`), not into the ground beyond it. The vehicle's own path to a candidate swings from its motion into the new direction
 (:func:`predicted_paths`): that is what the map's clearance judges.
 """
 
@@ -148,6 +150,24 @@ def bend_at_floor(
     level = directions(yaw[cut], np.zeros(len(cut)))
     cut, at_surface = _bend(lmap, cut, knee, knees, level, path_m, knee_m, onward, only_longer=False)
     band_cut[cut] = at_surface
+
+
+def floor_bent_lengths(
+    lmap: LocalMap, pos: np.ndarray, dirs: np.ndarray, free_m: np.ndarray, floor_m: float
+) -> np.ndarray:
+    """The length flown along each line before a surface, float64 ``(K,)`` m: ``free_m`` (float ``(K,)``
+    m, the map's free length along ``dirs``, unit NED ``(K, 3)``, from ``pos``, NED m), except that a
+    descent reaching the floor (``floor_m``, altitude m) before a surface levels off there and flies on
+    (:func:`bend_at_floor`): the length of both legs. What the safety chain's speed law judges."""
+    path = np.array(free_m, dtype=np.float64)
+    down = dirs[:, 2]
+    with np.errstate(divide="ignore"):
+        to_floor = np.where(down > 1e-6, max(-float(pos[2]) - floor_m, 0.0) / np.maximum(down, 1e-6), np.inf)
+    cut = to_floor < path
+    if np.any(cut):
+        yaw = np.arctan2(dirs[:, 1], dirs[:, 0])
+        bend_at_floor(lmap, pos, yaw, dirs, to_floor, cut, path, np.full(len(path), np.inf), dirs.copy())
+    return path
 
 
 def bend_onto_way(

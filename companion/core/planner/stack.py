@@ -15,6 +15,7 @@ from companion.core.geometry import StereoGeometry
 from companion.core.goal import GoalSpec, resolve_goal
 from companion.core.planner.local import LocalPlanner, Mode, Plan, Snapshot
 from companion.core.planner.localmap import LocalMap
+from companion.core.planner.paths import floor_bent_lengths
 from companion.core.planner.safety import SafetyContext, from_ned, to_ned, trace_chain
 from companion.core.pose import Pose
 from companion.core.types import REGION_INDEX, Decision, VelocitySetpoint
@@ -164,14 +165,20 @@ class LocalStack:
         sp_m = float(np.linalg.norm(vel))
         if sp_m > 1e-9:
             asked[1] = vel / sp_m
-        known = lmap.free_lengths(pos, asked).length_m
+        # A descent is judged as flown: levelling off at the floor (the floor filter's), not into the ground.
+        floor = self.cfg.planner.floor_m
+
+        def flown(u: np.ndarray) -> np.ndarray:
+            return floor_bent_lengths(lmap, pos, u, lmap.free_lengths(pos, u).length_m, floor)
+
+        known = flown(asked)
 
         def free_along(u: np.ndarray) -> float:
             u = np.asarray(u, dtype=np.float64)
             for k in range(2):
                 if float(asked[k] @ u) > 1.0 - 1e-9:
                     return float(known[k])
-            return float(lmap.free_lengths(pos, u[None, :]).length_m[0])
+            return float(flown(u[None, :])[0])
 
         radius = self.cfg.vehicle.radius_m
         near = lmap.nearest_surface(pos, radius + self.cfg.planner.stop_margin_m)
