@@ -14,8 +14,9 @@ line to a knee, then straight on from the knee):
 The speed law flies only the line itself; the bend is what the cost hopes for beyond it. The
 vehicle's *motion*, which the safety chain judges, is no choice: a motion that reaches the floor
 before a surface levels off there (the floor filter takes the descent off) and flies on
-(:func:`floor_bent_lengths`), not into the ground beyond it. The vehicle's own path to a candidate swings from its motion into the new direction
-(:func:`predicted_paths`): that is what the map's clearance judges.
+(:func:`floor_bent_lengths`), not into the ground beyond it. The vehicle's own path to a candidate
+swings from its motion into the new direction (:func:`predicted_paths`): that is what the map's
+clearance judges.
 """
 
 from __future__ import annotations
