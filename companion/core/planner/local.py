@@ -41,6 +41,7 @@ from companion.core.planner.paths import (
     bend_onto_way,
     directions,
     swing_profile,
+    to_band,
 )
 from companion.core.planner.way import WayToGoal
 from companion.core.types import Decision, DecisionKind
@@ -377,13 +378,9 @@ class LocalPlanner:
         fl = lmap.free_lengths(pos, dirs)
         free = fl.length_m.copy()
         # The band between floor and ceiling bounds a climb's length like a surface does.
-        alt = -pos[2]
-        vz = -dirs[:, 2]  # climb rate per metre flown
-        with np.errstate(divide="ignore", invalid="ignore"):
-            to_band = np.where(vz > 1e-6, (cfg.ceiling_m - alt) / vz, np.where(vz < -1e-6, (alt - cfg.floor_m) / -vz, np.inf))
-        to_band = np.maximum(to_band, 0.0)
-        band_cut = to_band < free
-        free = np.minimum(free, to_band)
+        to_edge = to_band(pos, dirs, cfg.floor_m, cfg.ceiling_m)
+        band_cut = to_edge < free
+        free = np.minimum(free, to_edge)
         # A climb cut by the ceiling ends there, closed (no way over a wall that high). A descent cut
         # by the floor levels off and flies on along it: the cost scores that bent path, its length and
         # whether it ends at a surface (a wall down to the ground) or passes on (under an overhead
@@ -391,7 +388,7 @@ class LocalPlanner:
         path = free.copy()
         knee = np.full(len(free), np.inf)  # where each path leaves its line (m), and its direction on
         onward = dirs.copy()
-        bend_at_floor(lmap, pos, yaw, dirs, to_band, band_cut, path, knee, onward)
+        bend_at_floor(lmap, pos, yaw, dirs, to_edge, band_cut, path, knee, onward)
         blocked = fl.blocked | band_cut
         blocked_line = blocked  # on the lines themselves (the swing below widens ``blocked``)
         bins = self._bin(yaw)

@@ -153,6 +153,17 @@ def bend_at_floor(
     band_cut[cut] = at_surface
 
 
+def to_band(pos: np.ndarray, dirs: np.ndarray, floor_m: float, ceiling_m: float) -> np.ndarray:
+    """How far each line from ``pos`` (float ``(3,)`` NED m) along ``dirs`` (unit NED ``(K, 3)``) stays
+    between ``floor_m`` and ``ceiling_m`` (altitudes, m), float64 ``(K,)`` m: inf for a level line, 0
+    for one already outside toward the side it heads to."""
+    alt = -float(pos[2])
+    vz = -dirs[:, 2]  # climb per metre flown
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d = np.where(vz > 1e-6, (ceiling_m - alt) / vz, np.where(vz < -1e-6, (alt - floor_m) / -vz, np.inf))
+    return np.maximum(d, 0.0)
+
+
 def floor_bent_lengths(
     lmap: LocalMap, pos: np.ndarray, dirs: np.ndarray, free_m: np.ndarray, floor_m: float
 ) -> np.ndarray:
@@ -161,9 +172,7 @@ def floor_bent_lengths(
     descent reaching the floor (``floor_m``, altitude m) before a surface levels off there and flies on
     (:func:`bend_at_floor`): the length of both legs. What the safety chain's speed law judges."""
     path = np.array(free_m, dtype=np.float64)
-    down = dirs[:, 2]
-    with np.errstate(divide="ignore"):
-        to_floor = np.where(down > 1e-6, max(-float(pos[2]) - floor_m, 0.0) / np.maximum(down, 1e-6), np.inf)
+    to_floor = to_band(pos, dirs, floor_m, math.inf)
     cut = to_floor < path
     if np.any(cut):
         yaw = np.arctan2(dirs[:, 1], dirs[:, 0])
