@@ -205,8 +205,10 @@ def test_collision_prevention_stops_short_of_the_wall_and_at_zero_when_the_servi
         try:
             return await fly_collision_prevention(load_config(None), pilot, px4.ports, tmp_path, cp_dist_m=2.0)
         finally:
-            await pilot.make_ready()
-            await pilot.close()
+            try:
+                await pilot.make_ready()
+            finally:
+                await pilot.close()
 
     result = _run(scenario())
     print("\n".join(result.lines()))
@@ -226,8 +228,10 @@ def test_the_pilots_offboard_switch_engages_and_position_mode_releases(px4: Px4S
         try:
             return await fly_rc_engage(load_config(None), pilot, px4.ports, tmp_path)
         finally:
-            await pilot.make_ready()
-            await pilot.close()
+            try:
+                await pilot.make_ready()
+            finally:
+                await pilot.close()
 
     result = _run(scenario())
     print("\n".join(result.lines()))

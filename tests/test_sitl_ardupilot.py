@@ -74,13 +74,16 @@ async def _engaged(sitl: ArduPilotSitl, workdir: Path, box_north_m: float = 30.0
 
 
 async def _finish(pilot: ArduPilotPilot, service, gate: MavlinkGate | None = None) -> None:
-    await service.stop()
-    if gate is not None:
-        await gate.close()
-    if pilot.flight_mode == "GUIDED":
-        await pilot.hold()  # the pilot takes the vehicle before landing it
-    await pilot.make_ready()
-    await pilot.close()
+    """Stop the service, land, and close the pilot's link whatever the landing does."""
+    try:
+        await service.stop()
+        if gate is not None:
+            await gate.close()
+        if pilot.flight_mode == "GUIDED":
+            await pilot.hold()  # the pilot takes the vehicle before landing it
+        await pilot.make_ready()
+    finally:
+        await pilot.close()
 
 
 def _speed(pilot: ArduPilotPilot) -> float:

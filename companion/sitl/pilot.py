@@ -287,13 +287,19 @@ class Pilot:
         return [self.action, self.telemetry, self.param]
 
     async def close(self) -> None:
-        await cancel_and_wait(self._tasks)
-        self._tasks = []
-        for plugin in self._plugins():
-            if plugin is not None:
-                plugin.destroy()
-        self.action = self.telemetry = self.param = None
-        self._system = None
-        if self._mavsdk is not None:
-            self._mavsdk.destroy()
-            self._mavsdk = None
+        """Stop the subscriptions and release MAVSDK, plugins first (safe to call twice). Every pilot
+        must be closed: MAVSDK aborts the whole process when an instance is destroyed, by the garbage
+        collector too, while a plugin it handed out is still alive, and a test run then ends without
+        its report."""
+        try:
+            await cancel_and_wait(self._tasks)
+        finally:
+            self._tasks = []
+            for plugin in self._plugins():
+                if plugin is not None:
+                    plugin.destroy()
+            self.action = self.telemetry = self.param = None
+            self._system = None
+            if self._mavsdk is not None:
+                self._mavsdk.destroy()
+                self._mavsdk = None
