@@ -454,17 +454,7 @@ class LocalPlanner:
         top = top[np.isfinite(c[top])]
         if len(top):
             clear = np.full(len(free), np.inf)
-            # From the velocity it has, and from the one it was last told to fly, which it chases
-            # until the autopilot's delay has passed: the vehicle lies between the two.
-            starts = v[None, :]
-            if snap.in_flight_ned_m_s is not None:
-                starts = np.stack([v, np.asarray(snap.in_flight_ned_m_s, dtype=np.float64)])
-            if self._swing is None or self._swing[0] != lmap.voxel_m:
-                self._swing = (lmap.voxel_m, swing_profile(cfg, lmap.voxel_m))
-            t, lag, tail = self._swing[1]
-            clear[top] = lmap.clear_along(
-                pos, starts, dirs[top], speed_law(free[top], cfg), t, lag, tail, cfg.map_range_m
-            )
+            clear[top] = self.swing_clear(lmap, pos, v, snap.in_flight_ned_m_s, dirs[top], speed_law(free[top], cfg))
             swung = clear < free
             if np.any(swung):
                 # Swung short, the way still leads on once slower: its time is the short length at
@@ -512,6 +502,25 @@ class LocalPlanner:
             f"{math.degrees(climb[i]):.0f} deg, {free[i]:.1f} m seen free, {speed:.1f} m/s"
         )
         return Plan(self.mode, vel, rate, u, float(free[i]), self.reason, table)
+
+    def swing_clear(
+        self, lmap: LocalMap, pos: np.ndarray, velocity_ned_m_s: np.ndarray, in_flight_ned_m_s: np.ndarray | None,
+        dirs: np.ndarray, speeds_m_s: np.ndarray,
+    ) -> np.ndarray:
+        """How far the vehicle at ``pos`` (float ``(3,)`` NED m) flies toward each command ``dirs ·
+        speeds_m_s`` (unit NED ``(K, 3)``, m/s ``(K,)``) before its centre enters a surface's inflation,
+        float64 ``(K,)`` arc metres (inf: never, within the map's range): its path swings from its
+        velocity (float ``(3,)`` NED m/s) onto the command (:func:`~companion.core.planner.paths.predicted_paths`), judged from that
+        velocity and from the one it was last told to fly (``in_flight_ned_m_s``, None: none yet),
+        which it chases until the autopilot's delay has passed: the vehicle lies between the two."""
+        cfg = self.cfg
+        starts = np.asarray(velocity_ned_m_s, dtype=np.float64)[None, :]
+        if in_flight_ned_m_s is not None:
+            starts = np.concatenate([starts, np.asarray(in_flight_ned_m_s, dtype=np.float64)[None, :]])
+        if self._swing is None or self._swing[0] != lmap.voxel_m:
+            self._swing = (lmap.voxel_m, swing_profile(cfg, lmap.voxel_m))
+        t, lag, tail = self._swing[1]
+        return lmap.clear_along(pos, starts, dirs, speeds_m_s, t, lag, tail, cfg.map_range_m)
 
     def _hold(self, reason: str, pos: np.ndarray, lmap: LocalMap) -> Plan:
         """Hold the point where the hold began (:meth:`_hold_point`): back toward it at

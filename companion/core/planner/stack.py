@@ -180,6 +180,22 @@ class LocalStack:
                     return float(known[k])
             return float(flown(u[None, :])[0])
 
+        planner = self.planner
+
+        def free_swinging(v: np.ndarray) -> float:
+            v = np.asarray(v, dtype=np.float64)
+            s = float(np.linalg.norm(v))
+            u = v / s
+            out = min(free_along(u), float(planner.swing_clear(lmap, pos, vel, in_flight, u[None, :], np.array([s]))[0]))
+            # The swing leaves along the motion, and the map's swing judges surfaces alone: where the
+            # motion's line ends in space not seen rather than at a surface, the swing is seen free no
+            # farther (unknown is near).
+            if sp_m > 1e-9:
+                motion = lmap.free_lengths(pos, asked[1:2])
+                if not motion.blocked[0]:
+                    out = min(out, float(motion.length_m[0]))
+            return out
+
         radius = self.cfg.vehicle.radius_m
         near = lmap.nearest_surface(pos, radius + self.cfg.planner.stop_margin_m)
         ctx = SafetyContext(
@@ -200,6 +216,7 @@ class LocalStack:
             view_half_rad=self.view_half_rad,
             surface_gap_m=math.inf if near is None else near[0] - radius,
             surface_dir_ned=None if near is None else near[1],
+            free_swinging=free_swinging,
         )
         setpoint, limited_by = trace_chain(sp, ctx)
         self._last = StackStep(setpoint, plan, limited_by)
