@@ -510,9 +510,10 @@ class LocalPlanner:
         """How far the vehicle at ``pos`` (float ``(3,)`` NED m) flies toward each command ``dirs ·
         speeds_m_s`` (unit NED ``(K, 3)``, m/s ``(K,)``) before its centre enters a surface's inflation,
         float64 ``(K,)`` arc metres (inf: never, within the map's range): its path swings from its
-        velocity (float ``(3,)`` NED m/s) onto the command (:func:`~companion.core.planner.paths.predicted_paths`), judged from that
-        velocity and from the one it was last told to fly (``in_flight_ned_m_s``, None: none yet),
-        which it chases until the autopilot's delay has passed: the vehicle lies between the two."""
+        velocity (float ``(3,)`` NED m/s) onto the command
+        (:func:`~companion.core.planner.paths.predicted_paths`), judged from that velocity and from the
+        one it was last told to fly (``in_flight_ned_m_s``, None: none yet), which it chases until the
+        autopilot's delay has passed: the vehicle lies between the two. The safety chain asks it too."""
         cfg = self.cfg
         starts = np.asarray(velocity_ned_m_s, dtype=np.float64)[None, :]
         if in_flight_ned_m_s is not None:

@@ -186,7 +186,8 @@ class LocalStack:
             v = np.asarray(v, dtype=np.float64)
             s = float(np.linalg.norm(v))
             u = v / s
-            out = min(free_along(u), float(planner.swing_clear(lmap, pos, vel, in_flight, u[None, :], np.array([s]))[0]))
+            swing = planner.swing_clear(lmap, pos, vel, in_flight, u[None, :], np.array([s]))
+            out = min(free_along(u), float(swing[0]))
             # The swing leaves along the motion, and the map's swing judges surfaces alone: where the
             # motion's line ends in space not seen rather than at a surface, the swing is seen free no
             # farther (unknown is near).
