@@ -14,6 +14,7 @@ from companion.config.controller import ControllerConfig
 from companion.config.planner import PlannerConfig
 from companion.core.fuzzy.avoidance import AvoidanceController
 from companion.core.geometry import StereoGeometry
+from companion.core.goal import GoalSpec
 from companion.core.planner.local import (
     ALTITUDE_RETURN_S,
     LOOKED_FROM_M,
@@ -40,7 +41,6 @@ from companion.core.planner.safety import (
     stopping_m,
     trace_chain,
 )
-from companion.core.goal import GoalSpec
 from companion.core.planner.stack import LocalStack
 from companion.core.pose import Pose
 from companion.core.supervisor import Engage, Resume, State, Supervisor, SupervisorConfig
@@ -693,10 +693,11 @@ def test_corridor_42000_a_turn_past_a_surface_on_the_motion_s_line_keeps_its_spe
     """Simulated corridor at 3 m/s: climbing over a box's top, the vehicle moved a degree shallower
     than the planner's climb, and its straight line met the box 2.25 m on while the way it was
     commanded onto was seen free for 7.8 m. The chain braked the motion from 2.4 m/s to 0.2 m/s and
-    the planner then fell back to a detour at 1 m/s: 2.4 s lost on a 13 s flight. The same here
-    with a pillar on the motion's line: the planner's turn past it swings clear, so the chain lets
-    it fly; head-on and nearer, where no swing clears, it still brakes, and so it does where the
-    motion's line ends in space not seen (the map's swing judges surfaces alone: unknown is near)."""
+    the planner then fell back to a detour at 1 m/s; not braked so, the flight takes 11.9 s, not
+    13.4. The same here with a pillar on the motion's line: the planner's turn past it swings clear,
+    so the chain lets it fly; head-on and nearer, where no swing clears, it still brakes, and so it
+    does where the motion's line ends in space not seen (the map's swing judges surfaces alone:
+    unknown is near)."""
     cfg = CompanionConfig.model_validate({"envelope": {"max_horizontal_speed_m_s": 4.0}})
     clear = Decision(DecisionKind.CLEAR, 0.0, 0.0, 1.0, "clear")
     pos = np.array([0.0, 0.0, -1.5])
