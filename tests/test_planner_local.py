@@ -24,6 +24,7 @@ from companion.core.planner.local import (
     Plan,
     Snapshot,
     speed_law,
+    stopping_m,
 )
 from companion.core.planner.localmap import LocalMap
 from companion.core.planner.paths import floor_bent_lengths, predicted_paths
@@ -38,7 +39,6 @@ from companion.core.planner.safety import (
     keep_off,
     speed_law_limit,
     stale_to_zero,
-    stopping_m,
     trace_chain,
 )
 from companion.core.planner.stack import LocalStack

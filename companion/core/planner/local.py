@@ -110,6 +110,12 @@ def speed_law(free_m: np.ndarray | float, cfg: PlannerConfig) -> np.ndarray | fl
     return float(out) if np.ndim(out) == 0 else out
 
 
+def stopping_m(speed_m_s: float, cfg: PlannerConfig) -> float:
+    """The length :func:`speed_law` keeps free ahead of a vehicle at ``speed_m_s``: its latency's run,
+    braking at ``braking_accel_m_s2``, and ``stop_margin_m``, metres (the law's inverse below cruise)."""
+    return speed_m_s * cfg.latency_s + speed_m_s * speed_m_s / (2.0 * cfg.braking_accel_m_s2) + cfg.stop_margin_m
+
+
 def return_climb(below_goal_m: float, cfg: PlannerConfig) -> float:
     """The climb back to the goal's altitude from ``below_goal_m`` metres below it (negative: above),
     radians (positive up), within half ``max_climb_deg``: over the distance flown at cruise in

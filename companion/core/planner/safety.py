@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from companion.config.planner import PlannerConfig
-from companion.core.planner.local import HOLD_GAIN_PER_S, HOLD_MAX_M_S, speed_law
+from companion.core.planner.local import HOLD_GAIN_PER_S, HOLD_MAX_M_S, speed_law, stopping_m
 from companion.core.types import ZERO_SETPOINT, Decision, DecisionKind, VelocitySetpoint
 
 #: Below this speed the vehicle's motion has no direction worth checking, m/s (a velocity
@@ -139,13 +139,6 @@ def brake_hold(sp: VelocitySetpoint, ctx: SafetyContext) -> VelocitySetpoint:
         if sp.forward_m_s > cap:
             return VelocitySetpoint(cap, sp.right_m_s, sp.down_m_s, sp.yaw_rate_deg_s)
     return sp
-
-
-def stopping_m(speed_m_s: float, cfg: PlannerConfig) -> float:
-    """The length the speed law keeps free ahead of a vehicle at ``speed_m_s``: its latency's run,
-    braking at ``braking_accel_m_s2``, and ``stop_margin_m``, metres (the inverse of
-    :func:`~companion.core.planner.local.speed_law` below cruise)."""
-    return speed_m_s * cfg.latency_s + speed_m_s * speed_m_s / (2.0 * cfg.braking_accel_m_s2) + cfg.stop_margin_m
 
 
 def speed_law_limit(sp: VelocitySetpoint, ctx: SafetyContext) -> VelocitySetpoint:

@@ -168,10 +168,12 @@ class LocalStack:
         # A descent is judged as flown: levelling off at the floor (the floor filter's), not into the ground.
         floor = self.cfg.planner.floor_m
 
-        def flown(u: np.ndarray) -> np.ndarray:
-            return floor_bent_lengths(lmap, pos, u, lmap.free_lengths(pos, u).length_m, floor)
+        def flown(u: np.ndarray, free_m: np.ndarray | None = None) -> np.ndarray:
+            free_m = lmap.free_lengths(pos, u).length_m if free_m is None else free_m
+            return floor_bent_lengths(lmap, pos, u, free_m, floor)
 
-        known = flown(asked)
+        both = lmap.free_lengths(pos, asked)
+        known = flown(asked, both.length_m)
 
         def free_along(u: np.ndarray) -> float:
             u = np.asarray(u, dtype=np.float64)
@@ -191,10 +193,8 @@ class LocalStack:
             # The swing leaves along the motion, and the map's swing judges surfaces alone: where the
             # motion's line ends in space not seen rather than at a surface, the swing is seen free no
             # farther (unknown is near).
-            if sp_m > 1e-9:
-                motion = lmap.free_lengths(pos, asked[1:2])
-                if not motion.blocked[0]:
-                    out = min(out, float(motion.length_m[0]))
+            if sp_m > 1e-9 and not both.blocked[1]:
+                out = min(out, float(both.length_m[1]))
             return out
 
         radius = self.cfg.vehicle.radius_m
