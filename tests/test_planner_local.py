@@ -1053,6 +1053,15 @@ def test_a_descent_cut_by_the_floor_flies_on_under_an_overhead_block() -> None:
     v = plan.velocity_ned_m_s
     # Straight on toward the goal, descending beneath the block (not round it).
     assert v[0] > 0.5 and v[2] > 0.2 and abs(v[1]) < 0.1 * v[0], plan.reason
+    # Flown at the speed law's speed on the levelled path, not braked toward the floor as toward a
+    # wall (pitch-44005: a vehicle passing under a block crawled down to the floor). Only the
+    # vertical speed's limit trims it.
+    u = plan.direction_ned
+    to_floor_chosen = (alt - cfg.floor_m) / u[2]  # u is NED: down is positive
+    assert plan.free_m > to_floor_chosen + 2.0, plan.reason
+    want = speed_law(plan.free_m, cfg) * min(1.0, cfg.max_vertical_speed_m_s / (speed_law(plan.free_m, cfg) * u[2]))
+    assert float(np.linalg.norm(v)) == pytest.approx(want)
+    assert float(np.linalg.norm(v)) > speed_law(to_floor_chosen, cfg) + 0.5
 
 
 def test_a_descent_cut_by_the_floor_before_a_wall_down_to_the_ground_is_closed() -> None:

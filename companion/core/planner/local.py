@@ -388,14 +388,19 @@ class LocalPlanner:
         band_cut = to_edge < free
         free = np.minimum(free, to_edge)
         # A climb cut by the ceiling ends there, closed (no way over a wall that high). A descent cut
-        # by the floor levels off and flies on along it: the cost scores that bent path, its length and
-        # whether it ends at a surface (a wall down to the ground) or passes on (under an overhead
-        # block). The speed law flies the line itself, slowing toward the floor until level.
+        # by the floor levels off and flies on along it: the floor bounds the height, it is no surface
+        # to stop at (the floor filter takes the descent off over the last metre). That bent path is
+        # the candidate: its length and whether it ends at a surface (a wall down to the ground) or
+        # passes on (under an overhead block), scored and flown at the speed law's speed on it, as the
+        # safety chain judges a descent. Braked toward the floor as toward a wall, a vehicle passing
+        # under a block crawled down to it.
         path = free.copy()
         knee = np.full(len(free), np.inf)  # where each path leaves its line (m), and its direction on
         onward = dirs.copy()
         bend_at_floor(lmap, pos, yaw, dirs, to_edge, band_cut, path, knee, onward)
-        blocked = fl.blocked | band_cut
+        levels = np.isfinite(knee)
+        free = np.where(levels, path, free)
+        blocked = np.where(levels, band_cut, fl.blocked | band_cut)
         blocked_line = blocked  # on the lines themselves (the swing below widens ``blocked``)
         bins = self._bin(yaw)
         moved = np.hypot(*(self._looked_from[bins] - pos[None, :2]).T)
