@@ -1054,7 +1054,7 @@ def test_a_descent_cut_by_the_floor_flies_on_under_an_overhead_block() -> None:
     # Straight on toward the goal, descending beneath the block (not round it).
     assert v[0] > 0.5 and v[2] > 0.2 and abs(v[1]) < 0.1 * v[0], plan.reason
     # Flown at the speed law's speed on the levelled path, not braked toward the floor as toward a
-    # wall (pitch-44005: a vehicle passing under a block crawled down to the floor). Only the
+    # wall (pitch-44005: a vehicle passing under a block slowed on every descent to it). Only the
     # vertical speed's limit trims it.
     u = plan.direction_ned
     to_floor_chosen = (alt - cfg.floor_m) / u[2]  # u is NED: down is positive

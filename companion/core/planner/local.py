@@ -393,7 +393,7 @@ class LocalPlanner:
         # the candidate: its length and whether it ends at a surface (a wall down to the ground) or
         # passes on (under an overhead block), scored and flown at the speed law's speed on it, as the
         # safety chain judges a descent. Braked toward the floor as toward a wall, a vehicle passing
-        # under a block crawled down to it.
+        # under a block slowed on every descent to it.
         path = free.copy()
         knee = np.full(len(free), np.inf)  # where each path leaves its line (m), and its direction on
         onward = dirs.copy()
@@ -401,7 +401,7 @@ class LocalPlanner:
         levels = np.isfinite(knee)
         free = np.where(levels, path, free)
         blocked = np.where(levels, band_cut, fl.blocked | band_cut)
-        blocked_line = blocked  # on the lines themselves (the swing below widens ``blocked``)
+        blocked_line = blocked  # on the candidates' own paths (the swing below widens ``blocked``)
         bins = self._bin(yaw)
         moved = np.hypot(*(self._looked_from[bins] - pos[None, :2]).T)
         unlooked = (snap.now_s - self._looked_t[bins] > cfg.look_memory_s) | (moved > LOOKED_FROM_M)

@@ -12,13 +12,12 @@ line to a knee, then straight on from the knee):
   of a box all look alike and short, and the planner turns between them.
 
 The floor bounds the height; it is no surface to stop at. A descent that reaches it levels off (the
-floor filter takes the descent off) and flies on, so its bent path is flown at the speed law's speed on
-that path, and the vehicle's *motion*, which the safety chain judges, is judged the same way
+floor filter takes the descent off) and flies on, so its bent path is flown at the speed law's speed
+on that path, and the vehicle's *motion*, which the safety chain judges, is judged the same way
 (:func:`floor_bent_lengths`), not into the ground beyond it. A wall's bend is another matter: the
 speed law flies only the line that ends at the wall, and the bend is what the cost hopes for beyond
-it. The vehicle's own path to a candidate
-swings from its motion into the new direction (:func:`predicted_paths`): that is what the map's
-clearance judges.
+it. The vehicle's own path to a candidate swings from its motion into the new direction
+(:func:`predicted_paths`): that is what the map's clearance judges.
 """
 
 from __future__ import annotations
