@@ -1059,7 +1059,8 @@ def test_a_descent_cut_by_the_floor_flies_on_under_an_overhead_block() -> None:
     u = plan.direction_ned
     to_floor_chosen = (alt - cfg.floor_m) / u[2]  # u is NED: down is positive
     assert plan.free_m > to_floor_chosen + 2.0, plan.reason
-    want = speed_law(plan.free_m, cfg) * min(1.0, cfg.max_vertical_speed_m_s / (speed_law(plan.free_m, cfg) * u[2]))
+    law = speed_law(plan.free_m, cfg)
+    want = law * min(1.0, cfg.max_vertical_speed_m_s / (law * u[2]))
     assert float(np.linalg.norm(v)) == pytest.approx(want)
     assert float(np.linalg.norm(v)) > speed_law(to_floor_chosen, cfg) + 0.5
 
