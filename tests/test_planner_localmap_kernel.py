@@ -103,6 +103,9 @@ def test_compiled_free_lengths_equal_numpy_on_random_layers(seed: int) -> None:
     odds = np.array([0.0, OCCUPIED_LOG_ODDS, 0.71, 1.5], dtype=np.float32)
     m.log_odds[...] = rng.choice(odds, size=shape, p=[0.992, 0.004, 0.002, 0.002])
     m.prev_hit_t[...] = np.where(rng.random(shape) < 0.002, np.float32(m.now_s - MIXED_EVIDENCE_S), -np.inf)
+    # Passes on each side of the mixed-evidence threshold (and none at all) after those hits.
+    m.free_t[...] = rng.choice(np.array([-np.inf, m.now_s - 1.0, m.now_s - 0.5, m.now_s], dtype=np.float32), size=shape)
+    m._evidence_ok[...] = m._evidence_ok_at(slice(None)).reshape(shape)  # what a frame keeps up
     m._occ[...] = rng.random(shape) < 0.0005
     m._infl[...] = (rng.random(shape) < 0.001).astype(np.int16) + m._occ
     m._body_mask[...] = rng.random(shape) < 0.01

@@ -33,10 +33,8 @@ def _cube_at(px: float, py: float, pz: float, voxel: float, origin: np.ndarray, 
 
 
 @nb.njit(**_JIT)
-def _seen_free(c: int, fcnt, log_odds, prev_hit_t, body, occupied_log_odds, mixed_before) -> bool:
-    if body[c]:
-        return True
-    return fcnt[c] > 0 and log_odds[c] <= occupied_log_odds and prev_hit_t[c] < mixed_before
+def _seen_free(c: int, fcnt, evidence_ok, body) -> bool:
+    return body[c] or (fcnt[c] > 0 and evidence_ok[c])
 
 
 @nb.njit(**_JIT)
@@ -77,11 +75,8 @@ def free_lengths(
     shape: np.ndarray,
     infl: np.ndarray,
     fcnt: np.ndarray,
-    log_odds: np.ndarray,
-    prev_hit_t: np.ndarray,
+    evidence_ok: np.ndarray,
     body: np.ndarray,
-    occupied_log_odds: np.float32,
-    mixed_before: np.float32,
     first: np.ndarray,
     blocked: np.ndarray,
 ) -> None:
@@ -94,9 +89,8 @@ def free_lengths(
     out, also where a point of the body's rim on the grid is not seen free: R points ``radius_m`` off
     the line, at angles of cosine ``rim_cos`` and sine ``rim_sin`` (float64 ``(R,)``) round it from
     its level side (:func:`_rim_of`). The layers are the map's flat arrays (``infl`` int16, ``fcnt``
-    int8, ``log_odds`` and ``prev_hit_t`` float32, ``body`` bool); a cube is seen free where the body
-    is, or where its count is positive, its log-odds at most ``occupied_log_odds`` and its hit before
-    the last earlier than ``mixed_before`` (s)."""
+    int8, ``evidence_ok`` and ``body`` bool); a cube is seen free where the body is, or where its
+    count is positive and its own evidence allows it (``evidence_ok``)."""
     nx, ny, nz = shape[0], shape[1], shape[2]
     n_near = near.shape[1]
     rim = np.empty((rim_cos.shape[0], 3))
@@ -117,7 +111,7 @@ def free_lengths(
                 first[k] = j
                 blocked[k] = True
                 break
-            if not _seen_free(c, fcnt, log_odds, prev_hit_t, body, occupied_log_odds, mixed_before):
+            if not _seen_free(c, fcnt, evidence_ok, body):
                 first[k] = j
                 break
             if s[j] >= rim_from_m:
@@ -125,7 +119,7 @@ def free_lengths(
                 for r in range(rim.shape[0]):
                     cr = _cube_at(px + rim[r, 0], py + rim[r, 1], pz + rim[r, 2], voxel, origin, nx, ny, nz)
                     # Off the grid: the line ends there anyway.
-                    if cr >= 0 and not _seen_free(cr, fcnt, log_odds, prev_hit_t, body, occupied_log_odds, mixed_before):
+                    if cr >= 0 and not _seen_free(cr, fcnt, evidence_ok, body):
                         rim_ok = False
                         break
                 if not rim_ok:

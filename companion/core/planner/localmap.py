@@ -41,11 +41,13 @@ HIT_LOG_ODDS = 0.5
 FREE_LOG_ODDS = 0.3
 OCCUPIED_LOG_ODDS = 0.7
 CLAMP_LOG_ODDS = (-1.0, 2.5)
-#: A cube hit twice within this time is not seen free, whatever rays passed through it since, s:
+#: A cube is not seen free by passes that came less than this after its hit before the last, s:
 #: thin bars, a see-through fence, wires are hit in some frames and seen past in others, so their
 #: log-odds sink while they stand there. Such mixed evidence is unknown, and unknown is near (a fence
-#: of bars 10 cm apart read as free until 1.85 m off at 3 m/s). One hit is not mixed evidence, as it
-#: is not a surface (a false match, depth noise at an edge); occupancy is untouched.
+#: of bars 10 cm apart read as free until 1.85 m off at 3 m/s). It stays so while no frame sees the
+#: cube again: a fence the camera has turned away from is as unknown as when it was last seen. One
+#: hit is not mixed evidence, as it is not a surface (a false match, depth noise at an edge);
+#: occupancy is untouched.
 MIXED_EVIDENCE_S = 0.5
 #: A cube whose evidence is this high (four hits more than passes: a surface seen solid over several
 #: frames) is seen through only by a ray that ends at a surface already in the map, or beyond the
@@ -116,6 +118,10 @@ class LocalMap:
         # cubes within one cube (> 0: seen, as the rays are up to a cube apart at the range).
         self._recent = np.zeros(self.shape, dtype=bool)
         self._fcnt = np.zeros(self.shape, dtype=np.int8)
+        # And per cube, whether its own evidence lets it be seen free (no surface's, not mixed): it
+        # changes only where a frame hits or passes, so it is kept up there and the queries read one
+        # byte per cube instead of three numbers.
+        self._evidence_ok = np.ones(self.shape, dtype=bool)
         # What may age out, in time order: (time s, int32 flat cube indices) of each frame's hits and passes
         # (a rebuild sorts the grid's into them), so that a refresh looks only at the cubes whose
         # time has come instead of scanning the grid.
@@ -270,7 +276,16 @@ class LocalMap:
         hit_t[h_idx] = t
         if len(h_idx):
             self._hit_log.append((t, h_idx.astype(np.int32)))
-        self._refresh(np.concatenate([h_idx, f_idx]))
+        touched = np.concatenate([h_idx, f_idx])
+        self._evidence_ok.reshape(-1)[touched] = self._evidence_ok_at(touched)
+        self._refresh(touched)
+
+    def _evidence_ok_at(self, idx: np.ndarray | slice) -> np.ndarray:
+        """bool: whether cubes ``idx`` (flat indices) may be seen free on their own evidence: log-odds
+        at most :data:`OCCUPIED_LOG_ODDS`, and not mixed (their last pass at least
+        :data:`MIXED_EVIDENCE_S` after their hit before the last)."""
+        lo, prev, free = self.log_odds.reshape(-1)[idx], self.prev_hit_t.reshape(-1)[idx], self.free_t.reshape(-1)[idx]
+        return (lo <= np.float32(OCCUPIED_LOG_ODDS)) & (prev <= free - np.float32(MIXED_EVIDENCE_S))
 
     def _pass(self, f_idx: np.ndarray, t: np.float32) -> None:
         """Cubes ``f_idx`` (int64 flat, repeats allowed) seen free at ``t``: their time, and the
@@ -302,6 +317,7 @@ class LocalMap:
             self._body_mask &= ~self._occ
             self._recent[...] = self.free_t >= now - self.free_memory_s
             self._fcnt[...] = box_count(self._recent, 1)
+            self._evidence_ok.reshape(-1)[...] = self._evidence_ok_at(slice(None))
             self._hit_log = log_of(occ, hit_t)
             self._pass_log = log_of(self._recent.reshape(-1), self.free_t.reshape(-1))
             self._rebuild = False
@@ -368,15 +384,12 @@ class LocalMap:
 
     def seen_free(self) -> np.ndarray:
         """bool grid shape: cubes within a cube of one passed within free_memory_s, with no surface's
-        evidence and not hit twice within :data:`MIXED_EVIDENCE_S`, or the body's; not occupied (a new
-        array: queries read the counts at their samples instead)."""
+        evidence and none mixed (:data:`MIXED_EVIDENCE_S`), or the body's; not occupied (a new array:
+        queries read the layers at their samples instead)."""
         return self._free_at(np.arange(self.log_odds.size)).reshape(self.shape) & ~self._occ
 
     def _free_at(self, idx: np.ndarray) -> np.ndarray:
-        # An occupied cube's evidence is above OCCUPIED_LOG_ODDS, and the body's cubes are never
-        # occupied (a cube that turns occupied leaves the body's): no need to read the occupancy.
-        seen = (self._fcnt.reshape(-1)[idx] > 0) & (self.log_odds.reshape(-1)[idx] <= OCCUPIED_LOG_ODDS)
-        seen &= self.prev_hit_t.reshape(-1)[idx] < np.float32(self.now_s - MIXED_EVIDENCE_S)
+        seen = (self._fcnt.reshape(-1)[idx] > 0) & self._evidence_ok.reshape(-1)[idx]
         return seen | self._body_mask.reshape(-1)[idx]
 
     def inflated(self) -> np.ndarray:
@@ -511,8 +524,7 @@ class LocalMap:
         _mapkernels.free_lengths(
             starts, d, s, self.radius_m, self._rim_cos, self._rim_sin, 2.0 * self.radius_m, near,
             self.voxel_m, np.asarray(self.origin, dtype=np.int64), self._grid_shape,
-            self._infl.reshape(-1), self._fcnt.reshape(-1), self.log_odds.reshape(-1), self.prev_hit_t.reshape(-1),
-            self._body_mask.reshape(-1), np.float32(OCCUPIED_LOG_ODDS), np.float32(self.now_s - MIXED_EVIDENCE_S),
+            self._infl.reshape(-1), self._fcnt.reshape(-1), self._evidence_ok.reshape(-1), self._body_mask.reshape(-1),
             first, blocked,
         )  # fmt: skip
         any_bad = first < len(s)
