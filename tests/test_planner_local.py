@@ -730,9 +730,8 @@ def test_corridor_42000_a_turn_past_a_surface_on_the_motion_s_line_keeps_its_spe
         motion = 2.4 * np.array([math.cos(h), math.sin(h), 0.0])
         assert stack.map.free_lengths(pos, motion[None, :] / 2.4).length_m[0] < stopping_m(2.4, cfg.planner)
         step = stack.step(0.3, 0.05, clear, np.full(9, 10.0), pos, motion, 0.0)
-        if swings:
-            assert "speed_law_limit" not in step.limited_by, step.plan.reason
-            assert math.hypot(step.setpoint.forward_m_s, step.setpoint.right_m_s) > 2.5
+        if swings:  # not braked: at most trimmed where the lagging swing nears the pillar
+            assert math.hypot(step.setpoint.forward_m_s, step.setpoint.right_m_s) > 2.5, (step.limited_by, step.plan.reason)
         else:
             assert "speed_law_limit" in step.limited_by
             assert step.setpoint.forward_m_s < 0.5

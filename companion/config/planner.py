@@ -121,15 +121,15 @@ class PlannerConfig(StrictModel):
         ),
     )
     yaw_step_deg: float = Field(
-        default=10.0,
+        default=5.0,
         ge=2.0,
         le=45.0,
         description=(
             "Spacing of the candidate directions in yaw, degrees (all round the vehicle). A gap whose "
             "free band (its width less twice the inflated radius) is w wide has a candidate through it "
-            "only from within w / spacing (radians) of it: 1.7 m for a 0.3 m band at 10°. Finer flies "
-            "narrow gaps sooner and faster but costs tick time in proportion, and also threads the "
-            "openings a misread fence of thin bars seems to have (docs/planner.md, known limits)."
+            "only from within w / spacing (radians) of it: 3.4 m for a 0.3 m band at 5°, 1.7 m at 10° "
+            "(the vehicle creeps toward such a gap until a line fits). Finer flies narrow gaps sooner "
+            "and faster but costs tick time in proportion."
         ),
     )
     max_climb_deg: float = Field(
