@@ -263,6 +263,24 @@ def test_office_40170_a_fence_seen_from_a_banked_vehicle_is_not_flown_into() -> 
     assert result.min_clearance_m > 0.0
 
 
+def test_office_45004_a_fence_flown_along_is_not_turned_through() -> None:
+    """office-45004 at 3 m/s with 0.14 m/s drift and the GPU's matcher (``cpu-sgm``), realization 1:
+    past the fence's free end the vehicle turned to fly along the fence, 0.6 m off it, and the
+    fence it had seen through in turn read as free half a second after it left the view; the planner
+    turned back through it and met it at 7.5 s. The map keeps it unknown until it is seen again."""
+    from companion.config import parse_config
+    from companion.sim.courses import make_course
+    from companion.sim.loop import fly
+    from companion.sim.scoring import Outcome
+
+    cfg = parse_config(
+        {"stereo": {"backend": "cpu-sgm"}, "sim": {"drift_speed_m_s": 0.14, "camera_rate_hz": 30.0, "realization": 1}}
+    )
+    result = fly(replace(make_course("office", 45004), time_limit_s=9.0), cfg)
+    assert result.outcome is not Outcome.COLLISION, result.reason
+    assert result.min_clearance_m > 0.0
+
+
 def test_one_false_match_on_seen_free_space_is_not_mixed_evidence() -> None:
     """A single hit on space seen free over and over (a false match, depth noise at a surface's edge)
     is not a thin thing hit in some frames: the line stays seen free in the frames that follow, as
