@@ -453,8 +453,11 @@ class LocalPlanner:
                 yaw, climb, hoped, blocked & (free < goal_dist), goal_yaw, goal_climb, goal_dist, self._prev, fuzzy,
                 visited, motion, cfg, way_yaw, way_left,
             )
-            # A candidate that cannot move a cube's length is out, unless hoped for.
-            return hopeful, hoped, np.where((free < lmap.voxel_m) & ~hopeful, np.inf, c)
+            # A candidate the speed law cannot fly (within the stop margin, or not a cube's length) is
+            # out, unless hoped for: chosen, the vehicle would hover facing what it already sees, and
+            # the same frames would choose it again.
+            short = free < max(lmap.voxel_m, cfg.stop_margin_m + 1e-9)
+            return hopeful, hoped, np.where(short & ~hopeful, np.inf, c)
 
         hopeful, hoped, c = score(free, path, blocked)
         # The path the vehicle will fly (its velocity lags the command), for the cheapest candidates:
