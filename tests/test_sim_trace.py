@@ -62,10 +62,11 @@ def test_the_planner_column_tells_the_local_planner_s_modes(detour_flight: Fligh
     planner = [r[-1] for r in rows]
     kinds = [r[7] for r in rows]
     modes = [p.split(":", 1)[0] for p in planner]
-    assert modes[0] == "cruise" and "detour" in modes and set(modes) <= {"cruise", "avoid", "detour", "hold"}, set(modes)
+    # Before the first frame nothing ahead is seen free: the first ticks may look round (detour).
+    assert {"cruise", "detour"} <= set(modes) <= {"cruise", "avoid", "detour", "hold"}, set(modes)
     assert all(": " in p for p in planner)  # each names the way it chose, or why it holds
-    # While the planner is in its detour mode the row says so (kind "detour").
-    assert {k for m, k in zip(modes, kinds) if m == "detour"} <= {"detour", "stale"}
+    # While the planner is in its detour mode the row says so (kind "detour"; "none" before the first frame).
+    assert {k for m, k in zip(modes, kinds) if m == "detour"} <= {"detour", "stale", "none"}
 
 
 def test_a_flight_without_logs_cannot_be_traced(detour_flight: FlightResult) -> None:
