@@ -364,22 +364,55 @@ def test_open_space_flies_at_the_goal_at_the_speed_the_free_length_allows() -> N
 def test_level_flight_holds_the_goal_s_altitude_on_the_position() -> None:
     """An autopilot in offboard velocity control holds a vertical speed, not a height, and a climb
     chosen to look over a wall must be taken back: PX4 SITL flights climbed 1.7 m over 10 m of an
-    office and stayed there, into the wall over a door. The
-    planner's "level" candidate is the way back to the goal's altitude (at cruise, the error decays
-    with ALTITUDE_RETURN_S), however small the error: too small for the next candidate climb, it
-    would otherwise never be taken back."""
+    office and stayed there, into the wall over a door. The planner's "level" candidate is the way
+    back to the goal's altitude over the distance flown in ALTITUDE_RETURN_S, however small the
+    error: too small for the next candidate climb, it would otherwise never be taken back."""
     p = LocalPlanner(PlannerConfig(ceiling_m=6.0), 0.25)
     cruise = p.cfg.cruise_speed_m_s
     for above_m in (0.3, 0.05, -0.2, 3.0):
         m = _map()
         _see(m, _wall_blocks(30.0), pose=Pose.at(0.0, 0.0, 1.5 + above_m))
         p.engage()
-        plan = p.plan(_snap(position_ned_m=np.array([0.0, 0.0, -1.5 - above_m])), m)
+        flying = np.array([cruise, 0.0, 0.0])
+        plan = p.plan(_snap(position_ned_m=np.array([0.0, 0.0, -1.5 - above_m]), velocity_ned_m_s=flying), m)
         speed = float(np.linalg.norm(plan.velocity_ned_m_s))
         assert speed == pytest.approx(cruise)
         # within half the steepest climb, so that a climb and a descent are left either way
         back = min(math.atan2(above_m, cruise * ALTITUDE_RETURN_S), 0.5 * math.radians(p.cfg.max_climb_deg))
         assert plan.velocity_ned_m_s[2] == pytest.approx(speed * math.sin(back))
+
+
+def test_the_way_back_to_altitude_takes_as_long_at_low_speed() -> None:
+    """The altitude error decays in ALTITUDE_RETURN_S whatever the speed: a vehicle flying 0.8 m/s
+    round something comes down as fast as one at cruise (measured in distance at cruise, one that
+    climbed toward a fence's top and flew slowly round a cabinet came down at 0.1 m/s, met a door's
+    lintel at that altitude and held it as a dead end). The speed flown is the larger of the
+    measured and the one last commanded, which the vehicle is still reaching. Steeper than half the
+    steepest climb it is capped there, and flown: level is no cheaper for the vehicle still flying
+    level (the last choice and the fuzzy controller's pitch count from the way back)."""
+
+    def down_m_s(flown: float, above_m: float) -> float:
+        """The descent rate at the speed flown along the climb chosen, m/s."""
+        m = _map()
+        _see(m, _wall_blocks(30.0), pose=Pose.at(0.0, 0.0, 1.5 + above_m))
+        p = LocalPlanner(PlannerConfig(ceiling_m=6.0), 0.25)
+        snap = _snap(
+            position_ned_m=np.array([0.0, 0.0, -1.5 - above_m]),
+            velocity_ned_m_s=np.array([0.5 * flown, 0.0, 0.0]),  # still reaching the speed commanded
+            in_flight_ned_m_s=np.array([flown, 0.0, 0.0]),
+        )
+        plan = p.plan(snap, m)
+        for _ in range(3):  # and kept, tick after tick
+            again = p.plan(replace(snap, now_s=snap.now_s + 0.1), m)
+            np.testing.assert_allclose(again.direction_ned, plan.direction_ned)
+        return flown * float(plan.direction_ned[2])
+
+    above_m = 0.3
+    at_cruise, slow = down_m_s(3.0, above_m), down_m_s(0.8, above_m)
+    assert 0.9 * above_m / ALTITUDE_RETURN_S < slow <= above_m / ALTITUDE_RETURN_S + 1e-9
+    assert slow == pytest.approx(at_cruise, rel=0.02)
+    cap = 0.5 * math.radians(PlannerConfig().max_climb_deg)
+    assert down_m_s(0.8, 0.8) == pytest.approx(0.8 * math.sin(cap))
 
 
 def test_a_wall_across_the_way_turns_the_planner_to_look_round() -> None:

@@ -55,8 +55,8 @@ CREEP_M_S = 0.2
 #: Holding, the velocity back to the held point per metre away, 1/s, and at most, m/s.
 HOLD_GAIN_PER_S = 1.0
 HOLD_MAX_M_S = 0.5
-#: The goal's altitude is taken back over the distance flown at cruise in this time, seconds: at
-#: cruise, the altitude error decays with this time constant.
+#: The goal's altitude is taken back over the distance flown in this time, seconds: at any speed
+#: (up to the climb's cap) the altitude error decays with this time constant.
 ALTITUDE_RETURN_S = 3.0
 #: A direction looked along from farther than this from here is not looked along from here, metres:
 #: the space a line from here ends in was out of that view (a wall's opening passed along the wall
@@ -116,16 +116,21 @@ def stopping_m(speed_m_s: float, cfg: PlannerConfig) -> float:
     return speed_m_s * cfg.latency_s + speed_m_s * speed_m_s / (2.0 * cfg.braking_accel_m_s2) + cfg.stop_margin_m
 
 
-def return_climb(below_goal_m: float, cfg: PlannerConfig) -> float:
+def return_climb(below_goal_m: float, speed_m_s: float, cfg: PlannerConfig) -> float:
     """The climb back to the goal's altitude from ``below_goal_m`` metres below it (negative: above),
-    radians (positive up), within half ``max_climb_deg``: over the distance flown at cruise in
-    :data:`ALTITUDE_RETURN_S`. An autopilot in offboard velocity control holds a vertical speed, not
-    a height (PX4 SITL drifted 0.4 m up in 4 s under zero vertical speed), and a climb chosen to pass
-    over something must be taken back once past it (PX4 SITL flights climbed 1.7 m over 10 m and
-    stayed there, into the wall over a door), so the altitude is held on the position; slowly, since a climb or descent past something is the planner's to choose (a
-    return over a second pulled a vehicle up under an overhead block it was passing)."""
+    radians (positive up), within half ``max_climb_deg``: over the distance flown at ``speed_m_s``
+    (horizontal, m/s) in :data:`ALTITUDE_RETURN_S`, so that the altitude error decays in that time
+    whatever the speed (measured in distance at cruise, a vehicle that flew slowly round a cabinet
+    came down at 0.1 m/s and met a door's lintel at the altitude it had climbed to). An autopilot
+    in offboard velocity control holds a vertical speed, not a height (PX4 SITL drifted 0.4 m up in
+    4 s under zero vertical speed), and a climb chosen to pass over something must be taken back
+    once past it (PX4 SITL flights climbed 1.7 m over 10 m and stayed there, into the wall over a
+    door), so the altitude is held on the position; slowly, since a climb or descent past something
+    is the planner's to choose (a return over a second pulled a vehicle up under an overhead block
+    it was passing). At a hover the climb is the cap's: any speed flown then returns at most that
+    steeply."""
     lim = 0.5 * math.radians(cfg.max_climb_deg)
-    return max(-lim, min(lim, math.atan2(below_goal_m, cfg.cruise_speed_m_s * ALTITUDE_RETURN_S)))
+    return max(-lim, min(lim, math.atan2(below_goal_m, max(speed_m_s, 0.0) * ALTITUDE_RETURN_S)))
 
 
 @dataclass(frozen=True)
@@ -292,7 +297,7 @@ class LocalPlanner:
         """Start a flight: forget the mode, the choice, the looks and the places."""
         self.mode = Mode.CRUISE
         self.reason = ""
-        self._prev: tuple[float, float] | None = None
+        self._prev: tuple[float, float] | None = None  # the last choice: yaw, climb from "level" (rad)
         self._looked_t = np.full(len(self._yaw_off), -np.inf)  # per absolute yaw bin
         self._looked_from = np.zeros((len(self._yaw_off), 2))  # north, east m the bin was looked along from
         # The visited places: each cell's code (see _cell_codes), sorted, and its seconds flown in it.
@@ -370,13 +375,24 @@ class LocalPlanner:
                 self.reason = "arrived at the goal"
                 return self._hold(self.reason, pos, lmap)
             goal_yaw = math.atan2(g[1] - pos[1], g[0] - pos[0])
-            goal_climb = return_climb(float(pos[2] - g[2]), cfg)
+            # The speed flown: the larger of the measured and the commanded (the vehicle lags the
+            # command, and at the command's speed a climb set from the lagging one returns too fast).
+            flown = math.hypot(*snap.velocity_ned_m_s[:2])
+            if snap.in_flight_ned_m_s is not None:
+                flown = max(flown, math.hypot(*snap.in_flight_ned_m_s[:2]))
+            goal_climb = return_climb(float(pos[2] - g[2]), flown, cfg)
             # The way keeps the stop margin beyond the radius off surfaces where the gap allows.
             self._way.update(lmap, g, float(pos[2]), cfg.floor_m, cfg.ceiling_m, lmap.radius_m + cfg.stop_margin_m)
         # The climbs are laid round the goal's: "level" is the way back to the goal's altitude, so
         # that the map judges that way too (it must not descend onto a wall it is passing over).
         lim = math.radians(cfg.max_climb_deg)
         base = goal_climb if snap.goal_ned_m is not None else 0.0  # within half the steepest: both ways stay
+        # "Level" is that way for every term that compares climbs: the fuzzy controller's pitch steers
+        # up or down from it, and the last choice is kept relative to it (else, when the way back
+        # steepens as the vehicle slows, a level line kept or steered to would cost less than it).
+        if fuzzy is not None:
+            fuzzy = (fuzzy[0], fuzzy[1] + base)
+        prev = None if self._prev is None else (self._prev[0], self._prev[1] + base)
         yaw = (goal_yaw + self._yaw_off)[:, None] * np.ones((1, N_CLIMBS))
         climb = np.ones((len(self._yaw_off), 1)) * np.clip(base + self._climbs, -lim, lim)[None, :]
         yaw, climb = yaw.reshape(-1), climb.reshape(-1)
@@ -450,7 +466,7 @@ class LocalPlanner:
             hoped = np.where(hopeful, np.maximum(path, 0.5 * cfg.map_range_m), path)
             visited, way_left = look_up(hoped)
             c = costs(
-                yaw, climb, hoped, blocked & (free < goal_dist), goal_yaw, goal_climb, goal_dist, self._prev, fuzzy,
+                yaw, climb, hoped, blocked & (free < goal_dist), goal_yaw, goal_climb, goal_dist, prev, fuzzy,
                 visited, motion, cfg, way_yaw, way_left,
             )
             # A candidate the speed law cannot fly (within the stop margin, or not a cube's length) is
@@ -499,7 +515,7 @@ class LocalPlanner:
         if not np.any(np.isfinite(c)):
             return self._stop("no direction free for a cube's length")
         i = int(np.argmin(c))
-        self._prev = (float(yaw[i]), float(climb[i]))
+        self._prev = (float(yaw[i]), float(climb[i]) - base)
         speed = float(speed_law(free[i], cfg))
         u = dirs[i]
         vel = u * speed
