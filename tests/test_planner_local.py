@@ -281,6 +281,25 @@ def test_office_45004_a_fence_flown_along_is_not_turned_through() -> None:
     assert result.min_clearance_m > 0.0
 
 
+def test_office_40154_a_climb_toward_a_fence_top_is_taken_back_before_the_door() -> None:
+    """office-40154 at 3 m/s with 0.14 m/s drift and the GPU's matcher (``cpu-sgm``), realization 0:
+    the fence's bars unknown and the space over it seen free, the vehicle climbed toward its top,
+    flew slowly round the cabinet and, coming back down at 0.1 m/s, met the door with its lintel at
+    its altitude and held a dead end. Taken back over the speed flown, the altitude is the goal's
+    again by the door, and the vehicle flies through it."""
+    from companion.config import parse_config
+    from companion.sim.courses import make_course
+    from companion.sim.loop import fly
+    from companion.sim.scoring import Outcome
+
+    cfg = parse_config(
+        {"stereo": {"backend": "cpu-sgm"}, "sim": {"drift_speed_m_s": 0.14, "camera_rate_hz": 30.0, "realization": 0}}
+    )
+    result = fly(make_course("office", 40154), cfg)
+    assert result.outcome is Outcome.GOAL, result.reason
+    assert result.min_clearance_m > 0.0
+
+
 def test_one_false_match_on_seen_free_space_is_not_mixed_evidence() -> None:
     """A single hit on space seen free over and over (a false match, depth noise at a surface's edge)
     is not a thin thing hit in some frames: the line stays seen free in the frames that follow, as
