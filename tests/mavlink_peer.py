@@ -34,7 +34,7 @@ The service's real MAVSDK link talks to them on localhost, and tests assert on w
 
 Everything received is recorded with the monotonic receive time: :attr:`setpoints` (every
 SET_POSITION_TARGET_LOCAL_NED), :attr:`commands` (every COMMAND_LONG) and :attr:`mode_log`; and what a
-ground station would see of the service (issue 18): :attr:`heartbeats` (every HEARTBEAT from another
+ground station would see of the service: :attr:`heartbeats` (every HEARTBEAT from another
 component), :attr:`status_texts` (STATUSTEXT) and :attr:`obstacle_distances` (OBSTACLE_DISTANCE, as
 the autopilot's collision prevention reads them).
 """

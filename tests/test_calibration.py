@@ -618,7 +618,7 @@ def test_make_rectifier_with_files(tmp_path: Path) -> None:
         make_rectifier(CalibrationConfig(file=path), 1280, 720)
 
 
-# ------------------------------------------------------------------ garbage files name the file and the problem (issue 20)
+# ------------------------------------------------------------------ garbage files name the file and the problem
 
 
 @pytest.mark.parametrize(

@@ -1,4 +1,4 @@
-"""Issue 20's rough edges, each as a new user hit it: health's made-up depths, log lines every 10 s
+"""The rough edges of a first hour, each as a new user hit it: health's made-up depths, log lines every 10 s
 forever, a missing replay retried for 10 s, install-service without a confirmation, the overlay's text
 under OpenCV 5, and the cameras beyond the ZED."""
 

@@ -808,7 +808,7 @@ def test_sgm_on_aloe_equals_the_reference_and_meets_the_quality_target() -> None
 
 
 # --------------------------------------------------------------------------------------------------
-# OBSTACLE_DISTANCE (issue 18)
+# OBSTACLE_DISTANCE
 
 
 @pytest.mark.parametrize("matcher", ["sgm", "sad"])

@@ -1,4 +1,4 @@
-"""The service as the ground station and the autopilot see it (issue 18), on the wire: the real MAVSDK
+"""The service as the ground station and the autopilot see it, on the wire: the real MAVSDK
 link in-process against the PX4-like pymavlink peer. Its heartbeat (component 196, its state), its
 STATUSTEXT lines and their rate limit, the OBSTACLE_DISTANCE layout, and engaging from the sticks."""
 

@@ -189,7 +189,7 @@ def test_a_pilot_mode_change_disengages_the_service_for_good(px4: Px4Sitl, tmp_p
     _run(scenario())
 
 
-# ---------------------------------------------------------------------------------------------- issue 18
+# ------------------------------------------------------------ what the ground station and collision prevention see
 
 
 def test_collision_prevention_stops_short_of_the_wall_and_at_zero_when_the_service_stops(px4: Px4Sitl, tmp_path: Path) -> None:
