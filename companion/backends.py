@@ -43,7 +43,8 @@ def _cpu_sgm(cfg: CompanionConfig, width_px: int, height_px: int, clock: Clock) 
     matcher = CpuSgmMatcher(
         width_px, height_px, st.num_disparities, p1=st.sgm_p1, p2=st.sgm_p2, paths=st.sgm_paths,
         uniqueness_ratio_pct=st.sgm_uniqueness_ratio_pct, lr_max_diff_px=st.sgm_lr_max_diff_px,
-        median=st.sgm_median, threads=st.cpu_threads,
+        median=st.sgm_median, speckle_window_px=st.speckle_window_px, speckle_range_px=st.speckle_range_px,
+        threads=st.cpu_threads,
     )
     return CpuRegionEstimator(cfg, width_px, height_px, clock=clock, matcher=matcher)
 

@@ -85,6 +85,25 @@ def test_equals_the_reference_on_the_gpu_kernels_pairs(
     _assert_equal(left, right, d, p1=p1, p2=p2, paths=paths, uniqueness_ratio_pct=u, lr_max_diff_px=lr, median=median)
 
 
+@pytest.mark.parametrize(("window", "rng_px", "paths"), [(100, 2, 4), (12, 0, 8), (5000, 1, 4)])
+def test_equals_the_reference_with_peak_removal(window: int, rng_px: int, paths: int) -> None:
+    """Rule 10's peak removal (OpenCV's filterSpeckles in the engine) on a pair with a plain patch under
+    noise, at both scales (the near-range check's coarse pair removes its own peaks)."""
+    rng = np.random.default_rng([window, paths])
+    w, h = 120, 64
+    left = rng.integers(0, 256, (h, w), dtype=np.uint8)
+    right = np.roll(left, -6, axis=1)
+    plain = (slice(10, 54), slice(40, 110))
+    left[plain] = 120 + rng.integers(-2, 3, left[plain].shape)
+    right[plain] = 120 + rng.integers(-2, 3, right[plain].shape)
+    params = dict(p1=10, p2=120, paths=paths, speckle_window_px=window, speckle_range_px=rng_px)
+    _assert_equal(left, right, 24, **params)
+    m = _matcher(w, h, 24, **params)
+    fixed = m.compute_fixed(left, right)
+    np.testing.assert_array_equal(m.compute(left, right), S.fixed_to_float(fixed))
+    assert (fixed != S.sgm_match(left, right, 24, p1=10, p2=120, paths=paths)).any()
+
+
 def test_flat_and_saturated_images_equal_the_reference() -> None:
     flat = np.full((12, 30), 128, np.uint8)
     _assert_equal(flat, flat, 16, p1=10, p2=120)
@@ -175,7 +194,7 @@ def test_aloe_at_half_size_equals_the_reference() -> None:
     from companion.core.evaluation import load_middlebury, rescale
 
     pair = rescale(load_middlebury(_shared_data("aloe")), 0.5)
-    _assert_equal(pair.left, pair.right, 112, p1=10, p2=120)
+    _assert_equal(pair.left, pair.right, 112, p1=10, p2=120, speckle_window_px=100, speckle_range_px=2)
 
 
 def test_the_backend_makes_the_dense_map_and_refuses_the_core_factory() -> None:

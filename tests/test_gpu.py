@@ -563,12 +563,14 @@ def _sgm_ref(left: np.ndarray, right: np.ndarray, cfg: CompanionConfig) -> np.nd
     return sgm_match(
         left, right, st.num_disparities, p1=st.sgm_p1, p2=st.sgm_p2, paths=st.sgm_paths,
         uniqueness_ratio_pct=st.sgm_uniqueness_ratio_pct, lr_max_diff_px=st.sgm_lr_max_diff_px,
-        median=st.sgm_median,
+        median=st.sgm_median, speckle_window_px=st.speckle_window_px, speckle_range_px=st.speckle_range_px,
     )
 
 
 _SGM_SETTINGS = [
-    {},  # the defaults: 4 paths, P1 10, P2 120, u 10, LR 1, median
+    {},  # the defaults: 4 paths, P1 10, P2 120, u 10, LR 1, median, peaks up to 100 px
+    {"speckle_window_px": 0},  # no peak removal: sgm_post in one launch
+    {"speckle_window_px": 2000, "speckle_range_px": 0},  # large segments of equal disparity only
     {"sgm_paths": 8, "sgm_p1": 8, "sgm_p2": 80},
     {"sgm_uniqueness_ratio_pct": 0, "sgm_lr_max_diff_px": -1, "sgm_median": False},
     {"sgm_paths": 8, "sgm_p1": 192, "sgm_p2": 193, "sgm_lr_max_diff_px": 0},  # every path cost up to 255

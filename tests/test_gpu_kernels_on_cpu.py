@@ -128,3 +128,33 @@ def test_sgm_kernel_source_equals_the_reference(
     )
     np.testing.assert_array_equal(out["regions"][:9], expected.depth_m)
     np.testing.assert_array_equal(out["regions"][9:], expected.valid_fraction)
+
+
+@pytest.mark.parametrize(("window", "rng_px"), [(12, 2), (40, 0)])
+def test_sgm_peak_removal_source_equals_the_reference(window: int, rng_px: int) -> None:
+    """Rule 10's peak removal: sgm_post's two stages around the union-find kernels, the coarse pair's
+    with a sixteenth of the window, as the estimator launches them."""
+    from companion.core.disparity import sgm as S
+    from companion.gpu.hostemu import HostSgmKernels
+
+    w, h, d = 72, 44, 16
+    rng = np.random.default_rng([window, rng_px])
+    left = rng.integers(0, 256, (h, w), dtype=np.uint8)
+    right = np.roll(left, -5, axis=1)
+    # a plain patch under noise: the matches there are short streaks at any disparity
+    plain = (slice(8, 36), slice(30, 66))
+    left[plain] = 120 + rng.integers(-2, 3, left[plain].shape)
+    right[plain] = 120 + rng.integers(-2, 3, right[plain].shape)
+    params = dict(p1=10, p2=120, paths=4, uniqueness_ratio_pct=10, lr_max_diff_px=1, median=True)
+    reference = S.sgm_match(left, right, d, speckle_window_px=window, speckle_range_px=rng_px, **params)
+    assert (reference != S.sgm_match(left, right, d, **params)).any()  # some peaks were removed
+    rows_e, cols_e = [0, h // 3, 2 * h // 3, h], [0, w // 3, 2 * w // 3, w]
+    out = HostSgmKernels(w, h, d, 4, rows_e, cols_e).run(
+        left, right, 10, 120, 10, 1, True, speckle_window_px=window, speckle_range_px=rng_px
+    )
+    np.testing.assert_array_equal(out["disparity"], reference)
+    expected = reduce_regions_from_disparity(
+        S.fixed_to_float(reference), RegionLayout(np.array(rows_e), np.array(cols_e)), RegionsConfig(), 50.0
+    )
+    np.testing.assert_array_equal(out["regions"][:9], expected.depth_m)
+    np.testing.assert_array_equal(out["regions"][9:], expected.valid_fraction)

@@ -174,7 +174,8 @@ def test_subpixel_offsets_follow_a_fractional_shift() -> None:
 def test_matcher_from_config_and_cpu_estimator() -> None:
     m = make_cpu_matcher(StereoConfig(backend="reference"))
     assert isinstance(m, SgmReferenceMatcher) and m.name == "reference"
-    assert m.params == dict(p1=10, p2=120, paths=4, uniqueness_ratio_pct=10, lr_max_diff_px=1, median=True)
+    assert m.params == dict(p1=10, p2=120, paths=4, uniqueness_ratio_pct=10, lr_max_diff_px=1, median=True,
+                            speckle_window_px=100, speckle_range_px=2)
     sad = make_cpu_matcher(StereoConfig(backend="reference", matcher="sad"))
     assert not isinstance(sad, SgmReferenceMatcher)
     left, right = shifted_pair(40, 90, 5, seed=2)
@@ -185,7 +186,8 @@ def test_matcher_from_config_and_cpu_estimator() -> None:
     est = CpuRegionEstimator(cfg, 90, 40)
     res = est.estimate(np.ascontiguousarray(np.hstack([left, right])), want_disparity=True)
     assert est.name == "reference"
-    np.testing.assert_array_equal(res.disparity, S.fixed_to_float(S.sgm_match(left, right, 16, p1=10, p2=120)))
+    expected = S.sgm_match(left, right, 16, p1=10, p2=120, speckle_window_px=100, speckle_range_px=2)
+    np.testing.assert_array_equal(res.disparity, S.fixed_to_float(expected))
 
 
 @pytest.mark.parametrize(
@@ -205,6 +207,83 @@ def test_bad_parameters_are_rejected(kwargs: dict, match: str) -> None:
     args.update(kwargs)
     with pytest.raises(ValueError, match=match):
         SgmReferenceMatcher(args.pop("num_disparities"), **args)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [({"speckle_window_px": -1}, "speckle_window_px"), ({"speckle_range_px": 256}, "speckle_range_px")],
+)
+def test_bad_peak_parameters_are_rejected(kwargs: dict, match: str) -> None:
+    with pytest.raises(ValueError, match=match):
+        SgmReferenceMatcher(16, p1=10, p2=120, **kwargs)
+
+
+# --------------------------------------------------------------------------------------------------
+# Rule 10's peak removal
+
+
+def test_peak_removal_is_opencvs_filter_speckles() -> None:
+    """The oracle's segments (label propagation) against OpenCV's (a flood fill): the same pixels."""
+    rng = np.random.default_rng(11)
+    for _ in range(150):
+        h, w = (int(n) for n in rng.integers(1, 40, 2))
+        steps = rng.integers(-1, 6, (h, w)) * int(rng.integers(8, 40)) + rng.integers(0, 20, (h, w))
+        disp = np.where(rng.random((h, w)) < 0.2, -1, steps).astype(np.int16)
+        disp[disp < 0] = -1
+        window, rng_px = int(rng.integers(1, 30)), int(rng.integers(0, 3))
+        expected = disp.copy()
+        cv2.filterSpeckles(expected, -1, window, 16 * rng_px)
+        np.testing.assert_array_equal(S.remove_peaks(disp, window, rng_px), expected)
+
+
+def test_a_segment_of_the_window_goes_and_one_pixel_more_stays() -> None:
+    disp = np.full((6, 10), -1, np.int16)
+    disp[1, 1:5] = 160  # 4 pixels
+    disp[3, 1:6] = [160, 176, 192, 208, 224]  # 5 pixels, each a one-pixel step from the next
+    disp[5, 1:4] = [160, 177, 160]  # steps just over one pixel: three segments of one
+    out = S.remove_peaks(disp, 4, 1)
+    assert (out[1] == -1).all() and (out[5] == -1).all()
+    np.testing.assert_array_equal(out[3], disp[3])
+    np.testing.assert_array_equal(S.remove_peaks(disp, 0, 1), disp)  # 0 = off
+
+
+def _plain_wall(seed: int, noise_grey: float) -> tuple[np.ndarray, np.ndarray, int]:
+    """A plain fronto-parallel wall under sensor noise with a textured poster in the middle, 672×376,
+    at a disparity of 4–19 px: (left, right, disparity)."""
+    rng = np.random.default_rng(seed)
+    w, h = 672, 376
+    shift = int(rng.integers(4, 20))
+    scene = np.full((h, w + shift), 120.0)
+    scene[h // 3 : h // 3 + h // 4, w // 3 : w // 3 + w // 4] += rng.uniform(-40, 40, (h // 4, w // 4))
+    left = scene[:, :w] + rng.standard_normal((h, w)) * noise_grey
+    right = scene[:, shift:] + rng.standard_normal((h, w)) * noise_grey
+    grey = [np.clip(np.rint(e), 0, 255).astype(np.uint8) for e in (left, right)]
+    return grey[0], grey[1], shift
+
+
+@pytest.mark.parametrize(("seed", "noise_grey"), [(0, 1.0), (1, 2.0)])
+def test_a_plain_wall_under_noise_shows_no_phantom_region(seed: int, noise_grey: float) -> None:
+    """The sensor's noise alone makes the census on a plain wall: without peak removal the paths turn it
+    into streaks that pass every check at any disparity, and most regions read the wall far nearer than
+    it is. With it no region does: the wall is unknown (too few valid pixels) where it is plain, and
+    the poster reads the wall's depth."""
+    from companion.core.regions import RegionLayout, reduce_regions_from_disparity
+    from companion.config.core import RegionsConfig
+
+    left, right, shift = _plain_wall(seed, noise_grey)
+    h, w = left.shape
+    layout = RegionLayout(np.array([0, h // 3, 2 * h // 3, h]), np.array([0, w // 3, 2 * w // 3, w]))
+    fb = 50.0
+    wall_m = fb / shift
+
+    def regions(window: int) -> np.ndarray:
+        disp = S.fixed_to_float(S.sgm_match(left, right, 64, p1=10, p2=120, speckle_window_px=window))
+        return reduce_regions_from_disparity(disp, layout, RegionsConfig(), fb).depth_m
+
+    assert (regions(0) < 0.75 * wall_m).sum() >= 5
+    depth = regions(100)
+    assert not (depth < 0.75 * wall_m).any()
+    assert depth[4] == pytest.approx(wall_m, rel=0.05)
 
 
 def test_config_rejects_p2_not_above_p1() -> None:

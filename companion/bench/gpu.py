@@ -110,12 +110,11 @@ def _sgm_kernel_times(est: Any, cp: Any, n: int) -> dict[str, dict[str, float]]:
     """CUDA-event times of each SGM kernel, and of the four together, on the estimator's last rectified pair."""
     s = est._stream
     events = [cp.cuda.Event() for _ in range(6)]
-    names = ("census", "paths", "wta_right", "near_range", "lr_median_regions")
+    names = ("census", "paths", "wta_right", "near_range", "lr_median_peaks_regions")
     samples: dict[str, list[float]] = {k: [] for k in (*names, "sgm_total")}
     k = est._k_sgm
     sp = est.sgm_plan
-    p1, p2, uniq, lr_max, median = est._sgm_args
-    fb, pct, min_valid, max_depth = est._region_args
+    p1, p2, uniq, _, _ = est._sgm_args
     with est._device:
         for i in range(n + 10):
             events[0].record(s)
@@ -130,10 +129,7 @@ def _sgm_kernel_times(est: Any, cp: Any, n: int) -> dict[str, dict[str, float]]:
             events[3].record(s)
             near_args = est._enqueue_near(s)  # the near-range check's coarse pair
             events[4].record(s)
-            k["sgm_post"]((sp.post_blocks,), (256,),
-                          (est._winner, est._right_keys, est._disp, est._hist, est._counter, est._result_dev,
-                           lr_max, median, fb, pct, min_valid, max_depth, *near_args),
-                          stream=s)
+            est._enqueue_post(s, near_args)  # left-right check, median, peaks, near-range fill, regions
             events[5].record(s)
             events[5].synchronize()
             if i >= 10:

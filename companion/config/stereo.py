@@ -91,13 +91,23 @@ class StereoConfig(StrictModel):
         default=100,
         ge=0,
         le=10000,
-        description="opencv-bm/sgbm: largest blob of disparity (pixels) still removed as speckle; 0 = off.",
+        description=(
+            "Every matcher: the largest patch of disparity (pixels, connected, varying by at most "
+            "speckle_range_px between neighbours) removed as a false match, a peak in Hirschmüller's "
+            "terms; 0 = off. A surface is a large patch; on a plain wall the sensor's noise makes short "
+            "streaks of matches at any depth (phantom obstacles), each its own small patch. The "
+            "near-range check's shrunk pair removes patches of the same size in its own pixels: a "
+            "streak's length is the matcher's, not the scene's."
+        ),
     )
     speckle_range_px: int = Field(
         default=2,
         ge=0,
         le=64,
-        description="opencv-bm/sgbm: disparity variation within a blob still counted as one blob, pixels.",
+        description=(
+            "Every matcher: the largest disparity step between neighbouring pixels of one patch, pixels "
+            "(see speckle_window_px)."
+        ),
     )
     disp12_max_diff_px: int = Field(
         default=1,

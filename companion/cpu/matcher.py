@@ -4,10 +4,13 @@ from __future__ import annotations
 
 import logging
 
+import cv2
 import numpy as np
 
 from companion.core.disparity.base import check_grey_pair, check_out
-from companion.core.disparity.sgm import NEAR_SCALE, check_sgm_params, near_range_shape
+from companion.core.disparity.sgm import (
+    NEAR_SCALE, SUBPIXEL_SCALE, check_peak_params, check_sgm_params, near_range_shape,
+)
 from companion.errors import FrameError
 from companion.interrupts import interrupt_after
 
@@ -27,8 +30,9 @@ class CpuSgmMatcher:
     Args:
         width_px, height_px: the rectified image size the matcher is built for.
         num_disparities: ``D`` in ``[2, 256]``.
-        p1, p2, paths, uniqueness_ratio_pct, lr_max_diff_px, median: see
-            :func:`~companion.core.disparity.sgm.sgm_match`.
+        p1, p2, paths, uniqueness_ratio_pct, lr_max_diff_px, median, speckle_window_px, speckle_range_px:
+            see :func:`~companion.core.disparity.sgm.sgm_match` (the peak removal is OpenCV's
+            ``filterSpeckles``, which the reference's rule states).
         threads: worker threads, 0 = all Numba threads (``NUMBA_NUM_THREADS``, by default every
             core); more than Numba has are clamped.
         near_range: the near-range check (the reference's rule 11; the product always has it): a
@@ -52,10 +56,13 @@ class CpuSgmMatcher:
         uniqueness_ratio_pct: int = 10,
         lr_max_diff_px: int = 1,
         median: bool = True,
+        speckle_window_px: int = 0,
+        speckle_range_px: int = 2,
         threads: int = 0,
         near_range: bool = True,
     ) -> None:
         check_sgm_params(num_disparities, p1, p2, paths, uniqueness_ratio_pct, lr_max_diff_px)
+        check_peak_params(speckle_window_px, speckle_range_px)
         if width_px < 1 or height_px < 1:
             raise ValueError(f"image size must be at least 1x1 px, got {width_px}x{height_px}")
         from companion.cpu import load_kernels  # Numba only when the engine is built
@@ -74,6 +81,8 @@ class CpuSgmMatcher:
         self.uniqueness_ratio_pct = int(uniqueness_ratio_pct)
         self.lr_max_diff_px = int(lr_max_diff_px)
         self.median = bool(median)
+        self.speckle_window_px = int(speckle_window_px)
+        self.speckle_range_px = int(speckle_range_px)
         h, w = self.shape
         # Chunks of rows for the median's parallel loop: a few per thread, so that a slow one is caught up.
         chunks = max(1, min(h, 4 * self.threads))
@@ -93,6 +102,9 @@ class CpuSgmMatcher:
         self._raw = np.empty((h, w), np.int16)
         self._fixed = np.empty((h, w), np.int16)
         self._out = np.empty((h, w), np.float32)
+        self._invalid = np.empty((h, w), np.bool_)
+        # filterSpeckles' work buffer, the size it asks for (13 bytes a pixel and 64), so that it is reused
+        self._speckle_buf = np.empty((1, h * w * 13 + 64), np.uint8)
         # Rule 11: the coarse pair and the engine that matches it (without a check of its own).
         self._coarse: CpuSgmMatcher | None = None
         coarse = near_range_shape(h, w, D) if near_range else None
@@ -102,7 +114,9 @@ class CpuSgmMatcher:
             self._shrink_cols = np.empty((2 * hc, wc * NEAR_SCALE), np.uint16)
             self._coarse = CpuSgmMatcher(
                 wc, hc, dc, p1=p1, p2=p2, paths=paths, uniqueness_ratio_pct=uniqueness_ratio_pct,
-                lr_max_diff_px=lr_max_diff_px, median=median, threads=self.threads, near_range=False,
+                lr_max_diff_px=lr_max_diff_px, median=median,
+                speckle_window_px=speckle_window_px, speckle_range_px=speckle_range_px,
+                threads=self.threads, near_range=False,
             )
         # Compile (or load the cached machine code) now, not on the first frame; a Ctrl-C meanwhile
         # is delivered after (the compiler's callbacks would drop it).
@@ -120,6 +134,12 @@ class CpuSgmMatcher:
                 self.lr_max_diff_px, self._raw, phase, self._census, self._planes, *self._scratch,
             )
         k.median_to_float(self._raw, self.median, self._fixed, out, self._med)
+        if self.speckle_window_px > 0:  # rule 10's peak removal
+            cv2.filterSpeckles(
+                self._fixed, -1, self.speckle_window_px, SUBPIXEL_SCALE * self.speckle_range_px, self._speckle_buf
+            )
+            np.less(self._fixed, 0, out=self._invalid)
+            np.copyto(out, np.float32(np.nan), where=self._invalid)
         c = self._coarse
         if c is not None:
             k.shrink_pair(left, right, self._shrunk, NEAR_SCALE, self._shrink_cols)

@@ -28,7 +28,8 @@ With ``stereo.matcher = "sgm"`` (the default) the bands carry the upload, grey, 
 upload); after the last band the rest of the semi-global matcher of ``kernels/sgm.cu`` runs on the whole
 rectified pair: ``sgm_paths`` (every path in one launch, one byte per (pixel, disparity) and path),
 ``sgm_wta`` (the winner, uniqueness, sub-pixel and the right view's disparity, per run of pixels) and
-``sgm_post`` (left-right check, median, the disparity image and the 9 region depths), exactly
+``sgm_post`` (left-right check, median, the disparity image and the 9 region depths; with peak removal on, in
+two stages around ``sgm_peaks_*``, which find the disparity's segments), exactly
 :mod:`companion.core.disparity.sgm`'s rules. Before ``sgm_post``, the near-range check (rule 11):
 ``sgm_shrink`` shrinks the rectified pair 4 times and a second module of the same kernels, built for
 that size and half the disparities, matches it; ``sgm_post`` then reads its disparity.
@@ -52,6 +53,7 @@ from typing import Any
 import numpy as np
 
 from companion.config import CompanionConfig
+from companion.core.disparity.sgm import SUBPIXEL_SCALE
 from companion.core.geometry import StereoGeometry
 from companion.core.estimator import RegionEstimate
 from companion.core.obstacle import N_BINS, ObstacleDistance, ObstacleLayout, obstacle_layout
@@ -193,7 +195,8 @@ class CupyRegionEstimator(FrameUpload, BandLaunch):
             sp = self.sgm_plan
             self._sgm_module = sgm_module(cp, sp, p.pitch_bytes, self.layout.row_edges, self.layout.col_edges)
             sget = self._sgm_module.get_function
-            self._k_sgm = {name: sget(name) for name in ("sgm_census", "sgm_paths", "sgm_wta", "sgm_post", "sgm_shrink")}
+            self._k_sgm = {name: sget(name) for name in ("sgm_census", "sgm_paths", "sgm_wta", "sgm_post", "sgm_shrink",
+                                                         "sgm_peaks_init", "sgm_peaks_link", "sgm_peaks_count")}
             self._sgm_args = (
                 np.uint32(st.sgm_p1),
                 np.uint32(st.sgm_p2),
@@ -201,6 +204,8 @@ class CupyRegionEstimator(FrameUpload, BandLaunch):
                 np.int32(st.sgm_lr_max_diff_px),
                 np.int32(1 if st.sgm_median else 0),
             )
+            # rule 10's peak removal: the largest segment removed (0 = off) and the link tolerance, v units
+            self._peak_args = (np.int32(st.speckle_window_px), np.int32(SUBPIXEL_SCALE * st.speckle_range_px))
             self._near = build_near_pair(cp, cfg, self.width_px, self.height_px, self.sm_count)
 
         if self.obstacle_layout is not None:
@@ -262,6 +267,9 @@ class CupyRegionEstimator(FrameUpload, BandLaunch):
             self._volumes = cp.zeros((sp.paths, h, w, sp.dpad), dtype=cp.uint8)
             self._winner = cp.zeros((h, w), dtype=cp.int32)
             self._right_keys = cp.zeros((h, w), dtype=cp.uint32)
+            # rule 10's peak removal: each pixel's segment label and each segment's count
+            self._peak_labels = cp.zeros(h * w, dtype=cp.uint32)
+            self._peak_counts = cp.zeros(h * w, dtype=cp.uint32)
             self._hist = cp.zeros(N_REGIONS * sp.nbins, dtype=cp.uint32)
         self._counter = cp.zeros(1, dtype=cp.uint32)
         # The 9 depths and 9 valid fractions (float64), then OBSTACLE_DISTANCE's 72 bins (uint16): one

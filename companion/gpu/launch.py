@@ -22,6 +22,7 @@ from companion.gpu.plan import (
     OBSTACLE_THREADS,
     SGM_CENSUS_TILE,
     SGM_PATH_THREADS,
+    SGM_PEAK_THREADS,
     SGM_POST_THREADS,
 )
 from companion.gpu.upload import FrameSource
@@ -208,18 +209,26 @@ class BandLaunch:
         sp = self.sgm_plan
         assert sp is not None
         k = self._k_sgm
-        p1, p2, uniq, lr_max, median = self._sgm_args
-        fb, pct, min_valid, max_depth = self._region_args
+        p1, p2, uniq, _, _ = self._sgm_args
         warps = SGM_PATH_THREADS // 32
         k["sgm_paths"]((-(-sp.path_tasks // warps),), (SGM_PATH_THREADS,), (self._census, self._volumes, p1, p2),
                        stream=s)
         k["sgm_wta"]((-(-sp.wta_tasks // warps),), (SGM_PATH_THREADS,),
                      (self._volumes, self._winner, self._right_keys, uniq), stream=s)
-        near_args = self._enqueue_near(s)
-        k["sgm_post"]((sp.post_blocks,), (SGM_POST_THREADS,),
-                      (self._winner, self._right_keys, self._disp, self._hist, self._counter, self._result_dev,
-                       lr_max, median, fb, pct, min_valid, max_depth, *near_args),
-                      stream=s)
+        self._enqueue_post(s, self._enqueue_near(s))
+
+    def _enqueue_post(self, s: Any, near_args: tuple[Any, ...]) -> None:
+        """Queue the full pair's ``sgm_post`` (left-right check, median, peak removal, the near-range check
+        with ``near_args`` from :meth:`_enqueue_near`, the disparity and the 9 depths) on stream ``s``."""
+        sp = self.sgm_plan
+        assert sp is not None
+        _, _, _, lr_max, median = self._sgm_args
+        fb, pct, min_valid, max_depth = self._region_args
+        post = (self._winner, self._right_keys, self._disp, self._hist, self._counter, self._result_dev,
+                lr_max, median, fb, pct, min_valid, max_depth, *near_args)
+        peak_max, tol = self._peak_args
+        _enqueue_post(self._k_sgm, sp.post_blocks, post, self._disp, self._peak_labels, self._peak_counts, peak_max,
+                      tol, s)
 
     def _enqueue_near(self, s: Any) -> tuple[Any, ...]:
         """Queue the near-range check's coarse pair on stream ``s`` (after the rectification): shrink the
@@ -242,10 +251,10 @@ class BandLaunch:
         nk["sgm_wta"]((-(-npl.wta_tasks // warps),), (SGM_PATH_THREADS,), (n.volumes, n.winner, n.right_keys, uniq),
                       stream=s)
         # the coarse module's own region results are not used; its post reads no coarser pair (null)
-        nk["sgm_post"]((npl.post_blocks,), (SGM_POST_THREADS,),
-                       (n.winner, n.right_keys, n.disp, n.hist, n.counter, n.result, lr_max, median, fb, pct,
-                        min_valid, max_depth, np.uint64(0), np.int32(0), np.int32(0)),
-                       stream=s)
+        post = (n.winner, n.right_keys, n.disp, n.hist, n.counter, n.result, lr_max, median, fb, pct, min_valid,
+                max_depth, np.uint64(0), np.int32(0), np.int32(0))
+        peak_max, tol = self._peak_args
+        _enqueue_post(nk, npl.post_blocks, post, n.disp, n.peak_labels, n.peak_counts, peak_max, tol, s)
         return (n.disp, np.int32(n.width_px), np.int32(n.height_px))
 
     def _enqueue_obstacle(self, stream: Any) -> None:
@@ -283,6 +292,22 @@ class BandLaunch:
             out *= np.float32(1.0 / self.disparity_scale)  # exact: a power of two
         out[d < 0] = np.nan
         return out
+
+
+def _enqueue_post(k: dict[str, Any], post_blocks: int, post: tuple[Any, ...], disp: Any, labels: Any, counts: Any,
+                  peak_max: Any, tol: Any, s: Any) -> None:
+    """Queue ``sgm_post`` on stream ``s``: one launch without peak removal (``peak_max`` 0), else its
+    first stage, the segments (``sgm_peaks_*``, one thread per pixel) and its second stage."""
+    if int(peak_max) <= 0:
+        k["sgm_post"]((post_blocks,), (SGM_POST_THREADS,), (*post, np.int32(0), labels, counts, np.int32(0)),
+                      stream=s)
+        return
+    k["sgm_post"]((post_blocks,), (SGM_POST_THREADS,), (*post, np.int32(1), labels, counts, peak_max), stream=s)
+    grid = (-(-int(disp.size) // SGM_PEAK_THREADS),)
+    k["sgm_peaks_init"](grid, (SGM_PEAK_THREADS,), (labels, counts), stream=s)
+    k["sgm_peaks_link"](grid, (SGM_PEAK_THREADS,), (disp, labels, tol), stream=s)
+    k["sgm_peaks_count"](grid, (SGM_PEAK_THREADS,), (disp, labels, counts), stream=s)
+    k["sgm_post"]((post_blocks,), (SGM_POST_THREADS,), (*post, np.int32(2), labels, counts, peak_max), stream=s)
 
 
 def check_block_px(block_px: int, preview_factor: int) -> None:

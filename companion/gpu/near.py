@@ -21,7 +21,8 @@ from companion.gpu.plan import SgmPlan, plan_sgm
 class NearPair:
     """The near-range check's coarse pair on the device: its plan and module (the SGM kernels built
     for ``width_px`` × ``height_px``), the shrunk eyes (uint8, ``pitch_bytes`` a row) and the SGM
-    buffers; ``disp`` (int16 × 16, -1 invalid) is what the full size's ``sgm_post`` reads."""
+    buffers; ``disp`` (int16 × 16, -1 invalid) is what the full size's ``sgm_post`` reads; ``peak_labels``
+    and ``peak_counts`` (uint32, a pixel each) are rule 10's segments."""
 
     plan: SgmPlan
     width_px: int
@@ -36,6 +37,8 @@ class NearPair:
     winner: Any
     right_keys: Any
     disp: Any
+    peak_labels: Any
+    peak_counts: Any
     hist: Any
     counter: Any
     result: Any
@@ -68,7 +71,8 @@ def build_near_pair(cp: Any, cfg: CompanionConfig, width_px: int, height_px: int
         height_px=hc,
         pitch_bytes=pitch,
         module=module,
-        kernels={name: get(name) for name in ("sgm_census", "sgm_paths", "sgm_wta", "sgm_post")},
+        kernels={name: get(name) for name in ("sgm_census", "sgm_paths", "sgm_wta", "sgm_post", "sgm_peaks_init",
+                                              "sgm_peaks_link", "sgm_peaks_count")},
         left=cp.zeros((hc, pitch), dtype=cp.uint8),
         right=cp.zeros((hc, pitch), dtype=cp.uint8),
         census=cp.zeros((3, hc, plan.census_stride_px), dtype=cp.uint64),
@@ -76,6 +80,8 @@ def build_near_pair(cp: Any, cfg: CompanionConfig, width_px: int, height_px: int
         winner=cp.zeros((hc, wc), dtype=cp.int32),
         right_keys=cp.zeros((hc, wc), dtype=cp.uint32),
         disp=cp.full((hc, wc), -1, dtype=cp.int16),
+        peak_labels=cp.zeros(hc * wc, dtype=cp.uint32),
+        peak_counts=cp.zeros(hc * wc, dtype=cp.uint32),
         hist=cp.zeros(N_REGIONS * plan.nbins, dtype=cp.uint32),
         counter=cp.zeros(1, dtype=cp.uint32),
         result=cp.zeros(2 * N_REGIONS, dtype=cp.float64),

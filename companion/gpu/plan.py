@@ -304,6 +304,8 @@ def obstacle_defines(threads: int = OBSTACLE_THREADS) -> str:
 #: Threads per block of the SGM path and winner kernels (4 warps) and of the post-processing kernel.
 SGM_PATH_THREADS = 128
 SGM_POST_THREADS = 256
+#: Threads per block of the peak-removal kernels (PEAK_THREADS in sgm.cu): one thread per pixel.
+SGM_PEAK_THREADS = 256
 #: Census block (32 × 8 threads) and rows per thread: a block covers 32 × 32 pixels.
 SGM_CENSUS_TILE = (32, 8)
 SGM_CENSUS_ROWS_PER_THREAD = 4

@@ -67,6 +67,8 @@ def make_cpu_matcher(cfg: StereoConfig) -> DisparityMatcher:
             uniqueness_ratio_pct=cfg.sgm_uniqueness_ratio_pct,
             lr_max_diff_px=cfg.sgm_lr_max_diff_px,
             median=cfg.sgm_median,
+            speckle_window_px=cfg.speckle_window_px,
+            speckle_range_px=cfg.speckle_range_px,
         )
     if backend == "reference":
         return ReferenceMatcher(

@@ -52,14 +52,23 @@ left and right images ``(H, W)``; ``D`` is the number of disparities (``d`` in `
 
 10. **Median** (when on), after rules 6–9: a valid pixel takes the lower median of the valid ``v`` in
     its 3×3 neighbourhood (inside the image), i.e. the element ``(n - 1) // 2`` of their ``n`` sorted
-    values; an invalid pixel stays invalid.
+    values; an invalid pixel stays invalid. Then **peak removal** (Hirschmüller 2008, when
+    ``N = speckle_window_px > 0``): two valid 4-neighbours are linked when ``|v_p - v_q| <= 16 · R``
+    (``R = speckle_range_px``); a pixel whose linked segment (connected component) holds at most ``N``
+    pixels becomes invalid. A surface is a segment of many pixels; a false match is not. On a plain
+    wall the sensor's noise alone makes the census, and the paths turn it into short streaks that pass
+    rules 6–9 at any disparity, about a third of the pixels (phantoms), each streak its own small
+    segment; a surface the paths carry across a plain area from its edges is one large segment and
+    stays. It is OpenCV's ``filterSpeckles(v, -1, N, 16 · R)`` exactly.
 
 11. **Near-range check** (always, where the coarse pair below exists). A surface nearer than the rig's
     range (true disparity above ``D - 1``) cannot be matched: rules 1–10 leave much of it invalid and
     match the rest at a wrong, farther disparity inside the range. So the pair is also matched coarsely: both images are shrunk
     :data:`NEAR_SCALE` (``s`` = 4) times, each coarse pixel the rounded mean of its ``s × s`` block,
     ``(sum + s²/2) // s²``, over ``floor(H/s) × floor(W/s)`` pixels, and matched by rules 1–10 (the same
-    ``P1``, ``P2``, paths, ``u``, left-right tolerance and median) with ``Dc = D // 2`` disparities,
+    ``P1``, ``P2``, paths, ``u``, left-right tolerance and median, and the same peak removal, ``N`` and
+    ``R``: a false match's streak is the matcher's, as long in coarse pixels as in full-size ones) with
+    ``Dc = D // 2`` disparities,
     which reaches ``s · Dc`` (about ``2·D``) full-size pixels, twice the full-size range, at
     ``1 / (s² · 2)`` of its cost. Each full-size pixel ``(y, x)`` reads its coarse pixel
     ``(min(y // s, Hc - 1), min(x // s, Wc - 1))``; where rules 1–10 left the pixel invalid and that
@@ -310,6 +319,49 @@ def median3x3_valid(disp: np.ndarray) -> np.ndarray:
     return np.where(disp >= 0, med, INVALID).astype(np.int16)
 
 
+def check_peak_params(speckle_window_px: int, speckle_range_px: int) -> None:
+    """Raise ValueError naming the peak-removal parameter outside what rule 10 allows."""
+    if int(speckle_window_px) != speckle_window_px or speckle_window_px < 0:
+        raise ValueError(f"speckle_window_px must be an integer >= 0 (0 = off), got {speckle_window_px}")
+    if int(speckle_range_px) != speckle_range_px or not 0 <= speckle_range_px <= 255:
+        raise ValueError(f"speckle_range_px must be an integer in [0, 255], got {speckle_range_px}")
+
+
+def remove_peaks(disp: np.ndarray, speckle_window_px: int, speckle_range_px: int) -> np.ndarray:
+    """Rule 10's peak removal: int16 ``(H, W)`` disparity × 16 (``-1`` invalid) -> a new int16 array
+    with every pixel of a linked segment of at most ``speckle_window_px`` pixels invalid (0 = a copy).
+
+    The segments are found by propagating the smallest pixel index over the links until nothing
+    changes, with pointer jumping (each label is a pixel of the same segment, so reading the label's
+    own label skips ahead): a few dozen vectorised passes, an oracle, not an engine.
+    """
+    out = disp.copy()
+    n_max = int(speckle_window_px)
+    if n_max <= 0 or out.size == 0:
+        return out
+    h, w = out.shape
+    v = out.astype(np.int32)
+    valid = v >= 0
+    tol = SUBPIXEL_SCALE * int(speckle_range_px)
+    link_x = valid[:, 1:] & valid[:, :-1] & (np.abs(v[:, 1:] - v[:, :-1]) <= tol)  # (y, x) - (y, x + 1)
+    link_y = valid[1:] & valid[:-1] & (np.abs(v[1:] - v[:-1]) <= tol)  # (y, x) - (y + 1, x)
+    label = np.arange(h * w, dtype=np.int64).reshape(h, w)
+    while True:
+        new = label.copy()
+        np.minimum(new[:, :-1], np.where(link_x, label[:, 1:], new[:, :-1]), out=new[:, :-1])
+        np.minimum(new[:, 1:], np.where(link_x, label[:, :-1], new[:, 1:]), out=new[:, 1:])
+        np.minimum(new[:-1], np.where(link_y, label[1:], new[:-1]), out=new[:-1])
+        np.minimum(new[1:], np.where(link_y, label[:-1], new[1:]), out=new[1:])
+        flat = new.reshape(-1)
+        flat[:] = flat[flat]
+        if np.array_equal(new, label):
+            break
+        label = new
+    size = np.bincount(label[valid], minlength=h * w)
+    out[valid & (size[label] <= n_max)] = INVALID
+    return out
+
+
 def near_range_shape(height_px: int, width_px: int, num_disparities: int) -> tuple[int, int, int] | None:
     """Rule 11's coarse pair: ``(Hc, Wc, Dc)``, or None where the check is skipped."""
     hc, wc, dc = int(height_px) // NEAR_SCALE, int(width_px) // NEAR_SCALE, int(num_disparities) // 2
@@ -349,6 +401,8 @@ def near_range_check(
     uniqueness_ratio_pct: int = 10,
     lr_max_diff_px: int = 1,
     median: bool = True,
+    speckle_window_px: int = 0,
+    speckle_range_px: int = 2,
 ) -> np.ndarray:
     """Rule 11 on rules 1–10's output ``disp`` (int16 ``(H, W)`` disparity × 16, ``-1`` invalid): a new
     int16 array, ``16 · (D - 1)`` where ``disp`` is invalid and the coarse match finds a surface nearer
@@ -359,7 +413,8 @@ def near_range_check(
         return disp.copy()
     coarse = sgm_match(
         shrink(left), shrink(right), shape[2], p1=p1, p2=p2, paths=paths, uniqueness_ratio_pct=uniqueness_ratio_pct,
-        lr_max_diff_px=lr_max_diff_px, median=median, near_range=False,
+        lr_max_diff_px=lr_max_diff_px, median=median, speckle_window_px=speckle_window_px,
+        speckle_range_px=speckle_range_px, near_range=False,
     )
     out = disp.copy()
     out[near_range_mask(coarse, h, w, num_disparities) & (disp < 0)] = SUBPIXEL_SCALE * (int(num_disparities) - 1)
@@ -377,6 +432,8 @@ def sgm_match(
     uniqueness_ratio_pct: int = 10,
     lr_max_diff_px: int = 1,
     median: bool = True,
+    speckle_window_px: int = 0,
+    speckle_range_px: int = 2,
     near_range: bool = True,
 ) -> np.ndarray:
     """Exact census + SGM matching (the rules in this module's docstring).
@@ -389,6 +446,7 @@ def sgm_match(
         uniqueness_ratio_pct: ``u >= 0``, percent (rule 6).
         lr_max_diff_px: largest accepted ``|d* - dR|``, px; ``-1`` = no left-right check.
         median: apply the 3×3 median of rule 10.
+        speckle_window_px, speckle_range_px: rule 10's peak removal, ``N`` (0 = off) and ``R`` (px).
         near_range: apply the near-range check of rule 11 (the product always does; off gives rules
             1–10 alone, the kernels' stages).
 
@@ -400,16 +458,19 @@ def sgm_match(
     """
     check_grey_pair(left, right)
     check_sgm_params(num_disparities, p1, p2, paths, uniqueness_ratio_pct, lr_max_diff_px)
+    check_peak_params(speckle_window_px, speckle_range_px)
     cost = census_costs(left, right, num_disparities)
     sums = aggregate(cost, paths, p1, p2)
     del cost
     disp = select_disparity(sums, uniqueness_ratio_pct, lr_max_diff_px)
     disp = median3x3_valid(disp) if median else disp
+    disp = remove_peaks(disp, speckle_window_px, speckle_range_px)
     if not near_range:
         return disp
     return near_range_check(
         left, right, disp, num_disparities, p1=p1, p2=p2, paths=paths, uniqueness_ratio_pct=uniqueness_ratio_pct,
-        lr_max_diff_px=lr_max_diff_px, median=median,
+        lr_max_diff_px=lr_max_diff_px, median=median, speckle_window_px=speckle_window_px,
+        speckle_range_px=speckle_range_px,
     )
 
 
@@ -426,7 +487,8 @@ class SgmReferenceMatcher:
 
     Args:
         num_disparities: ``D`` in ``[2, 256]``.
-        p1, p2, paths, uniqueness_ratio_pct, lr_max_diff_px, median: see :func:`sgm_match`.
+        p1, p2, paths, uniqueness_ratio_pct, lr_max_diff_px, median, speckle_window_px, speckle_range_px:
+            see :func:`sgm_match`.
     """
 
     name = "reference"
@@ -441,12 +503,16 @@ class SgmReferenceMatcher:
         uniqueness_ratio_pct: int = 10,
         lr_max_diff_px: int = 1,
         median: bool = True,
+        speckle_window_px: int = 0,
+        speckle_range_px: int = 2,
     ) -> None:
         check_sgm_params(num_disparities, p1, p2, paths, uniqueness_ratio_pct, lr_max_diff_px)
+        check_peak_params(speckle_window_px, speckle_range_px)
         self.num_disparities = int(num_disparities)
         self.params = dict(
             p1=int(p1), p2=int(p2), paths=int(paths), uniqueness_ratio_pct=int(uniqueness_ratio_pct),
-            lr_max_diff_px=int(lr_max_diff_px), median=bool(median),
+            lr_max_diff_px=int(lr_max_diff_px), median=bool(median), speckle_window_px=int(speckle_window_px),
+            speckle_range_px=int(speckle_range_px),
         )
 
     def compute_fixed(self, left: np.ndarray, right: np.ndarray) -> np.ndarray:

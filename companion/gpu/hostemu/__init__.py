@@ -27,6 +27,7 @@ from companion.core.disparity.sgm import near_range_shape
 from companion.gpu.plan import (
     OBSTACLE_HIST_BINS,
     SGM_PATH_THREADS,
+    SGM_PEAK_THREADS,
     kernel_defines,
     obstacle_defines,
     obstacle_slices,
@@ -248,13 +249,17 @@ class HostSgmKernels:
         max_depth: float = 20.0,
         census_splits: tuple[int, ...] = (),
         near_range: bool = True,
+        speckle_window_px: int = 0,
+        speckle_range_px: int = 2,
     ) -> dict[str, np.ndarray]:
         """Every stage's output: ``census_left``/``census_right`` (uint64), ``volumes`` (uint8
         ``(paths, H, W, DPAD)``), ``winner`` (int32), ``right_keys`` (uint32), ``disparity`` (int16 × 16,
         -1 invalid) and ``regions`` (9 depths, 9 valid fractions); with ``near_range`` (the
         estimator's way) also ``coarse_left``/``coarse_right`` (the shrunk pair, uint8) and
         ``coarse_disparity`` (int16 × 16) where the check runs. ``census_splits``: rows where the
-        census is cut into separate launches (the estimator's row bands)."""
+        census is cut into separate launches (the estimator's row bands). ``speckle_window_px`` > 0:
+        rule 10's peak removal, ``sgm_post`` in two stages around the ``sgm_peaks_*`` kernels, as the
+        estimator runs them."""
         p, w, h = self.plan, self.w, self.h
         u32, f32, d = ctypes.c_uint32, ctypes.c_float, ctypes.c_double
         rl = np.zeros((h, self.pitch), np.uint8)
@@ -289,13 +294,24 @@ class HostSgmKernels:
             self._lib.run_shrink(self._ptr(rl), self._ptr(rr), self._ptr(cl), self._ptr(cr), coarse.w, coarse.h,
                                  coarse.pitch)
             sub = coarse.run(cl[:, : coarse.w], cr[:, : coarse.w], p1, p2, uniqueness_ratio_pct, lr_max_diff_px,
-                             median, near_range=False)
+                             median, near_range=False, speckle_window_px=speckle_window_px,
+                             speckle_range_px=speckle_range_px)
             cd = np.ascontiguousarray(sub["disparity"])
             extra = {"coarse_left": cl[:, : coarse.w], "coarse_right": cr[:, : coarse.w], "coarse_disparity": cd}
             near, nw, nh = self._ptr(cd), coarse.w, coarse.h
-        self._lib.run_post(self._ptr(dl), self._ptr(drkey), self._ptr(disp), self._ptr(hist), self._ptr(counter),
-                           self._ptr(result), int(lr_max_diff_px), int(bool(median)), f32(fb), d(pct), d(min_valid),
-                           d(max_depth), near, nw, nh, p.post_blocks)
+        lab = np.full(h * w, 0xDEADBEEF, np.uint32)  # sgm_peaks_init sets them
+        cnt = np.full(h * w, 77, np.uint32)
+        post = (self._ptr(dl), self._ptr(drkey), self._ptr(disp), self._ptr(hist), self._ptr(counter),
+                self._ptr(result), int(lr_max_diff_px), int(bool(median)), f32(fb), d(pct), d(min_valid),
+                d(max_depth), near, nw, nh)
+        peaks = (self._ptr(lab), self._ptr(cnt), int(speckle_window_px))
+        if speckle_window_px > 0:
+            self._lib.run_post(*post, 1, *peaks, p.post_blocks)
+            self._lib.run_peaks(self._ptr(disp), self._ptr(lab), self._ptr(cnt), 16 * int(speckle_range_px),
+                                -(-h * w // SGM_PEAK_THREADS))
+            self._lib.run_post(*post, 2, *peaks, p.post_blocks)
+        else:
+            self._lib.run_post(*post, 0, *peaks, p.post_blocks)
         if counter[0] != 0 or hist.any():
             raise AssertionError("the last block did not reset the histogram state")
         if cen[:, :, :pad].any() or cen[:2, :, pad + w :].any():

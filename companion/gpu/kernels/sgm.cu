@@ -637,9 +637,14 @@ extern "C" __global__ void __launch_bounds__(64) sgm_shrink(const u8* __restrict
 }
 
 // ------------------------------------------------------------------------------------------------
-// 5. Left-right check, median, near-range check, disparity image, region histograms, and the 9 depths
-// (reference rules 9-11; near: the coarse module's disparity, near_w x near_h, or null for none; regions
-// as companion.core.regions.reduce_regions on the float disparity v / 16).
+// 5. Left-right check, median, peak removal, near-range check, disparity image, region histograms, and
+// the 9 depths (reference rules 9-11; near: the coarse module's disparity, near_w x near_h, or null for
+// none; regions as companion.core.regions.reduce_regions on the float disparity v / 16).
+//
+// Without peak removal one launch does it all (stage 0). With it (rule 10's second part), stage 1 writes
+// the checked and median-filtered disparity to disp and stops; sgm_peaks_init, sgm_peaks_link and
+// sgm_peaks_count find its segments; stage 2 reads disp back, invalidates the pixels of segments of at
+// most peak_max pixels, and goes on with the near-range check, the histograms and the depths.
 //
 // A block owns a slab of SLAB_ROWS rows inside one row band of the regions (so its pixels fall in 3
 // regions). It first writes the left-right-checked v of its rows and the row above and below into shared
@@ -702,6 +707,75 @@ __device__ __forceinline__ int median_valid_3x3(const short* chk, int r, int x) 
   return n > 0 ? res : -1;
 }
 
+// Peak removal's segments (reference rule 10): union-find over the links |v_p - v_q| <= tol between valid
+// 4-neighbours (Playne & Hawick 2018: each root hooks onto the smaller by atomicMin, retried until the
+// hook holds). Labels are pixel indices; a segment's pixels end with one root, whatever the order of the
+// unions, so the counts are exact. Grid: one thread per pixel, PEAK_THREADS a block.
+#define PEAK_THREADS 256
+
+__device__ __forceinline__ u32 peaks_find(const u32* lab, u32 x) {
+  u32 y = ((volatile const u32*)lab)[x];
+  while (y != x) {
+    x = y;
+    y = ((volatile const u32*)lab)[x];
+  }
+  return x;
+}
+
+__device__ __forceinline__ void peaks_union(u32* lab, u32 a, u32 b) {
+  bool done = false;
+  while (!done) {
+    a = peaks_find(lab, a);
+    b = peaks_find(lab, b);
+    if (a < b) {
+      const u32 old = atomicMin(lab + b, a);
+      done = old == b;
+      b = old;
+    } else if (b < a) {
+      const u32 old = atomicMin(lab + a, b);
+      done = old == a;
+      a = old;
+    } else {
+      done = true;
+    }
+  }
+}
+
+// Every pixel its own segment, and the counts zeroed for this frame.
+extern "C" __global__ void __launch_bounds__(PEAK_THREADS) sgm_peaks_init(u32* __restrict__ lab, u32* __restrict__ cnt) {
+  const u32 i = blockIdx.x * PEAK_THREADS + threadIdx.x;
+  if (i >= (u32)(IMG_W * IMG_H)) return;
+  lab[i] = i;
+  cnt[i] = 0u;
+}
+
+// Join each valid pixel with its right and lower neighbours where they are linked.
+extern "C" __global__ void __launch_bounds__(PEAK_THREADS) sgm_peaks_link(const short* __restrict__ disp, u32* lab, int tol) {
+  const u32 i = blockIdx.x * PEAK_THREADS + threadIdx.x;
+  if (i >= (u32)(IMG_W * IMG_H)) return;
+  const int v = disp[i];
+  if (v < 0) return;
+  const int x = (int)(i % IMG_W), y = (int)(i / IMG_W);
+  if (x + 1 < IMG_W) {
+    const int q = disp[i + 1];
+    if (q >= 0 && abs(q - v) <= tol) peaks_union(lab, i, i + 1);
+  }
+  if (y + 1 < IMG_H) {
+    const int q = disp[i + IMG_W];
+    if (q >= 0 && abs(q - v) <= tol) peaks_union(lab, i, i + IMG_W);
+  }
+}
+
+// Each pixel's label becomes its root, and each valid pixel counts in its root's segment.
+extern "C" __global__ void __launch_bounds__(PEAK_THREADS) sgm_peaks_count(const short* __restrict__ disp, u32* lab,
+                                                                           u32* __restrict__ cnt) {
+  const u32 i = blockIdx.x * PEAK_THREADS + threadIdx.x;
+  if (i >= (u32)(IMG_W * IMG_H)) return;
+  const u32 r = peaks_find(lab, i);
+  lab[i] = r;  // only ever shortens a path: every reader still reaches the same root
+  if (disp[i] >= 0) atomicAdd(cnt + r, 1u);
+}
+
 extern "C" __global__ void __launch_bounds__(POST_THREADS) sgm_post(const int* __restrict__ dl,
                                                                     const u32* __restrict__ drkey,
                                                                     short* __restrict__ disp, u32* __restrict__ hist_g,
@@ -709,7 +783,9 @@ extern "C" __global__ void __launch_bounds__(POST_THREADS) sgm_post(const int* _
                                                                     double* __restrict__ result, int lr_max, int median,
                                                                     float fb, double pct, double min_valid,
                                                                     double max_depth, const short* __restrict__ near,
-                                                                    int near_w, int near_h) {
+                                                                    int near_w, int near_h, int stage,
+                                                                    const u32* __restrict__ lab,
+                                                                    const u32* __restrict__ cnt, int peak_max) {
   __shared__ SmemPost sm;
   const int tid = (int)threadIdx.x;
   int b = (int)blockIdx.x, band, ya, yb;
@@ -727,8 +803,8 @@ extern "C" __global__ void __launch_bounds__(POST_THREADS) sgm_post(const int* _
     yb = min(ya + SLAB_ROWS, IMG_H);
   }
   for (int i = tid; i < HIST_WORDS; i += POST_THREADS) sm.hist[i] = 0u;
-  // left-right check of rows ya - 1 .. yb (-1 outside the image)
-  const int nchk = (yb - ya + 2) * IMG_W;
+  // left-right check of rows ya - 1 .. yb (-1 outside the image); stage 2 reads disp instead
+  const int nchk = stage == 2 ? 0 : (yb - ya + 2) * IMG_W;
   for (int i = tid; i < nchk; i += POST_THREADS) {
     const int r = i / IMG_W, x = i % IMG_W, y = ya - 1 + r;
     int out = -1;
@@ -750,20 +826,32 @@ extern "C" __global__ void __launch_bounds__(POST_THREADS) sgm_post(const int* _
   const int npx = (yb - ya) * IMG_W;
   for (int idx = tid; idx < npx; idx += POST_THREADS) {
     const int r = idx / IMG_W + 1, x = idx % IMG_W;
-    int v = sm.chk[r * IMG_W + x];
-    if (median && v >= 0) v = median_valid_3x3(sm.chk, r, x);
+    const size_t at = (size_t)(ya + r - 1) * IMG_W + x;
+    int v;
+    if (stage == 2) {
+      v = disp[at];
+      if (v >= 0 && cnt[lab[at]] <= (u32)peak_max) v = -1;  // a peak (rule 10)
+    } else {
+      v = sm.chk[r * IMG_W + x];
+      if (median && v >= 0) v = median_valid_3x3(sm.chk, r, x);
+      if (stage == 1) {
+        disp[at] = (short)v;
+        continue;
+      }
+    }
     if (near != nullptr && v < 0) {  // the near-range check (rule 11): the coarse match beyond [0, NDISP)
       const int yc = min((ya + r - 1) / NEAR_S, near_h - 1), xc = min(x / NEAR_S, near_w - 1);
       const int q = near[(size_t)yc * near_w + xc];
       if (q >= 0 && NEAR_S * q >= 16 * NDISP) v = 16 * (NDISP - 1);
     }
-    disp[(size_t)(ya + r - 1) * IMG_W + x] = (short)v;
+    disp[at] = (short)v;
     if (v >= 0) {
       const int cb = x < CE1 ? 0 : (x < CE2 ? 1 : 2);
       const int bin = cb * NBINS + v;
       atomicAdd(&sm.hist[bin >> 1], 1u << (16 * (bin & 1)));
     }
   }
+  if (stage == 1) return;  // uniform over the grid: the histograms wait for stage 2
   __syncthreads();
   for (int i = tid; i < 3 * NBINS; i += POST_THREADS) {
     const u32 cnt = (sm.hist[i >> 1] >> (16 * (i & 1))) & 0xffffu;
