@@ -233,7 +233,7 @@ def test_peak_removal_is_opencvs_filter_speckles() -> None:
         window, rng_px = int(rng.integers(1, 30)), int(rng.integers(0, 3))
         expected = disp.copy()
         cv2.filterSpeckles(expected, -1, window, 16 * rng_px)
-        np.testing.assert_array_equal(S.remove_peaks(disp, window, rng_px), expected)
+        np.testing.assert_array_equal(S.remove_peaks(disp, 200, window, rng_px), expected)
 
 
 def test_a_segment_of_the_window_goes_and_one_pixel_more_stays() -> None:
@@ -241,10 +241,18 @@ def test_a_segment_of_the_window_goes_and_one_pixel_more_stays() -> None:
     disp[1, 1:5] = 160  # 4 pixels
     disp[3, 1:6] = [160, 176, 192, 208, 224]  # 5 pixels, each a one-pixel step from the next
     disp[5, 1:4] = [160, 177, 160]  # steps just over one pixel: three segments of one
-    out = S.remove_peaks(disp, 4, 1)
+    out = S.remove_peaks(disp, 64, 4, 1)
     assert (out[1] == -1).all() and (out[5] == -1).all()
     np.testing.assert_array_equal(out[3], disp[3])
-    np.testing.assert_array_equal(S.remove_peaks(disp, 0, 1), disp)  # 0 = off
+    np.testing.assert_array_equal(S.remove_peaks(disp, 64, 0, 1), disp)  # 0 = off
+
+
+def test_a_match_at_the_ranges_end_is_never_a_peak() -> None:
+    """A surface just beyond the range breaks up into small segments at its end: they keep it near."""
+    disp = np.full((5, 8), -1, np.int16)
+    disp[1, 1], disp[1, 3], disp[3, 1] = 16 * 15, 16 * 15 - 1, 16 * 9  # D = 16: the end is v = 240
+    out = S.remove_peaks(disp, 16, 10, 1)
+    assert out[1, 1] == 16 * 15 and out[1, 3] == -1 and out[3, 1] == -1
 
 
 def _plain_wall(seed: int, noise_grey: float) -> tuple[np.ndarray, np.ndarray, int]:

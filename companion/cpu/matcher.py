@@ -103,6 +103,7 @@ class CpuSgmMatcher:
         self._fixed = np.empty((h, w), np.int16)
         self._out = np.empty((h, w), np.float32)
         self._invalid = np.empty((h, w), np.bool_)
+        self._pre_peaks = np.empty((h, w), np.int16)
         # filterSpeckles' work buffer, the size it asks for (13 bytes a pixel and 64), so that it is reused
         self._speckle_buf = np.empty((1, h * w * 13 + 64), np.uint8)
         # Rule 11: the coarse pair and the engine that matches it (without a check of its own).
@@ -134,10 +135,13 @@ class CpuSgmMatcher:
                 self.lr_max_diff_px, self._raw, phase, self._census, self._planes, *self._scratch,
             )
         k.median_to_float(self._raw, self.median, self._fixed, out, self._med)
-        if self.speckle_window_px > 0:  # rule 10's peak removal
+        if self.speckle_window_px > 0:  # rule 10's peak removal; a match at the range's end stays
+            np.copyto(self._pre_peaks, self._fixed)
             cv2.filterSpeckles(
                 self._fixed, -1, self.speckle_window_px, SUBPIXEL_SCALE * self.speckle_range_px, self._speckle_buf
             )
+            np.greater_equal(self._pre_peaks, SUBPIXEL_SCALE * (self.num_disparities - 1), out=self._invalid)
+            np.copyto(self._fixed, self._pre_peaks, where=self._invalid)
             np.less(self._fixed, 0, out=self._invalid)
             np.copyto(out, np.float32(np.nan), where=self._invalid)
         c = self._coarse

@@ -55,11 +55,14 @@ left and right images ``(H, W)``; ``D`` is the number of disparities (``d`` in `
     values; an invalid pixel stays invalid. Then **peak removal** (Hirschmüller 2008, when
     ``N = speckle_window_px > 0``): two valid 4-neighbours are linked when ``|v_p - v_q| <= 16 · R``
     (``R = speckle_range_px``); a pixel whose linked segment (connected component) holds at most ``N``
-    pixels becomes invalid. A surface is a segment of many pixels; a false match is not. On a plain
-    wall the sensor's noise alone makes the census, and the paths turn it into short streaks that pass
-    rules 6–9 at any disparity, about a third of the pixels (phantoms), each streak its own small
-    segment; a surface the paths carry across a plain area from its edges is one large segment and
-    stays. It is OpenCV's ``filterSpeckles(v, -1, N, 16 · R)`` exactly.
+    pixels becomes invalid, unless it lies at the range's end (``v >= 16 · (D - 1)``). A surface is a
+    segment of many pixels; a false match is not. On a plain wall the sensor's noise alone makes the
+    census, and the paths turn it into short streaks that pass rules 6–9 at any disparity, about a
+    third of the pixels (phantoms), each streak its own small segment; a surface the paths carry across
+    a plain area from its edges is one large segment and stays. A match at the range's end says "this
+    near or nearer": a surface just beyond the range has its true match outside the search, so its
+    matches break up into small segments there, and they are what keeps it near. The segments are
+    OpenCV's ``filterSpeckles(v, -1, N, 16 · R)`` exactly.
 
 11. **Near-range check** (always, where the coarse pair below exists). A surface nearer than the rig's
     range (true disparity above ``D - 1``) cannot be matched: rules 1–10 leave much of it invalid and
@@ -327,9 +330,10 @@ def check_peak_params(speckle_window_px: int, speckle_range_px: int) -> None:
         raise ValueError(f"speckle_range_px must be an integer in [0, 255], got {speckle_range_px}")
 
 
-def remove_peaks(disp: np.ndarray, speckle_window_px: int, speckle_range_px: int) -> np.ndarray:
+def remove_peaks(disp: np.ndarray, num_disparities: int, speckle_window_px: int, speckle_range_px: int) -> np.ndarray:
     """Rule 10's peak removal: int16 ``(H, W)`` disparity × 16 (``-1`` invalid) -> a new int16 array
-    with every pixel of a linked segment of at most ``speckle_window_px`` pixels invalid (0 = a copy).
+    with every pixel of a linked segment of at most ``speckle_window_px`` pixels invalid (0 = a copy),
+    but those at the range's end (``v >= 16 · (num_disparities - 1)``).
 
     The segments are found by propagating the smallest pixel index over the links until nothing
     changes, with pointer jumping (each label is a pixel of the same segment, so reading the label's
@@ -358,7 +362,8 @@ def remove_peaks(disp: np.ndarray, speckle_window_px: int, speckle_range_px: int
             break
         label = new
     size = np.bincount(label[valid], minlength=h * w)
-    out[valid & (size[label] <= n_max)] = INVALID
+    end = v >= SUBPIXEL_SCALE * (int(num_disparities) - 1)
+    out[valid & ~end & (size[label] <= n_max)] = INVALID
     return out
 
 
@@ -464,7 +469,7 @@ def sgm_match(
     del cost
     disp = select_disparity(sums, uniqueness_ratio_pct, lr_max_diff_px)
     disp = median3x3_valid(disp) if median else disp
-    disp = remove_peaks(disp, speckle_window_px, speckle_range_px)
+    disp = remove_peaks(disp, num_disparities, speckle_window_px, speckle_range_px)
     if not near_range:
         return disp
     return near_range_check(

@@ -644,7 +644,8 @@ extern "C" __global__ void __launch_bounds__(64) sgm_shrink(const u8* __restrict
 // Without peak removal one launch does it all (stage 0). With it (rule 10's second part), stage 1 writes
 // the checked and median-filtered disparity to disp and stops; sgm_peaks_init, sgm_peaks_link and
 // sgm_peaks_count find its segments; stage 2 reads disp back, invalidates the pixels of segments of at
-// most peak_max pixels, and goes on with the near-range check, the histograms and the depths.
+// most peak_max pixels (but those at the range's end), and goes on with the near-range check, the
+// histograms and the depths.
 //
 // A block owns a slab of SLAB_ROWS rows inside one row band of the regions (so its pixels fall in 3
 // regions). It first writes the left-right-checked v of its rows and the row above and below into shared
@@ -830,7 +831,8 @@ extern "C" __global__ void __launch_bounds__(POST_THREADS) sgm_post(const int* _
     int v;
     if (stage == 2) {
       v = disp[at];
-      if (v >= 0 && cnt[lab[at]] <= (u32)peak_max) v = -1;  // a peak (rule 10)
+      // a peak (rule 10), unless at the range's end
+      if (v >= 0 && v < 16 * (NDISP - 1) && cnt[lab[at]] <= (u32)peak_max) v = -1;
     } else {
       v = sm.chk[r * IMG_W + x];
       if (median && v >= 0) v = median_valid_3x3(sm.chk, r, x);
