@@ -126,6 +126,45 @@ def test_middlebury_2006_layout_and_missing_files(tmp_path: Path) -> None:
         E.load_middlebury(tmp_path)
 
 
+def _write_2006(d: Path, left: np.ndarray, right: np.ndarray, png: np.ndarray) -> Path:
+    d.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(d / "view1.png"), left)
+    cv2.imwrite(str(d / "view5.png"), right)
+    cv2.imwrite(str(d / "disp1.png"), png.astype(np.uint8))
+    return d
+
+
+@pytest.mark.parametrize(("width", "scale"), [(430, 3), (650, 2), (1300, 1), (100, 1)])
+def test_a_2006_folder_at_third_or_half_size_reads_its_disparity(tmp_path: Path, width: int, scale: int) -> None:
+    """The 2005/2006 PNGs hold the full size's disparity at every size (Middlebury's release):
+    at third size a PNG value of 21 is 7 px."""
+    left, right, gt = _shifted_pair(20, width, 7)
+    pair = E.load_middlebury(_write_2006(tmp_path / "s", left, right, gt * scale))
+    assert np.nanmax(pair.disparity) == pytest.approx(7.0) and np.nanmin(pair.disparity) == pytest.approx(7.0)
+    assert (f"disparity = PNG / {scale}" in pair.name) == (scale != 1)
+
+
+@pytest.mark.parametrize(
+    ("gt_m", "out_m", "verdict"),
+    [
+        (2.0, 1.49, "phantom"),
+        (2.0, 1.5, ""),
+        (0.9, 1.21, "missed"),
+        (0.9, 1.2, ""),
+        (1.2, 5.0, ""),  # not a near surface: far, not missed
+        (2.0, math.nan, "unknown"),
+        (math.nan, 3.0, ""),
+    ],
+)
+def test_region_verdicts(gt_m: float, out_m: float, verdict: str) -> None:
+    assert E.region_verdict(gt_m, out_m) == verdict
+
+
+def test_a_surface_nearer_than_the_rig_measures_is_not_missed_at_the_nearest_depth() -> None:
+    assert E.region_verdict(0.25, 0.42, nearest_m=0.42) == ""
+    assert E.region_verdict(0.25, 0.5, nearest_m=0.42) == "missed"
+
+
 def test_explicit_files_with_disparity_or_depth(tmp_path: Path) -> None:
     left, right, gt = _shifted_pair(30, 80, 5)
     cv2.imwrite(str(tmp_path / "l.png"), left)
@@ -222,6 +261,24 @@ def test_eval_command_on_a_synthetic_middlebury_folder(tmp_path: Path, capsys: p
     assert E.read_pfm(out_disp).shape == (64, 200)
 
 
+def test_eval_command_on_several_folders_prints_each_and_the_totals(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    folders = []
+    for i, shift in enumerate((6, 9)):
+        left, right, gt = _shifted_pair(48, 120, shift, seed=i)
+        folders.append(str(_write_2006(tmp_path / f"s{i}", left, right, gt)))
+    out_json = tmp_path / "r.json"
+    assert main(["eval", "--middlebury", *folders, "--backend", "reference", "--json", str(out_json)]) == 0
+    text = capsys.readouterr().out
+    assert text.count("decision from GT") == 2 and "verdict" in text
+    assert "2 pairs, 18 regions: 0 phantoms, 0 missed near surfaces, 0 unknown" in text
+    report = json.loads(out_json.read_text())
+    assert len(report["pairs"]) == 2 and report["summary"]["regions"] == 18
+    assert main(["eval", "--middlebury", *folders, "--save-disparity", str(tmp_path / "d.npy")]) == 2
+    assert "one --middlebury folder" in capsys.readouterr().err
+
+
 def test_eval_command_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["eval", "--middlebury", str(tmp_path)]) == 2
     assert "no Middlebury layout" in capsys.readouterr().err
@@ -271,3 +328,16 @@ def test_map_block_report_tells_smeared_edges_from_spikes_on_plain_and_textured_
     assert r["blocks"] == (h // 4) * (w // 4) - 4 * 5
     bare = map_block_report(out, gt, 4, near_px=10.0)
     assert np.isnan(bare["too_near_plain"]) and bare["too_near"] == r["too_near"]
+
+
+@needs_aloe
+def test_aloe_at_third_size_with_64_disparities_misses_no_near_surface(tmp_path: Path) -> None:
+    """The plant's nearest leaves lie just beyond 64 disparities at third size: their matches break up
+    at the range's end, and peak removal keeps them, so the centre still reads them near (without
+    that exception it read 0.56 m for leaves at 0.39 m)."""
+    out = tmp_path / "r.json"
+    assert main(["eval", "--middlebury", str(ALOE), "--scale", "0.3333", "--backend", "reference",
+                 "--num-disparities", "64", "--json", str(out)]) == 0
+    regions = {row["name"]: row for row in json.loads(out.read_text())["regions"]}
+    assert not any(row["verdict"] in ("missed", "phantom") for row in regions.values())
+    assert regions["center"]["depth_m"] < regions["center"]["gt_depth_m"] / E.PHANTOM_RATIO

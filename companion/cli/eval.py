@@ -23,12 +23,17 @@ def register(sub: argparse._SubParsersAction) -> None:
             "region the robust minimum depth from the output against the same from the ground truth, "
             "each region's near/far class and the controller's decision from both. Reads Middlebury "
             "folders (2014/2021: im0.png, im1.png, disp0.pfm, calib.txt; 2005/2006: view1.png, view5.png, "
-            "disp1.png; OpenCV's Aloe sample) or explicit files. Without a calibration the rig is assumed "
-            "(90 degree field of view, 12 cm baseline) for the depths."
+            "disp1.png at full, half or third size; OpenCV's Aloe sample) or explicit files. Without a "
+            "calibration the rig is assumed (90 degree field of view, 12 cm baseline) for the depths. Each "
+            "region is judged: a phantom reads nearer than 0.75 x the truth, a missed surface is one nearer "
+            "than 1 m read farther than its depth / 0.75, and unknown has too few valid pixels."
         ),
     )
     src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("--middlebury", type=Path, metavar="DIR", help="a Middlebury folder (see above)")
+    src.add_argument(
+        "--middlebury", type=Path, nargs="+", metavar="DIR",
+        help="Middlebury folders (see above); with several, each report and then the totals",
+    )
     src.add_argument("--left", type=Path, metavar="L", help="left image (with --right and a ground truth)")
     p.add_argument("--right", type=Path, metavar="R", help="right image")
     gt = p.add_mutually_exclusive_group()
@@ -52,15 +57,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def _load(args: argparse.Namespace) -> Any:
+def _load(args: argparse.Namespace, folder: Path | None) -> Any:
     from dataclasses import replace
 
     from companion.core.evaluation import load_middlebury, load_pair, rescale
 
-    if args.middlebury is not None:
+    if folder is not None:
         if args.right is not None or args.gt_disparity is not None or args.gt_depth is not None:
             raise InputError("--middlebury reads the folder's own files: leave out --right/--gt-*")
-        pair = load_middlebury(args.middlebury)
+        pair = load_middlebury(folder)
     else:
         if args.right is None:
             raise InputError("--left needs --right")
@@ -82,15 +87,16 @@ def _load(args: argparse.Namespace) -> Any:
     return rescale(pair, float(args.scale))
 
 
-def evaluate(args: argparse.Namespace) -> dict[str, Any]:
-    """Load the pair, run the backend, score it; returns the report (also what ``--json`` writes)."""
+def evaluate(args: argparse.Namespace, folder: Path | None = None) -> dict[str, Any]:
+    """Load the pair (``folder``: a Middlebury folder, else the explicit files), run the backend, score
+    it; returns the report (also what ``--json`` writes for one pair)."""
     import numpy as np
 
     from companion.config import apply_patch, load_config
     from companion.core.evaluation import disparity_metrics, region_report, suggested_num_disparities, write_pfm
     from companion.backends import make_estimator
 
-    pair = _load(args)
+    pair = _load(args, folder)
     w, h = pair.width_px, pair.height_px
     D = int(args.num_disparities or suggested_num_disparities(pair))
     stereo: dict[str, Any] = {"num_disparities": D}
@@ -173,12 +179,13 @@ def print_report(r: dict[str, Any]) -> None:
             f"density {_pct(d['density_' + label])}; bad-2 errors that point too near: "
             f"{_pct(d['too_near_' + label])}"
         )
-    print("region        GT m   out m   err m  GT valid  valid  GT class  class")
+    print("region        GT m   out m   err m  GT valid  valid  GT class  class    verdict")
     for row in r["regions"]:
         err = "-" if row["error_m"] != row["error_m"] else f"{row['error_m']:+.2f}"
         print(
             f"{row['name']:<11} {_m(row['gt_depth_m']):>7} {_m(row['depth_m']):>7} {err:>7}  "
-            f"{100 * row['gt_valid']:6.1f}%  {100 * row['valid']:5.1f}%  {row['gt_class']:<8}  {row['class']}"
+            f"{100 * row['gt_valid']:6.1f}%  {100 * row['valid']:5.1f}%  {row['gt_class']:<8}  "
+            f"{row['class']:<7}  {row['verdict']}".rstrip()
         )
     g, o = r["gt_decision"], r["decision"]
     print(f"classes agree in {r['class_agreement']} of 9 regions")
@@ -187,11 +194,40 @@ def print_report(r: dict[str, Any]) -> None:
     sys.stdout.flush()
 
 
+def summarise(reports: list[dict[str, Any]]) -> dict[str, Any]:
+    """Totals over several pairs: regions judged, phantoms, missed near surfaces, unknown regions, and
+    the mean bad-2 and density over the GT-known pixels."""
+    verdicts = [row["verdict"] for r in reports for row in r["regions"]]
+    return {
+        "pairs": len(reports),
+        "regions": len(verdicts),
+        "phantoms": verdicts.count("phantom"),
+        "missed": verdicts.count("missed"),
+        "unknown": verdicts.count("unknown"),
+        "mean_bad2_known": sum(r["disparity"]["bad2_known"] for r in reports) / len(reports),
+        "mean_density_known": sum(r["disparity"]["density_known"] for r in reports) / len(reports),
+    }
+
+
 def run(args: argparse.Namespace) -> int:
     if not 0.05 <= args.scale <= 1.0:
         raise InputError(f"--scale must be in [0.05, 1], got {args.scale}")
-    report = evaluate(args)
-    print_report(report)
+    folders = args.middlebury or [None]
+    if len(folders) > 1 and args.save_disparity is not None:
+        raise InputError("--save-disparity writes one pair's disparity: give one --middlebury folder")
+    reports = []
+    for folder in folders:
+        reports.append(evaluate(args, folder))
+        print_report(reports[-1])
+    out: dict[str, Any] = reports[0]
+    if len(reports) > 1:
+        out = {"pairs": reports, "summary": summarise(reports)}
+        t = out["summary"]
+        print(
+            f"{t['pairs']} pairs, {t['regions']} regions: {t['phantoms']} phantoms, {t['missed']} missed near "
+            f"surfaces, {t['unknown']} unknown; mean bad-2 {_pct(t['mean_bad2_known'])} at density "
+            f"{_pct(t['mean_density_known'])} (GT-known pixels)"
+        )
     if args.json is not None:
-        args.json.write_text(json.dumps(report, indent=2, default=float) + "\n", encoding="utf-8")
+        args.json.write_text(json.dumps(out, indent=2, default=float) + "\n", encoding="utf-8")
     return 0

@@ -8,8 +8,9 @@ Readers (pure functions of paths, no global state):
   ``width``, ``height``, ``ndisp``, ...);
 * :func:`load_middlebury`: a Middlebury folder in one of three layouts: 2014/2021 (``im0.png``,
   ``im1.png``, ``disp0.pfm``, ``calib.txt``), 2005/2006 (``view1.png``, ``view5.png``, ``disp1.png``,
-  uint8, 0 = unknown) or OpenCV's sample copy of 2006 Aloe (``aloeL.jpg``, ``aloeR.jpg``,
-  ``aloeGT.png``);
+  uint8, 0 = unknown; at every size the PNG holds the full size's disparity, so at half and third size
+  it is divided by 2 and 3: :func:`middlebury_2006_png_scale`) or OpenCV's sample copy of 2006 Aloe
+  (``aloeL.jpg``, ``aloeR.jpg``, ``aloeGT.png``, full size);
 * :func:`load_pair`: explicit left/right images with a disparity file (PFM, PNG, ``.npy``) or a depth
   file (PFM or ``.npy`` in metres, 16-bit PNG in millimetres) and a focal length and baseline.
 
@@ -20,6 +21,12 @@ Metrics, on a float32 disparity in pixels (NaN = no output) against the ground t
 * **bad-k** = share of the output pixels (GT-known, resp. matchable) with ``|d - d_gt| > k``;
   **density** = output pixels / GT-known (resp. matchable) pixels; **too near** = share of the bad-2
   errors whose disparity is too large (the depth too near: phantom obstacles).
+* **Verdicts** per region (:func:`region_verdict`): a **phantom** reads nearer than
+  :data:`PHANTOM_RATIO` × the ground truth's depth; a **missed** near surface is one nearer than
+  :data:`NEAR_SURFACE_M` that the output reads farther than its depth / :data:`PHANTOM_RATIO` and
+  farther than the rig's nearest measurable depth ``f·B / (D - 1 + doffs)`` (a surface nearer than the
+  rig can measure reads that depth at best); **unknown** has too few valid pixels (the controller
+  treats it as near: safe, but it steers away).
 * **Regions**: the 9-region robust minimum (:func:`~companion.core.regions.reduce_regions`, the
   configured percentile and minimum valid share) of the depth ``z = f·B / (d + doffs)`` from the output
   and from the ground truth, their difference, and each region's class from the controller's ``near``
@@ -46,6 +53,11 @@ from companion.core.blocks import block_max
 from companion.core.regions import reduce_regions, region_layout
 from companion.core.types import REGION_NAMES
 from companion.errors import InputError
+
+#: A region reading nearer than this share of the ground truth's depth is a phantom obstacle.
+PHANTOM_RATIO = 0.75
+#: A real surface nearer than this, m, that a region reads farther than depth / PHANTOM_RATIO is missed.
+NEAR_SURFACE_M = 1.0
 
 #: Used when a pair has no calibration: a ZED-like rig, 90° horizontal field of view, 12 cm baseline.
 ASSUMED_HFOV_DEG = 90.0
@@ -251,6 +263,17 @@ def _assumed_focal(width_px: int) -> float:
     return (width_px / 2.0) / math.tan(math.radians(ASSUMED_HFOV_DEG) / 2.0)
 
 
+def middlebury_2006_png_scale(width_px: int) -> float:
+    """PNG units per pixel of a 2005/2006 ``disp1.png`` at this image width: the PNGs hold the full
+    size's disparity (full size is 1240–1390 px wide, half 620–695, third 413–465), so 1, 2 or 3; 1
+    for a width no release has."""
+    if 550 <= width_px < 1000:
+        return 2.0
+    if 350 <= width_px < 550:
+        return 3.0
+    return 1.0
+
+
 def load_middlebury(directory: str | Path) -> GroundTruthPair:
     """A Middlebury pair from its folder (2014/2021, 2005/2006, or OpenCV's Aloe sample; module doc).
 
@@ -270,7 +293,10 @@ def load_middlebury(directory: str | Path) -> GroundTruthPair:
     for ln, rn, gn, what in layouts:
         if (d / ln).is_file() and (d / rn).is_file() and (d / gn).is_file():
             left, right = _read_grey(d / ln), _read_grey(d / rn)
-            gt = _read_disparity(d / gn, png_scale=1.0)
+            scale = middlebury_2006_png_scale(left.shape[1]) if ln == "view1.png" else 1.0
+            gt = _read_disparity(d / gn, png_scale=scale)
+            if scale != 1.0:
+                what += f" ({'half' if scale == 2.0 else 'third'} size: disparity = PNG / {scale:.0f})"
             break
     else:
         raise InputError(
@@ -506,6 +532,21 @@ def depth_from_disparity(disparity: np.ndarray, focal_baseline_px_m: float, doff
     return disparity_to_depth(d, focal_baseline_px_m)
 
 
+def region_verdict(gt_depth_m: float, depth_m: float, nearest_m: float = 0.0) -> str:
+    """``"phantom"``, ``"missed"``, ``"unknown"`` or ``""`` for one region's output depth against its
+    ground truth's, metres, NaN = unknown; ``nearest_m``: the rig's nearest measurable depth, which a
+    nearer surface reads at best (module doc)."""
+    if math.isnan(depth_m):
+        return "unknown"
+    if math.isnan(gt_depth_m):
+        return ""
+    if depth_m < PHANTOM_RATIO * gt_depth_m:
+        return "phantom"
+    if gt_depth_m < NEAR_SURFACE_M and depth_m > max(gt_depth_m / PHANTOM_RATIO, nearest_m * (1.0 + 1e-6)):
+        return "missed"
+    return ""
+
+
 def region_report(
     disparity: np.ndarray, pair: GroundTruthPair, cfg: CompanionConfig
 ) -> dict[str, Any]:
@@ -514,7 +555,7 @@ def region_report(
 
     Returns:
         ``{"regions": [{"name", "gt_depth_m", "depth_m", "error_m", "gt_valid", "valid", "gt_class",
-        "class"}, ...], "gt_decision": {...}, "decision": {...}, "class_agreement": int}``.
+        "class", "verdict"}, ...], "gt_decision": {...}, "decision": {...}, "class_agreement": int}``.
     """
     geometry = pair.geometry()
     layout = region_layout(geometry, cfg.regions)
@@ -536,13 +577,14 @@ def region_report(
         return {"kind": dec.kind.value, "yaw": dec.yaw, "pitch": dec.pitch, "reason": dec.reason}
 
     gc, bc = classes(ref.depth_m), classes(out.depth_m)
+    nearest_m = fb / (cfg.stereo.num_disparities - 1 + pair.doffs_px)
     rows = []
     for i, name in enumerate(REGION_NAMES):
         g, b = float(ref.depth_m[i]), float(out.depth_m[i])
         rows.append({
             "name": name, "gt_depth_m": g, "depth_m": b, "error_m": b - g,
             "gt_valid": float(ref.valid_fraction[i]), "valid": float(out.valid_fraction[i]),
-            "gt_class": gc[i], "class": bc[i],
+            "gt_class": gc[i], "class": bc[i], "verdict": region_verdict(g, b, nearest_m),
         })
     return {
         "regions": rows,
