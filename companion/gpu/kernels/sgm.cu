@@ -856,8 +856,8 @@ extern "C" __global__ void __launch_bounds__(POST_THREADS) sgm_post(const int* _
   if (stage == 1) return;  // uniform over the grid: the histograms wait for stage 2
   __syncthreads();
   for (int i = tid; i < 3 * NBINS; i += POST_THREADS) {
-    const u32 cnt = (sm.hist[i >> 1] >> (16 * (i & 1))) & 0xffffu;
-    if (cnt) atomicAdd(hist_g + (band * 3 + i / NBINS) * NBINS + i % NBINS, cnt);
+    const u32 c = (sm.hist[i >> 1] >> (16 * (i & 1))) & 0xffffu;
+    if (c) atomicAdd(hist_g + (band * 3 + i / NBINS) * NBINS + i % NBINS, c);
   }
 
   // ---- the last block turns the histogram into the 9 results
