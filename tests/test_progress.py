@@ -59,3 +59,27 @@ def test_the_watchdog_holds_a_vehicle_that_gets_no_nearer() -> None:
     assert g.no_progress(here, 20.2, 1.0, 20.0)
     g.resume()  # the operator's resume: another full time
     assert not g.no_progress(here, 21.0, 1.0, 20.0) and not g.no_progress(here, 40.0, 1.0, 20.0)
+
+
+def test_coming_back_down_to_the_goals_altitude_is_progress() -> None:
+    """office-40154: the vehicle climbed toward a fence's top, and in front of the door it came back
+    down to its altitude at walking pace for twenty seconds with no metre gained over the floor; the
+    watchdog held it as it reached the door's height. The height to come back is part of the way."""
+    g = GoalProgress()
+    g.engage(np.array([0.0, 0.0, -1.5]), 0.0, GoalSpec(kind="point", north_m=14.5, east_m=0.0))
+    assert g.progress_m(np.array([10.5, 0.0, -2.7])) == pytest.approx(-4.0 - 1.2)
+    t = 0.0
+    for k in range(120):  # 1.2 m down in 24 s, in place over the floor
+        t = 0.2 * k
+        assert not g.no_progress(np.array([10.5, 0.0, -2.7 + 0.01 * k]), t, 1.0, 20.0)
+
+
+def test_climbing_and_coming_down_again_in_place_is_no_progress() -> None:
+    g = GoalProgress()
+    g.engage(np.array([0.0, 0.0, -1.5]), 0.0)
+    fired = False
+    for k in range(300):  # up 1.5 m and down again, twice a minute, over the same spot
+        t = 0.1 * k
+        climb = 1.5 * abs(math.sin(math.pi * t / 15.0))
+        fired = fired or g.no_progress(np.array([0.5, 0.0, -1.5 - climb]), t, 1.0, 20.0)
+    assert fired

@@ -10,7 +10,10 @@ for the operator (:class:`ProgressWatch`, :class:`GoalProgress`).
 
 Progress is metres growing toward the goal: minus the horizontal distance to a goal point, or the
 distance along the course at engagement (the line from where the vehicle was engaged, along the
-heading it had then: :func:`along_course_m`).
+heading it had then: :func:`along_course_m`), less the height between the vehicle and the goal's
+altitude (the altitude when the goal was set, which the planner comes back to). A vehicle that climbed
+over something and comes back down to its altitude in front of a door is getting nearer its goal; one
+that climbs and comes down again in place gets no nearer than it was.
 """
 
 from __future__ import annotations
@@ -90,6 +93,7 @@ class GoalProgress:
         self.goal = Goal(COURSE, None)
         self.origin_ned_m: np.ndarray | None = None
         self.heading_rad: float | None = None
+        self.goal_down_m: float | None = None
         self._engaged_at: tuple[np.ndarray | None, float | None] = (None, None)
         self.watch = ProgressWatch()
 
@@ -104,7 +108,9 @@ class GoalProgress:
         """A new goal from the vehicle's position and heading now (the operator's ``goto``): a point's
         progress is its distance, ``course`` goes back to the heading and line at engagement; the
         watchdog starts again."""
-        self.goal = resolve_goal(goal, finite_position(position_ned_m), _finite(heading_rad))
+        pos = finite_position(position_ned_m)
+        self.goal = resolve_goal(goal, pos, _finite(heading_rad))
+        self.goal_down_m = None if pos is None else float(pos[2])
         self.origin_ned_m, self.heading_rad = self._engaged_at
         self.watch.reset()
 
@@ -114,14 +120,21 @@ class GoalProgress:
 
     def progress_m(self, position_ned_m: object) -> float | None:
         """How far along toward the goal the vehicle is, metres (growing toward it): minus the
-        distance to a goal point, or the distance along the course at engagement; None unknown."""
+        distance to a goal point, or the distance along the course at engagement, less the height to
+        the goal's altitude; None unknown."""
         pos = finite_position(position_ned_m)
+        if pos is None:
+            return None
         if self.goal.is_point:
             d = self.goal.distance_m(pos)
-            return None if d is None else -d
-        if pos is None or self.origin_ned_m is None or self.heading_rad is None:
+            if d is None:
+                return None
+            along = -d
+        elif self.origin_ned_m is None or self.heading_rad is None:
             return None
-        return along_course_m(pos, self.origin_ned_m, self.heading_rad)
+        else:
+            along = along_course_m(pos, self.origin_ned_m, self.heading_rad)
+        return along - (0.0 if self.goal_down_m is None else abs(float(pos[2]) - self.goal_down_m))
 
     def no_progress(self, position_ned_m: object, now_s: float, step_m: float, timeout_s: float) -> bool:
         """The watchdog fed the position now: True once the vehicle has got no ``step_m`` metres
