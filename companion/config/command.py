@@ -28,8 +28,8 @@ class CommandConfig(StrictModel):
         le=50.0,
         description=(
             "Progress watchdog: how much nearer the goal (metres; farther along the course at "
-            "engagement, for the course) counts as progress and restarts the watchdog's time "
-            "(planner.no_progress_distance_m at cruise)."
+            "engagement, for the course; the height back to the goal's altitude counts too) counts "
+            "as progress and restarts the watchdog's time (planner.no_progress_distance_m at cruise)."
         ),
     )
 
