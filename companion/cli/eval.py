@@ -26,7 +26,8 @@ def register(sub: argparse._SubParsersAction) -> None:
             "disp1.png at full, half or third size; OpenCV's Aloe sample) or explicit files. Without a "
             "calibration the rig is assumed (90 degree field of view, 12 cm baseline) for the depths. Each "
             "region is judged: a phantom reads nearer than 0.75 x the truth, a missed surface is one nearer "
-            "than 1 m read farther than its depth / 0.75, and unknown has too few valid pixels."
+            "than 1 m read farther than its depth / 0.75 and than the rig's nearest measurable depth, and "
+            "unknown has too few valid pixels."
         ),
     )
     src = p.add_mutually_exclusive_group(required=True)
