@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from companion.core.disparity.sgm import near_range_shape
+from companion.core.disparity.sgm import SUBPIXEL_SCALE, near_range_shape
 from companion.gpu.plan import (
     OBSTACLE_HIST_BINS,
     SGM_PATH_THREADS,
@@ -307,7 +307,7 @@ class HostSgmKernels:
         peaks = (self._ptr(lab), self._ptr(cnt), int(speckle_window_px))
         if speckle_window_px > 0:
             self._lib.run_post(*post, 1, *peaks, p.post_blocks)
-            self._lib.run_peaks(self._ptr(disp), self._ptr(lab), self._ptr(cnt), 16 * int(speckle_range_px),
+            self._lib.run_peaks(self._ptr(disp), self._ptr(lab), self._ptr(cnt), SUBPIXEL_SCALE * int(speckle_range_px),
                                 -(-h * w // SGM_PEAK_THREADS))
             self._lib.run_post(*post, 2, *peaks, p.post_blocks)
         else:
