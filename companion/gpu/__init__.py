@@ -1,4 +1,4 @@
-"""CuPy backend: the stereo pipeline's expensive half on a CUDA GPU (issues 4 and 15).
+"""CuPy backend: the stereo pipeline's expensive half on a CUDA GPU.
 
 :class:`CupyRegionEstimator` implements the :class:`~companion.core.pipeline.RegionEstimator`
 contract with CUDA kernels (``kernels/stereo.cu``: grey, remap, SAD block matching; ``kernels/sgm.cu``:
