@@ -99,6 +99,6 @@ def test_every_module_compiles_where_nvcc_is_installed(tmp_path: Path, arch: str
         src.write_text(code, encoding="utf-8")
         done = subprocess.run(
             [nvcc, *NVRTC_OPTIONS, f"-arch={arch}", "-ptx", str(src), "-o", str(tmp_path / f"{name}.ptx")],
-            capture_output=True, text=True, check=False,
+            capture_output=True, text=True, check=False, timeout=300,
         )
         assert done.returncode == 0, f"{name} ({arch}):\n{done.stderr[-3000:]}"
