@@ -53,8 +53,9 @@ def test_the_path_kernel_loads_further_ahead_only_where_few_warps_hide_latency()
 
 
 def _module_sources() -> dict[str, str]:
-    """Each module's full source (defines + kernel file) as the estimator compiles it, for the ZED's VGA
-    and HD at 4 and 8 paths, 16 lanes a line, and the near-range check's coarse pairs of both."""
+    """Each module's full source (defines + kernel file) as the estimator builds it, for the ZED's VGA
+    and HD at 4 and 8 paths, 16 lanes a line, and the near-range check's coarse pairs of both; the
+    regions in thirds (the layout only sets the values of the region edges' defines)."""
     from companion.core.disparity.sgm import near_range_shape
     from companion.gpu.plan import (
         OBSTACLE_THREADS,
@@ -63,6 +64,7 @@ def _module_sources() -> dict[str, str]:
         plan_disparity,
         plan_sgm,
         sgm_defines,
+        sgm_pitch_bytes,
     )
 
     def edges(n: int) -> list[int]:
@@ -80,8 +82,9 @@ def _module_sources() -> dict[str, str]:
         assert near is not None
         hc, wc, dc = near
         npl = plan_sgm(wc, hc, dc, paths, edges(hc), 0, 0, 16)
-        pitch = -(-(wc + 16) // 16) * 16  # as build_near_pair pads it
-        sources[f"near-{wc}x{hc}-{dc}-{paths}p"] = sgm_defines(npl, pitch, edges(hc), edges(wc)) + kernel_source("sgm.cu")
+        sources[f"near-{wc}x{hc}-{dc}-{paths}p"] = (
+            sgm_defines(npl, sgm_pitch_bytes(wc), edges(hc), edges(wc)) + kernel_source("sgm.cu")
+        )
     return sources
 
 

@@ -14,7 +14,7 @@ from companion.config import CompanionConfig
 from companion.core.disparity.sgm import near_range_shape
 from companion.core.types import N_REGIONS
 from companion.gpu.nvrtc import sgm_module
-from companion.gpu.plan import SgmPlan, plan_sgm
+from companion.gpu.plan import SgmPlan, plan_sgm, sgm_pitch_bytes
 
 
 @dataclass(frozen=True)
@@ -62,7 +62,7 @@ def build_near_pair(cp: Any, cfg: CompanionConfig, width_px: int, height_px: int
     hc, wc, dc = shape
     rows_e, cols_e = [0, hc // 3, 2 * hc // 3, hc], [0, wc // 3, 2 * wc // 3, wc]
     plan = plan_sgm(wc, hc, dc, st.sgm_paths, rows_e, 0, cfg.gpu.sgm_prefetch_steps, sm_count)
-    pitch = -(-(wc + 16) // 16) * 16
+    pitch = sgm_pitch_bytes(wc)
     module = sgm_module(cp, plan, pitch, rows_e, cols_e)
     get = module.get_function
     return NearPair(

@@ -243,6 +243,12 @@ def _round_up(n: int, m: int) -> int:
     return -(-n // m) * m
 
 
+def sgm_pitch_bytes(width_px: int) -> int:
+    """Row pitch (bytes) of the grey rows an SGM module reads when no SAD plan sets it (the near-range
+    check's coarse pair, the host emulation): the width with 16 bytes of room, a multiple of 16."""
+    return _round_up(int(width_px) + 16, 16)
+
+
 def kernel_defines(plan: DisparityPlan, row_edges: Sequence[int], col_edges: Sequence[int]) -> str:
     """The ``#define`` block that specialises ``stereo.cu`` for this plan (prepended to the source)."""
     b = plan.block_size

@@ -34,6 +34,7 @@ from companion.gpu.plan import (
     plan_disparity,
     plan_sgm,
     sgm_defines,
+    sgm_pitch_bytes,
 )
 
 _HERE = Path(__file__).resolve().parent
@@ -211,7 +212,7 @@ class HostSgmKernels:
                  col_edges: Any, lanes_per_line: int = 0, prefetch_steps: int = 0):
         self.plan = p = plan_sgm(width_px, height_px, num_disparities, paths, row_edges, lanes_per_line,
                                  prefetch_steps)
-        self.pitch = -(-(width_px + 16) // 16) * 16
+        self.pitch = sgm_pitch_bytes(width_px)
         src = sgm_defines(p, self.pitch, row_edges, col_edges) + _SGM_KERNEL.read_text(encoding="utf-8")
         self._lib = _build(src, "harness_sgm.cpp")
         self.w, self.h = width_px, height_px
